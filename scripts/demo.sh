@@ -1,0 +1,12 @@
+#!/usr/bin/env bash
+# Sets up (Debian packages, CMake and Python packages, build) and runs the main job
+# on the built-in phantom: prepares the patient and writes its preview into out/demo/.
+set -euo pipefail
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+. "$root/scripts/setup.sh"
+build_dir=${PALPSIM_BUILD_DIR:-$root/build}
+out=${PALPSIM_DEMO_OUT:-$root/out/demo}
+
+echo "[demo] preparing the phantom patient (scene config/scenes/lumbar_phantom.textproto)"
+"$build_dir/palpsim-prep" phantom --scene "$root/config/scenes/lumbar_phantom.textproto" --out "$out/patient"
+echo "[demo] patient volumes, preview.png and prep.json are in $out/patient"

@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# Sets up (Debian packages, CMake and Python packages, build) and runs every test
+# that runs without a GPU: the C++ suites through CTest (label gpu excluded: those
+# run on the GPU machine, see tests/gpu/README.md) and the Python package's tests.
+set -euo pipefail
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+. "$root/scripts/setup.sh"
+build_dir=${PALPSIM_BUILD_DIR:-$root/build}
+
+echo "[test] C++ tests (ctest -LE gpu)"
+(cd "$build_dir" && ctest -LE gpu --output-on-failure -j "$(nproc)" --timeout 900)
+
+if [ -d "$root/clients/python/tests" ]; then
+  echo "[test] Python tests (pytest)"
+  PALPSIM_BUILD_DIR="$build_dir" "$root/.venv/bin/python" -m pytest -q "$root/clients/python/tests"
+fi

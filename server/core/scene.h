@@ -1,0 +1,88 @@
+// Validated scene settings in the project's own types (the schema is proto/palpsim/scene.proto;
+// server/net/scene_io.cpp converts a text-format file into this struct).
+#pragma once
+
+#include <string>
+
+namespace palpsim {
+
+/// Preprocessing settings (Prep in the schema).
+struct PrepSettings {
+  double spacing_mm = 0;            // 0 = smallest input spacing clamped to [0.5, 2] mm
+  double air_threshold = -400;      // HU (or image units when air_threshold_set)
+  double bone_threshold = 200;      // HU (or image units when bone_threshold_set)
+  bool air_threshold_set = false;   // the scene set it explicitly
+  bool bone_threshold_set = false;  // the scene set it explicitly
+  double bone_min_volume_ml = 0.5;  // smaller bone components are removed
+  double bone_closing_mm = 3.0;     // closing radius before hole filling
+  bool bone_fill_holes = true;      // fill cavities enclosed by bone
+  double max_memory_mb = 8192;      // refuse larger patients
+  std::string dicom_series_uid;     // "" = the only series in the folder
+  std::string cache_dir;            // "" = $PALPSIM_CACHE or ~/.cache/palpsim
+  bool use_cache = true;
+};
+
+/// Eq. 1 parameters; A, B and F in mm.
+struct ForceImageSettings {
+  double alpha = 200.0 / 3.0;  // mm^2
+  double beta = 2.0;           // mm
+  double gamma = 1.0 / 60.0;   // dimensionless
+};
+
+/// Force model parameters.
+struct HapticsSettings {
+  double stiffness_n_per_mm = 0.25;
+  double friction = 0.2;                 // 0 = none, towards 1 = proxy sticks
+  double max_force_n = 3.3;
+  double max_force_rate_n_per_s = 2000;
+  double min_gradient_norm = 1e-4;       // |grad F| below this keeps the last direction
+};
+
+/// ChainMail, relaxation and inversion parameters (voxel edge lengths where noted).
+struct DeformSettings {
+  double min_dist = 0.5;        // voxel
+  double max_dist = 1.5;        // voxel
+  double max_sheer = 0.5;       // voxel
+  int voi_edge = 64;            // voxel
+  bool whole_volume = false;
+  int max_sweeps = 2048;
+  int relax_iterations = 20;
+  double relax_step = 0.15;     // explicit diffusion step, stable below 1/6
+  double material_width = 50;   // HU, width of the material function's step at bone
+  int invert_iterations = 8;
+  std::string backend = "auto"; // "auto", "cpu" or "cuda"
+};
+
+/// Effects a scene calls for; only these stages are built.
+struct EffectsSettings {
+  bool haptics = true;
+  bool chainmail = false;
+  bool relaxation = false;
+  bool inversion = false;
+  bool frames = false;
+  bool bricks = false;
+};
+
+/// Server settings.
+struct ServerSettings {
+  double session_timeout_s = 5;
+  int max_sessions = 64;
+};
+
+/// A whole validated scene.
+struct Scene {
+  std::string name;
+  std::string description;
+  std::string file;              // the scene file it came from ("" for the built-in default)
+  bool use_phantom = true;       // false: ct_path names the CT
+  std::string ct_path;           // resolved CT path (file or DICOM folder)
+  double phantom_voxel_mm = 1.0;
+  PrepSettings prep;
+  ForceImageSettings force_image;
+  HapticsSettings haptics;
+  DeformSettings deform;
+  EffectsSettings effects;
+  ServerSettings server;
+};
+
+}  // namespace palpsim

@@ -1,0 +1,271 @@
+#include "net/scene_io.h"
+
+#include <google/protobuf/descriptor.h>
+#include <google/protobuf/io/tokenizer.h>
+#include <google/protobuf/text_format.h>
+
+#include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include "core/error.h"
+#include "palpsim/options.pb.h"
+#include "palpsim/scene.pb.h"
+
+namespace palpsim {
+namespace {
+
+namespace fs = std::filesystem;
+namespace gp = google::protobuf;
+using gp::TextFormat;
+
+// collects the parser's first error with its 1-based position
+class FirstError : public gp::io::ErrorCollector {
+ public:
+  void AddError(int line, gp::io::ColumnNumber column, const std::string& message) override {
+    if (message_.empty()) {
+      std::ostringstream s;
+      s << (line + 1) << ":" << (column + 1) << ": " << message;
+      message_ = s.str();
+    }
+  }
+  void AddWarning(int, gp::io::ColumnNumber, const std::string&) override {}
+  const std::string& message() const { return message_; }
+
+ private:
+  std::string message_;
+};
+
+std::string where(const std::string& origin, const TextFormat::ParseLocation& loc) {
+  std::ostringstream s;
+  s << (origin.empty() ? "<scene>" : origin) << ":" << (loc.line + 1) << ":" << (loc.column + 1);
+  return s.str();
+}
+
+std::string fmt(double v) {
+  std::ostringstream s;
+  s << v;
+  return s.str();
+}
+
+// numeric value of a set scalar field, as double
+double numeric_value(const gp::Message& m, const gp::FieldDescriptor* f) {
+  const gp::Reflection* r = m.GetReflection();
+  switch (f->cpp_type()) {
+    case gp::FieldDescriptor::CPPTYPE_INT32: return r->GetInt32(m, f);
+    case gp::FieldDescriptor::CPPTYPE_INT64: return double(r->GetInt64(m, f));
+    case gp::FieldDescriptor::CPPTYPE_UINT32: return r->GetUInt32(m, f);
+    case gp::FieldDescriptor::CPPTYPE_UINT64: return double(r->GetUInt64(m, f));
+    case gp::FieldDescriptor::CPPTYPE_DOUBLE: return r->GetDouble(m, f);
+    case gp::FieldDescriptor::CPPTYPE_FLOAT: return r->GetFloat(m, f);
+    default: return 0;
+  }
+}
+
+bool is_numeric(const gp::FieldDescriptor* f) {
+  switch (f->cpp_type()) {
+    case gp::FieldDescriptor::CPPTYPE_INT32:
+    case gp::FieldDescriptor::CPPTYPE_INT64:
+    case gp::FieldDescriptor::CPPTYPE_UINT32:
+    case gp::FieldDescriptor::CPPTYPE_UINT64:
+    case gp::FieldDescriptor::CPPTYPE_DOUBLE:
+    case gp::FieldDescriptor::CPPTYPE_FLOAT: return true;
+    default: return false;
+  }
+}
+
+std::string range_text(const gp::FieldDescriptor* f) {
+  const auto& o = f->options();
+  std::string s = "[" + fmt(o.GetExtension(v1::min)) + ", " + fmt(o.GetExtension(v1::max)) + "]";
+  if (o.GetExtension(v1::zero_means_auto)) s += " or 0 (automatic)";
+  const std::string unit = o.GetExtension(v1::unit);
+  if (!unit.empty() && unit != "1") s += " " + unit;
+  return s;
+}
+
+// checks every set numeric field of `m` (recursively) against its (min)/(max) options
+void check_ranges(const gp::Message& m, const TextFormat::ParseInfoTree* tree, const std::string& origin,
+                  const std::string& prefix) {
+  const gp::Reflection* r = m.GetReflection();
+  std::vector<const gp::FieldDescriptor*> fields;
+  r->ListFields(m, &fields);
+  for (const gp::FieldDescriptor* f : fields) {
+    const std::string name = prefix + f->name();
+    const TextFormat::ParseLocation loc = tree ? tree->GetLocation(f, -1) : TextFormat::ParseLocation();
+    if (f->cpp_type() == gp::FieldDescriptor::CPPTYPE_MESSAGE && !f->is_repeated()) {
+      check_ranges(r->GetMessage(m, f), tree ? tree->GetTreeForNested(f, -1) : nullptr, origin, name + ".");
+      continue;
+    }
+    if (!is_numeric(f) || f->is_repeated()) continue;
+    const auto& o = f->options();
+    if (!o.HasExtension(v1::min) && !o.HasExtension(v1::max)) continue;
+    const double v = numeric_value(m, f);
+    if (v == 0 && o.GetExtension(v1::zero_means_auto)) continue;
+    const bool ok = std::isfinite(v) && (!o.HasExtension(v1::min) || v >= o.GetExtension(v1::min)) &&
+                    (!o.HasExtension(v1::max) || v <= o.GetExtension(v1::max));
+    if (!ok)
+      throw Error(where(origin, loc) + ": " + name + " = " + fmt(v) + " is out of range; allowed: " +
+                  range_text(f));
+  }
+}
+
+// resolves "data:REL" and relative CT paths
+std::string resolve_ct_path(const std::string& raw, const std::string& origin) {
+  const fs::path base = origin.empty() ? fs::current_path() : fs::absolute(origin).parent_path();
+  const std::string prefix = "data:";
+  if (raw.rfind(prefix, 0) == 0) {
+    const std::string rel = raw.substr(prefix.size());
+    if (const char* env = std::getenv("PALPSIM_DATA"); env && *env) return (fs::path(env) / rel).string();
+    // the nearest shared/data folder above the scene file
+    for (fs::path d = base; !d.empty(); d = d.parent_path()) {
+      if (fs::is_directory(d / "shared" / "data")) return (d / "shared" / "data" / rel).string();
+      if (d == d.parent_path()) break;
+    }
+    throw Error(origin + ": ct_path \"" + raw +
+                "\": no data folder found (set PALPSIM_DATA, or place shared/data above the scene file)");
+  }
+  const fs::path p(raw);
+  return (p.is_absolute() ? p : base / p).lexically_normal().string();
+}
+
+Scene to_scene(const v1::Scene& s, const std::string& origin) {
+  Scene out;
+  out.file = origin;
+  out.name = s.name();
+  out.description = s.description();
+  if (s.has_ct_path()) {
+    if (s.ct_path().empty()) throw Error(origin + ": ct_path is empty");
+    out.use_phantom = false;
+    out.ct_path = resolve_ct_path(s.ct_path(), origin);
+  } else {
+    out.use_phantom = true;
+    out.phantom_voxel_mm = s.phantom().voxel_mm();
+  }
+  const auto& p = s.prep();
+  out.prep.spacing_mm = p.spacing_mm();
+  out.prep.air_threshold = p.air_threshold();
+  out.prep.bone_threshold = p.bone_threshold();
+  out.prep.air_threshold_set = p.has_air_threshold();
+  out.prep.bone_threshold_set = p.has_bone_threshold();
+  out.prep.bone_min_volume_ml = p.bone_min_volume_ml();
+  out.prep.bone_closing_mm = p.bone_closing_mm();
+  out.prep.bone_fill_holes = p.bone_fill_holes();
+  out.prep.max_memory_mb = p.max_memory_mb();
+  out.prep.dicom_series_uid = p.dicom_series_uid();
+  out.prep.cache_dir = p.cache_dir();
+  out.prep.use_cache = p.use_cache();
+
+  const auto& f = s.force_image();
+  out.force_image.alpha = f.alpha();
+  out.force_image.beta = f.beta();
+  out.force_image.gamma = f.gamma();
+
+  const auto& h = s.haptics();
+  out.haptics.stiffness_n_per_mm = h.stiffness_n_per_mm();
+  out.haptics.friction = h.friction();
+  out.haptics.max_force_n = h.max_force_n();
+  out.haptics.max_force_rate_n_per_s = h.max_force_rate_n_per_s();
+  out.haptics.min_gradient_norm = h.min_gradient_norm();
+
+  const auto& d = s.deform();
+  if (d.preset() == v1::Deform::P2) {
+    out.deform.min_dist = 0.25, out.deform.max_dist = 1.5, out.deform.max_sheer = 1.0;
+  } else {
+    out.deform.min_dist = 0.5, out.deform.max_dist = 1.5, out.deform.max_sheer = 0.5;
+  }
+  if (d.has_min_dist()) out.deform.min_dist = d.min_dist();
+  if (d.has_max_dist()) out.deform.max_dist = d.max_dist();
+  if (d.has_max_sheer()) out.deform.max_sheer = d.max_sheer();
+  if (out.deform.min_dist >= out.deform.max_dist)
+    throw Error(origin + ": deform.min_dist (" + fmt(out.deform.min_dist) + ") must be below deform.max_dist (" +
+                fmt(out.deform.max_dist) + ")");
+  out.deform.voi_edge = d.voi_edge();
+  out.deform.whole_volume = d.whole_volume();
+  out.deform.max_sweeps = d.max_sweeps();
+  out.deform.relax_iterations = d.relax_iterations();
+  out.deform.relax_step = d.relax_step();
+  out.deform.material_width = d.material_width();
+  out.deform.invert_iterations = d.invert_iterations();
+  out.deform.backend = d.backend();
+  if (out.deform.backend != "auto" && out.deform.backend != "cpu" && out.deform.backend != "cuda")
+    throw Error(origin + ": deform.backend = \"" + out.deform.backend + "\"; allowed: \"auto\", \"cpu\", \"cuda\"");
+
+  const auto& e = s.effects();
+  out.effects.haptics = e.haptics();
+  out.effects.chainmail = e.chainmail();
+  out.effects.relaxation = e.relaxation();
+  out.effects.inversion = e.inversion();
+  out.effects.frames = e.frames();
+  out.effects.bricks = e.bricks();
+  if ((out.effects.relaxation || out.effects.inversion) && !out.effects.chainmail)
+    throw Error(origin + ": effects.relaxation and effects.inversion need effects.chainmail: true");
+
+  out.server.session_timeout_s = s.server().session_timeout_s();
+  out.server.max_sessions = s.server().max_sessions();
+  return out;
+}
+
+void describe(const gp::Descriptor* d, const std::string& prefix, std::ostringstream& out) {
+  for (int i = 0; i < d->field_count(); ++i) {
+    const gp::FieldDescriptor* f = d->field(i);
+    const std::string name = prefix + f->name();
+    if (f->cpp_type() == gp::FieldDescriptor::CPPTYPE_MESSAGE) {
+      describe(f->message_type(), name + ".", out);
+      continue;
+    }
+    out << name << " (" << f->type_name() << ")";
+    if (f->has_default_value()) {
+      switch (f->cpp_type()) {
+        case gp::FieldDescriptor::CPPTYPE_DOUBLE: out << " default " << fmt(f->default_value_double()); break;
+        case gp::FieldDescriptor::CPPTYPE_INT32: out << " default " << f->default_value_int32(); break;
+        case gp::FieldDescriptor::CPPTYPE_BOOL: out << " default " << (f->default_value_bool() ? "true" : "false"); break;
+        case gp::FieldDescriptor::CPPTYPE_STRING: out << " default \"" << f->default_value_string() << "\""; break;
+        case gp::FieldDescriptor::CPPTYPE_ENUM: out << " default " << f->default_value_enum()->name(); break;
+        default: break;
+      }
+    }
+    const auto& o = f->options();
+    if (o.HasExtension(v1::min) || o.HasExtension(v1::max)) out << ", range " << range_text(f);
+    else if (o.HasExtension(v1::unit)) out << ", unit " << o.GetExtension(v1::unit);
+    out << "\n";
+  }
+}
+
+}  // namespace
+
+Scene parse_scene_text(const std::string& text, const std::string& origin) {
+  v1::Scene msg;
+  TextFormat::Parser parser;
+  FirstError errors;
+  TextFormat::ParseInfoTree tree;
+  parser.RecordErrorsTo(&errors);
+  parser.WriteLocationsTo(&tree);
+  if (!parser.ParseFromString(text, &msg))
+    throw Error((origin.empty() ? "<scene>" : origin) + ":" + errors.message());
+  check_ranges(msg, &tree, origin, "");
+  return to_scene(msg, origin);
+}
+
+Scene load_scene_file(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw Error(path + ": cannot open scene file");
+  std::ostringstream text;
+  text << in.rdbuf();
+  return parse_scene_text(text.str(), path);
+}
+
+Scene default_scene() {
+  Scene s = parse_scene_text("name: \"phantom (built-in default)\" phantom {}", "");
+  s.file.clear();
+  return s;
+}
+
+std::string scene_field_reference() {
+  std::ostringstream out;
+  describe(v1::Scene::descriptor(), "", out);
+  return out.str();
+}
+
+}  // namespace palpsim

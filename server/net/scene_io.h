@@ -1,0 +1,26 @@
+// Loading scenes: protobuf text format (proto/palpsim/scene.proto) into validated
+// palpsim::Scene settings. Protobuf stays behind this header.
+#pragma once
+
+#include <string>
+
+#include "core/scene.h"
+
+namespace palpsim {
+
+/// Parses and validates a scene file. Throws palpsim::Error naming file:line:column
+/// for unknown fields, wrong types and out-of-range values (with the allowed range).
+Scene load_scene_file(const std::string& path);
+
+/// Parses and validates scene text; `origin` names it in messages and is the base
+/// for relative CT paths (a file path, or "" for the working folder).
+Scene parse_scene_text(const std::string& text, const std::string& origin);
+
+/// The built-in default scene: the phantom, haptics only.
+Scene default_scene();
+
+/// Every scene field with its default, unit and allowed range, one per line
+/// (for `--scene-doc` and the README).
+std::string scene_field_reference();
+
+}  // namespace palpsim

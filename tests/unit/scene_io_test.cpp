@@ -1,0 +1,98 @@
+// Scene loading: defaults, presets, paths, and refusal of bad scenes with file:line:column.
+#include <catch2/catch.hpp>
+
+#include <filesystem>
+
+#include "core/error.h"
+#include "net/scene_io.h"
+
+using namespace palpsim;
+
+namespace {
+std::string error_of(const std::string& text) {
+  try {
+    parse_scene_text(text, "test.textproto");
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+}  // namespace
+
+TEST_CASE("the default scene is the phantom with the paper's eq. 1 parameters") {
+  const Scene s = default_scene();
+  CHECK(s.use_phantom);
+  CHECK(s.phantom_voxel_mm == 1.0);
+  CHECK(s.force_image.alpha == Approx(200.0 / 3.0));
+  CHECK(s.force_image.beta == 2.0);
+  CHECK(s.force_image.gamma == Approx(1.0 / 60.0));
+  CHECK(s.effects.haptics);
+  CHECK_FALSE(s.effects.chainmail);
+  CHECK(s.deform.min_dist == 0.5);
+  CHECK(s.deform.max_sheer == 0.5);
+}
+
+TEST_CASE("preset p2 and single overrides") {
+  const Scene s = parse_scene_text("phantom {} deform { preset: P2 max_sheer: 0.75 }", "x.textproto");
+  CHECK(s.deform.min_dist == 0.25);
+  CHECK(s.deform.max_dist == 1.5);
+  CHECK(s.deform.max_sheer == 0.75);
+}
+
+TEST_CASE("explicit thresholds are marked as set") {
+  const Scene s = parse_scene_text("phantom {} prep { bone_threshold: 180 }", "x.textproto");
+  CHECK(s.prep.bone_threshold_set);
+  CHECK_FALSE(s.prep.air_threshold_set);
+}
+
+TEST_CASE("relative ct paths resolve against the scene file") {
+  const Scene s = parse_scene_text("ct_path: \"ct/a.nii.gz\"", "/tmp/scenes/s.textproto");
+  CHECK_FALSE(s.use_phantom);
+  CHECK(s.ct_path == "/tmp/scenes/ct/a.nii.gz");
+}
+
+TEST_CASE("an unknown field is refused with file:line:column") {
+  const std::string e = error_of("phantom {}\nprep {\n  bone_treshold: 200\n}\n");
+  CHECK(e.find("test.textproto:3:") != std::string::npos);
+  CHECK(e.find("bone_treshold") != std::string::npos);
+}
+
+TEST_CASE("a wrong type is refused with file:line:column") {
+  const std::string e = error_of("phantom {}\nhaptics { max_force_n: \"strong\" }\n");
+  CHECK(e.find("test.textproto:2:") != std::string::npos);
+}
+
+TEST_CASE("an out-of-range value is refused with its location and the allowed range") {
+  const std::string e = error_of("phantom {}\ndeform {\n  voi_edge: 16\n}\n");
+  CHECK(e.find("test.textproto:3:3") != std::string::npos);
+  CHECK(e.find("deform.voi_edge") != std::string::npos);
+  CHECK(e.find("[32, 256]") != std::string::npos);
+}
+
+TEST_CASE("zero means automatic where the schema says so") {
+  CHECK(error_of("phantom {} prep { spacing_mm: 0 }").empty());
+  CHECK_FALSE(error_of("phantom {} prep { spacing_mm: 0.1 }").empty());
+}
+
+TEST_CASE("inconsistent settings are refused") {
+  CHECK(error_of("phantom {} deform { min_dist: 0.9 max_dist: 1.0 }").empty());
+  CHECK(error_of("phantom {} effects { relaxation: true }").find("effects.chainmail") != std::string::npos);
+  CHECK(error_of("phantom {} deform { backend: \"opencl\" }").find("deform.backend") != std::string::npos);
+}
+
+TEST_CASE("every shipped scene loads") {
+  int n = 0;
+  for (const auto& e : std::filesystem::directory_iterator(PALPSIM_SOURCE_DIR "/config/scenes")) {
+    if (e.path().extension() != ".textproto") continue;
+    INFO(e.path().string());
+    CHECK_NOTHROW(load_scene_file(e.path().string()));
+    ++n;
+  }
+  CHECK(n >= 3);
+}
+
+TEST_CASE("the field reference lists defaults and ranges") {
+  const std::string doc = scene_field_reference();
+  CHECK(doc.find("force_image.alpha") != std::string::npos);
+  CHECK(doc.find("deform.voi_edge (int32) default 64, range [32, 256] voxel") != std::string::npos);
+}

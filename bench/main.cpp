@@ -1,0 +1,20 @@
+// palpsim-bench: one driver, one subcommand per area (prep, haptic, deform).
+// Each area's benchmark lives in bench/<area>_bench.cpp and defines bench_<area>().
+#include <cstdio>
+#include <cstring>
+#include <string>
+
+#include "bench/registry.h"
+
+int main(int argc, char** argv) {
+  const auto& entries = palpsim::bench::registry();
+  if (argc < 2 || std::strcmp(argv[1], "--help") == 0 || std::strcmp(argv[1], "-h") == 0) {
+    std::printf("usage: palpsim-bench AREA [--json FILE] [options]\nareas:\n");
+    for (const auto& e : entries) std::printf("  %-8s %s\n", e.name.c_str(), e.help.c_str());
+    return argc < 2 ? 2 : 0;
+  }
+  for (const auto& e : entries)
+    if (e.name == argv[1]) return e.run(argc - 1, argv + 1);
+  std::fprintf(stderr, "palpsim-bench: unknown area '%s' (try --help)\n", argv[1]);
+  return 2;
+}

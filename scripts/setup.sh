@@ -45,7 +45,7 @@ if [ ! -x "$venv/bin/python" ]; then
   say "creating $venv"
   /usr/bin/python3 -m venv "$venv"
 fi
-want=$(cat "$reqs" "$root/clients/python/pyproject.toml" 2>/dev/null | sha256sum | cut -d' ' -f1)
+want=$(cat "$reqs" $(ls "$root/clients/python/pyproject.toml" 2>/dev/null) | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   say "installing Python packages into $venv"
   "$venv/bin/python" -m pip install -q --upgrade pip

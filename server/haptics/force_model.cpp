@@ -1,0 +1,163 @@
+#include "haptics/force_model.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace palpsim {
+namespace {
+
+// the smallest voxel edge of the patient grid (mm); the grid is isotropic in practice
+double voxel_mm(const Patient& p) {
+  return std::min(p.grid.spacing_mm.x, std::min(p.grid.spacing_mm.y, p.grid.spacing_mm.z));
+}
+
+bool inside(const PatientSample& s) { return s.in_grid && s.body >= 0.5; }
+
+// the skin crossing of the ray tip + t * out (t >= 0), found by stepping at most the
+// depth under the skin (a distance to the skin, so no crossing is stepped over when
+// the step is larger than a quarter voxel) and then bisecting the last step
+Vec3 skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, double tip_depth_mm) {
+  const double h = voxel_mm(patient);
+  const Vec3 extent{patient.grid.size.x * patient.grid.spacing_mm.x, patient.grid.size.y * patient.grid.spacing_mm.y,
+                    patient.grid.size.z * patient.grid.spacing_mm.z};
+  const double max_len = norm(extent) + h;
+  double t_in = 0, t_out = -1;
+  double t = std::max(tip_depth_mm, 0.25 * h);
+  for (int it = 0; it < 64 && t <= max_len; ++it) {
+    const PatientSample s = sample_patient(patient, tip_mm + out * t);
+    if (!inside(s)) {
+      t_out = t;
+      break;
+    }
+    t_in = t;
+    t += std::max(depth_from_sample(patient, s), 0.25 * h);
+  }
+  if (t_out < 0) return tip_mm + out * t_in;  // no crossing within the grid: the last inside point
+  // bisection of the last step to a thousandth of a voxel
+  for (int it = 0; it < 24 && t_out - t_in > 1e-3 * h; ++it) {
+    const double mid = 0.5 * (t_in + t_out);
+    if (inside(sample_patient(patient, tip_mm + out * mid)))
+      t_in = mid;
+    else
+      t_out = mid;
+  }
+  return tip_mm + out * (0.5 * (t_in + t_out));
+}
+
+}  // namespace
+
+PatientSample sample_patient(const Patient& patient, const Vec3& p_mm) {
+  PatientSample s;
+  const Grid& g = patient.grid;
+  const Vec3 ijk = g.to_index(p_mm);
+  // outside the grid (or not finite): outside the body; this test also keeps floor() in int range
+  if (!(ijk.x >= -0.5 && ijk.x <= g.size.x - 0.5 && ijk.y >= -0.5 && ijk.y <= g.size.y - 0.5 && ijk.z >= -0.5 &&
+        ijk.z <= g.size.z - 0.5))
+    return s;
+  s.in_grid = true;
+  const int i0 = int(std::floor(ijk.x)), j0 = int(std::floor(ijk.y)), k0 = int(std::floor(ijk.z));
+  const double fx = ijk.x - i0, fy = ijk.y - j0, fz = ijk.z - k0;
+  // one set of weights for all volumes; edge voxels replicate
+  int ii[2] = {std::clamp(i0, 0, g.size.x - 1), std::clamp(i0 + 1, 0, g.size.x - 1)};
+  int jj[2] = {std::clamp(j0, 0, g.size.y - 1), std::clamp(j0 + 1, 0, g.size.y - 1)};
+  int kk[2] = {std::clamp(k0, 0, g.size.z - 1), std::clamp(k0 + 1, 0, g.size.z - 1)};
+  const double wx[2] = {1 - fx, fx}, wy[2] = {1 - fy, fy}, wz[2] = {1 - fz, fz};
+  for (int dk = 0; dk < 2; ++dk)
+    for (int dj = 0; dj < 2; ++dj)
+      for (int di = 0; di < 2; ++di) {
+        const double w = wx[di] * wy[dj] * wz[dk];
+        if (w == 0) continue;
+        const std::size_t n = g.index(ii[di], jj[dj], kk[dk]);
+        s.body += w * patient.body.data[n];
+        s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
+        s.force_mm += w * patient.force.data[n];
+        const Vec3f& gf = patient.grad_force.data[n];
+        s.grad_force += Vec3{gf.x * w, gf.y * w, gf.z * w};
+      }
+  return s;
+}
+
+double depth_from_sample(const Patient& patient, const PatientSample& s) {
+  return std::max(0.0, s.dist_skin_mm - 0.5 * voxel_mm(patient));
+}
+
+ForceSample compute_force(const Patient& patient, const HapticsSettings& params, const Vec3& tip_mm, double dt_s,
+                          ProxyState& state) {
+  ForceSample out;
+  out.proxy_mm = tip_mm;
+  out.skin_point_mm = tip_mm;
+  const bool first = !state.has_previous;
+  state.has_previous = true;
+
+  // outside the body: exactly zero force, the proxy follows the tip
+  const PatientSample s = sample_patient(patient, tip_mm);
+  if (!inside(s)) {
+    state.in_contact = false;
+    state.force_n = Vec3{0, 0, 0};
+    return out;
+  }
+  out.contact = true;
+  out.depth_mm = depth_from_sample(patient, s);
+
+  // direction of eq. 2: the normalised gradient, or the last good one where it is too small
+  const double gn = norm(s.grad_force);
+  Vec3 dir{0, 0, 0};
+  bool have_dir = false;
+  if (gn >= params.min_gradient_norm && std::isfinite(gn)) {
+    dir = s.grad_force * (1.0 / gn);
+    state.direction = dir;
+    state.has_direction = true;
+    have_dir = true;
+  } else if (state.has_direction) {
+    dir = state.direction;
+    have_dir = true;
+  }
+
+  // eq. 2 proxy, then friction: interpolate with the previous proxy while in contact
+  Vec3 proxy = have_dir ? tip_mm + dir * std::max(s.force_mm, 0.0) : tip_mm;
+  if (state.in_contact) proxy = proxy * (1.0 - params.friction) + state.proxy_mm * params.friction;
+
+  // spring, then the magnitude clamp, then the rate clamp (a blend of two forces within
+  // the magnitude limit stays within it)
+  Vec3 f = (tip_mm - proxy) * params.stiffness_n_per_mm;
+  const double fn = norm(f);
+  if (fn > params.max_force_n) {
+    f *= params.max_force_n / fn;
+    out.clamped = true;
+  }
+  const double dt = (first || !(dt_s > 0)) ? kNominalHapticPeriodS : dt_s;
+  const double max_step_n = params.max_force_rate_n_per_s * dt;
+  const Vec3 df = f - state.force_n;
+  const double dfn = norm(df);
+  if (dfn > max_step_n) {
+    f = state.force_n + df * (max_step_n / dfn);
+    out.clamped = true;
+  }
+
+  // skin point X: along the line through x and p, on the side of x away from p
+  Vec3 away = tip_mm - proxy;
+  double an = norm(away);
+  if (!(an > 1e-9) && have_dir) {
+    away = -dir;
+    an = 1;
+  }
+  out.skin_point_mm = an > 1e-9 ? skin_crossing(patient, tip_mm, away * (1.0 / an), out.depth_mm) : tip_mm;
+
+  // a non-finite value (a corrupt patient) resets the session instead of poisoning it
+  if (!is_finite(f) || !is_finite(proxy) || !is_finite(out.skin_point_mm) || !std::isfinite(out.depth_mm)) {
+    state = ProxyState{};
+    ForceSample zero;
+    zero.proxy_mm = tip_mm;
+    zero.skin_point_mm = tip_mm;
+    zero.reset = true;
+    return zero;
+  }
+  state.in_contact = true;
+  state.proxy_mm = proxy;
+  state.force_n = f;
+  out.force_n = f;
+  out.proxy_mm = proxy;
+  return out;
+}
+
+}  // namespace palpsim

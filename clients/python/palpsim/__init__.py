@@ -1,0 +1,16 @@
+"""palpsim: client library, batch palpation runner and demo for palpsim-server.
+
+Modules: `client` (sessions, poses, control requests), `plan` (plan files and their
+expansion into presses), `batch` (palpsim-batch), `results` (tidy table and summary),
+`plots` (PNG figures), `server` (start and stop a local palpsim-server), `demo`
+(palpsim-demo, the lumbar spine palpation).
+"""
+
+import os as _os
+
+__version__ = "0.1.0"
+
+# the protobuf modules protoc generates into _proto/palpsim/ import each other as
+# `from palpsim import scene_pb2`: adding that folder to this package's path makes
+# them submodules of this package (palpsim.wire_pb2), whatever sys.path holds
+__path__.append(_os.path.join(_os.path.dirname(__file__), "_proto", "palpsim"))

@@ -1,0 +1,251 @@
+"""palpsim-batch: runs a palpation plan over N parallel sessions of a palpsim-server and
+writes a tidy table of every pose, a summary (JSON and printed) and PNG plots.
+
+    palpsim-batch plan.toml --connect tcp://127.0.0.1:7420 --sessions 4 --out out/batch
+
+Determinism: every press starts with a proxy reset ordered with its first pose, its
+poses are a function of the plan and of the replies' contact flags, its pose times
+(client_time_s, which the server's force-rate clamp uses) are trajectory times, and its
+sequence numbers are a function of its place in the plan. Which session runs which press
+changes nothing but the timing columns, and the table is sorted before it is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from .client import Client, PalpsimError
+from .plan import Plan, PlanError, PressPath, PressTask, expand, load_plan
+from .results import (TableError, finish_table, format_summary, summarize, write_json,
+                      write_table)
+
+# pose sequence numbers: (press index << SEQ_SHIFT) + step + 1, unique over the plan
+SEQ_SHIFT = 24
+# client_time_s = CLOCK_OFFSET_S + t_s: the server uses the growth of client_time_s for the
+# force-rate clamp only while it is positive (PROTOCOL.md), and t_s starts at 0
+CLOCK_OFFSET_S = 1.0
+
+
+@dataclass
+class RunResult:
+    """A finished run: the canonical tidy table and how the run went."""
+
+    table: pd.DataFrame
+    wall_s: float
+    sessions: int
+    server: dict
+
+
+def run_press(session, plan: Plan, task: PressTask, worker: int) -> dict[str, np.ndarray]:
+    """Runs one press on an open session; returns its rows as columns."""
+    path = PressPath(plan, task.point)
+    d = path.direction
+    rows: list[tuple] = []
+    base = task.index << SEQ_SHIFT
+    while not path.done:
+        k, t_s, phase, s, tip = path.pose()
+        if k + 1 >= 1 << SEQ_SHIFT:
+            raise PalpsimError(f"press {task.index} exceeded {1 << SEQ_SHIFT} poses")
+        r = session.pose(tip, client_time_s=CLOCK_OFFSET_S + t_s, seq=base + k + 1,
+                         reset_proxy=(k == 0))
+        f = r.force_n
+        rows.append((k, phase, t_s, s, tip[0], tip[1], tip[2], r.depth_mm, r.contact,
+                     f[0], f[1], f[2], float(np.sqrt(f @ f)), -float(f @ d),
+                     r.proxy_mm[0], r.proxy_mm[1], r.proxy_mm[2],
+                     r.skin_point_mm[0], r.skin_point_mm[1], r.skin_point_mm[2],
+                     r.seq, r.rtt_s * 1e6, r.service_time_us))
+        path.advance(r.contact)
+    names = ("step", "phase", "t_s", "travel_mm", "tip_x_mm", "tip_y_mm", "tip_z_mm",
+             "depth_mm", "contact", "force_x_n", "force_y_n", "force_z_n", "force_n",
+             "press_force_n", "proxy_x_mm", "proxy_y_mm", "proxy_z_mm", "skin_x_mm",
+             "skin_y_mm", "skin_z_mm", "seq", "rtt_us", "service_us")
+    cols = {n: np.array(c) for n, c in zip(names, zip(*rows))}
+    n = len(rows)
+    p = task.point
+    cols.update(point_id=np.full(n, p.point_id), iu=np.full(n, p.iu), iv=np.full(n, p.iv),
+                u_mm=np.full(n, p.u_mm), v_mm=np.full(n, p.v_mm), rep=np.full(n, task.rep),
+                session=np.full(n, worker))
+    return cols
+
+
+def run_plan(plan: Plan, address: str, sessions: int = 1, timeout_s: float = 10.0,
+             progress: bool = True,
+             on_press: Callable[[PressTask], None] | None = None) -> RunResult:
+    """Runs every press of the plan over `sessions` parallel sessions (one thread and one
+    connection each) and returns the canonical table. Raises the first error a session
+    met (ServerError, ServerTimeout) after stopping the others."""
+    if sessions < 1:
+        raise ValueError(f"sessions must be at least 1, got {sessions}")
+    tasks = expand(plan)
+    todo: queue.Queue[PressTask] = queue.Queue()
+    for t in tasks:
+        todo.put(t)
+    results: dict[int, dict[str, np.ndarray]] = {}
+    errors: list[BaseException] = []
+    stop = threading.Event()
+    lock = threading.Lock()
+    server: dict = {}
+
+    from tqdm import tqdm
+    bar = tqdm(total=len(tasks), unit="press", disable=not progress, dynamic_ncols=True,
+               desc=plan.name[:30])
+
+    def worker(w: int) -> None:
+        try:
+            with Client(address, timeout_s=timeout_s, name=f"palpsim-batch/{w}") as client:
+                session = client.open_session()
+                if w == 0:
+                    info = session.server_info
+                    server.update(scene=info.scene_name, scene_file=info.scene_file,
+                                  patient=info.patient.source,
+                                  generation=int(info.scene_generation))
+                for name, value in plan.parameters.items():
+                    session.set_parameter(name, value)
+                while not stop.is_set():
+                    try:
+                        task = todo.get_nowait()
+                    except queue.Empty:
+                        break
+                    cols = run_press(session, plan, task, w)
+                    with lock:
+                        results[task.index] = cols
+                        bar.update(1)
+                    if on_press:
+                        on_press(task)
+                session.close()
+        except BaseException as e:  # noqa: BLE001 - handed to the caller below
+            with lock:
+                errors.append(e)
+            stop.set()
+
+    t0 = time.perf_counter()
+    threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(sessions)]
+    for th in threads:
+        th.start()
+    try:
+        for th in threads:
+            while th.is_alive():
+                th.join(0.2)
+    except KeyboardInterrupt:
+        stop.set()
+        raise
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    if errors:
+        raise errors[0]
+    if len(results) != len(tasks):
+        raise PalpsimError(f"only {len(results)} of {len(tasks)} presses finished")
+    frames = [pd.DataFrame(results[i]) for i in range(len(tasks))]
+    table = finish_table(pd.concat(frames, ignore_index=True))
+    return RunResult(table=table, wall_s=wall, sessions=sessions, server=server)
+
+
+def write_outputs(plan: Plan, result: RunResult, out_dir: Path, table_name: str = "steps.parquet",
+                  plots: bool = True) -> dict:
+    """Writes the table, summary.json and the plots into out_dir; returns the summary."""
+    from .plots import force_depth_plot, peak_force_plot
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    table_path = Path(table_name) if Path(table_name).is_absolute() or "/" in table_name \
+        else out_dir / table_name
+    df = result.table
+    run = {"sessions": result.sessions, "wall_s": result.wall_s,
+           "poses_per_s": len(df) / result.wall_s if result.wall_s > 0 else float("nan"),
+           "server": result.server, "table": str(table_path)}
+    summary = summarize(df, plan.to_dict(), run)
+    write_table(df, table_path)
+    if plots:
+        g = plan.grid
+        axes = (f"u along {_fmt(g.axis_u)}", f"v along {_fmt(g.axis_v)}")
+        run["plots"] = [
+            str(force_depth_plot(df, out_dir / "force_vs_depth.png",
+                                 title=f"{plan.name}: force against depth")),
+            str(peak_force_plot(df, out_dir / "peak_force_map.png",
+                                title=f"{plan.name}: peak force", axis_names=axes)),
+        ]
+    write_json(summary, out_dir / "summary.json")
+    return summary
+
+
+def _fmt(v: Sequence[float]) -> str:
+    return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="palpsim-batch",
+        description="Run a palpation plan against palpsim-server; write a tidy table of every "
+                    "pose, a summary and plots.")
+    p.add_argument("plan", help="plan file (.toml or .json; see palpsim/plan.py for the fields)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--connect", metavar="ADDR",
+                     help="control address of a running server (the 'ready on ADDR' it printed)")
+    src.add_argument("--start-server", metavar="PATH",
+                     help="start this palpsim-server on a free loopback port, stop it at the end")
+    p.add_argument("--scene", help="scene file for --start-server (default: the server's default)")
+    p.add_argument("--sessions", type=int, default=2, help="parallel sessions (default 2)")
+    p.add_argument("--out", default=None, help="output folder (default out/batch/<plan name>)")
+    p.add_argument("--table", default="steps.parquet",
+                   help="table file name or path; .csv or .parquet (default steps.parquet)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for a reply")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    prog = "palpsim-batch"
+    try:
+        plan = load_plan(args.plan)
+        if args.sessions < 1:
+            raise PlanError(f"--sessions: must be at least 1, got {args.sessions}")
+        ext = Path(args.table).suffix.lower()
+        if ext not in (".csv", ".parquet"):
+            raise PlanError(f"--table: {args.table}: use a .csv or .parquet name")
+    except PlanError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    out_dir = Path(args.out) if args.out else Path("out/batch") / _slug(plan.name)
+    server = None
+    try:
+        address = args.connect
+        if args.start_server:
+            from .server import LocalServer
+            server = LocalServer(args.start_server, scene=args.scene,
+                                 log_path=out_dir / "server.log")
+            address = server.start()
+            print(f"{prog}: started {args.start_server} on {address}", file=sys.stderr)
+        result = run_plan(plan, address, sessions=args.sessions, timeout_s=args.timeout,
+                          progress=not args.no_progress)
+        summary = write_outputs(plan, result, out_dir, args.table, plots=not args.no_plots)
+    except (PalpsimError, TableError, OSError, RuntimeError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
+    finally:
+        if server:
+            server.stop()
+    print(format_summary(summary))
+    print(f"wrote {summary['run']['table']}, {out_dir / 'summary.json'}"
+          + ("".join(f", {p}" for p in summary["run"].get("plots", []))))
+    return 0
+
+
+def _slug(name: str) -> str:
+    s = "".join(c if c.isalnum() or c in "-_" else "_" for c in name.strip().lower())
+    return s.strip("_") or "plan"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

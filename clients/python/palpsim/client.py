@@ -1,0 +1,260 @@
+"""Client library for palpsim-server (protocol: proto/PROTOCOL.md, schema proto/palpsim/wire.proto).
+
+    with Client("tcp://127.0.0.1:7420") as c:
+        with c.open_session("me") as s:
+            r = s.pose((0.0, 120.0, 0.0), client_time_s=1.0)
+            print(r.force_n, r.contact, r.depth_mm)
+
+A Client owns a control socket (a DEALER to the address the server printed); each
+Session owns a pose socket (a DEALER to the session's pose endpoint). ZeroMQ sockets
+are not thread-safe: use one Client per thread. Refused requests raise ServerError
+with the server's code and sentence; a server that does not answer within the
+timeout raises ServerTimeout. Units: mm, N, s; points in the CT's physical space (LPS).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import zmq
+
+from .proto import SCHEMA_VERSION, wire
+
+
+class PalpsimError(Exception):
+    """Base of every error this package raises about talking to a server."""
+
+
+class ServerError(PalpsimError):
+    """The server refused a request; `code` is the ErrorCode number, `code_name` its name."""
+
+    def __init__(self, request: str, code: int, message: str):
+        self.request, self.code, self.message = request, code, message
+        self.code_name = wire.ErrorCode.Name(code) if code in wire.ErrorCode.values() else str(code)
+        super().__init__(f"{request} refused by the server: {self.code_name}: {message}")
+
+
+class ServerTimeout(PalpsimError):
+    """The server did not answer in time (not running, wrong address, or stuck)."""
+
+
+@dataclass(frozen=True)
+class PoseReply:
+    """The server's answer to one pose (mm, N, s)."""
+
+    seq: int
+    force_n: np.ndarray        # force on the device, f = k (x - p), clamped
+    proxy_mm: np.ndarray       # proxy p
+    skin_point_mm: np.ndarray  # skin point X (the tip when out of contact)
+    contact: bool              # the tip is inside the body
+    depth_mm: float            # depth of the tip under the skin (0 outside)
+    server_time_s: float       # server clock when the reply was made
+    service_time_us: float     # server receive-to-send time
+    rtt_s: float               # client-measured round trip of this pose
+
+
+def _vec(v: Sequence[float]) -> "wire.Vec3":
+    return wire.Vec3(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def _arr(v: Any) -> np.ndarray:
+    return np.array((v.x, v.y, v.z), dtype=float)
+
+
+def _check(request: str, reply: Any) -> None:
+    """Raises ServerError when a reply carries an error."""
+    if reply.HasField("error") and reply.error.code != wire.ERROR_NONE:
+        raise ServerError(request, reply.error.code, reply.error.message)
+
+
+class Client:
+    """A connection to one palpsim-server's control path."""
+
+    def __init__(self, address: str, timeout_s: float = 5.0, name: str = "palpsim-python",
+                 context: zmq.Context | None = None):
+        self.address = address
+        self.timeout_s = timeout_s
+        self.name = name
+        self._ctx = context or zmq.Context.instance()
+        self._sock = self._ctx.socket(zmq.DEALER)
+        self._sock.setsockopt(zmq.LINGER, 0)
+        self._sock.connect(address)
+        self._ids = itertools.count(1)
+        self._sessions: list[Session] = []
+
+    # -- control requests -------------------------------------------------------------
+
+    def _request(self, field: str, body: Any) -> Any:
+        """Sends one ControlRequest with `body` in `field` and returns the reply's body."""
+        rid = next(self._ids)
+        req = wire.ControlRequest(schema_version=SCHEMA_VERSION, request_id=rid)
+        getattr(req, field).CopyFrom(body)
+        self._sock.send(req.SerializeToString())
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            left_ms = int(max(0.0, deadline - time.monotonic()) * 1000)
+            if not self._sock.poll(left_ms, zmq.POLLIN):
+                raise ServerTimeout(f"no reply to {field} from {self.address} within "
+                                    f"{self.timeout_s:g} s (is palpsim-server running there?)")
+            reply = wire.ControlReply()
+            try:
+                reply.ParseFromString(self._sock.recv())
+            except Exception as e:  # protobuf raises DecodeError, a plain Exception subclass
+                raise PalpsimError(f"{field}: the server's reply does not parse: {e}") from None
+            # a late answer to an earlier request that timed out: skip it
+            if reply.request_id != rid and reply.request_id != 0:
+                continue
+            _check(f"ControlRequest.{field}", reply)
+            if reply.WhichOneof("body") != field:
+                raise PalpsimError(f"{field}: the server answered with "
+                                   f"{reply.WhichOneof('body')!r} instead")
+            return getattr(reply, field)
+
+    def info(self) -> "wire.ServerInfo":
+        """The server's description: scene, patient grid and bounds, endpoints, limits."""
+        return self._request("info", wire.InfoRequest())
+
+    def stats(self) -> "wire.StatsReply":
+        """Server counters and pose service times."""
+        return self._request("stats", wire.StatsRequest())
+
+    def load_scene(self, path: str | None = None, text: str | None = None) -> "wire.ServerInfo":
+        """Asks the server to serve another scene (a file it can read, or scene text)."""
+        if (path is None) == (text is None):
+            raise ValueError("load_scene: give exactly one of path or text")
+        body = wire.LoadScene(path=path) if path is not None else wire.LoadScene(text=text)
+        return self._request("load_scene", body).server
+
+    def open_session(self, client_name: str | None = None) -> "Session":
+        """Opens a session with its own proxy state and the scene's haptics parameters."""
+        reply = self._request("open", wire.OpenSession(client_name=client_name or self.name))
+        session = Session(self, reply)
+        self._sessions.append(session)
+        return session
+
+    def close(self) -> None:
+        """Closes this client's open sessions (best effort) and its sockets."""
+        for s in list(self._sessions):
+            try:
+                s.close()
+            except PalpsimError:
+                s._close_socket()
+        self._sock.close(0)
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+class Session:
+    """One open session: its own proxy state on the server and its own pose socket."""
+
+    def __init__(self, client: Client, reply: "wire.OpenReply"):
+        self.client = client
+        self.id: int = reply.session_id
+        self.pose_endpoint: str = reply.pose_endpoint
+        self.params: "wire.HapticsParams" = reply.params
+        self.server_info: "wire.ServerInfo" = reply.server
+        self._sock = client._ctx.socket(zmq.DEALER)
+        self._sock.setsockopt(zmq.LINGER, 0)
+        self._sock.connect(self.pose_endpoint)
+        self._seq = 0
+        self._sent: dict[int, float] = {}  # seq -> perf_counter at send, for round trips
+        self.closed = False
+
+    # -- pose path --------------------------------------------------------------------
+
+    def send_pose(self, tip_mm: Sequence[float], client_time_s: float = 0.0,
+                  seq: int | None = None, reset_proxy: bool = False) -> int:
+        """Sends one pose without waiting (replies come back in order); returns its seq.
+
+        `client_time_s` is the device's clock; when it grows from pose to pose the server
+        uses it for the force-rate clamp, so simulated times give reproducible forces.
+        `reset_proxy` resets the proxy state right before this pose."""
+        if seq is None:
+            self._seq += 1
+            seq = self._seq
+        req = wire.PoseRequest(schema_version=SCHEMA_VERSION, session_id=self.id, seq=seq,
+                               tip_mm=_vec(tip_mm), client_time_s=client_time_s,
+                               reset_proxy=reset_proxy)
+        self._sent[seq] = time.perf_counter()
+        self._sock.send(req.SerializeToString())
+        return seq
+
+    def recv_reply(self, timeout_s: float | None = None) -> PoseReply:
+        """Receives the next pose reply; raises ServerError if that pose was refused."""
+        timeout_s = self.client.timeout_s if timeout_s is None else timeout_s
+        if not self._sock.poll(int(timeout_s * 1000), zmq.POLLIN):
+            raise ServerTimeout(f"no pose reply from {self.pose_endpoint} within {timeout_s:g} s")
+        data = self._sock.recv()
+        now = time.perf_counter()
+        r = wire.PoseReply()
+        try:
+            r.ParseFromString(data)
+        except Exception as e:
+            raise PalpsimError(f"a pose reply does not parse: {e}") from None
+        sent = self._sent.pop(r.seq, None)
+        _check(f"PoseRequest seq {r.seq}", r)
+        return PoseReply(seq=r.seq, force_n=_arr(r.force_n), proxy_mm=_arr(r.proxy_mm),
+                         skin_point_mm=_arr(r.skin_point_mm), contact=r.contact,
+                         depth_mm=r.depth_mm, server_time_s=r.server_time_s,
+                         service_time_us=r.service_time_us,
+                         rtt_s=(now - sent) if sent is not None else float("nan"))
+
+    def pose(self, tip_mm: Sequence[float], client_time_s: float = 0.0,
+             seq: int | None = None, reset_proxy: bool = False) -> PoseReply:
+        """Sends one pose and waits for its reply."""
+        seq = self.send_pose(tip_mm, client_time_s, seq=seq, reset_proxy=reset_proxy)
+        reply = self.recv_reply()
+        if reply.seq != seq:
+            raise PalpsimError(f"pose reply out of order: sent seq {seq}, got {reply.seq}")
+        return reply
+
+    # -- control path -----------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Resets the proxy state as if freshly opened (parameters are kept)."""
+        self.client._request("reset", wire.ResetSession(session_id=self.id))
+
+    def set_parameter(self, name: str, value: float) -> "wire.HapticsParams":
+        """Sets one haptics parameter (names and ranges of scene.proto's Haptics)."""
+        reply = self.client._request("set_parameter",
+                                     wire.SetParameter(session_id=self.id, name=name, value=value))
+        self.params = reply.params
+        return reply.params
+
+    def stats(self) -> "wire.SessionStats":
+        """This session's counters and parameters."""
+        return self.client._request("stats", wire.StatsRequest(session_id=self.id)).session
+
+    def close(self) -> int:
+        """Closes the session; returns how many poses it answered."""
+        if self.closed:
+            return 0
+        try:
+            reply = self.client._request("close", wire.CloseSession(session_id=self.id))
+        finally:
+            self._close_socket()
+        return reply.poses
+
+    def _close_socket(self) -> None:
+        self.closed = True
+        self._sock.close(0)
+        if self in self.client._sessions:
+            self.client._sessions.remove(self)
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if not self.closed:
+            try:
+                self.close()
+            except PalpsimError:
+                self._close_socket()

@@ -1,0 +1,90 @@
+"""PNG figures of a batch run, drawn from its tidy table with matplotlib's Agg backend:
+force against depth, and the peak force over the skin region (a map for a 2-D grid,
+a profile for a line of points)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from .results import point_table  # noqa: E402
+
+
+def _save(fig: "plt.Figure", path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def force_depth_plot(df: pd.DataFrame, path: str | Path, title: str = "") -> Path:
+    """|f| against depth under the skin, one line per press, coloured by its peak force;
+    pressing in solid, retracting faint (the gap between them is the friction's hysteresis)."""
+    fig, ax = plt.subplots(figsize=(7, 5))
+    peaks = df.groupby(["point_id", "rep"], observed=True)["force_n"].max()
+    norm = matplotlib.colors.Normalize(vmin=float(peaks.min()), vmax=max(float(peaks.max()), 1e-9))
+    cmap = matplotlib.colormaps["viridis"]
+    for (pid, rep), g in df.groupby(["point_id", "rep"], observed=True, sort=True):
+        color = cmap(norm(peaks.loc[(pid, rep)]))
+        inward = g[g["phase"].isin(["approach", "press", "hold"])]
+        out = g[g["phase"] == "retract"]
+        ax.plot(inward["depth_mm"], inward["force_n"], color=color, lw=1.0, alpha=0.8)
+        ax.plot(out["depth_mm"], out["force_n"], color=color, lw=0.6, alpha=0.25)
+    sm = matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap)
+    fig.colorbar(sm, ax=ax, label="peak force of the press (N)")
+    ax.set_xlabel("depth under the skin (mm)")
+    ax.set_ylabel("|force| (N)")
+    ax.set_title(title or "force against depth")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def peak_force_plot(df: pd.DataFrame, path: str | Path, title: str = "",
+                    axis_names: Sequence[str] = ("u", "v")) -> Path:
+    """Mean peak force per grid point: a map over (u, v) for a 2-D grid, a profile for a
+    line. Points whose presses never met the skin are marked with an x."""
+    pts = point_table(df)
+    nu, nv = int(pts["iu"].max()) + 1, int(pts["iv"].max()) + 1
+    no_contact = pts["contact_presses"] == 0
+    fig, ax = plt.subplots(figsize=(7, 5.5) if nu > 1 and nv > 1 else (8, 4.5))
+    if nu > 1 and nv > 1:
+        grid = np.full((nv, nu), np.nan)
+        grid[pts["iv"].to_numpy(), pts["iu"].to_numpy()] = pts["peak_force_n"].to_numpy()
+        us = np.sort(pts["u_mm"].unique())
+        vs = np.sort(pts["v_mm"].unique())
+        mesh = ax.pcolormesh(us, vs, grid, shading="nearest", cmap="magma")
+        fig.colorbar(mesh, ax=ax, label="peak force (N, mean over repetitions)", shrink=0.8)
+        ax.plot(pts["u_mm"], pts["v_mm"], ".", color="white", ms=2, alpha=0.6)
+        ax.plot(pts.loc[no_contact, "u_mm"], pts.loc[no_contact, "v_mm"], "x", color="cyan",
+                label="no contact")
+        ax.set_xlabel(f"{axis_names[0]} (mm)")
+        ax.set_ylabel(f"{axis_names[1]} (mm)")
+        ax.set_aspect("equal")
+        if no_contact.any():
+            ax.legend(loc="upper right")
+    else:
+        along = "u_mm" if nu > 1 else "v_mm"
+        name = axis_names[0] if nu > 1 else axis_names[1]
+        pts = pts.sort_values(along)
+        ax.plot(pts[along], pts["peak_force_n"], "-o", ms=3, color="tab:red", label="mean peak")
+        if (pts["presses"] > 1).any():
+            ax.fill_between(pts[along], pts["peak_force_min_n"], pts["peak_force_max_n"],
+                            color="tab:red", alpha=0.2, label="min to max over repetitions")
+        ax.plot(pts.loc[no_contact, along], pts.loc[no_contact, "peak_force_n"], "x", color="k",
+                label="no contact")
+        ax.set_xlabel(f"{name} (mm)")
+        ax.set_ylabel("peak force (N)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best")
+    ax.set_title(title or "peak force over the skin region")
+    fig.tight_layout()
+    return _save(fig, path)

@@ -88,3 +88,45 @@ def peak_force_plot(df: pd.DataFrame, path: str | Path, title: str = "",
     ax.set_title(title or "peak force over the skin region")
     fig.tight_layout()
     return _save(fig, path)
+
+
+def spine_profile_plot(df: pd.DataFrame, report: dict, path: str | Path, title: str = "") -> Path:
+    """The demo's figure, along the line of presses (z, superior to the right): on top the
+    peak force of each press with the peaks found and the process tips the bone mask
+    expects; below, a sagittal section: every pose in contact coloured by |force|, the
+    skin where each press met it, and the top of the bone from the mask."""
+    line = report["line"]
+    z = np.asarray(line["z_mm"], dtype=float)
+    fig, (top, sec) = plt.subplots(2, 1, figsize=(10, 7.5), sharex=True,
+                                   gridspec_kw={"height_ratios": [1, 1.2]})
+    exp = report.get("expected")
+    # top: the force profile and its peaks
+    top.plot(z, line["peak_force_n"], "-", color="tab:red", lw=1.5, label="peak force of the press")
+    pk = report["peaks"]
+    top.plot([p["z_mm"] for p in pk], [p["force_n"] for p in pk], "v", color="k", ms=8,
+             label=f"peaks found ({len(pk)})")
+    if exp:
+        for i, e in enumerate(exp["processes"]):
+            for ax in (top, sec):
+                ax.axvline(e["z_mm"], color="tab:blue", ls="--", lw=0.8, alpha=0.7,
+                           label="process tip (bone mask)" if (i == 0 and ax is top) else None)
+    top.set_ylabel("peak force (N)")
+    top.grid(alpha=0.3)
+    top.legend(loc="best", fontsize=8)
+    top.set_title(title or "force profile along the back")
+    # below: the section with the forces felt under the skin
+    inside = df[df["contact"] & df["phase"].isin(["approach", "press", "hold"])]
+    if len(inside):
+        sc = sec.scatter(inside["tip_z_mm"], inside["tip_y_mm"], c=inside["force_n"], s=4, cmap="magma",
+                         marker="s", linewidths=0)
+        fig.colorbar(sc, ax=sec, label="|force| (N)", pad=0.01)
+    sec.plot(z, line["skin_y_mm"], "-", color="tab:green", lw=1.2, label="skin met by the press")
+    if exp:
+        sec.plot(exp["bone_top"]["z_mm"], exp["bone_top"]["y_mm"], "-", color="tab:blue", lw=1.2,
+                 label="top of bone (mask)")
+    sec.set_xlabel("z (mm, LPS: inferior to superior)")
+    sec.set_ylabel("y (mm, posterior up)")
+    sec.grid(alpha=0.3)
+    sec.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)

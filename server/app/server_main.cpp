@@ -1,0 +1,110 @@
+// palpsim-server: loads a scene, prepares its patient and serves haptics sessions on
+// loopback (proto/PROTOCOL.md) until SIGINT or SIGTERM.
+#include <spdlog/spdlog.h>
+
+#include <csignal>
+#include <cstdio>
+#include <cstring>
+#include <pthread.h>
+#include <string>
+
+#include "core/error.h"
+#include "net/scene_io.h"
+#include "net/server.h"
+#include "prep/prepare.h"
+
+namespace {
+
+const char* kUsage =
+    "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--max-pose-distance-mm MM]\n"
+    "                      [--log-level trace|debug|info|warn|error]\n"
+    "  --scene FILE     scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
+    "  --bind ADDR      control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
+    "  --pose-bind ADDR pose address (default: the control port + 1; * stays *)\n"
+    "Prints 'ready on ADDR poses ADDR' when serving; stops cleanly on SIGINT or SIGTERM.\n";
+
+int fail(const std::string& what) {
+  std::fprintf(stderr, "palpsim-server: error: %s\n", what.c_str());
+  return 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  // SIGINT and SIGTERM are taken by sigwait below; every thread started later inherits the mask
+  sigset_t stop_signals;
+  sigemptyset(&stop_signals);
+  sigaddset(&stop_signals, SIGINT);
+  sigaddset(&stop_signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &stop_signals, nullptr);
+
+  // command line
+  std::string scene_file;
+  palpsim::net::ServerOptions options;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    auto value = [&](const char* name) -> std::string {
+      if (i + 1 >= argc) throw palpsim::Error(std::string(name) + " needs a value");
+      return argv[++i];
+    };
+    try {
+      if (a == "--help" || a == "-h") {
+        std::fputs(kUsage, stdout);
+        return 0;
+      } else if (a == "--scene") {
+        scene_file = value("--scene");
+      } else if (a == "--bind") {
+        options.control_bind = value("--bind");
+      } else if (a == "--pose-bind") {
+        options.pose_bind = value("--pose-bind");
+      } else if (a == "--max-pose-distance-mm") {
+        options.max_pose_distance_mm = std::stod(value("--max-pose-distance-mm"));
+      } else if (a == "--log-level") {
+        spdlog::set_level(spdlog::level::from_str(value("--log-level")));
+      } else {
+        std::fprintf(stderr, "palpsim-server: unknown argument '%s'\n%s", a.c_str(), kUsage);
+        return 2;
+      }
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "palpsim-server: %s\n%s", e.what(), kUsage);
+      return 2;
+    }
+  }
+
+  // scene and patient: refuse to start on any error, naming it
+  palpsim::Scene scene;
+  palpsim::PatientPtr patient;
+  try {
+    scene = scene_file.empty() ? palpsim::default_scene() : palpsim::load_scene_file(scene_file);
+    spdlog::info("scene '{}' from {}", scene.name, scene_file.empty() ? std::string("the built-in default") : scene_file);
+    palpsim::PrepReport report;
+    patient = palpsim::prepare_patient(scene, &report);
+    spdlog::info("patient {}: {}x{}x{} voxels at {} mm ({} in {:.2f} s)", patient->source, patient->grid.size.x,
+                 patient->grid.size.y, patient->grid.size.z, patient->grid.spacing_mm.x,
+                 report.from_cache ? "from cache" : "prepared", report.total_s);
+  } catch (const std::exception& e) {
+    return fail(std::string("cannot start: ") + e.what());
+  }
+  if (scene.effects.chainmail || scene.effects.relaxation || scene.effects.inversion || scene.effects.frames ||
+      scene.effects.bricks)
+    spdlog::info("the scene asks for deformation or rendering effects; this server answers haptics (the deformation "
+                 "worker reads each session's newest contact through Server::contact_slot)");
+
+  // serve
+  try {
+    palpsim::net::Server server(scene, patient, [](const palpsim::Scene& s) { return palpsim::prepare_patient(s); },
+                                options);
+    server.start();
+    std::printf("palpsim-server: ready on %s poses %s (scene '%s')\n", server.control_endpoint().c_str(),
+                server.pose_endpoint().c_str(), scene.name.c_str());
+    std::fflush(stdout);
+    int sig = 0;
+    sigwait(&stop_signals, &sig);
+    spdlog::info("stopping on {}", sig == SIGINT ? "SIGINT" : "SIGTERM");
+    server.stop();
+  } catch (const std::exception& e) {
+    return fail(e.what());
+  }
+  std::printf("palpsim-server: stopped\n");
+  return 0;
+}

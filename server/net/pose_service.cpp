@@ -1,0 +1,238 @@
+#include "net/pose_service.h"
+
+#include <cinttypes>
+#include <cmath>
+#include <cstdio>
+
+#include "palpsim/wire.pb.h"
+
+namespace palpsim::net {
+namespace {
+
+namespace v1 = ::palpsim::v1;
+
+void set_vec(v1::Vec3* out, const Vec3& v) {
+  out->set_x(v.x);
+  out->set_y(v.y);
+  out->set_z(v.z);
+}
+
+// distance (mm) from a point to an axis-aligned box; 0 inside
+double box_distance_mm(const Vec3& p, const Vec3& lo, const Vec3& hi) {
+  const double dx = std::max({lo.x - p.x, 0.0, p.x - hi.x});
+  const double dy = std::max({lo.y - p.y, 0.0, p.y - hi.y});
+  const double dz = std::max({lo.z - p.z, 0.0, p.z - hi.z});
+  return std::sqrt(dx * dx + dy * dy + dz * dz);
+}
+
+// one pose socket, its reused buffers and messages
+class PoseService {
+ public:
+  PoseService(zmq::socket_t& s, ServerShared& sh, std::chrono::steady_clock::time_point start)
+      : sock_(s), sh_(sh), start_(start) {}
+
+  void run(int idle_poll_ms) {
+    zmq::pollitem_t items[] = {{sock_.handle(), 0, ZMQ_POLLIN, 0}};
+    while (!sh_.stop.load(std::memory_order_relaxed)) {
+      // pick up the current world; once its generation is published the control
+      // thread may free older worlds, so no older pointer is used after this line
+      world_ = sh_.world.load(std::memory_order_acquire);
+      sh_.seen_generation.store(world_ ? world_->generation : 0, std::memory_order_release);
+      zmq::poll(items, 1, std::chrono::milliseconds(idle_poll_ms));
+      if (items[0].revents & ZMQ_POLLIN) drain();
+    }
+  }
+
+ private:
+  zmq::socket_t& sock_;
+  ServerShared& sh_;
+  std::chrono::steady_clock::time_point start_;
+  const World* world_ = nullptr;
+  v1::PoseRequest req_;
+  v1::PoseReply rep_;
+  char id_[256];
+  std::size_t id_len_ = 0;
+  char frame_[2][kMaxPoseBytes + 1];
+  std::size_t frame_len_[2] = {0, 0};        // bytes kept (at most kMaxPoseBytes + 1)
+  std::size_t frame_full_len_[2] = {0, 0};   // bytes sent by the client
+  char scrap_[64];
+  char out_[kMaxPoseBytes * 2];
+
+  // answers every message waiting on the socket
+  void drain() {
+    for (;;) {
+      const auto r = sock_.recv(zmq::mutable_buffer(id_, sizeof id_), zmq::recv_flags::dontwait);
+      if (!r) return;
+      const std::int64_t t_recv = ns_since(start_);
+      id_len_ = std::min(r->size, sizeof id_);
+      // the frames after the routing id: [payload] (DEALER) or [empty, payload] (REQ)
+      int frames = 0;
+      while (sock_.get(zmq::sockopt::rcvmore)) {
+        if (frames < 2) {
+          const auto f = sock_.recv(zmq::mutable_buffer(frame_[frames], sizeof frame_[frames]));
+          frame_len_[frames] = f ? std::min(f->size, sizeof frame_[frames]) : 0;
+          frame_full_len_[frames] = f ? f->untruncated_size : 0;
+        } else {
+          (void)sock_.recv(zmq::mutable_buffer(scrap_, sizeof scrap_));
+        }
+        ++frames;
+      }
+      const bool req_envelope = frames >= 1 && frame_full_len_[0] == 0;
+      if (frames == 1 && frame_full_len_[0] > 0) {
+        handle(frame_[0], frame_len_[0], frame_full_len_[0], t_recv, false);
+      } else if (frames == 2 && req_envelope) {
+        handle(frame_[1], frame_len_[1], frame_full_len_[1], t_recv, true);
+      } else {
+        rep_.Clear();
+        refuse(v1::ERROR_MALFORMED, sh_.counters.malformed,
+               "PoseRequest: expected one frame (DEALER) or an empty delimiter and one frame (REQ)", nullptr);
+        send(req_envelope);
+      }
+    }
+  }
+
+  // fills rep_ with an error and counts it (and against the session when known)
+  void refuse(v1::ErrorCode code, std::atomic<std::uint64_t>& counter, const char* message, SessionSlot* slot) {
+    rep_.set_schema_version(v1::VERSION_CURRENT);
+    rep_.mutable_error()->set_code(code);
+    rep_.mutable_error()->set_message(message);
+    rep_.set_server_time_s(ns_since(start_) * 1e-9);
+    counter.fetch_add(1, std::memory_order_relaxed);
+    if (slot) slot->errors.fetch_add(1, std::memory_order_relaxed);
+  }
+
+  void handle(const char* data, std::size_t len, std::size_t full_len, std::int64_t t_recv, bool req_envelope) {
+    rep_.Clear();
+    char msg[256];
+    // size, parse, version
+    if (full_len > kMaxPoseBytes) {
+      std::snprintf(msg, sizeof msg, "PoseRequest: %zu bytes, over the pose path's limit of %zu bytes", full_len,
+                    kMaxPoseBytes);
+      refuse(v1::ERROR_OVERSIZED, sh_.counters.oversized, msg, nullptr);
+      return send(req_envelope);
+    }
+    if (!req_.ParseFromArray(data, int(len))) {
+      std::snprintf(msg, sizeof msg, "PoseRequest: %zu bytes do not parse (truncated, or not a PoseRequest)", len);
+      refuse(v1::ERROR_MALFORMED, sh_.counters.malformed, msg, nullptr);
+      return send(req_envelope);
+    }
+    rep_.set_seq(req_.seq());
+    rep_.set_session_id(req_.session_id());
+    rep_.set_client_time_s(req_.client_time_s());
+    if (req_.schema_version() != v1::VERSION_CURRENT) {
+      std::snprintf(msg, sizeof msg, "PoseRequest.schema_version: got %u, this server speaks %d", req_.schema_version(),
+                    int(v1::VERSION_CURRENT));
+      refuse(v1::ERROR_WRONG_SCHEMA_VERSION, sh_.counters.wrong_schema_version, msg, nullptr);
+      return send(req_envelope);
+    }
+    if (!req_.has_tip_mm()) {
+      refuse(v1::ERROR_MALFORMED, sh_.counters.malformed, "PoseRequest.tip_mm: missing", nullptr);
+      return send(req_envelope);
+    }
+    // the session: its slot index is in the id's low bits, and the slot must hold this id
+    const std::uint64_t id = req_.session_id();
+    SessionSlot* slot = &sh_.slots[id & (kMaxSlots - 1)];
+    if (id == 0 || slot->id.load(std::memory_order_acquire) != id || !world_) {
+      std::snprintf(msg, sizeof msg,
+                    "PoseRequest.session_id: %016" PRIx64 " is not an open session (never opened, closed, or timed out)",
+                    id);
+      refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session, msg, nullptr);
+      return send(req_envelope);
+    }
+    slot->last_seen_ns.store(t_recv, std::memory_order_relaxed);
+    // the pose itself
+    const Vec3 tip{req_.tip_mm().x(), req_.tip_mm().y(), req_.tip_mm().z()};
+    if (!is_finite(tip)) {
+      std::snprintf(msg, sizeof msg, "PoseRequest.tip_mm: (%g, %g, %g) is not finite", tip.x, tip.y, tip.z);
+      refuse(v1::ERROR_BAD_POSE, sh_.counters.bad_pose, msg, slot);
+      return send(req_envelope);
+    }
+    const double away_mm = box_distance_mm(tip, world_->bounds_min_mm, world_->bounds_max_mm);
+    if (away_mm > sh_.max_pose_distance_mm) {
+      std::snprintf(msg, sizeof msg,
+                    "PoseRequest.tip_mm: (%g, %g, %g) is %.0f mm from the patient, over the limit of %.0f mm", tip.x,
+                    tip.y, tip.z, away_mm, sh_.max_pose_distance_mm);
+      refuse(v1::ERROR_ABSURD_POSE, sh_.counters.absurd_pose, msg, slot);
+      return send(req_envelope);
+    }
+    // a new session in this slot, a reset, or a new world: a fresh proxy state
+    const std::uint32_t resets = slot->reset_requests.load(std::memory_order_acquire);
+    if (slot->state_id != id || slot->resets_seen != resets || slot->state_generation != world_->generation ||
+        req_.reset_proxy()) {
+      if (slot->state_id != id) slot->latest.clear();
+      slot->state_id = id;
+      slot->resets_seen = resets;
+      slot->state_generation = world_->generation;
+      slot->proxy = ProxyState{};
+      slot->last_client_time_s = 0;
+      slot->last_server_time_s = 0;
+    }
+    // dt from the client's clock when it grows, else from the server's
+    const double now_s = t_recv * 1e-9;
+    const double tc = req_.client_time_s();
+    double dt = 0;
+    if (tc > 0 && slot->last_client_time_s > 0 && tc > slot->last_client_time_s)
+      dt = tc - slot->last_client_time_s;
+    else if (slot->last_server_time_s > 0)
+      dt = now_s - slot->last_server_time_s;
+    slot->last_client_time_s = tc;
+    slot->last_server_time_s = now_s;
+
+    const ForceSample f = compute_force(*world_->patient, slot->params(), tip, dt, slot->proxy);
+
+    // the reply
+    rep_.set_schema_version(v1::VERSION_CURRENT);
+    set_vec(rep_.mutable_force_n(), f.force_n);
+    set_vec(rep_.mutable_proxy_mm(), f.proxy_mm);
+    set_vec(rep_.mutable_skin_point_mm(), f.skin_point_mm);
+    rep_.set_contact(f.contact);
+    rep_.set_depth_mm(f.depth_mm);
+    const std::int64_t t_done = ns_since(start_);
+    rep_.set_server_time_s(t_done * 1e-9);
+    const double service_us = (t_done - t_recv) * 1e-3;
+    rep_.set_service_time_us(service_us);
+    // statistics and the hand-over to the deformation path
+    slot->poses.fetch_add(1, std::memory_order_relaxed);
+    slot->last_seq.store(req_.seq(), std::memory_order_relaxed);
+    slot->contact.store(f.contact, std::memory_order_relaxed);
+    slot->depth_mm.store(f.depth_mm, std::memory_order_relaxed);
+    if (f.clamped) slot->clamps.fetch_add(1, std::memory_order_relaxed);
+    if (f.reset) sh_.counters.internal_errors.fetch_add(1, std::memory_order_relaxed);
+    Contact c;
+    c.tip_mm = tip;
+    c.skin_point_mm = f.skin_point_mm;
+    c.proxy_mm = f.proxy_mm;
+    c.depth_mm = f.depth_mm;
+    c.contact = f.contact;
+    c.seq = req_.seq();
+    c.server_time_s = t_done * 1e-9;
+    slot->latest.write(c);
+    sh_.counters.poses.fetch_add(1, std::memory_order_relaxed);
+    sh_.pose_service.add(service_us);
+    send(req_envelope);
+  }
+
+  // sends rep_ to the current routing id; never blocks (a vanished or slow client's reply is dropped)
+  void send(bool req_envelope) {
+    const std::size_t n = rep_.ByteSizeLong();
+    if (n > sizeof out_ || !rep_.SerializeToArray(out_, int(n))) return;
+    try {
+      if (!sock_.send(zmq::const_buffer(id_, id_len_), zmq::send_flags::sndmore | zmq::send_flags::dontwait)) return;
+      if (req_envelope) sock_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::sndmore | zmq::send_flags::dontwait);
+      sock_.send(zmq::const_buffer(out_, n), zmq::send_flags::dontwait);
+    } catch (const zmq::error_t&) {
+      // EHOSTUNREACH and the like: the client is gone; nothing to do
+    }
+  }
+};
+
+}  // namespace
+
+void run_pose_service(zmq::socket_t& socket, ServerShared& shared, std::chrono::steady_clock::time_point start,
+                      int idle_poll_ms) {
+  // the service object holds ~4 KiB of buffers: on the heap, once
+  auto service = std::make_unique<PoseService>(socket, shared, start);
+  service->run(idle_poll_ms);
+}
+
+}  // namespace palpsim::net

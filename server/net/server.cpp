@@ -1,0 +1,548 @@
+#include "net/server.h"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cinttypes>
+#include <cmath>
+#include <cstdio>
+#include <random>
+#include <zmq.hpp>
+
+#include "core/error.h"
+#include "net/pose_service.h"
+#include "net/scene_io.h"
+#include "net/session_table.h"
+#include "palpsim/options.pb.h"
+#include "palpsim/scene.pb.h"
+#include "palpsim/wire.pb.h"
+
+namespace palpsim::net {
+namespace {
+
+namespace v1 = ::palpsim::v1;
+using Clock = std::chrono::steady_clock;
+
+void set_vec(v1::Vec3* out, const Vec3& v) {
+  out->set_x(v.x);
+  out->set_y(v.y);
+  out->set_z(v.z);
+}
+
+std::string hex_id(std::uint64_t id) {
+  char b[32];
+  std::snprintf(b, sizeof b, "%016" PRIx64, id);
+  return b;
+}
+
+// splitmix64: a bijective mix, so ids look random and never repeat for distinct counters
+std::uint64_t mix64(std::uint64_t x) {
+  x += 0x9e3779b97f4a7c15ull;
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
+  return x ^ (x >> 31);
+}
+
+void fill_params(v1::HapticsParams* out, const HapticsSettings& s) {
+  out->set_stiffness_n_per_mm(s.stiffness_n_per_mm);
+  out->set_friction(s.friction);
+  out->set_max_force_n(s.max_force_n);
+  out->set_max_force_rate_n_per_s(s.max_force_rate_n_per_s);
+  out->set_min_gradient_norm(s.min_gradient_norm);
+}
+
+std::vector<std::string> stages_of(const Scene& s) {
+  std::vector<std::string> out;
+  if (s.effects.haptics) out.push_back("haptics");
+  return out;
+}
+
+}  // namespace
+
+std::unique_ptr<World> make_world(const Scene& scene, PatientPtr patient, std::uint64_t generation) {
+  auto w = std::make_unique<World>();
+  w->scene = scene;
+  w->patient = std::move(patient);
+  w->generation = generation;
+  const Grid& g = w->patient->grid;
+  // grid bounds: the eight corners of the voxel box
+  Vec3 lo{1e300, 1e300, 1e300}, hi{-1e300, -1e300, -1e300};
+  auto grow = [](Vec3& a, Vec3& b, const Vec3& p) {
+    a = {std::min(a.x, p.x), std::min(a.y, p.y), std::min(a.z, p.z)};
+    b = {std::max(b.x, p.x), std::max(b.y, p.y), std::max(b.z, p.z)};
+  };
+  for (int c = 0; c < 8; ++c) {
+    const Vec3 ijk{(c & 1) ? g.size.x - 0.5 : -0.5, (c & 2) ? g.size.y - 0.5 : -0.5, (c & 4) ? g.size.z - 0.5 : -0.5};
+    grow(lo, hi, g.to_physical(ijk));
+  }
+  w->bounds_min_mm = lo;
+  w->bounds_max_mm = hi;
+  // body bounds: index box of the body voxels, then its corners in physical space
+  Vec3i bl{g.size.x, g.size.y, g.size.z}, bh{-1, -1, -1};
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i)
+        if (w->patient->body.data[g.index(i, j, k)]) {
+          bl = {std::min(bl.x, i), std::min(bl.y, j), std::min(bl.z, k)};
+          bh = {std::max(bh.x, i), std::max(bh.y, j), std::max(bh.z, k)};
+        }
+  if (bh.x >= 0) {
+    Vec3 a{1e300, 1e300, 1e300}, b{-1e300, -1e300, -1e300};
+    for (int c = 0; c < 8; ++c)
+      grow(a, b, g.to_physical(Vec3{double((c & 1) ? bh.x : bl.x), double((c & 2) ? bh.y : bl.y),
+                                    double((c & 4) ? bh.z : bl.z)}));
+    w->body_min_mm = a;
+    w->body_max_mm = b;
+  }
+  return w;
+}
+
+std::string derive_pose_endpoint(const std::string& control) {
+  if (control.rfind("tcp://", 0) == 0) {
+    const auto colon = control.rfind(':');
+    if (colon == std::string::npos || colon < 6) throw Error("--bind " + control + ": a tcp address needs :PORT");
+    const std::string port = control.substr(colon + 1);
+    if (port == "*") return control;
+    try {
+      std::size_t used = 0;
+      const int p = std::stoi(port, &used);
+      if (used != port.size() || p <= 0 || p >= 65535) throw std::invalid_argument(port);
+      return control.substr(0, colon + 1) + std::to_string(p + 1);
+    } catch (const std::exception&) {
+      throw Error("--bind " + control + ": port '" + port + "' is not a number in 1..65534 or *");
+    }
+  }
+  if (control.rfind("ipc://", 0) == 0) return control + ".pose";
+  if (control.rfind("inproc://", 0) == 0) return control + "-pose";
+  throw Error("--bind " + control + ": expected tcp://HOST:PORT, ipc://PATH or inproc://NAME");
+}
+
+// the control thread: sockets, world ownership, control requests, housekeeping
+class Server::Control {
+ public:
+  Control(ServerShared& sh, const Scene& scene, PatientPtr patient, PatientLoader loader, const ServerOptions& o)
+      : sh_(sh), loader_(std::move(loader)), opt_(o), ctx_(1), control_(ctx_, zmq::socket_type::router),
+        pose_(ctx_, zmq::socket_type::router), in_(kMaxControlBytes + 1) {
+    start_ = Clock::now();
+    seed_ = std::random_device{}() ^ (std::uint64_t(std::random_device{}()) << 32);
+    sh_.max_pose_distance_mm = o.max_pose_distance_mm;
+    current_ = make_world(scene, std::move(patient), 1);
+    sh_.world.store(current_.get(), std::memory_order_release);
+    for (zmq::socket_t* s : {&control_, &pose_}) {
+      s->set(zmq::sockopt::linger, 0);
+      s->set(zmq::sockopt::maxmsgsize, kMaxFrameBytes);
+      s->set(zmq::sockopt::sndhwm, 10000);
+      s->set(zmq::sockopt::rcvhwm, 10000);
+    }
+    control_endpoint_ = bind(control_, o.control_bind, "--bind");
+    pose_endpoint_ = bind(pose_, o.pose_bind.empty() ? derive_pose_endpoint(o.control_bind) : o.pose_bind,
+                          "--pose-bind");
+  }
+
+  Clock::time_point start() const { return start_; }
+  zmq::socket_t& pose_socket() { return pose_; }
+  const std::string& control_endpoint() const { return control_endpoint_; }
+  const std::string& pose_endpoint() const { return pose_endpoint_; }
+
+  void close() {
+    control_.close();
+    pose_.close();
+  }
+
+  void run() {
+    zmq::pollitem_t items[] = {{control_.handle(), 0, ZMQ_POLLIN, 0}};
+    last_log_ = Clock::now();
+    while (!sh_.stop.load()) {
+      zmq::poll(items, 1, std::chrono::milliseconds(opt_.housekeeping_ms));
+      if (items[0].revents & ZMQ_POLLIN) drain();
+      housekeeping();
+    }
+  }
+
+ private:
+  ServerShared& sh_;
+  PatientLoader loader_;
+  ServerOptions opt_;
+  zmq::context_t ctx_;
+  zmq::socket_t control_, pose_;
+  std::string control_endpoint_, pose_endpoint_;
+  Clock::time_point start_;
+  std::uint64_t seed_ = 0, id_counter_ = 0;
+  std::unique_ptr<World> current_;
+  std::vector<std::unique_ptr<World>> retired_;  // old worlds the pose thread may still read
+  std::vector<char> in_;
+  v1::ControlRequest req_;
+  v1::ControlReply rep_;
+  std::string out_;
+  Clock::time_point last_log_;
+  std::uint64_t logged_bad_ = 0;
+
+  std::string bind(zmq::socket_t& s, const std::string& addr, const char* option) {
+    try {
+      s.bind(addr);
+    } catch (const zmq::error_t& e) {
+      throw Error(std::string(option) + " " + addr + ": cannot bind: " + e.what());
+    }
+    return s.get(zmq::sockopt::last_endpoint);
+  }
+
+  const World& world() const { return *current_; }
+
+  // the slot of an open session, or nullptr
+  SessionSlot* find(std::uint64_t id) {
+    if (id == 0) return nullptr;
+    SessionSlot& s = sh_.slots[id & (kMaxSlots - 1)];
+    return s.id.load(std::memory_order_acquire) == id ? &s : nullptr;
+  }
+
+  void drain() {
+    for (;;) {
+      zmq::message_t id;
+      if (!control_.recv(id, zmq::recv_flags::dontwait)) return;
+      // frames after the routing id: [payload] (DEALER) or [empty, payload] (REQ)
+      std::vector<std::size_t> sizes;
+      std::size_t kept = 0;
+      while (control_.get(zmq::sockopt::rcvmore)) {
+        const auto r = control_.recv(zmq::mutable_buffer(in_.data(), in_.size()));
+        sizes.push_back(r ? r->untruncated_size : 0);
+        kept = r ? std::min(r->size, in_.size()) : 0;
+      }
+      const bool req_envelope = sizes.size() >= 1 && sizes[0] == 0;
+      rep_.Clear();
+      rep_.set_schema_version(v1::VERSION_CURRENT);
+      sh_.counters.control_requests.fetch_add(1);
+      if (!((sizes.size() == 1 && sizes[0] > 0) || (sizes.size() == 2 && req_envelope))) {
+        refuse(v1::ERROR_MALFORMED, sh_.counters.malformed,
+               "ControlRequest: expected one frame (DEALER) or an empty delimiter and one frame (REQ)");
+      } else if (sizes.back() > kMaxControlBytes) {
+        refuse(v1::ERROR_OVERSIZED, sh_.counters.oversized,
+               "ControlRequest: " + std::to_string(sizes.back()) + " bytes, over the control path's limit of " +
+                   std::to_string(kMaxControlBytes) + " bytes");
+      } else if (!req_.ParseFromArray(in_.data(), int(kept))) {
+        refuse(v1::ERROR_MALFORMED, sh_.counters.malformed,
+               "ControlRequest: " + std::to_string(kept) + " bytes do not parse (truncated, or not a ControlRequest)");
+      } else {
+        handle();
+      }
+      rep_.SerializeToString(&out_);
+      try {
+        control_.send(id, zmq::send_flags::sndmore | zmq::send_flags::dontwait);
+        if (req_envelope) control_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::sndmore | zmq::send_flags::dontwait);
+        control_.send(zmq::const_buffer(out_.data(), out_.size()), zmq::send_flags::dontwait);
+      } catch (const zmq::error_t&) {
+        // the client is gone
+      }
+    }
+  }
+
+  void refuse(v1::ErrorCode code, std::atomic<std::uint64_t>& counter, const std::string& message) {
+    rep_.clear_body();
+    rep_.mutable_error()->set_code(code);
+    rep_.mutable_error()->set_message(message);
+    counter.fetch_add(1);
+    spdlog::warn("control: {} ({})", message, v1::ErrorCode_Name(code));
+  }
+
+  void handle() {
+    rep_.set_request_id(req_.request_id());
+    if (req_.schema_version() != v1::VERSION_CURRENT)
+      return refuse(v1::ERROR_WRONG_SCHEMA_VERSION, sh_.counters.wrong_schema_version,
+                    "ControlRequest.schema_version: got " + std::to_string(req_.schema_version()) +
+                        ", this server speaks " + std::to_string(int(v1::VERSION_CURRENT)));
+    try {
+      switch (req_.body_case()) {
+        case v1::ControlRequest::kOpen: return open();
+        case v1::ControlRequest::kClose: return close_session();
+        case v1::ControlRequest::kReset: return reset();
+        case v1::ControlRequest::kSetParameter: return set_parameter();
+        case v1::ControlRequest::kStats: return stats();
+        case v1::ControlRequest::kLoadScene: return load_scene();
+        case v1::ControlRequest::kInfo: return fill_info(rep_.mutable_info());
+        case v1::ControlRequest::BODY_NOT_SET:
+          return refuse(v1::ERROR_EMPTY_REQUEST, sh_.counters.empty_request,
+                        "ControlRequest: no body set (open, close, reset, set_parameter, stats, load_scene or info)");
+      }
+    } catch (const std::exception& e) {
+      return refuse(v1::ERROR_INTERNAL, sh_.counters.internal_errors, std::string("ControlRequest: ") + e.what());
+    }
+  }
+
+  SessionSlot* session_or_refuse(std::uint64_t id, const char* field) {
+    SessionSlot* s = find(id);
+    if (!s)
+      refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session,
+             std::string(field) + ": " + hex_id(id) + " is not an open session (never opened, closed, or timed out)");
+    else
+      s->last_seen_ns.store(ns_since(start_));
+    return s;
+  }
+
+  void fill_info(v1::ServerInfo* info) {
+    const World& w = world();
+    const Patient& p = *w.patient;
+    info->set_scene_name(w.scene.name);
+    info->set_scene_file(w.scene.file);
+    info->set_scene_generation(w.generation);
+    auto* pi = info->mutable_patient();
+    pi->set_source(p.source);
+    pi->set_size_i(p.grid.size.x);
+    pi->set_size_j(p.grid.size.y);
+    pi->set_size_k(p.grid.size.z);
+    pi->set_spacing_mm(p.grid.spacing_mm.x);
+    set_vec(pi->mutable_origin_mm(), p.grid.origin_mm);
+    set_vec(pi->mutable_bounds_min_mm(), w.bounds_min_mm);
+    set_vec(pi->mutable_bounds_max_mm(), w.bounds_max_mm);
+    set_vec(pi->mutable_body_min_mm(), w.body_min_mm);
+    set_vec(pi->mutable_body_max_mm(), w.body_max_mm);
+    pi->set_has_bone(p.has_bone);
+    info->set_control_endpoint(control_endpoint_);
+    info->set_pose_endpoint(pose_endpoint_);
+    info->set_session_timeout_s(w.scene.server.session_timeout_s);
+    info->set_max_sessions(w.scene.server.max_sessions);
+    info->set_max_pose_distance_mm(sh_.max_pose_distance_mm);
+    info->set_max_pose_bytes(kMaxPoseBytes);
+    info->set_max_control_bytes(kMaxControlBytes);
+    for (const auto& s : stages_of(w.scene)) info->add_stages(s);
+  }
+
+  int open_count() const {
+    int n = 0;
+    for (const auto& s : sh_.slots) n += s.id.load(std::memory_order_relaxed) != 0;
+    return n;
+  }
+
+  void open() {
+    const int limit = std::min(world().scene.server.max_sessions, kMaxSlots);
+    SessionSlot* free_slot = nullptr;
+    int index = 0;
+    for (int i = 0; i < kMaxSlots && !free_slot; ++i)
+      if (sh_.slots[i].id.load(std::memory_order_relaxed) == 0) {
+        free_slot = &sh_.slots[i];
+        index = i;
+      }
+    if (!free_slot || open_count() >= limit)
+      return refuse(v1::ERROR_TOO_MANY_SESSIONS, sh_.counters.too_many_sessions,
+                    "OpenSession: all " + std::to_string(limit) + " sessions (scene server.max_sessions) are open");
+    // a fresh id: random-looking high bits, the slot index in the low bits
+    std::uint64_t id = 0;
+    while (id == 0) id = (mix64(seed_ + ++id_counter_) << kSlotBits) | std::uint64_t(index);
+    SessionSlot& s = *free_slot;
+    s.set_params(world().scene.haptics);
+    s.poses = 0;
+    s.errors = 0;
+    s.last_seq = 0;
+    s.clamps = 0;
+    s.contact = false;
+    s.depth_mm = 0;
+    s.client_name = req_.open().client_name();
+    s.last_seen_ns.store(ns_since(start_));
+    s.id.store(id, std::memory_order_release);  // publishes the slot to the pose thread
+    sh_.counters.sessions_opened.fetch_add(1);
+    auto* o = rep_.mutable_open();
+    o->set_session_id(id);
+    o->set_pose_endpoint(pose_endpoint_);
+    fill_params(o->mutable_params(), world().scene.haptics);
+    fill_info(o->mutable_server());
+    spdlog::info("session {} opened ({}), {} open", hex_id(id), s.client_name.empty() ? "unnamed" : s.client_name,
+                 open_count());
+  }
+
+  void free_session(SessionSlot& s) { s.id.store(0, std::memory_order_release); }
+
+  void close_session() {
+    const std::uint64_t id = req_.close().session_id();
+    SessionSlot* s = session_or_refuse(id, "CloseSession.session_id");
+    if (!s) return;
+    free_session(*s);
+    sh_.counters.sessions_closed.fetch_add(1);
+    auto* c = rep_.mutable_close();
+    c->set_session_id(id);
+    c->set_poses(s->poses.load());
+    spdlog::info("session {} closed after {} poses", hex_id(id), s->poses.load());
+  }
+
+  void reset() {
+    const std::uint64_t id = req_.reset().session_id();
+    SessionSlot* s = session_or_refuse(id, "ResetSession.session_id");
+    if (!s) return;
+    s->reset_requests.fetch_add(1, std::memory_order_release);
+    rep_.mutable_reset()->set_session_id(id);
+  }
+
+  void set_parameter() {
+    const auto& r = req_.set_parameter();
+    SessionSlot* s = session_or_refuse(r.session_id(), "SetParameter.session_id");
+    if (!s) return;
+    // names and ranges come from the scene schema's Haptics message
+    const auto* field = v1::Haptics::descriptor()->FindFieldByName(r.name());
+    if (!field || field->cpp_type() != google::protobuf::FieldDescriptor::CPPTYPE_DOUBLE)
+      return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter,
+                    "SetParameter.name: '" + r.name() +
+                        "' is not a haptics parameter (stiffness_n_per_mm, friction, max_force_n, "
+                        "max_force_rate_n_per_s, min_gradient_norm)");
+    const auto& o = field->options();
+    const double lo = o.GetExtension(v1::min), hi = o.GetExtension(v1::max), v = r.value();
+    if (!std::isfinite(v) || v < lo || v > hi) {
+      char b[256];
+      std::snprintf(b, sizeof b, "SetParameter.value: %s = %g is outside [%g, %g] %s", r.name().c_str(), v, lo, hi,
+                    o.GetExtension(v1::unit).c_str());
+      return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, b);
+    }
+    HapticsSettings p = s->params();
+    if (r.name() == "stiffness_n_per_mm") p.stiffness_n_per_mm = v;
+    else if (r.name() == "friction") p.friction = v;
+    else if (r.name() == "max_force_n") p.max_force_n = v;
+    else if (r.name() == "max_force_rate_n_per_s") p.max_force_rate_n_per_s = v;
+    else if (r.name() == "min_gradient_norm") p.min_gradient_norm = v;
+    s->set_params(p);
+    auto* out = rep_.mutable_set_parameter();
+    out->set_session_id(r.session_id());
+    fill_params(out->mutable_params(), p);
+  }
+
+  void stats() {
+    auto* st = rep_.mutable_stats();
+    const auto& c = sh_.counters;
+    auto* s = st->mutable_server();
+    s->set_uptime_s(ns_since(start_) * 1e-9);
+    s->set_sessions_open(open_count());
+    s->set_sessions_opened(c.sessions_opened);
+    s->set_sessions_closed(c.sessions_closed);
+    s->set_sessions_timed_out(c.sessions_timed_out);
+    s->set_poses(c.poses);
+    s->set_malformed(c.malformed);
+    s->set_wrong_schema_version(c.wrong_schema_version);
+    s->set_unknown_session(c.unknown_session);
+    s->set_bad_pose(c.bad_pose);
+    s->set_absurd_pose(c.absurd_pose);
+    s->set_oversized(c.oversized);
+    s->set_too_many_sessions(c.too_many_sessions);
+    s->set_bad_parameter(c.bad_parameter);
+    s->set_scene_loads(c.scene_loads);
+    s->set_scene_load_failures(c.scene_load_failures);
+    s->set_control_requests(c.control_requests);
+    s->set_empty_request(c.empty_request);
+    s->set_internal_errors(c.internal_errors);
+    auto* l = s->mutable_pose_service();
+    l->set_count(sh_.pose_service.count());
+    l->set_p50_us(sh_.pose_service.quantile(0.5));
+    l->set_p99_us(sh_.pose_service.quantile(0.99));
+    l->set_p999_us(sh_.pose_service.quantile(0.999));
+    l->set_max_us(sh_.pose_service.max_us());
+    fill_info(st->mutable_info());
+    const std::uint64_t id = req_.stats().session_id();
+    if (id != 0) {
+      SessionSlot* slot = session_or_refuse(id, "StatsRequest.session_id");
+      if (!slot) return;
+      auto* ss = st->mutable_session();
+      ss->set_session_id(id);
+      ss->set_client_name(slot->client_name);
+      ss->set_poses(slot->poses);
+      ss->set_errors(slot->errors);
+      ss->set_last_seq(slot->last_seq);
+      ss->set_contact(slot->contact);
+      ss->set_depth_mm(slot->depth_mm);
+      ss->set_idle_s((ns_since(start_) - slot->last_seen_ns.load()) * 1e-9);
+      fill_params(ss->mutable_params(), slot->params());
+      ss->set_force_clamps(slot->clamps);
+    }
+  }
+
+  void load_scene() {
+    const auto& r = req_.load_scene();
+    const std::string what = r.path().empty() ? std::string("scene text") : r.path();
+    try {
+      if (r.path().empty() == r.text().empty())
+        throw Error("LoadScene: set exactly one of path or text");
+      const Scene scene = r.path().empty() ? parse_scene_text(r.text(), "") : load_scene_file(r.path());
+      spdlog::info("loading scene '{}' from {} (poses keep being served on the old one)", scene.name, what);
+      PatientPtr patient = loader_(scene);
+      if (!patient) throw Error("LoadScene: " + what + ": the loader returned no patient");
+      auto next = make_world(scene, std::move(patient), current_->generation + 1);
+      sh_.world.store(next.get(), std::memory_order_release);
+      retired_.push_back(std::move(current_));
+      current_ = std::move(next);
+      sh_.counters.scene_loads.fetch_add(1);
+      spdlog::info("now serving scene '{}' (generation {})", current_->scene.name, current_->generation);
+      fill_info(rep_.mutable_load_scene()->mutable_server());
+    } catch (const std::exception& e) {
+      refuse(v1::ERROR_SCENE_LOAD_FAILED, sh_.counters.scene_load_failures,
+             std::string("LoadScene: refused, still serving '") + current_->scene.name + "': " + e.what());
+    }
+  }
+
+  void housekeeping() {
+    const std::int64_t now = ns_since(start_);
+    // sessions silent for longer than the timeout are freed
+    const auto timeout_ns = std::int64_t(world().scene.server.session_timeout_s * 1e9);
+    for (auto& s : sh_.slots) {
+      const std::uint64_t id = s.id.load(std::memory_order_relaxed);
+      if (id != 0 && now - s.last_seen_ns.load(std::memory_order_relaxed) > timeout_ns) {
+        free_session(s);
+        sh_.counters.sessions_timed_out.fetch_add(1);
+        spdlog::warn("session {} timed out after {:.2f} s without a message; freed", hex_id(id),
+                     world().scene.server.session_timeout_s);
+      }
+    }
+    // worlds older than the one the pose thread has picked up are no longer read
+    const std::uint64_t seen = sh_.seen_generation.load(std::memory_order_acquire);
+    retired_.erase(std::remove_if(retired_.begin(), retired_.end(),
+                                  [seen](const std::unique_ptr<World>& w) { return w->generation < seen; }),
+                   retired_.end());
+    // a summary of new bad pose input (the pose thread does not log)
+    if (std::chrono::duration<double>(Clock::now() - last_log_).count() >= opt_.bad_input_log_period_s) {
+      last_log_ = Clock::now();
+      const auto& c = sh_.counters;
+      const std::uint64_t bad = c.malformed + c.wrong_schema_version + c.unknown_session + c.bad_pose + c.absurd_pose +
+                                c.oversized;
+      if (bad != logged_bad_) {
+        spdlog::warn(
+            "bad input so far: {} malformed, {} wrong schema version, {} unknown session, {} NaN/Inf poses, {} absurd "
+            "poses, {} oversized ({} new)",
+            c.malformed.load(), c.wrong_schema_version.load(), c.unknown_session.load(), c.bad_pose.load(),
+            c.absurd_pose.load(), c.oversized.load(), bad - logged_bad_);
+        logged_bad_ = bad;
+      }
+    }
+  }
+};
+
+Server::Server(const Scene& scene, PatientPtr patient, PatientLoader loader, const ServerOptions& options)
+    : shared_(std::make_unique<ServerShared>()) {
+  if (!patient) throw Error("Server: no patient for scene '" + scene.name + "'");
+  control_ = std::make_unique<Control>(*shared_, scene, std::move(patient), std::move(loader), options);
+  control_endpoint_ = control_->control_endpoint();
+  pose_endpoint_ = control_->pose_endpoint();
+}
+
+Server::~Server() { stop(); }
+
+void Server::start() {
+  if (started_) return;
+  started_ = true;
+  const auto t0 = control_->start();
+  pose_thread_ = std::thread([this, t0] { run_pose_service(control_->pose_socket(), *shared_, t0); });
+  control_thread_ = std::thread([this] { control_->run(); });
+}
+
+void Server::stop() {
+  shared_->stop.store(true);
+  if (pose_thread_.joinable()) pose_thread_.join();
+  if (control_thread_.joinable()) control_thread_.join();
+  if (control_) control_->close();
+}
+
+const ContactSlot* Server::contact_slot(std::uint64_t session_id) const {
+  if (session_id == 0) return nullptr;
+  const SessionSlot& s = shared_->slots[session_id & (kMaxSlots - 1)];
+  return s.id.load(std::memory_order_acquire) == session_id ? &s.latest : nullptr;
+}
+
+std::vector<std::uint64_t> Server::open_sessions() const {
+  std::vector<std::uint64_t> ids;
+  for (const auto& s : shared_->slots)
+    if (const std::uint64_t id = s.id.load(std::memory_order_acquire)) ids.push_back(id);
+  return ids;
+}
+
+}  // namespace palpsim::net

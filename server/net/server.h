@@ -1,0 +1,75 @@
+// palpsim-server's network side: a control ROUTER (open, close, reset, set parameter,
+// stats, info, load scene) on its own thread, and a pose ROUTER answered by the haptic
+// thread (net/pose_service.h). Protocol: proto/PROTOCOL.md. Protobuf stays behind
+// this header.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/patient.h"
+#include "core/scene.h"
+#include "haptics/contact_slot.h"
+
+namespace palpsim::net {
+
+struct ServerShared;
+struct World;
+
+/// Prepares the patient of a scene (palpsim::prepare_patient in the real server; tests
+/// may pass a synthetic one). Throws palpsim::Error for a scene that cannot be served.
+using PatientLoader = std::function<PatientPtr(const Scene&)>;
+
+/// Where and how the server listens.
+struct ServerOptions {
+  std::string control_bind = "tcp://127.0.0.1:7420";  // the control ROUTER's address
+  std::string pose_bind;                                // "" = derived (derive_pose_endpoint)
+  double max_pose_distance_mm = 1000;                   // poses farther from the patient grid are refused
+  int housekeeping_ms = 100;                            // control thread: timeouts, freeing old worlds
+  double bad_input_log_period_s = 5;                    // log a summary of new bad input at most this often
+};
+
+/// The default pose address for a control address: tcp port + 1 ("*" stays "*"),
+/// ipc://P -> ipc://P.pose, inproc://N -> inproc://N-pose.
+std::string derive_pose_endpoint(const std::string& control);
+
+/// The server: binds both sockets in the constructor (throws palpsim::Error naming the
+/// address when it cannot), serves from start() until stop() or destruction.
+class Server {
+ public:
+  Server(const Scene& scene, PatientPtr patient, PatientLoader loader, const ServerOptions& options);
+  ~Server();
+  Server(const Server&) = delete;
+  Server& operator=(const Server&) = delete;
+
+  /// Starts the control and haptic threads.
+  void start();
+  /// Stops both threads and closes the sockets (idempotent).
+  void stop();
+
+  /// The bound control address (with the real port when bound to "*").
+  const std::string& control_endpoint() const { return control_endpoint_; }
+  /// The bound pose address.
+  const std::string& pose_endpoint() const { return pose_endpoint_; }
+
+  /// Hook for the deformation path: the newest contact slot of an open session, or
+  /// nullptr. The slot lives as long as the server; a reader polls it at its own rate.
+  const ContactSlot* contact_slot(std::uint64_t session_id) const;
+  /// Ids of the sessions open now (a snapshot).
+  std::vector<std::uint64_t> open_sessions() const;
+
+ private:
+  class Control;
+  std::unique_ptr<ServerShared> shared_;
+  std::unique_ptr<Control> control_;
+  std::string control_endpoint_, pose_endpoint_;
+  std::thread pose_thread_, control_thread_;
+  bool started_ = false;
+};
+
+}  // namespace palpsim::net

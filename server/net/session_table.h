@@ -1,0 +1,145 @@
+// Shared state between the control thread and the haptic (pose) thread, all atomics:
+// the session table, the current world (scene + patient), counters and the pose
+// latency histogram. No locks: the pose thread never waits on the control thread.
+#pragma once
+
+#include <array>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "core/patient.h"
+#include "core/scene.h"
+#include "haptics/contact_slot.h"
+#include "haptics/force_model.h"
+
+namespace palpsim::net {
+
+/// A scene with its prepared patient and its place in the load history. Immutable once
+/// published; the pose thread reads it through a raw pointer that the control thread
+/// keeps alive until the pose thread has moved on (ServerShared::seen_generation).
+struct World {
+  Scene scene;
+  PatientPtr patient;
+  std::uint64_t generation = 0;  // 1 for the scene loaded at start, +1 per successful load
+  Vec3 bounds_min_mm{0, 0, 0};   // physical bounding box of the patient grid
+  Vec3 bounds_max_mm{0, 0, 0};
+  Vec3 body_min_mm{0, 0, 0};     // bounding box of the body mask's voxel centres
+  Vec3 body_max_mm{0, 0, 0};
+};
+
+/// Builds a World (bounds included) from a scene and its patient.
+std::unique_ptr<World> make_world(const Scene& scene, PatientPtr patient, std::uint64_t generation);
+
+/// The largest number of sessions any scene may ask for (scene.proto's server.max_sessions max).
+constexpr int kMaxSlots = 4096;
+/// Low bits of a session id that hold its slot index.
+constexpr int kSlotBits = 12;
+
+/// One session's slot. Fields marked (control) are written by the control thread only,
+/// (pose) by the pose thread only; atomics may be read by either.
+struct SessionSlot {
+  std::atomic<std::uint64_t> id{0};             // (control) 0 = free; else the open session's id
+  std::atomic<std::int64_t> last_seen_ns{0};    // (both) server clock of the last message naming it
+  std::atomic<std::uint32_t> reset_requests{0}; // (control) grows by one per ResetSession
+  // haptics parameters (control), read by the pose thread at every pose
+  std::atomic<double> stiffness_n_per_mm{0.25}, friction{0.2}, max_force_n{3.3}, max_force_rate_n_per_s{2000},
+      min_gradient_norm{1e-4};
+  // statistics (pose)
+  std::atomic<std::uint64_t> poses{0}, errors{0}, last_seq{0}, clamps{0};
+  std::atomic<bool> contact{false};
+  std::atomic<double> depth_mm{0};
+  // the newest contact, for the deformation path (pose writes, anyone reads)
+  ContactSlot latest;
+  // (pose) the proxy state and what it belongs to
+  std::uint64_t state_id = 0;          // the session id the state below belongs to
+  std::uint32_t resets_seen = 0;       // reset_requests already applied
+  std::uint64_t state_generation = 0;  // the world the proxy state was computed in
+  ProxyState proxy{};
+  double last_client_time_s = 0;       // of the previous pose
+  double last_server_time_s = 0;       // of the previous pose
+  // (control) name shown in stats
+  std::string client_name;
+
+  /// The parameters as HapticsSettings (pose thread, per pose).
+  HapticsSettings params() const {
+    HapticsSettings s;
+    s.stiffness_n_per_mm = stiffness_n_per_mm.load(std::memory_order_relaxed);
+    s.friction = friction.load(std::memory_order_relaxed);
+    s.max_force_n = max_force_n.load(std::memory_order_relaxed);
+    s.max_force_rate_n_per_s = max_force_rate_n_per_s.load(std::memory_order_relaxed);
+    s.min_gradient_norm = min_gradient_norm.load(std::memory_order_relaxed);
+    return s;
+  }
+  /// Sets all parameters (control thread).
+  void set_params(const HapticsSettings& s) {
+    stiffness_n_per_mm.store(s.stiffness_n_per_mm, std::memory_order_relaxed);
+    friction.store(s.friction, std::memory_order_relaxed);
+    max_force_n.store(s.max_force_n, std::memory_order_relaxed);
+    max_force_rate_n_per_s.store(s.max_force_rate_n_per_s, std::memory_order_relaxed);
+    min_gradient_norm.store(s.min_gradient_norm, std::memory_order_relaxed);
+  }
+};
+
+/// Server-wide counters; every kind of bad input has one (ServerStats in wire.proto).
+struct Counters {
+  std::atomic<std::uint64_t> sessions_opened{0}, sessions_closed{0}, sessions_timed_out{0}, poses{0}, malformed{0},
+      wrong_schema_version{0}, unknown_session{0}, bad_pose{0}, absurd_pose{0}, oversized{0}, too_many_sessions{0},
+      bad_parameter{0}, scene_loads{0}, scene_load_failures{0}, control_requests{0}, empty_request{0},
+      internal_errors{0};
+};
+
+/// A log-binned histogram of service times that one thread fills (relaxed atomics, no
+/// allocation) and another reads: 8 bins per octave from 0.125 us to ~1 s.
+class LatencyHistogram {
+ public:
+  static constexpr int kBins = 8 * 23;
+  /// Adds one sample (us).
+  void add(double us) {
+    int b = 0;
+    if (us > 0.125) b = std::min(kBins - 1, int(std::log2(us / 0.125) * 8));
+    bins_[b].fetch_add(1, std::memory_order_relaxed);
+    count_.fetch_add(1, std::memory_order_relaxed);
+    if (us > max_us_.load(std::memory_order_relaxed)) max_us_.store(us, std::memory_order_relaxed);
+  }
+  /// The q-quantile (0..1) in us: the upper edge of the bin that holds it (9 % resolution).
+  double quantile(double q) const {
+    const std::uint64_t n = count_.load(std::memory_order_relaxed);
+    if (n == 0) return 0;
+    const double target = q * double(n);
+    std::uint64_t acc = 0;
+    for (int b = 0; b < kBins; ++b) {
+      acc += bins_[b].load(std::memory_order_relaxed);
+      if (double(acc) >= target) return 0.125 * std::exp2((b + 1) / 8.0);
+    }
+    return max_us();
+  }
+  std::uint64_t count() const { return count_.load(std::memory_order_relaxed); }
+  double max_us() const { return max_us_.load(std::memory_order_relaxed); }
+
+ private:
+  std::array<std::atomic<std::uint64_t>, kBins> bins_{};
+  std::atomic<std::uint64_t> count_{0};
+  std::atomic<double> max_us_{0};
+};
+
+/// Everything the two threads share.
+struct ServerShared {
+  std::array<SessionSlot, kMaxSlots> slots;
+  std::atomic<const World*> world{nullptr};          // (control) the world being served
+  std::atomic<std::uint64_t> seen_generation{0};     // (pose) the newest world generation it has picked up
+  Counters counters;
+  LatencyHistogram pose_service;                     // (pose) receive-to-send times of answered poses
+  std::atomic<bool> stop{false};
+  double max_pose_distance_mm = 1000;                // poses farther than this from the grid are absurd
+};
+
+/// Limits of the two paths (PROTOCOL.md).
+constexpr std::size_t kMaxPoseBytes = 1024;
+constexpr std::size_t kMaxControlBytes = 1 << 20;
+/// ZeroMQ drops connections that send frames larger than this (memory guard).
+constexpr std::int64_t kMaxFrameBytes = 16 << 20;
+
+}  // namespace palpsim::net

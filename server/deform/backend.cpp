@@ -1,0 +1,263 @@
+// The validating wrapper of DeformBackend, the VOI rule and backend selection by name.
+#include "deform/backend.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <sstream>
+
+#include "core/error.h"
+#include "deform/cpu_backend.h"
+
+#ifdef PALPSIM_HAVE_CUDA
+namespace palpsim::cuda {
+// defined in cuda/cuda_backend.cu
+std::unique_ptr<DeformBackend> make_cuda_deform_backend();
+bool cuda_device_usable(std::string* why);
+}  // namespace palpsim::cuda
+#endif
+
+namespace palpsim {
+
+namespace {
+
+std::string fmt_vec(const Vec3& v) {
+  std::ostringstream s;
+  s << "(" << v.x << ", " << v.y << ", " << v.z << ")";
+  return s.str();
+}
+
+bool finite(const Vec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+
+}  // namespace
+
+DeformConfig DeformConfig::from_scene(const Scene& scene) {
+  DeformConfig c;
+  c.settings = scene.deform;
+  c.bone_threshold = scene.prep.bone_threshold;
+  c.relax = scene.effects.relaxation;
+  c.invert = scene.effects.inversion;
+  return c;
+}
+
+Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole) {
+  Voi v;
+  if (whole) {
+    v.size = grid_size;
+    return v;
+  }
+  for (int a = 0; a < 3; ++a) {
+    // centre on the tip
+    int lo = tip[a] - edge / 2;
+    int hi = lo + edge - 1;
+    // shift the least so that the grabbed voxel is inside
+    if (grabbed[a] < lo) {
+      hi -= lo - grabbed[a];
+      lo = grabbed[a];
+    } else if (grabbed[a] > hi) {
+      lo += grabbed[a] - hi;
+      hi = grabbed[a];
+    }
+    // clip at the volume border
+    lo = std::max(lo, 0);
+    hi = std::min(hi, grid_size[a] - 1);
+    v.lo[a] = lo;
+    v.size[a] = hi - lo + 1;
+  }
+  return v;
+}
+
+void DeformBackend::require(bool ok, const char* what) const {
+  if (!ok) throw Error("deform backend \"" + name_ + "\": " + what);
+}
+
+long long DeformBackend::max_voi_count() const {
+  const Vec3i& g = patient_->grid.size;
+  if (config_.settings.whole_volume) return (long long)g.x * g.y * g.z;
+  long long n = 1;
+  for (int a = 0; a < 3; ++a) n *= std::min(config_.settings.voi_edge, g[a]);
+  return n;
+}
+
+void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
+  require(patient != nullptr, "bind() got no patient");
+  const Patient& p = *patient;
+  const DeformSettings& s = config.settings;
+  const Vec3i& g = p.grid.size;
+  require(g.x > 0 && g.y > 0 && g.z > 0, "the patient grid is empty");
+  require(p.intensity.grid.same_geometry(p.grid) && p.intensity.data.size() == p.grid.count(),
+          "Patient::intensity does not match the patient grid");
+  require(p.bone.grid.same_geometry(p.grid) && p.bone.data.size() == p.grid.count(),
+          "Patient::bone does not match the patient grid");
+  // the settings, each named as in the scene
+  auto bad = [&](const std::string& field, double value, const std::string& rule) {
+    std::ostringstream m;
+    m << "deform." << field << " = " << value << " " << rule;
+    throw Error("deform backend \"" + name_ + "\": " + m.str());
+  };
+  if (!(s.min_dist >= 0 && s.min_dist <= 1)) bad("min_dist", s.min_dist, "must lie in [0, 1] voxel");
+  if (!(s.max_dist >= 1 && s.max_dist <= 4)) bad("max_dist", s.max_dist, "must lie in [1, 4] voxel");
+  if (!(s.max_sheer >= 0 && s.max_sheer <= 4)) bad("max_sheer", s.max_sheer, "must lie in [0, 4] voxel");
+  if (!s.whole_volume && !(s.voi_edge >= 3 && s.voi_edge <= 1024))
+    bad("voi_edge", s.voi_edge, "must lie in [3, 1024] voxel");
+  if (s.max_sweeps < 1) bad("max_sweeps", s.max_sweeps, "must be at least 1");
+  if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
+  if (!(s.relax_step >= 0)) bad("relax_step", s.relax_step, "must not be negative");
+  if (s.relax_step > deform::kRelaxStableStep) {
+    std::ostringstream m;
+    m << "deform.relax_step = " << s.relax_step << " is above the explicit scheme's stable limit "
+      << deform::kRelaxStableStep << " (1/6 for six neighbours); use a smaller step and more iterations";
+    throw Error("deform backend \"" + name_ + "\": " + m.str());
+  }
+  if (!(s.material_width > 0)) bad("material_width", s.material_width, "must be positive (HU)");
+  if (s.invert_iterations < 0) bad("invert_iterations", s.invert_iterations, "must not be negative");
+  if (!std::isfinite(config.bone_threshold)) bad("bone_threshold", config.bone_threshold, "must be finite");
+
+  patient_ = std::move(patient);
+  config_ = config;
+  limits_ = deform::chainmail_limits(s.min_dist, s.max_dist, s.max_sheer);
+  voi_ = Voi{};
+  setup_ = ChainMailStats{};
+  bound_ = false;
+  bind_impl();
+  bound_ = true;
+  stage_ = 0;
+}
+
+ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
+  require(bound_, "chainmail() or step() before bind()");
+  if (!finite(c.skin_point_mm)) throw Error("deform: contact skin_point_mm (X) is not finite: " + fmt_vec(c.skin_point_mm));
+  if (!finite(c.tip_mm)) throw Error("deform: contact tip_mm (x) is not finite: " + fmt_vec(c.tip_mm));
+  const Grid& grid = patient_->grid;
+  const Vec3 X = grid.to_index(c.skin_point_mm);
+  const Vec3 x = grid.to_index(c.tip_mm);
+  // the grabbed element: the voxel nearest X, which must lie in the grid
+  Vec3i e0, t;
+  for (int a = 0; a < 3; ++a) {
+    e0[a] = int(std::floor(X[a] + 0.5));
+    if (!(std::fabs(x[a]) < 1e8)) throw Error("deform: contact tip_mm (x) is far outside the patient grid: " + fmt_vec(c.tip_mm));
+    t[a] = int(std::floor(x[a] + 0.5));
+  }
+  if (!grid.contains(e0.x, e0.y, e0.z))
+    throw Error("deform: contact skin_point_mm (X) " + fmt_vec(c.skin_point_mm) + " mm lies outside the patient grid");
+  ChainMailStats st;
+  st.grabbed_vox = e0;
+  st.grabbed_u_vox = Vec3f(float(x.x - e0.x), float(x.y - e0.y), float(x.z - e0.z));
+  st.grabbed_in_bone = patient_->bone.data[grid.index(e0.x, e0.y, e0.z)] != 0;
+  st.voi = compute_voi(grid.size, e0, t, config_.settings.voi_edge, config_.settings.whole_volume);
+  return st;
+}
+
+ChainMailStats DeformBackend::chainmail(const DeformContact& contact) {
+  ChainMailStats st = setup_step(contact);
+  if (stage_ != 0) reset_impl();
+  stage_ = 0;
+  voi_ = st.voi;
+  setup_ = st;
+  chainmail_impl(st);
+  stage_ = 1;
+  return st;
+}
+
+void DeformBackend::relax() {
+  require(stage_ >= 1, "relax() before chainmail()");
+  relax_impl();
+  stage_ = 2;
+}
+
+double DeformBackend::invert() {
+  require(stage_ >= 1, "invert() before chainmail()");
+  const double r = invert_impl();
+  stage_ = 3;
+  return r;
+}
+
+void DeformBackend::upload() {
+  require(stage_ >= 3, "upload() before invert()");
+  upload_impl();
+  stage_ = 4;
+}
+
+void DeformBackend::reset() {
+  require(bound_, "reset() before bind()");
+  if (stage_ != 0) reset_impl();
+  stage_ = 0;
+}
+
+DeformStats DeformBackend::step(const DeformContact& contact) {
+  ChainMailStats st = setup_step(contact);
+  // step_impl starts with a reset of whatever the previous step left, timed as a stage
+  voi_ = st.voi;
+  setup_ = st;
+  DeformStats out = step_impl(st);
+  stage_ = config_.invert ? 4 : (config_.relax ? 2 : 1);
+  return out;
+}
+
+std::vector<Vec3f> DeformBackend::displacement() const {
+  require(voi_.count() > 0, "displacement() before chainmail()");
+  return displacement_impl();
+}
+
+void DeformBackend::set_displacement(const std::vector<Vec3f>& u) {
+  require(stage_ >= 1, "set_displacement() before chainmail()");
+  if ((long long)u.size() != voi_.count()) {
+    std::ostringstream m;
+    m << "set_displacement() got " << u.size() << " values for a VOI of " << voi_.count();
+    throw Error("deform backend \"" + name_ + "\": " + m.str());
+  }
+  for (const Vec3f& v : u)
+    if (!std::isfinite(v.x) || !std::isfinite(v.y) || !std::isfinite(v.z))
+      throw Error("deform backend \"" + name_ + "\": set_displacement() got a non-finite displacement");
+  set_displacement_impl(u);
+  stage_ = 2;
+}
+
+const float* DeformBackend::deformed_brick() const {
+  require(stage_ >= 4, "deformed_brick() before upload()");
+  return deformed_brick_impl();
+}
+
+void DeformBackend::compose_deformed(Volume<float>& out) const {
+  const Patient& p = *patient_;
+  out.grid = p.grid;
+  out.data = p.intensity.data;
+  if (stage_ < 4) return;
+  // copy the brick row by row into its place
+  const float* b = deformed_brick_impl();
+  for (int k = 0; k < voi_.size.z; ++k)
+    for (int j = 0; j < voi_.size.y; ++j)
+      std::memcpy(&out.data[p.grid.index(voi_.lo.x, voi_.lo.y + j, voi_.lo.z + k)], b + voi_.index(0, j, k),
+                  sizeof(float) * voi_.size.x);
+}
+
+bool cuda_deform_available(std::string* why) {
+#ifdef PALPSIM_HAVE_CUDA
+  return cuda::cuda_device_usable(why);
+#else
+  if (why) *why = "this build has no CUDA backend (configured with PALPSIM_CUDA=OFF or without nvcc)";
+  return false;
+#endif
+}
+
+std::unique_ptr<DeformBackend> make_deform_backend(const std::string& name, std::string* note) {
+  if (name == "cpu") {
+    if (note) *note = "deform backend \"cpu\" (asked for by name)";
+    return std::make_unique<CpuDeformBackend>();
+  }
+  if (name == "cuda" || name == "auto") {
+    std::string why;
+    if (cuda_deform_available(&why)) {
+#ifdef PALPSIM_HAVE_CUDA
+      if (note) *note = "deform backend \"cuda\" (" + std::string(name == "auto" ? "auto: " : "") + why + ")";
+      return cuda::make_cuda_deform_backend();
+#endif
+    }
+    if (name == "cuda") throw Error("deform backend \"cuda\" is unavailable: " + why + "; use \"cpu\" or \"auto\"");
+    if (note) *note = "deform backend \"cpu\" (auto: cuda unavailable: " + why + ")";
+    return std::make_unique<CpuDeformBackend>();
+  }
+  throw Error("deform.backend = \"" + name + "\" is unknown; use \"auto\", \"cpu\" or \"cuda\"");
+}
+
+}  // namespace palpsim

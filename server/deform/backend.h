@@ -1,0 +1,164 @@
+// The deformation backend: ChainMail, relaxation, inversion and reset of one
+// session's volume of interest, with a CPU reference ("cpu", server/deform/) and a
+// CUDA implementation ("cuda", cuda/), chosen by name at run time. The public
+// methods are non-virtual: they validate and keep the call order, then call the
+// virtual *_impl of the backend (tiny-cuda-nn's object.h pattern).
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/patient.h"
+#include "core/scene.h"
+#include "core/vec3.h"
+#include "deform/deform_math.h"
+
+namespace palpsim {
+
+using deform::Voi;
+
+/// What one deformation step needs from the haptic path (the paper's X and x);
+/// the fields match haptics' Contact so the server copies them over.
+struct DeformContact {
+  Vec3 skin_point_mm{0, 0, 0};  // X: undeformed position of the first moved element (mm, LPS)
+  Vec3 tip_mm{0, 0, 0};         // x: its deformed position, the device tip (mm, LPS)
+};
+
+/// Deformation settings of a scene plus what they depend on outside Deform{}.
+struct DeformConfig {
+  DeformSettings settings;     // ChainMail restrictions, VOI, sweep cap, relaxation, inversion
+  double bone_threshold = 200; // the material function's step, in Patient::intensity units (HU)
+  bool relax = true;           // run the relaxation stage (scene effect "relaxation")
+  bool invert = true;          // produce the deformed image J (scene effect "inversion")
+
+  /// The configuration a scene asks for: Deform{}, prep's bone threshold and the effects.
+  static DeformConfig from_scene(const Scene& scene);
+};
+
+/// What ChainMail did in one step.
+struct ChainMailStats {
+  Voi voi;                   // the box it worked in (patient voxel indices)
+  Vec3i grabbed_vox{0, 0, 0};// the first moved element (patient voxel index nearest X)
+  Vec3f grabbed_u_vox;       // its displacement (voxel): x - grabbed voxel
+  bool grabbed_in_bone = false;  // X lies in bone: nothing moves
+  int sweeps = 0;            // Jacobi sweeps run, the last one quiet when converged
+  long long moved = 0;       // elements that moved, the first element not counted
+  bool converged = true;     // a quiet sweep came within deform.max_sweeps
+};
+
+/// Wall time of each stage of one step (ms). upload: making J's VOI readable on the
+/// host; reset: returning the previous step's state to undeformed.
+struct DeformTimes {
+  double reset_ms = 0;
+  double chainmail_ms = 0;
+  double relax_ms = 0;
+  double invert_ms = 0;
+  double upload_ms = 0;
+  double total_ms = 0;
+};
+
+/// What one whole step did and cost.
+struct DeformStats {
+  ChainMailStats chainmail;
+  int relax_iterations = 0;          // 0 when relaxation is off
+  double invert_residual_vox = 0;    // max |p + u(p) - y| over the VOI (voxel); 0 without inversion
+  DeformTimes times;
+};
+
+/// One session's deformation state on one backend. bind() once, then step() per
+/// contact (or the stages one by one, as the tests do). Not thread-safe: one worker
+/// thread owns it.
+class DeformBackend {
+ public:
+  virtual ~DeformBackend() = default;
+  DeformBackend(const DeformBackend&) = delete;
+  DeformBackend& operator=(const DeformBackend&) = delete;
+
+  /// "cpu" or "cuda".
+  const std::string& name() const { return name_; }
+
+  /// Validates the patient and configuration and allocates the state; refuses a
+  /// relax_step above the explicit scheme's stable limit (1/6) with the limit in the message.
+  void bind(PatientPtr patient, const DeformConfig& config);
+
+  /// Returns the previous step's state to undeformed, then runs ChainMail from the
+  /// contact: the element nearest X goes to x and the others follow.
+  ChainMailStats chainmail(const DeformContact& contact);
+  /// Relaxes the displacement field (deform.relax_iterations iterations).
+  void relax();
+  /// Computes the deformed image J on the VOI; returns the inversion residual (voxel).
+  double invert();
+  /// Makes J's VOI readable through deformed_brick() (a device-to-host copy on "cuda").
+  void upload();
+  /// Returns displacements to zero and J to I: the undeformed state.
+  void reset();
+
+  /// All stages in order, timed: reset, ChainMail, relax and invert as configured, upload.
+  DeformStats step(const DeformContact& contact);
+
+  /// The VOI of the latest ChainMail (empty before the first one).
+  const Voi& voi() const { return voi_; }
+  /// The VOI's displacement field (voxel, along the grid axes), local index i fastest.
+  std::vector<Vec3f> displacement() const;
+  /// Replaces the VOI's displacement field, e.g. to feed both backends the same input
+  /// in tests; `u` holds voi().count() values.
+  void set_displacement(const std::vector<Vec3f>& u);
+  /// J on the VOI after upload() (voi().count() values, i fastest); J = I outside it.
+  /// Valid until the next stage call.
+  const float* deformed_brick() const;
+  /// Writes the whole deformed image: `out` = I, with the uploaded VOI brick of J.
+  void compose_deformed(Volume<float>& out) const;
+
+  /// The bound patient and configuration.
+  const Patient& patient() const { return *patient_; }
+  const DeformConfig& config() const { return config_; }
+
+ protected:
+  explicit DeformBackend(std::string name) : name_(std::move(name)) {}
+
+  // the backend's work; arguments are validated and the call order is kept
+  virtual void bind_impl() = 0;
+  virtual void chainmail_impl(ChainMailStats& stats) = 0;  // stats has voi and grabbed set
+  virtual void relax_impl() = 0;
+  virtual double invert_impl() = 0;
+  virtual void upload_impl() = 0;
+  virtual void reset_impl() = 0;
+  virtual DeformStats step_impl(const ChainMailStats& setup) = 0;  // resets first
+  virtual std::vector<Vec3f> displacement_impl() const = 0;
+  virtual void set_displacement_impl(const std::vector<Vec3f>& u) = 0;
+  virtual const float* deformed_brick_impl() const = 0;
+
+  /// Largest VOI the state holds (voxels): deform.voi_edge^3, or the whole volume.
+  long long max_voi_count() const;
+
+  PatientPtr patient_;
+  DeformConfig config_;
+  Voi voi_;                   // VOI of the latest ChainMail
+  ChainMailStats setup_;      // grabbed element and VOI of the latest ChainMail
+  deform::ChainMailLimits limits_;
+
+ private:
+  ChainMailStats setup_step(const DeformContact& contact);
+  void require(bool ok, const char* what) const;
+
+  std::string name_;
+  bool bound_ = false;
+  int stage_ = 0;             // 0 undeformed, 1 chainmail, 2 relaxed, 3 inverted, 4 uploaded
+};
+
+/// The VOI of a step: a cube of edge `edge` centred on the tip voxel, shifted the
+/// least so that it holds the grabbed voxel, then clipped at the volume border; the
+/// whole grid when `whole`. Both backends use it.
+Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole);
+
+/// Makes a backend by name: "cpu", "cuda" or "auto" (cuda where a device and a CUDA
+/// build exist, else cpu). Unknown names and an unavailable "cuda" throw
+/// palpsim::Error saying why; `note`, when given, says what "auto" chose and why.
+std::unique_ptr<DeformBackend> make_deform_backend(const std::string& name, std::string* note = nullptr);
+
+/// True when this build has the CUDA backend and a CUDA device can be used;
+/// otherwise `why` says what is missing.
+bool cuda_deform_available(std::string* why = nullptr);
+
+}  // namespace palpsim

@@ -1,0 +1,91 @@
+// The "cpu" backend: buffers, reset and the timed step around the reference kernels.
+#include "deform/cpu_backend.h"
+
+#include <algorithm>
+#include <chrono>
+
+namespace palpsim {
+
+namespace {
+double ms_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+}  // namespace
+
+void CpuDeformBackend::bind_impl() {
+  const std::size_t n = std::size_t(max_voi_count());
+  s_.u.assign(n, Vec3f{0, 0, 0});
+  s_.u_next.assign(n, Vec3f{0, 0, 0});
+  s_.weight.assign(n, 0.0f);
+  s_.moved_at.assign(n, -1);
+  s_.visited_at.assign(n, -1);
+  s_.j.assign(n, 0.0f);
+  dirty_ = Voi{};
+}
+
+void CpuDeformBackend::reset_impl() {
+  // only the part of the buffers the last VOI used holds anything
+  const std::size_t n = std::size_t(dirty_.count());
+  std::fill_n(s_.u.begin(), n, Vec3f{0, 0, 0});
+  std::fill_n(s_.moved_at.begin(), n, -1);
+  std::fill_n(s_.visited_at.begin(), n, -1);
+  dirty_ = Voi{};
+}
+
+void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
+  dirty_ = st.voi;
+  deform::chainmail_cpu(*patient_, limits_, config_.settings.max_sweeps, st, s_);
+}
+
+void CpuDeformBackend::relax_impl() {
+  const DeformSettings& d = config_.settings;
+  deform::relax_cpu(*patient_, setup_, d.relax_iterations, float(d.relax_step), float(config_.bone_threshold),
+                    float(d.material_width), s_);
+}
+
+double CpuDeformBackend::invert_impl() {
+  return deform::invert_cpu(*patient_, voi_, config_.settings.invert_iterations, s_);
+}
+
+std::vector<Vec3f> CpuDeformBackend::displacement_impl() const {
+  return std::vector<Vec3f>(s_.u.begin(), s_.u.begin() + voi_.count());
+}
+
+void CpuDeformBackend::set_displacement_impl(const std::vector<Vec3f>& u) {
+  std::copy(u.begin(), u.end(), s_.u.begin());
+}
+
+DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
+  using clock = std::chrono::steady_clock;
+  DeformStats out;
+  const auto t_start = clock::now();
+  // reset: the previous step's displacement back to zero
+  auto t0 = clock::now();
+  reset_impl();
+  out.times.reset_ms = ms_since(t0);
+  // chainmail
+  t0 = clock::now();
+  out.chainmail = setup;
+  chainmail_impl(out.chainmail);
+  out.times.chainmail_ms = ms_since(t0);
+  // relaxation, when the scene asks for it
+  if (config_.relax) {
+    t0 = clock::now();
+    relax_impl();
+    out.relax_iterations = config_.settings.relax_iterations;
+    out.times.relax_ms = ms_since(t0);
+  }
+  // inversion and upload, when the scene asks for J
+  if (config_.invert) {
+    t0 = clock::now();
+    out.invert_residual_vox = invert_impl();
+    out.times.invert_ms = ms_since(t0);
+    t0 = clock::now();
+    upload_impl();
+    out.times.upload_ms = ms_since(t0);
+  }
+  out.times.total_ms = ms_since(t_start);
+  return out;
+}
+
+}  // namespace palpsim

@@ -1,0 +1,71 @@
+// The CPU reference backend ("cpu"): the readable statement of every deformation
+// kernel, against which the CUDA backend is tested. The kernels themselves are free
+// functions in chainmail.cpp, relax.cpp and invert.cpp.
+#pragma once
+
+#include <vector>
+
+#include "deform/backend.h"
+
+namespace palpsim {
+
+namespace deform {
+
+/// The CPU state of one session: VOI-local buffers (local index i fastest) sized
+/// for the largest VOI, so a step allocates nothing once they have grown.
+struct CpuState {
+  std::vector<Vec3f> u;          // displacement of each element (voxel)
+  std::vector<Vec3f> u_next;     // relaxation's second buffer
+  std::vector<float> weight;     // relax_step * material function, per element
+  std::vector<int> moved_at;     // last sweep in which the element moved; -1: never
+  std::vector<int> visited_at;   // last sweep that examined the element; -1: never
+  std::vector<float> j;          // the deformed image J on the VOI
+  std::vector<Vec3i> movers;     // elements that moved in the previous sweep (local index)
+  std::vector<Vec3i> candidates; // their neighbours, examined in this sweep
+  std::vector<std::pair<long long, Vec3f>> changes;  // this sweep's new positions, applied after it
+};
+
+/// ChainMail by plain Jacobi sweeps (paper sec. 2.2): in sweep s every element next
+/// to one that moved in sweep s-1 clamps itself, in the fixed neighbour order, into
+/// the box allowed by each such neighbour, reading positions of sweep s-1, and counts
+/// as moved when its position changed. Bone and the grabbed element never move.
+/// `st` comes with voi, grabbed_vox, grabbed_u_vox and grabbed_in_bone set; the state
+/// must be undeformed on the VOI.
+void chainmail_cpu(const Patient& p, const ChainMailLimits& limits, int max_sweeps, ChainMailStats& st,
+                   CpuState& s);
+
+/// Diffusive relaxation of the VOI's displacement: `iterations` explicit steps
+/// weighted by the material function; outside the VOI the tissue is undeformed (u = 0),
+/// the grabbed element keeps its displacement and bone has weight 0.
+void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float step, float threshold,
+               float width, CpuState& s);
+
+/// J on the VOI by inverting the displacement (fixed-point iteration, trilinear
+/// sampling of u and I); returns the largest residual |p + u(p) - y| (voxel).
+double invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s);
+
+}  // namespace deform
+
+/// The "cpu" backend: the reference implementation.
+class CpuDeformBackend final : public DeformBackend {
+ public:
+  CpuDeformBackend() : DeformBackend("cpu") {}
+
+ protected:
+  void bind_impl() override;
+  void chainmail_impl(ChainMailStats& stats) override;
+  void relax_impl() override;
+  double invert_impl() override;
+  void upload_impl() override {}  // J is computed in host memory already
+  void reset_impl() override;
+  DeformStats step_impl(const ChainMailStats& setup) override;
+  std::vector<Vec3f> displacement_impl() const override;
+  void set_displacement_impl(const std::vector<Vec3f>& u) override;
+  const float* deformed_brick_impl() const override { return s_.j.data(); }
+
+ private:
+  deform::CpuState s_;
+  Voi dirty_;  // the VOI whose buffers hold a deformation
+};
+
+}  // namespace palpsim

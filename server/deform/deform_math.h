@@ -1,0 +1,134 @@
+// The per-voxel math of deformation, written once and compiled by both backends
+// (g++ for server/deform, nvcc for cuda/): the ChainMail restriction of one
+// neighbour, the material function, one relaxation update, trilinear sampling and
+// one fixed-point step of the inversion. Loops, memory layout and reductions live
+// in each backend. Displacements are in voxel edge lengths along the grid axes.
+#pragma once
+
+#include <cmath>
+
+#include "core/hd.h"
+#include "core/vec3.h"
+
+namespace palpsim::deform {
+
+/// A box of voxels of the patient grid: the volume of interest (VOI) of one step.
+/// `lo` is the first voxel (patient index), `size` the extent; local index i fastest.
+struct Voi {
+  Vec3i lo{0, 0, 0};
+  Vec3i size{0, 0, 0};
+
+  /// Number of voxels in the box.
+  PALPSIM_HD long long count() const { return (long long)size.x * size.y * size.z; }
+  /// True when the local index (i, j, k) lies inside the box.
+  PALPSIM_HD bool contains(int i, int j, int k) const {
+    return i >= 0 && j >= 0 && k >= 0 && i < size.x && j < size.y && k < size.z;
+  }
+  /// Local linear index of local voxel (i, j, k).
+  PALPSIM_HD long long index(int i, int j, int k) const {
+    return ((long long)k * size.y + j) * size.x + i;
+  }
+  /// Equality of boxes.
+  PALPSIM_HD bool operator==(const Voi& o) const { return lo == o.lo && size == o.size; }
+};
+
+/// ChainMail restrictions expressed on displacements (voxel). For neighbours one
+/// voxel apart along axis a, with e above n (e = n + 1 along a), the positions obey
+/// minDist <= x_e,a - x_n,a <= maxDist and |x_e,b - x_n,b| <= maxSheer for b != a;
+/// since x = index + u, that is axial_lo <= u_e,a - u_n,a <= axial_hi.
+struct ChainMailLimits {
+  float axial_lo = -0.5f;  // minDist - 1
+  float axial_hi = 0.5f;   // maxDist - 1
+  float sheer = 0.5f;      // maxSheer
+};
+
+/// Limits from the scene's minDist, maxDist and maxSheer (voxel edge lengths).
+inline ChainMailLimits chainmail_limits(double min_dist, double max_dist, double max_sheer) {
+  return {float(min_dist - 1.0), float(max_dist - 1.0), float(max_sheer)};
+}
+
+/// Clamps v into [lo, hi] (lo <= hi); plain comparisons so both compilers agree bit for bit.
+PALPSIM_HD float clamp_to(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+/// The six neighbour offsets in the fixed order every backend uses: -i, +i, -j, +j, -k, +k.
+/// Neighbour q lies along axis q / 2, below the element for even q.
+PALPSIM_HD int neighbour_axis(int q) { return q >> 1; }
+PALPSIM_HD bool neighbour_below(int q) { return (q & 1) == 0; }
+PALPSIM_HD Vec3i neighbour_offset(int q) {
+  const int s = (q & 1) ? 1 : -1;
+  return q < 2 ? Vec3i{s, 0, 0} : (q < 4 ? Vec3i{0, s, 0} : Vec3i{0, 0, s});
+}
+
+/// Clamps the displacement `u` of an element into the box allowed by the neighbour
+/// with displacement `un` that lies along `axis`, below the element when `below`.
+PALPSIM_HD void chainmail_clamp(Vec3f& u, const Vec3f& un, int axis, bool below, const ChainMailLimits& l) {
+  for (int b = 0; b < 3; ++b) {
+    float lo, hi;
+    if (b != axis) {
+      // sheer: the same coordinate within maxSheer of the neighbour's
+      lo = un[b] - l.sheer;
+      hi = un[b] + l.sheer;
+    } else if (below) {
+      // the neighbour is below: minDist <= x_e - x_n <= maxDist
+      lo = un[b] + l.axial_lo;
+      hi = un[b] + l.axial_hi;
+    } else {
+      // the neighbour is above: minDist <= x_n - x_e <= maxDist
+      lo = un[b] - l.axial_hi;
+      hi = un[b] - l.axial_lo;
+    }
+    u[b] = clamp_to(u[b], lo, hi);
+  }
+}
+
+/// The material function of relaxation: 1 for soft tissue, falling smoothly to 0
+/// across the bone threshold (a continuous Heaviside step of width `width`, in the
+/// intensity's units), and exactly 0 on the bone mask so bone never diffuses.
+PALPSIM_HD float material_weight(float intensity, bool bone, float threshold, float width) {
+  if (bone) return 0.0f;
+  return 0.5f * (1.0f - tanhf((intensity - threshold) / width));
+}
+
+/// The explicit scheme's stable limit of the relaxation step: u' = u + s m (sum of
+/// the six neighbours - 6 u) keeps non-negative weights for s m <= 1/6, m <= 1.
+constexpr double kRelaxStableStep = 1.0 / 6.0;
+
+/// One explicit diffusion update of a voxel: `sum6` is the sum of the six neighbours'
+/// displacements (zero outside the VOI), `step_weight` = relax_step * material_weight.
+PALPSIM_HD Vec3f relax_update(const Vec3f& u, const Vec3f& sum6, float step_weight) {
+  return Vec3f{u.x + step_weight * (sum6.x - 6.0f * u.x), u.y + step_weight * (sum6.y - 6.0f * u.y),
+               u.z + step_weight * (sum6.z - 6.0f * u.z)};
+}
+
+/// Trilinear interpolation of `load(i, j, k)` (returns T: float or Vec3f) at the
+/// continuous index p; the loader decides what lies outside its data.
+template <typename T, typename Load>
+PALPSIM_HD T trilinear(const Load& load, const Vec3f& p) {
+  const float fx0 = floorf(p.x), fy0 = floorf(p.y), fz0 = floorf(p.z);
+  const int i = int(fx0), j = int(fy0), k = int(fz0);
+  const float fx = p.x - fx0, fy = p.y - fy0, fz = p.z - fz0;
+  const float gx = 1.0f - fx, gy = 1.0f - fy, gz = 1.0f - fz;
+  // blend along i, then j, then k
+  const T c00 = load(i, j, k) * gx + load(i + 1, j, k) * fx;
+  const T c10 = load(i, j + 1, k) * gx + load(i + 1, j + 1, k) * fx;
+  const T c01 = load(i, j, k + 1) * gx + load(i + 1, j, k + 1) * fx;
+  const T c11 = load(i, j + 1, k + 1) * gx + load(i + 1, j + 1, k + 1) * fx;
+  const T c0 = c00 * gy + c10 * fy;
+  const T c1 = c01 * gy + c11 * fy;
+  return c0 * gz + c1 * fz;
+}
+
+/// Inverts the displacement at the deformed point y (continuous VOI-local index) by
+/// the fixed-point iteration p <- y - u(p), starting at p = y; `load_u` gives the
+/// displacement of a VOI-local voxel (zero outside the VOI). Returns the undeformed
+/// point p and writes |p + u(p) - y| (voxel), the inversion residual, to `residual`.
+template <typename LoadU>
+PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iterations, float& residual) {
+  Vec3f p = y;
+  for (int it = 0; it < iterations; ++it) p = y - trilinear<Vec3f>(load_u, p);
+  const Vec3f r = p + trilinear<Vec3f>(load_u, p) - y;
+  residual = sqrtf(r.x * r.x + r.y * r.y + r.z * r.z);
+  return p;
+}
+
+}  // namespace palpsim::deform

@@ -1,0 +1,29 @@
+// DeformEngine: backend choice and the per-session step.
+#include "deform/engine.h"
+
+namespace palpsim {
+
+DeformEngine::DeformEngine(PatientPtr patient, const DeformConfig& config) {
+  backend_ = make_deform_backend(config.settings.backend, &note_);
+  backend_->bind(std::move(patient), config);
+}
+
+DeformStats DeformEngine::step(const DeformContact& contact) {
+  has_brick_ = false;
+  DeformStats st = backend_->step(contact);
+  has_brick_ = backend_->config().invert;
+  return st;
+}
+
+void DeformEngine::reset() {
+  has_brick_ = false;
+  backend_->reset();
+}
+
+Volume<float> DeformEngine::deformed_volume() const {
+  Volume<float> out;
+  backend_->compose_deformed(out);
+  return out;
+}
+
+}  // namespace palpsim

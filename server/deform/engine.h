@@ -1,0 +1,51 @@
+// DeformEngine: one session's deformation, as the server's deformation worker runs
+// it. It owns the chosen backend and its state for one patient; step() runs the whole
+// pipeline on a contact (the newest one: the caller drops stale contacts) and reports
+// stage times; the deformed VOI brick stays readable until the next step or reset.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include "deform/backend.h"
+
+namespace palpsim {
+
+/// The deformation of one session: ChainMail, relaxation and inversion on the newest
+/// contact, on the backend the configuration names ("auto", "cpu" or "cuda").
+class DeformEngine {
+ public:
+  /// Chooses the backend by `config.settings.backend` and binds it to `patient`;
+  /// throws palpsim::Error for bad settings or an unavailable backend.
+  DeformEngine(PatientPtr patient, const DeformConfig& config);
+
+  /// One step from the undeformed state: reset, ChainMail, relaxation and inversion
+  /// as configured, and the upload of J's VOI; returns counts and stage times.
+  /// Throws palpsim::Error for a non-finite contact or X outside the patient grid.
+  DeformStats step(const DeformContact& contact);
+
+  /// Returns everything to undeformed (J = I).
+  void reset();
+
+  /// The VOI of the latest step and J on it (voi().count() floats, i fastest), or
+  /// nullptr when no J exists (before a step, after reset, without inversion).
+  const Voi& voi() const { return backend_->voi(); }
+  const float* deformed_brick() const { return has_brick_ ? backend_->deformed_brick() : nullptr; }
+
+  /// The whole deformed image J (I outside the VOI), for tools and tests: copies the volume.
+  Volume<float> deformed_volume() const;
+
+  /// The backend in use ("cpu" or "cuda") and why it was chosen, for the server's log.
+  const std::string& backend_name() const { return backend_->name(); }
+  const std::string& backend_note() const { return note_; }
+
+  /// The backend itself, for stage-by-stage use in tests and benchmarks.
+  DeformBackend& backend() { return *backend_; }
+
+ private:
+  std::unique_ptr<DeformBackend> backend_;
+  std::string note_;
+  bool has_brick_ = false;
+};
+
+}  // namespace palpsim

@@ -1,0 +1,33 @@
+// Inversion on the CPU: the deformed image J on the VOI from the displacement field.
+#include <algorithm>
+
+#include "deform/cpu_backend.h"
+
+namespace palpsim::deform {
+
+double invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s) {
+  const Grid& grid = p.grid;
+  // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
+  auto load_u = [&](int i, int j, int k) {
+    return voi.contains(i, j, k) ? s.u[voi.index(i, j, k)] : Vec3f{0, 0, 0};
+  };
+  // intensity at a VOI-local voxel, clamped at the volume border
+  auto load_i = [&](int i, int j, int k) {
+    const int gi = std::clamp(voi.lo.x + i, 0, grid.size.x - 1);
+    const int gj = std::clamp(voi.lo.y + j, 0, grid.size.y - 1);
+    const int gk = std::clamp(voi.lo.z + k, 0, grid.size.z - 1);
+    return p.intensity.data[grid.index(gi, gj, gk)];
+  };
+  float worst = 0;
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        float r = 0;
+        const Vec3f x0 = invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
+        s.j[voi.index(i, j, k)] = trilinear<float>(load_i, x0);
+        worst = std::max(worst, r);
+      }
+  return worst;
+}
+
+}  // namespace palpsim::deform

@@ -1,0 +1,158 @@
+// Small synthetic patients for the deformation tests and benchmarks: only the grid,
+// intensity and bone mask are filled (all deformation reads), so these tests do not
+// wait for the preprocessing pipeline.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <functional>
+#include <memory>
+#include <vector>
+
+#include "core/patient.h"
+#include "deform/backend.h"
+
+namespace palpsim::test {
+
+/// Hounsfield values of the synthetic tissues.
+constexpr float kAirHu = -1000.0f, kSoftHu = 40.0f, kBoneHu = 700.0f, kBoneThresholdHu = 200.0f;
+
+/// A patient of `size` voxels whose intensity is hu(i, j, k); bone = intensity above
+/// kBoneThresholdHu. Spacing, origin and direction as given (mm).
+inline PatientPtr make_patient(const Vec3i& size, const std::function<float(int, int, int)>& hu,
+                               const Vec3& spacing_mm = {1, 1, 1}, const Vec3& origin_mm = {0, 0, 0}) {
+  auto p = std::make_shared<Patient>();
+  p->grid.size = size;
+  p->grid.spacing_mm = spacing_mm;
+  p->grid.origin_mm = origin_mm;
+  p->intensity = Volume<float>(p->grid);
+  p->bone = Volume<std::uint8_t>(p->grid);
+  for (int k = 0; k < size.z; ++k)
+    for (int j = 0; j < size.y; ++j)
+      for (int i = 0; i < size.x; ++i) {
+        const float v = hu(i, j, k);
+        p->intensity.at(i, j, k) = v;
+        p->bone.at(i, j, k) = v > kBoneThresholdHu ? 1 : 0;
+        p->has_bone = p->has_bone || v > kBoneThresholdHu;
+      }
+  p->source = "synthetic";
+  return p;
+}
+
+/// Soft tissue everywhere, with a gentle ramp so that J differs from I where tissue moves.
+inline PatientPtr make_soft_patient(int n) {
+  return make_patient({n, n, n}, [](int i, int j, int k) { return kSoftHu + 0.5f * i + 0.25f * j - 0.125f * k; });
+}
+
+/// The paper's Fig. 4 objects: a soft cube of edge `cube` in air, centred in an n^3
+/// volume; with `bone_shell` > 0 the cube is wrapped in a bone shell that thick.
+inline PatientPtr make_cube_patient(int n, int cube, int bone_shell) {
+  const int lo = (n - cube) / 2, hi = lo + cube - 1;
+  return make_patient({n, n, n}, [=](int i, int j, int k) {
+    auto inside = [&](int m) { return i >= lo - m && i <= hi + m && j >= lo - m && j <= hi + m && k >= lo - m && k <= hi + m; };
+    if (inside(0)) return kSoftHu + 2.0f * float((i + 2 * j + 3 * k) % 7);  // textured so J shows the motion
+    if (bone_shell > 0 && inside(bone_shell)) return kBoneHu;
+    return kAirHu;
+  });
+}
+
+/// A torso-like volume (n^3, 1 mm): an elliptic soft-tissue body in air with a
+/// bone "spine" cylinder and a bone "rib" slab, textured so J changes where tissue moves.
+inline PatientPtr make_torso_patient(int n) {
+  const double c = (n - 1) / 2.0;
+  return make_patient({n, n, n}, [=](int i, int j, int k) {
+    const double x = (i - c) / (0.45 * n), y = (j - c) / (0.35 * n);
+    if (x * x + y * y > 1) return kAirHu;
+    const double sx = i - c, sy = j - (c + 0.2 * n);
+    if (sx * sx + sy * sy < (0.06 * n) * (0.06 * n)) return kBoneHu;                      // spine along k
+    if (std::abs(j - (c - 0.2 * n)) < 2 && std::abs(i - c) > 0.15 * n && (k / 8) % 2 == 0) return kBoneHu;  // ribs
+    return float(kSoftHu + 20.0 * std::sin(0.3 * i) * std::cos(0.2 * j) + 10.0 * std::sin(0.25 * k));
+  });
+}
+
+/// The paper's ChainMail presets (voxel edge lengths).
+inline DeformConfig preset_config(int preset) {
+  DeformConfig c;
+  c.bone_threshold = kBoneThresholdHu;
+  c.settings.min_dist = preset == 1 ? 0.5 : 0.25;
+  c.settings.max_dist = 1.5;
+  c.settings.max_sheer = preset == 1 ? 0.5 : 1.0;
+  c.settings.backend = "cpu";
+  return c;
+}
+
+/// A contact on a 1 mm grid at the origin: grab voxel g and move it by d voxels.
+inline DeformContact voxel_contact(const Vec3i& g, const Vec3& d) {
+  return {Vec3(g.x, g.y, g.z), Vec3(g.x + d.x, g.y + d.y, g.z + d.z)};
+}
+
+}  // namespace palpsim::test
+
+namespace palpsim::test {
+
+/// The largest violation (voxel) of the ChainMail restrictions over all pairs of
+/// face neighbours in the VOI that are both soft tissue (bone enforces nothing).
+inline double max_restriction_violation(const Patient& p, const Voi& voi, const std::vector<Vec3f>& u,
+                                        const DeformSettings& s) {
+  double worst = 0;
+  auto bone = [&](int i, int j, int k) { return p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) != 0; };
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        if (bone(i, j, k)) continue;
+        const Vec3f& ue = u[voi.index(i, j, k)];
+        for (int a = 0; a < 3; ++a) {
+          // the neighbour above along axis a
+          Vec3i n{i, j, k};
+          n[a] += 1;
+          if (!voi.contains(n.x, n.y, n.z) || bone(n.x, n.y, n.z)) continue;
+          const Vec3f& un = u[voi.index(n.x, n.y, n.z)];
+          const double dist = 1.0 + double(un[a]) - double(ue[a]);
+          worst = std::max({worst, s.min_dist - dist, dist - s.max_dist});
+          for (int b = 0; b < 3; ++b)
+            if (b != a) worst = std::max(worst, std::fabs(double(un[b]) - double(ue[b])) - s.max_sheer);
+        }
+      }
+  return worst;
+}
+
+/// Number of bone voxels in the VOI whose displacement is not exactly zero.
+inline long long moved_bone_count(const Patient& p, const Voi& voi, const std::vector<Vec3f>& u) {
+  long long n = 0;
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i)
+        if (p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) && u[voi.index(i, j, k)] != Vec3f(0, 0, 0)) ++n;
+  return n;
+}
+
+/// Number of voxels outside the VOI where J differs from I (must be 0).
+inline long long changed_outside_voi(const Patient& p, const Voi& voi, const Volume<float>& J) {
+  long long n = 0;
+  const Grid& g = p.grid;
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i) {
+        const bool in = voi.contains(i - voi.lo.x, j - voi.lo.y, k - voi.lo.z);
+        if (!in && J.at(i, j, k) != p.intensity.at(i, j, k)) ++n;
+      }
+  return n;
+}
+
+/// Sum over face-neighbour pairs inside the VOI of |u_e - u_n|^2 (voxel^2): how rough the field is.
+inline double roughness(const Voi& voi, const std::vector<Vec3f>& u) {
+  double e = 0;
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i)
+        for (int a = 0; a < 3; ++a) {
+          Vec3i n{i, j, k};
+          n[a] += 1;
+          if (!voi.contains(n.x, n.y, n.z)) continue;
+          const Vec3f d = u[voi.index(n.x, n.y, n.z)] - u[voi.index(i, j, k)];
+          e += double(d.x) * d.x + double(d.y) * d.y + double(d.z) * d.z;
+        }
+  return e;
+}
+
+}  // namespace palpsim::test

@@ -57,8 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     line.add_argument("--z-to-mm", type=float, default=PHANTOM_LUMBAR_Z_MM[1],
                       help="superior end of the line (default %(default)g)")
     line.add_argument("--step-mm", type=float, default=2.0, help="spacing of the presses")
-    line.add_argument("--depth-mm", type=float, default=8.0,
-                      help="press depth under the skin (default %(default)g)")
+    line.add_argument("--depth-mm", type=float, default=22.0,
+                      help="press depth under the skin (default %(default)g: the phantom's "
+                           "spinous process tips lie 24 to 31 mm under the skin)")
     line.add_argument("--speed-mm-per-s", type=float, default=20.0)
     line.add_argument("--rate-hz", type=float, default=500.0, help="poses per second")
     p.add_argument("--sessions", type=int, default=2, help="parallel sessions")
@@ -145,9 +146,11 @@ def analyse(df, plan: Plan, args: argparse.Namespace) -> dict[str, Any]:
     z = plan.grid.center_mm[2] + pts["v_mm"].to_numpy()
     force = pts["peak_force_n"].to_numpy()
     span = float(np.nanmax(force) - np.nanmin(force)) if len(force) else 0.0
-    # a process must stand out by a fifth of the profile's range and 0.05 N (well above
-    # the force model's numerical noise), and processes are at least 15 mm apart
-    prominence = max(0.2 * span, 0.05)
+    # a process must stand out from its surroundings by 0.1 N (and 5 % of the profile's
+    # range): the force field is smooth (trilinear F), so ripples stay far below that,
+    # while the deepest process (L5 on the phantom) still stands out by about 0.2 N;
+    # neighbouring processes are 30 mm or more apart, so peaks closer than 15 mm are one
+    prominence = max(0.05 * span, 0.1)
     peaks = profile_peaks(z, force, min_separation_mm=15.0, min_prominence=prominence)
     report: dict[str, Any] = {
         "line": {"x_mm": plan.grid.center_mm[0], "z_mm": z.tolist(),

@@ -55,7 +55,15 @@ def peak_force_plot(df: pd.DataFrame, path: str | Path, title: str = "",
     pts = point_table(df)
     nu, nv = int(pts["iu"].max()) + 1, int(pts["iv"].max()) + 1
     no_contact = pts["contact_presses"] == 0
-    fig, ax = plt.subplots(figsize=(7, 5.5) if nu > 1 and nv > 1 else (8, 4.5))
+    if nu > 1 and nv > 1:
+        # a figure shaped like the region, so the map's equal aspect wastes little space
+        span_u = max(float(np.ptp(pts["u_mm"])), 1e-9)
+        span_v = max(float(np.ptp(pts["v_mm"])), 1e-9)
+        ratio = span_u / span_v
+        size = (max(4.5, 5.5 * ratio + 2.5), 6.0) if ratio <= 1 else (8.0, max(3.5, 6.0 / ratio + 1.5))
+    else:
+        size = (8.0, 4.5)
+    fig, ax = plt.subplots(figsize=size)
     if nu > 1 and nv > 1:
         grid = np.full((nv, nu), np.nan)
         grid[pts["iv"].to_numpy(), pts["iu"].to_numpy()] = pts["peak_force_n"].to_numpy()
@@ -79,8 +87,9 @@ def peak_force_plot(df: pd.DataFrame, path: str | Path, title: str = "",
         if (pts["presses"] > 1).any():
             ax.fill_between(pts[along], pts["peak_force_min_n"], pts["peak_force_max_n"],
                             color="tab:red", alpha=0.2, label="min to max over repetitions")
-        ax.plot(pts.loc[no_contact, along], pts.loc[no_contact, "peak_force_n"], "x", color="k",
-                label="no contact")
+        if no_contact.any():
+            ax.plot(pts.loc[no_contact, along], pts.loc[no_contact, "peak_force_n"], "x",
+                    color="k", label="no contact")
         ax.set_xlabel(f"{name} (mm)")
         ax.set_ylabel("peak force (N)")
         ax.grid(alpha=0.3)
@@ -93,11 +102,12 @@ def peak_force_plot(df: pd.DataFrame, path: str | Path, title: str = "",
 def spine_profile_plot(df: pd.DataFrame, report: dict, path: str | Path, title: str = "") -> Path:
     """The demo's figure, along the line of presses (z, superior to the right): on top the
     peak force of each press with the peaks found and the process tips the bone mask
-    expects; below, a sagittal section: every pose in contact coloured by |force|, the
-    skin where each press met it, and the top of the bone from the mask."""
+    expects; below, a sagittal section: the force felt at each tip position in contact
+    (one column per press), the skin where each press met it, and the top of the bone
+    from the mask."""
     line = report["line"]
     z = np.asarray(line["z_mm"], dtype=float)
-    fig, (top, sec) = plt.subplots(2, 1, figsize=(10, 7.5), sharex=True,
+    fig, (top, sec) = plt.subplots(2, 1, figsize=(10, 7.5), sharex=True, layout="constrained",
                                    gridspec_kw={"height_ratios": [1, 1.2]})
     exp = report.get("expected")
     # top: the force profile and its peaks
@@ -117,16 +127,27 @@ def spine_profile_plot(df: pd.DataFrame, report: dict, path: str | Path, title: 
     # below: the section with the forces felt under the skin
     inside = df[df["contact"] & df["phase"].isin(["approach", "press", "hold"])]
     if len(inside):
-        sc = sec.scatter(inside["tip_z_mm"], inside["tip_y_mm"], c=inside["force_n"], s=4, cmap="magma",
-                         marker="s", linewidths=0)
-        fig.colorbar(sc, ax=sec, label="|force| (N)", pad=0.01)
+        # an image: one column per press, the largest |force| in 0.5 mm bins of tip y
+        bin_mm = 0.5
+        yb = np.round(inside["tip_y_mm"].to_numpy() / bin_mm).astype(int)
+        zs = np.unique(inside["tip_z_mm"].to_numpy())
+        zi = np.searchsorted(zs, inside["tip_z_mm"].to_numpy())
+        img = np.full((yb.max() - yb.min() + 1, len(zs)), np.nan)
+        np.fmax.at(img, (yb - yb.min(), zi), inside["force_n"].to_numpy())
+        img_y = (np.arange(img.shape[0]) + yb.min()) * bin_mm
+        mesh = sec.pcolormesh(zs, img_y, np.ma.masked_invalid(img), shading="nearest", cmap="magma")
+        # one colour bar beside both panels keeps their z axes aligned
+        fig.colorbar(mesh, ax=[top, sec], label="|force| in the section below (N)", pad=0.01,
+                     fraction=0.03)
     sec.plot(z, line["skin_y_mm"], "-", color="tab:green", lw=1.2, label="skin met by the press")
     if exp:
         sec.plot(exp["bone_top"]["z_mm"], exp["bone_top"]["y_mm"], "-", color="tab:blue", lw=1.2,
                  label="top of bone (mask)")
+    if len(inside):
+        # zoom on the pressed layer and the bone just under it
+        sec.set_ylim(inside["tip_y_mm"].min() - 15.0, np.nanmax(line["skin_y_mm"]) + 5.0)
     sec.set_xlabel("z (mm, LPS: inferior to superior)")
     sec.set_ylabel("y (mm, posterior up)")
     sec.grid(alpha=0.3)
     sec.legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
     return _save(fig, path)

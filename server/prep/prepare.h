@@ -3,6 +3,8 @@
 #pragma once
 
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "core/patient.h"
 #include "core/scene.h"
@@ -15,10 +17,29 @@ struct PrepReport {
   bool from_cache = false;   // the patient was read from the cache
   std::string cache_path;    // the cache entry used or written ("" when caching is off)
   double total_s = 0;        // wall time of the whole preparation
+  std::string cache_key;     // the content key (SHA-256 hex; "" when caching is off)
+  std::vector<std::pair<std::string, double>> stage_s;  // wall time of each stage (s), in order
+  double body_ml = 0;        // volume of the body mask C
+  double bone_ml = 0;        // volume of the bone mask
 };
 
 /// Prepares the scene's patient. Throws palpsim::Error naming the file and the
 /// problem for bad input; never leaves a half-written cache entry behind.
 PatientPtr prepare_patient(const Scene& scene, PrepReport* report = nullptr);
+
+/// Builds a patient from an image already in memory (HU, or image units with
+/// both prep thresholds set): resampling, masks, distance maps, F and grad F.
+/// No cache, no file I/O; `source` names it. Appends stage times to
+/// report->stage_s and sets body_ml and bone_ml. Throws palpsim::Error for an
+/// all-air image or one without a body.
+PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const std::string& source,
+                         PrepReport* report = nullptr);
+
+/// Refuses (palpsim::Error naming `what` and the scene fields prep.air_threshold
+/// and prep.bone_threshold) an image that cannot be in Hounsfield units: unsigned
+/// 8-bit data, or a value range no CT has (no air below -500 HU, or values outside
+/// -32768..32767), unless the scene set both thresholds in the image's own units.
+void check_hounsfield(const std::string& what, const std::string& pixel_type, double min_value, double max_value,
+                      const PrepSettings& prep);
 
 }  // namespace palpsim

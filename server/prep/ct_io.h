@@ -1,0 +1,45 @@
+// Reading CT images (DICOM series, NIfTI, NRRD, MetaImage) into the project's own
+// types. ITK is used only in ct_io.cpp; nothing of it shows here.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "core/scene.h"
+#include "core/volume.h"
+
+namespace palpsim {
+
+/// What a CT file holds, read from its header (and, after reading, its values).
+struct CtInfo {
+  std::string path;              // the file or DICOM folder as given
+  std::string format;            // "DICOM", "NIfTI", "NRRD", "MetaImage" or the ITK reader's name
+  std::string pixel_type;        // the stored component type: "uint8", "int16", "float", ...
+  std::string series_uid;        // DICOM only: the SeriesInstanceUID read
+  std::vector<std::string> files;  // every file the image consists of (for hashing)
+  Grid grid;                     // input geometry: size, spacing (mm), origin (mm), direction (LPS)
+  double min_value = 0;          // smallest voxel value (HU for a CT)
+  double max_value = 0;          // largest voxel value
+};
+
+/// A CT read into float voxels on its own (possibly anisotropic) grid.
+struct CtImage {
+  Volume<float> image;
+  CtInfo info;
+};
+
+/// Reads the header of the CT at `path` (a file, or a folder holding a DICOM
+/// series; prep.dicom_series_uid picks one of several series) without reading
+/// the voxels. Throws palpsim::Error naming the path for a missing path, a folder
+/// without DICOM, an unreadable or corrupt header, a 2D or 4D image, a vector
+/// image, a non-orthonormal direction, zero, negative or non-finite spacing.
+CtInfo read_ct_info(const std::string& path, const PrepSettings& prep);
+
+/// Reads the CT's voxels as float after read_ct_info's checks, and refuses
+/// (palpsim::Error naming the path) when the prepared patient would need more
+/// than prep.max_memory_mb (checked before the voxels are read), when the data
+/// are truncated or corrupt, and when a float image holds NaN or Inf.
+CtImage read_ct(const std::string& path, const PrepSettings& prep);
+
+}  // namespace palpsim

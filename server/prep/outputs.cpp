@@ -1,0 +1,232 @@
+#include "prep/outputs.h"
+
+#include <png.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <random>
+#include <sstream>
+#include <vector>
+
+#include "core/error.h"
+
+namespace palpsim {
+namespace {
+
+namespace fs = std::filesystem;
+
+// the NRRD header shared by both voxel types
+std::string nrrd_header(const Grid& g, const char* type) {
+  std::ostringstream s;
+  s.precision(17);
+  s << "NRRD0004\n# written by palpsim-prep\ntype: " << type << "\ndimension: 3\n"
+    << "space: left-posterior-superior\nsizes: " << g.size.x << " " << g.size.y << " " << g.size.z << "\n"
+    << "space directions:";
+  const double sp[3] = {g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z};
+  for (int a = 0; a < 3; ++a)
+    s << " (" << g.direction[a] * sp[a] << "," << g.direction[3 + a] * sp[a] << "," << g.direction[6 + a] * sp[a]
+      << ")";
+  s << "\nkinds: domain domain domain\nendian: little\nencoding: raw\n"
+    << "space units: \"mm\" \"mm\" \"mm\"\n"
+    << "space origin: (" << g.origin_mm.x << "," << g.origin_mm.y << "," << g.origin_mm.z << ")\n\n";
+  return s.str();
+}
+
+template <typename T>
+void write_nrrd_any(const std::string& path, const Volume<T>& v, const char* type) {
+  std::ofstream out(path, std::ios::binary);
+  if (!out) throw Error("cannot create '" + path + "'");
+  const std::string h = nrrd_header(v.grid, type);
+  out.write(h.data(), std::streamsize(h.size()));
+  out.write(reinterpret_cast<const char*>(v.data.data()), std::streamsize(v.bytes()));
+  out.close();
+  if (!out) throw Error("error writing '" + path + "' (disk full?)");
+}
+
+// the physical bounding box of the grid's voxel centres
+void bounds(const Grid& g, Vec3& lo, Vec3& hi) {
+  lo = Vec3{1e300, 1e300, 1e300}, hi = -lo;
+  for (int c = 0; c < 8; ++c) {
+    const Vec3 p = g.to_physical(Vec3{(c & 1) ? g.size.x - 1.0 : 0.0, (c & 2) ? g.size.y - 1.0 : 0.0,
+                                      (c & 4) ? g.size.z - 1.0 : 0.0});
+    for (int a = 0; a < 3; ++a) lo[a] = std::min(lo[a], p[a]), hi[a] = std::max(hi[a], p[a]);
+  }
+}
+
+// nearest voxel of a physical point, or -1 outside
+long long nearest_voxel(const Grid& g, const Vec3& p) {
+  const Vec3 c = g.to_index(p);
+  const int i = int(std::lround(c.x)), j = int(std::lround(c.y)), k = int(std::lround(c.z));
+  return g.contains(i, j, k) ? (long long)g.index(i, j, k) : -1;
+}
+
+// writes an RGB image as PNG, each pixel repeated `scale` times in x and y
+void write_rgb_png(const std::string& path, const std::vector<std::array<std::uint8_t, 3>>& img, int width,
+                   int height, int scale) {
+  std::vector<std::uint8_t> rows(std::size_t(width) * scale * 3 * height * scale);
+  const std::size_t stride = std::size_t(width) * scale * 3;
+  for (int y = 0; y < height * scale; ++y)
+    for (int x = 0; x < width * scale; ++x)
+      for (int c = 0; c < 3; ++c) rows[y * stride + std::size_t(x) * 3 + c] = img[std::size_t(y / scale) * width + x / scale][c];
+  std::vector<png_bytep> ptrs(std::size_t(height) * scale);
+  for (std::size_t y = 0; y < ptrs.size(); ++y) ptrs[y] = rows.data() + y * stride;
+  const png_uint_32 w = png_uint_32(width * scale), h = png_uint_32(height * scale);
+
+  std::FILE* fp = std::fopen(path.c_str(), "wb");
+  if (!fp) throw Error("cannot create '" + path + "'");
+  png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, nullptr, nullptr, nullptr);
+  png_infop info = png ? png_create_info_struct(png) : nullptr;
+  if (!png || !info || setjmp(png_jmpbuf(png))) {
+    png_destroy_write_struct(&png, &info);
+    std::fclose(fp);
+    throw Error("error writing '" + path + "'");
+  }
+  png_init_io(png, fp);
+  png_set_IHDR(png, info, w, h, 8, PNG_COLOR_TYPE_RGB, PNG_INTERLACE_NONE, PNG_COMPRESSION_TYPE_DEFAULT,
+               PNG_FILTER_TYPE_DEFAULT);
+  png_write_info(png, info);
+  png_write_image(png, ptrs.data());
+  png_write_end(png, nullptr);
+  png_destroy_write_struct(&png, &info);
+  if (std::fclose(fp) != 0) throw Error("error writing '" + path + "' (disk full?)");
+}
+
+}  // namespace
+
+void write_nrrd(const std::string& path, const Volume<float>& v) { write_nrrd_any(path, v, "float"); }
+void write_nrrd(const std::string& path, const Volume<std::uint8_t>& v) { write_nrrd_any(path, v, "uint8"); }
+
+Vec3 preview_centre_mm(const Patient& p) {
+  const Grid& g = p.grid;
+  const auto& m = p.has_bone ? p.bone : p.body;
+  Vec3i lo{g.size.x, g.size.y, g.size.z}, hi{-1, -1, -1};
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i)
+        if (m.data[g.index(i, j, k)]) {
+          lo = {std::min(lo.x, i), std::min(lo.y, j), std::min(lo.z, k)};
+          hi = {std::max(hi.x, i), std::max(hi.y, j), std::max(hi.z, k)};
+        }
+  if (hi.x < 0) return g.to_physical(Vec3{(g.size.x - 1) / 2.0, (g.size.y - 1) / 2.0, (g.size.z - 1) / 2.0});
+  return g.to_physical(Vec3{(lo.x + hi.x) / 2.0, (lo.y + hi.y) / 2.0, (lo.z + hi.z) / 2.0});
+}
+
+void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm) {
+  const Grid& g = p.grid;
+  const double px = g.spacing_mm.x;  // isotropic grid: one pixel per voxel edge
+  Vec3 lo, hi;
+  bounds(g, lo, hi);
+
+  // grey scale: 0 .. 99th percentile of F inside the body
+  std::vector<float> inside;
+  for (std::size_t i = 0; i < g.count(); i += 7)
+    if (p.body.data[i]) inside.push_back(p.force.data[i]);
+  float top = 1;
+  if (!inside.empty()) {
+    const std::size_t at = std::size_t(0.99 * (inside.size() - 1));
+    std::nth_element(inside.begin(), inside.begin() + at, inside.end());
+    top = std::max(inside[at], 1e-6f);
+  }
+
+  // three views: (physical axis across, sign, physical axis down, sign, fixed axis)
+  struct View { int across, down, fixed; double across_sign, down_sign; };
+  // axial: x (R->L) across, y (A->P) down; coronal: x across, z (S->I) down;
+  // sagittal: y (A->P) across, z (S->I) down
+  const View views[3] = {{0, 1, 2, +1, +1}, {0, 2, 1, +1, -1}, {1, 2, 0, +1, -1}};
+  int width = 0, height = 0, sizes[3][2];
+  for (int v = 0; v < 3; ++v) {
+    sizes[v][0] = int(std::floor((hi[views[v].across] - lo[views[v].across]) / px)) + 1;
+    sizes[v][1] = int(std::floor((hi[views[v].down] - lo[views[v].down]) / px)) + 1;
+    width += sizes[v][0];
+    height = std::max(height, sizes[v][1]);
+  }
+  const int gap = 4;
+  width += 2 * gap;
+  // small grids are enlarged so the preview stays readable
+  const int scale = std::max(1, 400 / std::max(height, 1));
+  std::vector<std::array<std::uint8_t, 3>> img(std::size_t(width) * height, {24, 24, 48});
+  int x0 = 0;
+  for (int v = 0; v < 3; ++v) {
+    const View& w = views[v];
+    const int sw = sizes[v][0], sh = sizes[v][1];
+    std::vector<long long> vox(std::size_t(sw) * sh);
+    for (int y = 0; y < sh; ++y)
+      for (int x = 0; x < sw; ++x) {
+        Vec3 q = centre_mm;
+        q[w.across] = w.across_sign > 0 ? lo[w.across] + x * px : hi[w.across] - x * px;
+        q[w.down] = w.down_sign > 0 ? lo[w.down] + y * px : hi[w.down] - y * px;
+        vox[std::size_t(y) * sw + x] = nearest_voxel(g, q);
+      }
+    const auto in_body = [&](int x, int y) {
+      if (x < 0 || y < 0 || x >= sw || y >= sh) return false;
+      const long long i = vox[std::size_t(y) * sw + x];
+      return i >= 0 && p.body.data[std::size_t(i)] != 0;
+    };
+    for (int y = 0; y < sh; ++y)
+      for (int x = 0; x < sw; ++x) {
+        const long long i = vox[std::size_t(y) * sw + x];
+        auto& px_out = img[std::size_t(y) * width + x0 + x];
+        if (i < 0) continue;
+        const double f = std::clamp(double(p.force.data[std::size_t(i)]) / top, 0.0, 1.0);
+        const auto grey = std::uint8_t(std::lround(255 * f));
+        px_out = {grey, grey, grey};
+        // skin contour: body pixels with a non-body 4-neighbour
+        if (in_body(x, y) && (!in_body(x - 1, y) || !in_body(x + 1, y) || !in_body(x, y - 1) || !in_body(x, y + 1)))
+          px_out = {255, 0, 0};
+      }
+    x0 += sw + gap;
+  }
+
+  write_rgb_png(path, img, width, height, scale);
+}
+
+void write_patient_outputs(const std::string& out_dir, const Patient& p, const std::string& prep_json) {
+  const fs::path out = fs::absolute(fs::path(out_dir)).lexically_normal();
+  const fs::path parent = out.has_filename() ? out.parent_path() : out.parent_path().parent_path();
+  const std::string name = (out.has_filename() ? out : out.parent_path()).filename().string();
+  std::error_code ec;
+  fs::create_directories(parent, ec);
+  if (ec) throw Error("cannot create the output's parent folder '" + parent.string() + "': " + ec.message());
+  if (fs::exists(out) && !fs::is_directory(out))
+    throw Error("output '" + out.string() + "' exists and is not a folder");
+
+  // a unique temporary sibling, removed on any failure
+  std::mt19937_64 rng(std::random_device{}());
+  const fs::path tmp = parent / ("." + name + ".tmp-" + std::to_string(::getpid()) + "-" + std::to_string(rng() % 1000000));
+  fs::create_directory(tmp, ec);
+  if (ec) throw Error("cannot create the temporary folder '" + tmp.string() + "': " + ec.message());
+  try {
+    write_nrrd((tmp / "F.nrrd").string(), p.force);
+    write_nrrd((tmp / "body.nrrd").string(), p.body);
+    write_nrrd((tmp / "bone.nrrd").string(), p.bone);
+    write_nrrd((tmp / "dist_bone.nrrd").string(), p.dist_bone_mm);
+    write_nrrd((tmp / "dist_skin.nrrd").string(), p.dist_skin_mm);
+    write_preview_png((tmp / "preview.png").string(), p, preview_centre_mm(p));
+    {
+      std::ofstream j(tmp / "prep.json");
+      j << prep_json << "\n";
+      j.close();
+      if (!j) throw Error("error writing '" + (tmp / "prep.json").string() + "'");
+    }
+    // swap in: move an old output aside, rename the new one, then drop the old
+    fs::path old;
+    if (fs::exists(out)) {
+      old = parent / ("." + name + ".old-" + std::to_string(::getpid()) + "-" + std::to_string(rng() % 1000000));
+      fs::rename(out, old);
+    }
+    fs::rename(tmp, out);
+    if (!old.empty()) fs::remove_all(old, ec);
+  } catch (const std::exception& e) {
+    fs::remove_all(tmp, ec);
+    if (dynamic_cast<const Error*>(&e)) throw;
+    throw Error("cannot write the outputs to '" + out.string() + "': " + e.what());
+  }
+}
+
+}  // namespace palpsim

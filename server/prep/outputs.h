@@ -1,0 +1,35 @@
+// Writing a prepared patient: NRRD volumes with their physical geometry (they open
+// in 3D Slicer), the preview PNG (three orthogonal slices of F with the skin
+// contour, like the paper's Fig. 1), and the output folder written atomically.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "core/patient.h"
+#include "core/volume.h"
+
+namespace palpsim {
+
+/// Writes a float volume as a NRRD file (raw, little-endian, space
+/// left-posterior-superior, space directions and origin in mm).
+void write_nrrd(const std::string& path, const Volume<float>& v);
+/// Writes a 0/1 mask as an unsigned 8-bit NRRD file (same geometry fields).
+void write_nrrd(const std::string& path, const Volume<std::uint8_t>& v);
+
+/// Writes preview.png: axial, coronal and sagittal slices of F through `centre_mm`
+/// (grey, 0 to the 99th percentile of F in the body), skin contour (the border of
+/// C) in red; patient's right on the image's left, anterior and superior up.
+void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm);
+
+/// A good place for the preview's slices: the centre of the bone mask's bounding
+/// box (the spine and pelvis), else the centre of the body.
+Vec3 preview_centre_mm(const Patient& p);
+
+/// Writes every output of palpsim-prep (F.nrrd, body.nrrd, bone.nrrd,
+/// dist_bone.nrrd, dist_skin.nrrd, preview.png, prep.json) into a temporary
+/// sibling folder of `out_dir` and renames it to `out_dir` at the end (an existing
+/// `out_dir` is replaced only then); on any error nothing half-written is left.
+void write_patient_outputs(const std::string& out_dir, const Patient& p, const std::string& prep_json);
+
+}  // namespace palpsim

@@ -1,0 +1,411 @@
+#include "prep/pipeline.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numeric>
+#include <vector>
+
+#include "core/error.h"
+#include "prep/distance.h"
+
+namespace palpsim {
+
+double patient_spacing_mm(const Grid& input, double requested_mm) {
+  if (requested_mm > 0) return requested_mm;
+  const double smallest = std::min({input.spacing_mm.x, input.spacing_mm.y, input.spacing_mm.z});
+  return std::clamp(smallest, 0.5, 2.0);
+}
+
+Grid isotropic_grid(const Grid& input, double spacing_mm) {
+  Grid g = input;  // same origin (voxel 0's centre) and direction
+  g.spacing_mm = {spacing_mm, spacing_mm, spacing_mm};
+  const auto cover = [&](int n, double sp) {
+    // voxel centres from 0 to the last input centre, with a tolerance for rounding
+    return int(std::floor((n - 1) * sp / spacing_mm + 1e-6)) + 1;
+  };
+  g.size = {cover(input.size.x, input.spacing_mm.x), cover(input.size.y, input.spacing_mm.y),
+            cover(input.size.z, input.spacing_mm.z)};
+  return g;
+}
+
+std::size_t estimate_prep_bytes(const Grid& input, const Grid& patient) {
+  // input: ITK's float buffer and our copy; patient: intensity 4, body 1, bone 1,
+  // A 4, B 4, F 4, grad F 12 bytes, plus about 4 bytes of labels and masks while
+  // the masks are built
+  return input.count() * 8 + patient.count() * 34;
+}
+
+Volume<float> resample_linear(const Volume<float>& in, const Grid& out, float outside_value, int threads) {
+  Volume<float> r(out);
+  const Grid& gi = in.grid;
+  const int nx = gi.size.x, ny = gi.size.y, nz = gi.size.z;
+  const std::size_t sx = std::size_t(nx), sxy = std::size_t(nx) * ny;
+  const double eps = 1e-4;  // voxels: accept rounding at the input's last centre
+  parallel_for(std::size_t(out.size.y) * out.size.z, threads, [&](std::size_t b, std::size_t e) {
+    for (std::size_t row = b; row < e; ++row) {
+      const int j = int(row % out.size.y), k = int(row / out.size.y);
+      for (int i = 0; i < out.size.x; ++i) {
+        const Vec3 c = gi.to_index(out.to_physical(Vec3{double(i), double(j), double(k)}));
+        float& dst = r.data[out.index(i, j, k)];
+        if (c.x < -eps || c.y < -eps || c.z < -eps || c.x > nx - 1 + eps || c.y > ny - 1 + eps ||
+            c.z > nz - 1 + eps) {
+          dst = outside_value;
+          continue;
+        }
+        // trilinear weights with the upper corner clamped at the last voxel
+        const int i0 = std::clamp(int(std::floor(c.x)), 0, nx - 1), j0 = std::clamp(int(std::floor(c.y)), 0, ny - 1),
+                  k0 = std::clamp(int(std::floor(c.z)), 0, nz - 1);
+        const int i1 = std::min(i0 + 1, nx - 1), j1 = std::min(j0 + 1, ny - 1), k1 = std::min(k0 + 1, nz - 1);
+        const double fx = std::clamp(c.x - i0, 0.0, 1.0), fy = std::clamp(c.y - j0, 0.0, 1.0),
+                     fz = std::clamp(c.z - k0, 0.0, 1.0);
+        const float* d = in.data.data();
+        const auto v = [&](int ii, int jj, int kk) { return double(d[kk * sxy + jj * sx + ii]); };
+        const double c00 = v(i0, j0, k0) * (1 - fx) + v(i1, j0, k0) * fx;
+        const double c10 = v(i0, j1, k0) * (1 - fx) + v(i1, j1, k0) * fx;
+        const double c01 = v(i0, j0, k1) * (1 - fx) + v(i1, j0, k1) * fx;
+        const double c11 = v(i0, j1, k1) * (1 - fx) + v(i1, j1, k1) * fx;
+        dst = float((c00 * (1 - fy) + c10 * fy) * (1 - fz) + (c01 * (1 - fy) + c11 * fy) * fz);
+      }
+    }
+  });
+  return r;
+}
+
+int grid_axis_along(const Grid& g, int physical) {
+  // column a of the direction is grid axis a in physical space
+  int best = physical;
+  double best_abs = -1;
+  for (int a = 0; a < 3; ++a) {
+    const double s = std::abs(g.direction[3 * physical + a]);
+    if (s > best_abs) best_abs = s, best = a;
+  }
+  return best;
+}
+
+std::size_t count_nonzero(const Volume<std::uint8_t>& m) {
+  return std::size_t(std::count_if(m.data.begin(), m.data.end(), [](std::uint8_t v) { return v != 0; }));
+}
+
+namespace {
+
+// union-find over provisional labels
+struct DisjointSet {
+  std::vector<std::uint32_t> parent;
+  std::uint32_t make() {
+    parent.push_back(std::uint32_t(parent.size()));
+    return parent.back();
+  }
+  std::uint32_t find(std::uint32_t a) {
+    while (parent[a] != a) a = parent[a] = parent[parent[a]];
+    return a;
+  }
+  void unite(std::uint32_t a, std::uint32_t b) {
+    a = find(a), b = find(b);
+    if (a != b) parent[std::max(a, b)] = std::min(a, b);
+  }
+};
+
+// 6-connected components of the voxels where (mask != 0) == value: labels 1..n
+// (0 elsewhere), sizes[l] voxels and border[l] whether it touches the volume's border
+struct Components {
+  std::vector<std::uint32_t> label;
+  std::vector<std::size_t> size;
+  std::vector<bool> border;
+};
+
+Components label_components(const Volume<std::uint8_t>& mask, bool value) {
+  const Grid& g = mask.grid;
+  const int nx = g.size.x, ny = g.size.y, nz = g.size.z;
+  const std::size_t sx = std::size_t(nx), sxy = std::size_t(nx) * ny;
+  Components c;
+  c.label.assign(g.count(), 0);
+  DisjointSet ds;
+  ds.make();  // label 0 = background
+  // pass 1: provisional labels from the -i, -j, -k neighbours
+  for (int k = 0; k < nz; ++k)
+    for (int j = 0; j < ny; ++j)
+      for (int i = 0; i < nx; ++i) {
+        const std::size_t idx = k * sxy + j * sx + i;
+        if ((mask.data[idx] != 0) != value) continue;
+        const std::uint32_t a = i > 0 ? c.label[idx - 1] : 0, b = j > 0 ? c.label[idx - sx] : 0,
+                            d = k > 0 ? c.label[idx - sxy] : 0;
+        std::uint32_t l = 0;
+        for (std::uint32_t n : {a, b, d})
+          if (n && (!l || n < l)) l = n;
+        if (!l) l = ds.make();
+        for (std::uint32_t n : {a, b, d})
+          if (n && n != l) ds.unite(l, n);
+        c.label[idx] = l;
+      }
+  // pass 2: resolve to dense final labels, count sizes, note border contact
+  std::vector<std::uint32_t> dense(ds.parent.size(), 0);
+  std::uint32_t n = 0;
+  for (std::uint32_t l = 1; l < ds.parent.size(); ++l) {
+    const std::uint32_t r = ds.find(l);
+    if (r == l) dense[l] = ++n;
+  }
+  for (std::uint32_t l = 1; l < ds.parent.size(); ++l) dense[l] = dense[ds.find(l)];
+  c.size.assign(n + 1, 0);
+  c.border.assign(n + 1, false);
+  for (int k = 0; k < nz; ++k)
+    for (int j = 0; j < ny; ++j)
+      for (int i = 0; i < nx; ++i) {
+        const std::size_t idx = k * sxy + j * sx + i;
+        std::uint32_t& l = c.label[idx];
+        if (!l) continue;
+        l = dense[l];
+        ++c.size[l];
+        if (i == 0 || j == 0 || k == 0 || i == nx - 1 || j == ny - 1 || k == nz - 1) c.border[l] = true;
+      }
+  return c;
+}
+
+}  // namespace
+
+int remove_small_components(Volume<std::uint8_t>& mask, std::size_t min_voxels) {
+  const Components c = label_components(mask, true);
+  int kept = 0;
+  for (std::size_t l = 1; l < c.size.size(); ++l) kept += c.size[l] >= min_voxels;
+  for (std::size_t i = 0; i < mask.data.size(); ++i)
+    if (c.label[i] && c.size[c.label[i]] < min_voxels) mask.data[i] = 0;
+  return kept;
+}
+
+void fill_holes_3d(Volume<std::uint8_t>& mask) {
+  const Components c = label_components(mask, false);
+  for (std::size_t i = 0; i < mask.data.size(); ++i)
+    if (c.label[i] && !c.border[c.label[i]]) mask.data[i] = 1;
+}
+
+void fill_holes_per_slice(Volume<std::uint8_t>& mask, int axis, std::size_t max_hole_pixels,
+                          const HoleFilter& accept) {
+  const Grid& g = mask.grid;
+  const int n[3] = {g.size.x, g.size.y, g.size.z};
+  const std::size_t stride[3] = {1, std::size_t(g.size.x), std::size_t(g.size.x) * g.size.y};
+  const int u = axis == 0 ? 1 : 0, v = axis == 2 ? 1 : 2;  // the slice's two in-plane axes
+  const int nu = n[u], nv = n[v];
+  parallel_for(std::size_t(n[axis]), 0, [&](std::size_t b, std::size_t e) {
+    std::vector<std::uint8_t> seen(std::size_t(nu) * nv);
+    std::vector<int> queue;
+    std::vector<std::size_t> hole;
+    queue.reserve(std::size_t(nu) * nv);
+    for (std::size_t s = b; s < e; ++s) {
+      const std::size_t base = s * stride[axis];
+      const auto at = [&](int a, int c) -> std::uint8_t& { return mask.data[base + a * stride[u] + c * stride[v]]; };
+      std::fill(seen.begin(), seen.end(), 0);
+      queue.clear();
+      // seed: background pixels on the slice's border
+      const auto seed = [&](int a, int c) {
+        const int p = c * nu + a;
+        if (!seen[p] && !at(a, c)) seen[p] = 1, queue.push_back(p);
+      };
+      for (int a = 0; a < nu; ++a) seed(a, 0), seed(a, nv - 1);
+      for (int c = 0; c < nv; ++c) seed(0, c), seed(nu - 1, c);
+      // flood the background reachable from the border (4-connected)
+      for (std::size_t q = 0; q < queue.size(); ++q) {
+        const int p = queue[q], a = p % nu, c = p / nu;
+        if (a > 0) seed(a - 1, c);
+        if (a < nu - 1) seed(a + 1, c);
+        if (c > 0) seed(a, c - 1);
+        if (c < nv - 1) seed(a, c + 1);
+      }
+      // everything else in the slice is inside: fill each hole up to the size limit
+      for (int c0 = 0; c0 < nv; ++c0)
+        for (int a0 = 0; a0 < nu; ++a0) {
+          if (seen[c0 * nu + a0] || at(a0, c0)) continue;
+          const std::size_t first = queue.size();
+          seed(a0, c0);
+          for (std::size_t q = first; q < queue.size(); ++q) {
+            const int p = queue[q], a = p % nu, c = p / nu;
+            if (a > 0) seed(a - 1, c);
+            if (a < nu - 1) seed(a + 1, c);
+            if (c > 0) seed(a, c - 1);
+            if (c < nv - 1) seed(a, c + 1);
+          }
+          if (queue.size() - first > max_hole_pixels) continue;
+          if (accept) {
+            hole.clear();
+            for (std::size_t q = first; q < queue.size(); ++q)
+              hole.push_back(base + (queue[q] % nu) * stride[u] + (queue[q] / nu) * stride[v]);
+            if (!accept(hole)) continue;
+          }
+          for (std::size_t q = first; q < queue.size(); ++q) at(queue[q] % nu, queue[q] / nu) = 1;
+        }
+    }
+  });
+}
+
+Volume<std::uint8_t> body_mask(const Volume<float>& image, double air_threshold, double opening_mm,
+                               double min_part_ml, int threads) {
+  const Grid& g = image.grid;
+  const double h = std::min({g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z});
+  const double voxel_ml = g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z / 1000.0;
+
+  // tissue candidates: not air
+  Volume<std::uint8_t> cand(g);
+  parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+    for (std::size_t i = b; i < e; ++i) cand.data[i] = image.data[i] >= air_threshold;
+  });
+
+  // erode by the opening radius: the thick core of the body; thin shells vanish
+  Volume<std::uint8_t> core(g);
+  {
+    const Volume<float> d2 = squared_distance_mm2(cand, false, threads);
+    const float r2 = float(opening_mm * opening_mm);
+    parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+      for (std::size_t i = b; i < e; ++i) core.data[i] = d2.data[i] > r2;
+    });
+  }
+
+  // keep the largest core part and every part of at least min_part_ml (arms)
+  {
+    const Components c = label_components(core, true);
+    std::size_t largest = 0;
+    for (std::size_t l = 1; l < c.size.size(); ++l) largest = std::max(largest, c.size[l]);
+    const std::size_t min_voxels = std::size_t(std::ceil(min_part_ml / voxel_ml));
+    for (std::size_t i = 0; i < core.data.size(); ++i) {
+      const std::uint32_t l = c.label[i];
+      if (l && c.size[l] != largest && c.size[l] < min_voxels) core.data[i] = 0;
+    }
+  }
+
+  // dilate back (the opening) plus 1.5 voxels, within the candidates
+  Volume<std::uint8_t> body(g);
+  {
+    const Volume<float> d2 = squared_distance_mm2(core, true, threads);
+    const double reach = opening_mm + 1.5 * h;
+    const float r2 = float(reach * reach);
+    parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+      for (std::size_t i = b; i < e; ++i) body.data[i] = cand.data[i] && d2.data[i] <= r2;
+    });
+  }
+
+  // gas enclosed within an axial slice is inside (bowel, lungs, cut airways)
+  fill_holes_per_slice(body, axial_axis(g));
+  return body;
+}
+
+namespace {
+
+// morphological closing with a ball of radius r_mm (dilate, then erode; both exact
+// through distance maps); voxels outside the volume count as neither
+Volume<std::uint8_t> closing(const Volume<std::uint8_t>& m, double r_mm, int threads) {
+  const Grid& g = m.grid;
+  if (r_mm <= 0 || count_nonzero(m) == 0) return m;
+  const float r2 = float(r_mm * r_mm);
+  Volume<std::uint8_t> dilated(g);
+  {
+    const Volume<float> d2 = squared_distance_mm2(m, true, threads);
+    parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+      for (std::size_t i = b; i < e; ++i) dilated.data[i] = d2.data[i] <= r2;
+    });
+  }
+  const Volume<float> d2 = squared_distance_mm2(dilated, false, threads);
+  Volume<std::uint8_t> closed(g);
+  parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+    for (std::size_t i = b; i < e; ++i) closed.data[i] = m.data[i] || d2.data[i] > r2;
+  });
+  return closed;
+}
+
+}  // namespace
+
+double cancellous_level(const PrepSettings& prep) {
+  return prep.air_threshold + 0.8 * (prep.bone_threshold - prep.air_threshold);
+}
+
+Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                               const PrepSettings& prep, double fill_closing_mm, int threads) {
+  const Grid& g = image.grid;
+  Volume<std::uint8_t> raw(g);
+  parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+    for (std::size_t i = b; i < e; ++i) raw.data[i] = body.data[i] && image.data[i] >= prep.bone_threshold;
+  });
+
+  // closing joins nearby bone (a blurred cortex, thin processes)
+  Volume<std::uint8_t> bone = closing(raw, prep.bone_closing_mm, threads);
+  for (std::size_t i = 0; i < bone.data.size(); ++i) bone.data[i] &= body.data[i];
+
+  // cavities enclosed by bone are bone (cancellous interior, marrow): enclosed in
+  // 3D, or (a cortex blurred by thick slices has gaps) enclosed within a slice of
+  // any orientation after a wider closing, no larger than kMaxBoneHoleMm2, and
+  // with a mean value at least the cancellous level (the spinal canal, the pelvis
+  // and the thorax are enclosed too, but hold CSF, soft tissue or air)
+  if (prep.bone_fill_holes) {
+    fill_holes_3d(bone);
+    const double level = cancellous_level(prep);
+    const double wide_mm = std::max(fill_closing_mm, prep.bone_closing_mm);
+    const Volume<std::uint8_t> wide = wide_mm > prep.bone_closing_mm ? closing(raw, wide_mm, threads) : bone;
+    const std::size_t max_pixels = std::size_t(kMaxBoneHoleMm2 / (g.spacing_mm.x * g.spacing_mm.x));
+    const HoleFilter dense = [&](const std::vector<std::size_t>& vox) {
+      double sum = 0;
+      for (std::size_t i : vox) sum += image.data[i];
+      return sum / double(vox.size()) >= level;
+    };
+    Volume<std::uint8_t> cavity(g);
+    for (int axis = 0; axis < 3; ++axis) {
+      Volume<std::uint8_t> filled = wide;
+      fill_holes_per_slice(filled, axis, max_pixels, dense);
+      for (std::size_t i = 0; i < cavity.data.size(); ++i) cavity.data[i] |= filled.data[i] && !wide.data[i];
+    }
+    // the cavities, and the wide closing's voxels beside them (the gaps in their
+    // cortex; not its bridges elsewhere, e.g. between spinous processes)
+    if (count_nonzero(cavity) > 0) {
+      const double reach = wide_mm + g.spacing_mm.x;
+      const float r2 = float(reach * reach);
+      const Volume<float> d2 = squared_distance_mm2(cavity, true, threads);
+      for (std::size_t i = 0; i < bone.data.size(); ++i)
+        if (body.data[i] && (cavity.data[i] || (wide.data[i] && d2.data[i] <= r2))) bone.data[i] = 1;
+    }
+  }
+
+  // small components: vessels with contrast, calcifications, noise
+  const double voxel_ml = g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z / 1000.0;
+  remove_small_components(bone, std::size_t(std::ceil(prep.bone_min_volume_ml / voxel_ml)));
+  return bone;
+}
+
+Volume<float> force_image(const Patient& p, const ForceImageSettings& f, int threads) {
+  Volume<float> F(p.grid);
+  parallel_for(p.grid.count(), threads, [&](std::size_t b, std::size_t e) {
+    for (std::size_t i = b; i < e; ++i) {
+      const double C = p.body.data[i] ? 1.0 : 0.0;
+      const double A = p.dist_bone_mm.data[i];
+      // A = +inf (no bone) makes the first term 0
+      const double bone_term = std::isfinite(A) ? f.alpha * C / (f.beta + A) : 0.0;
+      F.data[i] = float(bone_term + f.gamma * p.dist_skin_mm.data[i]);
+    }
+  });
+  return F;
+}
+
+Volume<Vec3f> gradient_physical(const Volume<float>& f, int threads) {
+  const Grid& g = f.grid;
+  Volume<Vec3f> grad(g);
+  const int n[3] = {g.size.x, g.size.y, g.size.z};
+  const double h[3] = {g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z};
+  const std::size_t stride[3] = {1, std::size_t(g.size.x), std::size_t(g.size.x) * g.size.y};
+  parallel_for(std::size_t(g.size.y) * g.size.z, threads, [&](std::size_t b, std::size_t e) {
+    for (std::size_t row = b; row < e; ++row) {
+      const int j = int(row % g.size.y), k = int(row / g.size.y);
+      for (int i = 0; i < g.size.x; ++i) {
+        const int ijk[3] = {i, j, k};
+        const std::size_t idx = g.index(i, j, k);
+        Vec3 ga;
+        for (int a = 0; a < 3; ++a) {
+          // central difference inside, one-sided at the border
+          const bool lo = ijk[a] > 0, hi = ijk[a] < n[a] - 1;
+          const double fm = lo ? f.data[idx - stride[a]] : f.data[idx];
+          const double fp = hi ? f.data[idx + stride[a]] : f.data[idx];
+          const int steps = int(lo) + int(hi);
+          ga[a] = steps ? (fp - fm) / (steps * h[a]) : 0.0;
+        }
+        grad.data[idx] = Vec3f(g.axes_to_physical(ga));
+      }
+    }
+  });
+  return grad;
+}
+
+}  // namespace palpsim

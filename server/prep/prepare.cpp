@@ -1,0 +1,317 @@
+#include "prep/prepare.h"
+
+#include <spdlog/spdlog.h>
+
+#include <chrono>
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <iomanip>
+#include <limits>
+#include <sstream>
+
+#include "core/error.h"
+#include "prep/cache.h"
+#include "prep/ct_io.h"
+#include "prep/distance.h"
+#include "prep/hash.h"
+#include "prep/pipeline.h"
+#ifdef PALPSIM_HAVE_PHANTOM
+#include "prep/phantom.h"
+#endif
+
+namespace palpsim {
+namespace {
+
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+// JSON helpers: numbers (inf/nan as null), strings, arrays
+std::string jnum(double v) {
+  if (!std::isfinite(v)) return "null";
+  std::ostringstream s;
+  s << std::setprecision(10) << v;
+  return s.str();
+}
+std::string jstr(const std::string& v) {
+  std::string o = "\"";
+  for (char c : v) {
+    if (c == '"' || c == '\\') o += '\\', o += c;
+    else if (c == '\n') o += "\\n";
+    else if (static_cast<unsigned char>(c) < 0x20) o += ' ';
+    else o += c;
+  }
+  return o + "\"";
+}
+std::string jvec(const Vec3& v) { return "[" + jnum(v.x) + ", " + jnum(v.y) + ", " + jnum(v.z) + "]"; }
+std::string jgrid(const Grid& g) {
+  std::string d = "[";
+  for (int i = 0; i < 9; ++i) d += (i ? ", " : "") + jnum(g.direction[i]);
+  d += "]";
+  return "{\"size\": [" + std::to_string(g.size.x) + ", " + std::to_string(g.size.y) + ", " +
+         std::to_string(g.size.z) + "], \"spacing_mm\": " + jvec(g.spacing_mm) + ", \"origin_mm\": " +
+         jvec(g.origin_mm) + ", \"direction\": " + d + ", \"voxels\": " + std::to_string(g.count()) + "}";
+}
+
+// the settings that decide the result, for the cache key and the report
+std::string settings_text(const Scene& s) {
+  const PrepSettings& p = s.prep;
+  const ForceImageSettings& f = s.force_image;
+  std::ostringstream o;
+  o << std::setprecision(17) << "spacing_mm=" << p.spacing_mm << " air_threshold=" << p.air_threshold
+    << " bone_threshold=" << p.bone_threshold << " air_threshold_set=" << p.air_threshold_set
+    << " bone_threshold_set=" << p.bone_threshold_set << " bone_min_volume_ml=" << p.bone_min_volume_ml
+    << " bone_closing_mm=" << p.bone_closing_mm << " bone_fill_holes=" << p.bone_fill_holes
+    << " dicom_series_uid=" << p.dicom_series_uid << " alpha=" << f.alpha << " beta=" << f.beta
+    << " gamma=" << f.gamma;
+  return o.str();
+}
+
+std::string settings_json(const Scene& s) {
+  const PrepSettings& p = s.prep;
+  const ForceImageSettings& f = s.force_image;
+  return "{\"prep\": {\"spacing_mm\": " + jnum(p.spacing_mm) + ", \"air_threshold\": " + jnum(p.air_threshold) +
+         ", \"bone_threshold\": " + jnum(p.bone_threshold) + ", \"bone_min_volume_ml\": " +
+         jnum(p.bone_min_volume_ml) + ", \"bone_closing_mm\": " + jnum(p.bone_closing_mm) +
+         ", \"bone_fill_holes\": " + (p.bone_fill_holes ? "true" : "false") + ", \"max_memory_mb\": " +
+         jnum(p.max_memory_mb) + "}, \"force_image\": {\"alpha\": " + jnum(f.alpha) + ", \"beta\": " +
+         jnum(f.beta) + ", \"gamma\": " + jnum(f.gamma) + "}}";
+}
+
+// runs one stage and records its time
+template <typename Fn>
+auto timed(PrepReport& r, const char* name, Fn&& fn) {
+  const auto t0 = Clock::now();
+  if constexpr (std::is_void_v<decltype(fn())>) {
+    fn();
+    r.stage_s.emplace_back(name, seconds_since(t0));
+  } else {
+    auto v = fn();
+    r.stage_s.emplace_back(name, seconds_since(t0));
+    return v;
+  }
+}
+
+std::string stages_json(const PrepReport& r) {
+  std::string s = "{";
+  for (std::size_t i = 0; i < r.stage_s.size(); ++i)
+    s += (i ? ", " : "") + jstr(r.stage_s[i].first) + ": " + jnum(r.stage_s[i].second);
+  return s + "}";
+}
+
+// derives F and grad F, which the cache does not store
+void derive_force(Patient& p, const Scene& scene, PrepReport& r) {
+  p.force = timed(r, "force", [&] { return force_image(p, scene.force_image); });
+  p.grad_force = timed(r, "gradient", [&] { return gradient_physical(p.force); });
+}
+
+}  // namespace
+
+void check_hounsfield(const std::string& what, const std::string& pixel_type, double min_value, double max_value,
+                      const PrepSettings& prep) {
+  std::string why;
+  std::ostringstream s;
+  if (pixel_type == "uint8") {
+    why = "its voxels are unsigned 8-bit (0..255), which cannot hold Hounsfield units";
+  } else if (min_value > -500) {
+    s << "its smallest value is " << min_value << ", but a CT in HU holds air near -1000";
+    why = s.str();
+  } else if (min_value < -32768 || max_value > 32767) {
+    s << "its values span " << min_value << " .. " << max_value << ", beyond any CT's -32768 .. 32767 HU";
+    why = s.str();
+  }
+  if (why.empty() || (prep.air_threshold_set && prep.bone_threshold_set)) return;
+  throw Error(what + " does not look like Hounsfield units: " + why +
+              ". To process it anyway, set both scene fields prep.air_threshold and prep.bone_threshold "
+              "in the image's own units");
+}
+
+PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const std::string& source,
+                         PrepReport* report) {
+  PrepReport local;
+  PrepReport& r = report ? *report : local;
+  const PrepSettings& prep = scene.prep;
+  auto p = std::make_shared<Patient>();
+  p->source = source;
+
+  // all air: nothing at or above the air threshold
+  float hi = -std::numeric_limits<float>::infinity();
+  for (float v : image.data) hi = std::max(hi, v);
+  if (!(hi >= prep.air_threshold)) {
+    std::ostringstream s;
+    s << source << ": an all-air volume (largest value " << hi << " is below prep.air_threshold = "
+      << prep.air_threshold << "); there is no patient to palpate";
+    throw Error(s.str());
+  }
+
+  // isotropic patient grid, air outside the input
+  const Grid grid = isotropic_grid(image.grid, patient_spacing_mm(image.grid, prep.spacing_mm));
+  p->grid = grid;
+  const float air = float(std::min(-1024.0, prep.air_threshold - 1.0));
+  if (grid.same_geometry(image.grid)) {
+    p->intensity = timed(r, "resample", [&] { return image; });
+  } else {
+    p->intensity = timed(r, "resample", [&] { return resample_linear(image, grid, air); });
+  }
+
+  // masks
+  p->body = timed(r, "body_mask", [&] { return body_mask(p->intensity, prep.air_threshold); });
+  const double voxel_ml = grid.spacing_mm.x * grid.spacing_mm.y * grid.spacing_mm.z / 1000.0;
+  r.body_ml = double(count_nonzero(p->body)) * voxel_ml;
+  if (r.body_ml == 0)
+    throw Error(source + ": no body found (only thin structures above prep.air_threshold = " +
+                jnum(prep.air_threshold) + ", e.g. a table or noise)");
+  // cavities are looked for after a closing of twice the input's coarsest spacing
+  const double coarsest = std::max({image.grid.spacing_mm.x, image.grid.spacing_mm.y, image.grid.spacing_mm.z});
+  p->bone = timed(r, "bone_mask", [&] { return bone_mask(p->intensity, p->body, prep, 2 * coarsest); });
+  r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
+  p->has_bone = r.bone_ml > 0;
+
+  // distance maps: A to bone (inf without bone), B depth under the skin
+  p->dist_bone_mm = timed(r, "dist_bone", [&] { return distance_to_mask_mm(p->bone); });
+  p->dist_skin_mm = timed(r, "dist_skin", [&] { return distance_to_background_mm(p->body); });
+  derive_force(*p, scene, r);
+  return p;
+}
+
+PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
+  const auto t0 = Clock::now();
+  PrepReport local;
+  PrepReport& r = report ? *report : local;
+  r = PrepReport{};
+  const PrepSettings& prep = scene.prep;
+
+  // the input: the phantom, or the CT's header (checked before anything is hashed)
+  CtInfo info;
+  Volume<float> phantom;
+  std::string source;
+  Sha256 sha;
+  sha.update_field("palpsim-prep format " + std::to_string(kPrepFormatVersion));
+  sha.update_field(settings_text(scene));
+  if (scene.use_phantom) {
+#ifdef PALPSIM_HAVE_PHANTOM
+    source = "phantom";
+    phantom = timed(r, "phantom", [&] { return make_phantom(scene.phantom_voxel_mm).hu; });
+    info.path = "phantom";
+    info.format = "procedural phantom";
+    info.pixel_type = "float";
+    info.grid = phantom.grid;
+    float lo = std::numeric_limits<float>::infinity(), hi = -lo;
+    for (float v : phantom.data) lo = std::min(lo, v), hi = std::max(hi, v);
+    info.min_value = lo, info.max_value = hi;
+    const Grid out = isotropic_grid(info.grid, patient_spacing_mm(info.grid, prep.spacing_mm));
+    const double mb = double(estimate_prep_bytes(info.grid, out)) / (1024.0 * 1024.0);
+    if (mb > prep.max_memory_mb)
+      throw Error("phantom at " + jnum(scene.phantom_voxel_mm) + " mm: preparing it would need about " + jnum(std::round(mb)) +
+                  " MiB, above the scene's prep.max_memory_mb = " + jnum(prep.max_memory_mb));
+    timed(r, "hash", [&] {
+      sha.update_field("phantom");
+      sha.update(&phantom.grid.size, sizeof phantom.grid.size);
+      sha.update(&phantom.grid.spacing_mm, sizeof phantom.grid.spacing_mm);
+      sha.update(&phantom.grid.origin_mm, sizeof phantom.grid.origin_mm);
+      sha.update(phantom.data.data(), phantom.bytes());
+    });
+#else
+    throw Error("the built-in phantom is not part of this build (server/prep/phantom.cpp is missing); "
+                "name a CT with ct_path in the scene or on the command line");
+#endif
+  } else {
+    source = scene.ct_path;
+    info = timed(r, "header", [&] { return read_ct_info(scene.ct_path, prep); });
+    if (prep.use_cache)
+      timed(r, "hash", [&] {
+        for (const auto& f : info.files) {
+          sha.update_field(fs::path(f).filename().string());
+          hash_file(sha, f);
+        }
+      });
+  }
+
+  // a cached patient with the same content key
+  const std::string root = prep.use_cache ? cache_root(prep) : "";
+  if (prep.use_cache) {
+    r.cache_key = sha.hex();
+    const std::string entry = (fs::path(root) / r.cache_key).string();
+    const auto tl = Clock::now();
+    auto p = std::make_shared<Patient>();
+    std::string core;
+    if (load_cached_patient(entry, *p, core)) {
+      r.stage_s.emplace_back("cache_read", seconds_since(tl));
+      derive_force(*p, scene, r);
+      r.from_cache = true;
+      r.cache_path = entry;
+      const double voxel_ml = p->grid.spacing_mm.x * p->grid.spacing_mm.y * p->grid.spacing_mm.z / 1000.0;
+      r.body_ml = double(count_nonzero(p->body)) * voxel_ml;
+      r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
+      r.total_s = seconds_since(t0);
+      r.json = "{" + core + ",\n  \"cache\": {\"hit\": true, \"key\": " + jstr(r.cache_key) + ", \"path\": " +
+               jstr(entry) + ", \"this_run_stages_s\": " + stages_json(r) + "},\n  \"total_s\": " +
+               jnum(r.total_s) + "}";
+      spdlog::info("prep: {} from cache {} in {:.2f} s", source, entry, r.total_s);
+      return p;
+    }
+  }
+
+  // read the CT (memory limit, NaN/Inf and truncation checked there)
+  if (!scene.use_phantom) {
+    CtImage ct = timed(r, "read", [&] { return read_ct(scene.ct_path, prep); });
+    info = ct.info;
+    phantom = std::move(ct.image);
+  }
+  const std::string what = scene.use_phantom ? std::string("the phantom") : "CT '" + source + "'";
+  check_hounsfield(what, info.pixel_type, info.min_value, info.max_value, prep);
+  PatientPtr p = build_patient(phantom, scene, what, &r);
+  phantom = Volume<float>();
+
+  // the report (the cache keeps its core)
+  std::size_t patient_bytes = p->intensity.bytes() + p->body.bytes() + p->bone.bytes() + p->dist_bone_mm.bytes() +
+                              p->dist_skin_mm.bytes() + p->force.bytes() + p->grad_force.bytes();
+  float fmax = 0;
+  for (float v : p->force.data) fmax = std::max(fmax, v);
+  // units: HU unless the image failed the HU check and the scene's thresholds let it pass
+  bool hu = true;
+  try {
+    PrepSettings strict = prep;
+    strict.air_threshold_set = strict.bone_threshold_set = false;
+    check_hounsfield(what, info.pixel_type, info.min_value, info.max_value, strict);
+  } catch (const Error&) {
+    hu = false;
+  }
+  std::string core;
+  {
+    std::ostringstream s;
+    s << "\n  \"format_version\": " << kPrepFormatVersion << ",\n  \"source\": " << jstr(source)
+      << ",\n  \"input\": {\"path\": " << jstr(info.path) << ", \"format\": " << jstr(info.format)
+      << ", \"pixel_type\": " << jstr(info.pixel_type) << ", \"series_uid\": " << jstr(info.series_uid)
+      << ", \"files\": " << info.files.size() << ", \"grid\": " << jgrid(info.grid) << "},\n  \"value_range\": {\"min\": "
+      << jnum(info.min_value) << ", \"max\": " << jnum(info.max_value) << ", \"units\": "
+      << jstr(hu ? "HU" : "image units") << "},\n  \"grid\": " << jgrid(p->grid) << ",\n  \"settings\": "
+      << settings_json(scene) << ",\n  \"body_ml\": " << jnum(r.body_ml) << ",\n  \"bone_ml\": " << jnum(r.bone_ml)
+      << ",\n  \"has_bone\": " << (p->has_bone ? "true" : "false") << ",\n  \"force_max_mm\": " << jnum(fmax)
+      << ",\n  \"patient_mb\": " << jnum(double(patient_bytes) / (1024.0 * 1024.0))
+      << ",\n  \"stages_s\": " << stages_json(r);
+    core = s.str();
+  }
+
+  // store in the cache; a cache that cannot be written costs only the reuse
+  if (prep.use_cache) {
+    try {
+      const auto tw = Clock::now();
+      r.cache_path = store_cached_patient(root, r.cache_key, *p, core);
+      r.stage_s.emplace_back("cache_write", seconds_since(tw));
+    } catch (const Error& e) {
+      spdlog::warn("prep: not cached: {}", e.what());
+      r.cache_path.clear();
+    }
+  }
+  r.total_s = seconds_since(t0);
+  r.json = "{" + core + ",\n  \"cache\": {\"hit\": false, \"key\": " + jstr(r.cache_key) + ", \"path\": " +
+           jstr(r.cache_path) + "},\n  \"total_s\": " + jnum(r.total_s) + "}";
+  spdlog::info("prep: {} prepared in {:.2f} s ({} x {} x {} voxels of {} mm)", source, r.total_s, p->grid.size.x,
+               p->grid.size.y, p->grid.size.z, p->grid.spacing_mm.x);
+  return p;
+}
+
+}  // namespace palpsim

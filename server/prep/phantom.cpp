@@ -189,6 +189,11 @@ struct BowelLoop {
 /// Everything the phantom is made of.
 struct PhantomShapes {
   std::vector<Solid> bones;
+  struct Group {
+    std::size_t begin, end;  // a range of `bones` (one vertebra, one rib, one ilium)
+    Aabb box;                // holds all of them
+  };
+  std::vector<Group> groups;
   std::vector<Solid> discs;
   std::vector<BowelLoop> loops;
   std::vector<PhantomLandmark> landmarks;
@@ -234,6 +239,16 @@ std::vector<Vec3> catmull_rom(const std::vector<Vec3>& pts, int n) {
 std::shared_ptr<PhantomShapes> build_shapes() {
   auto s = std::make_shared<PhantomShapes>();
   namespace hu = phantom_hu;
+  // closes the group of bones added since the last call (for the distance queries)
+  const auto end_group = [&s] {
+    PhantomShapes::Group g{s->groups.empty() ? 0 : s->groups.back().end, s->bones.size(), {}};
+    for (std::size_t i = g.begin; i < g.end; ++i) {
+      const Aabb& b = s->bones[i].box;
+      g.box.lo = {std::min(g.box.lo.x, b.lo.x), std::min(g.box.lo.y, b.lo.y), std::min(g.box.lo.z, b.lo.z)};
+      g.box.hi = {std::max(g.box.hi.x, b.hi.x), std::max(g.box.hi.y, b.hi.y), std::max(g.box.hi.z, b.hi.z)};
+    }
+    if (g.end > g.begin) s->groups.push_back(g);
+  };
   constexpr double kBodyY = 6, kBodyRound = 2;
 
   // spine: T12, L1-L5 and the top of S1 (cut by the volume; its interior is above the
@@ -280,6 +295,7 @@ std::shared_ptr<PhantomShapes> build_shapes() {
       for (double sx : {-1.0, 1.0})
         s->bones.push_back(
             bone(Solid::capsule({sx * 14, 32, l.z}, {sx * l.tp_x, 36, l.z + 1}, l.tp_r), 1.5, hu::kCancellous));
+    end_group();
   }
   // intervertebral discs between consecutive bodies, overlapping the endplates by 1 mm
   for (std::size_t i = 0; i + 1 < std::size(levels); ++i) {
@@ -310,6 +326,7 @@ std::shared_ptr<PhantomShapes> build_shapes() {
       }
       for (std::size_t i = 0; i + 1 < pts.size(); ++i)
         s->bones.push_back(bone(Solid::capsule(pts[i], pts[i + 1], rb.radius), 1.5, hu::kCancellous));
+      end_group();
       // landmark: the rib's outer surface (facing the skin) at the vertex nearest to
       // landmark_deg, a place inside the volume where the rib is palpable
       const int iv = 1 + int(std::lround((phi0 - rb.landmark_deg) / step));
@@ -347,8 +364,13 @@ std::shared_ptr<PhantomShapes> build_shapes() {
                                                kPlateRound),
                               2.0, hu::kCancellous));
     }
+    end_group();
     s->landmarks.push_back({sx > 0 ? "iliac_crest_top_left" : "iliac_crest_top_right", crest[top] + Vec3{0, 0, kCrestR}});
   }
+
+  // every bone belongs to one group (bone_signed_distance_mm relies on it)
+  if (s->groups.empty() || s->groups.back().end != s->bones.size() || s->groups.size() > 64)
+    throw Error("phantom: internal error: the bone groups do not cover the bones");
 
   // bowel: colon and small-bowel loops inside the abdominal cavity; gas above the level
   struct Loop {
@@ -519,9 +541,19 @@ double PhantomGeometry::skin_signed_distance_mm(const Vec3& p_mm) const {
 }
 
 double PhantomGeometry::bone_signed_distance_mm(const Vec3& p_mm) const {
+  // groups nearest first, so that farther groups are skipped by their boxes
+  const auto& groups = shapes_->groups;
+  constexpr std::size_t kMaxGroups = 64;
+  std::pair<double, std::size_t> order[kMaxGroups];
+  const std::size_t n = std::min(groups.size(), kMaxGroups);
+  for (std::size_t g = 0; g < n; ++g) order[g] = {groups[g].box.distance(p_mm), g};
+  std::sort(order, order + n);
   double best = kInf;
-  for (const Solid& b : shapes_->bones)
-    if (b.box.distance(p_mm) < best) best = std::min(best, b.sdf(p_mm));
+  for (std::size_t o = 0; o < n && order[o].first < best; ++o) {
+    const PhantomShapes::Group& g = groups[order[o].second];
+    for (std::size_t i = g.begin; i < g.end; ++i)
+      if (shapes_->bones[i].box.distance(p_mm) < best) best = std::min(best, shapes_->bones[i].sdf(p_mm));
+  }
   return best;
 }
 

@@ -1,0 +1,55 @@
+// The "cuda" deformation backend: the state of one session on the GPU and the
+// stages around the kernels of chainmail.cu, relax.cu and invert.cu.
+#pragma once
+
+#include <cuda_runtime.h>
+
+#include "cuda/kernels.h"
+#include "deform/backend.h"
+
+namespace palpsim::cuda {
+
+/// The CUDA backend. The patient's intensity and bone mask live on the device for
+/// the session; displacement, sweep stamps and J are VOI-sized device buffers. A
+/// step is one stream of device work with one synchronisation at its end.
+class CudaDeformBackend final : public DeformBackend {
+ public:
+  CudaDeformBackend();
+  ~CudaDeformBackend() override;
+
+ protected:
+  void bind_impl() override;
+  void chainmail_impl(ChainMailStats& stats) override;
+  void relax_impl() override;
+  double invert_impl() override;
+  void upload_impl() override;
+  void reset_impl() override;
+  DeformStats step_impl(const ChainMailStats& setup) override;
+  std::vector<Vec3f> displacement_impl() const override;
+  void set_displacement_impl(const std::vector<Vec3f>& u) override;
+  const float* deformed_brick_impl() const override { return host_j_; }
+
+ private:
+  void release();
+  StepGeometry geometry() const;
+  // enqueue one stage on the stream
+  void enqueue_reset();
+  void enqueue_chainmail();
+  void enqueue_relax();
+  void enqueue_invert();
+  void enqueue_upload();
+  // wait for the stream and read the counters
+  void finish(ChainMailStats* stats, double* residual);
+
+  DeviceBuffers d_;
+  LaunchShape shape_;
+  cudaStream_t stream_ = nullptr;
+  cudaEvent_t ev_[6] = {};
+  Counters* host_counters_ = nullptr;  // pinned
+  float* host_j_ = nullptr;            // pinned, J's VOI after upload
+  long long capacity_ = 0;             // elements per VOI buffer
+  Voi dirty_;                          // VOI whose buffers hold a deformation
+  int cur_ = 0;                        // displacement buffer holding the current field
+};
+
+}  // namespace palpsim::cuda

@@ -1,0 +1,54 @@
+// Inversion on the GPU: J on the VOI by the same fixed-point iteration as
+// server/deform/invert.cpp; one thread per voxel, one launch.
+#include <algorithm>
+
+#include "cuda/check.h"
+#include "cuda/kernels.h"
+
+namespace palpsim::cuda {
+
+namespace {
+
+__global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, DeviceBuffers b) {
+  const deform::Voi& voi = geo.voi;
+  const long long e = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+  float r = 0.0f;
+  if (e < voi.count()) {
+    const float* ux = b.u[src][0];
+    const float* uy = b.u[src][1];
+    const float* uz = b.u[src][2];
+    const Vec3i size = geo.volume_size;
+    // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
+    auto load_u = [&](int i, int j, int k) {
+      if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
+      const long long n = voi.index(i, j, k);
+      return Vec3f{ux[n], uy[n], uz[n]};
+    };
+    // intensity at a VOI-local voxel, clamped at the volume border
+    auto load_i = [&](int i, int j, int k) {
+      const int gi = min(max(voi.lo.x + i, 0), size.x - 1);
+      const int gj = min(max(voi.lo.y + j, 0), size.y - 1);
+      const int gk = min(max(voi.lo.z + k, 0), size.z - 1);
+      return b.intensity[((long long)gk * size.y + gj) * size.x + gi];
+    };
+    const int i = int(e % voi.size.x);
+    const int j = int((e / voi.size.x) % voi.size.y);
+    const int k = int(e / ((long long)voi.size.x * voi.size.y));
+    const Vec3f p = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
+    b.j[e] = deform::trilinear<float>(load_i, p);
+  }
+  // the largest residual: warp maximum, then one atomic per warp (float bits order as unsigned for r >= 0)
+  for (int o = 16; o > 0; o >>= 1) r = fmaxf(r, __shfl_down_sync(0xffffffffu, r, o));
+  if ((threadIdx.x & 31) == 0) atomicMax(&b.counters->residual_bits, __float_as_uint(r));
+}
+
+}  // namespace
+
+void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream) {
+  const long long n = g.voi.count();
+  const int threads = 256;
+  invert_kernel<<<unsigned((n + threads - 1) / threads), threads, 0, stream>>>(g, src, iterations, b);
+  PALPSIM_CUDA_CHECK(cudaGetLastError());
+}
+
+}  // namespace palpsim::cuda

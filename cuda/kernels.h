@@ -1,0 +1,65 @@
+// The CUDA kernels' arguments and launchers (chainmail.cu, relax.cu, invert.cu).
+// Buffers are VOI-local structure-of-arrays: u[b][c] is component c (x, y, z) of
+// displacement buffer b, local index i fastest; the patient volumes are whole.
+#pragma once
+
+#include <cuda_runtime.h>
+
+#include <cstdint>
+
+#include "deform/deform_math.h"
+
+namespace palpsim::cuda {
+
+/// Small results the kernels write on the device and the host reads once per step.
+struct Counters {
+  int sweep_moved[3];              // elements moved per sweep, by sweep % 3
+  int sweeps;                      // sweeps run
+  int converged;                   // 1 when a quiet sweep came within the cap
+  unsigned long long moved_total;  // elements that moved at least once
+  unsigned int residual_bits;      // max inversion residual (voxel) as float bits (>= 0)
+};
+
+/// Device pointers of one session's state.
+struct DeviceBuffers {
+  const float* intensity = nullptr;     // whole patient volume
+  const std::uint8_t* bone = nullptr;   // whole patient volume
+  float* u[2][3] = {{nullptr, nullptr, nullptr}, {nullptr, nullptr, nullptr}};
+  int* stamp[2] = {nullptr, nullptr};   // last sweep an element moved, by sweep parity; -1 never
+  float* j = nullptr;                   // J on the VOI
+  Counters* counters = nullptr;
+};
+
+/// Where a step works: the VOI, the patient grid size and the grabbed element.
+struct StepGeometry {
+  deform::Voi voi;
+  Vec3i volume_size{0, 0, 0};
+  Vec3i grabbed{0, 0, 0};  // VOI-local
+};
+
+/// Cooperative grid sizes of the persistent kernels on this device.
+struct LaunchShape {
+  int chainmail_blocks = 0;
+  int relax_blocks = 0;
+  int threads = 256;
+};
+
+/// Queries how many blocks of each persistent kernel fit on the device at once.
+LaunchShape persistent_launch_shape();
+/// Blocks of the relaxation kernel that fit on one multiprocessor at `threads` per block.
+int relax_blocks_per_sm(int threads);
+
+/// ChainMail sweeps until a quiet sweep or `max_sweeps`, in one cooperative launch.
+/// The grabbed element gets `u0`; the buffers must be undeformed on the VOI.
+void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::ChainMailLimits& limits,
+                      int max_sweeps, const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream);
+
+/// `iterations` relaxation steps starting from buffer `src`, in one cooperative
+/// launch; the result is in buffer (src + iterations) & 1.
+void launch_relax(const StepGeometry& g, int src, int iterations, float step, float threshold, float width,
+                  const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream);
+
+/// J on the VOI from displacement buffer `src`; the max residual goes to counters.
+void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream);
+
+}  // namespace palpsim::cuda

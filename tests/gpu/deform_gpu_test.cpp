@@ -1,0 +1,195 @@
+// The CUDA backend against the CPU reference, kernel by kernel, on the same inputs:
+// ChainMail must agree exactly (moved counts, sweeps and every displacement: the
+// sweeps are deterministic and use only additions and comparisons of floats);
+// relaxation and inversion within the tolerances stated at each check.
+#include <catch2/catch.hpp>
+
+#include <cfloat>
+#include <cstdio>
+#include <random>
+
+#include "deform/backend.h"
+#include "deform/engine.h"
+#include "support/deform_fixtures.h"
+
+using namespace palpsim;
+using namespace palpsim::test;
+
+namespace {
+
+bool have_gpu() {
+  std::string why;
+  if (cuda_deform_available(&why)) return true;
+  std::printf("SKIPPED: %s\n", why.c_str());
+  return false;
+}
+
+struct Pair {
+  std::unique_ptr<DeformBackend> cpu, gpu;
+  Pair(PatientPtr p, const DeformConfig& cfg) : cpu(make_deform_backend("cpu")), gpu(make_deform_backend("cuda")) {
+    cpu->bind(p, cfg);
+    gpu->bind(p, cfg);
+  }
+};
+
+// ChainMail on both; every field of the stats and every displacement must be equal
+void same_chainmail(Pair& b, const DeformContact& c) {
+  const ChainMailStats a = b.cpu->chainmail(c);
+  const ChainMailStats g = b.gpu->chainmail(c);
+  CHECK(g.voi == a.voi);
+  CHECK(g.moved == a.moved);
+  CHECK(g.sweeps == a.sweeps);
+  CHECK(g.converged == a.converged);
+  const auto ua = b.cpu->displacement(), ug = b.gpu->displacement();
+  REQUIRE(ua.size() == ug.size());
+  long long differ = 0;
+  for (std::size_t e = 0; e < ua.size(); ++e) differ += ua[e] != ug[e];
+  CHECK(differ == 0);
+}
+
+float max_abs(const std::vector<Vec3f>& u) {
+  float m = 0;
+  for (const Vec3f& v : u) m = std::max({m, std::fabs(v.x), std::fabs(v.y), std::fabs(v.z)});
+  return m;
+}
+
+}  // namespace
+
+TEST_CASE("gpu chainmail reproduces Table 2 exactly, d = 3 to 30") {
+  if (!have_gpu()) return;
+  const struct { int d; long long p1, p2; } rows[] = {
+      {3, 230, 56}, {5, 1158, 259}, {10, 9918, 2120}, {20, 82238, 17309}, {30, 280958, 58898}};
+  for (const auto& r : rows)
+    for (int preset = 1; preset <= 2; ++preset) {
+      INFO("d = " << r.d << ", p" << preset);
+      const int n = 4 * r.d + 5, c = n / 2;
+      DeformConfig cfg = preset_config(preset);
+      cfg.settings.whole_volume = true;
+      Pair b(make_soft_patient(n), cfg);
+      const ChainMailStats g = b.gpu->chainmail(voxel_contact({c, c, c}, {double(r.d), 0, 0}));
+      CHECK(g.moved == (preset == 1 ? r.p1 : r.p2));
+      CHECK(g.sweeps == 2 * r.d);
+      if (r.d <= 20) same_chainmail(b, voxel_contact({c, c, c}, {double(r.d), 0, 0}));
+    }
+}
+
+TEST_CASE("gpu chainmail equals the cpu on bone, borders, large moves and the sweep cap") {
+  if (!have_gpu()) return;
+  auto torso = make_torso_patient(80);
+  auto cube = make_cube_patient(48, 16, 4);
+  for (int preset = 1; preset <= 2; ++preset) {
+    DeformConfig cfg = preset_config(preset);
+    cfg.settings.voi_edge = 40;
+    Pair t(torso, cfg), q(cube, cfg);
+    same_chainmail(q, voxel_contact({24, 24, 24}, {6, 0, 0}));     // pushed into the bone shell
+    same_chainmail(q, voxel_contact({28, 24, 24}, {5, 0, 0}));     // tip inside bone
+    same_chainmail(q, voxel_contact({13, 24, 24}, {-4, 2, 0}));    // X in bone: nothing moves
+    same_chainmail(t, voxel_contact({1, 78, 0}, {-3, 3, -2}));     // VOI clipped at a corner
+    same_chainmail(t, voxel_contact({30, 40, 40}, {26, 0.5, -1}));  // more than half the VOI
+    std::mt19937 rng(99);
+    std::uniform_real_distribution<double> pos(3, 76), d(-8, 8);
+    for (int s = 0; s < 20; ++s) {
+      const Vec3 X{pos(rng), pos(rng), pos(rng)};
+      INFO("random contact " << s);
+      same_chainmail(t, {X, X + Vec3{d(rng), d(rng), d(rng)}});
+    }
+    DeformConfig capped = cfg;
+    capped.settings.max_sweeps = 5;
+    Pair c(torso, capped);
+    same_chainmail(c, voxel_contact({40, 40, 40}, {9, 0, 0}));
+    CHECK_FALSE(c.gpu->chainmail(voxel_contact({40, 40, 40}, {9, 0, 0})).converged);
+  }
+}
+
+TEST_CASE("gpu relaxation matches the cpu within float rounding") {
+  if (!have_gpu()) return;
+  auto torso = make_torso_patient(80);
+  for (int iters : {1, 20, 40}) {
+    DeformConfig cfg = preset_config(1);
+    cfg.settings.voi_edge = 48;
+    cfg.settings.relax_iterations = iters;
+    Pair b(torso, cfg);
+    const DeformContact c = voxel_contact({40, 12, 40}, {2, 7, -3});
+    same_chainmail(b, c);
+    b.cpu->relax();
+    b.gpu->relax();
+    const auto ua = b.cpu->displacement(), ug = b.gpu->displacement();
+    // each stable update is a convex combination, so rounding does not grow: per
+    // iteration a few ulps (FMA contraction on the GPU, tanhf differing by <= 2 ulp)
+    // of the largest displacement
+    const float tol = iters * 8 * FLT_EPSILON * std::max(1.0f, max_abs(ua));
+    float worst = 0;
+    for (std::size_t e = 0; e < ua.size(); ++e)
+      worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
+    INFO("iterations " << iters << " max |u_cpu - u_gpu| " << worst << " voxel, tolerance " << tol);
+    CHECK(worst <= tol);
+    CHECK(moved_bone_count(*torso, b.gpu->voi(), ug) == 0);
+  }
+}
+
+TEST_CASE("gpu inversion matches the cpu on the same displacement field") {
+  if (!have_gpu()) return;
+  auto torso = make_torso_patient(80);
+  DeformConfig cfg = preset_config(1);
+  cfg.settings.voi_edge = 48;
+  Pair b(torso, cfg);
+  same_chainmail(b, voxel_contact({40, 12, 40}, {0, 0, 0}));
+  // a smooth field, zero on the VOI's faces, contracting (|grad u| <= 0.4): the fixed
+  // point is well defined, so both backends must land on it
+  const Voi voi = b.cpu->voi();
+  std::vector<Vec3f> u(std::size_t(voi.count()));
+  const float w = 3.14159265f / float(voi.size.x - 1);
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        const float s = std::sin(w * i) * std::sin(w * j) * std::sin(w * k);
+        u[voi.index(i, j, k)] = Vec3f(4.0f * s, -3.0f * s, 2.0f * s);
+      }
+  b.cpu->set_displacement(u);
+  b.gpu->set_displacement(u);
+  const double ra = b.cpu->invert(), rg = b.gpu->invert();
+  b.cpu->upload();
+  b.gpu->upload();
+  const float* ja = b.cpu->deformed_brick();
+  const float* jg = b.gpu->deformed_brick();
+  float worst = 0;
+  for (long long e = 0; e < voi.count(); ++e) worst = std::max(worst, std::fabs(ja[e] - jg[e]));
+  // positions agree to ~1e-5 voxel (ulps of coordinates up to 48, over 8 contracting
+  // steps); the torso's steepest gradient is ~1100 HU per voxel at the skin: 0.05 HU
+  INFO("max |J_cpu - J_gpu| " << worst << " HU; residual cpu " << ra << " gpu " << rg);
+  CHECK(worst <= 0.05f);
+  CHECK(std::fabs(ra - rg) <= 1e-4);
+}
+
+TEST_CASE("a whole gpu step equals the cpu step, and reset restores I") {
+  if (!have_gpu()) return;
+  auto torso = make_torso_patient(96);
+  DeformConfig cfg = preset_config(2);
+  cfg.settings.voi_edge = 64;
+  cfg.settings.backend = "cuda";
+  DeformEngine g(torso, cfg);
+  cfg.settings.backend = "cpu";
+  DeformEngine c(torso, cfg);
+  CHECK(g.backend_name() == "cuda");
+  for (int s = 0; s < 3; ++s) {
+    const DeformContact k = voxel_contact({48 + 3 * s, 14, 48}, {1.0, 6.0 + s, -1.0});
+    const DeformStats a = c.step(k), b = g.step(k);
+    CHECK(a.chainmail.moved == b.chainmail.moved);
+    CHECK(a.chainmail.sweeps == b.chainmail.sweeps);
+    CHECK(b.times.total_ms > 0);
+    CHECK(b.times.chainmail_ms > 0);
+    const Volume<float> ja = c.deformed_volume(), jb = g.deformed_volume();
+    CHECK(changed_outside_voi(*torso, b.chainmail.voi, jb) == 0);
+    // after relaxation the fields differ by rounding only; where the inversion
+    // converges J agrees to a small fraction of a HU; in folds it may not converge,
+    // so the count of voxels off by more than 0.5 HU must stay tiny
+    long long off = 0;
+    for (std::size_t e = 0; e < ja.data.size(); ++e) off += std::fabs(ja.data[e] - jb.data[e]) > 0.5f;
+    INFO("step " << s << ": " << off << " voxels differ by more than 0.5 HU");
+    CHECK(off <= b.chainmail.voi.count() / 1000);
+    CHECK(std::fabs(a.invert_residual_vox - b.invert_residual_vox) <= 0.05 * std::max(1.0, a.invert_residual_vox));
+  }
+  g.reset();
+  CHECK(g.deformed_volume().data == torso->intensity.data);
+  for (const Vec3f& v : g.backend().displacement()) REQUIRE(v == Vec3f(0, 0, 0));
+}

@@ -9,7 +9,7 @@ along the back, in which the spinous processes stand out as peaks.
 Writes into --out: the batch outputs (steps.parquet, summary.json, force_vs_depth.png,
 peak_force_map.png) and spine_profile.png, spine.json; prints a summary of the peaks
 found and, when the prepared patient (palpsim-prep's bone.nrrd and body.nrrd) is at
-hand, where its bone mask puts the spinous process tips.
+hand, where its bone mask puts the spinous processes (the top of each one's posterior edge).
 """
 
 from __future__ import annotations
@@ -25,8 +25,6 @@ from .batch import run_plan, write_outputs
 from .client import Client, PalpsimError
 from .plan import Plan, PlanError, parse_plan
 from .results import point_table, write_json
-
-ROOT = Path(__file__).resolve().parents[3]
 
 # the line's default z-range (mm, LPS) on the built-in phantom (server/prep/phantom.cpp):
 # its spinous process tips L5..L1 lie near z = -70, -38, -5, 28, 61 mm, each process a
@@ -49,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--patient", metavar="DIR",
                    help="palpsim-prep output of the same patient (bone.nrrd, body.nrrd) for the "
                         "expected process positions (default: out/demo/patient when present)")
-    p.add_argument("--out", default=str(ROOT / "out" / "demo" / "palpation"), help="output folder")
+    p.add_argument("--out", default="out/demo/palpation", help="output folder (default %(default)s)")
     line = p.add_argument_group("the line of presses (mm, LPS)")
     line.add_argument("--x-mm", type=float, help="x of the line (default: the body's mid x)")
     line.add_argument("--z-from-mm", type=float, default=PHANTOM_LUMBAR_Z_MM[0],
@@ -151,7 +149,10 @@ def analyse(df, plan: Plan, args: argparse.Namespace) -> dict[str, Any]:
     # while the deepest process (L5 on the phantom) still stands out by about 0.2 N;
     # neighbouring processes are 30 mm or more apart, so peaks closer than 15 mm are one
     prominence = max(0.05 * span, 0.1)
-    peaks = profile_peaks(z, force, min_separation_mm=15.0, min_prominence=prominence)
+    # a clamped or nearly flat top (within 5 % of the peak's prominence) is one peak at
+    # its middle
+    peaks = profile_peaks(z, force, min_separation_mm=15.0, min_prominence=prominence,
+                          flat_fraction=0.05)
     report: dict[str, Any] = {
         "line": {"x_mm": plan.grid.center_mm[0], "z_mm": z.tolist(),
                  "peak_force_n": force.tolist(),
@@ -162,7 +163,7 @@ def analyse(df, plan: Plan, args: argparse.Namespace) -> dict[str, Any]:
         "min_prominence_n": prominence,
         "expected": None,
     }
-    patient = Path(args.patient) if args.patient else ROOT / "out" / "demo" / "patient"
+    patient = Path(args.patient) if args.patient else Path("out/demo/patient")
     if (patient / "bone.nrrd").is_file():
         from .nrrd import read_nrrd
         bone = read_nrrd(patient / "bone.nrrd")
@@ -201,12 +202,12 @@ def format_report(report: dict[str, Any], summary: dict[str, Any]) -> str:
                      "run palpsim-prep or give --patient DIR")
     else:
         lines.append(f"expected from the bone mask ({exp['source']}): {len(exp['processes'])} "
-                     f"process tips; found {exp['found']} within {exp['tolerance_mm']:g} mm, "
+                     f"processes; found {exp['found']} within {exp['tolerance_mm']:g} mm, "
                      f"{exp['extra_peaks']} extra peaks")
         for e in sorted(exp["processes"], key=lambda e: -e["z_mm"]):
             got = (f"peak at {e['found_z_mm']:7.1f} mm, off by {e['error_mm']:+.1f} mm"
                    if e["found_z_mm"] is not None else "no peak within tolerance")
-            lines.append(f"  process tip z = {e['z_mm']:7.1f} mm: {got}")
+            lines.append(f"  process at z = {e['z_mm']:7.1f} mm: {got}")
     return "\n".join(lines)
 
 

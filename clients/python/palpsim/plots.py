@@ -119,7 +119,7 @@ def spine_profile_plot(df: pd.DataFrame, report: dict, path: str | Path, title: 
         for i, e in enumerate(exp["processes"]):
             for ax in (top, sec):
                 ax.axvline(e["z_mm"], color="tab:blue", ls="--", lw=0.8, alpha=0.7,
-                           label="process tip (bone mask)" if (i == 0 and ax is top) else None)
+                           label="process (bone mask)" if (i == 0 and ax is top) else None)
     top.set_ylabel("peak force (N)")
     top.grid(alpha=0.3)
     top.legend(loc="best", fontsize=8)

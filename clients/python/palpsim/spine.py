@@ -24,9 +24,14 @@ class Peak:
 
 
 def profile_peaks(position_mm: np.ndarray, value: np.ndarray, min_separation_mm: float,
-                  min_prominence: float) -> list[Peak]:
+                  min_prominence: float, flat_tolerance: float = 1e-6,
+                  flat_fraction: float = 0.0) -> list[Peak]:
     """Local maxima of a profile sampled at increasing, evenly spaced positions that stand
-    out by at least `min_prominence` and lie at least `min_separation_mm` apart."""
+    out by at least `min_prominence` and lie at least `min_separation_mm` apart.
+
+    A flat top (values within max(flat_tolerance, flat_fraction * prominence) of the
+    peak's height, as where the force clamp holds, or where a mask's height is quantized
+    to voxels) counts as one peak at the middle of the flat run."""
     position_mm = np.asarray(position_mm, dtype=float)
     value = np.asarray(value, dtype=float)
     if position_mm.size < 3:
@@ -35,10 +40,23 @@ def profile_peaks(position_mm: np.ndarray, value: np.ndarray, min_separation_mm:
     distance = max(1, int(round(min_separation_mm / step)))
     # pad with the profile's minimum so that a peak at an end can count too
     pad = np.nanmin(value)
-    padded = np.concatenate(([pad], np.nan_to_num(value, nan=pad), [pad]))
+    clean = np.nan_to_num(value, nan=pad)
+    padded = np.concatenate(([pad], clean, [pad]))
     idx, props = find_peaks(padded, distance=distance, prominence=min_prominence)
-    return [Peak(position_mm=float(position_mm[i - 1]), height=float(value[i - 1]),
-                 prominence=float(p)) for i, p in zip(idx, props["prominences"])]
+    peaks = []
+    for i, prom in zip(idx - 1, props["prominences"]):
+        # widen to the flat top around the peak: rounding noise on a clamped plateau
+        # would otherwise put the peak at an arbitrary sample of it
+        h = clean[i]
+        tol = max(flat_tolerance, flat_fraction * prom)
+        lo = hi = i
+        while lo > 0 and clean[lo - 1] >= h - tol:
+            lo -= 1
+        while hi < clean.size - 1 and clean[hi + 1] >= h - tol:
+            hi += 1
+        peaks.append(Peak(position_mm=float(0.5 * (position_mm[lo] + position_mm[hi])),
+                          height=float(h), prominence=float(prom)))
+    return peaks
 
 
 @dataclass(frozen=True)
@@ -54,9 +72,10 @@ class BoneProfile:
 def bone_profile(bone: NrrdVolume, body: NrrdVolume | None, x_mm: float, band_mm: float,
                  z_from_mm: float, z_to_mm: float, min_separation_mm: float = 15.0,
                  min_prominence_mm: float = 3.0) -> BoneProfile:
-    """Finds the spinous process tips under a line along z at x = x_mm: for each z slice
-    of the mask the largest y of bone within |x - x_mm| <= band_mm, and the local maxima
-    of that height along z. Needs an axis-aligned grid (the prep grid is)."""
+    """Finds the spinous processes under a line along z at x = x_mm: for each z slice of
+    the mask the largest y of bone within |x - x_mm| <= band_mm, and the local maxima of
+    that height along z, each at the middle of its highest voxels: where the bone comes
+    closest to the back. Needs an axis-aligned grid (the prep grid is)."""
     d = bone.directions
     if not np.allclose(d, np.diag(np.diag(d))):
         raise ValueError("bone_profile: the mask's grid is not axis-aligned")
@@ -79,8 +98,12 @@ def bone_profile(bone: NrrdVolume, body: NrrdVolume | None, x_mm: float, band_mm
     z = zs[rows][order]
     bone_y = top_y(bone)
     skin_y = top_y(body) if body is not None else np.full_like(z, np.nan)
+    # heights are quantized to voxels: equal heights (to half a voxel) around a peak are
+    # its flat top, and the peak sits at the middle of it
+    voxel_mm = float(abs(d[1, 1]))
     processes = profile_peaks(z, np.where(np.isnan(bone_y), np.nanmin(bone_y), bone_y),
-                              min_separation_mm, min_prominence_mm) if np.isfinite(bone_y).any() else []
+                              min_separation_mm, min_prominence_mm,
+                              flat_tolerance=0.5 * voxel_mm) if np.isfinite(bone_y).any() else []
     return BoneProfile(z_mm=z, bone_top_y_mm=bone_y, skin_top_y_mm=skin_y, processes=processes)
 
 

@@ -150,3 +150,48 @@ def test_batch_command_writes_table_summary_and_plots(server, tmp_path, capsys):
     assert summary["digest"][:16] in printed
     for png in ("force_vs_depth.png", "peak_force_map.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
+
+
+# the phantom's spinous processes L5..L1 along z (mm): each is a plate sloping down from
+# its tip (its posterior-most point, server/prep/phantom.cpp) over about 14 mm of z
+PHANTOM_TIPS_Z_MM = [-69.9, -38.3, -4.6, 28.2, 61.3]
+PROCESS_LENGTH_MM = 14.0
+
+
+def _over_process(z: float, tip: float) -> bool:
+    """z lies over the process's posterior edge, with 3 mm of slack: a 2 mm voxel plus
+    half of the line's 3 mm spacing."""
+    return tip - PROCESS_LENGTH_MM - 3.0 <= z <= tip + 3.0
+
+
+def test_demo_finds_the_spinous_processes(server, tmp_path, capsys):
+    from palpsim.demo import main as demo_main
+    import subprocess
+
+    args = ["--connect", server.address, "--out", str(tmp_path / "demo"), "--step-mm", "3",
+            "--speed-mm-per-s", "40", "--rate-hz", "400", "--no-progress"]
+    # the same scene's bone mask, when palpsim-prep is built beside the server
+    prep = server.binary.parent / "palpsim-prep"
+    if prep.is_file():
+        scene = tmp_path / "scene.textproto"
+        scene.write_text(SCENE)
+        subprocess.run([str(prep), "phantom", "--scene", str(scene), "--out",
+                        str(tmp_path / "patient")], check=True, capture_output=True, timeout=120)
+        args += ["--patient", str(tmp_path / "patient")]
+    else:
+        print(f"(no {prep}: the bone-mask comparison is not exercised)")
+    assert demo_main(args) == 0
+    report = json.loads((tmp_path / "demo" / "spine.json").read_text())
+    found = sorted(p["z_mm"] for p in report["peaks"])
+    # one force peak per lumbar process, each over its process
+    assert len(found) == 5, found
+    for z, tip in zip(found, PHANTOM_TIPS_Z_MM):
+        assert _over_process(z, tip), (found, PHANTOM_TIPS_Z_MM)
+    if prep.is_file():
+        # the bone mask finds the same five processes, and each peak matches one
+        exp = report["expected"]
+        assert exp["found"] == 5 and exp["extra_peaks"] == 0, exp["processes"]
+        for e, tip in zip(sorted(x["z_mm"] for x in exp["processes"]), PHANTOM_TIPS_Z_MM):
+            assert _over_process(e, tip)
+    assert (tmp_path / "demo" / "spine_profile.png").read_bytes()[:4] == b"\x89PNG"
+    assert "spinous processes found as force peaks: 5" in capsys.readouterr().out

@@ -89,3 +89,13 @@ def test_match_pairs_nearest_within_tolerance():
     # one found peak never serves two expected positions
     m = match_peaks([0.0], [-2.0, 1.0], tolerance_mm=6.0)
     assert [x.found_mm for x in m] == [None, 0.0]
+
+
+def test_a_flat_top_is_one_peak_at_its_middle():
+    z = np.arange(0, 61, 2.0)
+    f = np.minimum(3.0 * np.exp(-0.5 * ((z - 30) / 8) ** 2), 2.5)
+    f[13] += 1e-12  # rounding noise on the clamped plateau
+    peaks = profile_peaks(z, f, min_separation_mm=15, min_prominence=0.1)
+    plateau = z[f >= 2.5 - 1e-9]
+    assert len(peaks) == 1
+    assert peaks[0].position_mm == pytest.approx(0.5 * (plateau[0] + plateau[-1]))

@@ -8,7 +8,7 @@
 // z = -110 and +110 like a CT's field of view. Spine: vertebral bodies centred at
 // y = +6 for T12 (z = +96), L1 (+62), L2 (+28), L3 (-6), L4 (-40), L5 (-74) and the
 // top of S1 (-108); spinous process tips 24-38 mm under the back skin; ribs 10-12 on
-// both sides; iliac crests with their tops at z = -40 (L4, Tuffier's line) at
+// both sides; iliac crests with their tops at z = -34 (L4, Tuffier's line) at
 // x = +-128; bowel loops with gas pockets; a carbon CT table at y = -114..-140
 // (4 mm below the skin). The grid: origin (-170, -145, -110) mm for every voxel size,
 // direction identity, voxel centres at origin + (i, j, k) * voxel_mm, extent

@@ -149,7 +149,7 @@ void write_preview_png(const std::string& path, const Patient& p, const Vec3& ce
   const int gap = 4;
   width += 2 * gap;
   // small grids are enlarged so the preview stays readable
-  const int scale = std::max(1, 400 / std::max(height, 1));
+  const int scale = std::max(1, int(std::ceil(400.0 / std::max(height, 1))));
   std::vector<std::array<std::uint8_t, 3>> img(std::size_t(width) * height, {24, 24, 48});
   int x0 = 0;
   for (int v = 0; v < 3; ++v) {
@@ -173,7 +173,8 @@ void write_preview_png(const std::string& path, const Patient& p, const Vec3& ce
         const long long i = vox[std::size_t(y) * sw + x];
         auto& px_out = img[std::size_t(y) * width + x0 + x];
         if (i < 0) continue;
-        const double f = std::clamp(double(p.force.data[std::size_t(i)]) / top, 0.0, 1.0);
+        // square root: the soft-tissue halo stays visible beside the bright bone
+        const double f = std::sqrt(std::clamp(double(p.force.data[std::size_t(i)]) / top, 0.0, 1.0));
         const auto grey = std::uint8_t(std::lround(255 * f));
         px_out = {grey, grey, grey};
         // skin contour: body pixels with a non-body 4-neighbour

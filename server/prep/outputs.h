@@ -18,7 +18,7 @@ void write_nrrd(const std::string& path, const Volume<float>& v);
 void write_nrrd(const std::string& path, const Volume<std::uint8_t>& v);
 
 /// Writes preview.png: axial, coronal and sagittal slices of F through `centre_mm`
-/// (grey, 0 to the 99th percentile of F in the body), skin contour (the border of
+/// (grey: the square root of F over its 99th percentile in the body), skin contour (the border of
 /// C) in red; patient's right on the image's left, anterior and superior up.
 void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm);
 

@@ -343,10 +343,19 @@ Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uin
       for (std::size_t i : vox) sum += image.data[i];
       return sum / double(vox.size()) >= level;
     };
-    Volume<std::uint8_t> cavity(g);
-    for (int axis = 0; axis < 3; ++axis) {
-      Volume<std::uint8_t> filled = wide;
-      fill_holes_per_slice(filled, axis, max_pixels, dense);
+    // two rounds: what one orientation fills can close a cavity in another
+    Volume<std::uint8_t> cavity(g), grown = wide;
+    for (int round = 0; round < 2; ++round) {
+      for (int axis = 0; axis < 3; ++axis) {
+        Volume<std::uint8_t> filled = grown;
+        fill_holes_per_slice(filled, axis, max_pixels, dense);
+        for (std::size_t i = 0; i < cavity.data.size(); ++i) cavity.data[i] |= filled.data[i] && !wide.data[i];
+      }
+      for (std::size_t i = 0; i < cavity.data.size(); ++i) grown.data[i] = wide.data[i] | cavity.data[i];
+    }
+    {
+      Volume<std::uint8_t> filled = grown;
+      fill_holes_3d(filled);
       for (std::size_t i = 0; i < cavity.data.size(); ++i) cavity.data[i] |= filled.data[i] && !wide.data[i];
     }
     // the cavities, and the wide closing's voxels beside them (the gaps in their

@@ -14,3 +14,16 @@ __version__ = "0.1.0"
 # `from palpsim import scene_pb2`: adding that folder to this package's path makes
 # them submodules of this package (palpsim.wire_pb2), whatever sys.path holds
 __path__.append(_os.path.join(_os.path.dirname(__file__), "_proto", "palpsim"))
+
+# the main entry points, imported on first use (the client needs the generated protobuf
+# modules; plans, tables and plots do not)
+_LAZY = {"Client": "client", "Session": "client", "ServerError": "client",
+         "ServerTimeout": "client", "PalpsimError": "client", "load_plan": "plan",
+         "parse_plan": "plan", "PlanError": "plan", "run_plan": "batch", "LocalServer": "server"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    raise AttributeError(f"module 'palpsim' has no attribute {name!r}")

@@ -187,8 +187,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="palpsim-batch",
         description="Run a palpation plan against palpsim-server; write a tidy table of every "
                     "pose, a summary and plots.")
-    p.add_argument("plan", help="plan file (.toml or .json; see palpsim/plan.py for the fields)")
-    src = p.add_mutually_exclusive_group(required=True)
+    p.add_argument("plan", nargs="?", help="plan file (.toml or .json; --plan-help for the fields)")
+    p.add_argument("--plan-help", action="store_true", help="print the plan's fields and exit")
+    src = p.add_mutually_exclusive_group()
     src.add_argument("--connect", metavar="ADDR",
                      help="control address of a running server (the 'ready on ADDR' it printed)")
     src.add_argument("--start-server", metavar="PATH",
@@ -205,8 +206,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     prog = "palpsim-batch"
+    if args.plan_help:
+        from . import plan as plan_module
+        print(plan_module.__doc__)
+        return 0
+    if not args.plan or not (args.connect or args.start_server):
+        parser.error("give a plan file and one of --connect ADDR or --start-server PATH")
     try:
         plan = load_plan(args.plan)
         if args.sessions < 1:

@@ -163,3 +163,20 @@ def test_skin_press_without_contact_gives_up_after_max_travel(plan):
     assert s.max() == pytest.approx(4.0 + 10.0, abs=1e-12)
     assert HOLD not in [p[2] for p in poses] and PRESS not in [p[2] for p in poses]
     assert s[-1] == 0.0
+
+
+def test_documented_and_example_plans_are_valid():
+    import re
+    import tomllib
+    from pathlib import Path
+
+    import palpsim.plan as plan_module
+    # the example in the module's documentation (the indented TOML block)
+    block = re.search(r"\n(    name = .*?)\n\nEvery", plan_module.__doc__, re.S).group(1)
+    doc = parse_plan(tomllib.loads("\n".join(l[4:] for l in block.splitlines())), "doc")
+    assert doc.grid.count_u == 5 and doc.parameters == {"friction": 0.2}
+    # the shipped example plans
+    examples = sorted((Path(__file__).parents[1] / "examples").glob("*.toml"))
+    assert examples
+    for p in examples:
+        load_plan(p)

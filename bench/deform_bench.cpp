@@ -1,0 +1,268 @@
+// palpsim-bench deform: the paper's Table 2 (ChainMail time and moved elements for
+// d = 3 ... 30, p1 and p2) and Table 1 (time per stage: reset, ChainMail, relax,
+// invert, upload, total) for VOI 32, 64, 96, 128 and the whole phantom volume, on
+// every backend this build and machine have, in one run. GPU figures are printed
+// next to the floor from ../shared/docs/DEVICE.md that bounds them.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <ctime>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "bench/registry.h"
+#include "core/error.h"
+#include "deform/backend.h"
+#include "prep/phantom.h"
+#include "tests/support/deform_fixtures.h"
+
+using namespace palpsim;
+
+namespace {
+
+// median and 10th/90th percentiles of a sample (ms)
+struct Spread {
+  double median = 0, p10 = 0, p90 = 0;
+};
+
+Spread spread(std::vector<double> v) {
+  Spread s;
+  if (v.empty()) return s;
+  std::sort(v.begin(), v.end());
+  auto at = [&](double q) { return v[std::size_t(std::lround(q * double(v.size() - 1)))]; };
+  s.median = at(0.5);
+  s.p10 = at(0.1);
+  s.p90 = at(0.9);
+  return s;
+}
+
+std::string json_spread(const Spread& s) {
+  std::ostringstream o;
+  o << "{\"median_ms\": " << s.median << ", \"p10_ms\": " << s.p10 << ", \"p90_ms\": " << s.p90 << "}";
+  return o.str();
+}
+
+struct Options {
+  std::string json;
+  std::string commit = "unknown";
+  bool quick = false;    // fewer repetitions and no d = 30 / whole volume on the cpu
+  double voxel_mm = 340.0 / 255.0;  // the phantom at ~256 voxels across
+};
+
+// the phantom as a patient (bone = HU above the threshold; deformation reads nothing else)
+PatientPtr phantom_patient(double voxel_mm, float bone_threshold) {
+  PhantomCt ct = make_phantom(voxel_mm);
+  auto p = std::make_shared<Patient>();
+  p->grid = ct.hu.grid;
+  p->intensity = std::move(ct.hu);
+  p->bone = Volume<std::uint8_t>(p->grid);
+  for (std::size_t e = 0; e < p->intensity.data.size(); ++e) {
+    p->bone.data[e] = p->intensity.data[e] > bone_threshold ? 1 : 0;
+    p->has_bone = p->has_bone || p->bone.data[e];
+  }
+  p->source = "phantom";
+  return p;
+}
+
+// a press near the middle of the volume, 10 mm along -j (anterior), so that every VOI
+// size up to 128 fits unclipped and stage times compare across sizes; X is the first
+// voxel from the centre towards -j with soft tissue (no bone, no gas) 3 voxels around
+DeformContact central_press(const Patient& p) {
+  const Grid& g = p.grid;
+  const int i = g.size.x / 2, k = g.size.z / 2;
+  int j = g.size.y / 2;
+  auto soft_around = [&](int jj) {
+    for (int c = -3; c <= 3; ++c)
+      for (int b = -3; b <= 3; ++b)
+        for (int a = -3; a <= 3; ++a) {
+          const float v = p.intensity.at(i + a, jj + b, k + c);
+          if (p.bone.at(i + a, jj + b, k + c) || v < -200.0f) return false;
+        }
+    return true;
+  };
+  while (j > g.size.y / 2 - 40 && !soft_around(j)) --j;
+  const Vec3 X = g.to_physical({double(i), double(j), double(k)});
+  return {X, X - g.axes_to_physical({0, 10.0, 0})};
+}
+
+struct Table2Row {
+  std::string backend;
+  int preset, d;
+  long long moved;
+  int sweeps;
+  bool converged;
+  Spread chainmail, wall;
+};
+
+struct Table1Row {
+  std::string backend, voi;
+  long long voxels;
+  long long moved;
+  double residual;
+  Spread reset, chainmail, relax, invert, upload, total;
+};
+
+// one backend's Table 2: whole-volume soft domain big enough for the whole deformation
+void table2(const std::string& name, const Options& o, std::vector<Table2Row>& rows) {
+  const int ds[] = {3, 5, 10, 20, 30};
+  for (int preset = 1; preset <= 2; ++preset)
+    for (int d : ds) {
+      const bool gpu = name == "cuda";
+      if (!gpu && o.quick && d > 10) continue;
+      const int n = 4 * d + 5, c = n / 2;
+      DeformConfig cfg = test::preset_config(preset);
+      cfg.settings.whole_volume = true;
+      cfg.relax = false;
+      cfg.invert = false;
+      auto b = make_deform_backend(name);
+      b->bind(test::make_soft_patient(n), cfg);
+      const DeformContact contact = test::voxel_contact({c, c, c}, {double(d), 0, 0});
+      const int reps = gpu ? (o.quick ? 10 : 50) : (d <= 10 ? 10 : (d == 20 ? 3 : 1));
+      std::vector<double> cm, wall;
+      DeformStats st;
+      for (int r = -2; r < reps; ++r) {  // two warm-up runs
+        st = b->step(contact);
+        if (r < 0) continue;
+        cm.push_back(st.times.chainmail_ms);
+        wall.push_back(st.times.total_ms - st.times.reset_ms);
+      }
+      rows.push_back({name, preset, d, st.chainmail.moved, st.chainmail.sweeps, st.chainmail.converged, spread(cm),
+                      spread(wall)});
+      const Table2Row& r = rows.back();
+      std::printf("table2 %-4s p%d d=%2d  moved %7lld  sweeps %3d  chainmail %8.3f ms (p10 %.3f, p90 %.3f)%s\n",
+                  name.c_str(), preset, d, r.moved, r.sweeps, r.chainmail.median, r.chainmail.p10, r.chainmail.p90,
+                  gpu && d == 30 && preset == 1
+                      ? "  [goal 1 ms; floor: one launch + sync 8.5 us, plus 2d = 60 grid barriers]"
+                      : "");
+      std::fflush(stdout);
+    }
+}
+
+// the DEVICE.md floor that bounds a GPU stage at a given VOI edge
+std::string relax_floor(int edge) {
+  switch (edge) {
+    case 64: return "floor: 20 float4 7-point sweeps in a CUDA graph, 64^3: 66 us";
+    case 96: return "floor: 20 float4 7-point sweeps in a CUDA graph, 96^3: 177 us";
+    case 128: return "floor: 20 float4 7-point sweeps in a CUDA graph, 128^3: 555 us";
+    default: return "floor: 3.0 TB/s device copy; 20 sweeps read and write the field";
+  }
+}
+
+// one backend's Table 1 on the phantom
+void table1(const std::string& name, const Options& o, const PatientPtr& patient, std::vector<Table1Row>& rows) {
+  const bool gpu = name == "cuda";
+  const DeformContact contact = central_press(*patient);
+  for (int edge : {32, 64, 96, 128, 0}) {
+    if (!gpu && o.quick && edge == 0) continue;
+    DeformConfig cfg = test::preset_config(1);
+    cfg.settings.relax_iterations = 20;
+    cfg.settings.invert_iterations = 8;
+    cfg.settings.voi_edge = edge ? edge : 64;
+    cfg.settings.whole_volume = edge == 0;
+    auto b = make_deform_backend(name);
+    b->bind(patient, cfg);
+    const int reps = gpu ? (o.quick ? 10 : 50) : (edge == 0 ? 1 : (edge <= 64 ? 10 : 3));
+    std::vector<double> t[6];
+    DeformStats st;
+    for (int r = -2; r < reps; ++r) {
+      st = b->step(contact);
+      if (r < 0) continue;
+      const DeformTimes& x = st.times;
+      const double v[6] = {x.reset_ms, x.chainmail_ms, x.relax_ms, x.invert_ms, x.upload_ms, x.total_ms};
+      for (int s = 0; s < 6; ++s) t[s].push_back(v[s]);
+    }
+    Table1Row row{name, edge ? std::to_string(edge) : "whole", st.chainmail.voi.count(), st.chainmail.moved,
+                  st.invert_residual_vox, spread(t[0]), spread(t[1]), spread(t[2]), spread(t[3]), spread(t[4]),
+                  spread(t[5])};
+    rows.push_back(row);
+    std::printf("table1 %-4s VOI %-5s (%lld voxels, moved %lld, residual %.3f vox) median ms: reset %.3f  chainmail "
+                "%.3f  relax %.3f  invert %.3f  upload %.3f  total %.3f (p90 %.3f)\n",
+                name.c_str(), row.voi.c_str(), row.voxels, row.moved, row.residual, row.reset.median,
+                row.chainmail.median, row.relax.median, row.invert.median, row.upload.median, row.total.median,
+                row.total.p90);
+    if (gpu) {
+      std::printf("       relax %.3f ms  [%s]\n", row.relax.median, relax_floor(edge).c_str());
+      std::printf("       upload %.3f ms of %.2f MB  [floor: pinned copy 1 MB 26 us]\n", row.upload.median,
+                  row.voxels * 4.0 / 1048576.0);
+      if (edge == 64) std::printf("       total %.3f ms  [goal 0.5 ms]\n", row.total.median);
+      if (edge == 128) std::printf("       total %.3f ms  [goal 2 ms]\n", row.total.median);
+    }
+    std::fflush(stdout);
+  }
+}
+
+}  // namespace
+
+PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [--json FILE] [--quick] [--commit C]") {
+  Options o;
+  for (int a = 1; a < argc; ++a) {
+    const std::string s = argv[a];
+    if (s == "--json" && a + 1 < argc) o.json = argv[++a];
+    else if (s == "--commit" && a + 1 < argc) o.commit = argv[++a];
+    else if (s == "--quick") o.quick = true;
+    else {
+      std::fprintf(stderr, "palpsim-bench deform: unknown argument '%s'\n", s.c_str());
+      return 2;
+    }
+  }
+  try {
+    // every backend this build and machine have
+    std::vector<std::string> backends{"cpu"};
+    std::string why, device = "cpu only";
+    if (cuda_deform_available(&why)) {
+      backends.push_back("cuda");
+      device = why;
+    }
+    std::printf("deform bench: backends cpu%s (%s)\n", backends.size() > 1 ? ", cuda" : "", why.c_str());
+
+    std::vector<Table2Row> t2;
+    for (const auto& b : backends) table2(b, o, t2);
+
+    const auto t0 = std::chrono::steady_clock::now();
+    const PatientPtr patient = phantom_patient(o.voxel_mm, test::kBoneThresholdHu);
+    std::printf("phantom %d x %d x %d at %.3f mm (%.1f s to make)\n", patient->grid.size.x, patient->grid.size.y,
+                patient->grid.size.z, o.voxel_mm,
+                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+    std::vector<Table1Row> t1;
+    for (const auto& b : backends) table1(b, o, patient, t1);
+
+    if (!o.json.empty()) {
+      std::ofstream f(o.json);
+      if (!f) throw Error("palpsim-bench deform: cannot write --json " + o.json);
+      const std::time_t now = std::time(nullptr);
+      char date[32];
+      std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
+      f << "{\n  \"area\": \"deform\",\n  \"date\": \"" << date << "\",\n  \"device\": \"" << device
+        << "\",\n  \"commit\": \"" << o.commit << "\",\n  \"quick\": " << (o.quick ? "true" : "false")
+        << ",\n  \"phantom\": {\"voxel_mm\": " << o.voxel_mm << ", \"size\": [" << patient->grid.size.x << ", "
+        << patient->grid.size.y << ", " << patient->grid.size.z << "]},\n  \"table2\": [\n";
+      for (std::size_t i = 0; i < t2.size(); ++i) {
+        const auto& r = t2[i];
+        f << "    {\"backend\": \"" << r.backend << "\", \"preset\": \"p" << r.preset << "\", \"d\": " << r.d
+          << ", \"moved\": " << r.moved << ", \"sweeps\": " << r.sweeps
+          << ", \"converged\": " << (r.converged ? "true" : "false") << ", \"chainmail\": " << json_spread(r.chainmail)
+          << ", \"wall\": " << json_spread(r.wall) << "}" << (i + 1 < t2.size() ? "," : "") << "\n";
+      }
+      f << "  ],\n  \"table1\": [\n";
+      for (std::size_t i = 0; i < t1.size(); ++i) {
+        const auto& r = t1[i];
+        f << "    {\"backend\": \"" << r.backend << "\", \"voi\": \"" << r.voi << "\", \"voxels\": " << r.voxels
+          << ", \"moved\": " << r.moved << ", \"invert_residual_vox\": " << r.residual
+          << ", \"reset\": " << json_spread(r.reset) << ", \"chainmail\": " << json_spread(r.chainmail)
+          << ", \"relax\": " << json_spread(r.relax) << ", \"invert\": " << json_spread(r.invert)
+          << ", \"upload\": " << json_spread(r.upload) << ", \"total\": " << json_spread(r.total) << "}"
+          << (i + 1 < t1.size() ? "," : "") << "\n";
+      }
+      f << "  ]\n}\n";
+      std::printf("wrote %s\n", o.json.c_str());
+    }
+  } catch (const Error& e) {
+    std::fprintf(stderr, "palpsim-bench deform: %s\n", e.what());
+    return 1;
+  }
+  return 0;
+}

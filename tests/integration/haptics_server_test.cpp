@@ -1,0 +1,448 @@
+// The real palpsim-server and real clients on loopback: many sessions at once with every
+// reply matching its pose, the thin haptic client, every kind of bad input (each answered,
+// counted, and harmless to a session streaming beside it), scene reloads and clean stops.
+#include <catch2/catch.hpp>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <limits>
+#include <sstream>
+#include <thread>
+#include <zmq.hpp>
+
+#include "integration/server_process.h"
+#include "palpsim/wire.pb.h"
+
+using namespace palpsim;
+namespace v1 = palpsim::v1;
+using test::ServerProcess;
+
+namespace {
+
+// how long a reply may take before a test gives up on it (loaded 2-core CI machine)
+constexpr int kReplyTimeoutMs = 5000;
+
+// a DEALER speaking the control path
+class Control {
+ public:
+  Control(zmq::context_t& ctx, const std::string& addr) : s_(ctx, zmq::socket_type::dealer) {
+    s_.set(zmq::sockopt::linger, 0);
+    s_.connect(addr);
+  }
+  /// Sends raw frames and returns the parsed reply (throws on timeout or junk).
+  v1::ControlReply raw(const std::vector<std::string>& frames) {
+    for (std::size_t i = 0; i < frames.size(); ++i)
+      s_.send(zmq::buffer(frames[i]), i + 1 < frames.size() ? zmq::send_flags::sndmore : zmq::send_flags::none);
+    zmq::pollitem_t it[] = {{s_.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::poll(it, 1, std::chrono::milliseconds(kReplyTimeoutMs));
+    if (!(it[0].revents & ZMQ_POLLIN)) throw std::runtime_error("no control reply");
+    zmq::message_t m;
+    (void)s_.recv(m);
+    v1::ControlReply r;
+    if (!r.ParseFromArray(m.data(), int(m.size()))) throw std::runtime_error("control reply does not parse");
+    return r;
+  }
+  v1::ControlReply call(v1::ControlRequest req, std::uint32_t version = v1::VERSION_CURRENT) {
+    req.set_schema_version(version);
+    req.set_request_id(++next_id_);
+    const auto r = raw({req.SerializeAsString()});
+    if (version == v1::VERSION_CURRENT) REQUIRE(r.request_id() == next_id_);
+    return r;
+  }
+  v1::OpenReply open(const std::string& name) {
+    v1::ControlRequest q;
+    q.mutable_open()->set_client_name(name);
+    const auto r = call(q);
+    REQUIRE(r.error().code() == v1::ERROR_NONE);
+    REQUIRE(r.has_open());
+    return r.open();
+  }
+  v1::ServerStats stats() {
+    v1::ControlRequest q;
+    q.mutable_stats();
+    const auto r = call(q);
+    REQUIRE(r.has_stats());
+    return r.stats().server();
+  }
+  void close(std::uint64_t id) {
+    v1::ControlRequest q;
+    q.mutable_close()->set_session_id(id);
+    REQUIRE(call(q).error().code() == v1::ERROR_NONE);
+  }
+
+ private:
+  zmq::socket_t s_;
+  std::uint64_t next_id_ = 0;
+};
+
+// a DEALER speaking the pose path
+class Poses {
+ public:
+  Poses(zmq::context_t& ctx, const std::string& addr) : s_(ctx, zmq::socket_type::dealer) {
+    s_.set(zmq::sockopt::linger, 0);
+    s_.connect(addr);
+  }
+  void send_raw(const std::vector<std::string>& frames) {
+    for (std::size_t i = 0; i < frames.size(); ++i)
+      s_.send(zmq::buffer(frames[i]), i + 1 < frames.size() ? zmq::send_flags::sndmore : zmq::send_flags::none);
+  }
+  void send(std::uint64_t session, std::uint64_t seq, double x, double y, double z, std::uint32_t version = 1) {
+    v1::PoseRequest q;
+    q.set_schema_version(version);
+    q.set_session_id(session);
+    q.set_seq(seq);
+    q.mutable_tip_mm()->set_x(x);
+    q.mutable_tip_mm()->set_y(y);
+    q.mutable_tip_mm()->set_z(z);
+    send_raw({q.SerializeAsString()});
+  }
+  v1::PoseReply recv() {
+    zmq::pollitem_t it[] = {{s_.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::poll(it, 1, std::chrono::milliseconds(kReplyTimeoutMs));
+    if (!(it[0].revents & ZMQ_POLLIN)) throw std::runtime_error("no pose reply");
+    zmq::message_t m;
+    (void)s_.recv(m);
+    v1::PoseReply r;
+    if (!r.ParseFromArray(m.data(), int(m.size()))) throw std::runtime_error("pose reply does not parse");
+    return r;
+  }
+  v1::PoseReply call(std::uint64_t session, std::uint64_t seq, double x, double y, double z) {
+    send(session, seq, x, y, z);
+    return recv();
+  }
+
+ private:
+  zmq::socket_t s_;
+};
+
+// a point along a path that crosses the body's box from outside to outside (t in [0, 1])
+void path_point(const v1::PatientInfo& p, double t, int lane, double& x, double& y, double& z) {
+  const double cx = 0.5 * (p.body_min_mm().x() + p.body_max_mm().x());
+  const double cz = 0.5 * (p.body_min_mm().z() + p.body_max_mm().z());
+  x = cx + 10.0 * (lane % 5 - 2);
+  z = cz + 8.0 * (lane % 7 - 3);
+  const double y0 = p.body_max_mm().y() + 20, y1 = p.body_min_mm().y() - 20;
+  y = y0 + (y1 - y0) * (0.5 - 0.5 * std::cos(2 * M_PI * t));  // out, through, and back out
+}
+
+struct Started {
+  std::string scene;
+  std::unique_ptr<ServerProcess> server;
+};
+
+// a server on the fast test scene; prep of the 2 mm phantom takes a few seconds (cached after)
+Started start_server(double timeout_s = 0.5) {
+  Started s;
+  s.scene = test::temp_file("scene", test::fast_scene_text("integration", timeout_s));
+  s.server = std::make_unique<ServerProcess>(s.scene);
+  const bool ready = s.server->wait_ready(300);
+  INFO("server stderr:\n" << s.server->child().err());
+  REQUIRE(ready);
+  return s;
+}
+
+}  // namespace
+
+TEST_CASE("several sessions at once: every reply matches its pose and none is lost", "[integration]") {
+  Started st = start_server(5.0);
+  zmq::context_t ctx(1);
+  Control ctl(ctx, st.server->control());
+  const v1::OpenReply probe = ctl.open("probe");
+  const v1::PatientInfo patient = probe.server().patient();
+  ctl.close(probe.session_id());
+
+  // the thin haptic client, three at once, beside the test's own sessions
+  std::vector<std::unique_ptr<test::Child>> haptic;
+  std::vector<std::string> logs;
+  for (int i = 0; i < 3; ++i) {
+    logs.push_back(test::temp_file("haptic-log", ""));
+    haptic.push_back(std::make_unique<test::Child>(std::vector<std::string>{
+        test::build_exe("palpsim-haptic"), "--connect", st.server->control(), "--device", "press", "--seconds", "3",
+        "--log", logs.back()}));
+  }
+
+  // eight sessions, each 5000 poses with up to 16 in flight
+  constexpr int kSessions = 8, kPoses = 5000, kWindow = 16;
+  std::atomic<int> mismatches{0}, errors{0}, nonzero_outside{0}, contacts{0};
+  std::atomic<long> answered{0};
+  std::vector<std::thread> threads;
+  for (int lane = 0; lane < kSessions; ++lane)
+    threads.emplace_back([&, lane] {
+      try {
+        Control c(ctx, st.server->control());
+        const v1::OpenReply o = c.open("lane " + std::to_string(lane));
+        Poses p(ctx, o.pose_endpoint());
+        std::uint64_t sent = 0, got = 0;
+        while (got < kPoses) {
+          while (sent < kPoses && sent - got < kWindow) {
+            double x, y, z;
+            path_point(patient, double(sent) / kPoses, lane, x, y, z);
+            p.send(o.session_id(), ++sent, x, y, z);
+          }
+          const v1::PoseReply r = p.recv();
+          ++got;
+          if (r.seq() != got || r.session_id() != o.session_id()) ++mismatches;
+          if (r.error().code() != v1::ERROR_NONE) ++errors;
+          if (r.contact()) ++contacts;
+          if (!r.contact() && (r.force_n().x() != 0 || r.force_n().y() != 0 || r.force_n().z() != 0)) ++nonzero_outside;
+          ++answered;
+        }
+        c.close(o.session_id());
+      } catch (const std::exception& e) {
+        ++errors;
+      }
+    });
+  for (auto& t : threads) t.join();
+  CHECK(mismatches == 0);
+  CHECK(errors == 0);
+  CHECK(nonzero_outside == 0);
+  CHECK(answered == long(kSessions) * kPoses);
+  CHECK(contacts > kSessions * kPoses / 4);  // the path spends most of its time inside the body
+
+  // the haptic clients: exit 0 means every pose got its reply and none was an error
+  for (int i = 0; i < 3; ++i) {
+    const int rc = haptic[i]->wait(30);
+    INFO("palpsim-haptic " << i << " stdout:\n" << haptic[i]->out() << "\nstderr:\n" << haptic[i]->err());
+    CHECK(rc == 0);
+    CHECK(haptic[i]->out().find("round trip p50") != std::string::npos);
+    std::ifstream log(logs[i]);
+    std::string header, line;
+    std::getline(log, header);
+    CHECK(header.find("force_x_n,force_y_n,force_z_n") != std::string::npos);
+    int rows = 0, in_contact = 0;
+    while (std::getline(log, line)) {
+      ++rows;
+      std::stringstream ss(line);
+      std::string cell;
+      for (int c = 0; c < 11 && std::getline(ss, cell, ','); ++c)
+        if (c == 10 && cell == "1") ++in_contact;
+    }
+    // 3 s at 1 kHz; a loaded machine may run a few steps short of 3000 but not many
+    CHECK(rows > 2500);
+    CHECK(in_contact > 0);
+    std::remove(logs[i].c_str());
+  }
+
+  const v1::ServerStats s = ctl.stats();
+  CHECK(s.poses() >= std::uint64_t(kSessions) * kPoses);
+  CHECK(s.sessions_open() == 0);
+  CHECK(s.malformed() + s.unknown_session() + s.bad_pose() + s.absurd_pose() + s.oversized() == 0);
+  CHECK(s.pose_service().count() == s.poses());
+  CHECK(st.server->stop() == 0);  // SIGTERM: a clean exit
+  CHECK(st.server->child().out().find("stopped") != std::string::npos);
+  std::remove(st.scene.c_str());
+}
+
+TEST_CASE("bad input is answered and counted, and a session beside it keeps being served", "[integration]") {
+  Started st = start_server(0.5);
+  zmq::context_t ctx(1);
+  Control ctl(ctx, st.server->control());
+
+  // a good session streaming poses through everything below
+  std::atomic<bool> done{false};
+  std::atomic<long> good_replies{0}, good_failures{0};
+  std::thread good([&] {
+    try {
+      Control c(ctx, st.server->control());
+      const v1::OpenReply o = c.open("good");
+      Poses p(ctx, o.pose_endpoint());
+      for (std::uint64_t seq = 1; !done; ++seq) {
+        double x, y, z;
+        path_point(o.server().patient(), double(seq % 1000) / 1000, 0, x, y, z);
+        const v1::PoseReply r = p.call(o.session_id(), seq, x, y, z);
+        if (r.seq() != seq || r.error().code() != v1::ERROR_NONE) ++good_failures;
+        ++good_replies;
+        std::this_thread::sleep_for(std::chrono::microseconds(500));
+      }
+      c.close(o.session_id());
+    } catch (const std::exception&) {
+      ++good_failures;
+    }
+  });
+
+  // waits (up to 10 s on a loaded machine) until the good session has `n` more replies
+  auto good_gets = [&](long n) {
+    const long target = good_replies + n;
+    for (int i = 0; i < 1000 && good_replies < target && good_failures == 0; ++i)
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    return good_replies >= target;
+  };
+  REQUIRE(good_gets(20));
+
+  const v1::OpenReply mine = ctl.open("bad actor");
+  const std::uint64_t sid = mine.session_id();
+  Poses bad(ctx, mine.pose_endpoint());
+  const v1::ServerStats before = ctl.stats();
+
+  SECTION("pose path") {
+    // malformed bytes
+    bad.send_raw({std::string("\xff\xff\xff\xff this is not a PoseRequest", 33)});
+    v1::PoseReply r = bad.recv();
+    CHECK(r.error().code() == v1::ERROR_MALFORMED);
+    CHECK(r.error().message().find("PoseRequest") != std::string::npos);
+    // truncated: the tip is the last field, so cutting bytes cuts into it
+    v1::PoseRequest q;
+    q.set_schema_version(1);
+    q.set_session_id(sid);
+    q.set_seq(7);
+    q.mutable_tip_mm()->set_x(1);
+    q.mutable_tip_mm()->set_y(2);
+    q.mutable_tip_mm()->set_z(3);
+    const std::string whole = q.SerializeAsString();
+    bad.send_raw({whole.substr(0, whole.size() - 5)});
+    CHECK(bad.recv().error().code() == v1::ERROR_MALFORMED);
+    // three frames
+    bad.send_raw({whole, whole, whole});
+    CHECK(bad.recv().error().code() == v1::ERROR_MALFORMED);
+    // wrong schema version
+    bad.send(sid, 8, 0, 0, 0, 7);
+    r = bad.recv();
+    CHECK(r.error().code() == v1::ERROR_WRONG_SCHEMA_VERSION);
+    CHECK(r.schema_version() == v1::VERSION_CURRENT);
+    CHECK(r.seq() == 8);
+    // unknown session
+    r = bad.call(0x1234567890ull, 9, 0, 0, 0);
+    CHECK(r.error().code() == v1::ERROR_UNKNOWN_SESSION);
+    CHECK(r.seq() == 9);
+    // NaN and Inf
+    CHECK(bad.call(sid, 10, std::nan(""), 0, 0).error().code() == v1::ERROR_BAD_POSE);
+    CHECK(bad.call(sid, 11, 0, std::numeric_limits<double>::infinity(), 0).error().code() == v1::ERROR_BAD_POSE);
+    // kilometres away
+    r = bad.call(sid, 12, 5e6, 0, 0);
+    CHECK(r.error().code() == v1::ERROR_ABSURD_POSE);
+    CHECK(r.error().message().find("mm from the patient") != std::string::npos);
+    // oversized
+    bad.send_raw({std::string(4000, 'x')});
+    CHECK(bad.recv().error().code() == v1::ERROR_OVERSIZED);
+    // the bad actor's own session still works after all that
+    r = bad.call(sid, 13, 0, 0, 0);
+    CHECK(r.error().code() == v1::ERROR_NONE);
+    CHECK(r.seq() == 13);
+
+    const v1::ServerStats after = ctl.stats();
+    CHECK(after.malformed() - before.malformed() == 3);
+    CHECK(after.wrong_schema_version() - before.wrong_schema_version() == 1);
+    CHECK(after.unknown_session() - before.unknown_session() == 1);
+    CHECK(after.bad_pose() - before.bad_pose() == 2);
+    CHECK(after.absurd_pose() - before.absurd_pose() == 1);
+    CHECK(after.oversized() - before.oversized() == 1);
+  }
+
+  SECTION("control path") {
+    v1::ControlReply r = ctl.raw({"garbage that is no ControlRequest \xff\xff"});
+    CHECK(r.error().code() == v1::ERROR_MALFORMED);
+    v1::ControlRequest q;
+    q.mutable_info();
+    r = ctl.call(q, 99);
+    CHECK(r.error().code() == v1::ERROR_WRONG_SCHEMA_VERSION);
+    CHECK(r.error().message().find("schema_version") != std::string::npos);
+    r = ctl.call(v1::ControlRequest{});
+    CHECK(r.error().code() == v1::ERROR_EMPTY_REQUEST);
+    v1::ControlRequest sp;
+    sp.mutable_set_parameter()->set_session_id(sid);
+    sp.mutable_set_parameter()->set_name("stiffness_n_per_mm");
+    sp.mutable_set_parameter()->set_value(1e9);
+    r = ctl.call(sp);
+    CHECK(r.error().code() == v1::ERROR_BAD_PARAMETER);
+    CHECK(r.error().message().find("outside") != std::string::npos);
+    sp.mutable_set_parameter()->set_name("no_such_parameter");
+    CHECK(ctl.call(sp).error().code() == v1::ERROR_BAD_PARAMETER);
+    sp.mutable_set_parameter()->set_name("friction");
+    sp.mutable_set_parameter()->set_value(0.5);
+    r = ctl.call(sp);
+    CHECK(r.error().code() == v1::ERROR_NONE);
+    CHECK(r.set_parameter().params().friction() == 0.5);
+    v1::ControlRequest cl;
+    cl.mutable_close()->set_session_id(424242);
+    CHECK(ctl.call(cl).error().code() == v1::ERROR_UNKNOWN_SESSION);
+    // 2 MiB: over the control path's 1 MiB limit, under ZeroMQ's 16 MiB guard
+    r = ctl.raw({std::string(2 << 20, 'x')});
+    CHECK(r.error().code() == v1::ERROR_OVERSIZED);
+
+    const v1::ServerStats after = ctl.stats();
+    CHECK(after.malformed() - before.malformed() == 1);
+    CHECK(after.wrong_schema_version() - before.wrong_schema_version() == 1);
+    CHECK(after.empty_request() - before.empty_request() == 1);
+    CHECK(after.bad_parameter() - before.bad_parameter() == 2);
+    CHECK(after.unknown_session() - before.unknown_session() == 1);
+    CHECK(after.oversized() - before.oversized() == 1);
+  }
+
+  SECTION("a scene that fails to load is refused and the old one kept; a good one is taken") {
+    v1::ControlRequest q;
+    q.mutable_load_scene()->set_path("/no/such/scene.textproto");
+    v1::ControlReply r = ctl.call(q);
+    CHECK(r.error().code() == v1::ERROR_SCENE_LOAD_FAILED);
+    CHECK(r.error().message().find("/no/such/scene.textproto") != std::string::npos);
+    q.mutable_load_scene()->Clear();
+    q.mutable_load_scene()->set_text("phantom { voxel_mm: 2 }\nhaptics { no_such_field: 1 }\n");
+    r = ctl.call(q);
+    CHECK(r.error().code() == v1::ERROR_SCENE_LOAD_FAILED);
+    CHECK(r.error().message().find("no_such_field") != std::string::npos);
+    v1::ControlRequest info;
+    info.mutable_info();
+    r = ctl.call(info);
+    CHECK(r.info().scene_generation() == 1);
+    CHECK(r.info().scene_name() == "integration");
+    // still served
+    CHECK(bad.call(sid, 1, 0, 0, 0).error().code() == v1::ERROR_NONE);
+    // a good scene replaces it; open sessions continue on it
+    q.mutable_load_scene()->Clear();
+    q.mutable_load_scene()->set_text(test::fast_scene_text("reloaded", 0.5));
+    r = ctl.call(q);
+    INFO(r.error().message());
+    REQUIRE(r.error().code() == v1::ERROR_NONE);
+    CHECK(r.load_scene().server().scene_generation() == 2);
+    CHECK(r.load_scene().server().scene_name() == "reloaded");
+    CHECK(bad.call(sid, 2, 0, 0, 0).error().code() == v1::ERROR_NONE);
+    const v1::ServerStats after = ctl.stats();
+    CHECK(after.scene_load_failures() - before.scene_load_failures() == 2);
+    CHECK(after.scene_loads() - before.scene_loads() == 1);
+  }
+
+  SECTION("a client that vanishes has its session freed after the timeout") {
+    std::uint64_t gone = 0;
+    {
+      zmq::context_t other(1);
+      Control c(other, st.server->control());
+      const v1::OpenReply o = c.open("vanishing");
+      gone = o.session_id();
+      Poses p(other, o.pose_endpoint());
+      CHECK(p.call(gone, 1, 0, 0, 0).error().code() == v1::ERROR_NONE);
+    }  // sockets and context gone without a CloseSession
+    // 0.5 s timeout + 0.1 s housekeeping period; 1.5 s leaves room for a loaded machine
+    std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+    const v1::ServerStats after = ctl.stats();
+    CHECK(after.sessions_timed_out() - before.sessions_timed_out() >= 1);
+    CHECK(bad.call(gone, 2, 0, 0, 0).error().code() == v1::ERROR_UNKNOWN_SESSION);
+  }
+
+  // the good session is still answered after the bad input, and never got an error
+  CHECK(good_gets(20));
+  done = true;
+  good.join();
+  CHECK(good_failures == 0);
+  CHECK(st.server->stop() == 0);
+  std::remove(st.scene.c_str());
+}
+
+TEST_CASE("a scene that fails to load at start: the server refuses to start and says why", "[integration]") {
+  {
+    ServerProcess s("/no/such/dir/scene.textproto");
+    CHECK_FALSE(s.wait_ready(60));
+    CHECK(s.child().wait(10) == 1);
+    CHECK(s.child().err().find("/no/such/dir/scene.textproto") != std::string::npos);
+  }
+  {
+    const std::string bad = test::temp_file("bad-scene", "phantom { voxel_mm: 2 }\nhaptics {\n  friction: 7\n}\n");
+    ServerProcess s(bad);
+    CHECK_FALSE(s.wait_ready(60));
+    CHECK(s.child().wait(10) == 1);
+    const std::string err = s.child().err();
+    INFO(err);
+    CHECK(err.find(bad + ":3") != std::string::npos);  // file:line of the out-of-range field
+    std::remove(bad.c_str());
+  }
+}

@@ -50,10 +50,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/demo/palpation", help="output folder (default %(default)s)")
     line = p.add_argument_group("the line of presses (mm, LPS)")
     line.add_argument("--x-mm", type=float, help="x of the line (default: the body's mid x)")
-    line.add_argument("--z-from-mm", type=float, default=PHANTOM_LUMBAR_Z_MM[0],
-                      help="inferior end of the line (default %(default)g)")
-    line.add_argument("--z-to-mm", type=float, default=PHANTOM_LUMBAR_Z_MM[1],
-                      help="superior end of the line (default %(default)g)")
+    line.add_argument("--z-from-mm", type=float,
+                      help="inferior end of the line (default: %g on the phantom, else 10 mm "
+                           "inside the body's z extent)" % PHANTOM_LUMBAR_Z_MM[0])
+    line.add_argument("--z-to-mm", type=float,
+                      help="superior end of the line (default: %g on the phantom, else 10 mm "
+                           "inside the body's z extent)" % PHANTOM_LUMBAR_Z_MM[1])
     line.add_argument("--step-mm", type=float, default=2.0, help="spacing of the presses")
     line.add_argument("--depth-mm", type=float, default=22.0,
                       help="press depth under the skin (default %(default)g: the phantom's "
@@ -71,7 +73,17 @@ def make_plan(info: Any, args: argparse.Namespace) -> Plan:
     """The demo's plan: a line along z over the back, pressed along -y from above the body."""
     body_min, body_max = info.patient.body_min_mm, info.patient.body_max_mm
     x = args.x_mm if args.x_mm is not None else 0.5 * (body_min.x + body_max.x)
-    z0, z1 = sorted((args.z_from_mm, args.z_to_mm))
+    # the phantom's lumbar spine, or (another patient) the whole back that was scanned
+    # PatientInfo.source is "phantom" by the schema's comment; v1 servers say "the phantom"
+    if info.patient.source.strip().lower() in ("phantom", "the phantom"):
+        default_z = PHANTOM_LUMBAR_Z_MM
+    else:
+        default_z = (body_min.z + 10.0, body_max.z - 10.0)
+    z0, z1 = sorted((args.z_from_mm if args.z_from_mm is not None else default_z[0],
+                     args.z_to_mm if args.z_to_mm is not None else default_z[1]))
+    if z1 - z0 < args.step_mm:
+        raise PlanError(f"--z-from-mm/--z-to-mm: the line from {z0:g} to {z1:g} mm is shorter "
+                        f"than one step ({args.step_mm:g} mm)")
     count = int(np.floor((z1 - z0) / args.step_mm + 1e-9)) + 1
     # start 10 mm above the highest point of the body; search for the skin down to mid-body
     approach_mm = 10.0

@@ -115,6 +115,9 @@ def spine_profile_plot(df: pd.DataFrame, report: dict, path: str | Path, title: 
     pk = report["peaks"]
     top.plot([p["z_mm"] for p in pk], [p["force_n"] for p in pk], "v", color="k", ms=8,
              label=f"peaks found ({len(pk)})")
+    for p in pk:
+        top.annotate(f"{p['z_mm']:.0f}", (p["z_mm"], p["force_n"]), textcoords="offset points",
+                     xytext=(0, 7), ha="center", fontsize=8)
     if exp:
         for i, e in enumerate(exp["processes"]):
             for ax in (top, sec):

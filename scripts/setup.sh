@@ -51,6 +51,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   "$venv/bin/python" -m pip install -q --upgrade pip
   "$venv/bin/python" -m pip install -q -r "$reqs"
   echo "$want" > "$stamp"
+  py_changed=1  # reinstall the palpsim package below (its pyproject.toml may have changed)
 else
   say "Python packages present"
 fi
@@ -74,7 +75,8 @@ say "building"
 "$venv/bin/cmake" --build "$build_dir" -j "$(nproc)"
 
 # the python package, with the generated protobuf code from the build
-if ! "$venv/bin/python" -c 'import palpsim' 2>/dev/null; then
+if [ -n "${py_changed:-}" ] || [ ! -x "$venv/bin/palpsim-demo" ] ||
+   ! "$venv/bin/python" -c 'import palpsim' 2>/dev/null; then
   say "installing the palpsim Python package"
   "$venv/bin/python" -m pip install -q -e "$root/clients/python"
 fi

@@ -266,6 +266,7 @@ std::shared_ptr<PhantomShapes> build_shapes() {
     // vertebral body: 2 mm cortex around the cancellous interior
     s->bones.push_back(bone(Solid::ellipse_slab({0, kBodyY, l.z}, l.ax, l.ay, l.hz, kBodyRound), 2.0,
                             l.body_interior_hu));
+    s->landmarks.push_back({std::string("vertebral_body_") + l.name, {0, kBodyY, l.z}});
     // pedicles, lateral to the canal
     for (double sx : {-1.0, 1.0})
       s->bones.push_back(bone(Solid::round_box({sx * 14, 30, l.z + 1}, {0, 1, 0}, {1, 0, 0}, {8, 2, 4}, 2.5), 1.5,

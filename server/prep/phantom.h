@@ -69,9 +69,10 @@ class PhantomGeometry {
   /// True inside a gas pocket of the bowel (inside the patient).
   bool in_bowel_gas(const Vec3& p_mm) const;
   /// Bone landmarks for tests and scenarios: spinous_tip_<level> (posterior-most
-  /// point of each spinous process, T12 L1..L5 S1), iliac_crest_top_{left,right}
-  /// (highest point of each crest), rib<n>_{left,right} (a point on the posterior
-  /// surface of ribs 10-12 near their angle).
+  /// point of each spinous process, levels T12 L1..L5 S1), iliac_crest_top_{left,right}
+  /// (highest point of each crest), rib<n>_{left,right} (a point on the outer surface,
+  /// facing the skin, of ribs 10-12 inside the volume), all on a bone surface; and
+  /// vertebral_body_<level> (centre of each vertebral body, deep inside bone).
   const std::vector<PhantomLandmark>& landmarks() const;
   /// The landmark called `name`; throws palpsim::Error naming it when there is none.
   Vec3 landmark(const std::string& name) const;

@@ -181,10 +181,10 @@ void check_patient(const Patient& pt, const Scene& defaults, int stride) {
 
   // every vertebral body (T12-L5 centres) is bone throughout, its cancellous
   // interior (180 HU, below the threshold) included
-  for (double z : {96.0, 62.0, 28.0, -6.0, -40.0, -74.0}) {
-    const Vec3 ijk = g.to_index({0, 6, z});
+  for (const char* level : {"T12", "L1", "L2", "L3", "L4", "L5"}) {
+    const Vec3 ijk = g.to_index(geo.landmark(std::string("vertebral_body_") + level));
     const int i = int(std::lround(ijk.x)), j = int(std::lround(ijk.y)), k = int(std::lround(ijk.z));
-    INFO("vertebral body centre z = " << z);
+    INFO("vertebral body " << level);
     REQUIRE(geo.bone_signed_distance_mm(g.to_physical({double(i), double(j), double(k)})) < -8);
     CHECK(pt.intensity.at(i, j, k) < defaults.prep.bone_threshold);
     CHECK(pt.bone.at(i, j, k) == 1);

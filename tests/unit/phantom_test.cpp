@@ -272,6 +272,19 @@ TEST_CASE("iliac crests and ribs are palpable landmarks on the bone surface") {
       CHECK(std::abs(rib.z) < 110);  // inside the volume
     }
   }
+  // vertebral body centres lie deep in bone, on the midline, one per spinous process
+  int bodies = 0;
+  for (const PhantomLandmark& l : geo.landmarks()) {
+    if (l.name.rfind("vertebral_body_", 0) != 0) continue;
+    ++bodies;
+    INFO(l.name);
+    CHECK(geo.bone_signed_distance_mm(l.p_mm) < -8);
+    CHECK(l.p_mm.x == 0);
+    const Vec3 tip = geo.landmark("spinous_tip_" + l.name.substr(15));
+    CHECK(tip.y - l.p_mm.y > 60);           // the process points backwards (+y)
+    CHECK(std::abs(tip.z - l.p_mm.z) < 17);  // at its own level (the pitch is 34 mm)
+  }
+  CHECK(bodies == 7);
   CHECK_THROWS_WITH(geo.landmark("spinous_tip_C7"), Catch::Contains("spinous_tip_C7"));
 }
 

@@ -36,13 +36,15 @@ __device__ int block_sum(int v, int* scratch) {
   return s;
 }
 
-__global__ void __launch_bounds__(256) chainmail_kernel(StepGeometry geo, Vec3f u0, deform::ChainMailLimits lim,
-                                                        int max_sweeps, DeviceBuffers b) {
+__global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeometry geo, Vec3f u0,
+                                                                       deform::ChainMailLimits lim, int max_sweeps,
+                                                                       DeviceBuffers b) {
   __shared__ int scratch[32];
   cg::grid_group grid = cg::this_grid();
   const deform::Voi& voi = geo.voi;
   const Vec3i g = geo.grabbed;
-  const long long g_idx = voi.index(g.x, g.y, g.z);
+  const int sx = voi.size.x, sxy = voi.size.x * voi.size.y;  // VOIs hold < 2^31 voxels (checked at bind)
+  const int g_idx = g.z * sxy + g.y * sx + g.x;
   Counters* c = b.counters;
   // the first element goes to x in both buffers; it moved in sweep 0
   if (grid.thread_rank() == 0) {
@@ -59,7 +61,8 @@ __global__ void __launch_bounds__(256) chainmail_kernel(StepGeometry geo, Vec3f 
   }
   grid.sync();
 
-  const long long nthreads = (long long)gridDim.x * blockDim.x;
+  const unsigned nthreads = gridDim.x * blockDim.x;
+  const int step[6] = {-1, 1, -sx, sx, -sxy, sxy};  // linear offsets in the fixed neighbour order
   for (int s = 1; s <= max_sweeps; ++s) {
     const int pa = (s - 1) & 1, pb = s & 1;
     const float* ax = b.u[pa][0];
@@ -73,37 +76,38 @@ __global__ void __launch_bounds__(256) chainmail_kernel(StepGeometry geo, Vec3f 
       lo[a] = max(g[a] - s, 0);
       ext[a] = min(g[a] + s, voi.size[a] - 1) - lo[a] + 1;
     }
-    const long long box = (long long)ext[0] * ext[1] * ext[2];
+    const unsigned ex = unsigned(ext[0]), exy = unsigned(ext[0] * ext[1]), box = exy * unsigned(ext[2]);
     int moved_here = 0, fresh_here = 0;
-    for (long long t = (long long)blockIdx.x * blockDim.x + threadIdx.x; t < box; t += nthreads) {
-      const int i = lo[0] + int(t % ext[0]);
-      const int j = lo[1] + int((t / ext[0]) % ext[1]);
-      const int k = lo[2] + int(t / ((long long)ext[0] * ext[1]));
-      const long long e = voi.index(i, j, k);
+    for (unsigned t = blockIdx.x * blockDim.x + threadIdx.x; t < box; t += nthreads) {
+      // 32-bit index arithmetic: 64-bit division costs tens of instructions on the GPU
+      const unsigned kk = t / exy, r = t - kk * exy, jj = r / ex;
+      const int i = lo[0] + int(r - jj * ex), j = lo[1] + int(jj), k = lo[2] + int(kk);
+      const int e = k * sxy + j * sx + i;
       if (e == g_idx) continue;
+      // which neighbours moved in the previous sweep (stamps only: most elements stop here)
+      const int n_ok[6] = {i > 0, i + 1 < voi.size.x, j > 0, j + 1 < voi.size.y, k > 0, k + 1 < voi.size.z};
+      unsigned mask = 0;
+      for (int q = 0; q < 6; ++q)
+        if (n_ok[q] && sa[e + step[q]] == s - 1) mask |= 1u << q;
+      const bool self_prev = sa[e] == s - 1;
+      if (!mask && !self_prev) continue;
       const long long gi = ((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x +
                            (voi.lo.x + i);
       if (b.bone[gi]) continue;
       // clamp into the box of every neighbour that moved in the previous sweep, in the fixed order
       const Vec3f old{ax[e], ay[e], az[e]};
       Vec3f v = old;
-      bool any = false;
-      for (int q = 0; q < 6; ++q) {
-        const Vec3i n = Vec3i{i, j, k} + deform::neighbour_offset(q);
-        if (!voi.contains(n.x, n.y, n.z)) continue;
-        const long long ni = voi.index(n.x, n.y, n.z);
-        if (sa[ni] != s - 1) continue;
-        any = true;
-        deform::chainmail_clamp(v, Vec3f{ax[ni], ay[ni], az[ni]}, deform::neighbour_axis(q),
-                                deform::neighbour_below(q), lim);
-      }
+      for (int q = 0; q < 6; ++q)
+        if (mask & (1u << q)) {
+          const int ni = e + step[q];
+          deform::chainmail_clamp(v, Vec3f{ax[ni], ay[ni], az[ni]}, deform::neighbour_axis(q),
+                                  deform::neighbour_below(q), lim);
+        }
       // buffer pb holds sweep s-2: rewrite it where this sweep or the last one changed anything
-      if (any || sa[e] == s - 1) {
-        b.u[pb][0][e] = v.x;
-        b.u[pb][1][e] = v.y;
-        b.u[pb][2][e] = v.z;
-      }
-      if (any && v != old) {
+      b.u[pb][0][e] = v.x;
+      b.u[pb][1][e] = v.y;
+      b.u[pb][2][e] = v.z;
+      if (mask && v != old) {
         ++moved_here;
         if (sa[e] < 0 && sb[e] < 0) ++fresh_here;
         sb[e] = s;
@@ -153,8 +157,11 @@ LaunchShape persistent_launch_shape() {
   PALPSIM_CUDA_CHECK(cudaDeviceGetAttribute(&coop, cudaDevAttrCooperativeLaunch, dev));
   if (!coop) throw Error("CUDA device " + std::to_string(dev) + " cannot launch cooperative kernels");
   PALPSIM_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm_cm, chainmail_kernel, s.threads, 0));
-  s.chainmail_blocks = sms * per_sm_cm;
-  s.relax_blocks = relax_blocks_per_sm(s.threads) * sms;
+  // few, large blocks: a grid barrier costs about one atomic per block, and at 64^3
+  // two 512-thread blocks per SM (1024 threads) already cover the VOI in two passes
+  s.chainmail_blocks = sms * std::min(per_sm_cm, kPersistentBlocksPerSm);
+  s.relax_blocks = sms * std::min(relax_blocks_per_sm(s.threads), kPersistentBlocksPerSm);
+  if (s.chainmail_blocks < 1 || s.relax_blocks < 1) throw Error("CUDA: the persistent deformation kernels do not fit on the device");
   return s;
 }
 

@@ -59,6 +59,9 @@ void CudaDeformBackend::bind_impl() {
   const Patient& p = *patient_;
   const std::size_t nvol = p.grid.count();
   capacity_ = max_voi_count();
+  if (capacity_ >= (1LL << 31))
+    throw Error("deform backend \"cuda\": a VOI of " + std::to_string(capacity_) +
+                " voxels is too large (the kernels index VOIs with 32 bits; use a smaller deform.voi_edge)");
   const std::size_t n = std::size_t(capacity_);
   PALPSIM_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
   for (cudaEvent_t& e : ev_) PALPSIM_CUDA_CHECK(cudaEventCreate(&e));

@@ -11,9 +11,9 @@ namespace {
 
 __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, DeviceBuffers b) {
   const deform::Voi& voi = geo.voi;
-  const long long e = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+  const int e = int(blockIdx.x * blockDim.x + threadIdx.x);  // VOIs hold < 2^31 voxels (checked at bind)
   float r = 0.0f;
-  if (e < voi.count()) {
+  if (e < int(voi.count())) {
     const float* ux = b.u[src][0];
     const float* uy = b.u[src][1];
     const float* uz = b.u[src][2];
@@ -21,7 +21,7 @@ __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, 
     // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
     auto load_u = [&](int i, int j, int k) {
       if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
-      const long long n = voi.index(i, j, k);
+      const int n = (k * voi.size.y + j) * voi.size.x + i;
       return Vec3f{ux[n], uy[n], uz[n]};
     };
     // intensity at a VOI-local voxel, clamped at the volume border
@@ -31,9 +31,8 @@ __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, 
       const int gk = min(max(voi.lo.z + k, 0), size.z - 1);
       return b.intensity[((long long)gk * size.y + gj) * size.x + gi];
     };
-    const int i = int(e % voi.size.x);
-    const int j = int((e / voi.size.x) % voi.size.y);
-    const int k = int(e / ((long long)voi.size.x * voi.size.y));
+    const int sxy = voi.size.x * voi.size.y;
+    const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
     const Vec3f p = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
     b.j[e] = deform::trilinear<float>(load_i, p);
   }

@@ -37,11 +37,15 @@ struct StepGeometry {
   Vec3i grabbed{0, 0, 0};  // VOI-local
 };
 
+/// Threads per block and blocks per multiprocessor of the persistent kernels.
+constexpr int kPersistentThreads = 512;
+constexpr int kPersistentBlocksPerSm = 2;
+
 /// Cooperative grid sizes of the persistent kernels on this device.
 struct LaunchShape {
   int chainmail_blocks = 0;
   int relax_blocks = 0;
-  int threads = 256;
+  int threads = kPersistentThreads;
 };
 
 /// Queries how many blocks of each persistent kernel fit on the device at once.

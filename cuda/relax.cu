@@ -16,22 +16,24 @@ namespace palpsim::cuda {
 
 namespace {
 
-__global__ void __launch_bounds__(256) relax_kernel(StepGeometry geo, int src, int iterations, float step,
+__global__ void __launch_bounds__(kPersistentThreads) relax_kernel(StepGeometry geo, int src, int iterations, float step,
                                                     float threshold, float width, DeviceBuffers b) {
   cg::grid_group grid = cg::this_grid();
   const deform::Voi& voi = geo.voi;
-  const long long g_idx = voi.index(geo.grabbed.x, geo.grabbed.y, geo.grabbed.z);
-  const long long n = voi.count();
-  const long long nthreads = (long long)gridDim.x * blockDim.x;
+  const int sx = voi.size.x, sxy = voi.size.x * voi.size.y;  // VOIs hold < 2^31 voxels (checked at bind)
+  const int g_idx = geo.grabbed.z * sxy + geo.grabbed.y * sx + geo.grabbed.x;
+  const unsigned n = unsigned(voi.count());
+  const unsigned nthreads = gridDim.x * blockDim.x;
+  const int step_of[6] = {-1, 1, -sx, sx, -sxy, sxy};  // linear offsets in the fixed neighbour order
   for (int it = 0; it < iterations; ++it) {
     const int pa = (src + it) & 1, pb = pa ^ 1;
     const float* ax = b.u[pa][0];
     const float* ay = b.u[pa][1];
     const float* az = b.u[pa][2];
-    for (long long e = (long long)blockIdx.x * blockDim.x + threadIdx.x; e < n; e += nthreads) {
-      const int i = int(e % voi.size.x);
-      const int j = int((e / voi.size.x) % voi.size.y);
-      const int k = int(e / ((long long)voi.size.x * voi.size.y));
+    for (unsigned t = blockIdx.x * blockDim.x + threadIdx.x; t < n; t += nthreads) {
+      // 32-bit index arithmetic: 64-bit division costs tens of instructions on the GPU
+      const int e = int(t);
+      const int k = e / sxy, r = e - k * sxy, j = r / sx, i = r - j * sx;
       const long long gi = ((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x +
                            (voi.lo.x + i);
       const Vec3f u{ax[e], ay[e], az[e]};
@@ -40,10 +42,10 @@ __global__ void __launch_bounds__(256) relax_kernel(StepGeometry geo, int src, i
       if (e != g_idx && w != 0.0f) {
         // the six neighbours in the fixed order, zero outside the VOI
         Vec3f sum6{0, 0, 0};
+        const int n_ok[6] = {i > 0, i + 1 < voi.size.x, j > 0, j + 1 < voi.size.y, k > 0, k + 1 < voi.size.z};
         for (int q = 0; q < 6; ++q) {
-          const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
-          if (!voi.contains(nb.x, nb.y, nb.z)) continue;
-          const long long ni = voi.index(nb.x, nb.y, nb.z);
+          if (!n_ok[q]) continue;
+          const int ni = e + step_of[q];
           sum6 += Vec3f{ax[ni], ay[ni], az[ni]};
         }
         out = deform::relax_update(u, sum6, w);

@@ -122,6 +122,7 @@ TEST_CASE("gpu relaxation matches the cpu within float rounding") {
     for (std::size_t e = 0; e < ua.size(); ++e)
       worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
     INFO("iterations " << iters << " max |u_cpu - u_gpu| " << worst << " voxel, tolerance " << tol);
+    std::printf("relax %d iterations: max |u_cpu - u_gpu| = %g voxel (tolerance %g)\n", iters, worst, tol);
     CHECK(worst <= tol);
     CHECK(moved_bone_count(*torso, b.gpu->voi(), ug) == 0);
   }
@@ -157,6 +158,7 @@ TEST_CASE("gpu inversion matches the cpu on the same displacement field") {
   // positions agree to ~1e-5 voxel (ulps of coordinates up to 48, over 8 contracting
   // steps); the torso's steepest gradient is ~1100 HU per voxel at the skin: 0.05 HU
   INFO("max |J_cpu - J_gpu| " << worst << " HU; residual cpu " << ra << " gpu " << rg);
+  std::printf("invert: max |J_cpu - J_gpu| = %g HU (tolerance 0.05), residual cpu %g gpu %g voxel\n", worst, ra, rg);
   CHECK(worst <= 0.05f);
   CHECK(std::fabs(ra - rg) <= 1e-4);
 }
@@ -186,6 +188,8 @@ TEST_CASE("a whole gpu step equals the cpu step, and reset restores I") {
     long long off = 0;
     for (std::size_t e = 0; e < ja.data.size(); ++e) off += std::fabs(ja.data[e] - jb.data[e]) > 0.5f;
     INFO("step " << s << ": " << off << " voxels differ by more than 0.5 HU");
+    std::printf("step %d: %lld of %lld voxels differ by more than 0.5 HU; residual cpu %g gpu %g\n", s, off,
+                b.chainmail.voi.count(), a.invert_residual_vox, b.invert_residual_vox);
     CHECK(off <= b.chainmail.voi.count() / 1000);
     CHECK(std::fabs(a.invert_residual_vox - b.invert_residual_vox) <= 0.05 * std::max(1.0, a.invert_residual_vox));
   }

@@ -94,6 +94,8 @@ def run_plan(plan: Plan, address: str, sessions: int = 1, timeout_s: float = 10.
     errors: list[BaseException] = []
     stop = threading.Event()
     lock = threading.Lock()
+    # every session is open before any press starts, so that all of them share the work
+    ready = threading.Barrier(sessions)
     server: dict = {}
 
     from tqdm import tqdm
@@ -111,6 +113,7 @@ def run_plan(plan: Plan, address: str, sessions: int = 1, timeout_s: float = 10.
                                   generation=int(info.scene_generation))
                 for name, value in plan.parameters.items():
                     session.set_parameter(name, value)
+                ready.wait(timeout=max(timeout_s, 1.0) * 3)
                 while not stop.is_set():
                     try:
                         task = todo.get_nowait()
@@ -123,10 +126,13 @@ def run_plan(plan: Plan, address: str, sessions: int = 1, timeout_s: float = 10.
                     if on_press:
                         on_press(task)
                 session.close()
+        except threading.BrokenBarrierError:
+            stop.set()  # another session failed to open; its error is the one reported
         except BaseException as e:  # noqa: BLE001 - handed to the caller below
             with lock:
                 errors.append(e)
             stop.set()
+            ready.abort()
 
     t0 = time.perf_counter()
     threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(sessions)]
@@ -144,6 +150,8 @@ def run_plan(plan: Plan, address: str, sessions: int = 1, timeout_s: float = 10.
     wall = time.perf_counter() - t0
     if errors:
         raise errors[0]
+    if stop.is_set() and len(results) != len(tasks):
+        raise PalpsimError("the sessions could not all be opened in time")
     if len(results) != len(tasks):
         raise PalpsimError(f"only {len(results)} of {len(tasks)} presses finished")
     frames = [pd.DataFrame(results[i]) for i in range(len(tasks))]

@@ -152,7 +152,9 @@ struct Opened {
 // lists the series of a DICOM folder and opens the chosen one
 void open_dicom(const std::string& path, const PrepSettings& prep, Opened& o) {
   auto names = itk::GDCMSeriesFileNames::New();
-  names->SetUseSeriesDetails(false);  // identify series by their SeriesInstanceUID alone
+  // series identifiers: the SeriesInstanceUID extended with series details (ITK's
+  // default), so volumes sharing a UID are still told apart
+  names->SetUseSeriesDetails(true);
   names->SetRecursive(false);
   std::vector<std::string> uids;
   try {
@@ -175,9 +177,18 @@ void open_dicom(const std::string& path, const PrepSettings& prep, Opened& o) {
       throw Error("CT folder " + in_quotes(path) + " holds " + std::to_string(uids.size()) +
                   " DICOM series; choose one with the scene field prep.dicom_series_uid:" + listing());
     uid = uids.front();
-  } else if (std::find(uids.begin(), uids.end(), uid) == uids.end()) {
-    throw Error("CT folder " + in_quotes(path) + ": no DICOM series with prep.dicom_series_uid = " + in_quotes(uid) +
-                "; the folder holds:" + listing());
+  } else {
+    // an identifier as listed, or a SeriesInstanceUID that starts exactly one of them
+    std::vector<std::string> match;
+    for (const auto& u : uids)
+      if (u == uid) match = {u};
+    if (match.empty())
+      for (const auto& u : uids)
+        if (u.size() > uid.size() && u.compare(0, uid.size(), uid) == 0 && u[uid.size()] == '.') match.push_back(u);
+    if (match.size() != 1)
+      throw Error("CT folder " + in_quotes(path) + ": " + (match.empty() ? "no" : "more than one") +
+                  " DICOM series with prep.dicom_series_uid = " + in_quotes(uid) + "; the folder holds:" + listing());
+    uid = match.front();
   }
   o.info.files = names->GetFileNames(uid);
   o.info.series_uid = uid;

@@ -1,0 +1,102 @@
+// The exact Euclidean distance transform against brute force, on random masks with
+// anisotropic spacing, and its edge cases.
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <limits>
+#include <random>
+
+#include "prep/distance.h"
+
+using namespace palpsim;
+
+namespace {
+
+// brute force: the smallest physical distance from each voxel to any site
+Volume<float> brute_force(const Volume<std::uint8_t>& m, bool to_nonzero) {
+  const Grid& g = m.grid;
+  Volume<float> d(g, std::numeric_limits<float>::infinity());
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i) {
+        double best = std::numeric_limits<double>::infinity();
+        for (int c = 0; c < g.size.z; ++c)
+          for (int b = 0; b < g.size.y; ++b)
+            for (int a = 0; a < g.size.x; ++a) {
+              if ((m.at(a, b, c) != 0) != to_nonzero) continue;
+              const double dx = (a - i) * g.spacing_mm.x, dy = (b - j) * g.spacing_mm.y, dz = (c - k) * g.spacing_mm.z;
+              best = std::min(best, dx * dx + dy * dy + dz * dz);
+            }
+        d.at(i, j, k) = float(std::sqrt(best));
+      }
+  return d;
+}
+
+Volume<std::uint8_t> random_mask(std::mt19937& rng, Vec3i size, Vec3 spacing, double fill) {
+  Grid g;
+  g.size = size;
+  g.spacing_mm = spacing;
+  Volume<std::uint8_t> m(g);
+  std::bernoulli_distribution b(fill);
+  for (auto& v : m.data) v = b(rng);
+  return m;
+}
+
+}  // namespace
+
+TEST_CASE("EDT equals brute force on random masks with anisotropic spacing") {
+  std::mt19937 rng(1234);
+  const Vec3i sizes[] = {{9, 7, 5}, {17, 3, 11}, {1, 12, 8}, {13, 13, 1}, {20, 9, 6}};
+  const Vec3 spacings[] = {{0.7, 1.3, 3.0}, {2.5, 0.5, 1.0}, {1, 1, 1}, {0.977, 0.977, 2.0}, {3, 0.6, 1.7}};
+  const double fills[] = {0.002, 0.02, 0.2, 0.6};
+  int checked = 0;
+  for (int s = 0; s < 5; ++s)
+    for (double fill : fills)
+      for (int threads : {1, 3}) {
+        const auto m = random_mask(rng, sizes[s], spacings[s], fill);
+        const auto fast = distance_to_mask_mm(m, threads);
+        const auto slow = brute_force(m, true);
+        const auto fast_bg = distance_to_background_mm(m, threads);
+        const auto slow_bg = brute_force(m, false);
+        for (std::size_t i = 0; i < m.data.size(); ++i) {
+          // float storage of squared mm: relative error below 1e-6 (tolerance 1e-4 mm + 1e-6 relative)
+          if (std::isinf(slow.data[i])) {
+            CHECK(std::isinf(fast.data[i]));
+          } else {
+            CHECK(fast.data[i] == Approx(slow.data[i]).margin(1e-4).epsilon(1e-6));
+          }
+          if (std::isinf(slow_bg.data[i])) {
+            CHECK(std::isinf(fast_bg.data[i]));
+          } else {
+            CHECK(fast_bg.data[i] == Approx(slow_bg.data[i]).margin(1e-4).epsilon(1e-6));
+          }
+          ++checked;
+        }
+      }
+  CHECK(checked > 10000);
+}
+
+TEST_CASE("EDT of an empty mask is infinite, of a full mask zero") {
+  Grid g;
+  g.size = {6, 5, 4};
+  g.spacing_mm = {1, 2, 3};
+  const Volume<std::uint8_t> empty(g, 0), full(g, 1);
+  for (float d : distance_to_mask_mm(empty).data) CHECK(std::isinf(d));
+  for (float d : distance_to_mask_mm(full).data) CHECK(d == 0);
+  for (float d : distance_to_background_mm(empty).data) CHECK(d == 0);
+}
+
+TEST_CASE("EDT of a single voxel is the exact physical distance") {
+  Grid g;
+  g.size = {31, 21, 11};
+  g.spacing_mm = {0.5, 1.25, 2.0};
+  Volume<std::uint8_t> m(g, 0);
+  m.at(3, 17, 9) = 1;
+  const auto d = distance_to_mask_mm(m);
+  for (int k = 0; k < g.size.z; k += 2)
+    for (int j = 0; j < g.size.y; j += 3)
+      for (int i = 0; i < g.size.x; i += 5)
+        CHECK(d.at(i, j, k) == Approx(std::sqrt(std::pow((i - 3) * 0.5, 2) + std::pow((j - 17) * 1.25, 2) +
+                                                std::pow((k - 9) * 2.0, 2)))
+                                   .epsilon(1e-6));
+}

@@ -1,0 +1,113 @@
+// The real scans in ../shared/data: the abdominal CT's table, bowel gas, spinous
+// processes and vertebral bodies, and the DICOM series' geometry and HU.
+#include <catch2/catch.hpp>
+
+#include <cmath>
+
+#include "core/error.h"
+#include "prep/ct_io.h"
+#include "prep/prepare.h"
+#include "support/data.h"
+#include "unit/prep_files.h"
+
+using namespace palpsim;
+using namespace palpsim::test;
+
+namespace {
+
+// the patient voxel nearest to voxel (i, j, k) of the input CT
+std::size_t patient_voxel(const Patient& p, const Grid& ct, int i, int j, int k) {
+  const Vec3 c = p.grid.to_index(ct.to_physical(Vec3{double(i), double(j), double(k)}));
+  return p.grid.index(int(std::lround(c.x)), int(std::lround(c.y)), int(std::lround(c.z)));
+}
+
+}  // namespace
+
+TEST_CASE("abdomen CT: table outside C, bowel gas inside, spinous processes and vertebral bodies bone") {
+  const std::string path = shared_data_file("ct/abdomen-lumbar-3mm.nii.gz");
+  if (path.empty()) return;
+  // the scene config/scenes/lumbar_ct.textproto uses: 1.5 mm, bone threshold 180 HU
+  Scene s = ct_scene(path, "");
+  s.prep.spacing_mm = 1.5;
+  s.prep.bone_threshold = 180;
+  const CtImage ct = read_ct(path, s.prep);
+  const Grid& g = ct.image.grid;
+  REQUIRE(g.size == Vec3i{122, 101, 112});
+  PrepReport r;
+  const PatientPtr p = prepare_patient(s, &r);
+
+  // the table: columns of the lowest 6 rows (posterior 18 mm, the patient lies supine)
+  // beside the buttocks (i <= 30 or i >= 90) that are tissue-dense in >= 95% of the
+  // slices; the table is the same in every slice, the body is not there
+  std::size_t table = 0, table_in_c = 0;
+  for (int j = 0; j <= 5; ++j)
+    for (int i = 0; i < g.size.x; ++i) {
+      if (i > 30 && i < 90) continue;
+      int dense = 0;
+      for (int k = 0; k < g.size.z; ++k) dense += ct.image.at(i, j, k) >= -400;
+      if (dense < 0.95 * g.size.z) continue;
+      for (int k = 0; k < g.size.z; ++k) {
+        if (ct.image.at(i, j, k) < -400) continue;
+        ++table;
+        table_in_c += p->body.data[patient_voxel(*p, g, i, j, k)];
+      }
+    }
+  INFO("table voxels " << table << ", inside C " << table_in_c);
+  CHECK(table > 1000);
+  CHECK(table_in_c == 0);
+
+  // bowel gas: pockets in the anterior abdomen (input voxel indices found in the scan),
+  // each below -900 HU, must be inside the patient
+  const int gas[][3] = {{46, 81, 80}, {79, 80, 80}, {37, 80, 100}, {56, 82, 60}, {18, 67, 80}};
+  for (const auto& v : gas) {
+    INFO("gas at input voxel " << v[0] << "," << v[1] << "," << v[2]);
+    CHECK(ct.image.at(v[0], v[1], v[2]) < -900);
+    CHECK(p->body.data[patient_voxel(*p, g, v[0], v[1], v[2])] == 1);
+  }
+  // the air between the back and the table is outside
+  CHECK(ct.image.at(61, 7, 60) < -900);
+  CHECK(p->body.data[patient_voxel(*p, g, 61, 7, 60)] == 0);
+
+  // spinous processes: midline posterior box (18-63 mm in front of the table) over the
+  // lumbar slices; every input voxel >= 250 HU there must be bone in the patient
+  std::size_t spinous = 0, spinous_bone = 0;
+  for (int k = 40; k <= 105; ++k)
+    for (int j = 8; j <= 21; ++j)
+      for (int i = 56; i <= 66; ++i)
+        if (ct.image.at(i, j, k) >= 250) {
+          ++spinous;
+          spinous_bone += p->bone.data[patient_voxel(*p, g, i, j, k)];
+        }
+  INFO("spinous voxels " << spinous << ", bone " << spinous_bone);
+  CHECK(spinous > 100);
+  CHECK(spinous_bone == spinous);
+
+  // a vertebral body's cancellous interior (100-160 HU, below the 180 HU threshold) is bone
+  for (int i : {57, 60, 63})
+    for (int j : {32, 35}) {
+      INFO("vertebral body at input voxel " << i << "," << j << ",100");
+      CHECK(ct.image.at(i, j, 100) < 180);
+      CHECK(p->bone.data[patient_voxel(*p, g, i, j, 100)] == 1);
+    }
+  // the spinal canal behind it is not
+  CHECK(p->bone.data[patient_voxel(*p, g, 61, 26, 100)] == 0);
+  CHECK(r.bone_ml > 500);
+  CHECK(r.bone_ml < 3000);
+}
+
+TEST_CASE("the DICOM series (JPEG 2000 lossless) loads as 512x512x20, 0.977x0.977x2 mm, HU -1024..1839") {
+  const std::string path = shared_data_file("ct/dicom-partial-body");
+  if (path.empty()) return;
+  PrepSettings prep;
+  const CtImage ct = read_ct(path, prep);
+  CHECK(ct.info.format == "DICOM");
+  CHECK(ct.info.files.size() == 20);
+  CHECK(ct.image.grid.size == Vec3i{512, 512, 20});
+  // spacing from the slice positions (2 mm), not SliceThickness (3 mm); 1e-3 mm rounding in the tags
+  CHECK(ct.image.grid.spacing_mm.x == Approx(0.977).margin(1e-3));
+  CHECK(ct.image.grid.spacing_mm.y == Approx(0.977).margin(1e-3));
+  CHECK(ct.image.grid.spacing_mm.z == Approx(2.0).margin(1e-3));
+  CHECK(ct.info.min_value == -1024);
+  CHECK(ct.info.max_value == 1839);
+  CHECK_FALSE(ct.info.series_uid.empty());
+}

@@ -1,10 +1,13 @@
 #include "prep/ct_io.h"
 
 #include <algorithm>
+#include <cstring>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
+
+#include <zlib.h>
 
 #include "core/error.h"
 #include "itkGDCMImageIO.h"
@@ -210,6 +213,50 @@ void open_dicom(const std::string& path, const PrepSettings& prep, Opened& o) {
   o.info.grid = grid_of(o.series_reader.GetPointer());
 }
 
+// NIfTI-1: ITK reads a cut-short file without complaint, so the length of the
+// (decompressed) file is checked against vox_offset + the header's voxel bytes
+void check_nifti_length(const std::string& path) {
+  const std::string l = lower(path);
+  const bool gz = l.size() > 7 && l.compare(l.size() - 7, 7, ".nii.gz") == 0;
+  if (!gz && !(l.size() > 4 && l.compare(l.size() - 4, 4, ".nii") == 0)) return;
+  gzFile f = gzopen(path.c_str(), "rb");  // reads plain files too
+  if (!f) throw Error("CT file " + in_quotes(path) + ": cannot open it");
+  unsigned char h[348];
+  const int got = gzread(f, h, sizeof h);
+  std::int32_t sizeof_hdr = 0;
+  if (got == int(sizeof h)) std::memcpy(&sizeof_hdr, h, 4);
+  if (sizeof_hdr != 348) {  // NIfTI-2 or byte-swapped headers: left to ITK
+    gzclose(f);
+    return;
+  }
+  std::int16_t dim[8], bitpix = 0;
+  float vox_offset = 0;
+  std::memcpy(dim, h + 40, sizeof dim);
+  std::memcpy(&bitpix, h + 72, 2);
+  std::memcpy(&vox_offset, h + 108, 4);
+  std::uint64_t need = std::uint64_t(std::max(352.0f, vox_offset));
+  std::uint64_t voxels = 1;
+  for (int d = 1; d <= std::min<int>(dim[0], 7); ++d) voxels *= std::uint64_t(std::max<std::int16_t>(dim[d], 1));
+  need += voxels * std::uint64_t(std::max<std::int16_t>(bitpix, 8)) / 8;
+  // count the bytes that follow (the whole stream, so a cut gzip stream errors)
+  std::uint64_t have = std::uint64_t(got);
+  std::vector<char> buf(1 << 20);
+  int n;
+  while ((n = gzread(f, buf.data(), unsigned(buf.size()))) > 0) have += std::uint64_t(n);
+  int err = Z_OK;
+  const char* msg = gzerror(f, &err);
+  const std::string zmsg = msg ? msg : "";
+  gzclose(f);
+  if (n < 0 || (err != Z_OK && err != Z_STREAM_END))
+    throw Error("CT file " + in_quotes(path) + ": corrupt or truncated compressed data (" + zmsg + ")");
+  if (have < need) {
+    std::ostringstream s;
+    s << "CT file " << in_quotes(path) << ": truncated: its header declares " << need << " bytes of header and voxels, "
+      << "the file holds " << have;
+    throw Error(s.str());
+  }
+}
+
 // opens an image file after checking its dimension and pixel type from its header
 void open_file(const std::string& path, Opened& o) {
   itk::ImageIOBase::Pointer io =
@@ -251,6 +298,7 @@ void open_file(const std::string& path, Opened& o) {
         << " mm; every voxel spacing must be a positive finite length";
       throw Error(s.str());
     }
+  if (o.info.format == "NIfTI") check_nifti_length(path);
   o.info.pixel_type = component_name(io->GetComponentType());
   o.info.files = {path};
   if (const std::string data = detached_data_file(path); !data.empty()) o.info.files.push_back(data);

@@ -54,17 +54,17 @@ TEST_CASE("the automatic spacing is the smallest input spacing clamped to 0.5-2 
 }
 
 TEST_CASE("body mask: table cut off, gas and cut airways inside, arm kept, body at the border") {
-  const Grid g = make_grid({120, 100, 40}, {1, 1, 1});
+  const Grid g = make_grid({150, 100, 40}, {1, 1, 1});
   Volume<float> v(g, -1000);
   for (int k = 0; k < 40; ++k)
     for (int j = 0; j < 100; ++j)
-      for (int i = 0; i < 120; ++i) {
+      for (int i = 0; i < 150; ++i) {
         const double x = i - 50, y = j - 50;
         float hu = -1000;
         if ((x / 40) * (x / 40) + (y / 30) * (y / 30) <= 1) hu = 40;        // torso
         if (std::hypot(x + 15, y) <= 6) hu = -1000;                          // gas pocket (a tube along z)
         if (std::hypot(x - 10, y + 10) <= 4) hu = -1000;                     // airway cut by both end slices
-        if (std::hypot(i - 105.0, y) <= 12) hu = 40;                        // arm apart from the torso
+        if (std::hypot(i - 120.0, y) <= 20) hu = 40;                        // arm, 10 mm apart from the torso
         if (j >= 81 && j <= 83) hu = 300;                                   // table shell, 3 mm, touching the torso at x = 0
         if (i <= 2 && j >= 40 && j <= 60) hu = 40;                          // tissue touching the volume border
         v.at(i, j, k) = hu;
@@ -80,13 +80,14 @@ TEST_CASE("body mask: table cut off, gas and cut airways inside, arm kept, body 
   CHECK(C.at(60, 40, k) == 1);   // airway, also in the first and last slice
   CHECK(C.at(60, 40, 0) == 1);
   CHECK(C.at(60, 40, 39) == 1);
-  CHECK(C.at(105, 50, k) == 1);  // arm
+  CHECK(C.at(120, 50, k) == 1);  // arm
   CHECK(C.at(0, 50, k) == 1);    // body touching the volume's border
   CHECK(C.at(5, 79, k) == 0);    // table far from the body
   // the table beside the torso: 10 mm from the torso's 5 mm-eroded core, beyond the
   // opening radius plus the 1.5-voxel margin (6.5 mm); only its contact line may stay
   CHECK(C.at(30, 82, k) == 0);
   CHECK(C.at(70, 82, k) == 0);
+  CHECK(C.at(95, 50, k) == 0);   // the air between arm and torso
   CHECK(C.at(110, 5, k) == 0);   // outside air
   CHECK(C.at(50, 95, k) == 0);   // air below the table
   CHECK(C.at(50, 80, k) == 1);   // the torso's own bottom edge

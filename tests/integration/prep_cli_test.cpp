@@ -1,0 +1,81 @@
+// palpsim-prep as a user runs it: outputs on success; on bad input a non-zero exit,
+// a message naming the file or field, and no output folder.
+#include <catch2/catch.hpp>
+
+#include <sys/wait.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "unit/prep_files.h"
+
+using namespace palpsim::test;
+namespace fs = std::filesystem;
+
+namespace {
+
+struct Run {
+  int code;
+  std::string output;
+};
+
+// runs palpsim-prep with `args`, capturing stdout and stderr
+Run prep(const std::string& args) {
+  const std::string cmd = std::string(PALPSIM_BINARY_DIR) + "/palpsim-prep " + args + " 2>&1";
+  FILE* p = popen(cmd.c_str(), "r");
+  std::string out;
+  char buf[4096];
+  std::size_t n;
+  while ((n = fread(buf, 1, sizeof buf, p)) > 0) out.append(buf, n);
+  const int status = pclose(p);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+}  // namespace
+
+TEST_CASE("palpsim-prep writes every output for a CT file") {
+  TempDir d;
+  write_volume_nrrd(d / "torso.nrrd", synthetic_torso({70, 50, 16}, {1.5, 1.5, 2.5}));
+  const Run r = prep("'" + (d / "torso.nrrd") + "' --no-cache --out '" + (d / "out") + "'");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  for (const char* f : {"F.nrrd", "body.nrrd", "bone.nrrd", "dist_bone.nrrd", "dist_skin.nrrd", "preview.png", "prep.json"})
+    CHECK(fs::file_size(d.path / "out" / f) > 0);
+  std::ifstream j(d / "out/prep.json");
+  const std::string json((std::istreambuf_iterator<char>(j)), {});
+  CHECK_THAT(json, Catch::Contains("\"body_ml\"") && Catch::Contains("\"bone_ml\"") &&
+                       Catch::Contains("\"stages_s\"") && Catch::Contains("\"value_range\"") &&
+                       Catch::Contains("\"spacing_mm\": [1.5, 1.5, 2.5]"));
+}
+
+TEST_CASE("palpsim-prep on bad input exits non-zero, names the problem and writes nothing") {
+  TempDir d;
+  // a missing CT
+  Run r = prep("'" + (d / "missing.nii.gz") + "' --out '" + (d / "out") + "'");
+  CHECK(r.code != 0);
+  CHECK_THAT(r.output, Catch::Contains("missing.nii.gz"));
+  CHECK_FALSE(fs::exists(d.path / "out"));
+  // a scene with an unknown field, and one with an out-of-range value
+  std::ofstream(d / "unknown.textproto") << "phantom {}\nprep { colour: 3 }\n";
+  r = prep("--scene '" + (d / "unknown.textproto") + "' --out '" + (d / "out") + "'");
+  CHECK(r.code != 0);
+  CHECK_THAT(r.output, Catch::Contains("unknown.textproto:2"));
+  std::ofstream(d / "range.textproto") << "phantom {}\nprep {\n  spacing_mm: 99\n}\n";
+  r = prep("--scene '" + (d / "range.textproto") + "' --out '" + (d / "out") + "'");
+  CHECK(r.code != 0);
+  CHECK_THAT(r.output, Catch::Contains("range.textproto:3") && Catch::Contains("spacing_mm"));
+  CHECK_FALSE(fs::exists(d.path / "out"));
+  // nothing half-written beside it either
+  for (const auto& e : fs::directory_iterator(d.path)) CHECK_FALSE(e.is_directory());
+  // usage errors
+  CHECK(prep("").code == 2);
+}
+
+TEST_CASE("palpsim-prep --scene-doc lists the prep fields") {
+  const Run r = prep("--scene-doc");
+  CHECK(r.code == 0);
+  CHECK_THAT(r.output, Catch::Contains("air_threshold") && Catch::Contains("bone_min_volume_ml"));
+}

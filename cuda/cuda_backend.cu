@@ -140,7 +140,7 @@ void CudaDeformBackend::enqueue_upload() {
                                      cudaMemcpyDeviceToHost, stream_));
 }
 
-void CudaDeformBackend::finish(ChainMailStats* stats, double* residual) {
+void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv) {
   PALPSIM_CUDA_CHECK(cudaMemcpyAsync(host_counters_, d_.counters, sizeof(Counters), cudaMemcpyDeviceToHost, stream_));
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
   if (stats && !stats->grabbed_in_bone) {
@@ -148,10 +148,11 @@ void CudaDeformBackend::finish(ChainMailStats* stats, double* residual) {
     stats->moved = (long long)host_counters_->moved_total;
     stats->converged = host_counters_->converged != 0;
   }
-  if (residual) {
+  if (inv) {
     float r;
     std::memcpy(&r, &host_counters_->residual_bits, sizeof r);
-    *residual = r;
+    inv->max_residual_vox = r;
+    inv->unresolved = (long long)host_counters_->unresolved;
   }
 }
 
@@ -175,9 +176,10 @@ void CudaDeformBackend::relax_impl() {
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
 }
 
-double CudaDeformBackend::invert_impl() {
-  double r = 0;
+InvertStats CudaDeformBackend::invert_impl() {
+  InvertStats r;
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->residual_bits, 0, sizeof(unsigned), stream_));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->unresolved, 0, sizeof(unsigned long long), stream_));
   enqueue_invert();
   finish(nullptr, &r);
   return r;
@@ -211,9 +213,12 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[4], stream_));
   if (config_.invert) enqueue_upload();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[5], stream_));
-  double residual = 0;
-  finish(&out.chainmail, &residual);
-  if (config_.invert) out.invert_residual_vox = residual;
+  InvertStats inv;
+  finish(&out.chainmail, &inv);
+  if (config_.invert) {
+    out.invert_residual_vox = inv.max_residual_vox;
+    out.invert_unresolved = inv.unresolved;
+  }
   // stage times from the events (ms)
   float ms[5];
   for (int s = 0; s < 5; ++s) PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms[s], ev_[s], ev_[s + 1]));

@@ -21,7 +21,7 @@ class CudaDeformBackend final : public DeformBackend {
   void bind_impl() override;
   void chainmail_impl(ChainMailStats& stats) override;
   void relax_impl() override;
-  double invert_impl() override;
+  InvertStats invert_impl() override;
   void upload_impl() override;
   void reset_impl() override;
   DeformStats step_impl(const ChainMailStats& setup) override;
@@ -39,7 +39,7 @@ class CudaDeformBackend final : public DeformBackend {
   void enqueue_invert();
   void enqueue_upload();
   // wait for the stream and read the counters
-  void finish(ChainMailStats* stats, double* residual);
+  void finish(ChainMailStats* stats, InvertStats* inv);
 
   DeviceBuffers d_;
   LaunchShape shape_;

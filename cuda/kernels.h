@@ -18,6 +18,7 @@ struct Counters {
   int converged;                   // 1 when a quiet sweep came within the cap
   unsigned long long moved_total;  // elements that moved at least once
   unsigned int residual_bits;      // max inversion residual (voxel) as float bits (>= 0)
+  unsigned long long unresolved;   // voxels with a residual above deform::kInvertResolvedVox
 };
 
 /// Device pointers of one session's state.

@@ -165,9 +165,9 @@ void DeformBackend::relax() {
   stage_ = 2;
 }
 
-double DeformBackend::invert() {
+InvertStats DeformBackend::invert() {
   require(stage_ >= 1, "invert() before chainmail()");
-  const double r = invert_impl();
+  const InvertStats r = invert_impl();
   stage_ = 3;
   return r;
 }

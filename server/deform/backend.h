@@ -58,11 +58,18 @@ struct DeformTimes {
   double total_ms = 0;
 };
 
+/// What the inversion left: its worst residual and how many voxels it did not resolve.
+struct InvertStats {
+  double max_residual_vox = 0;  // max |p + u(p) - y| over the VOI (voxel)
+  long long unresolved = 0;     // VOI voxels with a residual above deform::kInvertResolvedVox
+};
+
 /// What one whole step did and cost.
 struct DeformStats {
   ChainMailStats chainmail;
   int relax_iterations = 0;          // 0 when relaxation is off
   double invert_residual_vox = 0;    // max |p + u(p) - y| over the VOI (voxel); 0 without inversion
+  long long invert_unresolved = 0;   // VOI voxels with a residual above deform::kInvertResolvedVox
   DeformTimes times;
 };
 
@@ -87,8 +94,8 @@ class DeformBackend {
   ChainMailStats chainmail(const DeformContact& contact);
   /// Relaxes the displacement field (deform.relax_iterations iterations).
   void relax();
-  /// Computes the deformed image J on the VOI; returns the inversion residual (voxel).
-  double invert();
+  /// Computes the deformed image J on the VOI; returns the inversion's residuals.
+  InvertStats invert();
   /// Makes J's VOI readable through deformed_brick() (a device-to-host copy on "cuda").
   void upload();
   /// Returns displacements to zero and J to I: the undeformed state.
@@ -121,7 +128,7 @@ class DeformBackend {
   virtual void bind_impl() = 0;
   virtual void chainmail_impl(ChainMailStats& stats) = 0;  // stats has voi and grabbed set
   virtual void relax_impl() = 0;
-  virtual double invert_impl() = 0;
+  virtual InvertStats invert_impl() = 0;
   virtual void upload_impl() = 0;
   virtual void reset_impl() = 0;
   virtual DeformStats step_impl(const ChainMailStats& setup) = 0;  // resets first

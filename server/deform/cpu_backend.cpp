@@ -43,7 +43,7 @@ void CpuDeformBackend::relax_impl() {
                     float(d.material_width), s_);
 }
 
-double CpuDeformBackend::invert_impl() {
+InvertStats CpuDeformBackend::invert_impl() {
   return deform::invert_cpu(*patient_, voi_, config_.settings.invert_iterations, s_);
 }
 
@@ -78,7 +78,9 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
   // inversion and upload, when the scene asks for J
   if (config_.invert) {
     t0 = clock::now();
-    out.invert_residual_vox = invert_impl();
+    const InvertStats inv = invert_impl();
+    out.invert_residual_vox = inv.max_residual_vox;
+    out.invert_unresolved = inv.unresolved;
     out.times.invert_ms = ms_since(t0);
     t0 = clock::now();
     upload_impl();

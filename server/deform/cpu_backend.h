@@ -41,8 +41,9 @@ void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float
                float width, CpuState& s);
 
 /// J on the VOI by inverting the displacement (fixed-point iteration, trilinear
-/// sampling of u and I); returns the largest residual |p + u(p) - y| (voxel).
-double invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s);
+/// sampling of u and I); returns the largest residual |p + u(p) - y| (voxel) and
+/// the count of voxels left unresolved.
+InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s);
 
 }  // namespace deform
 
@@ -55,7 +56,7 @@ class CpuDeformBackend final : public DeformBackend {
   void bind_impl() override;
   void chainmail_impl(ChainMailStats& stats) override;
   void relax_impl() override;
-  double invert_impl() override;
+  InvertStats invert_impl() override;
   void upload_impl() override {}  // J is computed in host memory already
   void reset_impl() override;
   DeformStats step_impl(const ChainMailStats& setup) override;

@@ -118,6 +118,11 @@ PALPSIM_HD T trilinear(const Load& load, const Vec3f& p) {
   return c0 * gz + c1 * fz;
 }
 
+/// A voxel whose inversion residual exceeds this (voxel) counts as unresolved: the
+/// fixed-point iteration did not find where its tissue came from (a fold, or a
+/// field that does not contract there).
+constexpr float kInvertResolvedVox = 0.1f;
+
 /// Inverts the displacement at the deformed point y (continuous VOI-local index) by
 /// the fixed-point iteration p <- y - u(p), starting at p = y; `load_u` gives the
 /// displacement of a VOI-local voxel (zero outside the VOI). Returns the undeformed

@@ -5,7 +5,7 @@
 
 namespace palpsim::deform {
 
-double invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s) {
+InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s) {
   const Grid& grid = p.grid;
   // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
   auto load_u = [&](int i, int j, int k) {
@@ -19,6 +19,7 @@ double invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s)
     return p.intensity.data[grid.index(gi, gj, gk)];
   };
   float worst = 0;
+  long long unresolved = 0;
   for (int k = 0; k < voi.size.z; ++k)
     for (int j = 0; j < voi.size.y; ++j)
       for (int i = 0; i < voi.size.x; ++i) {
@@ -26,8 +27,9 @@ double invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s)
         const Vec3f x0 = invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
         s.j[voi.index(i, j, k)] = trilinear<float>(load_i, x0);
         worst = std::max(worst, r);
+        unresolved += r > kInvertResolvedVox;
       }
-  return worst;
+  return {worst, unresolved};
 }
 
 }  // namespace palpsim::deform

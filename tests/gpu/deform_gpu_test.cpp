@@ -148,7 +148,9 @@ TEST_CASE("gpu inversion matches the cpu on the same displacement field") {
       }
   b.cpu->set_displacement(u);
   b.gpu->set_displacement(u);
-  const double ra = b.cpu->invert(), rg = b.gpu->invert();
+  const InvertStats ia = b.cpu->invert(), ig = b.gpu->invert();
+  const double ra = ia.max_residual_vox, rg = ig.max_residual_vox;
+  CHECK(ia.unresolved == ig.unresolved);
   b.cpu->upload();
   b.gpu->upload();
   const float* ja = b.cpu->deformed_brick();
@@ -188,10 +190,13 @@ TEST_CASE("a whole gpu step equals the cpu step, and reset restores I") {
     long long off = 0;
     for (std::size_t e = 0; e < ja.data.size(); ++e) off += std::fabs(ja.data[e] - jb.data[e]) > 0.5f;
     INFO("step " << s << ": " << off << " voxels differ by more than 0.5 HU");
-    std::printf("step %d: %lld of %lld voxels differ by more than 0.5 HU; residual cpu %g gpu %g\n", s, off,
-                b.chainmail.voi.count(), a.invert_residual_vox, b.invert_residual_vox);
+    std::printf("step %d: %lld of %lld voxels differ by more than 0.5 HU; residual cpu %g gpu %g; unresolved cpu %lld gpu %lld\n",
+                s, off, b.chainmail.voi.count(), a.invert_residual_vox, b.invert_residual_vox, a.invert_unresolved,
+                b.invert_unresolved);
     CHECK(off <= b.chainmail.voi.count() / 1000);
     CHECK(std::fabs(a.invert_residual_vox - b.invert_residual_vox) <= 0.05 * std::max(1.0, a.invert_residual_vox));
+    // voxels right at the 0.1 voxel threshold may fall either way: allow 0.1% of the VOI
+    CHECK(std::llabs(a.invert_unresolved - b.invert_unresolved) <= 1 + b.chainmail.voi.count() / 1000);
   }
   g.reset();
   CHECK(g.deformed_volume().data == torso->intensity.data);

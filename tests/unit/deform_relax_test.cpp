@@ -102,8 +102,11 @@ TEST_CASE("the inversion residual falls geometrically for a contracting displace
     b.bind(patient, cfg);
     b.chainmail(voxel_contact({16, 16, 16}, {0, 0, 0}));
     b.set_displacement(u);
-    const double r = b.invert();
-    INFO("iterations " << iters << " residual " << r);
+    const InvertStats inv = b.invert();
+    const double r = inv.max_residual_vox;
+    INFO("iterations " << iters << " residual " << r << ", unresolved " << inv.unresolved);
+    if (iters >= 8) CHECK(inv.unresolved == 0);  // 0.41^8 * 4 voxel = 3e-3 < 0.1 everywhere
+    if (iters == 0) CHECK(inv.unresolved > 0);   // without iterations the residual is |u(y)| up to 4 voxel
     CHECK(r < last);
     last = r;
   }

@@ -23,23 +23,29 @@ namespace palpsim::cuda {
 
 namespace {
 
-// sums v over the block; the result is valid in thread 0
-__device__ int block_sum(int v, int* scratch) {
-  for (int o = 16; o > 0; o >>= 1) v += __shfl_down_sync(0xffffffffu, v, o);
+// sums a and b over the block; the results are valid in thread 0
+__device__ int2 block_sum2(int a, int b, int2* scratch) {
+  for (int o = 16; o > 0; o >>= 1) {
+    a += __shfl_down_sync(0xffffffffu, a, o);
+    b += __shfl_down_sync(0xffffffffu, b, o);
+  }
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  __syncthreads();  // the previous sweep's readers are done with scratch
+  if (lane == 0) scratch[warp] = make_int2(a, b);
   __syncthreads();
-  if (lane == 0) scratch[warp] = v;
-  __syncthreads();
-  int s = 0;
+  int2 s = make_int2(0, 0);
   if (threadIdx.x == 0)
-    for (int w = 0; w < int(blockDim.x >> 5); ++w) s += scratch[w];
+    for (int w = 0; w < int(blockDim.x >> 5); ++w) {
+      s.x += scratch[w].x;
+      s.y += scratch[w].y;
+    }
   return s;
 }
 
 __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeometry geo, Vec3f u0,
                                                                        deform::ChainMailLimits lim, int max_sweeps,
                                                                        DeviceBuffers b) {
-  __shared__ int scratch[32];
+  __shared__ int2 scratch[32];
   cg::grid_group grid = cg::this_grid();
   const deform::Voi& voi = geo.voi;
   const Vec3i g = geo.grabbed;
@@ -72,6 +78,7 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
     int* sb = b.stamp[pb];
     // the wave moves one voxel per sweep: only the box g +- s can hold candidates
     int lo[3], ext[3];
+#pragma unroll
     for (int a = 0; a < 3; ++a) {
       lo[a] = max(g[a] - s, 0);
       ext[a] = min(g[a] + s, voi.size[a] - 1) - lo[a] + 1;
@@ -87,6 +94,7 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
       // which neighbours moved in the previous sweep (stamps only: most elements stop here)
       const int n_ok[6] = {i > 0, i + 1 < voi.size.x, j > 0, j + 1 < voi.size.y, k > 0, k + 1 < voi.size.z};
       unsigned mask = 0;
+#pragma unroll
       for (int q = 0; q < 6; ++q)
         if (n_ok[q] && sa[e + step[q]] == s - 1) mask |= 1u << q;
       const bool self_prev = sa[e] == s - 1;
@@ -97,6 +105,7 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
       // clamp into the box of every neighbour that moved in the previous sweep, in the fixed order
       const Vec3f old{ax[e], ay[e], az[e]};
       Vec3f v = old;
+#pragma unroll
       for (int q = 0; q < 6; ++q)
         if (mask & (1u << q)) {
           const int ni = e + step[q];
@@ -114,8 +123,8 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
       }
     }
     // one atomic per block for the sweep's counts
-    const int m = block_sum(moved_here, scratch);
-    const int f = block_sum(fresh_here, scratch);
+    const int2 sums = block_sum2(moved_here, fresh_here, scratch);
+    const int m = sums.x, f = sums.y;
     if (threadIdx.x == 0 && m) atomicAdd(&c->sweep_moved[s % 3], m);
     if (threadIdx.x == 0 && f) atomicAdd(&c->moved_total, (unsigned long long)f);
     // slot (s+1) % 3 was last read before the previous barrier
@@ -157,8 +166,8 @@ LaunchShape persistent_launch_shape() {
   PALPSIM_CUDA_CHECK(cudaDeviceGetAttribute(&coop, cudaDevAttrCooperativeLaunch, dev));
   if (!coop) throw Error("CUDA device " + std::to_string(dev) + " cannot launch cooperative kernels");
   PALPSIM_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm_cm, chainmail_kernel, s.threads, 0));
-  // few, large blocks: a grid barrier costs about one atomic per block, and at 64^3
-  // two 512-thread blocks per SM (1024 threads) already cover the VOI in two passes
+  // few, large blocks: a grid barrier costs about one atomic per block, and one
+  // 1024-thread block per SM covers a 64^3 VOI in two passes
   s.chainmail_blocks = sms * std::min(per_sm_cm, kPersistentBlocksPerSm);
   s.relax_blocks = sms * std::min(relax_blocks_per_sm(s.threads), kPersistentBlocksPerSm);
   if (s.chainmail_blocks < 1 || s.relax_blocks < 1) throw Error("CUDA: the persistent deformation kernels do not fit on the device");

@@ -39,8 +39,8 @@ struct StepGeometry {
 };
 
 /// Threads per block and blocks per multiprocessor of the persistent kernels.
-constexpr int kPersistentThreads = 512;
-constexpr int kPersistentBlocksPerSm = 2;
+constexpr int kPersistentThreads = 1024;
+constexpr int kPersistentBlocksPerSm = 1;
 
 /// Cooperative grid sizes of the persistent kernels on this device.
 struct LaunchShape {

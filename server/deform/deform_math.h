@@ -62,6 +62,9 @@ PALPSIM_HD Vec3i neighbour_offset(int q) {
 /// Clamps the displacement `u` of an element into the box allowed by the neighbour
 /// with displacement `un` that lies along `axis`, below the element when `below`.
 PALPSIM_HD void chainmail_clamp(Vec3f& u, const Vec3f& un, int axis, bool below, const ChainMailLimits& l) {
+#if defined(__CUDACC__)
+#pragma unroll
+#endif
   for (int b = 0; b < 3; ++b) {
     float lo, hi;
     if (b != axis) {

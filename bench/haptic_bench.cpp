@@ -422,7 +422,9 @@ int run(int argc, char** argv) {
       << "},\n  \"force_model\": {\"poses\": " << model.ns.n << ", \"contact_fraction\": " << model.contact_fraction
       << ", \"per_pose\": " << json_q(model.ns, "ns") << "},\n  \"messages\": {\"pose_bytes\": " << req_bytes
       << ", \"reply_bytes\": " << reply_bytes << "},\n  \"rate_hz\": " << o.rate_hz << ",\n  \"seconds_per_run\": "
-      << o.seconds << ",\n  \"server_service\": " << json_q(service, "us") << ",\n  \"round_trip\": [\n";
+      << o.seconds << ",\n  \"server_service\": {\"n\": " << service.n << ", \"p50_us\": " << service.p50
+      << ", \"p99_us\": " << service.p99 << ", \"p999_us\": " << service.p999 << ", \"max_us\": " << service.max
+      << "},\n  \"round_trip\": [\n";
     for (std::size_t i = 0; i < rows.size(); ++i) {
       const auto& r = rows[i];
       const double r50 = r.palpsim.p50 / r.bare.p50, r99 = r.palpsim.p99 / r.bare.p99;

@@ -36,9 +36,10 @@ __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, 
     const Vec3f p = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
     b.j[e] = deform::trilinear<float>(load_i, p);
   }
+  // unresolved voxels of the warp, counted before r is reduced
+  const unsigned bad = __popc(__ballot_sync(0xffffffffu, r > deform::kInvertResolvedVox));
   // the largest residual: warp maximum, then one atomic per warp (float bits order as unsigned for r >= 0)
   for (int o = 16; o > 0; o >>= 1) r = fmaxf(r, __shfl_down_sync(0xffffffffu, r, o));
-  const unsigned bad = __popc(__ballot_sync(0xffffffffu, r > deform::kInvertResolvedVox));
   if ((threadIdx.x & 31) == 0) {
     atomicMax(&b.counters->residual_bits, __float_as_uint(r));
     if (bad) atomicAdd(&b.counters->unresolved, (unsigned long long)bad);

@@ -195,8 +195,9 @@ TEST_CASE("a whole gpu step equals the cpu step, and reset restores I") {
                 b.invert_unresolved);
     CHECK(off <= b.chainmail.voi.count() / 1000);
     CHECK(std::fabs(a.invert_residual_vox - b.invert_residual_vox) <= 0.05 * std::max(1.0, a.invert_residual_vox));
-    // voxels right at the 0.1 voxel threshold may fall either way: allow 0.1% of the VOI
-    CHECK(std::llabs(a.invert_unresolved - b.invert_unresolved) <= 1 + b.chainmail.voi.count() / 1000);
+    // the relaxed fields differ by ~1e-6 voxel, so only voxels whose residual lies that
+    // close to the 0.1 voxel threshold may fall either way: a few in 20000
+    CHECK(std::llabs(a.invert_unresolved - b.invert_unresolved) <= 1 + b.chainmail.voi.count() / 20000);
   }
   g.reset();
   CHECK(g.deformed_volume().data == torso->intensity.data);

@@ -3,6 +3,7 @@
 // applies the newest force that has come back, and never waits on the network; a
 // watchdog ramps the force to zero when replies stop. Logs every step to CSV and prints
 // round-trip percentiles and missed deadlines at exit. Protocol: proto/PROTOCOL.md.
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -115,6 +116,8 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "palpsim-haptic: --seconds %g: must be >= 0\n", max_seconds);
     return 2;
   }
+  // log lines go to stderr; stdout carries only the summary
+  spdlog::set_default_logger(spdlog::stderr_color_mt("palpsim-haptic"));
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
 

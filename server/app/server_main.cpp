@@ -1,5 +1,6 @@
 // palpsim-server: loads a scene, prepares its patient and serves haptics sessions on
 // loopback (proto/PROTOCOL.md) until SIGINT or SIGTERM.
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include <csignal>
@@ -37,6 +38,9 @@ int main(int argc, char** argv) {
   sigaddset(&stop_signals, SIGINT);
   sigaddset(&stop_signals, SIGTERM);
   pthread_sigmask(SIG_BLOCK, &stop_signals, nullptr);
+
+  // log lines go to stderr; stdout carries only the 'ready on' and 'stopped' lines for scripts
+  spdlog::set_default_logger(spdlog::stderr_color_mt("palpsim-server"));
 
   // command line
   std::string scene_file;

@@ -446,3 +446,68 @@ TEST_CASE("a scene that fails to load at start: the server refuses to start and 
     std::remove(bad.c_str());
   }
 }
+
+TEST_CASE("the haptic client's watchdog takes the force to zero within 10 ms when replies stop", "[integration]") {
+  Started st = start_server(30.0);
+  const std::string log = test::temp_file("watchdog-log", "");
+  test::Child client({test::build_exe("palpsim-haptic"), "--connect", st.server->control(), "--device", "press",
+                      "--seconds", "4", "--log", log});
+  // the press reaches the skin after about 0.5 s; freeze the server from 2.0 s to 2.5 s
+  std::this_thread::sleep_for(std::chrono::milliseconds(2000));
+  st.server->child().signal(SIGSTOP);
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  st.server->child().signal(SIGCONT);
+  const int rc = client.wait(30);
+  INFO("palpsim-haptic stdout:\n" << client.out() << "\nstderr:\n" << client.err());
+  CHECK((rc == 0 || rc == 3));  // 3: some replies came back too late to be counted
+  CHECK(client.err().find("watchdog") != std::string::npos);
+
+  // rows: time_s (1), force (5..7), reply_seq (9), watchdog_scale (12)
+  std::ifstream in(log);
+  std::string line;
+  std::getline(in, line);
+  struct Row {
+    double t, fx, fy, fz, scale;
+    unsigned long long reply_seq;
+  };
+  std::vector<Row> rows;
+  while (std::getline(in, line)) {
+    std::vector<std::string> c;
+    std::stringstream ss(line);
+    std::string cell;
+    while (std::getline(ss, cell, ',')) c.push_back(cell);
+    if (c.size() < 13) continue;
+    rows.push_back({std::stod(c[1]), std::stod(c[5]), std::stod(c[6]), std::stod(c[7]), std::stod(c[12]),
+                    std::stoull(c[9])});
+  }
+  REQUIRE(rows.size() > 3000);
+  // the longest stretch in which no new reply arrived
+  std::size_t best_first = 0, best_len = 0;
+  for (std::size_t i = 1, first = 0; i < rows.size(); ++i) {
+    if (rows[i].reply_seq != rows[first].reply_seq) first = i;
+    if (i - first > best_len) {
+      best_len = i - first;
+      best_first = first;
+    }
+  }
+  // the stall covers most of the 0.5 s stop
+  const double t_reply = rows[best_first].t;  // the newest reply arrived at or before this step
+  CHECK(rows[best_first + best_len].t - t_reply > 0.3);
+  bool force_before = false;
+  for (std::size_t i = best_first; i <= best_first + best_len; ++i) {
+    const double f = std::sqrt(rows[i].fx * rows[i].fx + rows[i].fy * rows[i].fy + rows[i].fz * rows[i].fz);
+    if (rows[i].t - t_reply < 0.001 && f > 0) force_before = true;
+    // 10 ms after the newest reply the force is exactly zero
+    if (rows[i].t - t_reply >= 0.010) {
+      INFO("t " << rows[i].t << " s, " << (rows[i].t - t_reply) * 1e3 << " ms after the last reply");
+      CHECK(f == 0.0);
+      CHECK(rows[i].scale == 0.0);
+    }
+  }
+  CHECK(force_before);  // the stall happened in contact, so there was a force to ramp down
+  // and after the stall full force again
+  CHECK(rows.back().scale == 1.0);
+  std::remove(log.c_str());
+  CHECK(st.server->stop() == 0);
+  std::remove(st.scene.c_str());
+}

@@ -16,9 +16,7 @@
 #include "prep/distance.h"
 #include "prep/hash.h"
 #include "prep/pipeline.h"
-#ifdef PALPSIM_HAVE_PHANTOM
 #include "prep/phantom.h"
-#endif
 
 namespace palpsim {
 namespace {
@@ -191,7 +189,6 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
   sha.update_field("palpsim-prep format " + std::to_string(kPrepFormatVersion));
   sha.update_field(settings_text(scene));
   if (scene.use_phantom) {
-#ifdef PALPSIM_HAVE_PHANTOM
     source = "phantom";
     phantom = timed(r, "phantom", [&] { return make_phantom(scene.phantom_voxel_mm).hu; });
     info.path = "phantom";
@@ -213,10 +210,6 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
       sha.update(&phantom.grid.origin_mm, sizeof phantom.grid.origin_mm);
       sha.update(phantom.data.data(), phantom.bytes());
     });
-#else
-    throw Error("the built-in phantom is not part of this build (server/prep/phantom.cpp is missing); "
-                "name a CT with ct_path in the scene or on the command line");
-#endif
   } else {
     source = scene.ct_path;
     info = timed(r, "header", [&] { return read_ct_info(scene.ct_path, prep); });

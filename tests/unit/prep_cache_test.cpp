@@ -6,6 +6,7 @@
 #include <fstream>
 
 #include "prep/cache.h"
+#include "prep/ct_io.h"
 #include "prep/outputs.h"
 #include "prep/prepare.h"
 #include "unit/prep_files.h"
@@ -139,7 +140,13 @@ TEST_CASE("cache writes are atomic: a leftover temporary folder is ignored, entr
 
 TEST_CASE("outputs are written whole into the output folder, replacing an older one") {
   TempDir d;
-  write_torso(d / "torso.nrrd");
+  {
+    // an oblique CT (rotated about S) with an origin: the outputs keep both
+    auto v = synthetic_torso({70, 50, 16}, {1.5, 1.5, 2.5});
+    v.grid.direction = {0.8, -0.6, 0, 0.6, 0.8, 0, 0, 0, 1};
+    v.grid.origin_mm = {12.5, -40, 100};
+    write_volume_nrrd(d / "torso.nrrd", v);
+  }
   const Scene s = ct_scene(d / "torso.nrrd", "");
   PrepReport r;
   const PatientPtr p = prepare_patient(s, &r);
@@ -157,8 +164,18 @@ TEST_CASE("outputs are written whole into the output folder, replacing an older 
   std::ifstream h(d / "out/F.nrrd");
   std::string header((std::istreambuf_iterator<char>(h)), {});
   header = header.substr(0, header.find("\n\n"));
-  CHECK_THAT(header, Catch::Contains("space: left-posterior-superior") && Catch::Contains("space directions: (1.5,0,0)") &&
+  CHECK_THAT(header, Catch::Contains("space: left-posterior-superior") && Catch::Contains("space directions: (1.2") &&
                          Catch::Contains("space origin:") && Catch::Contains("type: float"));
+  // ITK reads the NRRD back with the patient's geometry (what 3D Slicer sees);
+  // 1e-9 mm: the header prints 17 digits
+  const CtImage back = read_ct(d / "out/dist_skin.nrrd", PrepSettings{});
+  CHECK(back.image.grid.size == p->grid.size);
+  for (int a = 0; a < 3; ++a) {
+    CHECK(back.image.grid.spacing_mm[a] == Approx(p->grid.spacing_mm[a]).margin(1e-9));
+    CHECK(back.image.grid.origin_mm[a] == Approx(p->grid.origin_mm[a]).margin(1e-9));
+  }
+  for (int e = 0; e < 9; ++e) CHECK(back.image.grid.direction[e] == Approx(p->grid.direction[e]).margin(1e-12));
+  CHECK(back.image.data == p->dist_skin_mm.data);
   // an output path that is a file is refused and left alone
   std::ofstream(d / "afile") << "x";
   CHECK_FALSE(error_message([&] { write_patient_outputs(d / "afile", *p, r.json); }).empty());

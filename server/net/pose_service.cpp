@@ -34,10 +34,7 @@ class PoseService {
   void run(int idle_poll_ms) {
     zmq::pollitem_t items[] = {{sock_.handle(), 0, ZMQ_POLLIN, 0}};
     while (!sh_.stop.load(std::memory_order_relaxed)) {
-      // pick up the current world; once its generation is published the control
-      // thread may free older worlds, so no older pointer is used after this line
-      world_ = sh_.world.load(std::memory_order_acquire);
-      sh_.seen_generation.store(world_ ? world_->generation : 0, std::memory_order_release);
+      pick_up_world();
       zmq::poll(items, 1, std::chrono::milliseconds(idle_poll_ms));
       if (items[0].revents & ZMQ_POLLIN) drain();
     }
@@ -58,12 +55,21 @@ class PoseService {
   char scrap_[64];
   char out_[kMaxPoseBytes * 2];
 
+  // picks up the current world (one atomic load and store): a scene loaded before a pose
+  // arrived serves that pose. Once its generation is published the control thread may
+  // free older worlds, so no older pointer is used after this call.
+  void pick_up_world() {
+    world_ = sh_.world.load(std::memory_order_acquire);
+    sh_.seen_generation.store(world_ ? world_->generation : 0, std::memory_order_release);
+  }
+
   // answers every message waiting on the socket
   void drain() {
     for (;;) {
       const auto r = sock_.recv(zmq::mutable_buffer(id_, sizeof id_), zmq::recv_flags::dontwait);
       if (!r) return;
       const std::int64_t t_recv = ns_since(start_);
+      pick_up_world();
       id_len_ = std::min(r->size, sizeof id_);
       // the frames after the routing id: [payload] (DEALER) or [empty, payload] (REQ)
       int frames = 0;

@@ -1,0 +1,230 @@
+// The server's network edge in-process on synthetic patients: what comes over the wire
+// is exactly the force model's answer, resets and parameter changes apply from the next
+// pose on, the contact hook sees the newest pose, and scene reloads swap the patient or
+// are refused with the old one kept.
+#include <catch2/catch.hpp>
+
+#include <chrono>
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <zmq.hpp>
+
+#include "core/error.h"
+#include "haptics/force_model.h"
+#include "net/scene_io.h"
+#include "net/server.h"
+#include "palpsim/wire.pb.h"
+#include "support/synthetic_patient.h"
+
+using namespace palpsim;
+namespace v1 = palpsim::v1;
+
+namespace Catch {
+template <>
+struct StringMaker<palpsim::Vec3> {
+  static std::string convert(const palpsim::Vec3& v) {
+    char b[128];
+    std::snprintf(b, sizeof b, "(%.17g, %.17g, %.17g)", v.x, v.y, v.z);
+    return b;
+  }
+};
+}  // namespace Catch
+
+namespace {
+
+// request/reply helpers on a REQ (control) and a DEALER (poses)
+struct Client {
+  zmq::context_t ctx{1};
+  zmq::socket_t ctl{ctx, zmq::socket_type::req};
+  zmq::socket_t pose{ctx, zmq::socket_type::dealer};
+  std::uint64_t id = 0;
+
+  explicit Client(const net::Server& s) {
+    ctl.set(zmq::sockopt::linger, 0);
+    pose.set(zmq::sockopt::linger, 0);
+    ctl.connect(s.control_endpoint());
+    pose.connect(s.pose_endpoint());
+    v1::ControlRequest q;
+    q.mutable_open()->set_client_name("unit");
+    const auto r = call(q);
+    REQUIRE(r.has_open());
+    id = r.open().session_id();
+  }
+  v1::ControlReply call(v1::ControlRequest q) {
+    q.set_schema_version(1);
+    ctl.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+    zmq::pollitem_t it[] = {{ctl.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::poll(it, 1, std::chrono::milliseconds(10000));
+    REQUIRE((it[0].revents & ZMQ_POLLIN));
+    zmq::message_t m;
+    (void)ctl.recv(m);
+    v1::ControlReply r;
+    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
+    return r;
+  }
+  v1::PoseReply send_pose(std::uint64_t seq, const Vec3& x, double client_time_s, bool reset = false) {
+    v1::PoseRequest q;
+    q.set_schema_version(1);
+    q.set_session_id(id);
+    q.set_seq(seq);
+    q.set_client_time_s(client_time_s);
+    q.set_reset_proxy(reset);
+    q.mutable_tip_mm()->set_x(x.x);
+    q.mutable_tip_mm()->set_y(x.y);
+    q.mutable_tip_mm()->set_z(x.z);
+    pose.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+    zmq::pollitem_t it[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::poll(it, 1, std::chrono::milliseconds(10000));
+    REQUIRE((it[0].revents & ZMQ_POLLIN));
+    zmq::message_t m;
+    (void)pose.recv(m);
+    v1::PoseReply r;
+    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
+    return r;
+  }
+};
+
+Vec3 vec(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
+
+// the reply carries exactly the force model's sample (doubles travel bit for bit)
+void check_same(const v1::PoseReply& r, const ForceSample& f) {
+  REQUIRE(r.error().code() == v1::ERROR_NONE);
+  CHECK(vec(r.force_n()) == f.force_n);
+  CHECK(vec(r.proxy_mm()) == f.proxy_mm);
+  CHECK(vec(r.skin_point_mm()) == f.skin_point_mm);
+  CHECK(r.contact() == f.contact);
+  CHECK(r.depth_mm() == f.depth_mm);
+}
+
+net::ServerOptions loopback() {
+  net::ServerOptions o;
+  o.control_bind = "tcp://127.0.0.1:*";
+  o.pose_bind = "tcp://127.0.0.1:*";
+  return o;
+}
+
+}  // namespace
+
+TEST_CASE("the pose address is derived from the control address", "[net]") {
+  CHECK(net::derive_pose_endpoint("tcp://127.0.0.1:7420") == "tcp://127.0.0.1:7421");
+  CHECK(net::derive_pose_endpoint("tcp://127.0.0.1:*") == "tcp://127.0.0.1:*");
+  CHECK(net::derive_pose_endpoint("ipc:///tmp/p") == "ipc:///tmp/p.pose");
+  CHECK(net::derive_pose_endpoint("inproc://x") == "inproc://x-pose");
+  CHECK_THROWS_AS(net::derive_pose_endpoint("tcp://127.0.0.1:http"), Error);
+  CHECK_THROWS_AS(net::derive_pose_endpoint("udp://127.0.0.1:5"), Error);
+}
+
+TEST_CASE("a bind that fails names the address", "[net]") {
+  const Scene scene = default_scene();
+  net::Server a(scene, test::slab_patient(), nullptr, loopback());
+  net::ServerOptions same = loopback();
+  same.control_bind = a.control_endpoint();  // already taken
+  try {
+    net::Server b(scene, test::slab_patient(), nullptr, same);
+    FAIL("the second bind succeeded");
+  } catch (const Error& e) {
+    CHECK(std::string(e.what()).find(a.control_endpoint()) != std::string::npos);
+  }
+}
+
+TEST_CASE("over the wire a session gets exactly the force model's answers", "[net]") {
+  Scene scene = default_scene();
+  const auto patient = test::slab_patient();
+  net::Server server(scene, patient, nullptr, loopback());
+  server.start();
+  Client c(server);
+  HapticsSettings params = scene.haptics;
+  ProxyState st{};
+
+  // a press into the slab beside the bone block and out again, at 1 ms of client time per
+  // pose (the server takes dt from the client's clock, so the rate clamp is reproducible)
+  std::uint64_t seq = 0;
+  double t_prev = 0;  // client time of the previous pose; the server's dt is the same difference
+  auto step = [&](const Vec3& x) {
+    ++seq;
+    const double t = 1.0 + seq * 1e-3;
+    const v1::PoseReply r = c.send_pose(seq, x, t);
+    INFO("pose " << seq);
+    CHECK(r.seq() == seq);
+    check_same(r, compute_force(*patient, params, x, t - t_prev, st));
+    t_prev = t;
+  };
+  for (int n = 0; n < 300; ++n) step({27, 30, test::kSlabSkinZ + 2 - 0.1 * n});
+  for (int n = 0; n < 100; ++n) step({27 + 0.05 * n, 30, test::kSlabSkinZ - 28});
+
+  SECTION("a reset applies from the next pose on") {
+    v1::ControlRequest q;
+    q.mutable_reset()->set_session_id(c.id);
+    REQUIRE(c.call(q).has_reset());
+    st = ProxyState{};
+    step({30, 30, 20});
+    step({30.5, 30, 20});
+    // and the reset flag of a pose does the same, ordered with the poses
+    st = ProxyState{};
+    ++seq;
+    check_same(c.send_pose(seq, {31, 30, 21}, 1.0 + seq * 1e-3, true),
+               compute_force(*patient, params, {31, 30, 21}, 0, st));
+  }
+  SECTION("a parameter change applies from the next pose on") {
+    v1::ControlRequest q;
+    q.mutable_set_parameter()->set_session_id(c.id);
+    q.mutable_set_parameter()->set_name("stiffness_n_per_mm");
+    q.mutable_set_parameter()->set_value(0.05);
+    const auto r = c.call(q);
+    REQUIRE(r.has_set_parameter());
+    CHECK(r.set_parameter().params().stiffness_n_per_mm() == 0.05);
+    params.stiffness_n_per_mm = 0.05;
+    for (int n = 0; n < 20; ++n) step({28, 31, 20 + 0.2 * n});
+  }
+  SECTION("the deformation hook sees the newest contact") {
+    const ContactSlot* slot = server.contact_slot(c.id);
+    REQUIRE(slot != nullptr);
+    Contact k;
+    CHECK(slot->read(k) > 0);
+    CHECK(k.seq == seq);
+    CHECK(k.tip_mm == Vec3{27 + 0.05 * 99, 30, test::kSlabSkinZ - 28});
+    CHECK(k.contact);
+    CHECK(server.contact_slot(c.id ^ 1) == nullptr);
+    const auto open = server.open_sessions();
+    CHECK(std::find(open.begin(), open.end(), c.id) != open.end());
+    // closed: the hook lets go
+    v1::ControlRequest q;
+    q.mutable_close()->set_session_id(c.id);
+    const auto r = c.call(q);
+    CHECK(r.close().poses() == seq);
+    CHECK(server.contact_slot(c.id) == nullptr);
+  }
+  server.stop();
+}
+
+TEST_CASE("a scene reload swaps the patient, or is refused and the old one kept", "[net]") {
+  const auto slab = test::slab_patient();
+  const auto sphere = test::sphere_patient();
+  // the loader: "sphere" gives the sphere, anything else fails as a CT that cannot be read would
+  auto loader = [&](const Scene& s) -> PatientPtr {
+    if (s.name == "sphere") return sphere;
+    throw Error("ct.nii: cannot read (test loader)");
+  };
+  net::Server server(default_scene(), slab, loader, loopback());
+  server.start();
+  Client c(server);
+  const Vec3 p{32, 32, 50};  // inside the sphere, above the slab's skin
+  CHECK_FALSE(c.send_pose(1, p, 0).contact());
+
+  v1::ControlRequest q;
+  q.mutable_load_scene()->set_text("name: \"broken\"\nphantom { voxel_mm: 2 }\n");
+  auto r = c.call(q);
+  CHECK(r.error().code() == v1::ERROR_SCENE_LOAD_FAILED);
+  CHECK(std::string(r.error().message()).find("ct.nii") != std::string::npos);
+  CHECK_FALSE(c.send_pose(2, p, 0).contact());
+
+  q.mutable_load_scene()->set_text("name: \"sphere\"\nphantom { voxel_mm: 2 }\n");
+  r = c.call(q);
+  REQUIRE(r.error().code() == v1::ERROR_NONE);
+  CHECK(r.load_scene().server().scene_generation() == 2);
+  // the open session continues on the new patient with a fresh proxy state
+  ProxyState st{};
+  check_same(c.send_pose(3, p, 0), compute_force(*sphere, default_scene().haptics, p, 0, st));
+  server.stop();
+}

@@ -122,7 +122,7 @@ Case run_case(const std::string& name, Volume<float> image, double in_s, const c
   image = Volume<float>();
   c.stages.push_back({"resample", since(t)});
   t = Clock::now();
-  p.body = body_mask(p.intensity, prep.air_threshold);
+  p.body = body_mask(p.intensity, prep.air_threshold, prep.body_opening_mm, prep.body_min_part_ml);
   c.stages.push_back({"body_mask", since(t)});
   t = Clock::now();
   p.bone = bone_mask(p.intensity, p.body, prep, 2 * (coarsest > 0 ? coarsest : grid.spacing_mm.x));

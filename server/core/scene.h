@@ -20,6 +20,8 @@ struct PrepSettings {
   std::string dicom_series_uid;     // "" = the only series in the folder
   std::string cache_dir;            // "" = $PALPSIM_CACHE or ~/.cache/palpsim
   bool use_cache = true;
+  double body_opening_mm = 5.0;     // opening radius that cuts the table's thin shell off the body
+  double body_min_part_ml = 20;     // body parts apart from the largest are kept from this size up
 };
 
 /// Eq. 1 parameters; A, B and F in mm.

@@ -156,6 +156,8 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.prep.dicom_series_uid = p.dicom_series_uid();
   out.prep.cache_dir = p.cache_dir();
   out.prep.use_cache = p.use_cache();
+  out.prep.body_opening_mm = p.body_opening_mm();
+  out.prep.body_min_part_ml = p.body_min_part_ml();
 
   const auto& f = s.force_image();
   out.force_image.alpha = f.alpha();

@@ -42,9 +42,10 @@ inline int axial_axis(const Grid& g) { return grid_axis_along(g, 2); }
 
 /// Body mask C: 1 for the patient, 0 for outside air, the CT table and other thin
 /// structures outside the body (blankets, cables). Voxels >= air_threshold are
-/// tissue candidates; a morphological opening of `opening_mm` cuts thin
-/// structures (the table's shell) off the body, components smaller than
-/// `min_part_ml` are dropped (arms apart from the torso are kept), and air
+/// tissue candidates; a morphological opening of `opening_mm` (prep.body_opening_mm)
+/// cuts thin structures (the table's shell) off the body, components smaller than
+/// `min_part_ml` (prep.body_min_part_ml) are dropped except the largest (arms apart
+/// from the torso are kept), and air
 /// enclosed within each axial slice (bowel gas, lungs, airways cut by the first
 /// or last slice) is filled. The body may touch the volume border.
 Volume<std::uint8_t> body_mask(const Volume<float>& image, double air_threshold, double opening_mm = 5.0,

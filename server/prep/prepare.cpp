@@ -62,7 +62,8 @@ std::string settings_text(const Scene& s) {
     << " bone_threshold=" << p.bone_threshold << " air_threshold_set=" << p.air_threshold_set
     << " bone_threshold_set=" << p.bone_threshold_set << " bone_min_volume_ml=" << p.bone_min_volume_ml
     << " bone_closing_mm=" << p.bone_closing_mm << " bone_fill_holes=" << p.bone_fill_holes
-    << " dicom_series_uid=" << p.dicom_series_uid << " alpha=" << f.alpha << " beta=" << f.beta
+    << " dicom_series_uid=" << p.dicom_series_uid << " body_opening_mm=" << p.body_opening_mm
+    << " body_min_part_ml=" << p.body_min_part_ml << " alpha=" << f.alpha << " beta=" << f.beta
     << " gamma=" << f.gamma;
   return o.str();
 }
@@ -73,7 +74,8 @@ std::string settings_json(const Scene& s) {
   return "{\"prep\": {\"spacing_mm\": " + jnum(p.spacing_mm) + ", \"air_threshold\": " + jnum(p.air_threshold) +
          ", \"bone_threshold\": " + jnum(p.bone_threshold) + ", \"bone_min_volume_ml\": " +
          jnum(p.bone_min_volume_ml) + ", \"bone_closing_mm\": " + jnum(p.bone_closing_mm) +
-         ", \"bone_fill_holes\": " + (p.bone_fill_holes ? "true" : "false") + ", \"max_memory_mb\": " +
+         ", \"bone_fill_holes\": " + (p.bone_fill_holes ? "true" : "false") + ", \"body_opening_mm\": " +
+         jnum(p.body_opening_mm) + ", \"body_min_part_ml\": " + jnum(p.body_min_part_ml) + ", \"max_memory_mb\": " +
          jnum(p.max_memory_mb) + "}, \"force_image\": {\"alpha\": " + jnum(f.alpha) + ", \"beta\": " +
          jnum(f.beta) + ", \"gamma\": " + jnum(f.gamma) + "}}";
 }
@@ -155,7 +157,9 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
   }
 
   // masks
-  p->body = timed(r, "body_mask", [&] { return body_mask(p->intensity, prep.air_threshold); });
+  p->body = timed(r, "body_mask", [&] {
+    return body_mask(p->intensity, prep.air_threshold, prep.body_opening_mm, prep.body_min_part_ml);
+  });
   const double voxel_ml = grid.spacing_mm.x * grid.spacing_mm.y * grid.spacing_mm.z / 1000.0;
   r.body_ml = double(count_nonzero(p->body)) * voxel_ml;
   if (r.body_ml == 0)

@@ -184,3 +184,20 @@ TEST_CASE("gradient of a linear field is exact in physical axes, with a rotated 
     REQUIRE(v.z == Approx(w.z).margin(1e-4));
   }
 }
+
+TEST_CASE("prep.body_opening_mm and prep.body_min_part_ml decide what thin or small parts stay") {
+  const Grid g = make_grid({80, 60, 12}, {1, 1, 1});
+  Volume<float> v(g, -1000);
+  for (int k = 0; k < 12; ++k)
+    for (int j = 0; j < 60; ++j)
+      for (int i = 0; i < 80; ++i) {
+        if (std::hypot(i - 30.0, j - 30.0) <= 20) v.at(i, j, k) = 40;  // torso
+        if (i >= 60 && i <= 62 && j >= 10 && j <= 50) v.at(i, j, k) = 300;  // a 3 mm plate apart from it
+      }
+  // the default opening (5 mm) removes the plate; without opening it is a body part,
+  // kept when body_min_part_ml allows its 0.5 ml
+  CHECK(body_mask(v, -400).at(61, 30, 6) == 0);
+  CHECK(body_mask(v, -400, 0.0, 0.1).at(61, 30, 6) == 1);
+  CHECK(body_mask(v, -400, 0.0, 20).at(61, 30, 6) == 0);
+  CHECK(body_mask(v, -400, 0.0, 20).at(30, 30, 6) == 1);
+}

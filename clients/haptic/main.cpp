@@ -279,7 +279,7 @@ int main(int argc, char** argv) {
   // collect the replies still in flight (up to 1 s: a loaded machine may hold some back), then close the session
   const Clock::time_point drain_end = Clock::now() + std::chrono::milliseconds(1000);
   zmq::pollitem_t items[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
-  while (replies + errors + late < steps && Clock::now() < drain_end) {
+  while (replies + errors < steps && Clock::now() < drain_end) {
     zmq::poll(items, 1, std::chrono::milliseconds(10));
     while (pose.recv(in, zmq::recv_flags::dontwait)) {
       const double now = seconds(Clock::now() - t0);

@@ -228,3 +228,58 @@ TEST_CASE("a scene reload swaps the patient, or is refused and the old one kept"
   check_same(c.send_pose(3, p, 0), compute_force(*sphere, default_scene().haptics, p, 0, st));
   server.stop();
 }
+
+TEST_CASE("sessions beyond the scene's max_sessions are refused and counted", "[net]") {
+  Scene scene = default_scene();
+  scene.server.max_sessions = 2;
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client a(server), b(server);
+  v1::ControlRequest q;
+  q.mutable_open();
+  auto r = a.call(q);
+  CHECK(r.error().code() == v1::ERROR_TOO_MANY_SESSIONS);
+  CHECK(std::string(r.error().message()).find("max_sessions") != std::string::npos);
+  // closing one makes room again, with a new id
+  v1::ControlRequest cl;
+  cl.mutable_close()->set_session_id(a.id);
+  REQUIRE(a.call(cl).has_close());
+  r = a.call(q);
+  REQUIRE(r.has_open());
+  CHECK(r.open().session_id() != a.id);
+  v1::ControlRequest st;
+  st.mutable_stats();
+  r = a.call(st);
+  CHECK(r.stats().server().too_many_sessions() == 1);
+  CHECK(r.stats().server().sessions_open() == 2);
+  server.stop();
+}
+
+TEST_CASE("a REQ socket works on the pose path too (empty delimiter mirrored)", "[net]") {
+  net::Server server(default_scene(), test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client c(server);
+  zmq::socket_t req(c.ctx, zmq::socket_type::req);
+  req.set(zmq::sockopt::linger, 0);
+  req.connect(server.pose_endpoint());
+  for (std::uint64_t seq = 1; seq <= 3; ++seq) {
+    v1::PoseRequest q;
+    q.set_schema_version(1);
+    q.set_session_id(c.id);
+    q.set_seq(seq);
+    q.mutable_tip_mm()->set_x(30);
+    q.mutable_tip_mm()->set_y(30);
+    q.mutable_tip_mm()->set_z(30);
+    req.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+    zmq::pollitem_t it[] = {{req.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::poll(it, 1, std::chrono::milliseconds(10000));
+    REQUIRE((it[0].revents & ZMQ_POLLIN));
+    zmq::message_t m;
+    (void)req.recv(m);
+    v1::PoseReply r;
+    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
+    CHECK(r.seq() == seq);
+    CHECK(r.contact());
+  }
+  server.stop();
+}

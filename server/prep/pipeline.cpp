@@ -315,8 +315,26 @@ double cancellous_level(const PrepSettings& prep) {
   return prep.air_threshold + 0.8 * (prep.bone_threshold - prep.air_threshold);
 }
 
-Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uint8_t>& body,
-                               const PrepSettings& prep, double fill_closing_mm, int threads) {
+namespace {
+
+// the sub-volume [lo, lo + size) of v, on a grid placed where it lies in v's
+template <typename T>
+Volume<T> crop(const Volume<T>& v, Vec3i lo, Vec3i size) {
+  Grid g = v.grid;
+  g.origin_mm = v.grid.to_physical(Vec3{double(lo.x), double(lo.y), double(lo.z)});
+  g.size = size;
+  Volume<T> c(g);
+  for (int k = 0; k < size.z; ++k)
+    for (int j = 0; j < size.y; ++j) {
+      const T* src = &v.data[v.grid.index(lo.x, lo.y + j, lo.z + k)];
+      std::copy(src, src + size.x, &c.data[g.index(0, j, k)]);
+    }
+  return c;
+}
+
+// bone_mask on a volume already cropped to the bone and its margin
+Volume<std::uint8_t> bone_mask_cropped(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                                       const PrepSettings& prep, double fill_closing_mm, int threads) {
   const Grid& g = image.grid;
   Volume<std::uint8_t> raw(g);
   parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
@@ -372,6 +390,39 @@ Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uin
   // small components: vessels with contrast, calcifications, noise
   const double voxel_ml = g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z / 1000.0;
   remove_small_components(bone, std::size_t(std::ceil(prep.bone_min_volume_ml / voxel_ml)));
+  return bone;
+}
+
+}  // namespace
+
+Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                               const PrepSettings& prep, double fill_closing_mm, int threads) {
+  // the bounding box of the bone candidates
+  const Grid& g = image.grid;
+  Vec3i lo{g.size.x, g.size.y, g.size.z}, hi{-1, -1, -1};
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i) {
+        const std::size_t idx = g.index(i, j, k);
+        if (!body.data[idx] || !(image.data[idx] >= prep.bone_threshold)) continue;
+        lo = {std::min(lo.x, i), std::min(lo.y, j), std::min(lo.z, k)};
+        hi = {std::max(hi.x, i), std::max(hi.y, j), std::max(hi.z, k)};
+      }
+  Volume<std::uint8_t> bone(g);
+  if (hi.x < 0) return bone;
+  // work on the box plus a margin beyond every closing's reach: outside it nothing
+  // can become bone, and background at the box's edge is connected to the
+  // volume's border exactly when it is in the whole volume, so the result is the same
+  const double reach_mm = std::max(fill_closing_mm, prep.bone_closing_mm) + 2 * g.spacing_mm.x;
+  const int m = int(std::ceil(reach_mm / std::min({g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z}))) + 2;
+  lo = {std::max(lo.x - m, 0), std::max(lo.y - m, 0), std::max(lo.z - m, 0)};
+  hi = {std::min(hi.x + m, g.size.x - 1), std::min(hi.y + m, g.size.y - 1), std::min(hi.z + m, g.size.z - 1)};
+  const Vec3i size{hi.x - lo.x + 1, hi.y - lo.y + 1, hi.z - lo.z + 1};
+  const Volume<std::uint8_t> part = bone_mask_cropped(crop(image, lo, size), crop(body, lo, size), prep,
+                                                      fill_closing_mm, threads);
+  for (int k = 0; k < size.z; ++k)
+    for (int j = 0; j < size.y; ++j)
+      std::copy_n(&part.data[part.grid.index(0, j, k)], size.x, &bone.data[g.index(lo.x, lo.y + j, lo.z + k)]);
   return bone;
 }
 

@@ -195,7 +195,7 @@ TEST_CASE("prep.body_opening_mm and prep.body_min_part_ml decide what thin or sm
         if (i >= 60 && i <= 62 && j >= 10 && j <= 50) v.at(i, j, k) = 300;  // a 3 mm plate apart from it
       }
   // the default opening (5 mm) removes the plate; without opening it is a body part,
-  // kept when body_min_part_ml allows its 0.5 ml
+  // kept when body_min_part_ml allows its 1.5 ml (3 x 41 x 12 mm)
   CHECK(body_mask(v, -400).at(61, 30, 6) == 0);
   CHECK(body_mask(v, -400, 0.0, 0.1).at(61, 30, 6) == 1);
   CHECK(body_mask(v, -400, 0.0, 20).at(61, 30, 6) == 0);

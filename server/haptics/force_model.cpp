@@ -13,6 +13,33 @@ double voxel_mm(const Patient& p) {
 
 bool inside(const PatientSample& s) { return s.in_grid && s.body >= 0.5; }
 
+// C and B only, trilinearly: what the skin search needs (a third of sample_patient's reads)
+PatientSample sample_skin(const Patient& patient, const Vec3& p_mm) {
+  PatientSample s;
+  const Grid& g = patient.grid;
+  const Vec3 ijk = g.to_index(p_mm);
+  if (!(ijk.x >= -0.5 && ijk.x <= g.size.x - 0.5 && ijk.y >= -0.5 && ijk.y <= g.size.y - 0.5 && ijk.z >= -0.5 &&
+        ijk.z <= g.size.z - 0.5))
+    return s;
+  s.in_grid = true;
+  const int i0 = int(std::floor(ijk.x)), j0 = int(std::floor(ijk.y)), k0 = int(std::floor(ijk.z));
+  const double fx = ijk.x - i0, fy = ijk.y - j0, fz = ijk.z - k0;
+  const int ii[2] = {std::clamp(i0, 0, g.size.x - 1), std::clamp(i0 + 1, 0, g.size.x - 1)};
+  const int jj[2] = {std::clamp(j0, 0, g.size.y - 1), std::clamp(j0 + 1, 0, g.size.y - 1)};
+  const int kk[2] = {std::clamp(k0, 0, g.size.z - 1), std::clamp(k0 + 1, 0, g.size.z - 1)};
+  const double wx[2] = {1 - fx, fx}, wy[2] = {1 - fy, fy}, wz[2] = {1 - fz, fz};
+  for (int dk = 0; dk < 2; ++dk)
+    for (int dj = 0; dj < 2; ++dj)
+      for (int di = 0; di < 2; ++di) {
+        const double w = wx[di] * wy[dj] * wz[dk];
+        if (w == 0) continue;
+        const std::size_t n = g.index(ii[di], jj[dj], kk[dk]);
+        s.body += w * patient.body.data[n];
+        s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
+      }
+  return s;
+}
+
 // the skin crossing of the ray tip + t * out (t >= 0), found by stepping at most the
 // depth under the skin (a distance to the skin, so no crossing is stepped over when
 // the step is larger than a quarter voxel) and then bisecting the last step
@@ -24,7 +51,7 @@ Vec3 skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, 
   double t_in = 0, t_out = -1;
   double t = std::max(tip_depth_mm, 0.25 * h);
   for (int it = 0; it < 64 && t <= max_len; ++it) {
-    const PatientSample s = sample_patient(patient, tip_mm + out * t);
+    const PatientSample s = sample_skin(patient, tip_mm + out * t);
     if (!inside(s)) {
       t_out = t;
       break;
@@ -36,7 +63,7 @@ Vec3 skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, 
   // bisection of the last step to a thousandth of a voxel
   for (int it = 0; it < 24 && t_out - t_in > 1e-3 * h; ++it) {
     const double mid = 0.5 * (t_in + t_out);
-    if (inside(sample_patient(patient, tip_mm + out * mid)))
+    if (inside(sample_skin(patient, tip_mm + out * mid)))
       t_in = mid;
     else
       t_out = mid;

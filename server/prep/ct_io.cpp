@@ -209,7 +209,8 @@ void open_dicom(const std::string& path, const PrepSettings& prep, Opened& o) {
                 " (corrupt or truncated file?): " + e.GetDescription());
   }
   o.info.format = "DICOM";
-  o.info.pixel_type = component_name(io->GetInternalComponentType());
+  o.info.pixel_type = component_name(io->GetComponentType());
+  o.info.stored_pixel_type = component_name(io->GetInternalComponentType());
   o.info.grid = grid_of(o.series_reader.GetPointer());
 }
 
@@ -299,7 +300,7 @@ void open_file(const std::string& path, Opened& o) {
       throw Error(s.str());
     }
   if (o.info.format == "NIfTI") check_nifti_length(path);
-  o.info.pixel_type = component_name(io->GetComponentType());
+  o.info.pixel_type = o.info.stored_pixel_type = component_name(io->GetComponentType());
   o.info.files = {path};
   if (const std::string data = detached_data_file(path); !data.empty()) o.info.files.push_back(data);
   o.file_reader = itk::ImageFileReader<FloatImage>::New();

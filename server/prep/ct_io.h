@@ -15,7 +15,9 @@ namespace palpsim {
 struct CtInfo {
   std::string path;              // the file or DICOM folder as given
   std::string format;            // "DICOM", "NIfTI", "NRRD", "MetaImage" or the ITK reader's name
-  std::string pixel_type;        // the stored component type: "uint8", "int16", "float", ...
+  std::string pixel_type;        // the voxels' component type as read: "uint8", "int16", "float", ...
+                                 // (DICOM: after the rescale slope and intercept)
+  std::string stored_pixel_type; // the component type in the file (DICOM: before rescaling)
   std::string series_uid;        // DICOM only: the SeriesInstanceUID read
   std::vector<std::string> files;  // every file the image consists of (for hashing)
   Grid grid;                     // input geometry: size, spacing (mm), origin (mm), direction (LPS)

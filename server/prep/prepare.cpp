@@ -197,7 +197,7 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
     phantom = timed(r, "phantom", [&] { return make_phantom(scene.phantom_voxel_mm).hu; });
     info.path = "phantom";
     info.format = "procedural phantom";
-    info.pixel_type = "float";
+    info.pixel_type = info.stored_pixel_type = "float";
     info.grid = phantom.grid;
     float lo = std::numeric_limits<float>::infinity(), hi = -lo;
     for (float v : phantom.data) lo = std::min(lo, v), hi = std::max(hi, v);
@@ -281,7 +281,8 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
     std::ostringstream s;
     s << "\n  \"format_version\": " << kPrepFormatVersion << ",\n  \"source\": " << jstr(source)
       << ",\n  \"input\": {\"path\": " << jstr(info.path) << ", \"format\": " << jstr(info.format)
-      << ", \"pixel_type\": " << jstr(info.pixel_type) << ", \"series_uid\": " << jstr(info.series_uid)
+      << ", \"pixel_type\": " << jstr(info.pixel_type) << ", \"stored_pixel_type\": " << jstr(info.stored_pixel_type)
+      << ", \"series_uid\": " << jstr(info.series_uid)
       << ", \"files\": " << info.files.size() << ", \"grid\": " << jgrid(info.grid) << "},\n  \"value_range\": {\"min\": "
       << jnum(info.min_value) << ", \"max\": " << jnum(info.max_value) << ", \"units\": "
       << jstr(hu ? "HU" : "image units") << "},\n  \"grid\": " << jgrid(p->grid) << ",\n  \"settings\": "

@@ -102,6 +102,8 @@ TEST_CASE("the DICOM series (JPEG 2000 lossless) loads as 512x512x20, 0.977x0.97
   const CtImage ct = read_ct(path, prep);
   CHECK(ct.info.format == "DICOM");
   CHECK(ct.info.files.size() == 20);
+  CHECK(ct.info.stored_pixel_type == "uint16");  // unsigned 16-bit with intercept -1024: HU after rescaling
+  CHECK(ct.info.pixel_type != "uint8");
   CHECK(ct.image.grid.size == Vec3i{512, 512, 20});
   // spacing from the slice positions (2 mm), not SliceThickness (3 mm); 1e-3 mm rounding in the tags
   CHECK(ct.image.grid.spacing_mm.x == Approx(0.977).margin(1e-3));

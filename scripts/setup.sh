@@ -65,6 +65,9 @@ fi
 if [ -x /usr/local/cuda/bin/nvcc ] && ! command -v nvcc >/dev/null; then
   export PATH="$PATH:/usr/local/cuda/bin"
 fi
+# ccache keyed on paths relative to the checkout, so fresh clones (CI) reuse earlier builds
+export CCACHE_BASEDIR="$root"
+export CCACHE_MAXSIZE=${CCACHE_MAXSIZE:-5G}
 if [ ! -f "$build_dir/build.ninja" ]; then
   say "configuring $build_dir ($build_type)"
   "$venv/bin/cmake" -S "$root" -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE="$build_type" \

@@ -32,19 +32,39 @@ struct Volume {
   std::size_t bytes() const { return data.size() * sizeof(T); }
 };
 
+/// True when a continuous voxel index lies within half a voxel of the grid on every
+/// axis (false for NaN); this also keeps floor() of it in int range.
+inline bool within_grid(const Grid& g, const Vec3& ijk) {
+  return ijk.x >= -0.5 && ijk.x <= g.size.x - 0.5 && ijk.y >= -0.5 && ijk.y <= g.size.y - 0.5 &&
+         ijk.z >= -0.5 && ijk.z <= g.size.z - 0.5;
+}
+
+/// Calls fn(linear_index, weight) for the voxels of a trilinear sample at the
+/// continuous index `ijk` (edge voxels replicated, zero weights skipped), so several
+/// volumes on one grid can be sampled with one set of weights. `ijk` must be finite
+/// and near the grid (see within_grid).
+template <typename Fn>
+inline void for_each_trilinear_corner(const Grid& g, const Vec3& ijk, Fn&& fn) {
+  const int i0 = int(std::floor(ijk.x)), j0 = int(std::floor(ijk.y)), k0 = int(std::floor(ijk.z));
+  const double fx = ijk.x - i0, fy = ijk.y - j0, fz = ijk.z - k0;
+  const int ii[2] = {std::clamp(i0, 0, g.size.x - 1), std::clamp(i0 + 1, 0, g.size.x - 1)};
+  const int jj[2] = {std::clamp(j0, 0, g.size.y - 1), std::clamp(j0 + 1, 0, g.size.y - 1)};
+  const int kk[2] = {std::clamp(k0, 0, g.size.z - 1), std::clamp(k0 + 1, 0, g.size.z - 1)};
+  const double wx[2] = {1 - fx, fx}, wy[2] = {1 - fy, fy}, wz[2] = {1 - fz, fz};
+  for (int dk = 0; dk < 2; ++dk)
+    for (int dj = 0; dj < 2; ++dj)
+      for (int di = 0; di < 2; ++di) {
+        const double w = wx[di] * wy[dj] * wz[dk];
+        if (w != 0) fn(g.index(ii[di], jj[dj], kk[dk]), w);
+      }
+}
+
 /// Trilinear sample of `v` at a continuous voxel index; outside the grid the
 /// nearest edge value is used. Returns double for all T.
 template <typename T>
 double sample_trilinear(const Volume<T>& v, const Vec3& ijk) {
-  const int i0 = int(std::floor(ijk.x)), j0 = int(std::floor(ijk.y)), k0 = int(std::floor(ijk.z));
-  const double fx = ijk.x - i0, fy = ijk.y - j0, fz = ijk.z - k0;
   double acc = 0;
-  for (int dk = 0; dk < 2; ++dk)
-    for (int dj = 0; dj < 2; ++dj)
-      for (int di = 0; di < 2; ++di) {
-        const double w = (di ? fx : 1 - fx) * (dj ? fy : 1 - fy) * (dk ? fz : 1 - fz);
-        if (w != 0) acc += w * double(v.at_clamped(i0 + di, j0 + dj, k0 + dk));
-      }
+  for_each_trilinear_corner(v.grid, ijk, [&](std::size_t n, double w) { acc += w * double(v.data[n]); });
   return acc;
 }
 

@@ -16,27 +16,13 @@ bool inside(const PatientSample& s) { return s.in_grid && s.body >= 0.5; }
 // C and B only, trilinearly: what the skin search needs (a third of sample_patient's reads)
 PatientSample sample_skin(const Patient& patient, const Vec3& p_mm) {
   PatientSample s;
-  const Grid& g = patient.grid;
-  const Vec3 ijk = g.to_index(p_mm);
-  if (!(ijk.x >= -0.5 && ijk.x <= g.size.x - 0.5 && ijk.y >= -0.5 && ijk.y <= g.size.y - 0.5 && ijk.z >= -0.5 &&
-        ijk.z <= g.size.z - 0.5))
-    return s;
+  const Vec3 ijk = patient.grid.to_index(p_mm);
+  if (!within_grid(patient.grid, ijk)) return s;
   s.in_grid = true;
-  const int i0 = int(std::floor(ijk.x)), j0 = int(std::floor(ijk.y)), k0 = int(std::floor(ijk.z));
-  const double fx = ijk.x - i0, fy = ijk.y - j0, fz = ijk.z - k0;
-  const int ii[2] = {std::clamp(i0, 0, g.size.x - 1), std::clamp(i0 + 1, 0, g.size.x - 1)};
-  const int jj[2] = {std::clamp(j0, 0, g.size.y - 1), std::clamp(j0 + 1, 0, g.size.y - 1)};
-  const int kk[2] = {std::clamp(k0, 0, g.size.z - 1), std::clamp(k0 + 1, 0, g.size.z - 1)};
-  const double wx[2] = {1 - fx, fx}, wy[2] = {1 - fy, fy}, wz[2] = {1 - fz, fz};
-  for (int dk = 0; dk < 2; ++dk)
-    for (int dj = 0; dj < 2; ++dj)
-      for (int di = 0; di < 2; ++di) {
-        const double w = wx[di] * wy[dj] * wz[dk];
-        if (w == 0) continue;
-        const std::size_t n = g.index(ii[di], jj[dj], kk[dk]);
-        s.body += w * patient.body.data[n];
-        s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
-      }
+  for_each_trilinear_corner(patient.grid, ijk, [&](std::size_t n, double w) {
+    s.body += w * patient.body.data[n];
+    s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
+  });
   return s;
 }
 
@@ -75,32 +61,18 @@ Vec3 skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, 
 
 PatientSample sample_patient(const Patient& patient, const Vec3& p_mm) {
   PatientSample s;
-  const Grid& g = patient.grid;
-  const Vec3 ijk = g.to_index(p_mm);
-  // outside the grid (or not finite): outside the body; this test also keeps floor() in int range
-  if (!(ijk.x >= -0.5 && ijk.x <= g.size.x - 0.5 && ijk.y >= -0.5 && ijk.y <= g.size.y - 0.5 && ijk.z >= -0.5 &&
-        ijk.z <= g.size.z - 0.5))
-    return s;
+  const Vec3 ijk = patient.grid.to_index(p_mm);
+  // outside the grid (or not finite): outside the body
+  if (!within_grid(patient.grid, ijk)) return s;
   s.in_grid = true;
-  const int i0 = int(std::floor(ijk.x)), j0 = int(std::floor(ijk.y)), k0 = int(std::floor(ijk.z));
-  const double fx = ijk.x - i0, fy = ijk.y - j0, fz = ijk.z - k0;
-  // one set of weights for all volumes; edge voxels replicate
-  int ii[2] = {std::clamp(i0, 0, g.size.x - 1), std::clamp(i0 + 1, 0, g.size.x - 1)};
-  int jj[2] = {std::clamp(j0, 0, g.size.y - 1), std::clamp(j0 + 1, 0, g.size.y - 1)};
-  int kk[2] = {std::clamp(k0, 0, g.size.z - 1), std::clamp(k0 + 1, 0, g.size.z - 1)};
-  const double wx[2] = {1 - fx, fx}, wy[2] = {1 - fy, fy}, wz[2] = {1 - fz, fz};
-  for (int dk = 0; dk < 2; ++dk)
-    for (int dj = 0; dj < 2; ++dj)
-      for (int di = 0; di < 2; ++di) {
-        const double w = wx[di] * wy[dj] * wz[dk];
-        if (w == 0) continue;
-        const std::size_t n = g.index(ii[di], jj[dj], kk[dk]);
-        s.body += w * patient.body.data[n];
-        s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
-        s.force_mm += w * patient.force.data[n];
-        const Vec3f& gf = patient.grad_force.data[n];
-        s.grad_force += Vec3{gf.x * w, gf.y * w, gf.z * w};
-      }
+  // one set of weights for all volumes
+  for_each_trilinear_corner(patient.grid, ijk, [&](std::size_t n, double w) {
+    s.body += w * patient.body.data[n];
+    s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
+    s.force_mm += w * patient.force.data[n];
+    const Vec3f& gf = patient.grad_force.data[n];
+    s.grad_force += Vec3{gf.x * w, gf.y * w, gf.z * w};
+  });
   return s;
 }
 

@@ -116,6 +116,19 @@ void CudaDeformBackend::bind_impl() {
   cur_ = 0;
 }
 
+DeformMemory CudaDeformBackend::memory_impl() const {
+  // what bind_impl allocated: the patient copy, both displacement fields and both sweep
+  // stamps serve ChainMail (relaxation ping-pongs between the same two fields); J and
+  // its pinned host copy serve the inversion, but are allocated whatever the scene asks
+  const std::size_t n = std::size_t(capacity_);
+  const std::size_t nvol = patient_->grid.count();
+  DeformMemory m;
+  m.chainmail_bytes = nvol * (sizeof(float) + sizeof(std::uint8_t)) + sizeof(d_.u) / sizeof(float*) * n * sizeof(float) +
+                      sizeof(d_.stamp) / sizeof(int*) * n * sizeof(int) + 2 * sizeof(Counters);
+  m.invert_bytes = 2 * n * sizeof(float);
+  return m;
+}
+
 StepGeometry CudaDeformBackend::geometry() const {
   StepGeometry g;
   g.voi = voi_;

@@ -28,6 +28,7 @@ class CudaDeformBackend final : public DeformBackend {
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
   const float* deformed_brick_impl() const override { return host_j_; }
+  DeformMemory memory_impl() const override;
 
  private:
   void release();

@@ -89,10 +89,9 @@ int main(int argc, char** argv) {
   } catch (const std::exception& e) {
     return fail(std::string("cannot start: ") + e.what());
   }
-  if (scene.effects.chainmail || scene.effects.relaxation || scene.effects.inversion || scene.effects.frames ||
-      scene.effects.bricks)
-    spdlog::info("the scene asks for deformation or rendering effects; this server answers haptics (the deformation "
-                 "worker reads each session's newest contact through Server::contact_slot)");
+  // deformation is built by the server (and logged with its backend) when the scene asks for chainmail
+  if (scene.effects.frames || scene.effects.bricks)
+    spdlog::warn("the scene asks for frames or bricks; this server has no render path yet and builds neither");
 
   // serve
   try {

@@ -64,6 +64,15 @@ struct InvertStats {
   long long unresolved = 0;     // VOI voxels with a residual above deform::kInvertResolvedVox
 };
 
+/// Memory a backend holds for its session (host and device bytes), by the stage that
+/// needs it, so the server can show that a stage the scene did not ask for costs nothing.
+struct DeformMemory {
+  std::size_t chainmail_bytes = 0;  // displacement field and sweep bookkeeping (cuda: also the patient's I and bone mask)
+  std::size_t relax_bytes = 0;      // relaxation's own buffers (cuda: none, it reuses ChainMail's two fields)
+  std::size_t invert_bytes = 0;     // J on the VOI (cuda: also its pinned host copy)
+  std::size_t total() const { return chainmail_bytes + relax_bytes + invert_bytes; }
+};
+
 /// What one whole step did and cost.
 struct DeformStats {
   ChainMailStats chainmail;
@@ -117,6 +126,9 @@ class DeformBackend {
   /// Writes the whole deformed image: `out` = I, with the uploaded VOI brick of J.
   void compose_deformed(Volume<float>& out) const;
 
+  /// The memory the state holds now, by stage (0 before bind()).
+  DeformMemory memory() const { return bound_ ? memory_impl() : DeformMemory{}; }
+
   /// The bound patient and configuration.
   const Patient& patient() const { return *patient_; }
   const DeformConfig& config() const { return config_; }
@@ -135,6 +147,7 @@ class DeformBackend {
   virtual std::vector<Vec3f> displacement_impl() const = 0;
   virtual void set_displacement_impl(const std::vector<Vec3f>& u) = 0;
   virtual const float* deformed_brick_impl() const = 0;
+  virtual DeformMemory memory_impl() const = 0;
 
   /// Largest VOI the state holds (voxels): deform.voi_edge^3, or the whole volume.
   long long max_voi_count() const;

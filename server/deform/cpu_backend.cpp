@@ -15,12 +15,33 @@ double ms_since(std::chrono::steady_clock::time_point t0) {
 void CpuDeformBackend::bind_impl() {
   const std::size_t n = std::size_t(max_voi_count());
   s_.u.assign(n, Vec3f{0, 0, 0});
-  s_.u_next.assign(n, Vec3f{0, 0, 0});
-  s_.weight.assign(n, 0.0f);
   s_.moved_at.assign(n, -1);
   s_.visited_at.assign(n, -1);
-  s_.j.assign(n, 0.0f);
+  // relaxation's and inversion's buffers only when the scene asks for them (stage-by-stage
+  // callers that run a stage the configuration leaves out get them on first use)
+  std::vector<Vec3f>().swap(s_.u_next);
+  std::vector<float>().swap(s_.weight);
+  std::vector<float>().swap(s_.j);
+  if (config_.relax) grow_relax_buffers();
+  if (config_.invert) s_.j.assign(n, 0.0f);
   dirty_ = Voi{};
+}
+
+void CpuDeformBackend::grow_relax_buffers() {
+  const std::size_t n = std::size_t(max_voi_count());
+  if (s_.u_next.size() < n) s_.u_next.assign(n, Vec3f{0, 0, 0});
+  if (s_.weight.size() < n) s_.weight.assign(n, 0.0f);
+}
+
+DeformMemory CpuDeformBackend::memory_impl() const {
+  // capacities, not sizes: what the vectors hold on the heap
+  auto bytes = [](const auto& v) { return v.capacity() * sizeof(v[0]); };
+  DeformMemory m;
+  m.chainmail_bytes = bytes(s_.u) + bytes(s_.moved_at) + bytes(s_.visited_at) + bytes(s_.movers) +
+                      bytes(s_.candidates) + bytes(s_.changes);
+  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight);
+  m.invert_bytes = bytes(s_.j);
+  return m;
 }
 
 void CpuDeformBackend::reset_impl() {
@@ -38,12 +59,14 @@ void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
 }
 
 void CpuDeformBackend::relax_impl() {
+  grow_relax_buffers();
   const DeformSettings& d = config_.settings;
   deform::relax_cpu(*patient_, setup_, d.relax_iterations, float(d.relax_step), float(config_.bone_threshold),
                     float(d.material_width), s_);
 }
 
 InvertStats CpuDeformBackend::invert_impl() {
+  if (s_.j.size() < std::size_t(max_voi_count())) s_.j.assign(std::size_t(max_voi_count()), 0.0f);
   return deform::invert_cpu(*patient_, voi_, config_.settings.invert_iterations, s_);
 }
 

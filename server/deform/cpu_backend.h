@@ -63,8 +63,12 @@ class CpuDeformBackend final : public DeformBackend {
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
   const float* deformed_brick_impl() const override { return s_.j.data(); }
+  DeformMemory memory_impl() const override;
 
  private:
+  // sizes u_next and weight for the largest VOI (bind() skips them without relaxation)
+  void grow_relax_buffers();
+
   deform::CpuState s_;
   Voi dirty_;  // the VOI whose buffers hold a deformation
 };

@@ -39,6 +39,9 @@ class DeformEngine {
   const std::string& backend_name() const { return backend_->name(); }
   const std::string& backend_note() const { return note_; }
 
+  /// The memory the engine's state holds, by stage (host and device bytes).
+  DeformMemory memory() const { return backend_->memory(); }
+
   /// The backend itself, for stage-by-stage use in tests and benchmarks.
   DeformBackend& backend() { return *backend_; }
 

@@ -19,6 +19,8 @@ struct Contact {
   double depth_mm = 0;          // depth of x under the skin
   bool contact = false;         // x inside the body
   std::uint64_t seq = 0;        // the pose's sequence number
+  std::uint64_t session_id = 0; // the session the pose belongs to (0: cleared), so a reader can
+                                // tell a new session's contacts from an old one's in a reused slot
   double server_time_s = 0;     // when the pose was answered
 };
 
@@ -54,6 +56,7 @@ class ContactSlot {
   // fields are relaxed atomics so that a concurrent read is not a data race
   std::atomic<double> v_[10] = {};
   std::atomic<std::uint64_t> seq_{0};
+  std::atomic<std::uint64_t> session_id_{0};
   std::atomic<bool> contact_{false};
   std::atomic<std::uint64_t> version_{0};
 
@@ -62,6 +65,7 @@ class ContactSlot {
                           c.skin_point_mm.z, c.proxy_mm.x, c.proxy_mm.y, c.proxy_mm.z, c.depth_mm};
     for (int i = 0; i < 10; ++i) v_[i].store(v[i], std::memory_order_relaxed);
     seq_.store(c.seq, std::memory_order_relaxed);
+    session_id_.store(c.session_id, std::memory_order_relaxed);
     contact_.store(c.contact, std::memory_order_relaxed);
     server_time_s_.store(c.server_time_s, std::memory_order_relaxed);
   }
@@ -73,6 +77,7 @@ class ContactSlot {
     c.proxy_mm = {v[6], v[7], v[8]};
     c.depth_mm = v[9];
     c.seq = seq_.load(std::memory_order_relaxed);
+    c.session_id = session_id_.load(std::memory_order_relaxed);
     c.contact = contact_.load(std::memory_order_relaxed);
     c.server_time_s = server_time_s_.load(std::memory_order_relaxed);
   }

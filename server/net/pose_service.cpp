@@ -172,6 +172,8 @@ class PoseService {
       slot->proxy = ProxyState{};
       slot->last_client_time_s = 0;
       slot->last_server_time_s = 0;
+      // the deformation worker resets the session's deformation too
+      if (req_.reset_proxy()) slot->pose_resets.fetch_add(1, std::memory_order_release);
     }
     // dt from the client's clock when it grows, else from the server's
     const double now_s = t_recv * 1e-9;
@@ -211,6 +213,7 @@ class PoseService {
     c.depth_mm = f.depth_mm;
     c.contact = f.contact;
     c.seq = req_.seq();
+    c.session_id = id;
     c.server_time_s = t_done * 1e-9;
     slot->latest.write(c);
     sh_.counters.poses.fetch_add(1, std::memory_order_relaxed);

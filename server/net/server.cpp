@@ -10,6 +10,7 @@
 #include <zmq.hpp>
 
 #include "core/error.h"
+#include "net/deform_worker.h"
 #include "net/pose_service.h"
 #include "net/scene_io.h"
 #include "net/session_table.h"
@@ -51,10 +52,51 @@ void fill_params(v1::HapticsParams* out, const HapticsSettings& s) {
   out->set_min_gradient_norm(s.min_gradient_norm);
 }
 
-std::vector<std::string> stages_of(const Scene& s) {
+// the deformation stages a report says were built
+std::vector<std::string> stages_of(const Scene& s, const DeformServerReport* d) {
   std::vector<std::string> out;
   if (s.effects.haptics) out.push_back("haptics");
+  if (d && d->built) {
+    out.push_back("chainmail");
+    if (d->relax) out.push_back("relaxation");
+    if (d->invert) out.push_back("inversion");
+  }
   return out;
+}
+
+void fill_times(v1::DeformTimes* out, const DeformTimes& t, double scale) {
+  out->set_chainmail_ms(t.chainmail_ms * scale);
+  out->set_relax_ms(t.relax_ms * scale);
+  out->set_invert_ms(t.invert_ms * scale);
+  out->set_upload_ms(t.upload_ms * scale);
+  out->set_reset_ms(t.reset_ms * scale);
+  out->set_total_ms(t.total_ms * scale);
+}
+
+void add_stage(google::protobuf::RepeatedPtrField<v1::StageInfo>* out, const char* name, bool built,
+               std::uint64_t bytes, double mean_ms, std::uint64_t runs) {
+  auto* st = out->Add();
+  st->set_name(name);
+  st->set_built(built);
+  // what is really held and run, built or not: a stage not built must show 0 by itself
+  st->set_bytes_allocated(bytes);
+  st->set_mean_ms(mean_ms);
+  st->set_runs(runs);
+}
+
+// the deformation stages of a report; frames and bricks are not built by this server yet
+template <class Report>
+void add_deform_stages(google::protobuf::RepeatedPtrField<v1::StageInfo>* out, const Report* r, bool built,
+                       bool relax, bool invert) {
+  const std::uint64_t n = r ? r->steps : 0;
+  const double k = n ? 1.0 / double(n) : 0.0;
+  add_stage(out, "chainmail", built, r ? r->memory.chainmail_bytes : 0, r ? r->sum.chainmail_ms * k : 0, n);
+  add_stage(out, "relaxation", built && relax, r ? r->memory.relax_bytes : 0, r ? r->sum.relax_ms * k : 0,
+            built && relax ? n : 0);
+  add_stage(out, "inversion", built && invert, r ? r->memory.invert_bytes : 0, r ? r->sum.invert_ms * k : 0,
+            built && invert ? n : 0);
+  add_stage(out, "frames", false, 0, 0, 0);
+  add_stage(out, "bricks", false, 0, 0, 0);
 }
 
 }  // namespace
@@ -140,6 +182,22 @@ class Server::Control {
   }
 
   Clock::time_point start() const { return start_; }
+
+  // starts the deformation worker when the scene being served asks for chainmail
+  // (throws the worker's set-up error); with none asked for, nothing is built
+  void start_deform() {
+    if (current_->scene.effects.chainmail && !deform_) {
+      auto w = std::make_unique<DeformWorker>(sh_, start_);
+      w->start();
+      deform_ = std::move(w);
+      deform_ptr_.store(deform_.get(), std::memory_order_release);
+    }
+  }
+  // stops it (its engines are destroyed on its own thread)
+  void stop_deform() {
+    if (deform_) deform_->stop();
+  }
+  DeformWorker* deform() const { return deform_ptr_.load(std::memory_order_acquire); }
   zmq::socket_t& pose_socket() { return pose_; }
   const std::string& control_endpoint() const { return control_endpoint_; }
   const std::string& pose_endpoint() const { return pose_endpoint_; }
@@ -176,6 +234,8 @@ class Server::Control {
   std::string out_;
   Clock::time_point last_log_;
   std::uint64_t logged_bad_ = 0;
+  std::unique_ptr<DeformWorker> deform_;           // (control) the deformation worker, once a scene asked for it
+  std::atomic<DeformWorker*> deform_ptr_{nullptr}; // the same, for readers on other threads
 
   std::string bind(zmq::socket_t& s, const std::string& addr, const char* option) {
     try {
@@ -302,7 +362,9 @@ class Server::Control {
     info->set_max_pose_distance_mm(sh_.max_pose_distance_mm);
     info->set_max_pose_bytes(kMaxPoseBytes);
     info->set_max_control_bytes(kMaxControlBytes);
-    for (const auto& s : stages_of(w.scene)) info->add_stages(s);
+    DeformServerReport d;
+    if (deform_) d = deform_->server_report();
+    for (const auto& s : stages_of(w.scene, deform_ ? &d : nullptr)) info->add_stages(s);
   }
 
   int open_count() const {
@@ -429,6 +491,19 @@ class Server::Control {
     l->set_p99_us(sh_.pose_service.quantile(0.99));
     l->set_p999_us(sh_.pose_service.quantile(0.999));
     l->set_max_us(sh_.pose_service.max_us());
+    // stages, server-wide: what each holds and costs; deformation only when built
+    const World& w = world();
+    DeformServerReport d;
+    if (deform_) d = deform_->server_report();
+    add_stage(s->mutable_stages(), "haptics", w.scene.effects.haptics, sizeof(sh_.slots),
+              sh_.pose_service.mean_us() * 1e-3, sh_.pose_service.count());
+    add_deform_stages(s->mutable_stages(), deform_ ? &d : nullptr, d.built, d.relax, d.invert);
+    s->set_deform_backend(d.built ? d.backend : "");
+    s->set_deform_backend_note(d.built ? d.backend_note : "");
+    s->set_deform_steps(d.steps);
+    s->set_deform_failures(d.failures);
+    s->set_deform_non_converged(d.non_converged);
+    s->set_deform_contacts_dropped(d.contacts_dropped);
     fill_info(st->mutable_info());
     const std::uint64_t id = req_.stats().session_id();
     if (id != 0) {
@@ -445,7 +520,42 @@ class Server::Control {
       ss->set_idle_s((ns_since(start_) - slot->last_seen_ns.load()) * 1e-9);
       fill_params(ss->mutable_params(), slot->params());
       ss->set_force_clamps(slot->clamps);
+      // the session's stages: haptics holds its slot; its pose times are kept server-wide only
+      add_stage(ss->mutable_stages(), "haptics", w.scene.effects.haptics, sizeof(SessionSlot), 0, slot->poses);
+      DeformSessionReport r;
+      const bool has = d.built && deform_->session_report(id, r);
+      add_deform_stages(ss->mutable_stages(), has ? &r : nullptr, d.built, d.relax, d.invert);
+      if (has) fill_deform(ss->mutable_deform(), r);
     }
+  }
+
+  void fill_deform(v1::DeformSessionStats* o, const DeformSessionReport& r) {
+    o->set_backend(r.backend);
+    o->set_steps(r.steps);
+    o->set_contacts_dropped(r.contacts_dropped);
+    o->set_non_converged(r.non_converged);
+    o->set_failures(r.failures);
+    o->set_resets(r.resets);
+    o->set_releases(r.releases);
+    o->set_last_error(r.last_error);
+    fill_times(o->mutable_last(), r.last, 1.0);
+    fill_times(o->mutable_mean(), r.sum, r.steps ? 1.0 / double(r.steps) : 0.0);
+    o->set_moved(std::uint64_t(r.moved));
+    o->set_sweeps(std::uint32_t(r.sweeps));
+    o->set_converged(r.converged);
+    o->set_invert_residual_vox(r.invert_residual_vox);
+    o->set_invert_unresolved(std::uint64_t(r.invert_unresolved));
+    o->set_max_change_hu(r.max_change_hu);
+    o->set_deformed(r.deformed);
+    o->set_last_contact_seq(r.last_contact_seq);
+    o->set_last_step_server_time_s(r.last_step_server_time_s);
+    o->set_voi_lo_i(r.voi.lo.x);
+    o->set_voi_lo_j(r.voi.lo.y);
+    o->set_voi_lo_k(r.voi.lo.z);
+    o->set_voi_size_i(r.voi.size.x);
+    o->set_voi_size_j(r.voi.size.y);
+    o->set_voi_size_k(r.voi.size.z);
+    o->set_bytes_allocated(r.memory.total());
   }
 
   void load_scene() {
@@ -464,6 +574,13 @@ class Server::Control {
       current_ = std::move(next);
       sh_.counters.scene_loads.fetch_add(1);
       spdlog::info("now serving scene '{}' (generation {})", current_->scene.name, current_->generation);
+      // a running worker picks the new scene up itself; the first scene that asks for
+      // deformation starts one (its failure leaves the scene served with haptics only)
+      try {
+        start_deform();
+      } catch (const std::exception& e) {
+        spdlog::error("scene '{}': {}; serving haptics only", current_->scene.name, e.what());
+      }
       fill_info(rep_.mutable_load_scene()->mutable_server());
     } catch (const std::exception& e) {
       refuse(v1::ERROR_SCENE_LOAD_FAILED, sh_.counters.scene_load_failures,
@@ -484,8 +601,9 @@ class Server::Control {
                      world().scene.server.session_timeout_s);
       }
     }
-    // worlds older than the one the pose thread has picked up are no longer read
-    const std::uint64_t seen = sh_.seen_generation.load(std::memory_order_acquire);
+    // worlds older than the ones the pose thread and the deformation worker have picked up are no longer read
+    const std::uint64_t seen = std::min(sh_.seen_generation.load(std::memory_order_acquire),
+                                        sh_.deform_seen_generation.load(std::memory_order_acquire));
     retired_.erase(std::remove_if(retired_.begin(), retired_.end(),
                                   [seen](const std::unique_ptr<World>& w) { return w->generation < seen; }),
                    retired_.end());
@@ -521,6 +639,7 @@ void Server::start() {
   if (started_) return;
   started_ = true;
   const auto t0 = control_->start();
+  control_->start_deform();
   pose_thread_ = std::thread([this, t0] { run_pose_service(control_->pose_socket(), *shared_, t0); });
   control_thread_ = std::thread([this] { control_->run(); });
 }
@@ -529,13 +648,23 @@ void Server::stop() {
   shared_->stop.store(true);
   if (pose_thread_.joinable()) pose_thread_.join();
   if (control_thread_.joinable()) control_thread_.join();
-  if (control_) control_->close();
+  if (control_) {
+    control_->stop_deform();
+    control_->close();
+  }
 }
 
 const ContactSlot* Server::contact_slot(std::uint64_t session_id) const {
   if (session_id == 0) return nullptr;
   const SessionSlot& s = shared_->slots[session_id & (kMaxSlots - 1)];
   return s.id.load(std::memory_order_acquire) == session_id ? &s.latest : nullptr;
+}
+
+bool Server::deformation_running() const { return control_->deform() != nullptr; }
+
+bool Server::deformed_volume(std::uint64_t session_id, Volume<float>& out, double timeout_s) const {
+  DeformWorker* w = control_->deform();
+  return w && w->deformed_volume(session_id, out, timeout_s);
 }
 
 std::vector<std::uint64_t> Server::open_sessions() const {

@@ -14,6 +14,7 @@
 
 #include "core/patient.h"
 #include "core/scene.h"
+#include "core/volume.h"
 #include "haptics/contact_slot.h"
 
 namespace palpsim::net {
@@ -47,7 +48,9 @@ class Server {
   Server(const Server&) = delete;
   Server& operator=(const Server&) = delete;
 
-  /// Starts the control and haptic threads.
+  /// Starts the control and haptic threads, and the deformation worker when the scene
+  /// asks for chainmail; throws palpsim::Error when the scene's deformation cannot be
+  /// served (the worker's message: an unavailable backend, a refused setting).
   void start();
   /// Stops both threads and closes the sockets (idempotent).
   void stop();
@@ -62,6 +65,14 @@ class Server {
   const ContactSlot* contact_slot(std::uint64_t session_id) const;
   /// Ids of the sessions open now (a snapshot).
   std::vector<std::uint64_t> open_sessions() const;
+
+  /// True while a deformation worker runs (a scene with effects.chainmail was served).
+  bool deformation_running() const;
+  /// The session's whole deformed image as the deformation worker holds it now (J in
+  /// its VOI, I elsewhere). False when no worker runs, the session is unknown, or the
+  /// worker did not answer within `timeout_s`. For tests and tools: the copy is made on
+  /// the worker's thread between two steps, never on the haptic path.
+  bool deformed_volume(std::uint64_t session_id, Volume<float>& out, double timeout_s = 10) const;
 
  private:
   class Control;

@@ -44,6 +44,7 @@ struct SessionSlot {
   std::atomic<std::uint64_t> id{0};             // (control) 0 = free; else the open session's id
   std::atomic<std::int64_t> last_seen_ns{0};    // (both) server clock of the last message naming it
   std::atomic<std::uint32_t> reset_requests{0}; // (control) grows by one per ResetSession
+  std::atomic<std::uint32_t> pose_resets{0};    // (pose) grows by one per PoseRequest.reset_proxy, for the deformation worker
   // haptics parameters (control), read by the pose thread at every pose
   std::atomic<double> stiffness_n_per_mm{0.25}, friction{0.2}, max_force_n{3.3}, max_force_rate_n_per_s{2000},
       min_gradient_norm{1e-4};
@@ -102,6 +103,7 @@ class LatencyHistogram {
     if (us > 0.125) b = std::min(kBins - 1, int(std::log2(us / 0.125) * 8));
     bins_[b].fetch_add(1, std::memory_order_relaxed);
     count_.fetch_add(1, std::memory_order_relaxed);
+    sum_us_.store(sum_us_.load(std::memory_order_relaxed) + us, std::memory_order_relaxed);  // one writer
     if (us > max_us_.load(std::memory_order_relaxed)) max_us_.store(us, std::memory_order_relaxed);
   }
   /// The q-quantile (0..1) in us: the upper edge of the bin that holds it (9 % resolution).
@@ -118,11 +120,17 @@ class LatencyHistogram {
   }
   std::uint64_t count() const { return count_.load(std::memory_order_relaxed); }
   double max_us() const { return max_us_.load(std::memory_order_relaxed); }
+  /// The mean sample (us); 0 before the first.
+  double mean_us() const {
+    const std::uint64_t n = count();
+    return n ? sum_us_.load(std::memory_order_relaxed) / double(n) : 0.0;
+  }
 
  private:
   std::array<std::atomic<std::uint64_t>, kBins> bins_{};
   std::atomic<std::uint64_t> count_{0};
   std::atomic<double> max_us_{0};
+  std::atomic<double> sum_us_{0};
 };
 
 /// Everything the two threads share.
@@ -130,6 +138,7 @@ struct ServerShared {
   std::array<SessionSlot, kMaxSlots> slots;
   std::atomic<const World*> world{nullptr};          // (control) the world being served
   std::atomic<std::uint64_t> seen_generation{0};     // (pose) the newest world generation it has picked up
+  std::atomic<std::uint64_t> deform_seen_generation{~std::uint64_t(0)};  // (deformation worker) the same; max: no worker
   Counters counters;
   LatencyHistogram pose_service;                     // (pose) receive-to-send times of answered poses
   std::atomic<bool> stop{false};

@@ -1,0 +1,431 @@
+#include "net/deform_worker.h"
+
+#include <spdlog/spdlog.h>
+
+#include <cinttypes>
+#include <cmath>
+#include <cstdio>
+#include <exception>
+
+#ifdef __linux__
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+#endif
+
+#include "core/error.h"
+
+namespace palpsim::net {
+namespace {
+
+// at most this many engines of closed sessions are kept for the next sessions
+constexpr std::size_t kMaxSpares = 2;
+// how long the worker sleeps when no session had anything new (s): well below a haptic period
+constexpr double kIdleSleepS = 0.5e-3;
+// how long it sleeps while the scene asks for no deformation (s)
+constexpr double kDisabledSleepS = 20e-3;
+// the worker's nice value: below the haptic thread, so that on a machine with few cores
+// the scheduler prefers answering poses to deforming
+constexpr int kWorkerNice = 10;
+
+std::string hex_id(std::uint64_t id) {
+  char b[32];
+  std::snprintf(b, sizeof b, "%016" PRIx64, id);
+  return b;
+}
+
+void add_times(DeformTimes& a, const DeformTimes& b) {
+  a.reset_ms += b.reset_ms;
+  a.chainmail_ms += b.chainmail_ms;
+  a.relax_ms += b.relax_ms;
+  a.invert_ms += b.invert_ms;
+  a.upload_ms += b.upload_ms;
+  a.total_ms += b.total_ms;
+}
+
+void add_memory(DeformMemory& a, const DeformMemory& b) {
+  a.chainmail_bytes += b.chainmail_bytes;
+  a.relax_bytes += b.relax_bytes;
+  a.invert_bytes += b.invert_bytes;
+}
+
+bool finite(const DeformStats& st) {
+  const DeformTimes& t = st.times;
+  const Vec3f& u = st.chainmail.grabbed_u_vox;
+  return std::isfinite(u.x) && std::isfinite(u.y) && std::isfinite(u.z) && std::isfinite(st.invert_residual_vox) &&
+         std::isfinite(t.total_ms);
+}
+
+}  // namespace
+
+// the worker's own state of one session slot
+struct DeformWorker::Session {
+  std::uint64_t id = 0;                 // 0: no session
+  std::unique_ptr<DeformEngine> engine; // made at the first contact
+  std::uint64_t last_version = 0;       // contact slot version last taken (0: none yet)
+  std::uint32_t resets_seen = 0;        // SessionSlot::reset_requests applied
+  std::uint32_t pose_resets_seen = 0;   // SessionSlot::pose_resets applied
+  DeformSessionReport report;
+};
+
+// one deformed_volume() request
+struct DeformWorker::Request {
+  std::uint64_t session_id = 0;
+  Volume<float>* out = nullptr;
+  bool done = false;
+  bool found = false;
+};
+
+DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start)
+    : sh_(shared), start_(start), sessions_(kMaxSlots), reports_(kMaxSlots) {}
+
+DeformWorker::~DeformWorker() { stop(); }
+
+double DeformWorker::now_s() const {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+}
+
+void DeformWorker::start() {
+  if (thread_.joinable()) return;
+  // the world being served now may not be freed before the worker has copied what it needs
+  const World* w = sh_.world.load(std::memory_order_acquire);
+  sh_.deform_seen_generation.store(w ? w->generation : 0, std::memory_order_release);
+  thread_ = std::thread([this] { run(); });
+  std::unique_lock<std::mutex> lock(setup_mu_);
+  setup_cv_.wait(lock, [this] { return setup_done_; });
+  if (!setup_error_.empty()) {
+    lock.unlock();
+    stop();
+    throw Error(setup_error_);
+  }
+}
+
+void DeformWorker::stop() {
+  stop_.store(true);
+  if (thread_.joinable()) thread_.join();
+  sh_.deform_seen_generation.store(~std::uint64_t(0), std::memory_order_release);
+}
+
+void DeformWorker::run() {
+#ifdef __linux__
+  // a per-thread nice value (Linux): the haptic thread wins the core when both want it
+  setpriority(PRIO_PROCESS, pid_t(syscall(SYS_gettid)), kWorkerNice);
+#endif
+  bool first = true;
+  while (!stop_.load(std::memory_order_relaxed)) {
+    // a new scene: new engines (or none)
+    const World* w = sh_.world.load(std::memory_order_acquire);
+    if (w && w->generation != generation_) {
+      set_up_world();
+      if (first) {
+        std::lock_guard<std::mutex> lock(setup_mu_);
+        setup_done_ = true;
+        setup_cv_.notify_all();
+        first = false;
+        if (!setup_error_.empty()) break;
+      }
+    }
+    if (request_pending_.load(std::memory_order_acquire)) answer_request();
+    if (!built_) {
+      std::this_thread::sleep_for(std::chrono::duration<double>(kDisabledSleepS));
+      continue;
+    }
+    // one pass over the sessions: at most one step each, on its newest contact
+    bool worked = false;
+    for (int i = 0; i < kMaxSlots && !stop_.load(std::memory_order_relaxed); ++i) {
+      worked = serve(i) || worked;
+      if (request_pending_.load(std::memory_order_acquire)) answer_request();
+    }
+    if (!worked) std::this_thread::sleep_for(std::chrono::duration<double>(kIdleSleepS));
+  }
+  // every engine is destroyed on this thread (cuda: its stream and buffers too)
+  for (Session& s : sessions_) s.engine.reset();
+  spares_.clear();
+  if (first) {
+    std::lock_guard<std::mutex> lock(setup_mu_);
+    setup_done_ = true;
+    setup_cv_.notify_all();
+  }
+}
+
+void DeformWorker::set_up_world() {
+  // copy what the worker needs; then the control thread may free the world once it is old
+  const World* w = sh_.world.load(std::memory_order_acquire);
+  generation_ = w->generation;
+  const Scene scene = w->scene;
+  patient_ = w->patient;
+  sh_.deform_seen_generation.store(generation_, std::memory_order_release);
+  config_ = DeformConfig::from_scene(scene);
+  // engines of the previous world are bound to its patient and settings
+  for (Session& s : sessions_) {
+    s.engine.reset();
+    s.id = 0;
+  }
+  spares_.clear();
+  built_ = scene.effects.chainmail;
+  DeformServerReport rep;
+  rep.built = built_;
+  if (built_) {
+    // one engine now: chooses and logs the backend and validates the settings; it is the
+    // first session's engine later
+    try {
+      auto engine = std::make_unique<DeformEngine>(patient_, config_);
+      rep.backend = engine->backend_name();
+      rep.backend_note = engine->backend_note();
+      rep.relax = config_.relax;
+      rep.invert = config_.invert;
+      spdlog::info("deformation for scene '{}': {}; ChainMail{}{}, VOI {}, one worker thread for all sessions",
+                   scene.name, engine->backend_note(), config_.relax ? " + relaxation" : "",
+                   config_.invert ? " + inversion" : "",
+                   config_.settings.whole_volume ? std::string("whole volume")
+                                                 : "edge " + std::to_string(config_.settings.voi_edge));
+      spares_.push_back(std::move(engine));
+    } catch (const std::exception& e) {
+      built_ = false;
+      rep.built = false;
+      const std::string why = std::string("scene '") + scene.name + "': deformation cannot be served: " + e.what();
+      // the first scene: start() throws it; a scene loaded later is served with haptics only
+      if (!setup_done_)
+        setup_error_ = why;
+      else
+        spdlog::error("{}; its sessions get haptics only", why);
+    }
+  } else if (scene.effects.relaxation || scene.effects.inversion) {
+    spdlog::warn("scene '{}' asks for relaxation or inversion without chainmail; no deformation is built",
+                 scene.name);
+  }
+  std::lock_guard<std::mutex> lock(report_mu_);
+  for (DeformSessionReport& r : reports_) r = DeformSessionReport{};
+  server_ = rep;
+  for (const auto& e : spares_) {
+    add_memory(server_.memory, e->memory());
+    ++server_.engines;
+  }
+}
+
+std::unique_ptr<DeformEngine> DeformWorker::take_engine() {
+  if (!spares_.empty()) {
+    auto e = std::move(spares_.back());
+    spares_.pop_back();
+    return e;
+  }
+  return std::make_unique<DeformEngine>(patient_, config_);
+}
+
+void DeformWorker::give_back(std::unique_ptr<DeformEngine> engine) {
+  if (!engine) return;
+  if (spares_.size() < kMaxSpares) {
+    engine->reset();
+    spares_.push_back(std::move(engine));
+  }
+}
+
+bool DeformWorker::serve(int index) {
+  SessionSlot& slot = sh_.slots[index];
+  Session& s = sessions_[index];
+  const std::uint64_t id = slot.id.load(std::memory_order_acquire);
+  // a closed session, or a new one in this slot
+  if (id != s.id) {
+    const bool had = s.id != 0;
+    give_back(std::move(s.engine));
+    s = Session{};
+    if (id != 0) {
+      s.id = id;
+      s.resets_seen = slot.reset_requests.load(std::memory_order_acquire);
+      s.pose_resets_seen = slot.pose_resets.load(std::memory_order_acquire);
+      s.report.session_id = id;
+    }
+    if (had || id != 0) publish(s, index);
+  }
+  if (id == 0) return false;
+  // the newest contact first, then the reset counters: a reset ordered before this
+  // contact on the pose path is visible once the contact is
+  Contact c;
+  const std::uint64_t version = slot.latest.read(c);
+  const std::uint32_t resets = slot.reset_requests.load(std::memory_order_acquire);
+  const std::uint32_t pose_resets = slot.pose_resets.load(std::memory_order_acquire);
+  bool worked = false;
+  if (resets != s.resets_seen || pose_resets != s.pose_resets_seen) {
+    s.report.resets += (resets - s.resets_seen) + (pose_resets - s.pose_resets_seen);
+    s.resets_seen = resets;
+    s.pose_resets_seen = pose_resets;
+    reset(s, index);
+    worked = true;
+  }
+  // nothing new, or a contact of the slot's previous session
+  if (version == s.last_version || c.session_id != id) return worked;
+  // contacts written since the last one taken were stale before the worker got to them
+  std::uint64_t dropped = 0;
+  if (s.last_version != 0 && version > s.last_version + 1) dropped = version - s.last_version - 1;
+  s.last_version = version;
+  if (dropped) {
+    s.report.contacts_dropped += dropped;
+    std::lock_guard<std::mutex> lock(report_mu_);
+    server_.contacts_dropped += dropped;
+  }
+  if (!c.contact) {
+    // out of the body: the tissue is undeformed again
+    if (s.report.deformed) {
+      ++s.report.releases;
+      reset(s, index);
+      return true;
+    }
+    if (dropped) publish(s, index);
+    return worked;
+  }
+  step(s, index, c);
+  return true;
+}
+
+void DeformWorker::reset(Session& s, int index) {
+  try {
+    if (s.engine) s.engine->reset();
+  } catch (const std::exception& e) {
+    // a backend that cannot even reset is dropped; the next contact makes a new one
+    s.engine.reset();
+    ++s.report.failures;
+    s.report.last_error = std::string("reset: ") + e.what();
+  }
+  s.report.deformed = false;
+  s.report.max_change_hu = 0;
+  publish(s, index);
+}
+
+void DeformWorker::step(Session& s, int index, const Contact& c) {
+  DeformSessionReport& r = s.report;
+  try {
+    if (!s.engine) s.engine = take_engine();
+    r.backend = s.engine->backend_name();
+    const DeformStats st = s.engine->step(DeformContact{c.skin_point_mm, c.tip_mm});
+    // J must be finite, and how far it moved from I says how much the image changed
+    double change = 0;
+    bool ok = finite(st);
+    if (const float* j = s.engine->deformed_brick()) {
+      const Voi& v = s.engine->voi();
+      const Patient& p = *patient_;
+      for (int k = 0; k < v.size.z && ok; ++k)
+        for (int jj = 0; jj < v.size.y && ok; ++jj) {
+          const float* row = j + v.index(0, jj, k);
+          const float* img = &p.intensity.data[p.grid.index(v.lo.x, v.lo.y + jj, v.lo.z + k)];
+          for (int i = 0; i < v.size.x; ++i) {
+            if (!std::isfinite(row[i])) {
+              ok = false;
+              break;
+            }
+            change = std::max(change, double(std::fabs(row[i] - img[i])));
+          }
+        }
+    }
+    if (!ok) throw Error("the step produced a non-finite value (NaN or Inf in the displacement or J)");
+    ++r.steps;
+    r.last = st.times;
+    add_times(r.sum, st.times);
+    r.moved = st.chainmail.moved;
+    r.sweeps = st.chainmail.sweeps;
+    r.converged = st.chainmail.converged;
+    r.invert_residual_vox = st.invert_residual_vox;
+    r.invert_unresolved = st.invert_unresolved;
+    r.max_change_hu = change;
+    r.deformed = true;
+    r.last_contact_seq = c.seq;
+    r.voi = st.chainmail.voi;
+    r.last_step_server_time_s = now_s();
+    if (!st.chainmail.converged) {
+      ++r.non_converged;
+      r.last_error = "ChainMail did not converge within deform.max_sweeps = " +
+                     std::to_string(config_.settings.max_sweeps) + " sweeps (contact seq " + std::to_string(c.seq) +
+                     ", " + std::to_string(st.chainmail.moved) + " elements moved); the state is kept";
+      if (r.non_converged == 1) spdlog::warn("session {}: {} (counted in stats)", hex_id(s.id), r.last_error);
+    }
+    std::lock_guard<std::mutex> lock(report_mu_);
+    ++server_.steps;
+    add_times(server_.sum, st.times);
+    if (!st.chainmail.converged) ++server_.non_converged;
+  } catch (const std::exception& e) {
+    // a failed step poisons nothing: the session's deformation starts again from undeformed
+    ++r.failures;
+    r.last_error = "contact seq " + std::to_string(c.seq) + ": " + e.what() + "; the session's deformation was reset";
+    if (r.failures == 1) spdlog::warn("session {}: deformation step failed: {} (counted in stats)", hex_id(s.id), r.last_error);
+    try {
+      if (s.engine) s.engine->reset();
+    } catch (const std::exception&) {
+      s.engine.reset();
+    }
+    r.deformed = false;
+    r.max_change_hu = 0;
+    std::lock_guard<std::mutex> lock(report_mu_);
+    ++server_.failures;
+  }
+  publish(s, index);
+}
+
+void DeformWorker::publish(const Session& s, int index) {
+  std::lock_guard<std::mutex> lock(report_mu_);
+  DeformSessionReport& out = reports_[index];
+  out = s.report;
+  out.memory = s.engine ? s.engine->memory() : DeformMemory{};
+  // server_.memory holds the spare engines; server_report() adds the sessions' own
+  server_.memory = DeformMemory{};
+  server_.engines = 0;
+  for (const auto& e : spares_) {
+    add_memory(server_.memory, e->memory());
+    ++server_.engines;
+  }
+}
+
+bool DeformWorker::session_report(std::uint64_t session_id, DeformSessionReport& out) const {
+  if (session_id == 0) return false;
+  std::lock_guard<std::mutex> lock(report_mu_);
+  const DeformSessionReport& r = reports_[session_id & (kMaxSlots - 1)];
+  if (r.session_id != session_id) return false;
+  out = r;
+  return true;
+}
+
+DeformServerReport DeformWorker::server_report() const {
+  std::lock_guard<std::mutex> lock(report_mu_);
+  DeformServerReport r = server_;
+  // sessions' engines on top of the spares
+  for (const DeformSessionReport& s : reports_)
+    if (s.session_id != 0 && s.memory.total() > 0) {
+      add_memory(r.memory, s.memory);
+      ++r.engines;
+    }
+  return r;
+}
+
+bool DeformWorker::deformed_volume(std::uint64_t session_id, Volume<float>& out, double timeout_s) {
+  std::lock_guard<std::mutex> one_at_a_time(request_mu_);
+  std::unique_lock<std::mutex> lock(mailbox_mu_);
+  request_ = std::make_unique<Request>();
+  request_->session_id = session_id;
+  request_->out = &out;
+  request_pending_.store(true, std::memory_order_release);
+  const bool answered = mailbox_cv_.wait_for(lock, std::chrono::duration<double>(timeout_s), [this] { return request_->done; });
+  const bool found = answered && request_->found;
+  request_pending_.store(false, std::memory_order_release);
+  request_.reset();
+  return found;
+}
+
+void DeformWorker::answer_request() {
+  std::lock_guard<std::mutex> lock(mailbox_mu_);
+  if (!request_ || request_->done) return;
+  Request& q = *request_;
+  const Session& s = sessions_[q.session_id & (kMaxSlots - 1)];
+  if (q.session_id != 0 && s.id == q.session_id) {
+    q.found = true;
+    if (s.engine) {
+      *q.out = s.engine->deformed_volume();
+    } else {
+      // no engine yet: undeformed
+      q.out->grid = patient_->grid;
+      q.out->data = patient_->intensity.data;
+    }
+  }
+  q.done = true;
+  request_pending_.store(false, std::memory_order_release);
+  mailbox_cv_.notify_all();
+}
+
+}  // namespace palpsim::net

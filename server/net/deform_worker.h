@@ -1,0 +1,146 @@
+// The server's deformation path: one worker thread that runs every open session's
+// DeformEngine (ChainMail, relaxation, inversion; server/deform/engine.h) on the
+// session's newest contact, read from the contact slot the haptic thread writes.
+// Stale contacts are dropped, never queued; the haptic thread never waits for it.
+// Built only when the scene asks for effects.chainmail: without it the server has no
+// worker, no engine and no deformation buffer.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/volume.h"
+#include "deform/engine.h"
+#include "net/session_table.h"
+
+namespace palpsim::net {
+
+/// One session's deformation as the worker reports it (copied out for the stats reply).
+struct DeformSessionReport {
+  std::uint64_t session_id = 0;
+  std::string backend;                 // "cpu" or "cuda"; "" until the session's engine exists
+  std::uint64_t steps = 0;             // deformation steps run
+  std::uint64_t contacts_dropped = 0;  // contacts overwritten by newer ones before the worker got to them
+  std::uint64_t non_converged = 0;     // steps that reached deform.max_sweeps (the state is kept)
+  std::uint64_t failures = 0;          // steps that threw or produced a non-finite value (the state is reset)
+  std::uint64_t resets = 0;            // session resets (ResetSession or PoseRequest.reset_proxy)
+  std::uint64_t releases = 0;          // the tip left the body: the tissue returned to undeformed
+  std::string last_error;              // the latest non-converged step or failure
+  DeformTimes last;                    // stage times of the latest step (ms)
+  DeformTimes sum;                     // summed over all steps (ms); mean = sum / steps
+  long long moved = 0;                 // latest step: elements ChainMail moved (the first not counted)
+  int sweeps = 0;                      // latest step: ChainMail sweeps
+  bool converged = true;               // latest step: ChainMail converged within max_sweeps
+  double invert_residual_vox = 0;      // latest step: max inversion residual (voxel)
+  long long invert_unresolved = 0;     // latest step: voxels with a residual above 0.1 voxel
+  double max_change_hu = 0;            // latest step: max |J - I| over the VOI (0 without inversion)
+  bool deformed = false;               // a deformation is in place now
+  std::uint64_t last_contact_seq = 0;  // pose seq of the contact the latest step ran on
+  double last_step_server_time_s = 0;  // server clock when the latest step ended
+  Voi voi;                             // latest step's VOI (patient voxel indices)
+  DeformMemory memory;                 // what the session's engine holds (bytes)
+};
+
+/// The whole deformation path of the server (all sessions, spare engines included).
+struct DeformServerReport {
+  bool built = false;           // the current scene asks for chainmail and the worker serves it
+  bool relax = false;           // and relaxation
+  bool invert = false;          // and inversion
+  std::string backend;          // "cpu" or "cuda"
+  std::string backend_note;     // which backend and why (DeformEngine::backend_note)
+  std::uint64_t steps = 0;      // all sessions, since the current scene was set up
+  std::uint64_t failures = 0;
+  std::uint64_t non_converged = 0;
+  std::uint64_t contacts_dropped = 0;
+  DeformTimes sum;              // summed stage times of those steps (ms)
+  DeformMemory memory;          // every engine the worker holds (bytes)
+  std::uint64_t engines = 0;    // engines held (sessions' and spares)
+};
+
+/// Runs deformation for every open session on one thread.
+///
+/// Why one thread for the server and not one per session: the machine this serves on
+/// may have two cores, one of which the haptic thread needs; a thread per session would
+/// compete with it and with each other, while one worker that round-robins sessions
+/// (one step per session per pass, newest contact only) uses at most one core, shares
+/// it fairly, and runs below the haptic thread's priority. With the cuda backend it
+/// also keeps every CUDA call (engine creation, steps, destruction) on one thread.
+class DeformWorker {
+ public:
+  DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start);
+  ~DeformWorker();
+  DeformWorker(const DeformWorker&) = delete;
+  DeformWorker& operator=(const DeformWorker&) = delete;
+
+  /// Starts the thread and waits until it has set up the current world (chosen the
+  /// backend, logged it, built and validated one engine); throws palpsim::Error with
+  /// the engine's message when the scene's deformation cannot be served.
+  void start();
+  /// Stops and joins the thread; engines are destroyed on it (idempotent).
+  void stop();
+
+  /// The deformation of an open session; false when the worker does not know it.
+  bool session_report(std::uint64_t session_id, DeformSessionReport& out) const;
+  /// The whole deformation path.
+  DeformServerReport server_report() const;
+
+  /// Copies the session's whole deformed image (J in its VOI, I elsewhere) as the
+  /// worker holds it between two steps; waits up to `timeout_s` for the worker to
+  /// answer. False when the session is unknown or the worker did not answer. For tests
+  /// and tools: the copy is made on the worker thread, never on the haptic path.
+  bool deformed_volume(std::uint64_t session_id, Volume<float>& out, double timeout_s);
+
+ private:
+  struct Session;
+  struct Request;
+  void run();
+  void set_up_world();
+  bool serve(int index);
+  void step(Session& s, int index, const Contact& c);
+  void reset(Session& s, int index);
+  std::unique_ptr<DeformEngine> take_engine();
+  void give_back(std::unique_ptr<DeformEngine> engine);
+  void publish(const Session& s, int index);
+  void answer_request();
+  double now_s() const;
+
+  ServerShared& sh_;
+  std::chrono::steady_clock::time_point start_;
+  std::thread thread_;
+  std::atomic<bool> stop_{false};
+
+  // (worker) the world being served and its engines
+  std::uint64_t generation_ = 0;
+  PatientPtr patient_;
+  DeformConfig config_;
+  bool built_ = false;
+  std::vector<Session> sessions_;                       // by slot index
+  std::vector<std::unique_ptr<DeformEngine>> spares_;  // engines of closed sessions, reused
+
+  // (worker writes, others read under report_mu_) what stats show
+  mutable std::mutex report_mu_;
+  std::vector<DeformSessionReport> reports_;  // by slot index; session_id 0: none
+  DeformServerReport server_;
+
+  // start() waits for the first world set-up
+  std::mutex setup_mu_;
+  std::condition_variable setup_cv_;
+  bool setup_done_ = false;
+  std::string setup_error_;
+
+  // deformed_volume() requests: one at a time, answered between steps
+  std::mutex request_mu_;             // requesters among themselves
+  std::mutex mailbox_mu_;             // the mailbox below
+  std::condition_variable mailbox_cv_;
+  std::atomic<bool> request_pending_{false};
+  std::unique_ptr<Request> request_;
+};
+
+}  // namespace palpsim::net

@@ -1,0 +1,442 @@
+// Deformation inside the server, in-process on synthetic patients: each session's
+// worker steps on the newest contact and reports stage times; poses keep being answered
+// while a slow step runs (stale contacts are dropped); resets and leaving the body
+// restore the undeformed image; failures are counted and the session keeps being
+// served; a scene without chainmail builds nothing for it and says so.
+#include <catch2/catch.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <limits>
+#include <thread>
+#include <vector>
+#include <zmq.hpp>
+
+#include "core/error.h"
+#include "net/scene_io.h"
+#include "net/server.h"
+#include "palpsim/wire.pb.h"
+#include "support/synthetic_patient.h"
+
+using namespace palpsim;
+namespace v1 = palpsim::v1;
+
+namespace {
+
+// how long a test waits for the worker before it gives up (a loaded 2-core machine,
+// where the worker runs at a lower priority than everything else)
+constexpr double kWorkerWaitS = 30;
+
+// a session: a REQ for control, a DEALER for poses
+struct Client {
+  zmq::context_t ctx{1};
+  zmq::socket_t ctl{ctx, zmq::socket_type::req};
+  zmq::socket_t pose{ctx, zmq::socket_type::dealer};
+  std::uint64_t id = 0;
+  std::uint64_t seq = 0;
+
+  explicit Client(const net::Server& s) {
+    ctl.set(zmq::sockopt::linger, 0);
+    pose.set(zmq::sockopt::linger, 0);
+    ctl.connect(s.control_endpoint());
+    pose.connect(s.pose_endpoint());
+    v1::ControlRequest q;
+    q.mutable_open()->set_client_name("deform-unit");
+    const auto r = call(q);
+    REQUIRE(r.has_open());
+    id = r.open().session_id();
+  }
+  v1::ControlReply call(v1::ControlRequest q) {
+    q.set_schema_version(1);
+    ctl.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+    zmq::pollitem_t it[] = {{ctl.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::poll(it, 1, std::chrono::milliseconds(10000));
+    REQUIRE((it[0].revents & ZMQ_POLLIN));
+    zmq::message_t m;
+    (void)ctl.recv(m);
+    v1::ControlReply r;
+    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
+    return r;
+  }
+  v1::StatsReply stats() {
+    v1::ControlRequest q;
+    q.mutable_stats()->set_session_id(id);
+    const auto r = call(q);
+    REQUIRE(r.has_stats());
+    return r.stats();
+  }
+  // one pose and its reply (1 ms of client time per pose)
+  v1::PoseReply send_pose(const Vec3& x, bool reset = false) {
+    v1::PoseRequest q;
+    q.set_schema_version(1);
+    q.set_session_id(id);
+    q.set_seq(++seq);
+    q.set_client_time_s(1.0 + seq * 1e-3);
+    q.set_reset_proxy(reset);
+    q.mutable_tip_mm()->set_x(x.x);
+    q.mutable_tip_mm()->set_y(x.y);
+    q.mutable_tip_mm()->set_z(x.z);
+    pose.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+    zmq::pollitem_t it[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::poll(it, 1, std::chrono::milliseconds(10000));
+    REQUIRE((it[0].revents & ZMQ_POLLIN));
+    zmq::message_t m;
+    (void)pose.recv(m);
+    v1::PoseReply r;
+    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
+    REQUIRE(r.error().code() == v1::ERROR_NONE);
+    REQUIRE(r.seq() == seq);
+    return r;
+  }
+  // presses straight down into the slab at (x, y) from above the skin to `depth_mm`
+  void press(double x, double y, double depth_mm, int poses = 60) {
+    const double z0 = test::kSlabSkinZ + 2;
+    const double z1 = test::kSlabSkinZ - depth_mm;
+    for (int n = 0; n <= poses; ++n) send_pose({x, y, z0 + (z1 - z0) * n / poses});
+  }
+  // polls the session's deformation stats until `done` holds (false after kWorkerWaitS)
+  template <class Pred>
+  bool wait_deform(Pred done, v1::DeformSessionStats* out = nullptr) {
+    const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
+    while (std::chrono::steady_clock::now() < end) {
+      const v1::StatsReply st = stats();
+      if (done(st.session().deform())) {
+        if (out) *out = st.session().deform();
+        return true;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    return false;
+  }
+};
+
+net::ServerOptions loopback() {
+  net::ServerOptions o;
+  o.control_bind = "tcp://127.0.0.1:*";
+  o.pose_bind = "tcp://127.0.0.1:*";
+  return o;
+}
+
+// the default scene with the whole deformation pipeline on the CPU reference at VOI 32
+Scene deform_scene() {
+  Scene s = default_scene();
+  s.effects.chainmail = s.effects.relaxation = s.effects.inversion = true;
+  s.deform.backend = "cpu";
+  s.deform.voi_edge = 32;
+  return s;
+}
+
+const v1::StageInfo* stage(const google::protobuf::RepeatedPtrField<v1::StageInfo>& stages, const std::string& name) {
+  for (const auto& s : stages)
+    if (s.name() == name) return &s;
+  return nullptr;
+}
+
+// voxels where two volumes differ bit for bit, inside and outside a box of voxels
+struct Diff {
+  long long inside = 0, outside = 0;
+};
+Diff diff(const Volume<float>& a, const Volume<float>& b, const v1::DeformSessionStats& d) {
+  Diff out;
+  const Vec3i& n = a.grid.size;
+  for (int k = 0; k < n.z; ++k)
+    for (int j = 0; j < n.y; ++j)
+      for (int i = 0; i < n.x; ++i) {
+        const std::size_t m = a.grid.index(i, j, k);
+        if (std::memcmp(&a.data[m], &b.data[m], sizeof(float)) == 0) continue;
+        const bool in = i >= int(d.voi_lo_i()) && i < int(d.voi_lo_i() + d.voi_size_i()) && j >= int(d.voi_lo_j()) &&
+                        j < int(d.voi_lo_j() + d.voi_size_j()) && k >= int(d.voi_lo_k()) &&
+                        k < int(d.voi_lo_k() + d.voi_size_k());
+        (in ? out.inside : out.outside) += 1;
+      }
+  return out;
+}
+
+// the press point: tissue away from the slab's bone block (x, y in 24.5..35.5 mm)
+constexpr double kPressX = 45, kPressY = 45;
+
+}  // namespace
+
+TEST_CASE("a press is deformed on its newest contact and every stage reports its time", "[net][deform]") {
+  const auto patient = test::slab_patient();
+  net::Server server(deform_scene(), patient, nullptr, loopback());
+  server.start();
+  REQUIRE(server.deformation_running());
+  Client c(server);
+  c.press(kPressX, kPressY, 8);
+  const std::uint64_t last = c.seq;
+  // the worker ends on the newest contact: the last pose of the press
+  v1::DeformSessionStats d;
+  REQUIRE(c.wait_deform([&](const v1::DeformSessionStats& s) { return s.last_contact_seq() == last; }, &d));
+  INFO(d.DebugString());
+  CHECK(d.backend() == "cpu");
+  CHECK(d.steps() >= 1);
+  CHECK(d.failures() == 0);
+  CHECK(d.converged());
+  CHECK(d.non_converged() == 0);
+  CHECK(d.sweeps() >= 2);  // at least one sweep that moved and the quiet one
+  CHECK(d.moved() > 0);
+  CHECK(d.deformed());
+  CHECK(d.max_change_hu() > 0);
+  CHECK(std::isfinite(d.invert_residual_vox()));
+  // every stage ran and took time; the total includes them (timed around them on one clock)
+  CHECK(d.last().chainmail_ms() > 0);
+  CHECK(d.last().relax_ms() > 0);
+  CHECK(d.last().invert_ms() > 0);
+  CHECK(d.last().total_ms() >= d.last().chainmail_ms() + d.last().relax_ms() + d.last().invert_ms());
+  CHECK(d.mean().total_ms() > 0);
+  // the VOI: at most the scene's edge, around the press
+  CHECK(d.voi_size_i() <= 32);
+  CHECK(d.voi_size_k() <= 32);
+  CHECK(d.bytes_allocated() > 0);
+  // the image changed inside the VOI only (J = I outside it)
+  Volume<float> j;
+  REQUIRE(server.deformed_volume(c.id, j));
+  const Diff df = diff(j, patient->intensity, d);
+  CHECK(df.inside > 0);
+  CHECK(df.outside == 0);
+  // stages: the three asked for are built and hold memory; the session's and the server's agree
+  const v1::StatsReply st = c.stats();
+  for (const char* name : {"chainmail", "relaxation", "inversion"}) {
+    INFO(name);
+    const v1::StageInfo* s = stage(st.session().stages(), name);
+    REQUIRE(s != nullptr);
+    CHECK(s->built());
+    CHECK(s->bytes_allocated() > 0);
+    CHECK(s->runs() == st.session().deform().steps());
+    CHECK(s->mean_ms() > 0);
+    const v1::StageInfo* all = stage(st.server().stages(), name);
+    REQUIRE(all != nullptr);
+    CHECK(all->built());
+    CHECK(all->bytes_allocated() >= s->bytes_allocated());
+  }
+  const v1::StageInfo* frames = stage(st.server().stages(), "frames");
+  REQUIRE(frames != nullptr);
+  CHECK_FALSE(frames->built());
+  CHECK(st.server().deform_backend() == "cpu");
+  CHECK(st.server().deform_backend_note().find("cpu") != std::string::npos);
+  CHECK(st.server().deform_steps() >= d.steps());
+  const auto& names = st.info().stages();
+  CHECK(std::find(names.begin(), names.end(), "inversion") != names.end());
+  server.stop();
+}
+
+TEST_CASE("poses are answered while a slow deformation step runs; stale contacts are dropped", "[net][deform]") {
+  // a slow step on purpose: the whole 60^3 volume with many relaxation iterations
+  Scene scene = deform_scene();
+  scene.deform.whole_volume = true;
+  scene.deform.relax_iterations = 120;
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client c(server);
+  c.press(kPressX, kPressY, 5, 20);
+  // stream poses that wiggle in the tissue, one at a time, and watch the step counter:
+  // (steps, the contact seq each step ran on) whenever it changes
+  std::vector<std::pair<std::uint64_t, std::uint64_t>> seen;
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
+  int n = 0;
+  while (seen.size() < 4 && std::chrono::steady_clock::now() < end) {
+    c.send_pose({kPressX + 0.5 * std::sin(n * 0.01), kPressY, test::kSlabSkinZ - 5});
+    if (++n % 20 == 0) {
+      const v1::DeformSessionStats d = c.stats().session().deform();
+      if (d.steps() > 0 && (seen.empty() || seen.back().first != d.steps()))
+        seen.emplace_back(d.steps(), d.last_contact_seq());
+    }
+  }
+  REQUIRE(seen.size() >= 2);
+  const v1::StatsReply st = c.stats();
+  const v1::DeformSessionStats& d = st.session().deform();
+  std::printf("slow steps: %llu steps of %.1f ms (mean), %llu poses, %llu contacts dropped, pose service p99 %.1f us, "
+              "max %.1f us\n",
+              (unsigned long long)d.steps(), d.mean().total_ms(), (unsigned long long)c.seq,
+              (unsigned long long)d.contacts_dropped(), st.server().pose_service().p99_us(),
+              st.server().pose_service().max_us());
+  // between two consecutive steps the haptic path kept answering: had it waited for the
+  // worker, the contact seq would grow by about one pose per step, not by many
+  int gaps = 0;
+  for (std::size_t k = 1; k < seen.size(); ++k)
+    if (seen[k].first == seen[k - 1].first + 1) {
+      ++gaps;
+      INFO("step " << seen[k].first << " ran on seq " << seen[k].second << ", the one before on " << seen[k - 1].second);
+      CHECK(seen[k].second >= seen[k - 1].second + 10);
+    }
+  CHECK(gaps >= 1);
+  // every pose was answered (send_pose requires it), far more poses than steps, and the
+  // contacts in between were dropped, not queued: steps + dropped never exceed the poses
+  CHECK(d.steps() < c.seq);
+  CHECK(d.contacts_dropped() > 0);
+  CHECK(d.steps() + d.contacts_dropped() <= c.seq);
+  CHECK(d.failures() == 0);
+  server.stop();
+}
+
+TEST_CASE("a reset, a reset flag and leaving the body restore the undeformed image", "[net][deform]") {
+  const auto patient = test::slab_patient();
+  net::Server server(deform_scene(), patient, nullptr, loopback());
+  server.start();
+  Client c(server);
+  auto deformed_now = [&] {
+    Volume<float> j;
+    REQUIRE(server.deformed_volume(c.id, j));
+    return j.data.size() == patient->intensity.data.size() &&
+           std::memcmp(j.data.data(), patient->intensity.data.data(), j.data.size() * sizeof(float)) != 0;
+  };
+  c.press(kPressX, kPressY, 8);
+  std::uint64_t last = c.seq;
+  REQUIRE(c.wait_deform([&](const auto& s) { return s.last_contact_seq() == last && s.deformed(); }));
+  CHECK(deformed_now());
+
+  SECTION("ResetSession") {
+    v1::ControlRequest q;
+    q.mutable_reset()->set_session_id(c.id);
+    REQUIRE(c.call(q).has_reset());
+    v1::DeformSessionStats d;
+    REQUIRE(c.wait_deform([](const auto& s) { return s.resets() == 1 && !s.deformed(); }, &d));
+    CHECK(d.max_change_hu() == 0);
+    // J is I again, bit for bit
+    CHECK_FALSE(deformed_now());
+  }
+  SECTION("PoseRequest.reset_proxy, then the next contact deforms again") {
+    const std::uint64_t steps = c.stats().session().deform().steps();
+    c.send_pose({kPressX, kPressY, test::kSlabSkinZ - 4}, true);
+    last = c.seq;
+    v1::DeformSessionStats d;
+    REQUIRE(c.wait_deform([&](const auto& s) { return s.resets() == 1 && s.last_contact_seq() == last; }, &d));
+    CHECK(d.steps() > steps);
+    CHECK(d.deformed());
+    CHECK(deformed_now());
+  }
+  SECTION("the tip leaves the body") {
+    c.send_pose({kPressX, kPressY, test::kSlabSkinZ + 3});
+    v1::DeformSessionStats d;
+    REQUIRE(c.wait_deform([](const auto& s) { return s.releases() == 1 && !s.deformed(); }, &d));
+    CHECK(d.resets() == 0);
+    CHECK_FALSE(deformed_now());
+  }
+  server.stop();
+}
+
+TEST_CASE("a step that does not converge or turns NaN is counted; the session keeps being served", "[net][deform]") {
+  SECTION("max_sweeps reached: reported, the state kept") {
+    Scene scene = deform_scene();
+    scene.deform.max_sweeps = 1;
+    net::Server server(scene, test::slab_patient(), nullptr, loopback());
+    server.start();
+    Client c(server);
+    c.press(kPressX, kPressY, 6, 20);
+    v1::DeformSessionStats d;
+    REQUIRE(c.wait_deform([&](const auto& s) { return s.last_contact_seq() == c.seq; }, &d));
+    CHECK_FALSE(d.converged());
+    CHECK(d.non_converged() >= 1);
+    CHECK(d.failures() == 0);
+    CHECK(d.deformed());
+    CHECK(d.last_error().find("max_sweeps = 1") != std::string::npos);
+    CHECK(c.stats().server().deform_non_converged() >= 1);
+    CHECK(c.send_pose({kPressX, kPressY, test::kSlabSkinZ - 6}).contact());
+    server.stop();
+  }
+  SECTION("NaN in the image: the session's deformation is reset and counted") {
+    // a patient whose tissue intensity is NaN around the press (the material function
+    // turns it into NaN displacements, and J samples it)
+    auto patient = test::slab_patient();
+    for (int k = 25; k < 40; ++k)
+      for (int j = 40; j < 50; ++j)
+        for (int i = 40; i < 50; ++i) patient->intensity.at(i, j, k) = std::numeric_limits<float>::quiet_NaN();
+    net::Server server(deform_scene(), patient, nullptr, loopback());
+    server.start();
+    Client c(server);
+    c.press(kPressX, kPressY, 6, 20);
+    v1::DeformSessionStats d;
+    REQUIRE(c.wait_deform([&](const auto& s) { return s.failures() >= 1 && s.last_error().find("seq " + std::to_string(c.seq)) != std::string::npos; }, &d));
+    CHECK_FALSE(d.deformed());
+    CHECK(d.last_error().find("non-finite") != std::string::npos);
+    CHECK(c.stats().server().deform_failures() >= 1);
+    // the haptic path never noticed
+    const v1::PoseReply r = c.send_pose({kPressX, kPressY, test::kSlabSkinZ - 6});
+    CHECK(r.contact());
+    CHECK(std::isfinite(r.force_n().z()));
+    server.stop();
+  }
+}
+
+TEST_CASE("a scene without chainmail builds no deformation and says so", "[net][deform]") {
+  Scene scene = default_scene();
+  // relaxation and inversion without chainmail build nothing either
+  const bool asks_for_relax = GENERATE(false, true);
+  scene.effects.relaxation = scene.effects.inversion = asks_for_relax;
+  REQUIRE_FALSE(scene.effects.chainmail);
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  server.start();
+  CHECK_FALSE(server.deformation_running());
+  Client c(server);
+  c.press(kPressX, kPressY, 6, 20);
+  const v1::StatsReply st = c.stats();
+  CHECK_FALSE(st.session().has_deform());
+  CHECK(st.server().deform_backend().empty());
+  CHECK(st.server().deform_steps() == 0);
+  for (const auto* stages : {&st.server().stages(), &st.session().stages()})
+    for (const char* name : {"chainmail", "relaxation", "inversion", "frames", "bricks"}) {
+      INFO(name);
+      const v1::StageInfo* s = stage(*stages, name);
+      REQUIRE(s != nullptr);
+      CHECK_FALSE(s->built());
+      CHECK(s->bytes_allocated() == 0);
+      CHECK(s->runs() == 0);
+    }
+  // haptics is built and ran
+  const v1::StageInfo* h = stage(st.server().stages(), "haptics");
+  REQUIRE(h != nullptr);
+  CHECK(h->built());
+  CHECK(h->runs() == c.seq);
+  const auto& names = st.info().stages();
+  CHECK(std::vector<std::string>(names.begin(), names.end()) == std::vector<std::string>{"haptics"});
+  Volume<float> j;
+  CHECK_FALSE(server.deformed_volume(c.id, j));
+  server.stop();
+}
+
+TEST_CASE("a scene whose deformation cannot be served refuses to start, naming the setting", "[net][deform]") {
+  Scene scene = deform_scene();
+  scene.deform.relax_step = 0.5;  // above the explicit scheme's stable limit 1/6
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  CHECK_THROWS_WITH(server.start(), Catch::Contains("relax_step") && Catch::Contains("stable limit"));
+}
+
+TEST_CASE("a scene reload starts or drops the deformation", "[net][deform]") {
+  const auto slab = test::slab_patient();
+  auto loader = [&](const Scene&) -> PatientPtr { return slab; };
+  net::Server server(default_scene(), slab, loader, loopback());
+  server.start();
+  CHECK_FALSE(server.deformation_running());
+  Client c(server);
+  v1::ControlRequest q;
+  q.mutable_load_scene()->set_text(
+      "name: \"deforming\"\nphantom { voxel_mm: 2 }\ndeform { voi_edge: 32 backend: \"cpu\" }\n"
+      "effects { chainmail: true relaxation: true }\n");
+  REQUIRE(c.call(q).error().code() == v1::ERROR_NONE);
+  CHECK(server.deformation_running());
+  c.press(kPressX, kPressY, 6, 20);
+  v1::DeformSessionStats d;
+  REQUIRE(c.wait_deform([&](const auto& s) { return s.last_contact_seq() == c.seq; }, &d));
+  CHECK(d.deformed());
+  CHECK(d.last().invert_ms() == 0);  // not asked for
+  const v1::StatsReply st = c.stats();
+  CHECK(stage(st.server().stages(), "relaxation")->built());
+  CHECK_FALSE(stage(st.server().stages(), "inversion")->built());
+  CHECK(stage(st.server().stages(), "inversion")->bytes_allocated() == 0);
+  // and back to haptics only: the worker drops every engine
+  q.mutable_load_scene()->set_text("name: \"plain\"\nphantom { voxel_mm: 2 }\n");
+  REQUIRE(c.call(q).error().code() == v1::ERROR_NONE);
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
+  v1::StatsReply after;
+  do {
+    after = c.stats();
+  } while (stage(after.server().stages(), "chainmail")->built() && std::chrono::steady_clock::now() < end);
+  CHECK_FALSE(stage(after.server().stages(), "chainmail")->built());
+  CHECK(stage(after.server().stages(), "chainmail")->bytes_allocated() == 0);
+  CHECK(after.server().deform_backend().empty());
+  server.stop();
+}

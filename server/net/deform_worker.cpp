@@ -22,7 +22,7 @@ namespace {
 constexpr std::size_t kMaxSpares = 2;
 // how long the worker sleeps when no session had anything new (s): well below a haptic period
 constexpr double kIdleSleepS = 0.5e-3;
-// how long it sleeps while the scene asks for no deformation (s)
+// how long it sleeps while the scene asks for no deformation or no session is open (s)
 constexpr double kDisabledSleepS = 20e-3;
 // the worker's nice value: below the haptic thread, so that on a machine with few cores
 // the scheduler prefers answering poses to deforming
@@ -131,12 +131,14 @@ void DeformWorker::run() {
       continue;
     }
     // one pass over the sessions: at most one step each, on its newest contact
-    bool worked = false;
+    bool worked = false, any_open = false;
     for (int i = 0; i < kMaxSlots && !stop_.load(std::memory_order_relaxed); ++i) {
       worked = serve(i) || worked;
+      any_open = any_open || sessions_[i].id != 0;
       if (request_pending_.load(std::memory_order_acquire)) answer_request();
     }
-    if (!worked) std::this_thread::sleep_for(std::chrono::duration<double>(kIdleSleepS));
+    // nothing new: a short nap while sessions are open, a longer one while none is
+    if (!worked) std::this_thread::sleep_for(std::chrono::duration<double>(any_open ? kIdleSleepS : kDisabledSleepS));
   }
   // every engine is destroyed on this thread (cuda: its stream and buffers too)
   for (Session& s : sessions_) s.engine.reset();

@@ -16,6 +16,7 @@
 #include <zmq.hpp>
 
 #include "core/error.h"
+#include "deform/backend.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
@@ -438,5 +439,38 @@ TEST_CASE("a scene reload starts or drops the deformation", "[net][deform]") {
   CHECK_FALSE(stage(after.server().stages(), "chainmail")->built());
   CHECK(stage(after.server().stages(), "chainmail")->bytes_allocated() == 0);
   CHECK(after.server().deform_backend().empty());
+  server.stop();
+}
+
+TEST_CASE("with backend auto the worker prefers cuda where a GPU exists and says which it uses", "[net][deform]") {
+  Scene scene = deform_scene();
+  scene.deform.backend = "auto";
+  std::string why;
+  const bool cuda = cuda_deform_available(&why);
+  std::printf("backend auto: %s (%s)\n", cuda ? "cuda" : "cpu", why.c_str());
+  const auto patient = test::slab_patient();
+  net::Server server(scene, patient, nullptr, loopback());
+  server.start();
+  Client c(server);
+  c.press(kPressX, kPressY, 8);
+  v1::DeformSessionStats d;
+  REQUIRE(c.wait_deform([&](const auto& s) { return s.last_contact_seq() == c.seq; }, &d));
+  INFO(d.DebugString());
+  const std::string expected = cuda ? "cuda" : "cpu";
+  CHECK(d.backend() == expected);
+  const v1::StatsReply st = c.stats();
+  CHECK(st.server().deform_backend() == expected);
+  CHECK(st.server().deform_backend_note().find("auto") != std::string::npos);
+  CHECK(d.converged());
+  CHECK(d.deformed());
+  CHECK(d.failures() == 0);
+  CHECK(d.moved() > 0);
+  CHECK(d.last().invert_ms() > 0);
+  // the image changed inside the VOI only, on either backend
+  Volume<float> j;
+  REQUIRE(server.deformed_volume(c.id, j));
+  const Diff df = diff(j, patient->intensity, d);
+  CHECK(df.inside > 0);
+  CHECK(df.outside == 0);
   server.stop();
 }

@@ -119,7 +119,8 @@ class Client:
         return self._request("info", wire.InfoRequest())
 
     def stats(self) -> "wire.StatsReply":
-        """Server counters and pose service times."""
+        """Server counters, pose service times, every stage's StageInfo (built, bytes held,
+        mean time) and the deformation backend and counters (`.server.deform_*`)."""
         return self._request("stats", wire.StatsRequest())
 
     def load_scene(self, path: str | None = None, text: str | None = None) -> "wire.ServerInfo":
@@ -230,7 +231,10 @@ class Session:
         return reply.params
 
     def stats(self) -> "wire.SessionStats":
-        """This session's counters and parameters."""
+        """This session's counters and parameters, its stages, and its deformation
+        (`.deform`, a DeformSessionStats: steps, dropped contacts, stage times in ms,
+        moved elements, sweeps, converged, inversion residual, backend; unset when the
+        scene asks for no deformation: check `.HasField("deform")`)."""
         return self.client._request("stats", wire.StatsRequest(session_id=self.id)).session
 
     def close(self) -> int:

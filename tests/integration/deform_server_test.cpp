@@ -1,0 +1,139 @@
+// The real palpsim-server with deformation on the phantom (4 mm voxels, VOI 32): it logs
+// the backend it chose, a press is deformed with stage times in the stats while every
+// pose is answered, it stops cleanly; a scene whose deformation cannot be served keeps
+// it from starting, with the setting named.
+#include <catch2/catch.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <thread>
+#include <zmq.hpp>
+
+#include "integration/server_process.h"
+#include "palpsim/wire.pb.h"
+
+using namespace palpsim;
+namespace v1 = palpsim::v1;
+using test::ServerProcess;
+
+namespace {
+
+// how long a test waits for a reply or for the worker (loaded 2-core CI machine)
+constexpr int kReplyTimeoutMs = 5000;
+constexpr double kWorkerWaitS = 30;
+// how long the server may take to prepare the 4 mm phantom and start
+constexpr double kStartS = 120;
+
+std::string deform_scene_text(const std::string& extra_deform = "") {
+  return "name: \"deform integration\"\nphantom { voxel_mm: 4.0 }\n"
+         "deform { voi_edge: 32 relax_iterations: 10 " +
+         extra_deform +
+         " }\n"
+         "effects { haptics: true chainmail: true relaxation: true inversion: true }\n";
+}
+
+// one REQ-like exchange on a DEALER
+template <class Req, class Rep>
+Rep exchange(zmq::socket_t& s, const Req& q) {
+  s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+  zmq::pollitem_t it[] = {{s.handle(), 0, ZMQ_POLLIN, 0}};
+  zmq::poll(it, 1, std::chrono::milliseconds(kReplyTimeoutMs));
+  REQUIRE((it[0].revents & ZMQ_POLLIN));
+  zmq::message_t m;
+  (void)s.recv(m);
+  Rep r;
+  REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
+  return r;
+}
+
+}  // namespace
+
+TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and keeps answering poses",
+          "[integration][deform]") {
+  ServerProcess server(test::temp_file("deform.textproto", deform_scene_text()));
+  REQUIRE(server.wait_ready(kStartS));
+  INFO(server.child().err());
+  CHECK(server.child().err().find("deform backend \"") != std::string::npos);
+
+  zmq::context_t ctx(1);
+  zmq::socket_t ctl(ctx, zmq::socket_type::dealer), pose(ctx, zmq::socket_type::dealer);
+  ctl.set(zmq::sockopt::linger, 0);
+  pose.set(zmq::sockopt::linger, 0);
+  ctl.connect(server.control());
+  pose.connect(server.pose());
+  v1::ControlRequest q;
+  q.set_schema_version(1);
+  q.mutable_open()->set_client_name("deform-integration");
+  const auto open = exchange<v1::ControlRequest, v1::ControlReply>(ctl, q);
+  REQUIRE(open.has_open());
+  const std::uint64_t id = open.open().session_id();
+  const auto& info = open.open().server();
+  CHECK(std::find(info.stages().begin(), info.stages().end(), "chainmail") != info.stages().end());
+
+  // press into the back (+y) at the middle of the body, 10 mm deep, at 1 ms of client time per pose
+  const auto& lo = info.patient().body_min_mm();
+  const auto& hi = info.patient().body_max_mm();
+  const double x = 0.5 * (lo.x() + hi.x()), z = 0.5 * (lo.z() + hi.z());
+  std::uint64_t seq = 0;
+  bool touched = false;
+  for (int n = 0; n <= 400; ++n) {
+    v1::PoseRequest p;
+    p.set_schema_version(1);
+    p.set_session_id(id);
+    p.set_seq(++seq);
+    p.set_client_time_s(1 + seq * 1e-3);
+    p.mutable_tip_mm()->set_x(x);
+    p.mutable_tip_mm()->set_y(hi.y() + 5 - 15.0 * std::min(1.0, n / 300.0));
+    p.mutable_tip_mm()->set_z(z);
+    const auto r = exchange<v1::PoseRequest, v1::PoseReply>(pose, p);
+    REQUIRE(r.error().code() == v1::ERROR_NONE);
+    REQUIRE(r.seq() == seq);
+    touched = touched || r.contact();
+  }
+  REQUIRE(touched);
+
+  // the worker ends on the last contact, with every stage timed
+  v1::ControlRequest sq;
+  sq.set_schema_version(1);
+  sq.mutable_stats()->set_session_id(id);
+  v1::StatsReply st;
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
+  do {
+    const auto r = exchange<v1::ControlRequest, v1::ControlReply>(ctl, sq);
+    REQUIRE(r.has_stats());
+    st = r.stats();
+    if (st.session().deform().last_contact_seq() == seq) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  } while (std::chrono::steady_clock::now() < end);
+  const v1::DeformSessionStats& d = st.session().deform();
+  INFO(d.DebugString());
+  REQUIRE(d.last_contact_seq() == seq);
+  CHECK(d.steps() >= 1);
+  CHECK(d.converged());
+  CHECK(d.deformed());
+  CHECK(d.failures() == 0);
+  CHECK(d.moved() > 0);
+  CHECK(d.last().chainmail_ms() > 0);
+  CHECK(d.last().relax_ms() > 0);
+  CHECK(d.last().invert_ms() > 0);
+  CHECK(d.last().total_ms() >= d.last().chainmail_ms() + d.last().relax_ms() + d.last().invert_ms());
+  CHECK(!st.server().deform_backend().empty());
+  CHECK(server.child().err().find("deform backend \"" + st.server().deform_backend() + "\"") != std::string::npos);
+  std::printf("phantom 4 mm, VOI 32, backend %s: %llu steps for %llu poses, mean step %.2f ms (chainmail %.2f, "
+              "relax %.2f, invert %.2f)\n",
+              st.server().deform_backend().c_str(), (unsigned long long)d.steps(), (unsigned long long)seq,
+              d.mean().total_ms(), d.mean().chainmail_ms(), d.mean().relax_ms(), d.mean().invert_ms());
+  CHECK(server.stop() == 0);
+  CHECK(server.child().out().find("palpsim-server: stopped") != std::string::npos);
+}
+
+TEST_CASE("palpsim-server refuses to start when the scene's deformation cannot be served", "[integration][deform]") {
+  ServerProcess server(test::temp_file("deform-bad.textproto", deform_scene_text("relax_step: 0.5")));
+  CHECK_FALSE(server.wait_ready(kStartS));
+  CHECK(server.child().wait(10) == 1);
+  const std::string err = server.child().err();
+  INFO(err);
+  CHECK(err.find("relax_step") != std::string::npos);
+  CHECK(err.find("stable limit") != std::string::npos);
+}

@@ -123,8 +123,9 @@ std::string resolve_ct_path(const std::string& raw, const std::string& origin) {
       if (fs::is_directory(d / "shared" / "data")) return (d / "shared" / "data" / rel).string();
       if (d == d.parent_path()) break;
     }
-    throw Error(origin + ": ct_path \"" + raw +
-                "\": no data folder found (set PALPSIM_DATA, or place shared/data above the scene file)");
+    // no data folder here: keep the name, so the scene still loads and reading the CT
+    // later fails with a message that says how to provide the data
+    return raw;
   }
   const fs::path p(raw);
   return (p.is_absolute() ? p : base / p).lexically_normal().string();

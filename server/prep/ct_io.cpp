@@ -319,6 +319,9 @@ Opened open_ct(const std::string& path, const PrepSettings& prep) {
   o.info.path = path;
   std::error_code ec;
   if (path.empty()) throw Error("CT path is empty; name a file or a DICOM folder");
+  if (path.rfind("data:", 0) == 0)
+    throw Error("CT " + in_quotes(path) +
+                ": no data folder found (set PALPSIM_DATA, or place shared/data above the scene file)");
   if (!fs::exists(path, ec)) throw Error("CT " + in_quotes(path) + ": no such file or folder");
   if (fs::is_directory(path, ec)) {
     open_dicom(path, prep, o);

@@ -49,6 +49,13 @@ TEST_CASE("a missing path is refused by name") {
   CHECK(cache_empty(d));
 }
 
+TEST_CASE("a data: path with no data folder says how to provide one") {
+  TempDir d;
+  const std::string e = prep_error(d, "data:ct/abdomen-lumbar-3mm.nii.gz");
+  CHECK_THAT(e, Catch::Contains("data:ct/abdomen-lumbar-3mm.nii.gz") && Catch::Contains("PALPSIM_DATA"));
+  CHECK(cache_empty(d));
+}
+
 TEST_CASE("a folder without DICOM is refused") {
   TempDir d;
   fs::create_directories(d.path / "notes");

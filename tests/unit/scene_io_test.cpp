@@ -1,6 +1,7 @@
 // Scene loading: defaults, presets, paths, and refusal of bad scenes with file:line:column.
 #include <catch2/catch.hpp>
 
+#include <cstdlib>
 #include <filesystem>
 
 #include "core/error.h"
@@ -95,4 +96,17 @@ TEST_CASE("the field reference lists defaults and ranges") {
   const std::string doc = scene_field_reference();
   CHECK(doc.find("force_image.alpha") != std::string::npos);
   CHECK(doc.find("deform.voi_edge (int32) default 64, range [32, 256] voxel") != std::string::npos);
+}
+
+TEST_CASE("data: paths resolve under PALPSIM_DATA, and stay unresolved without a data folder") {
+  const char* old = std::getenv("PALPSIM_DATA");
+  const std::string saved = old ? old : "";
+  setenv("PALPSIM_DATA", "/opt/ctdata", 1);
+  CHECK(parse_scene_text("ct_path: \"data:ct/a.nii.gz\"", "/tmp/x/s.textproto").ct_path == "/opt/ctdata/ct/a.nii.gz");
+  unsetenv("PALPSIM_DATA");
+  // no shared/data above /tmp/palpsim-no-data: the scene loads, reading the CT will say what is missing
+  if (!std::filesystem::exists("/tmp/shared/data") && !std::filesystem::exists("/shared/data"))
+    CHECK(parse_scene_text("ct_path: \"data:ct/a.nii.gz\"", "/tmp/palpsim-no-data/s.textproto").ct_path ==
+          "data:ct/a.nii.gz");
+  if (!saved.empty()) setenv("PALPSIM_DATA", saved.c_str(), 1);
 }

@@ -24,9 +24,13 @@ constexpr std::size_t kMaxSpares = 2;
 constexpr double kIdleSleepS = 0.5e-3;
 // how long it sleeps while the scene asks for no deformation or no session is open (s)
 constexpr double kDisabledSleepS = 20e-3;
-// the worker's nice value: below the haptic thread, so that on a machine with few cores
-// the scheduler prefers answering poses to deforming
-constexpr int kWorkerNice = 10;
+// the worker's nice value: the lowest, so that on a machine with few cores the scheduler
+// prefers answering poses to deforming. On the shared 2-core VM, lumbar phantom at VOI 64
+// on the CPU (~100 ms steps) with palpsim-haptic pressing at 1 kHz: nice 0 gave round-trip
+// p99 1.3-2.3 ms and 90-146 missed deadlines of 6000; nice 19 p99 0.19-1.8 ms and 25-36;
+// haptics alone p99 0.26-0.27 ms and 8-10. The worker then runs fewer steps on a busy
+// machine, which is what the deformation path is for.
+constexpr int kWorkerNice = 19;
 
 std::string hex_id(std::uint64_t id) {
   char b[32];
@@ -54,6 +58,28 @@ bool finite(const DeformStats& st) {
   const Vec3f& u = st.chainmail.grabbed_u_vox;
   return std::isfinite(u.x) && std::isfinite(u.y) && std::isfinite(u.z) && std::isfinite(st.invert_residual_vox) &&
          std::isfinite(t.total_ms);
+}
+
+// X on the grid's outer face, within half a voxel of the border voxels (the grid cuts the
+// body there, so the skin search may end on it), is taken at the border voxel: the engine
+// grabs the voxel nearest X, which must exist. Any other X is passed on unchanged.
+Vec3 onto_grid(const Grid& g, const Vec3& x_mm) {
+  // 2e-3 voxel: the force model bisects the skin crossing to a thousandth of a voxel, so
+  // an X on the face may lie that far beyond it (twice that for round-off)
+  constexpr double kFaceTolVox = 2e-3;
+  Vec3 ijk = g.to_index(x_mm);
+  bool moved = false;
+  for (int a = 0; a < 3; ++a) {
+    const double hi = g.size[a] - 1;
+    if (ijk[a] > hi && ijk[a] <= hi + 0.5 + kFaceTolVox) {
+      ijk[a] = hi;
+      moved = true;
+    } else if (ijk[a] < 0 && ijk[a] >= -0.5 - kFaceTolVox) {
+      ijk[a] = 0;
+      moved = true;
+    }
+  }
+  return moved ? g.to_physical(ijk) : x_mm;
 }
 
 }  // namespace
@@ -298,7 +324,7 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
   try {
     if (!s.engine) s.engine = take_engine();
     r.backend = s.engine->backend_name();
-    const DeformStats st = s.engine->step(DeformContact{c.skin_point_mm, c.tip_mm});
+    const DeformStats st = s.engine->step(DeformContact{onto_grid(patient_->grid, c.skin_point_mm), c.tip_mm});
     // J must be finite, and how far it moved from I says how much the image changed
     double change = 0;
     bool ok = finite(st);

@@ -70,7 +70,7 @@ struct DeformServerReport {
 /// may have two cores, one of which the haptic thread needs; a thread per session would
 /// compete with it and with each other, while one worker that round-robins sessions
 /// (one step per session per pass, newest contact only) uses at most one core, shares
-/// it fairly, and runs below the haptic thread's priority. With the cuda backend it
+/// it fairly, and runs at the lowest priority (nice 19) below the haptic thread. With the cuda backend it
 /// also keeps every CUDA call (engine creation, steps, destruction) on one thread.
 class DeformWorker {
  public:

@@ -411,16 +411,33 @@ class Server::Control {
 
   void free_session(SessionSlot& s) { s.id.store(0, std::memory_order_release); }
 
+  // "; deformation: ..." for a session's close or timeout log line ("" without deformation)
+  std::string deform_summary(std::uint64_t id) const {
+    DeformSessionReport r;
+    if (!deform_ || !deform_->session_report(id, r)) return "";
+    const double k = r.steps ? 1.0 / double(r.steps) : 0.0;
+    char b[320];
+    std::snprintf(b, sizeof b,
+                  "; deformation (%s): %llu steps, mean %.2f ms (chainmail %.2f, relax %.2f, invert %.2f), %llu "
+                  "contacts dropped, %llu non-converged, %llu failures",
+                  r.backend.empty() ? "no contact" : r.backend.c_str(), (unsigned long long)r.steps, r.sum.total_ms * k,
+                  r.sum.chainmail_ms * k, r.sum.relax_ms * k, r.sum.invert_ms * k,
+                  (unsigned long long)r.contacts_dropped, (unsigned long long)r.non_converged,
+                  (unsigned long long)r.failures);
+    return b;
+  }
+
   void close_session() {
     const std::uint64_t id = req_.close().session_id();
     SessionSlot* s = session_or_refuse(id, "CloseSession.session_id");
     if (!s) return;
+    const std::string deformation = deform_summary(id);
     free_session(*s);
     sh_.counters.sessions_closed.fetch_add(1);
     auto* c = rep_.mutable_close();
     c->set_session_id(id);
     c->set_poses(s->poses.load());
-    spdlog::info("session {} closed after {} poses", hex_id(id), s->poses.load());
+    spdlog::info("session {} closed after {} poses{}", hex_id(id), s->poses.load(), deformation);
   }
 
   void reset() {
@@ -595,10 +612,11 @@ class Server::Control {
     for (auto& s : sh_.slots) {
       const std::uint64_t id = s.id.load(std::memory_order_relaxed);
       if (id != 0 && now - s.last_seen_ns.load(std::memory_order_relaxed) > timeout_ns) {
+        const std::string deformation = deform_summary(id);
         free_session(s);
         sh_.counters.sessions_timed_out.fetch_add(1);
-        spdlog::warn("session {} timed out after {:.2f} s without a message; freed", hex_id(id),
-                     world().scene.server.session_timeout_s);
+        spdlog::warn("session {} timed out after {:.2f} s without a message; freed{}", hex_id(id),
+                     world().scene.server.session_timeout_s, deformation);
       }
     }
     // worlds older than the ones the pose thread and the deformation worker have picked up are no longer read

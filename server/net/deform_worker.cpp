@@ -24,13 +24,12 @@ constexpr std::size_t kMaxSpares = 2;
 constexpr double kIdleSleepS = 0.5e-3;
 // how long it sleeps while the scene asks for no deformation or no session is open (s)
 constexpr double kDisabledSleepS = 20e-3;
-// the worker's nice value: the lowest, so that on a machine with few cores the scheduler
-// prefers answering poses to deforming. On the shared 2-core VM, lumbar phantom at VOI 64
-// on the CPU (~100 ms steps) with palpsim-haptic pressing at 1 kHz: nice 0 gave round-trip
-// p99 1.3-2.3 ms and 90-146 missed deadlines of 6000; nice 19 p99 0.19-1.8 ms and 25-36;
-// haptics alone p99 0.26-0.27 ms and 8-10. The worker then runs fewer steps on a busy
-// machine, which is what the deformation path is for.
-constexpr int kWorkerNice = 19;
+// Why the server runs the worker at nice 19 (ServerOptions::deform_nice): on a machine
+// with few cores the scheduler should prefer answering poses to deforming. On the shared
+// 2-core VM, lumbar phantom at VOI 64 on the CPU (~100 ms steps) with palpsim-haptic
+// pressing at 1 kHz: nice 0 gave round-trip p99 1.3-2.3 ms and 90-146 missed deadlines of
+// 6000; nice 19 p99 0.19-1.8 ms and 25-36; haptics alone p99 0.26-0.27 ms and 8-10. The
+// worker then runs fewer steps on a busy machine, which is what the deformation path is for.
 
 std::string hex_id(std::uint64_t id) {
   char b[32];
@@ -102,8 +101,8 @@ struct DeformWorker::Request {
   bool found = false;
 };
 
-DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start)
-    : sh_(shared), start_(start), sessions_(kMaxSlots), reports_(kMaxSlots) {}
+DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice)
+    : sh_(shared), start_(start), nice_(nice) {}
 
 DeformWorker::~DeformWorker() { stop(); }
 
@@ -135,7 +134,7 @@ void DeformWorker::stop() {
 void DeformWorker::run() {
 #ifdef __linux__
   // a per-thread nice value (Linux): the haptic thread wins the core when both want it
-  setpriority(PRIO_PROCESS, pid_t(syscall(SYS_gettid)), kWorkerNice);
+  setpriority(PRIO_PROCESS, pid_t(syscall(SYS_gettid)), nice_);
 #endif
   bool first = true;
   while (!stop_.load(std::memory_order_relaxed)) {
@@ -185,10 +184,7 @@ void DeformWorker::set_up_world() {
   sh_.deform_seen_generation.store(generation_, std::memory_order_release);
   config_ = DeformConfig::from_scene(scene);
   // engines of the previous world are bound to its patient and settings
-  for (Session& s : sessions_) {
-    s.engine.reset();
-    s.id = 0;
-  }
+  std::vector<Session>().swap(sessions_);
   spares_.clear();
   built_ = scene.effects.chainmail;
   DeformServerReport rep;
@@ -222,8 +218,10 @@ void DeformWorker::set_up_world() {
     spdlog::warn("scene '{}' asks for relaxation or inversion without chainmail; no deformation is built",
                  scene.name);
   }
+  // per-slot bookkeeping only while deformation is built: a scene without it holds nothing
+  if (built_) sessions_.resize(kMaxSlots);
   std::lock_guard<std::mutex> lock(report_mu_);
-  for (DeformSessionReport& r : reports_) r = DeformSessionReport{};
+  std::vector<DeformSessionReport>(built_ ? kMaxSlots : 0).swap(reports_);
   server_ = rep;
   for (const auto& e : spares_) {
     add_memory(server_.memory, e->memory());
@@ -404,6 +402,7 @@ void DeformWorker::publish(const Session& s, int index) {
 bool DeformWorker::session_report(std::uint64_t session_id, DeformSessionReport& out) const {
   if (session_id == 0) return false;
   std::lock_guard<std::mutex> lock(report_mu_);
+  if (reports_.empty()) return false;
   const DeformSessionReport& r = reports_[session_id & (kMaxSlots - 1)];
   if (r.session_id != session_id) return false;
   out = r;
@@ -413,6 +412,8 @@ bool DeformWorker::session_report(std::uint64_t session_id, DeformSessionReport&
 DeformServerReport DeformWorker::server_report() const {
   std::lock_guard<std::mutex> lock(report_mu_);
   DeformServerReport r = server_;
+  // the worker's own per-slot bookkeeping serves ChainMail too (allocated with the worker)
+  r.memory.chainmail_bytes += sessions_.capacity() * sizeof(Session) + reports_.capacity() * sizeof(DeformSessionReport);
   // sessions' engines on top of the spares
   for (const DeformSessionReport& s : reports_)
     if (s.session_id != 0 && s.memory.total() > 0) {
@@ -440,11 +441,11 @@ void DeformWorker::answer_request() {
   std::lock_guard<std::mutex> lock(mailbox_mu_);
   if (!request_ || request_->done) return;
   Request& q = *request_;
-  const Session& s = sessions_[q.session_id & (kMaxSlots - 1)];
-  if (q.session_id != 0 && s.id == q.session_id) {
+  const Session* s = sessions_.empty() ? nullptr : &sessions_[q.session_id & (kMaxSlots - 1)];
+  if (s && q.session_id != 0 && s->id == q.session_id) {
     q.found = true;
-    if (s.engine) {
-      *q.out = s.engine->deformed_volume();
+    if (s->engine) {
+      *q.out = s->engine->deformed_volume();
     } else {
       // no engine yet: undeformed
       q.out->grid = patient_->grid;

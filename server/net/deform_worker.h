@@ -70,11 +70,13 @@ struct DeformServerReport {
 /// may have two cores, one of which the haptic thread needs; a thread per session would
 /// compete with it and with each other, while one worker that round-robins sessions
 /// (one step per session per pass, newest contact only) uses at most one core, shares
-/// it fairly, and runs at the lowest priority (nice 19) below the haptic thread. With the cuda backend it
-/// also keeps every CUDA call (engine creation, steps, destruction) on one thread.
+/// it fairly, and runs at the lowest priority (nice 19), below the haptic thread. With
+/// the cuda backend it also keeps every CUDA call (engine creation, steps, destruction)
+/// on one thread.
 class DeformWorker {
  public:
-  DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start);
+  /// `nice`: the thread's nice value (Linux); the server uses 19 (deform_worker.cpp says why).
+  DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice);
   ~DeformWorker();
   DeformWorker(const DeformWorker&) = delete;
   DeformWorker& operator=(const DeformWorker&) = delete;
@@ -113,6 +115,7 @@ class DeformWorker {
 
   ServerShared& sh_;
   std::chrono::steady_clock::time_point start_;
+  int nice_ = 19;
   std::thread thread_;
   std::atomic<bool> stop_{false};
 

@@ -118,6 +118,9 @@ net::ServerOptions loopback() {
   net::ServerOptions o;
   o.control_bind = "tcp://127.0.0.1:*";
   o.pose_bind = "tcp://127.0.0.1:*";
+  // the worker at the same priority as the haptic thread: a harder case for "poses are
+  // answered while it runs", and no starvation when ctest runs other suites beside this one
+  o.deform_nice = 0;
   return o;
 }
 
@@ -238,13 +241,15 @@ TEST_CASE("poses are answered while a slow deformation step runs; stale contacts
   // (steps, the contact seq each step ran on) whenever it changes
   std::vector<std::pair<std::uint64_t, std::uint64_t>> seen;
   const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
-  int n = 0;
-  while (seen.size() < 4 && std::chrono::steady_clock::now() < end) {
+  int n = 0, pairs = 0;  // pairs: two consecutive steps seen
+  while (pairs < 2 && std::chrono::steady_clock::now() < end) {
     c.send_pose({kPressX + 0.5 * std::sin(n * 0.01), kPressY, test::kSlabSkinZ - 5});
     if (++n % 20 == 0) {
       const v1::DeformSessionStats d = c.stats().session().deform();
-      if (d.steps() > 0 && (seen.empty() || seen.back().first != d.steps()))
+      if (d.steps() > 0 && (seen.empty() || seen.back().first != d.steps())) {
+        pairs += !seen.empty() && d.steps() == seen.back().first + 1;
         seen.emplace_back(d.steps(), d.last_contact_seq());
+      }
     }
   }
   REQUIRE(seen.size() >= 2);

@@ -271,11 +271,19 @@ bool DeformWorker::serve(int index) {
   const std::uint32_t resets = slot.reset_requests.load(std::memory_order_acquire);
   const std::uint32_t pose_resets = slot.pose_resets.load(std::memory_order_acquire);
   bool worked = false;
-  if (resets != s.resets_seen || pose_resets != s.pose_resets_seen) {
+  const bool control_reset = resets != s.resets_seen;
+  if (control_reset || pose_resets != s.pose_resets_seen) {
     s.report.resets += (resets - s.resets_seen) + (pose_resets - s.pose_resets_seen);
     s.resets_seen = resets;
     s.pose_resets_seen = pose_resets;
     reset(s, index);
+    // a ResetSession undoes what came before it, and the contact read above may: the
+    // next pose deforms again. (A reset flag travels with its pose, whose contact is
+    // newer than the reset and is stepped on below.)
+    if (control_reset && c.session_id == id) {
+      s.last_version = version;
+      return true;
+    }
     worked = true;
   }
   // nothing new, or a contact of the slot's previous session

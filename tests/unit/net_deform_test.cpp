@@ -305,6 +305,18 @@ TEST_CASE("a reset, a reset flag and leaving the body restore the undeformed ima
     // J is I again, bit for bit
     CHECK_FALSE(deformed_now());
   }
+  SECTION("ResetSession right after poses the worker may not have stepped on yet") {
+    c.press(kPressX + 2, kPressY, 6, 10);
+    v1::ControlRequest q;
+    q.mutable_reset()->set_session_id(c.id);
+    REQUIRE(c.call(q).has_reset());
+    // whether the worker stepped on the last pose before it saw the reset or not, the
+    // reset undoes it: no pose came after the reset
+    REQUIRE(c.wait_deform([](const auto& s) { return s.resets() == 1; }));
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // a pass or more of the worker
+    CHECK_FALSE(c.stats().session().deform().deformed());
+    CHECK_FALSE(deformed_now());
+  }
   SECTION("PoseRequest.reset_proxy, then the next contact deforms again") {
     const std::uint64_t steps = c.stats().session().deform().steps();
     c.send_pose({kPressX, kPressY, test::kSlabSkinZ - 4}, true);

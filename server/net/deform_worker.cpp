@@ -222,6 +222,7 @@ void DeformWorker::set_up_world() {
   if (built_) sessions_.resize(kMaxSlots);
   std::lock_guard<std::mutex> lock(report_mu_);
   std::vector<DeformSessionReport>(built_ ? kMaxSlots : 0).swap(reports_);
+  slot_bytes_ = sessions_.capacity() * sizeof(Session) + reports_.capacity() * sizeof(DeformSessionReport);
   server_ = rep;
   for (const auto& e : spares_) {
     add_memory(server_.memory, e->memory());
@@ -420,8 +421,8 @@ bool DeformWorker::session_report(std::uint64_t session_id, DeformSessionReport&
 DeformServerReport DeformWorker::server_report() const {
   std::lock_guard<std::mutex> lock(report_mu_);
   DeformServerReport r = server_;
-  // the worker's own per-slot bookkeeping serves ChainMail too (allocated with the worker)
-  r.memory.chainmail_bytes += sessions_.capacity() * sizeof(Session) + reports_.capacity() * sizeof(DeformSessionReport);
+  // the worker's own per-slot bookkeeping serves ChainMail too
+  r.memory.chainmail_bytes += slot_bytes_;
   // sessions' engines on top of the spares
   for (const DeformSessionReport& s : reports_)
     if (s.session_id != 0 && s.memory.total() > 0) {

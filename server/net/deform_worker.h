@@ -130,6 +130,7 @@ class DeformWorker {
   // (worker writes, others read under report_mu_) what stats show
   mutable std::mutex report_mu_;
   std::vector<DeformSessionReport> reports_;  // by slot index; session_id 0: none
+  std::size_t slot_bytes_ = 0;                // what sessions_ and reports_ hold (bytes)
   DeformServerReport server_;
 
   // start() waits for the first world set-up

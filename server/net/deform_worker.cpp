@@ -350,6 +350,13 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
             change = std::max(change, double(std::fabs(row[i] - img[i])));
           }
         }
+    } else {
+      // no J (the scene asks for no inversion): the displacement itself must be finite
+      for (const Vec3f& u : s.engine->backend().displacement())
+        if (!std::isfinite(u.x) || !std::isfinite(u.y) || !std::isfinite(u.z)) {
+          ok = false;
+          break;
+        }
     }
     if (!ok) throw Error("the step produced a non-finite value (NaN or Inf in the displacement or J)");
     ++r.steps;

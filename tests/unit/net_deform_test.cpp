@@ -358,12 +358,15 @@ TEST_CASE("a step that does not converge or turns NaN is counted; the session ke
   }
   SECTION("NaN in the image: the session's deformation is reset and counted") {
     // a patient whose tissue intensity is NaN around the press (the material function
-    // turns it into NaN displacements, and J samples it)
+    // turns it into NaN displacements, and J samples it), with and without inversion
     auto patient = test::slab_patient();
     for (int k = 25; k < 40; ++k)
       for (int j = 40; j < 50; ++j)
         for (int i = 40; i < 50; ++i) patient->intensity.at(i, j, k) = std::numeric_limits<float>::quiet_NaN();
-    net::Server server(deform_scene(), patient, nullptr, loopback());
+    Scene scene = deform_scene();
+    scene.effects.inversion = GENERATE(true, false);
+    INFO("inversion " << scene.effects.inversion);
+    net::Server server(scene, patient, nullptr, loopback());
     server.start();
     Client c(server);
     c.press(kPressX, kPressY, 6, 20);

@@ -26,17 +26,16 @@ PatientSample sample_skin(const Patient& patient, const Vec3& p_mm) {
   return s;
 }
 
-// the skin crossing of the ray tip + t * out (t >= 0), found by stepping at most the
-// depth under the skin (a distance to the skin, so no crossing is stepped over when
-// the step is larger than a quarter voxel) and then bisecting the last step
-Vec3 skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, double tip_depth_mm) {
+// the skin crossing of the ray tip + t * out (0 <= t <= max_len_mm), found by stepping
+// at most the depth under the skin (a distance to the skin, so no crossing is stepped
+// over when the step is larger than a quarter voxel) and then bisecting the last step;
+// false when the ray leaves the grid or max_len_mm inside the body
+bool skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, double tip_depth_mm,
+                   double max_len_mm, Vec3& crossing_mm) {
   const double h = voxel_mm(patient);
-  const Vec3 extent{patient.grid.size.x * patient.grid.spacing_mm.x, patient.grid.size.y * patient.grid.spacing_mm.y,
-                    patient.grid.size.z * patient.grid.spacing_mm.z};
-  const double max_len = norm(extent) + h;
   double t_in = 0, t_out = -1;
   double t = std::max(tip_depth_mm, 0.25 * h);
-  for (int it = 0; it < 64 && t <= max_len; ++it) {
+  for (int it = 0; it < 64 && t <= max_len_mm; ++it) {
     const PatientSample s = sample_skin(patient, tip_mm + out * t);
     if (!inside(s)) {
       t_out = t;
@@ -45,7 +44,8 @@ Vec3 skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, 
     t_in = t;
     t += std::max(depth_from_sample(patient, s), 0.25 * h);
   }
-  if (t_out < 0) return tip_mm + out * t_in;  // no crossing within the grid: the last inside point
+  // no crossing, or only the grid's face (where the body is cut by the volume's border)
+  if (t_out < 0 || !sample_skin(patient, tip_mm + out * t_out).in_grid) return false;
   // bisection of the last step to a thousandth of a voxel
   for (int it = 0; it < 24 && t_out - t_in > 1e-3 * h; ++it) {
     const double mid = 0.5 * (t_in + t_out);
@@ -54,7 +54,27 @@ Vec3 skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, 
     else
       t_out = mid;
   }
-  return tip_mm + out * (0.5 * (t_in + t_out));
+  crossing_mm = tip_mm + out * (0.5 * (t_in + t_out));
+  return true;
+}
+
+// the skin point nearest to the tip: out along -grad B (B = depth under the skin, by
+// central differences of one voxel), then the crossing on that line
+Vec3 nearest_skin_point(const Patient& patient, const Vec3& tip_mm, double depth_mm) {
+  const double h = voxel_mm(patient);
+  Vec3 grad_b{0, 0, 0};
+  for (int a = 0; a < 3; ++a) {
+    Vec3 e{0, 0, 0};
+    e[a] = h;
+    grad_b[a] = (sample_skin(patient, tip_mm + e).dist_skin_mm - sample_skin(patient, tip_mm - e).dist_skin_mm) /
+                (2 * h);
+  }
+  const double gn = norm(grad_b);
+  if (!(gn > 1e-9)) return tip_mm;
+  const Vec3 out = grad_b * (-1.0 / gn);
+  Vec3 x;
+  if (skin_crossing(patient, tip_mm, out, depth_mm, 3.0 * depth_mm + 4.0 * h, x)) return x;
+  return tip_mm + out * depth_mm;
 }
 
 }  // namespace
@@ -140,7 +160,12 @@ ForceSample compute_force(const Patient& patient, const HapticsSettings& params,
     away = -dir;
     an = 1;
   }
-  out.skin_point_mm = an > 1e-9 ? skin_crossing(patient, tip_mm, away * (1.0 / an), out.depth_mm) : tip_mm;
+  // where that line runs nearly along the skin it meets the skin far from the tip, or
+  // only the grid's face: beyond three depths (a line up to ~70 degrees off the skin's
+  // normal) the skin point nearest to the tip stands in, so X stays where the finger is
+  const double reach_mm = 3.0 * out.depth_mm + 2.0 * voxel_mm(patient);
+  if (!(an > 1e-9) || !skin_crossing(patient, tip_mm, away * (1.0 / an), out.depth_mm, reach_mm, out.skin_point_mm))
+    out.skin_point_mm = nearest_skin_point(patient, tip_mm, out.depth_mm);
 
   // a non-finite value (a corrupt patient) resets the session instead of poisoning it
   if (!is_finite(f) || !is_finite(proxy) || !is_finite(out.skin_point_mm) || !std::isfinite(out.depth_mm)) {

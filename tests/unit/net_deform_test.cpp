@@ -20,6 +20,7 @@
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
+#include "support/net_client.h"
 #include "support/synthetic_patient.h"
 
 using namespace palpsim;
@@ -31,37 +32,12 @@ namespace {
 // where the worker runs at a lower priority than everything else)
 constexpr double kWorkerWaitS = 30;
 
-// a session: a REQ for control, a DEALER for poses
-struct Client {
-  zmq::context_t ctx{1};
-  zmq::socket_t ctl{ctx, zmq::socket_type::req};
-  zmq::socket_t pose{ctx, zmq::socket_type::dealer};
-  std::uint64_t id = 0;
+// a session opened as "deform-unit" whose poses are numbered on their own
+struct Client : test::NetClient {
   std::uint64_t seq = 0;
 
-  explicit Client(const net::Server& s) {
-    ctl.set(zmq::sockopt::linger, 0);
-    pose.set(zmq::sockopt::linger, 0);
-    ctl.connect(s.control_endpoint());
-    pose.connect(s.pose_endpoint());
-    v1::ControlRequest q;
-    q.mutable_open()->set_client_name("deform-unit");
-    const auto r = call(q);
-    REQUIRE(r.has_open());
-    id = r.open().session_id();
-  }
-  v1::ControlReply call(v1::ControlRequest q) {
-    q.set_schema_version(1);
-    ctl.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-    zmq::pollitem_t it[] = {{ctl.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(10000));
-    REQUIRE((it[0].revents & ZMQ_POLLIN));
-    zmq::message_t m;
-    (void)ctl.recv(m);
-    v1::ControlReply r;
-    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
-    return r;
-  }
+  explicit Client(const net::Server& s) : NetClient(s, "deform-unit") {}
+  // this session's stats
   v1::StatsReply stats() {
     v1::ControlRequest q;
     q.mutable_stats()->set_session_id(id);
@@ -71,23 +47,8 @@ struct Client {
   }
   // one pose and its reply (1 ms of client time per pose)
   v1::PoseReply send_pose(const Vec3& x, bool reset = false) {
-    v1::PoseRequest q;
-    q.set_schema_version(1);
-    q.set_session_id(id);
-    q.set_seq(++seq);
-    q.set_client_time_s(1.0 + seq * 1e-3);
-    q.set_reset_proxy(reset);
-    q.mutable_tip_mm()->set_x(x.x);
-    q.mutable_tip_mm()->set_y(x.y);
-    q.mutable_tip_mm()->set_z(x.z);
-    pose.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-    zmq::pollitem_t it[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(10000));
-    REQUIRE((it[0].revents & ZMQ_POLLIN));
-    zmq::message_t m;
-    (void)pose.recv(m);
-    v1::PoseReply r;
-    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
+    ++seq;
+    const v1::PoseReply r = NetClient::send_pose(seq, x, 1.0 + seq * 1e-3, reset);
     REQUIRE(r.error().code() == v1::ERROR_NONE);
     REQUIRE(r.seq() == seq);
     return r;
@@ -115,9 +76,7 @@ struct Client {
 };
 
 net::ServerOptions loopback() {
-  net::ServerOptions o;
-  o.control_bind = "tcp://127.0.0.1:*";
-  o.pose_bind = "tcp://127.0.0.1:*";
+  net::ServerOptions o = test::loopback_options();
   // the worker at the same priority as the haptic thread: a harder case for "poses are
   // answered while it runs", and no starvation when ctest runs other suites beside this one
   o.deform_nice = 0;

@@ -15,6 +15,7 @@
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
+#include "support/net_client.h"
 #include "support/synthetic_patient.h"
 
 using namespace palpsim;
@@ -33,56 +34,9 @@ struct StringMaker<palpsim::Vec3> {
 
 namespace {
 
-// request/reply helpers on a REQ (control) and a DEALER (poses)
-struct Client {
-  zmq::context_t ctx{1};
-  zmq::socket_t ctl{ctx, zmq::socket_type::req};
-  zmq::socket_t pose{ctx, zmq::socket_type::dealer};
-  std::uint64_t id = 0;
-
-  explicit Client(const net::Server& s) {
-    ctl.set(zmq::sockopt::linger, 0);
-    pose.set(zmq::sockopt::linger, 0);
-    ctl.connect(s.control_endpoint());
-    pose.connect(s.pose_endpoint());
-    v1::ControlRequest q;
-    q.mutable_open()->set_client_name("unit");
-    const auto r = call(q);
-    REQUIRE(r.has_open());
-    id = r.open().session_id();
-  }
-  v1::ControlReply call(v1::ControlRequest q) {
-    q.set_schema_version(1);
-    ctl.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-    zmq::pollitem_t it[] = {{ctl.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(10000));
-    REQUIRE((it[0].revents & ZMQ_POLLIN));
-    zmq::message_t m;
-    (void)ctl.recv(m);
-    v1::ControlReply r;
-    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
-    return r;
-  }
-  v1::PoseReply send_pose(std::uint64_t seq, const Vec3& x, double client_time_s, bool reset = false) {
-    v1::PoseRequest q;
-    q.set_schema_version(1);
-    q.set_session_id(id);
-    q.set_seq(seq);
-    q.set_client_time_s(client_time_s);
-    q.set_reset_proxy(reset);
-    q.mutable_tip_mm()->set_x(x.x);
-    q.mutable_tip_mm()->set_y(x.y);
-    q.mutable_tip_mm()->set_z(x.z);
-    pose.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-    zmq::pollitem_t it[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(10000));
-    REQUIRE((it[0].revents & ZMQ_POLLIN));
-    zmq::message_t m;
-    (void)pose.recv(m);
-    v1::PoseReply r;
-    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
-    return r;
-  }
+// a session opened as "unit" (control REQ, pose DEALER)
+struct Client : test::NetClient {
+  explicit Client(const net::Server& s) : NetClient(s, "unit") {}
 };
 
 Vec3 vec(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
@@ -95,13 +49,6 @@ void check_same(const v1::PoseReply& r, const ForceSample& f) {
   CHECK(vec(r.skin_point_mm()) == f.skin_point_mm);
   CHECK(r.contact() == f.contact);
   CHECK(r.depth_mm() == f.depth_mm);
-}
-
-net::ServerOptions loopback() {
-  net::ServerOptions o;
-  o.control_bind = "tcp://127.0.0.1:*";
-  o.pose_bind = "tcp://127.0.0.1:*";
-  return o;
 }
 
 }  // namespace
@@ -117,8 +64,8 @@ TEST_CASE("the pose address is derived from the control address", "[net]") {
 
 TEST_CASE("a bind that fails names the address", "[net]") {
   const Scene scene = default_scene();
-  net::Server a(scene, test::slab_patient(), nullptr, loopback());
-  net::ServerOptions same = loopback();
+  net::Server a(scene, test::slab_patient(), nullptr, test::loopback_options());
+  net::ServerOptions same = test::loopback_options();
   same.control_bind = a.control_endpoint();  // already taken
   try {
     net::Server b(scene, test::slab_patient(), nullptr, same);
@@ -131,7 +78,7 @@ TEST_CASE("a bind that fails names the address", "[net]") {
 TEST_CASE("over the wire a session gets exactly the force model's answers", "[net]") {
   Scene scene = default_scene();
   const auto patient = test::slab_patient();
-  net::Server server(scene, patient, nullptr, loopback());
+  net::Server server(scene, patient, nullptr, test::loopback_options());
   server.start();
   Client c(server);
   HapticsSettings params = scene.haptics;
@@ -206,7 +153,7 @@ TEST_CASE("a scene reload swaps the patient, or is refused and the old one kept"
     if (s.name == "sphere") return sphere;
     throw Error("ct.nii: cannot read (test loader)");
   };
-  net::Server server(default_scene(), slab, loader, loopback());
+  net::Server server(default_scene(), slab, loader, test::loopback_options());
   server.start();
   Client c(server);
   const Vec3 p{32, 32, 50};  // inside the sphere, above the slab's skin
@@ -232,7 +179,7 @@ TEST_CASE("a scene reload swaps the patient, or is refused and the old one kept"
 TEST_CASE("sessions beyond the scene's max_sessions are refused and counted", "[net]") {
   Scene scene = default_scene();
   scene.server.max_sessions = 2;
-  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  net::Server server(scene, test::slab_patient(), nullptr, test::loopback_options());
   server.start();
   Client a(server), b(server);
   v1::ControlRequest q;
@@ -256,28 +203,14 @@ TEST_CASE("sessions beyond the scene's max_sessions are refused and counted", "[
 }
 
 TEST_CASE("a REQ socket works on the pose path too (empty delimiter mirrored)", "[net]") {
-  net::Server server(default_scene(), test::slab_patient(), nullptr, loopback());
+  net::Server server(default_scene(), test::slab_patient(), nullptr, test::loopback_options());
   server.start();
   Client c(server);
   zmq::socket_t req(c.ctx, zmq::socket_type::req);
   req.set(zmq::sockopt::linger, 0);
   req.connect(server.pose_endpoint());
   for (std::uint64_t seq = 1; seq <= 3; ++seq) {
-    v1::PoseRequest q;
-    q.set_schema_version(1);
-    q.set_session_id(c.id);
-    q.set_seq(seq);
-    q.mutable_tip_mm()->set_x(30);
-    q.mutable_tip_mm()->set_y(30);
-    q.mutable_tip_mm()->set_z(30);
-    req.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-    zmq::pollitem_t it[] = {{req.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(10000));
-    REQUIRE((it[0].revents & ZMQ_POLLIN));
-    zmq::message_t m;
-    (void)req.recv(m);
-    v1::PoseReply r;
-    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
+    const auto r = test::exchange<v1::PoseReply>(req, test::pose_request(c.id, seq, {30, 30, 30}, 0));
     CHECK(r.seq() == seq);
     CHECK(r.contact());
   }

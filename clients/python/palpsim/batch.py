@@ -234,24 +234,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     out_dir = Path(args.out) if args.out else Path("out/batch") / _slug(plan.name)
-    server = None
     try:
-        address = args.connect
-        if args.start_server:
-            from .server import LocalServer
-            server = LocalServer(args.start_server, scene=args.scene,
-                                 log_path=out_dir / "server.log")
-            address = server.start()
-            print(f"{prog}: started {args.start_server} on {address}", file=sys.stderr)
-        result = run_plan(plan, address, sessions=args.sessions, timeout_s=args.timeout,
-                          progress=not args.no_progress)
-        summary = write_outputs(plan, result, out_dir, args.table, plots=not args.no_plots)
+        from .server import serving
+        with serving(args.connect, args.start_server, scene=args.scene,
+                     log_path=out_dir / "server.log") as address:
+            if args.start_server:
+                print(f"{prog}: started {args.start_server} on {address}", file=sys.stderr)
+            result = run_plan(plan, address, sessions=args.sessions, timeout_s=args.timeout,
+                              progress=not args.no_progress)
+            summary = write_outputs(plan, result, out_dir, args.table, plots=not args.no_plots)
     except (PalpsimError, TableError, OSError, RuntimeError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 1
-    finally:
-        if server:
-            server.stop()
     print(format_summary(summary))
     print(f"wrote {summary['run']['table']}, {out_dir / 'summary.json'}"
           + ("".join(f", {p}" for p in summary["run"].get("plots", []))))

@@ -106,36 +106,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     prog = "palpsim-demo"
     out = Path(args.out)
-    server = None
     try:
-        address = args.connect
-        if not address:
-            from .server import LocalServer, find_server
+        from .server import find_server, serving
+        binary = None
+        if not args.connect:
             binary = Path(args.server) if args.server else find_server()
             if binary is None:
                 print(f"{prog}: error: no palpsim-server found (build it, or give --server PATH "
                       "or --connect ADDR)", file=sys.stderr)
                 return 1
             print(f"[demo] starting {binary}" + (f" --scene {args.scene}" if args.scene else ""))
-            server = LocalServer(binary, scene=args.scene, log_path=out / "server.log")
-            address = server.start()
-            print(f"[demo] server ready on {address} (log: {out / 'server.log'})")
-        with Client(address) as c:
-            info = c.info()
-        plan = make_plan(info, args)
-        g = plan.grid
-        print(f"[demo] scene {info.scene_name!r}: pressing {g.count_v} points along the back, "
-              f"x = {g.center_mm[0]:.1f} mm, z from {g.center_mm[2] - g.size_v_mm / 2:.1f} to "
-              f"{g.center_mm[2] + g.size_v_mm / 2:.1f} mm, {plan.press.depth_mm:g} mm under the "
-              f"skin, {args.sessions} sessions")
-        result = run_plan(plan, address, sessions=args.sessions, progress=not args.no_progress)
-        summary = write_outputs(plan, result, out, "steps.parquet")
+        with serving(args.connect, binary, scene=args.scene, log_path=out / "server.log") as address:
+            if binary is not None:
+                print(f"[demo] server ready on {address} (log: {out / 'server.log'})")
+            with Client(address) as c:
+                info = c.info()
+            plan = make_plan(info, args)
+            g = plan.grid
+            print(f"[demo] scene {info.scene_name!r}: pressing {g.count_v} points along the back, "
+                  f"x = {g.center_mm[0]:.1f} mm, z from {g.center_mm[2] - g.size_v_mm / 2:.1f} to "
+                  f"{g.center_mm[2] + g.size_v_mm / 2:.1f} mm, {plan.press.depth_mm:g} mm under the "
+                  f"skin, {args.sessions} sessions")
+            result = run_plan(plan, address, sessions=args.sessions, progress=not args.no_progress)
+            summary = write_outputs(plan, result, out, "steps.parquet")
     except (PlanError, PalpsimError, OSError, RuntimeError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 1
-    finally:
-        if server:
-            server.stop()
 
     report = analyse(result.table, plan, args)
     write_json(report, out / "spine.json")

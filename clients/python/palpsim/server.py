@@ -11,6 +11,7 @@ quoted when it fails to start.
 from __future__ import annotations
 
 import collections
+import contextlib
 import os
 import re
 import shutil
@@ -19,7 +20,7 @@ import subprocess
 import threading
 import time
 from pathlib import Path
-from typing import IO, Sequence
+from typing import IO, Iterator, Sequence
 
 READY = re.compile(r"ready on (\S+)")
 
@@ -137,3 +138,22 @@ class LocalServer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+@contextlib.contextmanager
+def serving(address: str | None, binary: str | Path | None, scene: str | Path | None = None,
+            log_path: str | Path | None = None) -> Iterator[str]:
+    """The control address of a server for the block: `address` as given, or else that of a
+    LocalServer of `binary` (with `scene`, output to `log_path`) started on entry and
+    stopped on leaving, also when its start or the block fails. The batch runner and the
+    demo both run their plans inside it."""
+    if address:
+        yield address
+        return
+    if binary is None:
+        raise ValueError("serving: give a server address or a palpsim-server binary")
+    server = LocalServer(binary, scene=scene, log_path=log_path)
+    try:
+        yield server.start()
+    finally:
+        server.stop()

@@ -13,18 +13,30 @@ double voxel_mm(const Patient& p) {
 
 bool inside(const PatientSample& s) { return s.in_grid && s.body >= 0.5; }
 
-// C and B only, trilinearly: what the skin search needs (a third of sample_patient's reads)
-PatientSample sample_skin(const Patient& patient, const Vec3& p_mm) {
+// the patient's volumes at p_mm, trilinearly with one set of weights; kForce = false
+// reads C and B only, what the skin search needs (a third of the reads, decided at
+// compile time so the haptic path pays nothing for the choice)
+template <bool kForce>
+PatientSample sample_volumes(const Patient& patient, const Vec3& p_mm) {
   PatientSample s;
   const Vec3 ijk = patient.grid.to_index(p_mm);
+  // outside the grid (or not finite): outside the body
   if (!within_grid(patient.grid, ijk)) return s;
   s.in_grid = true;
   for_each_trilinear_corner(patient.grid, ijk, [&](std::size_t n, double w) {
     s.body += w * patient.body.data[n];
     s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
+    if constexpr (kForce) {
+      s.force_mm += w * patient.force.data[n];
+      const Vec3f& gf = patient.grad_force.data[n];
+      s.grad_force += Vec3{gf.x * w, gf.y * w, gf.z * w};
+    }
   });
   return s;
 }
+
+// C and B only: what the skin search needs
+PatientSample sample_skin(const Patient& patient, const Vec3& p_mm) { return sample_volumes<false>(patient, p_mm); }
 
 // the skin crossing of the ray tip + t * out (0 <= t <= max_len_mm), found by stepping
 // at most the depth under the skin (a distance to the skin, so no crossing is stepped
@@ -79,22 +91,7 @@ Vec3 nearest_skin_point(const Patient& patient, const Vec3& tip_mm, double depth
 
 }  // namespace
 
-PatientSample sample_patient(const Patient& patient, const Vec3& p_mm) {
-  PatientSample s;
-  const Vec3 ijk = patient.grid.to_index(p_mm);
-  // outside the grid (or not finite): outside the body
-  if (!within_grid(patient.grid, ijk)) return s;
-  s.in_grid = true;
-  // one set of weights for all volumes
-  for_each_trilinear_corner(patient.grid, ijk, [&](std::size_t n, double w) {
-    s.body += w * patient.body.data[n];
-    s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
-    s.force_mm += w * patient.force.data[n];
-    const Vec3f& gf = patient.grad_force.data[n];
-    s.grad_force += Vec3{gf.x * w, gf.y * w, gf.z * w};
-  });
-  return s;
-}
+PatientSample sample_patient(const Patient& patient, const Vec3& p_mm) { return sample_volumes<true>(patient, p_mm); }
 
 double depth_from_sample(const Patient& patient, const PatientSample& s) {
   return std::max(0.0, s.dist_skin_mm - 0.5 * voxel_mm(patient));

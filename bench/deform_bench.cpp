@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <ctime>
 #include <fstream>
@@ -14,6 +15,7 @@
 #include <string>
 #include <vector>
 
+#include "bench/deform_accuracy.h"
 #include "bench/registry.h"
 #include "core/error.h"
 #include "deform/backend.h"
@@ -198,19 +200,34 @@ void table1(const std::string& name, const Options& o, const PatientPtr& patient
 
 }  // namespace
 
-PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [--json FILE] [--quick] [--commit C]") {
+PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [--json FILE] [--quick] [--commit C]; "
+                      "--accuracy [--ref-voi N]: accuracy vs time of relaxation, inversion and VOI (deform_accuracy.h)") {
   Options o;
+  bool accuracy = false;  // the accuracy-vs-time study instead of Tables 1 and 2
+  int ref_voi = bench::AccuracyOptions{}.ref_voi_edge;
   for (int a = 1; a < argc; ++a) {
     const std::string s = argv[a];
     if (s == "--json" && a + 1 < argc) o.json = argv[++a];
     else if (s == "--commit" && a + 1 < argc) o.commit = argv[++a];
     else if (s == "--quick") o.quick = true;
+    else if (s == "--accuracy") accuracy = true;
+    else if (s == "--ref-voi" && a + 1 < argc) ref_voi = std::atoi(argv[++a]);
     else {
       std::fprintf(stderr, "palpsim-bench deform: unknown argument '%s'\n", s.c_str());
       return 2;
     }
   }
   try {
+    // the accuracy study (bench/deform_accuracy_bench.cpp)
+    if (accuracy) {
+      bench::AccuracyOptions ao;
+      ao.json = o.json;
+      ao.commit = o.commit;
+      ao.quick = o.quick;
+      ao.voxel_mm = o.voxel_mm;
+      ao.ref_voi_edge = ref_voi;
+      return bench::run_deform_accuracy(ao);
+    }
     // every backend this build and machine have
     std::vector<std::string> backends{"cpu"};
     std::string why, device = "cpu only";

@@ -1,0 +1,30 @@
+// palpsim-bench deform --accuracy: what accuracy costs in time. For one realistic
+// press on the phantom (10 mm into the back over the L3 spinous process) every
+// backend this build and machine have is timed for each setting of one knob at a
+// time (relaxation iterations, inversion iterations, VOI edge; the others at the
+// scene defaults) and the result is compared with a reference run with generous
+// settings of that knob. The implementation lives in deform_accuracy_bench.cpp so
+// that bench/CMakeLists.txt's *_bench.cpp glob links it; it registers no area of
+// its own: `palpsim-bench deform --accuracy` calls it.
+#pragma once
+
+#include <string>
+
+namespace palpsim::bench {
+
+/// What the accuracy study runs and where it writes.
+struct AccuracyOptions {
+  std::string json;                  // JSON output file; empty: print only
+  std::string commit = "unknown";    // commit of the build, copied into the JSON
+  bool quick = false;                // fewer timed repetitions (a smoke run)
+  double voxel_mm = 340.0 / 255.0;   // phantom voxel size (mm), as in the deform bench
+  int ref_relax_iterations = 400;    // reference of the relaxation study
+  int ref_invert_iterations = 64;    // reference of the inversion study
+  int ref_voi_edge = 160;            // reference of the VOI study (voxel), above the largest setting
+};
+
+/// Runs the study, prints one markdown table per backend and knob, writes the JSON
+/// when asked; returns the process exit code (throws palpsim::Error on bad input).
+int run_deform_accuracy(const AccuracyOptions& options);
+
+}  // namespace palpsim::bench

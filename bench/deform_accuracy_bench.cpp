@@ -1,0 +1,482 @@
+// palpsim-bench deform --accuracy: what accuracy costs in time (see deform_accuracy.h).
+// One press: X 1 mm under the back skin straight above the L3 spinous tip of the
+// phantom, x 10 mm anterior of X (into the body, towards the bone). The base is the
+// scene default (preset p1, VOI 64, relaxation 20, inversion 8); one knob varies at a
+// time and is compared with a reference that differs from the base in that knob only:
+//   relax_iterations {0..160} vs 400: RMS and max |u - u_ref| (voxel), RMS of the
+//     discrete Laplacian of u over soft voxels (voxel; lower is smoother);
+//   invert_iterations {0..32} vs 64: max and mean inversion residual |p + u(p) - y|
+//     (voxel) and RMS |J - J_ref| (HU), over the VOI;
+//   voi_edge {32..128} vs ref_voi_edge: fraction of the reference's displacement
+//     energy (sum |u|^2) outside the VOI, for the reference at relaxation 20 and 400,
+//     and RMS |u - u_ref| over the reference's VOI (u = 0 outside the setting's VOI).
+// Times: median (p10, p90) of whole steps and of the knob's stage, after warm-up.
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <ctime>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <utility>
+#include <vector>
+
+#include "bench/deform_accuracy.h"
+#include "core/error.h"
+#include "deform/backend.h"
+#include "deform/deform_math.h"
+#include "prep/phantom.h"
+#include "tests/support/deform_fixtures.h"
+
+namespace palpsim::bench {
+namespace {
+
+using deform::Voi;
+
+// median and 10th/90th percentiles of a sample (ms)
+struct Spread {
+  double median = 0, p10 = 0, p90 = 0;
+};
+
+Spread spread(std::vector<double> v) {
+  Spread s;
+  if (v.empty()) return s;
+  std::sort(v.begin(), v.end());
+  auto at = [&](double q) { return v[std::size_t(std::lround(q * double(v.size() - 1)))]; };
+  s.median = at(0.5);
+  s.p10 = at(0.1);
+  s.p90 = at(0.9);
+  return s;
+}
+
+// a JSON number (null for a non-finite value, which JSON cannot hold)
+std::string num(double v) {
+  if (!std::isfinite(v)) return "null";
+  std::ostringstream o;
+  o.precision(7);
+  o << v;
+  return o.str();
+}
+
+std::string json_spread(const Spread& s) {
+  return "{\"median_ms\": " + num(s.median) + ", \"p10_ms\": " + num(s.p10) + ", \"p90_ms\": " + num(s.p90) + "}";
+}
+
+std::string json_vec(const Vec3& v) { return "[" + num(v.x) + ", " + num(v.y) + ", " + num(v.z) + "]"; }
+
+// the phantom as a patient (bone = HU above the threshold, as the deform bench does)
+PatientPtr phantom_patient(PhantomCt& ct, float bone_threshold) {
+  auto p = std::make_shared<Patient>();
+  p->grid = ct.hu.grid;
+  p->intensity = std::move(ct.hu);
+  p->bone = Volume<std::uint8_t>(p->grid);
+  for (std::size_t e = 0; e < p->intensity.data.size(); ++e) {
+    p->bone.data[e] = p->intensity.data[e] > bone_threshold ? 1 : 0;
+    p->has_bone = p->has_bone || p->bone.data[e];
+  }
+  p->source = "phantom";
+  return p;
+}
+
+// the press over a spinous process, from the phantom's closed-form geometry
+struct Press {
+  std::string landmark = "spinous_tip_L3";
+  Vec3 landmark_mm;
+  DeformContact contact;
+  double press_mm = 10;      // |x - X|
+  double skin_depth_mm = 1;  // X below the skin
+  double bone_depth_mm = 0;  // spinous tip below X
+};
+
+Press spinous_press(const PhantomGeometry& geo) {
+  Press p;
+  const Vec3 tip = geo.landmark(p.landmark);
+  p.landmark_mm = tip;
+  // X: straight above the tip (+y, posterior) where the skin's signed distance is
+  // -skin_depth_mm; bisection between the tip (inside) and 80 mm above it (outside)
+  auto depth = [&](double y) { return geo.skin_signed_distance_mm({tip.x, y, tip.z}); };
+  double lo = tip.y, hi = tip.y + 80;
+  if (!(depth(lo) < -p.skin_depth_mm && depth(hi) > 0))
+    throw Error("deform accuracy: no skin between " + p.landmark + " and 80 mm above it");
+  for (int it = 0; it < 60; ++it) {
+    const double mid = 0.5 * (lo + hi);
+    (depth(mid) < -p.skin_depth_mm ? lo : hi) = mid;
+  }
+  const Vec3 X{tip.x, lo, tip.z};
+  p.contact = {X, X - Vec3{0, p.press_mm, 0}};
+  p.bone_depth_mm = X.y - tip.y;
+  return p;
+}
+
+// one setting run on one backend: times of whole steps and of one stage, and what the last step left
+enum class Stage { relax, invert, total };
+
+struct Run {
+  Spread step_ms, stage_ms;
+  int reps = 0;
+  DeformStats last;
+  std::vector<Vec3f> u;  // displacement after the last step (VOI, i fastest)
+  std::vector<float> J;  // J on the VOI (empty without inversion)
+};
+
+Run run_setting(const std::string& backend, const PatientPtr& patient, const DeformConfig& cfg,
+                const DeformContact& contact, int warmup, int reps, Stage stage) {
+  auto b = make_deform_backend(backend);
+  b->bind(patient, cfg);
+  std::vector<double> step, part;
+  Run r;
+  for (int i = -warmup; i < reps; ++i) {
+    r.last = b->step(contact);
+    if (i < 0) continue;
+    const DeformTimes& t = r.last.times;
+    step.push_back(t.total_ms);
+    part.push_back(stage == Stage::relax ? t.relax_ms : (stage == Stage::invert ? t.invert_ms : t.total_ms));
+  }
+  r.step_ms = spread(step);
+  r.stage_ms = spread(part);
+  r.reps = reps;
+  r.u = b->displacement();
+  if (cfg.invert) r.J.assign(b->deformed_brick(), b->deformed_brick() + b->voi().count());
+  if (!r.last.chainmail.converged) throw Error("deform accuracy: ChainMail hit deform.max_sweeps on " + backend);
+  return r;
+}
+
+// RMS and max of |a - b| over two fields on the same VOI (voxel)
+struct Diff {
+  double rms = 0, max = 0;
+};
+
+Diff field_diff(const std::vector<Vec3f>& a, const std::vector<Vec3f>& b) {
+  Diff d;
+  double sum = 0;
+  for (std::size_t e = 0; e < a.size(); ++e) {
+    const Vec3f v = a[e] - b[e];
+    const double n2 = double(v.x) * v.x + double(v.y) * v.y + double(v.z) * v.z;
+    sum += n2;
+    d.max = std::max(d.max, std::sqrt(n2));
+  }
+  d.rms = a.empty() ? 0 : std::sqrt(sum / double(a.size()));
+  return d;
+}
+
+// RMS of |sum of six neighbours - 6 u| (voxel) over the soft VOI voxels except the
+// grabbed one, u = 0 outside the VOI as relaxation takes it: what relaxation reduces
+double laplacian_rms(const Patient& p, const Voi& voi, const Vec3i& grabbed, const std::vector<Vec3f>& u) {
+  const Vec3i g = grabbed - voi.lo;
+  double sum = 0;
+  long long n = 0;
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        if (p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) || Vec3i{i, j, k} == g) continue;
+        Vec3f l = u[voi.index(i, j, k)] * -6.0f;
+        for (int q = 0; q < 6; ++q) {
+          const Vec3i m = Vec3i{i, j, k} + deform::neighbour_offset(q);
+          if (voi.contains(m.x, m.y, m.z)) l += u[voi.index(m.x, m.y, m.z)];
+        }
+        sum += double(l.x) * l.x + double(l.y) * l.y + double(l.z) * l.z;
+        ++n;
+      }
+  return n ? std::sqrt(sum / double(n)) : 0;
+}
+
+// the inversion residual |p + u(p) - y| of every VOI voxel after `iterations`
+// fixed-point steps (the backends' own invert_point on the backend's field)
+struct Residual {
+  double max = 0, mean = 0;
+};
+
+Residual invert_residuals(const Voi& voi, const std::vector<Vec3f>& u, int iterations) {
+  auto load_u = [&](int i, int j, int k) { return voi.contains(i, j, k) ? u[voi.index(i, j, k)] : Vec3f{0, 0, 0}; };
+  Residual r;
+  double sum = 0;
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        float res = 0;
+        deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, res);
+        r.max = std::max(r.max, double(res));
+        sum += res;
+      }
+  r.mean = sum / double(std::max(1LL, voi.count()));
+  return r;
+}
+
+// RMS of a - b (HU)
+double rms_diff(const std::vector<float>& a, const std::vector<float>& b) {
+  double sum = 0;
+  for (std::size_t e = 0; e < a.size(); ++e) sum += double(a[e] - b[e]) * double(a[e] - b[e]);
+  return a.empty() ? 0 : std::sqrt(sum / double(a.size()));
+}
+
+// true when the patient voxel (gi, gj, gk) lies in the box
+bool in_box(const Voi& v, int gi, int gj, int gk) { return v.contains(gi - v.lo.x, gj - v.lo.y, gk - v.lo.z); }
+
+// fraction of the reference field's energy (sum |u|^2) that lies outside the box `voi`
+double energy_outside(const Voi& ref_voi, const std::vector<Vec3f>& u_ref, const Voi& voi) {
+  double all = 0, out = 0;
+  for (int k = 0; k < ref_voi.size.z; ++k)
+    for (int j = 0; j < ref_voi.size.y; ++j)
+      for (int i = 0; i < ref_voi.size.x; ++i) {
+        const Vec3f& v = u_ref[ref_voi.index(i, j, k)];
+        const double e = double(v.x) * v.x + double(v.y) * v.y + double(v.z) * v.z;
+        all += e;
+        if (!in_box(voi, ref_voi.lo.x + i, ref_voi.lo.y + j, ref_voi.lo.z + k)) out += e;
+      }
+  return all > 0 ? out / all : 0;
+}
+
+// RMS and max |u - u_ref| over the reference's VOI, u = 0 outside its own (smaller) VOI
+Diff diff_on_reference(const Voi& ref_voi, const std::vector<Vec3f>& u_ref, const Voi& voi, const std::vector<Vec3f>& u) {
+  std::vector<Vec3f> on_ref(u_ref.size(), Vec3f{0, 0, 0});
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        const Vec3i r = voi.lo + Vec3i{i, j, k} - ref_voi.lo;
+        if (!ref_voi.contains(r.x, r.y, r.z)) throw Error("deform accuracy: a VOI reaches outside the reference VOI");
+        on_ref[ref_voi.index(r.x, r.y, r.z)] = u[voi.index(i, j, k)];
+      }
+  return field_diff(on_ref, u_ref);
+}
+
+// one table row: a setting of one knob on one backend and what it cost and gave
+struct Row {
+  std::string backend, knob;
+  int setting = 0;
+  bool reference = false;
+  Spread step_ms, stage_ms;
+  int reps = 0;
+  long long voi_voxels = 0, moved = 0;
+  std::vector<std::pair<std::string, double>> metrics;  // name (with unit) and value, in table order
+};
+
+Row make_row(const std::string& backend, const std::string& knob, int setting, bool reference, const Run& r) {
+  Row row;
+  row.backend = backend;
+  row.knob = knob;
+  row.setting = setting;
+  row.reference = reference;
+  row.step_ms = r.step_ms;
+  row.stage_ms = r.stage_ms;
+  row.reps = r.reps;
+  row.voi_voxels = r.last.chainmail.voi.count();
+  row.moved = r.last.chainmail.moved;
+  return row;
+}
+
+// prints one knob's rows of one backend as a markdown table (no stage column when
+// stage_name is empty: the knob's cost is the whole step)
+void print_table(const std::vector<Row>& rows, const std::string& backend, const std::string& knob,
+                 const std::string& stage_name, const std::string& caption) {
+  std::vector<const Row*> sel;
+  for (const Row& r : rows)
+    if (r.backend == backend && r.knob == knob) sel.push_back(&r);
+  if (sel.empty()) return;
+  const bool stage = !stage_name.empty();
+  std::printf("\n%s: %s (%s)\n\n| %s | step ms (p10-p90) |", backend.c_str(), knob.c_str(), caption.c_str(),
+              knob.c_str());
+  if (stage) std::printf(" %s ms |", stage_name.c_str());
+  for (const auto& m : sel.front()->metrics) std::printf(" %s |", m.first.c_str());
+  std::printf("\n|---|---|%s", stage ? "---|" : "");
+  for (std::size_t m = 0; m < sel.front()->metrics.size(); ++m) std::printf("---|");
+  std::printf("\n");
+  for (const Row* r : sel) {
+    std::printf("| %s%d | %.3f (%.3f-%.3f)%s |", r->reference ? "ref " : "", r->setting, r->step_ms.median,
+                r->step_ms.p10, r->step_ms.p90, r->reps == 1 ? " 1 run" : "");
+    if (stage) std::printf(" %.3f |", r->stage_ms.median);
+    for (const auto& m : r->metrics) std::printf(" %.4g |", m.second);
+    std::printf("\n");
+  }
+  std::fflush(stdout);
+}
+
+// the first "model name" of /proc/cpuinfo, for the JSON's machine description
+std::string cpu_model() {
+  std::ifstream f("/proc/cpuinfo");
+  std::string line;
+  while (std::getline(f, line))
+    if (line.rfind("model name", 0) == 0) {
+      const auto c = line.find(':');
+      if (c != std::string::npos) return line.substr(line.find_first_not_of(' ', c + 1));
+    }
+  return "unknown";
+}
+
+// escapes a string for JSON
+std::string json_str(const std::string& s) {
+  std::string o = "\"";
+  for (char c : s) {
+    if (c == '"' || c == '\\') o += '\\';
+    o += (unsigned char)c < 0x20 ? ' ' : c;
+  }
+  return o + "\"";
+}
+
+}  // namespace
+
+int run_deform_accuracy(const AccuracyOptions& o) {
+  // every backend this build and machine have
+  std::vector<std::string> backends{"cpu"};
+  std::string why, device = "cpu only";
+  if (cuda_deform_available(&why)) {
+    backends.push_back("cuda");
+    device = why;
+  }
+  std::printf("deform accuracy: backends cpu%s (%s)\n", backends.size() > 1 ? ", cuda" : "", why.c_str());
+
+  PhantomCt ct = make_phantom(o.voxel_mm);
+  const Press press = spinous_press(ct.geometry);
+  const PatientPtr patient = phantom_patient(ct, test::kBoneThresholdHu);
+  const Grid& grid = patient->grid;
+  const Vec3 X = press.contact.skin_point_mm, x = press.contact.tip_mm;
+  std::printf("phantom %d x %d x %d at %.3f mm; press %.0f mm along -y (anterior) at X = (%.1f, %.1f, %.1f) mm, "
+              "%.0f mm under the skin, %.1f mm above %s\n",
+              grid.size.x, grid.size.y, grid.size.z, o.voxel_mm, press.press_mm, X.x, X.y, X.z, press.skin_depth_mm,
+              press.bone_depth_mm, press.landmark.c_str());
+
+  // the base: the scene defaults with the paper's preset p1
+  DeformConfig base = test::preset_config(1);
+  base.settings.voi_edge = 64;
+  base.settings.relax_iterations = 20;
+  base.settings.invert_iterations = 8;
+  const int relax_set[] = {0, 5, 10, 20, 40, 80, 160};
+  const int invert_set[] = {0, 1, 2, 4, 8, 16, 32};
+  const int voi_set[] = {32, 48, 64, 96, 128};
+  if (o.ref_voi_edge < 128) throw Error("deform accuracy: --ref-voi must be at least the largest VOI setting, 128");
+
+  std::vector<Row> rows;
+  for (const std::string& be : backends) {
+    const bool gpu = be == "cuda";
+    const int warmup = gpu ? 3 : 1;
+    const int reps = gpu ? (o.quick ? 10 : 30) : (o.quick ? 2 : 5);
+    DeformConfig cfg = base;
+    cfg.settings.backend = be;
+
+    // relaxation iterations against relaxation to ref_relax_iterations on the same VOI
+    {
+      DeformConfig c = cfg;
+      c.settings.relax_iterations = o.ref_relax_iterations;
+      const Run ref = run_setting(be, patient, c, press.contact, 0, 1, Stage::relax);
+      if (ref.last.chainmail.grabbed_in_bone || ref.last.chainmail.moved == 0)
+        throw Error("deform accuracy: the press moves nothing (X in bone?)");
+      const Voi& voi = ref.last.chainmail.voi;
+      const Vec3i grabbed = ref.last.chainmail.grabbed_vox;
+      Row rr = make_row(be, "relax_iterations", o.ref_relax_iterations, true, ref);
+      rr.metrics = {{"u_rms_diff_vox", 0}, {"u_max_diff_vox", 0}, {"laplacian_rms_vox", laplacian_rms(*patient, voi, grabbed, ref.u)}};
+      for (int n : relax_set) {
+        c.settings.relax_iterations = n;
+        const Run r = run_setting(be, patient, c, press.contact, warmup, reps, Stage::relax);
+        if (!(r.last.chainmail.voi == voi)) throw Error("deform accuracy: the VOI changed between runs");
+        const Diff d = field_diff(r.u, ref.u);
+        Row row = make_row(be, "relax_iterations", n, false, r);
+        row.metrics = {{"u_rms_diff_vox", d.rms}, {"u_max_diff_vox", d.max},
+                       {"laplacian_rms_vox", laplacian_rms(*patient, voi, grabbed, r.u)}};
+        rows.push_back(row);
+      }
+      rows.push_back(rr);
+      print_table(rows, be, "relax_iterations", "relax",
+                  "VOI 64, inversion 8; reference: relaxation " + std::to_string(o.ref_relax_iterations));
+    }
+
+    // inversion iterations against inversion with ref_invert_iterations on the same field
+    {
+      DeformConfig c = cfg;
+      c.settings.invert_iterations = o.ref_invert_iterations;
+      const Run ref = run_setting(be, patient, c, press.contact, 0, 1, Stage::invert);
+      const Voi& voi = ref.last.chainmail.voi;
+      auto add = [&](int n, bool reference, const Run& r) {
+        const Residual res = invert_residuals(voi, r.u, n);
+        Row row = make_row(be, "invert_iterations", n, reference, r);
+        row.metrics = {{"residual_max_vox", res.max},
+                       {"residual_mean_vox", res.mean},
+                       {"unresolved", double(r.last.invert_unresolved)},
+                       {"J_rms_diff_hu", rms_diff(r.J, ref.J)}};
+        rows.push_back(row);
+      };
+      for (int n : invert_set) {
+        c.settings.invert_iterations = n;
+        const Run r = run_setting(be, patient, c, press.contact, warmup, reps, Stage::invert);
+        if (!(r.last.chainmail.voi == voi)) throw Error("deform accuracy: the VOI changed between runs");
+        add(n, false, r);
+      }
+      add(o.ref_invert_iterations, true, ref);
+      print_table(rows, be, "invert_iterations", "invert",
+                  "VOI 64, relaxation 20; reference: inversion " + std::to_string(o.ref_invert_iterations));
+    }
+
+    // VOI edge against a VOI of ref_voi_edge (relaxation 20 as the base, and 400)
+    {
+      DeformConfig c = cfg;
+      c.settings.voi_edge = o.ref_voi_edge;
+      c.invert = false;  // the references need the field only
+      const Run ref = run_setting(be, patient, c, press.contact, 0, 1, Stage::total);
+      c.settings.relax_iterations = o.ref_relax_iterations;
+      const Run ref_long = run_setting(be, patient, c, press.contact, 0, 1, Stage::total);
+      const Voi& rv = ref.last.chainmail.voi;
+      const std::string long_name = "clipped_energy_relax" + std::to_string(o.ref_relax_iterations);
+      c = cfg;
+      for (int edge : voi_set) {
+        c.settings.voi_edge = edge;
+        const Run r = run_setting(be, patient, c, press.contact, warmup, reps, Stage::total);
+        const Voi& v = r.last.chainmail.voi;
+        const Diff d = diff_on_reference(rv, ref.u, v, r.u);
+        Row row = make_row(be, "voi_edge", edge, false, r);
+        row.metrics = {{"clipped_energy_relax20", energy_outside(rv, ref.u, v)},
+                       {long_name, energy_outside(ref_long.last.chainmail.voi, ref_long.u, v)},
+                       {"u_rms_diff_vox", d.rms},
+                       {"u_max_diff_vox", d.max}};
+        rows.push_back(row);
+      }
+      Row row = make_row(be, "voi_edge", o.ref_voi_edge, true, ref);
+      row.metrics = {{"clipped_energy_relax20", 0}, {long_name, 0}, {"u_rms_diff_vox", 0}, {"u_max_diff_vox", 0}};
+      rows.push_back(row);
+      print_table(rows, be, "voi_edge", "",
+                  "relaxation 20, inversion 8; reference: VOI " + std::to_string(o.ref_voi_edge) +
+                      " without inversion (time 1 run)");
+    }
+  }
+
+  if (!o.json.empty()) {
+    // write to a temporary name and rename, so no half-written file is left
+    const std::string tmp = o.json + ".tmp";
+    {
+      std::ofstream f(tmp);
+      if (!f) throw Error("deform accuracy: cannot write --json " + o.json);
+      const std::time_t now = std::time(nullptr);
+      char date[32];
+      std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
+      f << "{\n  \"area\": \"deform-accuracy\",\n  \"date\": \"" << date << "\",\n  \"device\": " << json_str(device)
+        << ",\n  \"host_cpu\": " << json_str(cpu_model()) << ",\n  \"host_threads\": "
+        << std::thread::hardware_concurrency() << ",\n  \"commit\": " << json_str(o.commit)
+        << ",\n  \"quick\": " << (o.quick ? "true" : "false") << ",\n  \"phantom\": {\"voxel_mm\": " << num(o.voxel_mm)
+        << ", \"size\": [" << grid.size.x << ", " << grid.size.y << ", " << grid.size.z << "]},\n"
+        << "  \"press\": {\"landmark\": " << json_str(press.landmark) << ", \"landmark_mm\": " << json_vec(press.landmark_mm)
+        << ", \"X_mm\": " << json_vec(X) << ", \"x_mm\": " << json_vec(x) << ", \"press_mm\": " << num(press.press_mm)
+        << ", \"skin_depth_mm\": " << num(press.skin_depth_mm) << ", \"bone_depth_mm\": " << num(press.bone_depth_mm)
+        << "},\n  \"base\": {\"preset\": \"p1\", \"voi_edge\": " << base.settings.voi_edge
+        << ", \"relax_iterations\": " << base.settings.relax_iterations
+        << ", \"invert_iterations\": " << base.settings.invert_iterations << "},\n"
+        << "  \"reference\": {\"relax_iterations\": " << o.ref_relax_iterations
+        << ", \"invert_iterations\": " << o.ref_invert_iterations << ", \"voi_edge\": " << o.ref_voi_edge << "},\n"
+        << "  \"rows\": [\n";
+      for (std::size_t i = 0; i < rows.size(); ++i) {
+        const Row& r = rows[i];
+        f << "    {\"backend\": " << json_str(r.backend) << ", \"knob\": " << json_str(r.knob)
+          << ", \"setting\": " << r.setting << ", \"reference\": " << (r.reference ? "true" : "false")
+          << ", \"reps\": " << r.reps << ", \"voi_voxels\": " << r.voi_voxels << ", \"moved\": " << r.moved
+          << ", \"step\": " << json_spread(r.step_ms) << ", \"stage\": " << json_spread(r.stage_ms) << ", \"metrics\": {";
+        for (std::size_t m = 0; m < r.metrics.size(); ++m)
+          f << (m ? ", " : "") << json_str(r.metrics[m].first) << ": " << num(r.metrics[m].second);
+        f << "}}" << (i + 1 < rows.size() ? "," : "") << "\n";
+      }
+      f << "  ]\n}\n";
+      if (!f) throw Error("deform accuracy: writing --json " + o.json + " failed");
+    }
+    if (std::rename(tmp.c_str(), o.json.c_str()) != 0) throw Error("deform accuracy: cannot rename " + tmp + " to " + o.json);
+    std::printf("wrote %s\n", o.json.c_str());
+  }
+  return 0;
+}
+
+}  // namespace palpsim::bench

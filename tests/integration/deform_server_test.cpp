@@ -12,6 +12,7 @@
 
 #include "integration/server_process.h"
 #include "palpsim/wire.pb.h"
+#include "support/zmq_exchange.h"
 
 using namespace palpsim;
 namespace v1 = palpsim::v1;
@@ -33,20 +34,6 @@ std::string deform_scene_text(const std::string& extra_deform = "") {
          "effects { haptics: true chainmail: true relaxation: true inversion: true }\n";
 }
 
-// one REQ-like exchange on a DEALER
-template <class Req, class Rep>
-Rep exchange(zmq::socket_t& s, const Req& q) {
-  s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-  zmq::pollitem_t it[] = {{s.handle(), 0, ZMQ_POLLIN, 0}};
-  zmq::poll(it, 1, std::chrono::milliseconds(kReplyTimeoutMs));
-  REQUIRE((it[0].revents & ZMQ_POLLIN));
-  zmq::message_t m;
-  (void)s.recv(m);
-  Rep r;
-  REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
-  return r;
-}
-
 }  // namespace
 
 TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and keeps answering poses",
@@ -65,7 +52,7 @@ TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and k
   v1::ControlRequest q;
   q.set_schema_version(1);
   q.mutable_open()->set_client_name("deform-integration");
-  const auto open = exchange<v1::ControlRequest, v1::ControlReply>(ctl, q);
+  const auto open = test::exchange<v1::ControlReply>(ctl, q, kReplyTimeoutMs);
   REQUIRE(open.has_open());
   const std::uint64_t id = open.open().session_id();
   const auto& info = open.open().server();
@@ -86,7 +73,7 @@ TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and k
     p.mutable_tip_mm()->set_x(x);
     p.mutable_tip_mm()->set_y(hi.y() + 5 - 15.0 * std::min(1.0, n / 300.0));
     p.mutable_tip_mm()->set_z(z);
-    const auto r = exchange<v1::PoseRequest, v1::PoseReply>(pose, p);
+    const auto r = test::exchange<v1::PoseReply>(pose, p, kReplyTimeoutMs);
     REQUIRE(r.error().code() == v1::ERROR_NONE);
     REQUIRE(r.seq() == seq);
     touched = touched || r.contact();
@@ -100,7 +87,7 @@ TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and k
   v1::StatsReply st;
   const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
   do {
-    const auto r = exchange<v1::ControlRequest, v1::ControlReply>(ctl, sq);
+    const auto r = test::exchange<v1::ControlReply>(ctl, sq, kReplyTimeoutMs);
     REQUIRE(r.has_stats());
     st = r.stats();
     if (st.session().deform().last_contact_seq() == seq) break;

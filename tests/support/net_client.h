@@ -1,23 +1,19 @@
 // An in-process client of net::Server for the unit tests of the network edge: loopback
-// server options on free ports, one request/reply exchange on any socket, and a session
-// of a REQ (control) and a DEALER (poses) that opens itself on construction.
+// server options on free ports, pose requests, and a session of a REQ (control) and a
+// DEALER (poses) that opens itself on construction.
 #pragma once
 
 #include <catch2/catch.hpp>
 
-#include <chrono>
 #include <cstdint>
 #include <zmq.hpp>
 
 #include "core/vec3.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
+#include "support/zmq_exchange.h"
 
 namespace palpsim::test {
-
-/// How long one exchange waits for its reply (ms): far above any answer of a healthy
-/// server, so that only a lost reply fails the test.
-constexpr int kReplyWaitMs = 10000;
 
 /// Server options that bind control and poses on loopback ports the system picks, so
 /// tests running side by side never collide.
@@ -26,21 +22,6 @@ inline net::ServerOptions loopback_options() {
   o.control_bind = "tcp://127.0.0.1:*";
   o.pose_bind = "tcp://127.0.0.1:*";
   return o;
-}
-
-/// Sends `request` on `socket` and returns the parsed reply; the test fails when none
-/// comes within kReplyWaitMs or it does not parse as `Reply`.
-template <class Reply, class Request>
-Reply exchange(zmq::socket_t& socket, const Request& request) {
-  socket.send(zmq::buffer(request.SerializeAsString()), zmq::send_flags::none);
-  zmq::pollitem_t it[] = {{socket.handle(), 0, ZMQ_POLLIN, 0}};
-  zmq::poll(it, 1, std::chrono::milliseconds(kReplyWaitMs));
-  REQUIRE((it[0].revents & ZMQ_POLLIN));
-  zmq::message_t m;
-  (void)socket.recv(m);
-  Reply r;
-  REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
-  return r;
 }
 
 /// A pose request of schema version 1 for `session_id`: tip at `tip_mm`, client clock

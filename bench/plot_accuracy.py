@@ -32,7 +32,8 @@ PANELS = [
      [("u_rms_diff_vox", "RMS |u - u_ref|", "-"), ("u_max_diff_vox", "max |u - u_ref|", "--")],
      "displacement error vs reference (voxel)"),
     ("invert_iterations", "inversion iterations",
-     [("residual_mean_vox", "mean residual (voxel)", "-"), ("J_rms_diff_hu", "RMS |J - J_ref| (HU)", "--")],
+     [("residual_mean_vox", "mean residual (voxel)", "-"), ("J_rms_diff_hu", "RMS |J - J_ref| (HU)", "--"),
+      ("J_rms_diff_resolved_hu", "RMS |J - J_ref|, voxels resolved in ref (HU)", ":")],
      "mean residual (voxel) / RMS J error (HU)"),
     ("voi_edge", "VOI edge",
      [("clipped_energy_relax20", "clipped energy, relax 20", "-"), (None, "clipped energy, relax REF", "--")],
@@ -73,12 +74,12 @@ def panel(ax, d, knob, title, figures, ylabel):
             y = [r["metrics"][metric] for r in rs]
             yd = [max(v, FLOOR) for v in y]
             floored = floored or any(v <= FLOOR for v in y)
-            ax.errorbar(t, yd, xerr=[lo, hi], fmt="o" if n == 0 else "s", ls=style, ms=4, capsize=2,
+            ax.errorbar(t, yd, xerr=[lo, hi], fmt="osv"[n], ls=style, ms=4, capsize=2,
                         color=COLOURS.get(backend, "tab:red"), alpha=1.0 if n == 0 else 0.6,
                         label=f"{backend}: {label}")
             # label each point with its setting
             for tx, yy, r in zip(t, yd, rs):
-                ax.annotate(str(r["setting"]), (tx, yy), textcoords="offset points", xytext=(4, 4 if n == 0 else -10),
+                ax.annotate(str(r["setting"]), (tx, yy), textcoords="offset points", xytext=(4, 4 if n == 0 else -10 * n),
                             fontsize=7, color=COLOURS.get(backend, "tab:red"))
     ax.set_yscale("log")
     if times and max(times) / max(min(times), 1e-9) > 10:

@@ -18,6 +18,7 @@
 #include <cstdio>
 #include <ctime>
 #include <fstream>
+#include <memory>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -122,26 +123,43 @@ struct Run {
   std::vector<float> J;  // J on the VOI (empty without inversion)
 };
 
+// the settings `cfgs` on one backend, one engine each, timed round-robin (every
+// repetition steps each setting once) so that load from other processes on a shared
+// machine spreads over all settings instead of skewing the ones that ran during it
+std::vector<Run> run_settings(const std::string& backend, const PatientPtr& patient,
+                              const std::vector<DeformConfig>& cfgs, const DeformContact& contact, int warmup,
+                              int reps, Stage stage) {
+  std::vector<std::unique_ptr<DeformBackend>> engines;
+  for (const DeformConfig& c : cfgs) {
+    engines.push_back(make_deform_backend(backend));
+    engines.back()->bind(patient, c);
+  }
+  std::vector<Run> runs(cfgs.size());
+  std::vector<std::vector<double>> step(cfgs.size()), part(cfgs.size());
+  for (int i = -warmup; i < reps; ++i)
+    for (std::size_t s = 0; s < cfgs.size(); ++s) {
+      runs[s].last = engines[s]->step(contact);
+      if (i < 0) continue;
+      const DeformTimes& t = runs[s].last.times;
+      step[s].push_back(t.total_ms);
+      part[s].push_back(stage == Stage::relax ? t.relax_ms : (stage == Stage::invert ? t.invert_ms : t.total_ms));
+    }
+  for (std::size_t s = 0; s < cfgs.size(); ++s) {
+    Run& r = runs[s];
+    r.step_ms = spread(step[s]);
+    r.stage_ms = spread(part[s]);
+    r.reps = reps;
+    r.u = engines[s]->displacement();
+    if (cfgs[s].invert) r.J.assign(engines[s]->deformed_brick(), engines[s]->deformed_brick() + engines[s]->voi().count());
+    if (!r.last.chainmail.converged) throw Error("deform accuracy: ChainMail hit deform.max_sweeps on " + backend);
+  }
+  return runs;
+}
+
+// one setting, timed alone
 Run run_setting(const std::string& backend, const PatientPtr& patient, const DeformConfig& cfg,
                 const DeformContact& contact, int warmup, int reps, Stage stage) {
-  auto b = make_deform_backend(backend);
-  b->bind(patient, cfg);
-  std::vector<double> step, part;
-  Run r;
-  for (int i = -warmup; i < reps; ++i) {
-    r.last = b->step(contact);
-    if (i < 0) continue;
-    const DeformTimes& t = r.last.times;
-    step.push_back(t.total_ms);
-    part.push_back(stage == Stage::relax ? t.relax_ms : (stage == Stage::invert ? t.invert_ms : t.total_ms));
-  }
-  r.step_ms = spread(step);
-  r.stage_ms = spread(part);
-  r.reps = reps;
-  r.u = b->displacement();
-  if (cfg.invert) r.J.assign(b->deformed_brick(), b->deformed_brick() + b->voi().count());
-  if (!r.last.chainmail.converged) throw Error("deform accuracy: ChainMail hit deform.max_sweeps on " + backend);
-  return r;
+  return run_settings(backend, patient, {cfg}, contact, warmup, reps, stage).front();
 }
 
 // RMS and max of |a - b| over two fields on the same VOI (voxel)
@@ -374,9 +392,15 @@ int run_deform_accuracy(const AccuracyOptions& o) {
       const Vec3i grabbed = ref.last.chainmail.grabbed_vox;
       Row rr = make_row(be, "relax_iterations", o.ref_relax_iterations, true, ref);
       rr.metrics = {{"u_rms_diff_vox", 0}, {"u_max_diff_vox", 0}, {"laplacian_rms_vox", laplacian_rms(*patient, voi, grabbed, ref.u)}};
+      std::vector<DeformConfig> cs;
       for (int n : relax_set) {
-        c.settings.relax_iterations = n;
-        const Run r = run_setting(be, patient, c, press.contact, warmup, reps, Stage::relax);
+        cs.push_back(c);
+        cs.back().settings.relax_iterations = n;
+      }
+      const std::vector<Run> runs = run_settings(be, patient, cs, press.contact, warmup, reps, Stage::relax);
+      for (std::size_t s = 0; s < cs.size(); ++s) {
+        const int n = relax_set[s];
+        const Run& r = runs[s];
         if (!(r.last.chainmail.voi == voi)) throw Error("deform accuracy: the VOI changed between runs");
         const Diff d = field_diff(r.u, ref.u);
         Row row = make_row(be, "relax_iterations", n, false, r);
@@ -409,9 +433,15 @@ int run_deform_accuracy(const AccuracyOptions& o) {
                        {"J_rms_diff_resolved_hu", rms_diff(r.J, ref.J, resolved)}};
         rows.push_back(row);
       };
+      std::vector<DeformConfig> cs;
       for (int n : invert_set) {
-        c.settings.invert_iterations = n;
-        const Run r = run_setting(be, patient, c, press.contact, warmup, reps, Stage::invert);
+        cs.push_back(c);
+        cs.back().settings.invert_iterations = n;
+      }
+      const std::vector<Run> runs = run_settings(be, patient, cs, press.contact, warmup, reps, Stage::invert);
+      for (std::size_t s = 0; s < cs.size(); ++s) {
+        const int n = invert_set[s];
+        const Run& r = runs[s];
         if (!(r.last.chainmail.voi == voi)) throw Error("deform accuracy: the VOI changed between runs");
         add(n, false, r);
       }
@@ -430,10 +460,15 @@ int run_deform_accuracy(const AccuracyOptions& o) {
       const Run ref_long = run_setting(be, patient, c, press.contact, 0, 1, Stage::total);
       const Voi& rv = ref.last.chainmail.voi;
       const std::string long_name = "clipped_energy_relax" + std::to_string(o.ref_relax_iterations);
-      c = cfg;
+      std::vector<DeformConfig> cs;
       for (int edge : voi_set) {
-        c.settings.voi_edge = edge;
-        const Run r = run_setting(be, patient, c, press.contact, warmup, reps, Stage::total);
+        cs.push_back(cfg);
+        cs.back().settings.voi_edge = edge;
+      }
+      const std::vector<Run> runs = run_settings(be, patient, cs, press.contact, warmup, reps, Stage::total);
+      for (std::size_t s = 0; s < cs.size(); ++s) {
+        const int edge = voi_set[s];
+        const Run& r = runs[s];
         const Voi& v = r.last.chainmail.voi;
         const Diff d = diff_on_reference(rv, ref.u, v, r.u);
         Row row = make_row(be, "voi_edge", edge, false, r);

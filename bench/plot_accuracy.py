@@ -29,8 +29,9 @@ COLOURS = {"cpu": "tab:blue", "cuda": "tab:green"}
 # per knob: title, the figures drawn (metric, label, line style) and the y label
 PANELS = [
     ("relax_iterations", "relaxation iterations",
-     [("u_rms_diff_vox", "RMS |u - u_ref|", "-"), ("u_max_diff_vox", "max |u - u_ref|", "--")],
-     "displacement error vs reference (voxel)"),
+     [("u_rms_diff_vox", "RMS |u - u_ref|", "-"), ("u_max_diff_vox", "max |u - u_ref|", "--"),
+      ("laplacian_rms_vox", "RMS Laplacian of u (roughness)", ":")],
+     "displacement error vs reference / roughness (voxel)"),
     ("invert_iterations", "inversion iterations",
      [("residual_mean_vox", "mean residual (voxel)", "-"), ("J_rms_diff_hu", "RMS |J - J_ref| (HU)", "--"),
       ("J_rms_diff_resolved_hu", "RMS |J - J_ref|, voxels resolved in ref (HU)", ":")],

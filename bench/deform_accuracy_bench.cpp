@@ -344,6 +344,16 @@ std::string json_str(const std::string& s) {
 }  // namespace
 
 int run_deform_accuracy(const AccuracyOptions& o) {
+  // bad options fail before minutes of work: the reference VOI and the JSON's folder
+  if (o.ref_voi_edge < 128 || o.ref_voi_edge > 1024)
+    throw Error("deform accuracy: --ref-voi " + std::to_string(o.ref_voi_edge) +
+                " must lie in [128, 1024] voxel (at least the largest VOI setting, 128)");
+  if (!o.json.empty()) {
+    const std::string probe = o.json + ".tmp";
+    const bool ok = bool(std::ofstream(probe));
+    std::remove(probe.c_str());
+    if (!ok) throw Error("deform accuracy: cannot write --json " + o.json + " (its folder is missing or read-only)");
+  }
   // every backend this build and machine have
   std::vector<std::string> backends{"cpu"};
   std::string why, device = "cpu only";
@@ -371,7 +381,6 @@ int run_deform_accuracy(const AccuracyOptions& o) {
   const int relax_set[] = {0, 5, 10, 20, 40, 80, 160};
   const int invert_set[] = {0, 1, 2, 4, 8, 16, 32};
   const int voi_set[] = {32, 48, 64, 96, 128};
-  if (o.ref_voi_edge < 128) throw Error("deform accuracy: --ref-voi must be at least the largest VOI setting, 128");
 
   std::vector<Row> rows;
   for (const std::string& be : backends) {

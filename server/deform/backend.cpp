@@ -67,6 +67,34 @@ Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, 
   return v;
 }
 
+void check_deform_config(const DeformConfig& config, const std::string& who) {
+  const DeformSettings& s = config.settings;
+  // each setting named as in the scene
+  auto bad = [&](const std::string& field, double value, const std::string& rule) {
+    std::ostringstream m;
+    m << "deform." << field << " = " << value << " " << rule;
+    throw Error(who + ": " + m.str());
+  };
+  if (!(s.min_dist >= 0 && s.min_dist <= 1)) bad("min_dist", s.min_dist, "must lie in [0, 1] voxel");
+  if (!(s.max_dist >= 1 && s.max_dist <= 4)) bad("max_dist", s.max_dist, "must lie in [1, 4] voxel");
+  if (!(s.max_sheer >= 0 && s.max_sheer <= 4)) bad("max_sheer", s.max_sheer, "must lie in [0, 4] voxel");
+  if (!s.whole_volume && !(s.voi_edge >= 3 && s.voi_edge <= 1024))
+    bad("voi_edge", s.voi_edge, "must lie in [3, 1024] voxel");
+  if (s.max_sweeps < 1) bad("max_sweeps", s.max_sweeps, "must be at least 1");
+  if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
+  if (!(s.relax_step >= 0)) bad("relax_step", s.relax_step, "must not be negative");
+  if (s.relax_step > deform::kRelaxStableStep) {
+    std::ostringstream m;
+    m << "deform.relax_step = " << s.relax_step << " is above the explicit scheme's stable limit "
+      << deform::kRelaxStableStep << " (1/6 for six neighbours); use a smaller step and more iterations";
+    throw Error(who + ": " + m.str());
+  }
+  if (!(s.material_width > 0)) bad("material_width", s.material_width, "must be positive (HU)");
+  if (s.invert_iterations < 0) bad("invert_iterations", s.invert_iterations, "must not be negative");
+  if (!std::isfinite(config.bone_threshold)) bad("bone_threshold", config.bone_threshold, "must be finite");
+
+}
+
 void DeformBackend::require(bool ok, const char* what) const {
   if (!ok) throw Error("deform backend \"" + name_ + "\": " + what);
 }
@@ -89,29 +117,7 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
           "Patient::intensity does not match the patient grid");
   require(p.bone.grid.same_geometry(p.grid) && p.bone.data.size() == p.grid.count(),
           "Patient::bone does not match the patient grid");
-  // the settings, each named as in the scene
-  auto bad = [&](const std::string& field, double value, const std::string& rule) {
-    std::ostringstream m;
-    m << "deform." << field << " = " << value << " " << rule;
-    throw Error("deform backend \"" + name_ + "\": " + m.str());
-  };
-  if (!(s.min_dist >= 0 && s.min_dist <= 1)) bad("min_dist", s.min_dist, "must lie in [0, 1] voxel");
-  if (!(s.max_dist >= 1 && s.max_dist <= 4)) bad("max_dist", s.max_dist, "must lie in [1, 4] voxel");
-  if (!(s.max_sheer >= 0 && s.max_sheer <= 4)) bad("max_sheer", s.max_sheer, "must lie in [0, 4] voxel");
-  if (!s.whole_volume && !(s.voi_edge >= 3 && s.voi_edge <= 1024))
-    bad("voi_edge", s.voi_edge, "must lie in [3, 1024] voxel");
-  if (s.max_sweeps < 1) bad("max_sweeps", s.max_sweeps, "must be at least 1");
-  if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
-  if (!(s.relax_step >= 0)) bad("relax_step", s.relax_step, "must not be negative");
-  if (s.relax_step > deform::kRelaxStableStep) {
-    std::ostringstream m;
-    m << "deform.relax_step = " << s.relax_step << " is above the explicit scheme's stable limit "
-      << deform::kRelaxStableStep << " (1/6 for six neighbours); use a smaller step and more iterations";
-    throw Error("deform backend \"" + name_ + "\": " + m.str());
-  }
-  if (!(s.material_width > 0)) bad("material_width", s.material_width, "must be positive (HU)");
-  if (s.invert_iterations < 0) bad("invert_iterations", s.invert_iterations, "must not be negative");
-  if (!std::isfinite(config.bone_threshold)) bad("bone_threshold", config.bone_threshold, "must be finite");
+  check_deform_config(config, "deform backend \"" + name_ + "\"");
 
   patient_ = std::move(patient);
   config_ = config;

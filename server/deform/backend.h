@@ -172,6 +172,11 @@ class DeformBackend {
 /// whole grid when `whole`. Both backends use it.
 Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole);
 
+/// Checks deformation settings that every backend needs (ranges, the relaxation step's
+/// stable limit) without a patient or a device, so a scene can be refused before it is
+/// served; throws palpsim::Error starting with `who` and naming the scene field.
+void check_deform_config(const DeformConfig& config, const std::string& who);
+
 /// Makes a backend by name: "cpu", "cuda" or "auto" (cuda where a device and a CUDA
 /// build exist, else cpu). Unknown names and an unavailable "cuda" throw
 /// palpsim::Error saying why; `note`, when given, says what "auto" chose and why.

@@ -10,6 +10,7 @@
 #include <zmq.hpp>
 
 #include "core/error.h"
+#include "deform/backend.h"
 #include "net/deform_worker.h"
 #include "net/pose_service.h"
 #include "net/scene_io.h"
@@ -582,6 +583,13 @@ class Server::Control {
       if (r.path().empty() == r.text().empty())
         throw Error("LoadScene: set exactly one of path or text");
       const Scene scene = r.path().empty() ? parse_scene_text(r.text(), "") : load_scene_file(r.path());
+      // deformation settings no backend can serve refuse the scene before its patient is made
+      if (scene.effects.chainmail) {
+        check_deform_config(DeformConfig::from_scene(scene), "LoadScene: " + what);
+        std::string why;
+        if (scene.deform.backend == "cuda" && !cuda_deform_available(&why))
+          throw Error("LoadScene: " + what + ": deform.backend = \"cuda\" is not available here: " + why);
+      }
       spdlog::info("loading scene '{}' from {} (poses keep being served on the old one)", scene.name, what);
       PatientPtr patient = loader_(scene);
       if (!patient) throw Error("LoadScene: " + what + ": the loader returned no patient");
@@ -592,7 +600,8 @@ class Server::Control {
       sh_.counters.scene_loads.fetch_add(1);
       spdlog::info("now serving scene '{}' (generation {})", current_->scene.name, current_->generation);
       // a running worker picks the new scene up itself; the first scene that asks for
-      // deformation starts one (its failure leaves the scene served with haptics only)
+      // deformation starts one (settings were checked above; a failure past them, such as
+      // a device out of memory, leaves the scene served with haptics only)
       try {
         start_deform();
       } catch (const std::exception& e) {

@@ -421,6 +421,30 @@ TEST_CASE("a scene reload starts or drops the deformation", "[net][deform]") {
   server.stop();
 }
 
+TEST_CASE("a reloaded scene whose deformation cannot be served is refused and the old one kept", "[net][deform]") {
+  const auto slab = test::slab_patient();
+  int loads = 0;
+  auto loader = [&](const Scene&) -> PatientPtr {
+    ++loads;
+    return slab;
+  };
+  net::Server server(default_scene(), slab, loader, loopback());
+  server.start();
+  Client c(server);
+  v1::ControlRequest q;
+  q.mutable_load_scene()->set_text(
+      "name: \"unstable\"\nphantom { voxel_mm: 2 }\ndeform { relax_step: 0.5 backend: \"cpu\" }\n"
+      "effects { chainmail: true relaxation: true }\n");
+  const v1::ControlReply r = c.call(q);
+  CHECK(r.error().code() == v1::ERROR_SCENE_LOAD_FAILED);
+  CHECK_THAT(r.error().message(), Catch::Contains("relax_step") && Catch::Contains("stable limit"));
+  CHECK(loads == 0);  // refused before the patient was made
+  CHECK_FALSE(server.deformation_running());
+  // the old scene still serves poses
+  c.press(kPressX, kPressY, 4);
+  server.stop();
+}
+
 TEST_CASE("with backend auto the worker prefers cuda where a GPU exists and says which it uses", "[net][deform]") {
   Scene scene = deform_scene();
   scene.deform.backend = "auto";

@@ -19,3 +19,10 @@ echo "[demo] palpating along the lumbar spine (palpsim-server + palpsim-demo)"
 "$root/.venv/bin/python" -m palpsim.demo --server "$build_dir/palpsim-server" \
   --scene "$root/config/scenes/lumbar_phantom.textproto" --patient "$out/patient" \
   --out "$out/palpation"
+
+# what the deformation did meanwhile (the scene asks for ChainMail, relaxation and
+# inversion; the server steps them on each session's newest contact, beside the poses)
+if grep -q "deformation (" "$out/palpation/server.log" 2>/dev/null; then
+  echo "[demo] deformation, per session (from $out/palpation/server.log):"
+  grep -o "session [0-9a-f]* closed after .*" "$out/palpation/server.log" | sed 's/^/  /'
+fi

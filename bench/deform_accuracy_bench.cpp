@@ -27,6 +27,7 @@
 
 #include "bench/deform_accuracy.h"
 #include "core/error.h"
+#include "bench/stats.h"
 #include "deform/backend.h"
 #include "deform/deform_math.h"
 #include "prep/phantom.h"
@@ -37,34 +38,8 @@ namespace {
 
 using deform::Voi;
 
-// median and 10th/90th percentiles of a sample (ms)
-struct Spread {
-  double median = 0, p10 = 0, p90 = 0;
-};
-
-Spread spread(std::vector<double> v) {
-  Spread s;
-  if (v.empty()) return s;
-  std::sort(v.begin(), v.end());
-  auto at = [&](double q) { return v[std::size_t(std::lround(q * double(v.size() - 1)))]; };
-  s.median = at(0.5);
-  s.p10 = at(0.1);
-  s.p90 = at(0.9);
-  return s;
-}
-
-// a JSON number (null for a non-finite value, which JSON cannot hold)
-std::string num(double v) {
-  if (!std::isfinite(v)) return "null";
-  std::ostringstream o;
-  o.precision(7);
-  o << v;
-  return o.str();
-}
-
-std::string json_spread(const Spread& s) {
-  return "{\"median_ms\": " + num(s.median) + ", \"p10_ms\": " + num(s.p10) + ", \"p90_ms\": " + num(s.p90) + "}";
-}
+// a JSON number (null for a non-finite value)
+std::string num(double v) { return json_number(v); }
 
 std::string json_vec(const Vec3& v) { return "[" + num(v.x) + ", " + num(v.y) + ", " + num(v.z) + "]"; }
 

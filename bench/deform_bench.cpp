@@ -17,6 +17,7 @@
 
 #include "bench/deform_accuracy.h"
 #include "bench/registry.h"
+#include "bench/stats.h"
 #include "core/error.h"
 #include "deform/backend.h"
 #include "prep/phantom.h"
@@ -26,27 +27,9 @@ using namespace palpsim;
 
 namespace {
 
-// median and 10th/90th percentiles of a sample (ms)
-struct Spread {
-  double median = 0, p10 = 0, p90 = 0;
-};
-
-Spread spread(std::vector<double> v) {
-  Spread s;
-  if (v.empty()) return s;
-  std::sort(v.begin(), v.end());
-  auto at = [&](double q) { return v[std::size_t(std::lround(q * double(v.size() - 1)))]; };
-  s.median = at(0.5);
-  s.p10 = at(0.1);
-  s.p90 = at(0.9);
-  return s;
-}
-
-std::string json_spread(const Spread& s) {
-  std::ostringstream o;
-  o << "{\"median_ms\": " << s.median << ", \"p10_ms\": " << s.p10 << ", \"p90_ms\": " << s.p90 << "}";
-  return o.str();
-}
+using bench::json_spread;
+using bench::spread;
+using bench::Spread;
 
 struct Options {
   std::string json;

@@ -1,0 +1,44 @@
+// Summaries of benchmark samples shared by the bench areas: percentiles and their JSON.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+#include <string>
+#include <vector>
+
+namespace palpsim::bench {
+
+/// Median and 10th/90th percentiles of a sample (ms).
+struct Spread {
+  double median = 0, p10 = 0, p90 = 0;
+};
+
+/// The spread of `v` (nearest-rank percentiles); all zero for an empty sample.
+inline Spread spread(std::vector<double> v) {
+  Spread s;
+  if (v.empty()) return s;
+  std::sort(v.begin(), v.end());
+  auto at = [&](double q) { return v[std::size_t(std::lround(q * double(v.size() - 1)))]; };
+  s.median = at(0.5);
+  s.p10 = at(0.1);
+  s.p90 = at(0.9);
+  return s;
+}
+
+/// A JSON number (null for a non-finite value, which JSON cannot hold).
+inline std::string json_number(double v) {
+  if (!std::isfinite(v)) return "null";
+  std::ostringstream o;
+  o.precision(7);
+  o << v;
+  return o.str();
+}
+
+/// {"median_ms": ..., "p10_ms": ..., "p90_ms": ...}
+inline std::string json_spread(const Spread& s) {
+  return "{\"median_ms\": " + json_number(s.median) + ", \"p10_ms\": " + json_number(s.p10) +
+         ", \"p90_ms\": " + json_number(s.p90) + "}";
+}
+
+}  // namespace palpsim::bench

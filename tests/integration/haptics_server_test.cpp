@@ -505,8 +505,12 @@ TEST_CASE("the haptic client's watchdog takes the force to zero within 10 ms whe
     }
   }
   CHECK(force_before);  // the stall happened in contact, so there was a force to ramp down
-  // and after the stall full force again
-  CHECK(rows.back().scale == 1.0);
+  // and after the stall full force again: some step after it runs at scale 1 (not
+  // necessarily the last: on a loaded machine a reply may be over 2 ms late at any time,
+  // and the watchdog then rightly starts a ramp)
+  bool recovered = false;
+  for (std::size_t i = best_first + best_len + 1; i < rows.size(); ++i) recovered = recovered || rows[i].scale == 1.0;
+  CHECK(recovered);
   std::remove(log.c_str());
   CHECK(st.server->stop() == 0);
   std::remove(st.scene.c_str());

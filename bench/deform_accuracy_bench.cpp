@@ -43,20 +43,6 @@ std::string num(double v) { return json_number(v); }
 
 std::string json_vec(const Vec3& v) { return "[" + num(v.x) + ", " + num(v.y) + ", " + num(v.z) + "]"; }
 
-// the phantom as a patient (bone = HU above the threshold, as the deform bench does)
-PatientPtr phantom_patient(PhantomCt& ct, float bone_threshold) {
-  auto p = std::make_shared<Patient>();
-  p->grid = ct.hu.grid;
-  p->intensity = std::move(ct.hu);
-  p->bone = Volume<std::uint8_t>(p->grid);
-  for (std::size_t e = 0; e < p->intensity.data.size(); ++e) {
-    p->bone.data[e] = p->intensity.data[e] > bone_threshold ? 1 : 0;
-    p->has_bone = p->has_bone || p->bone.data[e];
-  }
-  p->source = "phantom";
-  return p;
-}
-
 // the press over a spinous process, from the phantom's closed-form geometry
 struct Press {
   std::string landmark = "spinous_tip_L3";
@@ -340,7 +326,7 @@ int run_deform_accuracy(const AccuracyOptions& o) {
 
   PhantomCt ct = make_phantom(o.voxel_mm);
   const Press press = spinous_press(ct.geometry);
-  const PatientPtr patient = phantom_patient(ct, test::kBoneThresholdHu);
+  const PatientPtr patient = test::patient_from_intensity(std::move(ct.hu), "phantom");
   const Grid& grid = patient->grid;
   const Vec3 X = press.contact.skin_point_mm, x = press.contact.tip_mm;
   std::printf("phantom %d x %d x %d at %.3f mm; press %.0f mm along -y (anterior) at X = (%.1f, %.1f, %.1f) mm, "

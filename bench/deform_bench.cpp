@@ -38,21 +38,6 @@ struct Options {
   double voxel_mm = 340.0 / 255.0;  // the phantom at ~256 voxels across
 };
 
-// the phantom as a patient (bone = HU above the threshold; deformation reads nothing else)
-PatientPtr phantom_patient(double voxel_mm, float bone_threshold) {
-  PhantomCt ct = make_phantom(voxel_mm);
-  auto p = std::make_shared<Patient>();
-  p->grid = ct.hu.grid;
-  p->intensity = std::move(ct.hu);
-  p->bone = Volume<std::uint8_t>(p->grid);
-  for (std::size_t e = 0; e < p->intensity.data.size(); ++e) {
-    p->bone.data[e] = p->intensity.data[e] > bone_threshold ? 1 : 0;
-    p->has_bone = p->has_bone || p->bone.data[e];
-  }
-  p->source = "phantom";
-  return p;
-}
-
 // a press near the middle of the volume, 10 mm along -j (anterior), so that every VOI
 // size up to 128 fits unclipped and stage times compare across sizes; X is the first
 // voxel from the centre towards -j with soft tissue (no bone, no gas) 3 voxels around
@@ -224,7 +209,7 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
     for (const auto& b : backends) table2(b, o, t2);
 
     const auto t0 = std::chrono::steady_clock::now();
-    const PatientPtr patient = phantom_patient(o.voxel_mm, test::kBoneThresholdHu);
+    const PatientPtr patient = test::patient_from_intensity(make_phantom(o.voxel_mm).hu, "phantom");
     std::printf("phantom %d x %d x %d at %.3f mm (%.1f s to make)\n", patient->grid.size.x, patient->grid.size.y,
                 patient->grid.size.z, o.voxel_mm,
                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());

@@ -17,26 +17,34 @@ namespace palpsim::test {
 /// Hounsfield values of the synthetic tissues.
 constexpr float kAirHu = -1000.0f, kSoftHu = 40.0f, kBoneHu = 700.0f, kBoneThresholdHu = 200.0f;
 
+/// A patient on the intensity volume's grid (moved in): bone = intensity above
+/// kBoneThresholdHu. Deformation reads nothing else, so only those members are filled.
+inline PatientPtr patient_from_intensity(Volume<float>&& intensity, const char* source) {
+  auto p = std::make_shared<Patient>();
+  p->grid = intensity.grid;
+  p->intensity = std::move(intensity);
+  p->bone = Volume<std::uint8_t>(p->grid);
+  for (std::size_t e = 0; e < p->intensity.data.size(); ++e) {
+    p->bone.data[e] = p->intensity.data[e] > kBoneThresholdHu ? 1 : 0;
+    p->has_bone = p->has_bone || p->bone.data[e];
+  }
+  p->source = source;
+  return p;
+}
+
 /// A patient of `size` voxels whose intensity is hu(i, j, k); bone = intensity above
 /// kBoneThresholdHu. Spacing, origin and direction as given (mm).
 inline PatientPtr make_patient(const Vec3i& size, const std::function<float(int, int, int)>& hu,
                                const Vec3& spacing_mm = {1, 1, 1}, const Vec3& origin_mm = {0, 0, 0}) {
-  auto p = std::make_shared<Patient>();
-  p->grid.size = size;
-  p->grid.spacing_mm = spacing_mm;
-  p->grid.origin_mm = origin_mm;
-  p->intensity = Volume<float>(p->grid);
-  p->bone = Volume<std::uint8_t>(p->grid);
+  Grid g;
+  g.size = size;
+  g.spacing_mm = spacing_mm;
+  g.origin_mm = origin_mm;
+  Volume<float> v(g);
   for (int k = 0; k < size.z; ++k)
     for (int j = 0; j < size.y; ++j)
-      for (int i = 0; i < size.x; ++i) {
-        const float v = hu(i, j, k);
-        p->intensity.at(i, j, k) = v;
-        p->bone.at(i, j, k) = v > kBoneThresholdHu ? 1 : 0;
-        p->has_bone = p->has_bone || v > kBoneThresholdHu;
-      }
-  p->source = "synthetic";
-  return p;
+      for (int i = 0; i < size.x; ++i) v.at(i, j, k) = hu(i, j, k);
+  return patient_from_intensity(std::move(v), "synthetic");
 }
 
 /// Soft tissue everywhere, with a gentle ramp so that J differs from I where tissue moves.

@@ -137,15 +137,19 @@ ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
   const Grid& grid = patient_->grid;
   const Vec3 X = grid.to_index(c.skin_point_mm);
   const Vec3 x = grid.to_index(c.tip_mm);
-  // the grabbed element: the voxel nearest X, which must lie in the grid
+  // the grabbed element: the voxel nearest X. X must lie in the volume, which reaches half
+  // a voxel beyond the border voxels' centres (where the grid cuts the body, the skin point
+  // may lie on that outer face); 2e-3 voxel more for the skin search's bisection tolerance
+  // (a thousandth of a voxel) and round-off
+  constexpr double kFaceTolVox = 2e-3;
   Vec3i e0, t;
   for (int a = 0; a < 3; ++a) {
-    e0[a] = int(std::floor(X[a] + 0.5));
+    if (!(X[a] >= -0.5 - kFaceTolVox && X[a] <= grid.size[a] - 0.5 + kFaceTolVox))
+      throw Error("deform: contact skin_point_mm (X) " + fmt_vec(c.skin_point_mm) + " mm lies outside the patient grid");
+    e0[a] = std::clamp(int(std::floor(X[a] + 0.5)), 0, grid.size[a] - 1);
     if (!(std::fabs(x[a]) < 1e8)) throw Error("deform: contact tip_mm (x) is far outside the patient grid: " + fmt_vec(c.tip_mm));
     t[a] = int(std::floor(x[a] + 0.5));
   }
-  if (!grid.contains(e0.x, e0.y, e0.z))
-    throw Error("deform: contact skin_point_mm (X) " + fmt_vec(c.skin_point_mm) + " mm lies outside the patient grid");
   ChainMailStats st;
   st.grabbed_vox = e0;
   st.grabbed_u_vox = Vec3f(float(x.x - e0.x), float(x.y - e0.y), float(x.z - e0.z));

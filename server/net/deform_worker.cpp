@@ -59,28 +59,6 @@ bool finite(const DeformStats& st) {
          std::isfinite(t.total_ms);
 }
 
-// X on the grid's outer face, within half a voxel of the border voxels (the grid cuts the
-// body there, so the skin search may end on it), is taken at the border voxel: the engine
-// grabs the voxel nearest X, which must exist. Any other X is passed on unchanged.
-Vec3 onto_grid(const Grid& g, const Vec3& x_mm) {
-  // 2e-3 voxel: the force model bisects the skin crossing to a thousandth of a voxel, so
-  // an X on the face may lie that far beyond it (twice that for round-off)
-  constexpr double kFaceTolVox = 2e-3;
-  Vec3 ijk = g.to_index(x_mm);
-  bool moved = false;
-  for (int a = 0; a < 3; ++a) {
-    const double hi = g.size[a] - 1;
-    if (ijk[a] > hi && ijk[a] <= hi + 0.5 + kFaceTolVox) {
-      ijk[a] = hi;
-      moved = true;
-    } else if (ijk[a] < 0 && ijk[a] >= -0.5 - kFaceTolVox) {
-      ijk[a] = 0;
-      moved = true;
-    }
-  }
-  return moved ? g.to_physical(ijk) : x_mm;
-}
-
 }  // namespace
 
 // the worker's own state of one session slot
@@ -331,7 +309,7 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
   try {
     if (!s.engine) s.engine = take_engine();
     r.backend = s.engine->backend_name();
-    const DeformStats st = s.engine->step(DeformContact{onto_grid(patient_->grid, c.skin_point_mm), c.tip_mm});
+    const DeformStats st = s.engine->step(DeformContact{c.skin_point_mm, c.tip_mm});
     // J must be finite, and how far it moved from I says how much the image changed
     double change = 0;
     bool ok = finite(st);

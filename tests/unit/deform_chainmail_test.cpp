@@ -139,6 +139,22 @@ TEST_CASE("a VOI at the volume border is clipped and chainmail stays inside it")
   CHECK(max_restriction_violation(*patient, st.voi, b.displacement(), cfg.settings) <= kRestrictionTol);
 }
 
+TEST_CASE("X on the volume's outer face grabs the border voxel; X beyond it is refused") {
+  // the volume reaches half a voxel past the border voxels' centres; where the grid cuts
+  // the body the skin point may lie on that face (unit spacing, origin 0: index = mm)
+  auto patient = make_soft_patient(40);
+  CpuDeformBackend b;
+  b.bind(patient, preset_config(1));
+  const ChainMailStats st = b.chainmail({Vec3(20, 39.5, 20), Vec3(20, 36.5, 20)});
+  CHECK(st.grabbed_vox == Vec3i(20, 39, 20));
+  CHECK(st.converged);
+  CHECK(st.moved > 0);
+  const ChainMailStats low = b.chainmail({Vec3(-0.5, 20, 20), Vec3(2.5, 20, 20)});
+  CHECK(low.grabbed_vox == Vec3i(0, 20, 20));
+  // a tenth of a voxel beyond the face is outside the volume
+  CHECK_THROWS_WITH(b.chainmail({Vec3(20, 39.6, 20), Vec3(20, 36.5, 20)}), Catch::Contains("outside the patient grid"));
+}
+
 TEST_CASE("a displacement larger than half the VOI keeps the grabbed element inside the VOI") {
   auto patient = make_soft_patient(96);
   DeformConfig cfg = preset_config(1);

@@ -10,12 +10,14 @@
 #include <zlib.h>
 
 #include "core/error.h"
+#include "gdcmTrace.h"
 #include "itkGDCMImageIO.h"
 #include "itkGDCMSeriesFileNames.h"
 #include "itkImage.h"
 #include "itkImageFileReader.h"
 #include "itkImageIOFactory.h"
 #include "itkImageSeriesReader.h"
+#include "itkObject.h"
 #include "prep/pipeline.h"
 
 namespace palpsim {
@@ -314,7 +316,22 @@ void open_file(const std::string& path, Opened& o) {
   o.info.grid = grid_of(o.file_reader.GetPointer());
 }
 
+// ITK and GDCM print their own warnings and errors to stderr ("Cannot find DICOM type.
+// Giving up."); every failure reaches the user as a palpsim::Error naming the file, so
+// their chatter is switched off once
+void quiet_libraries() {
+  static const bool once = [] {
+    itk::Object::GlobalWarningDisplayOff();
+    gdcm::Trace::SetWarning(false);
+    gdcm::Trace::SetError(false);
+    gdcm::Trace::SetDebug(false);
+    return true;
+  }();
+  (void)once;
+}
+
 Opened open_ct(const std::string& path, const PrepSettings& prep) {
+  quiet_libraries();
   Opened o;
   o.info.path = path;
   std::error_code ec;

@@ -17,7 +17,7 @@ say() { printf '[setup] %s\n' "$*"; }
 
 # debian packages: compilers, ITK (with GDCM), ZeroMQ, protobuf, Catch2, spdlog, EGL
 debs=(build-essential ninja-build ccache git pkg-config python3 python3-venv python3-dev
-      libinsighttoolkit5-dev libzmq3-dev cppzmq-dev libprotobuf-dev protobuf-compiler
+      libinsighttoolkit5-dev libgdcm-dev libzmq3-dev cppzmq-dev libprotobuf-dev protobuf-compiler
       catch2 libspdlog-dev libpng-dev libjpeg-dev zlib1g-dev
       libegl-dev libgl-dev libegl1-mesa libgl1-mesa-dri)
 missing=()

@@ -29,6 +29,15 @@ __global__ void reset_kernel(unsigned n, DeviceBuffers b) {
 
 }  // namespace
 
+CudaDeviceBytes::CudaDeviceBytes(std::size_t bytes) : size_(bytes) {
+  PALPSIM_CUDA_CHECK(cudaMalloc(&ptr_, bytes));
+}
+
+CudaDeviceBytes::~CudaDeviceBytes() {
+  // errors are ignored here: a destructor must not throw
+  cudaFree(ptr_);
+}
+
 std::unique_ptr<DeformBackend> make_cuda_deform_backend() { return std::make_unique<CudaDeformBackend>(); }
 
 bool cuda_device_usable(std::string* why) {
@@ -261,6 +270,20 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
   out.times.upload_ms = ms[4];
   out.times.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return out;
+}
+
+bool CudaDeformBackend::copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>& dst) const {
+  // d_.j holds J on the VOI since invert() (upload() only copied it to the host). The
+  // destination is sized for the largest VOI, so a session allocates it once.
+  const std::size_t bytes = std::size_t(voi_.count()) * sizeof(float);
+  if (!dst || dst->size() < bytes)
+    dst = std::make_unique<CudaDeviceBytes>(std::max(bytes, std::size_t(capacity_) * sizeof(float)));
+  PALPSIM_CUDA_CHECK(cudaMemcpyAsync(dst->data(), d_.j, bytes, cudaMemcpyDeviceToDevice, stream_));
+  // Called on the deformation worker thread; the render thread later reads dst on its
+  // own stream. Waiting here makes the copy complete (and visible to every stream of
+  // the device) before the worker hands dst over, so no cross-stream event is needed.
+  PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+  return true;
 }
 
 std::vector<Vec3f> CudaDeformBackend::displacement_impl() const {

@@ -4,10 +4,32 @@
 
 #include <cuda_runtime.h>
 
+#include <cstddef>
+
+#include "core/device_bytes.h"
 #include "cuda/kernels.h"
 #include "deform/backend.h"
 
 namespace palpsim::cuda {
+
+/// A block of device memory from cudaMalloc (on the calling thread's current device),
+/// freed by cudaFree in the destructor; the DeviceBytes the cuda backend hands J over in.
+class CudaDeviceBytes final : public DeviceBytes {
+ public:
+  /// Allocates `bytes` bytes; throws palpsim::Error naming cudaMalloc when it fails.
+  explicit CudaDeviceBytes(std::size_t bytes);
+  ~CudaDeviceBytes() override;
+  CudaDeviceBytes(const CudaDeviceBytes&) = delete;
+  CudaDeviceBytes& operator=(const CudaDeviceBytes&) = delete;
+
+  void* data() override { return ptr_; }
+  const void* data() const override { return ptr_; }
+  std::size_t size() const override { return size_; }
+
+ private:
+  void* ptr_ = nullptr;
+  std::size_t size_ = 0;
+};
 
 /// The CUDA backend. The patient's intensity and bone mask live on the device for
 /// the session; displacement, sweep stamps and J are VOI-sized device buffers. A
@@ -28,6 +50,7 @@ class CudaDeformBackend final : public DeformBackend {
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
   const float* deformed_brick_impl() const override { return host_j_; }
+  bool copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>& dst) const override;
   DeformMemory memory_impl() const override;
 
  private:

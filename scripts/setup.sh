@@ -15,11 +15,12 @@ venv=$root/.venv
 
 say() { printf '[setup] %s\n' "$*"; }
 
-# debian packages: compilers, ITK (with GDCM), ZeroMQ, protobuf, Catch2, spdlog, EGL
+# debian packages: compilers, ITK (with GDCM), ZeroMQ, protobuf, Catch2, spdlog, EGL and
+# OpenGL (Mesa's llvmpipe renders where there is no GPU), libjpeg-turbo, zstd
 debs=(build-essential ninja-build ccache git pkg-config python3 python3-venv python3-dev
       libinsighttoolkit5-dev libgdcm-dev libzmq3-dev cppzmq-dev libprotobuf-dev protobuf-compiler
-      catch2 libspdlog-dev libpng-dev libjpeg-dev zlib1g-dev
-      libegl-dev libgl-dev libegl1-mesa libgl1-mesa-dri)
+      catch2 libspdlog-dev libpng-dev libjpeg-dev libturbojpeg0-dev libzstd-dev zlib1g-dev
+      libegl-dev libgl-dev libopengl-dev libegl1-mesa libgl1-mesa-dri)
 missing=()
 for p in "${debs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' || missing+=("$p")
@@ -56,6 +57,17 @@ else
   say "Python packages present"
 fi
 export PATH="$venv/bin:$PATH"
+
+# nvJPEG (the GPU JPEG encoder of frames) for a CUDA build: Debian's CUDA toolkit has
+# no nvjpeg, so its header and library come from NVIDIA's PyPI wheel, pinned to the
+# toolkit's major version (CMake finds it under .venv, cuda/CMakeLists.txt)
+nvjpeg_whl=nvidia-nvjpeg==13.0.2.28
+if [ "${PALPSIM_CUDA:-}" != "OFF" ] && { command -v nvcc >/dev/null || [ -x /usr/local/cuda/bin/nvcc ]; }; then
+  if ! ls "$venv"/lib/python3*/site-packages/nvidia/cu13/include/nvjpeg.h >/dev/null 2>&1; then
+    say "installing $nvjpeg_whl into $venv (nvJPEG for the CUDA build)"
+    "$venv/bin/python" -m pip install -q "$nvjpeg_whl"
+  fi
+fi
 
 # configure (once, or when CMakeLists change is picked up by ninja itself) and build
 cuda_flag=()

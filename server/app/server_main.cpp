@@ -17,12 +17,14 @@
 namespace {
 
 const char* kUsage =
-    "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--max-pose-distance-mm MM]\n"
-    "                      [--log-level trace|debug|info|warn|error]\n"
-    "  --scene FILE     scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
-    "  --bind ADDR      control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
-    "  --pose-bind ADDR pose address (default: the control port + 1; * stays *)\n"
-    "Prints 'ready on ADDR poses ADDR' when serving; stops cleanly on SIGINT or SIGTERM.\n";
+    "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
+    "                      [--max-pose-distance-mm MM] [--log-level trace|debug|info|warn|error]\n"
+    "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
+    "  --bind ADDR        control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
+    "  --pose-bind ADDR   pose address (default: the control port + 1; * stays *)\n"
+    "  --stream-bind ADDR frames and bricks (XPUB) address, for scenes that ask for them\n"
+    "                     (default: the control port + 2; * stays *)\n"
+    "Prints 'ready on ADDR poses ADDR [stream ADDR]' when serving; stops cleanly on SIGINT or SIGTERM.\n";
 
 int fail(const std::string& what) {
   std::fprintf(stderr, "palpsim-server: error: %s\n", what.c_str());
@@ -61,6 +63,8 @@ int main(int argc, char** argv) {
         options.control_bind = value("--bind");
       } else if (a == "--pose-bind") {
         options.pose_bind = value("--pose-bind");
+      } else if (a == "--stream-bind") {
+        options.stream_bind = value("--stream-bind");
       } else if (a == "--max-pose-distance-mm") {
         options.max_pose_distance_mm = std::stod(value("--max-pose-distance-mm"));
       } else if (a == "--log-level") {
@@ -89,17 +93,16 @@ int main(int argc, char** argv) {
   } catch (const std::exception& e) {
     return fail(std::string("cannot start: ") + e.what());
   }
-  // deformation is built by the server (and logged with its backend) when the scene asks for chainmail
-  if (scene.effects.frames || scene.effects.bricks)
-    spdlog::warn("the scene asks for frames or bricks; this server has no render path yet and builds neither");
+  // deformation, frames and bricks are built by the server (and logged) when the scene asks for them
 
   // serve
   try {
     palpsim::net::Server server(scene, patient, [](const palpsim::Scene& s) { return palpsim::prepare_patient(s); },
                                 options);
     server.start();
-    std::printf("palpsim-server: ready on %s poses %s (scene '%s')\n", server.control_endpoint().c_str(),
-                server.pose_endpoint().c_str(), scene.name.c_str());
+    const std::string stream = server.stream_endpoint();
+    std::printf("palpsim-server: ready on %s poses %s%s%s (scene '%s')\n", server.control_endpoint().c_str(),
+                server.pose_endpoint().c_str(), stream.empty() ? "" : " stream ", stream.c_str(), scene.name.c_str());
     std::fflush(stdout);
     int sig = 0;
     sigwait(&stop_signals, &sig);

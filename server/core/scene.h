@@ -71,6 +71,24 @@ struct ServerSettings {
   int max_sessions = 64;
 };
 
+/// Frames and bricks (Render in the schema): every session's default view, the frame
+/// rate and the encoders. View fields mirror render::ViewSettings (server/render/view.h).
+struct RenderSettings {
+  int width = 1280;                     // pixels
+  int height = 720;                     // pixels
+  std::string preset = "bone";          // "skin", "bone" or "soft_tissue"
+  double azimuth_deg = 35;
+  double elevation_deg = 25;
+  double zoom = 1;
+  int jpeg_quality = 85;
+  double slice_fov_mm = 120;
+  bool show_proxy = false;
+  double max_fps = 30;                  // frames per second per session, at most
+  std::string jpeg_encoder = "auto";    // "auto", "cpu" or "nvjpeg"
+  std::string overlay_writer = "auto";  // "auto", "upload" or "cuda-gl"
+  std::string record_dir;               // resolved; "" = render only watched sessions
+};
+
 /// A whole validated scene.
 struct Scene {
   std::string name;
@@ -85,6 +103,7 @@ struct Scene {
   DeformSettings deform;
   EffectsSettings effects;
   ServerSettings server;
+  RenderSettings render;
 };
 
 }  // namespace palpsim

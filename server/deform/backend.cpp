@@ -241,6 +241,11 @@ void DeformBackend::compose_deformed(Volume<float>& out) const {
                   sizeof(float) * voi_.size.x);
 }
 
+bool DeformBackend::copy_brick_to_device(std::unique_ptr<DeviceBytes>& dst) const {
+  if (stage_ < 4) return false;
+  return copy_brick_to_device_impl(dst);
+}
+
 bool cuda_deform_available(std::string* why) {
 #ifdef PALPSIM_HAVE_CUDA
   return cuda::cuda_device_usable(why);

@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "core/device_bytes.h"
 #include "core/patient.h"
 #include "core/scene.h"
 #include "core/vec3.h"
@@ -125,6 +126,11 @@ class DeformBackend {
   const float* deformed_brick() const;
   /// Writes the whole deformed image: `out` = I, with the uploaded VOI brick of J.
   void compose_deformed(Volume<float>& out) const;
+  /// Copies J of the VOI, as uploaded, into device memory for the renderer (CUDA-GL
+  /// interop): `dst` is (re)allocated when missing or too small and holds voi().count()
+  /// floats afterwards, the copy finished. False, touching nothing, for a backend that
+  /// keeps no J on a GPU (cpu) or before upload().
+  bool copy_brick_to_device(std::unique_ptr<DeviceBytes>& dst) const;
 
   /// The memory the state holds now, by stage (0 before bind()).
   DeformMemory memory() const { return bound_ ? memory_impl() : DeformMemory{}; }
@@ -147,6 +153,7 @@ class DeformBackend {
   virtual std::vector<Vec3f> displacement_impl() const = 0;
   virtual void set_displacement_impl(const std::vector<Vec3f>& u) = 0;
   virtual const float* deformed_brick_impl() const = 0;
+  virtual bool copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>&) const { return false; }
   virtual DeformMemory memory_impl() const = 0;
 
   /// Largest VOI the state holds (voxels): deform.voi_edge^3, or the whole volume.

@@ -31,6 +31,11 @@ class DeformEngine {
   /// nullptr when no J exists (before a step, after reset, without inversion).
   const Voi& voi() const { return backend_->voi(); }
   const float* deformed_brick() const { return has_brick_ ? backend_->deformed_brick() : nullptr; }
+  /// Copies J's VOI into device memory for the renderer (DeformBackend::copy_brick_to_device);
+  /// false when there is no J or the backend keeps none on a GPU.
+  bool copy_brick_to_device(std::unique_ptr<DeviceBytes>& dst) const {
+    return has_brick_ && backend_->copy_brick_to_device(dst);
+  }
 
   /// The whole deformed image J (I outside the VOI), for tools and tests: copies the volume.
   Volume<float> deformed_volume() const;

@@ -69,6 +69,15 @@ struct DeformWorker::Session {
   std::uint32_t resets_seen = 0;        // SessionSlot::reset_requests applied
   std::uint32_t pose_resets_seen = 0;   // SessionSlot::pose_resets applied
   DeformSessionReport report;
+  double last_contact_time_s = 0;       // server time of the pose the latest step ran on
+  Vec3 last_tip_mm{0, 0, 0};            // and its tip and proxy
+  Vec3 last_proxy_mm{0, 0, 0};
+  // the stream's hand-overs (stream_state.h): the state's version, and what was exported
+  std::uint64_t state_version = 1;      // grows with every step, reset and failure
+  std::uint64_t render_exported = 0;    // state_version last handed to the render thread
+  std::uint64_t bricks_exported = 0;    // ... and to the publisher
+  bool render_watched = false;          // frames were wanted at the last pass
+  bool bricks_watched = false;          // bricks were wanted at the last pass
 };
 
 // one deformed_volume() request
@@ -226,6 +235,12 @@ void DeformWorker::give_back(std::unique_ptr<DeformEngine> engine) {
 }
 
 bool DeformWorker::serve(int index) {
+  const bool worked = serve_deformation(index);
+  export_watched(index);
+  return worked;
+}
+
+bool DeformWorker::serve_deformation(int index) {
   SessionSlot& slot = sh_.slots[index];
   Session& s = sessions_[index];
   const std::uint64_t id = slot.id.load(std::memory_order_acquire);
@@ -291,6 +306,7 @@ bool DeformWorker::serve(int index) {
 }
 
 void DeformWorker::reset(Session& s, int index) {
+  ++s.state_version;
   try {
     if (s.engine) s.engine->reset();
   } catch (const std::exception& e) {
@@ -306,6 +322,10 @@ void DeformWorker::reset(Session& s, int index) {
 
 void DeformWorker::step(Session& s, int index, const Contact& c) {
   DeformSessionReport& r = s.report;
+  ++s.state_version;
+  s.last_contact_time_s = c.server_time_s;
+  s.last_tip_mm = c.tip_mm;
+  s.last_proxy_mm = c.proxy_mm;
   try {
     if (!s.engine) s.engine = take_engine();
     r.backend = s.engine->backend_name();
@@ -377,6 +397,59 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
     ++server_.failures;
   }
   publish(s, index);
+}
+
+void DeformWorker::export_watched(int index) {
+  StreamState* st = sh_.stream.load(std::memory_order_acquire);
+  Session& s = sessions_[index];
+  if (!st || s.id == 0) return;
+  StreamSlot& ss = st->slots[index];
+  // a session that became watched gets its current state at once; then every change
+  const bool frames = ss.frames_for.load(std::memory_order_acquire) == s.id;
+  const bool bricks = ss.bricks_for.load(std::memory_order_acquire) == s.id;
+  if (frames && (!s.render_watched || s.render_exported != s.state_version)) {
+    fill_snapshot(ss.j_render.back(), s, st->render_wants_device.load(std::memory_order_acquire));
+    ss.j_render.publish();
+    ss.j_render_bytes.store(held_bytes(ss.j_render), std::memory_order_relaxed);
+    s.render_exported = s.state_version;
+  }
+  if (bricks && (!s.bricks_watched || s.bricks_exported != s.state_version)) {
+    fill_snapshot(ss.j_bricks.back(), s, false);
+    ss.j_bricks.publish();
+    ss.brick_bytes.store(held_bytes(ss.j_bricks), std::memory_order_relaxed);
+    s.bricks_exported = s.state_version;
+  }
+  s.render_watched = frames;
+  s.bricks_watched = bricks;
+}
+
+void DeformWorker::fill_snapshot(JSnapshot& o, Session& s, bool device) {
+  o.session_id = s.id;
+  o.step = s.report.steps;
+  o.pose_seq = s.report.last_contact_seq;
+  o.pose_server_time_s = s.last_contact_time_s;
+  o.tip_mm = s.last_tip_mm;
+  o.proxy_mm = s.last_proxy_mm;
+  // J exists after a step of a scene with inversion; otherwise the image is undeformed
+  const float* j = s.report.deformed && s.engine ? s.engine->deformed_brick() : nullptr;
+  o.deformed = j != nullptr;
+  o.voi = j ? s.engine->voi() : Voi{};
+  o.host_valid = false;
+  o.device_valid = false;
+  if (!j) return;
+  // the render thread's cuda-gl writer takes a device copy; everyone else the host brick
+  if (device) {
+    try {
+      o.device_valid = s.engine->copy_brick_to_device(o.device_j);
+    } catch (const std::exception& e) {
+      spdlog::warn("session {}: device copy of J for the renderer failed ({}); sending the host copy", hex_id(s.id),
+                   e.what());
+    }
+  }
+  if (!o.device_valid) {
+    o.host_j.assign(j, j + o.voi.count());
+    o.host_valid = true;
+  }
 }
 
 void DeformWorker::publish(const Session& s, int index) {

@@ -19,6 +19,7 @@
 #include "core/volume.h"
 #include "deform/engine.h"
 #include "net/session_table.h"
+#include "net/stream_state.h"
 
 namespace palpsim::net {
 
@@ -105,6 +106,9 @@ class DeformWorker {
   void run();
   void set_up_world();
   bool serve(int index);
+  bool serve_deformation(int index);
+  void export_watched(int index);
+  void fill_snapshot(JSnapshot& out, Session& s, bool device);
   void step(Session& s, int index, const Contact& c);
   void reset(Session& s, int index);
   std::unique_ptr<DeformEngine> take_engine();

@@ -13,8 +13,12 @@
 #include "deform/backend.h"
 #include "net/deform_worker.h"
 #include "net/pose_service.h"
+#include "net/render_worker.h"
 #include "net/scene_io.h"
 #include "net/session_table.h"
+#include "net/stream_publisher.h"
+#include "net/stream_state.h"
+#include "render/view.h"
 #include "palpsim/options.pb.h"
 #include "palpsim/scene.pb.h"
 #include "palpsim/wire.pb.h"
@@ -53,8 +57,9 @@ void fill_params(v1::HapticsParams* out, const HapticsSettings& s) {
   out->set_min_gradient_norm(s.min_gradient_norm);
 }
 
-// the deformation stages a report says were built
-std::vector<std::string> stages_of(const Scene& s, const DeformServerReport* d) {
+// the stages built for a scene: the deformation stages a report says were built, and
+// frames and bricks while their threads serve them
+std::vector<std::string> stages_of(const Scene& s, const DeformServerReport* d, bool frames, bool bricks) {
   std::vector<std::string> out;
   if (s.effects.haptics) out.push_back("haptics");
   if (d && d->built) {
@@ -62,7 +67,55 @@ std::vector<std::string> stages_of(const Scene& s, const DeformServerReport* d) 
     if (d->relax) out.push_back("relaxation");
     if (d->invert) out.push_back("inversion");
   }
+  if (frames) out.push_back("frames");
+  if (bricks) out.push_back("bricks");
   return out;
+}
+
+void fill_frame_times(v1::FrameTimes* out, const render::FrameTimes& t, double scale) {
+  out->set_j_to_texture_ms(t.j_to_texture_ms * scale);
+  out->set_raycast_ms(t.raycast_ms * scale);
+  out->set_slices_ms(t.slices_ms * scale);
+  out->set_composite_ms(t.composite_ms * scale);
+  out->set_readback_ms(t.readback_ms * scale);
+  out->set_encode_ms(t.encode_ms * scale);
+  out->set_total_ms(t.total_ms * scale);
+}
+
+void fill_view(v1::ViewSettings* o, const render::ViewSettings& v) {
+  o->set_width(v.width);
+  o->set_height(v.height);
+  o->set_preset(render::preset_name(v.preset));
+  o->set_azimuth_deg(v.azimuth_deg);
+  o->set_elevation_deg(v.elevation_deg);
+  o->set_zoom(v.zoom);
+  o->set_look_at_tip(v.look_at_tip);
+  set_vec(o->mutable_center_mm(), v.center_mm);
+  o->set_jpeg_quality(v.jpeg_quality);
+  o->set_show_tip(v.show_tip);
+  o->set_show_proxy(v.show_proxy);
+  o->set_slice_fov_mm(v.slice_fov_mm);
+}
+
+// applies the fields a WatchSession sets to `v`; "" or the first bad field and why
+std::string apply_view(const v1::ViewSettings& in, render::ViewSettings& v) {
+  if (in.has_width()) v.width = int(std::min<std::uint32_t>(in.width(), 1u << 30));
+  if (in.has_height()) v.height = int(std::min<std::uint32_t>(in.height(), 1u << 30));
+  if (in.has_preset() && !render::parse_preset(in.preset(), &v.preset))
+    return "preset '" + in.preset() + "' is not one of " + render::preset_names();
+  if (in.has_azimuth_deg()) v.azimuth_deg = in.azimuth_deg();
+  if (in.has_elevation_deg()) v.elevation_deg = in.elevation_deg();
+  if (in.has_zoom()) v.zoom = in.zoom();
+  if (in.has_look_at_tip()) v.look_at_tip = in.look_at_tip();
+  if (in.has_center_mm()) {
+    v.center_mm = {in.center_mm().x(), in.center_mm().y(), in.center_mm().z()};
+    v.center_set = true;
+  }
+  if (in.has_jpeg_quality()) v.jpeg_quality = int(std::min<std::uint32_t>(in.jpeg_quality(), 1u << 30));
+  if (in.has_show_tip()) v.show_tip = in.show_tip();
+  if (in.has_show_proxy()) v.show_proxy = in.show_proxy();
+  if (in.has_slice_fov_mm()) v.slice_fov_mm = in.slice_fov_mm();
+  return render::check_view(v);
 }
 
 void fill_times(v1::DeformTimes* out, const DeformTimes& t, double scale) {
@@ -85,7 +138,7 @@ void add_stage(google::protobuf::RepeatedPtrField<v1::StageInfo>* out, const cha
   st->set_runs(runs);
 }
 
-// the deformation stages of a report; frames and bricks are not built by this server yet
+// the deformation stages of a report
 template <class Report>
 void add_deform_stages(google::protobuf::RepeatedPtrField<v1::StageInfo>* out, const Report* r, bool built,
                        bool relax, bool invert) {
@@ -96,8 +149,6 @@ void add_deform_stages(google::protobuf::RepeatedPtrField<v1::StageInfo>* out, c
             built && relax ? n : 0);
   add_stage(out, "inversion", built && invert, r ? r->memory.invert_bytes : 0, r ? r->sum.invert_ms * k : 0,
             built && invert ? n : 0);
-  add_stage(out, "frames", false, 0, 0, 0);
-  add_stage(out, "bricks", false, 0, 0, 0);
 }
 
 }  // namespace
@@ -198,7 +249,60 @@ class Server::Control {
   void stop_deform() {
     if (deform_) deform_->stop();
   }
+
+  // the publisher and the render thread as the scene being served asks: started for
+  // frames or bricks (the render thread for frames only), stopped for a scene without
+  // them. Throws when they cannot be started (the start of the server refuses the scene).
+  void sync_stream() {
+    const Scene& sc = current_->scene;
+    if (!sc.effects.frames && render_) {
+      render_->stop();
+      render_.reset();
+    }
+    if (!sc.effects.frames && !sc.effects.bricks) {
+      stop_stream();
+      return;
+    }
+    if (!stream_) {
+      stream_ = std::make_unique<StreamState>();
+      sh_.stream.store(stream_.get(), std::memory_order_release);
+    }
+    if (!publisher_) {
+      auto p = std::make_unique<StreamPublisher>(
+          sh_, *stream_, opt_.stream_bind.empty() ? derive_stream_endpoint(opt_.control_bind) : opt_.stream_bind, start_);
+      p->start();
+      publisher_ = std::move(p);
+      std::lock_guard<std::mutex> lock(stream_endpoint_mu_);
+      stream_endpoint_ = publisher_->endpoint();
+      spdlog::info("frames and bricks are published on {}", publisher_->endpoint());
+    }
+    if (sc.effects.frames && !render_) {
+      auto r = std::make_unique<RenderWorker>(sh_, *stream_, start_, opt_.deform_nice);
+      r->start();
+      render_ = std::move(r);
+    }
+  }
+  // stops both (GL objects are destroyed on the render thread)
+  void stop_stream() {
+    if (render_) render_->stop();
+    render_.reset();
+    if (publisher_) publisher_->stop();
+    publisher_.reset();
+    std::lock_guard<std::mutex> lock(stream_endpoint_mu_);
+    stream_endpoint_.clear();
+  }
+  bool frames_served() const {
+    if (!render_ || !stream_) return false;
+    std::lock_guard<std::mutex> lock(stream_->info_mu);
+    return !stream_->info.jpeg_encoder.empty();
+  }
+  bool bricks_served() const { return publisher_ && current_->scene.effects.bricks; }
   DeformWorker* deform() const { return deform_ptr_.load(std::memory_order_acquire); }
+  // the publisher's address ("" without one); read by other threads after start()
+  std::string stream_endpoint() const {
+    std::lock_guard<std::mutex> lock(stream_endpoint_mu_);
+    return stream_endpoint_;
+  }
   zmq::socket_t& pose_socket() { return pose_; }
   const std::string& control_endpoint() const { return control_endpoint_; }
   const std::string& pose_endpoint() const { return pose_endpoint_; }
@@ -226,7 +330,7 @@ class Server::Control {
   zmq::socket_t control_, pose_;
   std::string control_endpoint_, pose_endpoint_;
   Clock::time_point start_;
-  std::uint64_t seed_ = 0, id_counter_ = 0;
+  std::uint64_t seed_ = 0, id_counter_ = 0, id_counter_opened_ = 0;
   std::unique_ptr<World> current_;
   std::vector<std::unique_ptr<World>> retired_;  // old worlds the pose thread may still read
   std::vector<char> in_;
@@ -237,6 +341,13 @@ class Server::Control {
   std::uint64_t logged_bad_ = 0;
   std::unique_ptr<DeformWorker> deform_;           // (control) the deformation worker, once a scene asked for it
   std::atomic<DeformWorker*> deform_ptr_{nullptr}; // the same, for readers on other threads
+  // frames and bricks: the shared state (kept once made), the publisher and the render thread
+  std::unique_ptr<StreamState> stream_;
+  std::unique_ptr<StreamPublisher> publisher_;
+  std::unique_ptr<RenderWorker> render_;
+  mutable std::mutex stream_endpoint_mu_;          // guards stream_endpoint_ (control writes, anyone reads)
+  std::string stream_endpoint_;
+  std::vector<std::uint64_t> opened_order_ = std::vector<std::uint64_t>(kMaxSlots);  // per slot: when opened
 
   std::string bind(zmq::socket_t& s, const std::string& addr, const char* option) {
     try {
@@ -319,9 +430,10 @@ class Server::Control {
         case v1::ControlRequest::kStats: return stats();
         case v1::ControlRequest::kLoadScene: return load_scene();
         case v1::ControlRequest::kInfo: return fill_info(rep_.mutable_info());
+        case v1::ControlRequest::kWatch: return watch();
         case v1::ControlRequest::BODY_NOT_SET:
           return refuse(v1::ERROR_EMPTY_REQUEST, sh_.counters.empty_request,
-                        "ControlRequest: no body set (open, close, reset, set_parameter, stats, load_scene or info)");
+                        "ControlRequest: no body set (open, close, reset, set_parameter, stats, load_scene, info or watch)");
       }
     } catch (const std::exception& e) {
       return refuse(v1::ERROR_INTERNAL, sh_.counters.internal_errors, std::string("ControlRequest: ") + e.what());
@@ -365,7 +477,9 @@ class Server::Control {
     info->set_max_control_bytes(kMaxControlBytes);
     DeformServerReport d;
     if (deform_) d = deform_->server_report();
-    for (const auto& s : stages_of(w.scene, deform_ ? &d : nullptr)) info->add_stages(s);
+    for (const auto& s : stages_of(w.scene, deform_ ? &d : nullptr, frames_served(), bricks_served()))
+      info->add_stages(s);
+    info->set_stream_endpoint(publisher_ ? publisher_->endpoint() : "");
   }
 
   int open_count() const {
@@ -399,6 +513,7 @@ class Server::Control {
     s.depth_mm = 0;
     s.client_name = req_.open().client_name();
     s.last_seen_ns.store(ns_since(start_));
+    opened_order_[index] = ++id_counter_opened_;
     s.id.store(id, std::memory_order_release);  // publishes the slot to the pose thread
     sh_.counters.sessions_opened.fetch_add(1);
     auto* o = rep_.mutable_open();
@@ -503,6 +618,8 @@ class Server::Control {
     s->set_control_requests(c.control_requests);
     s->set_empty_request(c.empty_request);
     s->set_internal_errors(c.internal_errors);
+    s->set_bad_view(c.bad_view);
+    s->set_not_built(c.not_built);
     auto* l = s->mutable_pose_service();
     l->set_count(sh_.pose_service.count());
     l->set_p50_us(sh_.pose_service.quantile(0.5));
@@ -516,6 +633,7 @@ class Server::Control {
     add_stage(s->mutable_stages(), "haptics", w.scene.effects.haptics, sizeof(sh_.slots),
               sh_.pose_service.mean_us() * 1e-3, sh_.pose_service.count());
     add_deform_stages(s->mutable_stages(), deform_ ? &d : nullptr, d.built, d.relax, d.invert);
+    fill_stream(s, s->mutable_stages());
     s->set_deform_backend(d.built ? d.backend : "");
     s->set_deform_backend_note(d.built ? d.backend_note : "");
     s->set_deform_steps(d.steps);
@@ -543,6 +661,7 @@ class Server::Control {
       DeformSessionReport r;
       const bool has = d.built && deform_->session_report(id, r);
       add_deform_stages(ss->mutable_stages(), has ? &r : nullptr, d.built, d.relax, d.invert);
+      fill_session_stream(ss, id);
       if (has) fill_deform(ss->mutable_deform(), r);
     }
   }
@@ -576,6 +695,181 @@ class Server::Control {
     o->set_bytes_allocated(r.memory.total());
   }
 
+  void watch() {
+    const auto& r = req_.watch();
+    const Scene& sc = world().scene;
+    const auto not_built = [this](const std::string& m) {
+      refuse(v1::ERROR_NOT_BUILT, sh_.counters.not_built, m);
+    };
+    if (!sc.effects.frames && !sc.effects.bricks)
+      return not_built("WatchSession: scene '" + sc.name +
+                       "' asks for neither frames nor bricks (effects.frames, effects.bricks): nothing is streamed");
+    if (!r.frames() && !r.bricks())
+      return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter,
+                    "WatchSession: ask for frames, bricks or both (WatchSession.frames, WatchSession.bricks)");
+    if (r.frames() && !frames_served()) {
+      std::string why = "scene '" + sc.name + "' asks for no frames (effects.frames)";
+      if (sc.effects.frames && stream_) {
+        std::lock_guard<std::mutex> lock(stream_->info_mu);
+        why = stream_->info.render_note.empty() ? "the render thread is not running" : stream_->info.render_note;
+      }
+      return not_built("WatchSession.frames: " + why);
+    }
+    if (r.bricks() && !bricks_served())
+      return not_built("WatchSession.bricks: scene '" + sc.name + "' asks for no bricks (effects.bricks)");
+    if (r.has_hold_s() && (!std::isfinite(r.hold_s()) || r.hold_s() < 0 || r.hold_s() > 3600)) {
+      char b[160];
+      std::snprintf(b, sizeof b, "WatchSession.hold_s: %g is outside [0, 3600] s", r.hold_s());
+      return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, b);
+    }
+    // the session: the one named, or the newest open one
+    std::uint64_t id = r.session_id();
+    if (id == 0) {
+      std::uint64_t newest = 0;
+      for (int i = 0; i < kMaxSlots; ++i) {
+        const std::uint64_t sid = sh_.slots[i].id.load(std::memory_order_acquire);
+        if (sid != 0 && opened_order_[i] > newest) {
+          newest = opened_order_[i];
+          id = sid;
+        }
+      }
+      if (id == 0)
+        return refuse(v1::ERROR_NO_SESSION_OPEN, sh_.counters.unknown_session,
+                      "WatchSession.session_id: 0 (any session) but no session is open");
+    }
+    // watching does not keep a session alive: only its own client's messages do
+    if (!find(id))
+      return refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session,
+                    "WatchSession.session_id: " + hex_id(id) +
+                        " is not an open session (never opened, closed, or timed out)");
+    // the view: the session's current one with the fields this request sets
+    StreamSlot& ss = stream_->slot(id);
+    std::lock_guard<std::mutex> lock(ss.mu);
+    if (ss.watch.session_id != id) {
+      ss.watch = WatchSettings{};
+      ss.watch.session_id = id;
+      ss.watch.view = default_view(sc.render);
+    }
+    render::ViewSettings v = ss.watch.view;
+    if (r.has_view()) {
+      const std::string bad = apply_view(r.view(), v);
+      if (!bad.empty())
+        return refuse(v1::ERROR_BAD_VIEW, sh_.counters.bad_view, "WatchSession.view: " + bad);
+    }
+    if (r.brick_encoding() != v1::BRICK_INT16 && r.brick_encoding() != v1::BRICK_FLOAT32)
+      return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter,
+                    "WatchSession.brick_encoding: " + std::to_string(r.brick_encoding()) +
+                        " is not BRICK_INT16 (0) or BRICK_FLOAT32 (1)");
+    if (r.brick_compression() != v1::COMPRESSION_NONE && r.brick_compression() != v1::COMPRESSION_ZSTD)
+      return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter,
+                    "WatchSession.brick_compression: " + std::to_string(r.brick_compression()) +
+                        " is not COMPRESSION_NONE (0) or COMPRESSION_ZSTD (1)");
+    ss.watch.view = v;
+    ++ss.watch.view_version;
+    const double now = ns_since(start_) * 1e-9;
+    // a hold is set (or ended with 0) only by a request that names one
+    if (r.has_hold_s() && r.frames()) ss.watch.frames_hold_until_s = now + r.hold_s();
+    if (r.has_hold_s() && r.bricks()) ss.watch.bricks_hold_until_s = now + r.hold_s();
+    if (r.bricks()) {
+      ss.watch.brick_float32 = r.brick_encoding() == v1::BRICK_FLOAT32;
+      ss.watch.brick_zstd = r.brick_compression() == v1::COMPRESSION_ZSTD;
+    }
+    auto* o = rep_.mutable_watch();
+    o->set_session_id(id);
+    o->set_stream_endpoint(publisher_->endpoint());
+    if (r.frames()) o->set_frame_topic(frame_topic(id));
+    if (r.bricks()) o->set_brick_topic(brick_topic(id));
+    fill_view(o->mutable_view(), v);
+    o->set_brick_encoding(ss.watch.brick_float32 ? v1::BRICK_FLOAT32 : v1::BRICK_INT16);
+    o->set_brick_compression(ss.watch.brick_zstd ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE);
+  }
+
+  // frames and bricks in the stats: server-wide, and one session's
+  void fill_stream(v1::ServerStats* s, google::protobuf::RepeatedPtrField<v1::StageInfo>* stages) {
+    const bool frames = frames_served(), bricks = bricks_served();
+    StreamInfo info;
+    std::size_t frame_bytes = 0, brick_bytes = 0;
+    render::FrameTimes sum;
+    std::uint64_t frames_n = 0, bricks_n = 0;
+    if (stream_) {
+      {
+        std::lock_guard<std::mutex> lock(stream_->info_mu);
+        info = stream_->info;
+      }
+      for (int i = 0; i < kMaxSlots; ++i) {
+        StreamSlot& ss = stream_->slots[i];
+        frame_bytes += ss.frame_bytes.load(std::memory_order_relaxed);
+        brick_bytes += ss.brick_bytes.load(std::memory_order_relaxed);
+      }
+      frames_n = stream_->frames_rendered.load();
+      bricks_n = stream_->bricks_published.load();
+      std::lock_guard<std::mutex> lock(stream_->info_mu);
+      sum = stream_->frame_time_sum;
+    }
+    const double k = frames_n ? 1.0 / double(frames_n) : 0.0;
+    add_stage(stages, "frames", frames, frames ? info.render_bytes + frame_bytes : 0, sum.total_ms * k, frames_n);
+    add_stage(stages, "bricks", bricks, bricks ? brick_bytes : 0, 0, bricks_n);
+    if (!stream_ || (!publisher_ && !render_)) return;
+    auto* o = s->mutable_stream();
+    o->set_endpoint(publisher_ ? publisher_->endpoint() : "");
+    o->set_publisher_thread(info.publisher_thread);
+    o->set_render_thread(info.render_thread);
+    o->set_egl_context(info.egl_context);
+    o->set_gl_renderer(info.gl_renderer);
+    o->set_gl_version(info.gl_version);
+    o->set_jpeg_encoder(info.jpeg_encoder);
+    o->set_overlay_writer(info.overlay_writer);
+    o->set_render_note(info.render_note);
+    o->set_frames_rendered(stream_->frames_rendered.load());
+    o->set_frames_published(stream_->frames_published.load());
+    o->set_frames_replaced(stream_->frames_replaced.load());
+    o->set_bricks_published(stream_->bricks_published.load());
+    o->set_key_bricks_published(stream_->key_bricks_published.load());
+    o->set_bytes_published(stream_->bytes_published.load());
+    o->set_subscriptions(stream_->subscriptions.load());
+    o->set_sessions_watched(stream_->sessions_watched.load());
+    o->set_bad_subscriptions(stream_->bad_subscriptions.load());
+    o->set_render_failures(stream_->render_failures.load());
+    o->set_last_error(info.last_error);
+  }
+
+  void fill_session_stream(v1::SessionStats* out, std::uint64_t id) {
+    const bool frames = frames_served(), bricks = bricks_served();
+    if (!stream_ || (!frames && !bricks)) {
+      add_stage(out->mutable_stages(), "frames", false, 0, 0, 0);
+      add_stage(out->mutable_stages(), "bricks", false, 0, 0, 0);
+      return;
+    }
+    StreamSlot& ss = stream_->slot(id);
+    auto* o = out->mutable_stream();
+    o->set_frames_watched(ss.frames_for.load() == id);
+    o->set_bricks_watched(ss.bricks_for.load() == id);
+    std::lock_guard<std::mutex> lock(ss.mu);
+    const bool mine = ss.report.session_id == id;
+    const SessionStreamReport& r = ss.report;
+    const std::uint64_t n = mine ? r.frames_rendered : 0;
+    if (mine) {
+      o->set_frames_rendered(r.frames_rendered);
+      o->set_frames_published(r.frames_published);
+      o->set_frames_replaced(r.frames_replaced);
+      o->set_bricks_published(r.bricks_published);
+      o->set_key_bricks_published(r.key_bricks_published);
+      fill_frame_times(o->mutable_last(), r.last, 1.0);
+      fill_frame_times(o->mutable_mean(), r.sum, n ? 1.0 / double(n) : 0.0);
+      o->set_pose_to_frame_p50_ms(r.pose_to_frame.quantile(0.5));
+      o->set_pose_to_frame_p99_ms(r.pose_to_frame.quantile(0.99));
+    }
+    const bool watched = ss.watch.session_id == id;
+    fill_view(o->mutable_view(), watched ? ss.watch.view : default_view(world().scene.render));
+    o->set_brick_encoding(watched && ss.watch.brick_float32 ? v1::BRICK_FLOAT32 : v1::BRICK_INT16);
+    o->set_brick_compression(watched && ss.watch.brick_zstd ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE);
+    const double now = ns_since(start_) * 1e-9;
+    o->set_hold_left_s(watched ? std::max({0.0, ss.watch.frames_hold_until_s - now, ss.watch.bricks_hold_until_s - now}) : 0);
+    // the session's stages: its frame hand-over and overlay share of the renderer are not split out
+    add_stage(out->mutable_stages(), "frames", frames, ss.frame_bytes.load(), n ? r.sum.total_ms / double(n) : 0, n);
+    add_stage(out->mutable_stages(), "bricks", bricks, ss.brick_bytes.load(), 0, mine ? r.bricks_published : 0);
+  }
+
   void load_scene() {
     const auto& r = req_.load_scene();
     const std::string what = r.path().empty() ? std::string("scene text") : r.path();
@@ -607,6 +901,12 @@ class Server::Control {
       } catch (const std::exception& e) {
         spdlog::error("scene '{}': {}; serving haptics only", current_->scene.name, e.what());
       }
+      // frames and bricks likewise: a render thread that cannot start leaves the scene without frames
+      try {
+        sync_stream();
+      } catch (const std::exception& e) {
+        spdlog::error("scene '{}': {}; no frames are served", current_->scene.name, e.what());
+      }
       fill_info(rep_.mutable_load_scene()->mutable_server());
     } catch (const std::exception& e) {
       refuse(v1::ERROR_SCENE_LOAD_FAILED, sh_.counters.scene_load_failures,
@@ -629,8 +929,10 @@ class Server::Control {
       }
     }
     // worlds older than the ones the pose thread and the deformation worker have picked up are no longer read
-    const std::uint64_t seen = std::min(sh_.seen_generation.load(std::memory_order_acquire),
-                                        sh_.deform_seen_generation.load(std::memory_order_acquire));
+    const std::uint64_t seen = std::min({sh_.seen_generation.load(std::memory_order_acquire),
+                                         sh_.deform_seen_generation.load(std::memory_order_acquire),
+                                         sh_.render_seen_generation.load(std::memory_order_acquire),
+                                         sh_.publish_seen_generation.load(std::memory_order_acquire)});
     retired_.erase(std::remove_if(retired_.begin(), retired_.end(),
                                   [seen](const std::unique_ptr<World>& w) { return w->generation < seen; }),
                    retired_.end());
@@ -667,6 +969,12 @@ void Server::start() {
   started_ = true;
   const auto t0 = control_->start();
   control_->start_deform();
+  try {
+    control_->sync_stream();
+  } catch (...) {
+    control_->stop_deform();
+    throw;
+  }
   pose_thread_ = std::thread([this, t0] { run_pose_service(control_->pose_socket(), *shared_, t0); });
   control_thread_ = std::thread([this] { control_->run(); });
 }
@@ -676,6 +984,7 @@ void Server::stop() {
   if (pose_thread_.joinable()) pose_thread_.join();
   if (control_thread_.joinable()) control_thread_.join();
   if (control_) {
+    control_->stop_stream();
     control_->stop_deform();
     control_->close();
   }
@@ -688,6 +997,8 @@ const ContactSlot* Server::contact_slot(std::uint64_t session_id) const {
 }
 
 bool Server::deformation_running() const { return control_->deform() != nullptr; }
+
+std::string Server::stream_endpoint() const { return control_->stream_endpoint(); }
 
 bool Server::deformed_volume(std::uint64_t session_id, Volume<float>& out, double timeout_s) const {
   DeformWorker* w = control_->deform();

@@ -34,6 +34,7 @@ struct ServerOptions {
   int housekeeping_ms = 100;                            // control thread: timeouts, freeing old worlds
   double bad_input_log_period_s = 5;                    // log a summary of new bad input at most this often
   int deform_nice = 19;                                 // the deformation worker's nice value (Linux; 0..19)
+  std::string stream_bind;                              // the stream publisher's XPUB address; "" = derived (derive_stream_endpoint)
 };
 
 /// The default pose address for a control address: tcp port + 1 ("*" stays "*"),
@@ -49,9 +50,10 @@ class Server {
   Server(const Server&) = delete;
   Server& operator=(const Server&) = delete;
 
-  /// Starts the control and haptic threads, and the deformation worker when the scene
-  /// asks for chainmail; throws palpsim::Error when the scene's deformation cannot be
-  /// served (the worker's message: an unavailable backend, a refused setting).
+  /// Starts the control and haptic threads, the deformation worker when the scene asks
+  /// for chainmail, the stream publisher for frames or bricks and the render thread for
+  /// frames; throws palpsim::Error when the scene's deformation or frames cannot be
+  /// served (an unavailable backend, a refused setting, no OpenGL 4.5 context).
   void start();
   /// Stops both threads and closes the sockets (idempotent).
   void stop();
@@ -60,6 +62,8 @@ class Server {
   const std::string& control_endpoint() const { return control_endpoint_; }
   /// The bound pose address.
   const std::string& pose_endpoint() const { return pose_endpoint_; }
+  /// The bound stream (frames and bricks) address; "" while the scene asks for neither.
+  std::string stream_endpoint() const;
 
   /// Hook for the deformation path: the newest contact slot of an open session, or
   /// nullptr. The slot lives as long as the server; a reader polls it at its own rate.

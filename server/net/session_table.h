@@ -89,7 +89,7 @@ struct Counters {
   std::atomic<std::uint64_t> sessions_opened{0}, sessions_closed{0}, sessions_timed_out{0}, poses{0}, malformed{0},
       wrong_schema_version{0}, unknown_session{0}, bad_pose{0}, absurd_pose{0}, oversized{0}, too_many_sessions{0},
       bad_parameter{0}, scene_loads{0}, scene_load_failures{0}, control_requests{0}, empty_request{0},
-      internal_errors{0};
+      internal_errors{0}, bad_view{0}, not_built{0};
 };
 
 /// A log-binned histogram of service times that one thread fills (relaxed atomics, no
@@ -133,16 +133,21 @@ class LatencyHistogram {
   std::atomic<double> sum_us_{0};
 };
 
+struct StreamState;
+
 /// Everything the two threads share.
 struct ServerShared {
   std::array<SessionSlot, kMaxSlots> slots;
   std::atomic<const World*> world{nullptr};          // (control) the world being served
   std::atomic<std::uint64_t> seen_generation{0};     // (pose) the newest world generation it has picked up
   std::atomic<std::uint64_t> deform_seen_generation{~std::uint64_t(0)};  // (deformation worker) the same; max: no worker
+  std::atomic<std::uint64_t> render_seen_generation{~std::uint64_t(0)};   // (render thread) the same; max: none
+  std::atomic<std::uint64_t> publish_seen_generation{~std::uint64_t(0)};  // (stream publisher) the same; max: none
   Counters counters;
   LatencyHistogram pose_service;                     // (pose) receive-to-send times of answered poses
   std::atomic<bool> stop{false};
   double max_pose_distance_mm = 1000;                // poses farther than this from the grid are absurd
+  std::atomic<StreamState*> stream{nullptr};         // (control) frames and bricks, once a scene asked for them
 };
 
 /// Limits of the two paths (PROTOCOL.md).

@@ -65,6 +65,55 @@ def _arr(v: Any) -> np.ndarray:
     return np.array((v.x, v.y, v.z), dtype=float)
 
 
+# WatchSession's brick settings by the names the Python API and palpsim-view use
+BRICK_ENCODINGS = {"int16": wire.BRICK_INT16, "float32": wire.BRICK_FLOAT32}
+BRICK_COMPRESSIONS = {"none": wire.COMPRESSION_NONE, "zstd": wire.COMPRESSION_ZSTD}
+
+# ViewSettings fields a view dict may set (server/render/view.h has their ranges; the
+# server checks them and answers ERROR_BAD_VIEW with the range, so nothing is checked here)
+VIEW_FIELDS = ("width", "height", "preset", "azimuth_deg", "elevation_deg", "zoom",
+               "look_at_tip", "center_mm", "jpeg_quality", "show_tip", "show_proxy",
+               "slice_fov_mm")
+
+
+def _choice(name: str, value: Any, choices: dict[str, int]) -> int:
+    """The enum number of `value` (a name of `choices`, or one of its numbers)."""
+    if isinstance(value, str) and value in choices:
+        return choices[value]
+    if isinstance(value, int) and not isinstance(value, bool) and value in choices.values():
+        return value
+    raise ValueError(f"{name} = {value!r}: expected one of {', '.join(choices)}")
+
+
+def view_settings(view: dict[str, Any]) -> "wire.ViewSettings":
+    """A ViewSettings message holding exactly the fields of `view` (a dict keyed by
+    VIEW_FIELDS); the fields it leaves out stay unset, so the server keeps their values."""
+    unknown = sorted(set(view) - set(VIEW_FIELDS))
+    if unknown:
+        raise ValueError(f"view: unknown field(s) {', '.join(unknown)}; "
+                         f"ViewSettings has {', '.join(VIEW_FIELDS)}")
+    msg = wire.ViewSettings()
+    for name, value in view.items():
+        if value is None:
+            continue
+        try:
+            if name == "center_mm":
+                if len(value) != 3:
+                    raise ValueError(f"{len(value)} values, expected 3 (x, y, z)")
+                msg.center_mm.CopyFrom(_vec(value))
+            elif name == "preset":
+                msg.preset = str(value)
+            elif name in ("look_at_tip", "show_tip", "show_proxy"):
+                setattr(msg, name, bool(value))
+            elif name in ("width", "height", "jpeg_quality"):
+                setattr(msg, name, int(value))
+            else:
+                setattr(msg, name, float(value))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"view.{name} = {value!r}: {e}") from None
+    return msg
+
+
 def _check(request: str, reply: Any) -> None:
     """Raises ServerError when a reply carries an error."""
     if reply.HasField("error") and reply.error.code != wire.ERROR_NONE:
@@ -129,6 +178,35 @@ class Client:
             raise ValueError("load_scene: give exactly one of path or text")
         body = wire.LoadScene(path=path) if path is not None else wire.LoadScene(text=text)
         return self._request("load_scene", body).server
+
+    def watch(self, session_id: int = 0, frames: bool = True, bricks: bool = False,
+              view: "dict[str, Any] | wire.ViewSettings | None" = None, hold_s: float | None = None,
+              brick_encoding: str = "int16", compression: str = "none") -> "wire.WatchReply":
+        """Watches a session on the server's stream endpoint (PROTOCOL.md, "Frames and
+        bricks") and returns the WatchReply: the session watched (the newest open one when
+        `session_id` is 0), `stream_endpoint` (connect a SUB there), `frame_topic` and
+        `brick_topic` to subscribe to, and the session's whole effective view.
+
+        `view` changes the session's view: a dict of ViewSettings fields (`width`, `height`
+        in pixels, `preset`, `azimuth_deg`, `elevation_deg`, `zoom`, `look_at_tip`,
+        `center_mm` as (x, y, z) mm, `jpeg_quality`, `show_tip`, `show_proxy`,
+        `slice_fov_mm`) or a ViewSettings message; fields left out keep their current value.
+        `hold_s` keeps the session rendered (frames) or published (bricks) for that long
+        from now without a subscriber (0 ends an earlier hold; None leaves any hold as it is).
+        `brick_encoding` is "int16" (HU) or "float32"; `compression` "none" or "zstd".
+        Refusals raise ServerError (ERROR_UNKNOWN_SESSION, ERROR_NO_SESSION_OPEN,
+        ERROR_NOT_BUILT, ERROR_BAD_VIEW, ERROR_BAD_PARAMETER) with the server's sentence."""
+        body = wire.WatchSession(session_id=int(session_id), frames=bool(frames),
+                                 bricks=bool(bricks),
+                                 brick_encoding=_choice("brick_encoding", brick_encoding,
+                                                        BRICK_ENCODINGS),
+                                 brick_compression=_choice("compression", compression,
+                                                           BRICK_COMPRESSIONS))
+        if hold_s is not None:
+            body.hold_s = float(hold_s)
+        if view is not None:
+            body.view.CopyFrom(view if isinstance(view, wire.ViewSettings) else view_settings(view))
+        return self._request("watch", body)
 
     def open_session(self, client_name: str | None = None) -> "Session":
         """Opens a session with its own proxy state and the scene's haptics parameters."""

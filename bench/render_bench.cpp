@@ -1,0 +1,512 @@
+// palpsim-bench render: what a frame costs, stage by stage (J to texture, ray cast,
+// slices, composite, readback, encode) at 1280x720 and 1920x1080 on the 1 mm lumbar
+// phantom, for every overlay writer and JPEG encoder this build and machine have, with
+// the deformation (cuda where there is a GPU, VOI 64) stepping a press over L3 between
+// frames; then the server itself: sessions pressing at 1 kHz, each watched by a viewer at
+// render.max_fps = 30, for pose-to-frame latency, frames per second per session and the
+// haptic round trip p99 against the same run without viewers.
+// Goals on the H100 (issue "frames and bricks"): render + encode within 2 ms at 1280x720
+// and 4 ms at 1920x1080; pose-to-frame p50 within 5 ms; 16 sessions at 30 frames/s each
+// with the haptic round trip p99 within 1.3x of the run without viewers.
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <ctime>
+#include <fstream>
+#include <memory>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <unistd.h>
+#include <vector>
+#include <zmq.hpp>
+
+#include "bench/registry.h"
+#include "bench/stats.h"
+#include "core/error.h"
+#include "deform/engine.h"
+#include "net/scene_io.h"
+#include "net/server.h"
+#include "palpsim/wire.pb.h"
+#include "prep/prepare.h"
+#include "render/egl_context.h"
+#include "render/frame_encoder.h"
+#include "render/frame_renderer.h"
+#include "render/overlay_writer.h"
+
+using namespace palpsim;
+namespace v1 = palpsim::v1;
+using Clock = std::chrono::steady_clock;
+using bench::json_number;
+using bench::json_spread;
+using bench::spread;
+using bench::Spread;
+
+namespace {
+
+struct Options {
+  std::string json;
+  std::string scene = std::string(PALPSIM_SOURCE_DIR) + "/config/scenes/lumbar_phantom.textproto";
+  int frames = 0;                        // per configuration; 0: 200 on a GPU, 8 on llvmpipe
+  std::vector<std::pair<int, int>> sizes{{1280, 720}, {1920, 1080}};
+  std::vector<int> sessions{1, 16};      // server part
+  double seconds = 0;                    // server part, per phase; 0: 6 on a GPU, 8 on llvmpipe
+  bool server = true;
+};
+
+std::string machine() {
+  std::ifstream in("/proc/cpuinfo");
+  std::string line, model = "unknown cpu";
+  while (std::getline(in, line))
+    if (line.rfind("model name", 0) == 0) {
+      model = line.substr(line.find(':') + 2);
+      break;
+    }
+  char host[256] = "unknown";
+  gethostname(host, sizeof host - 1);
+  return std::string(host) + ", " + model + ", " + std::to_string(std::thread::hardware_concurrency()) + " cores";
+}
+
+double ms_since(Clock::time_point t0) { return std::chrono::duration<double, std::milli>(Clock::now() - t0).count(); }
+
+// the press over the L3 spinous process of the phantom: X on the back's skin on the
+// body's mid-sagittal column at z = -5 mm (server/prep/phantom.cpp), x `depth_mm` under
+// it along -y (anterior)
+DeformContact l3_press(const Patient& p, double depth_mm) {
+  const Grid& g = p.grid;
+  int ilo = g.size.x, ihi = -1;
+  const int k = std::clamp(int(std::lround(g.to_index({0, 0, -5}).z)), 0, g.size.z - 1);
+  for (int j = 0; j < g.size.y; ++j)
+    for (int i = 0; i < g.size.x; ++i)
+      if (p.body.at(i, j, k)) {
+        ilo = std::min(ilo, i);
+        ihi = std::max(ihi, i);
+      }
+  const int i = ihi >= 0 ? (ilo + ihi) / 2 : g.size.x / 2;
+  // the skin: the body voxel farthest towards +y on that column
+  int j = g.size.y - 1;
+  while (j > 0 && !p.body.at(i, j, k)) --j;
+  const Vec3 X = g.to_physical({double(i), double(j), double(k)});
+  return {X, X - g.axes_to_physical({0, depth_mm, 0})};
+}
+
+struct StageRow {
+  int width = 0, height = 0;
+  std::string writer, encoder, preset;
+  Spread j_to_texture, raycast, slices, composite, readback, encode, render_encode, total;
+  std::size_t jpeg_bytes = 0;
+  int frames = 0;
+};
+
+std::string json_stage(const StageRow& r) {
+  std::ostringstream s;
+  s << "{\"width\": " << r.width << ", \"height\": " << r.height << ", \"overlay_writer\": \"" << r.writer
+    << "\", \"jpeg_encoder\": \"" << r.encoder << "\", \"preset\": \"" << r.preset << "\", \"frames\": " << r.frames
+    << ", \"jpeg_bytes\": " << r.jpeg_bytes << ", \"j_to_texture\": " << json_spread(r.j_to_texture)
+    << ", \"raycast\": " << json_spread(r.raycast) << ", \"slices\": " << json_spread(r.slices)
+    << ", \"composite\": " << json_spread(r.composite) << ", \"readback\": " << json_spread(r.readback)
+    << ", \"encode\": " << json_spread(r.encode) << ", \"render_encode\": " << json_spread(r.render_encode)
+    << ", \"total\": " << json_spread(r.total) << "}";
+  return s.str();
+}
+
+// --- stages ---------------------------------------------------------------------------
+
+// frames of the phantom at each size, for each writer and encoder, while the deformation
+// steps a press that goes 2..12 mm deep and back between frames
+std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene, const Options& o,
+                                   std::string& gl, bool& software) {
+  auto ctx = render::EglContext::create();
+  gl = ctx->describe();
+  software = ctx->software();
+  std::printf("GL: %s\n", gl.c_str());
+  render::FrameRenderer renderer(patient);
+  DeformConfig dc = DeformConfig::from_scene(scene);
+  dc.settings.backend = "auto";
+  dc.settings.voi_edge = 64;
+  DeformEngine engine(patient, dc);
+  std::printf("deformation between frames: %s, VOI 64\n", engine.backend_note().c_str());
+  const Vec3i voi{64, 64, 64};
+  const auto overlay = renderer.add_overlay(voi);
+  std::unique_ptr<DeviceBytes> device_j;
+
+  // every writer and encoder this build and context can use
+  std::vector<std::string> writers{"upload"}, encoders{"cpu"};
+  std::string note;
+  try {
+    render::make_overlay_writer("cuda-gl", *ctx, &note);
+    writers.push_back("cuda-gl");
+  } catch (const std::exception& e) {
+    std::printf("overlay writer cuda-gl: not here (%s)\n", e.what());
+  }
+  try {
+    render::make_frame_encoder("nvjpeg", *ctx, &note);
+    encoders.push_back("nvjpeg");
+  } catch (const std::exception& e) {
+    std::printf("jpeg encoder nvjpeg: not here (%s)\n", e.what());
+  }
+  const int frames = o.frames > 0 ? o.frames : (software ? 8 : 200);
+  const int warmup = software ? 1 : 20;
+
+  std::vector<StageRow> rows;
+  for (const auto& [w, h] : o.sizes)
+    for (const std::string& wname : writers)
+      for (const std::string& ename : encoders) {
+        auto writer = render::make_overlay_writer(wname, *ctx);
+        auto encoder = render::make_frame_encoder(ename, *ctx);
+        render::ViewSettings view;
+        view.width = w;
+        view.height = h;
+        std::vector<double> jt, rc, sl, cp, rb, en, re, tt;
+        std::vector<std::uint8_t> jpeg;
+        std::size_t bytes = 0;
+        const DeformContact skin = l3_press(*patient, 0);
+        for (int n = 0; n < frames + warmup; ++n) {
+          // a new deformation step (not timed): the press 2..12 mm deep
+          const double depth = 2 + 10 * (0.5 - 0.5 * std::cos(2 * M_PI * n / 40.0));
+          const DeformContact c{skin.skin_point_mm, skin.skin_point_mm - patient->grid.axes_to_physical({0, depth, 0})};
+          engine.step(c);
+          render::OverlaySource src;
+          src.voi = engine.voi();
+          src.host_j = engine.deformed_brick();
+          if (wname == "cuda-gl" && engine.copy_brick_to_device(device_j)) src.device_j = device_j.get();
+          render::FrameMarks marks;
+          marks.has_tip = true;
+          marks.tip_mm = c.tip_mm;
+          marks.proxy_mm = c.skin_point_mm;
+          marks.contact = true;
+          render::FrameTimes t;
+          const auto t0 = Clock::now();
+          writer->write(renderer, overlay, src);
+          t.j_to_texture_ms = ms_since(t0);
+          renderer.render(overlay, view, marks, t);
+          encoder->encode(renderer, view.jpeg_quality, jpeg, t);
+          t.total_ms = ms_since(t0);
+          if (n < warmup) continue;
+          jt.push_back(t.j_to_texture_ms);
+          rc.push_back(t.raycast_ms);
+          sl.push_back(t.slices_ms);
+          cp.push_back(t.composite_ms);
+          rb.push_back(t.readback_ms);
+          en.push_back(t.encode_ms);
+          re.push_back(t.raycast_ms + t.slices_ms + t.composite_ms + t.readback_ms + t.encode_ms);
+          tt.push_back(t.total_ms);
+          bytes = jpeg.size();
+        }
+        StageRow r;
+        r.width = w;
+        r.height = h;
+        r.writer = wname;
+        r.encoder = encoder->name();
+        r.preset = render::preset_name(view.preset);
+        r.frames = frames;
+        r.j_to_texture = spread(jt);
+        r.raycast = spread(rc);
+        r.slices = spread(sl);
+        r.composite = spread(cp);
+        r.readback = spread(rb);
+        r.encode = spread(en);
+        r.render_encode = spread(re);
+        r.total = spread(tt);
+        r.jpeg_bytes = bytes;
+        std::printf(
+            "%4dx%-4d %-7s %-9s  J->tex %6.3f  raycast %7.3f  slices %6.3f  composite %6.3f  readback %6.3f  encode "
+            "%6.3f | render+encode %7.3f ms (p90 %7.3f)  %zu KB\n",
+            w, h, wname.c_str(), r.encoder.c_str(), r.j_to_texture.median, r.raycast.median, r.slices.median,
+            r.composite.median, r.readback.median, r.encode.median, r.render_encode.median, r.render_encode.p90,
+            bytes / 1024);
+        rows.push_back(r);
+      }
+  renderer.remove_overlay(overlay);
+  return rows;
+}
+
+// --- the server -------------------------------------------------------------------------
+
+struct ServerRow {
+  int sessions = 0;
+  double rtt_p99_alone_us = 0, rtt_p99_watched_us = 0, rtt_p50_alone_us = 0, rtt_p50_watched_us = 0;
+  double fps_min = 0, fps_median = 0;
+  double p2f_p50_ms = 0, p2f_p99_ms = 0;
+  std::uint64_t frames = 0, deform_steps = 0;
+  std::string backend, encoder, writer;
+};
+
+double quantile(std::vector<double> v, double q) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  return v[std::min(v.size() - 1, std::size_t(q * double(v.size())))];
+}
+
+v1::ControlReply control(zmq::socket_t& s, v1::ControlRequest q) {
+  q.set_schema_version(1);
+  s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+  zmq::message_t m;
+  (void)s.recv(m);
+  v1::ControlReply r;
+  r.ParseFromArray(m.data(), int(m.size()));
+  return r;
+}
+
+// `n` sessions pressing at 1 kHz for `seconds` (a 1 Hz press 0..20 mm deep, sessions side
+// by side along the back); with `viewers`, each session's frames are read by its own
+// viewer thread; returns the round trips (us) and, with viewers, fills fps and latency
+void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double seconds, bool viewers,
+                  std::vector<double>& rtts, std::vector<double>& fps, std::vector<double>& p2f) {
+  std::vector<std::vector<double>> per(n), lat(n);
+  std::vector<double> frames(n, 0);
+  std::atomic<bool> done{false};
+  std::vector<std::thread> threads, watchers;
+  std::vector<std::uint64_t> ids(n, 0);
+  std::atomic<int> opened{0};
+  const double cx = 0.5 * (pi.body_min_mm().x() + pi.body_max_mm().x());
+  for (int c = 0; c < n; ++c)
+    threads.emplace_back([&, c] {
+      zmq::context_t ctx(1);
+      zmq::socket_t ctl(ctx, zmq::socket_type::req), pose(ctx, zmq::socket_type::dealer);
+      ctl.set(zmq::sockopt::linger, 0);
+      pose.set(zmq::sockopt::linger, 0);
+      ctl.connect(server.control_endpoint());
+      v1::ControlRequest q;
+      q.mutable_open()->set_client_name("render bench " + std::to_string(c));
+      const v1::ControlReply r = control(ctl, q);
+      ids[c] = r.open().session_id();
+      pose.connect(r.open().pose_endpoint());
+      ++opened;
+      while (opened < n) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      // the press point: along the back's midline, sessions 8 mm apart in z around L3
+      const double z = -5 + 8.0 * (c - n / 2);
+      const double top = pi.body_max_mm().y() + 5;
+      zmq::pollitem_t it[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
+      zmq::message_t m;
+      v1::PoseRequest pr;
+      pr.set_schema_version(1);
+      pr.set_session_id(ids[c]);
+      std::string bytes;
+      const auto t0 = Clock::now() + std::chrono::microseconds(1000 * c / std::max(1, n));
+      const long steps = long(seconds * 1000), warm = 200;
+      per[c].reserve(steps);
+      for (long s = 0; s < steps + warm; ++s) {
+        std::this_thread::sleep_until(t0 + std::chrono::microseconds(1000 * s));
+        const double depth = 30 * (0.5 - 0.5 * std::cos(2 * M_PI * s / 1000.0));
+        pr.set_seq(std::uint64_t(s + 1));
+        pr.set_client_time_s(s * 1e-3);
+        pr.mutable_tip_mm()->set_x(cx);
+        pr.mutable_tip_mm()->set_y(top - depth);
+        pr.mutable_tip_mm()->set_z(z);
+        pr.SerializeToString(&bytes);
+        const auto ts = Clock::now();
+        pose.send(zmq::buffer(bytes), zmq::send_flags::none);
+        zmq::poll(it, 1, std::chrono::milliseconds(1000));
+        if (!(it[0].revents & ZMQ_POLLIN)) continue;
+        (void)pose.recv(m);
+        if (s >= warm) per[c].push_back(std::chrono::duration<double, std::micro>(Clock::now() - ts).count());
+      }
+      v1::ControlRequest cl;
+      cl.mutable_close()->set_session_id(ids[c]);
+      control(ctl, cl);
+    });
+  if (viewers) {
+    while (opened < n) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    for (int c = 0; c < n; ++c)
+      watchers.emplace_back([&, c] {
+        zmq::context_t ctx(1);
+        zmq::socket_t ctl(ctx, zmq::socket_type::req), sub(ctx, zmq::socket_type::sub);
+        ctl.set(zmq::sockopt::linger, 0);
+        sub.set(zmq::sockopt::linger, 0);
+        ctl.connect(server.control_endpoint());
+        v1::ControlRequest q;
+        q.mutable_watch()->set_session_id(ids[c]);
+        q.mutable_watch()->set_frames(true);
+        const v1::ControlReply r = control(ctl, q);
+        if (!r.has_watch()) {
+          std::fprintf(stderr, "render bench: watch refused: %s\n", r.error().message().c_str());
+          return;
+        }
+        sub.connect(r.watch().stream_endpoint());
+        sub.set(zmq::sockopt::subscribe, r.watch().frame_topic());
+        zmq::pollitem_t it[] = {{sub.handle(), 0, ZMQ_POLLIN, 0}};
+        const auto start = Clock::now() + std::chrono::milliseconds(500);  // frames flowing by then
+        double counted = 0;
+        v1::StreamMessage msg;
+        while (!done) {
+          zmq::poll(it, 1, std::chrono::milliseconds(20));
+          if (!(it[0].revents & ZMQ_POLLIN)) continue;
+          zmq::message_t t, b;
+          (void)sub.recv(t);
+          (void)sub.recv(b);
+          if (Clock::now() < start || !msg.ParseFromArray(b.data(), int(b.size())) || !msg.has_frame()) continue;
+          ++counted;
+          lat[c].push_back(msg.frame().pose_to_frame_ms());
+        }
+        frames[c] = counted / std::max(1e-9, std::chrono::duration<double>(Clock::now() - start).count());
+      });
+  }
+  for (auto& t : threads) t.join();
+  done = true;
+  for (auto& t : watchers) t.join();
+  for (auto& v : per) rtts.insert(rtts.end(), v.begin(), v.end());
+  for (auto& v : lat) p2f.insert(p2f.end(), v.begin(), v.end());
+  if (viewers) fps = frames;
+}
+
+std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, const Options& o, bool software) {
+  std::vector<ServerRow> rows;
+  const double seconds = o.seconds > 0 ? o.seconds : (software ? 8 : 6);
+  scene.effects.frames = scene.effects.bricks = true;
+  scene.deform.voi_edge = 64;
+  scene.render.max_fps = 30;
+  scene.server.max_sessions = 64;
+  net::ServerOptions so;
+  so.control_bind = "tcp://127.0.0.1:*";
+  so.pose_bind = "tcp://127.0.0.1:*";
+  so.stream_bind = "tcp://127.0.0.1:*";
+  net::Server server(scene, patient, nullptr, so);
+  server.start();
+  zmq::context_t ctx(1);
+  zmq::socket_t ctl(ctx, zmq::socket_type::req);
+  ctl.connect(server.control_endpoint());
+  v1::ControlRequest iq;
+  iq.mutable_info();
+  const v1::PatientInfo pi = control(ctl, iq).info().patient();
+  for (int n : o.sessions) {
+    ServerRow row;
+    row.sessions = n;
+    std::vector<double> alone, watched, fps, p2f, unused_fps, unused_p2f;
+    run_sessions(server, pi, n, seconds, false, alone, unused_fps, unused_p2f);
+    v1::ControlRequest sq;
+    sq.mutable_stats();
+    const std::uint64_t steps0 = control(ctl, sq).stats().server().deform_steps();
+    const std::uint64_t frames0 = control(ctl, sq).stats().server().stream().frames_published();
+    run_sessions(server, pi, n, seconds, true, watched, fps, p2f);
+    const v1::ServerStats st = control(ctl, sq).stats().server();
+    row.rtt_p50_alone_us = quantile(alone, 0.5);
+    row.rtt_p99_alone_us = quantile(alone, 0.99);
+    row.rtt_p50_watched_us = quantile(watched, 0.5);
+    row.rtt_p99_watched_us = quantile(watched, 0.99);
+    row.fps_min = fps.empty() ? 0 : *std::min_element(fps.begin(), fps.end());
+    row.fps_median = quantile(fps, 0.5);
+    row.p2f_p50_ms = quantile(p2f, 0.5);
+    row.p2f_p99_ms = quantile(p2f, 0.99);
+    row.frames = st.stream().frames_published() - frames0;
+    row.deform_steps = st.deform_steps() - steps0;
+    row.backend = st.deform_backend();
+    row.encoder = st.stream().jpeg_encoder();
+    row.writer = st.stream().overlay_writer();
+    std::printf(
+        "server, %2d sessions at 1 kHz (%s deformation, %s, %s): frames/s per session min %.1f median %.1f; "
+        "pose-to-frame p50 %.2f ms p99 %.2f ms; round trip p99 %.0f us with viewers vs %.0f us without (%.2fx); "
+        "%llu deformation steps\n",
+        n, row.backend.c_str(), row.encoder.c_str(), row.writer.c_str(), row.fps_min, row.fps_median, row.p2f_p50_ms,
+        row.p2f_p99_ms, row.rtt_p99_watched_us, row.rtt_p99_alone_us,
+        row.rtt_p99_alone_us > 0 ? row.rtt_p99_watched_us / row.rtt_p99_alone_us : 0.0,
+        (unsigned long long)row.deform_steps);
+    rows.push_back(row);
+  }
+  server.stop();
+  return rows;
+}
+
+int run(int argc, char** argv) {
+  Options o;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    auto value = [&]() -> std::string {
+      if (i + 1 >= argc) throw Error("palpsim-bench render: " + a + " needs a value");
+      return argv[++i];
+    };
+    if (a == "--json") {
+      o.json = value();
+    } else if (a == "--scene") {
+      o.scene = value();
+    } else if (a == "--frames") {
+      o.frames = std::stoi(value());
+    } else if (a == "--seconds") {
+      o.seconds = std::stod(value());
+    } else if (a == "--no-server") {
+      o.server = false;
+    } else if (a == "--sessions" || a == "--sizes") {
+      std::stringstream ss(value());
+      std::string item;
+      if (a == "--sessions") o.sessions.clear(); else o.sizes.clear();
+      while (std::getline(ss, item, ',')) {
+        if (a == "--sessions") {
+          o.sessions.push_back(std::stoi(item));
+        } else {
+          const auto x = item.find('x');
+          if (x == std::string::npos) throw Error("palpsim-bench render: --sizes wants WxH,WxH; got '" + item + "'");
+          o.sizes.push_back({std::stoi(item.substr(0, x)), std::stoi(item.substr(x + 1))});
+        }
+      }
+    } else if (a == "--help" || a == "-h") {
+      std::printf(
+          "usage: palpsim-bench render [--json FILE] [--scene FILE (lumbar phantom)] [--frames N per configuration]\n"
+          "                            [--sizes 1280x720,1920x1080] [--sessions 1,16] [--seconds S per phase]\n"
+          "                            [--no-server]\n");
+      return 0;
+    } else {
+      throw Error("palpsim-bench render: unknown argument '" + a + "'");
+    }
+  }
+  const Scene scene = load_scene_file(o.scene);
+  PrepReport report;
+  const PatientPtr patient = prepare_patient(scene, &report);
+  std::printf("patient: %s, %d x %d x %d at %.2f mm\nmachine: %s\n", patient->source.c_str(), patient->grid.size.x,
+              patient->grid.size.y, patient->grid.size.z, patient->grid.spacing_mm.x, machine().c_str());
+  spdlog::set_level(spdlog::level::warn);
+
+  std::string gl;
+  bool software = false;
+  const std::vector<StageRow> stages = bench_stages(patient, scene, o, gl, software);
+  std::vector<ServerRow> servers;
+  if (o.server) servers = bench_server(patient, scene, o, software);
+
+  if (!o.json.empty()) {
+    std::ofstream out(o.json);
+    if (!out) throw Error("palpsim-bench render: cannot write " + o.json);
+    char date[32];
+    const std::time_t now = std::time(nullptr);
+    std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
+    out << "{\n  \"bench\": \"render\",\n  \"date\": \"" << date << "\",\n  \"machine\": \"" << machine()
+        << "\",\n  \"gl\": \"" << gl << "\",\n  \"patient\": \"" << patient->source << " " << patient->grid.size.x
+        << "x" << patient->grid.size.y << "x" << patient->grid.size.z << " at " << patient->grid.spacing_mm.x
+        << " mm\",\n  \"stages\": [\n";
+    for (std::size_t i = 0; i < stages.size(); ++i)
+      out << "    " << json_stage(stages[i]) << (i + 1 < stages.size() ? ",\n" : "\n");
+    out << "  ],\n  \"server\": [\n";
+    for (std::size_t i = 0; i < servers.size(); ++i) {
+      const ServerRow& r = servers[i];
+      out << "    {\"sessions\": " << r.sessions << ", \"deform_backend\": \"" << r.backend << "\", \"jpeg_encoder\": \""
+          << r.encoder << "\", \"overlay_writer\": \"" << r.writer
+          << "\", \"fps_per_session_min\": " << json_number(r.fps_min)
+          << ", \"fps_per_session_median\": " << json_number(r.fps_median)
+          << ", \"pose_to_frame_p50_ms\": " << json_number(r.p2f_p50_ms)
+          << ", \"pose_to_frame_p99_ms\": " << json_number(r.p2f_p99_ms)
+          << ", \"round_trip_p50_us_without_viewers\": " << json_number(r.rtt_p50_alone_us)
+          << ", \"round_trip_p99_us_without_viewers\": " << json_number(r.rtt_p99_alone_us)
+          << ", \"round_trip_p50_us_with_viewers\": " << json_number(r.rtt_p50_watched_us)
+          << ", \"round_trip_p99_us_with_viewers\": " << json_number(r.rtt_p99_watched_us)
+          << ", \"frames_published\": " << r.frames << ", \"deform_steps\": " << r.deform_steps << "}"
+          << (i + 1 < servers.size() ? ",\n" : "\n");
+    }
+    out << "  ]\n}\n";
+    std::printf("wrote %s\n", o.json.c_str());
+  }
+  return 0;
+}
+
+}  // namespace
+
+PALPSIM_BENCH(render, "frame stages at 1280x720 and 1920x1080, pose-to-frame latency, 16 watched sessions") {
+  try {
+    return run(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "palpsim-bench render: %s\n", e.what());
+    return 1;
+  }
+}

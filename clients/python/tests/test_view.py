@@ -1,0 +1,987 @@
+"""palpsim-view and the stream library against a fake server written here: a ROUTER that
+answers ControlRequest.info and .watch as palpsim-server does (PROTOCOL.md, "Frames and
+bricks": session 0 = newest, the error codes, the view ranges of server/render/view.h)
+and an XPUB that publishes two-frame [topic, StreamMessage] messages when it sees a
+subscription, with the server's small send high-water mark. At the end, an end-to-end
+test against the real build/palpsim-server (skipped where it does not serve a stream).
+
+Frames carry their frame_seq as 16 bars (bit b of seq: a light or a dark bar), so a test
+can read from a PNG or an MP4 which frame it shows: the bars are 20+ pixels wide and
+light (230) or dark (25), so JPEG and h264 errors (a few levels inside a bar) are far
+from the threshold of 128 that reads them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+import pytest
+import zmq
+
+from palpsim import view as view_mod
+from palpsim.client import Client
+from palpsim.proto import SCHEMA_VERSION, wire
+from palpsim.stream import DeformedVolume, StreamClient, brick_topic, frame_topic
+
+ROOT = Path(__file__).resolve().parents[3]
+SID = 0x1234ABCD5678EF01
+OTHER_SID = 0x0FEDCBA987654321
+
+# ---------------------------------------------------------------------------------------
+# Pictures that say which frame they are
+
+
+def seq_image(seq: int, width: int, height: int) -> np.ndarray:
+    """An RGB image whose 16 vertical bars spell `seq` (bit 0 leftmost): light bars for
+    ones, dark bars for zeros, on a mid-grey background."""
+    img = np.full((height, width, 3), 90, dtype=np.uint8)
+    bw = width // 16
+    for b in range(16):
+        img[height // 4: 3 * height // 4, b * bw:(b + 1) * bw] = 230 if (seq >> b) & 1 else 25
+    return img
+
+
+def read_seq(rgb: np.ndarray) -> int:
+    """The seq a seq_image shows (each bar's mean inside a 4-pixel margin, against 128)."""
+    h, w = rgb.shape[:2]
+    bw = w // 16
+    seq = 0
+    for b in range(16):
+        bar = rgb[h // 4 + 4: 3 * h // 4 - 4, b * bw + 4:(b + 1) * bw - 4]
+        if bar.mean() > 128:
+            seq |= 1 << b
+    return seq
+
+
+def jpeg(rgb: np.ndarray, quality: int = 90) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="JPEG", quality=quality)
+    return buf.getvalue()
+
+
+def read_mp4(path: Path) -> tuple[list[np.ndarray], dict]:
+    """Every frame of a video and its metadata (fps, size), read back with imageio-ffmpeg."""
+    import imageio.v2 as imageio
+
+    with imageio.get_reader(str(path), format="FFMPEG") as r:
+        return [np.asarray(f) for f in r], dict(r.get_meta_data())
+
+
+def read_png(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+# ---------------------------------------------------------------------------------------
+# Messages
+
+
+def stream_message(**body: Any) -> bytes:
+    m = wire.StreamMessage(schema_version=SCHEMA_VERSION)
+    for k, v in body.items():
+        getattr(m, k).CopyFrom(v)
+    return m.SerializeToString()
+
+
+def frame_parts(sid: int, seq: int, width: int, height: int, *, t_s: float | None = None,
+                pose_to_frame_ms: float = 5.0, data: bytes | None = None) -> list[bytes]:
+    f = wire.Frame(session_id=sid, frame_seq=seq, pose_seq=10 * seq,
+                   server_time_s=seq * 0.05 if t_s is None else t_s,
+                   pose_to_frame_ms=pose_to_frame_ms, width=width, height=height,
+                   jpeg=data if data is not None else jpeg(seq_image(seq, width, height)),
+                   encoder="turbojpeg")
+    return [frame_topic(sid), stream_message(frame=f)]
+
+
+def notice_parts(topic: bytes, sid: int, event: str, message: str,
+                 code: int = wire.ERROR_NONE) -> list[bytes]:
+    n = wire.StreamNotice(session_id=sid, event=event, message=message)
+    if code:
+        n.error.code, n.error.message = code, message
+    return [topic, stream_message(notice=n)]
+
+
+class GridSpec:
+    """A patient grid for fake bricks (voxels (i, j, k), spacing, origin, direction)."""
+
+    def __init__(self, size=(20, 17, 23), spacing_mm=2.0, origin_mm=(-19.0, -16.0, -22.0),
+                 direction=(1, 0, 0, 0, 1, 0, 0, 0, 1)):
+        self.size, self.spacing_mm = tuple(size), spacing_mm
+        self.origin_mm, self.direction = np.asarray(origin_mm, float), tuple(float(d) for d in direction)
+
+    def box_origin(self, lo) -> np.ndarray:
+        d = np.asarray(self.direction).reshape(3, 3)
+        return self.origin_mm + d @ (np.asarray(lo, float) * self.spacing_mm)
+
+
+def make_brick(sid: int, seq: int, grid: GridSpec, values: np.ndarray, lo=(0, 0, 0), *,
+               encoding=wire.BRICK_INT16, compression=wire.COMPRESSION_NONE, key=False,
+               key_id=0, key_part=0, key_parts=0, deformed=True, pose_seq=0, deform_step=0,
+               t_s=0.0) -> wire.Brick:
+    """A Brick as the server makes it: values (k, j, i) on the box at lo, encoded."""
+    import zstandard
+
+    size_k, size_j, size_i = values.shape
+    raw = values.astype("<i2" if encoding == wire.BRICK_INT16 else "<f4").tobytes()
+    data = zstandard.ZstdCompressor().compress(raw) if compression == wire.COMPRESSION_ZSTD else raw
+    o = grid.box_origin(lo)
+    b = wire.Brick(session_id=sid, brick_seq=seq, pose_seq=pose_seq, deform_step=deform_step,
+                   key=key, key_id=key_id, key_part=key_part, key_parts=key_parts,
+                   deformed=deformed, lo_i=lo[0], lo_j=lo[1], lo_k=lo[2], size_i=size_i,
+                   size_j=size_j, size_k=size_k, grid_size_i=grid.size[0],
+                   grid_size_j=grid.size[1], grid_size_k=grid.size[2], spacing_mm=grid.spacing_mm,
+                   encoding=encoding, compression=compression, data=data, raw_bytes=len(raw),
+                   server_time_s=t_s)
+    b.grid_origin_mm.CopyFrom(wire.Vec3(x=grid.origin_mm[0], y=grid.origin_mm[1], z=grid.origin_mm[2]))
+    b.origin_mm.CopyFrom(wire.Vec3(x=o[0], y=o[1], z=o[2]))
+    b.direction.extend(grid.direction)
+    return b
+
+
+def key_bricks(sid: int, grid: GridSpec, volume: np.ndarray, parts: int, key_id: int = 1,
+               first_seq: int = 1, **enc: Any) -> list[wire.Brick]:
+    """The whole-volume key in `parts` slabs along k (np.array_split sizes)."""
+    out, k0 = [], 0
+    for p, slab in enumerate(np.array_split(volume, parts, axis=0)):
+        out.append(make_brick(sid, first_seq + p, grid, slab, (0, 0, k0), key=True, key_id=key_id,
+                              key_part=p, key_parts=parts, deformed=False, **enc))
+        k0 += slab.shape[0]
+    return out
+
+
+def brick_parts(b: wire.Brick) -> list[bytes]:
+    return [brick_topic(b.session_id), stream_message(brick=b)]
+
+
+# ---------------------------------------------------------------------------------------
+# The fake server
+
+DEFAULT_VIEW = dict(width=1280, height=720, preset="bone", azimuth_deg=35.0, elevation_deg=25.0,
+                    zoom=1.0, look_at_tip=True, jpeg_quality=85, show_tip=True, show_proxy=False,
+                    slice_fov_mm=120.0)
+PRESETS = ("skin", "bone", "soft_tissue")
+
+
+def check_view(v: wire.ViewSettings) -> str:
+    """server/render/view.h's check_view: "" or a sentence naming the field and its range."""
+    def rng(name, lo, hi, unit=""):
+        if v.HasField(name):
+            x = getattr(v, name)
+            if not (math.isfinite(x) and lo <= x <= hi):
+                return f"WatchSession.view.{name} = {x:g} is outside {lo:g}..{hi:g}{unit}"
+        return ""
+    for msg in (rng("width", 64, 3840, " pixels"), rng("height", 64, 2160, " pixels"),
+                rng("elevation_deg", -89, 89, " degrees"), rng("zoom", 0.1, 20),
+                rng("jpeg_quality", 1, 100), rng("slice_fov_mm", 10, 2000, " mm")):
+        if msg:
+            return msg
+    if v.HasField("preset") and v.preset not in PRESETS:
+        return f"WatchSession.view.preset = '{v.preset}' is not one of {', '.join(PRESETS)}"
+    if v.HasField("azimuth_deg") and not math.isfinite(v.azimuth_deg):
+        return f"WatchSession.view.azimuth_deg = {v.azimuth_deg} is not finite"
+    c = v.center_mm
+    if not all(math.isfinite(x) for x in (c.x, c.y, c.z)):
+        return "WatchSession.view.center_mm is not finite"
+    return ""
+
+
+Script = Callable[["FakeServer", bytes], Iterator[Any]]
+
+
+class FakeServer:
+    """A fake palpsim-server: control ROUTER and stream XPUB on free loopback ports, one
+    thread. `script(fake, topic)` is started when the XPUB sees the first subscription to a
+    topic; it yields message part lists to publish, or a float to sleep that many seconds
+    (other scripts and control requests go on meanwhile)."""
+
+    def __init__(self, sessions=(SID,), frames=True, bricks=True, script: Script | None = None,
+                 sndhwm: int = 64):
+        self.sessions = list(sessions)        # open sessions, newest last
+        self.frames_built, self.bricks_built = frames, bricks
+        self.script = script
+        self.views = {s: wire.ViewSettings(**DEFAULT_VIEW) for s in self.sessions}
+        self.encoding = {s: (wire.BRICK_INT16, wire.COMPRESSION_NONE) for s in self.sessions}
+        self.watches: list[wire.WatchSession] = []
+        self.subscriptions: list[bytes] = []
+        self.published = 0
+        self._ctx = zmq.Context()
+        self.router = self._ctx.socket(zmq.ROUTER)
+        self.router.setsockopt(zmq.LINGER, 0)
+        self.router.bind("tcp://127.0.0.1:*")
+        self.address = self.router.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.xpub = self._ctx.socket(zmq.XPUB)
+        self.xpub.setsockopt(zmq.LINGER, 0)
+        self.xpub.setsockopt(zmq.SNDHWM, sndhwm)  # the server's "64 message parts"
+        self.xpub.bind("tcp://127.0.0.1:*")
+        self.stream_endpoint = self.xpub.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._gens: list[list[Any]] = []      # [wake_time, generator]
+        self._stop = threading.Event()
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+
+    def __enter__(self) -> "FakeServer":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        self._thread.join(10)
+        self._ctx.destroy(linger=0)
+        if self.error is not None and exc[0] is None:
+            raise self.error
+
+    # -- the thread -----------------------------------------------------------------------
+
+    def _loop(self) -> None:
+        poller = zmq.Poller()
+        poller.register(self.router, zmq.POLLIN)
+        poller.register(self.xpub, zmq.POLLIN)
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                wait = min([max(0.0, g[0] - now) for g in self._gens] + [0.02])
+                events = dict(poller.poll(int(wait * 1000)))
+                if self.router in events:
+                    while True:
+                        try:
+                            parts = self.router.recv_multipart(zmq.NOBLOCK)
+                        except zmq.Again:
+                            break
+                        self._control(parts)
+                if self.xpub in events:
+                    while True:
+                        try:
+                            ev = self.xpub.recv(zmq.NOBLOCK)
+                        except zmq.Again:
+                            break
+                        if ev[:1] == b"\x01":
+                            self.subscriptions.append(ev[1:])
+                            if self.script is not None:
+                                self._gens.append([0.0, self.script(self, ev[1:])])
+                self._step()
+        except BaseException as e:  # surfaced by __exit__
+            self.error = e
+
+    def _step(self) -> None:
+        now = time.monotonic()
+        for g in list(self._gens):
+            if g[0] > now:
+                continue
+            while True:
+                try:
+                    item = next(g[1])
+                except StopIteration:
+                    self._gens.remove(g)
+                    break
+                if isinstance(item, (int, float)):
+                    g[0] = time.monotonic() + item
+                    break
+                self.xpub.send_multipart(item)  # a PUB drops at its high-water mark, never blocks
+                self.published += 1
+
+    def _control(self, parts: list[bytes]) -> None:
+        ident, payload = parts[0], parts[-1]
+        req = wire.ControlRequest()
+        req.ParseFromString(payload)
+        rep = wire.ControlReply(schema_version=SCHEMA_VERSION, request_id=req.request_id)
+        body = req.WhichOneof("body")
+        if body == "info":
+            rep.info.scene_name = "fake"
+            rep.info.stream_endpoint = self.stream_endpoint
+            rep.info.control_endpoint = self.address
+        elif body == "watch":
+            self.watches.append(wire.WatchSession())
+            self.watches[-1].CopyFrom(req.watch)
+            self._watch(req.watch, rep)
+        else:
+            rep.error.code, rep.error.message = wire.ERROR_INTERNAL, f"fake: {body} not served"
+        self.router.send_multipart([ident, *parts[1:-1], rep.SerializeToString()])
+
+    def _watch(self, w: wire.WatchSession, rep: wire.ControlReply) -> None:
+        def refuse(code: int, msg: str) -> None:
+            rep.error.code, rep.error.message = code, msg
+        sid = w.session_id
+        if sid == 0:
+            if not self.sessions:
+                return refuse(wire.ERROR_NO_SESSION_OPEN, "WatchSession.session_id = 0 (any): no "
+                                                          "session is open")
+            sid = self.sessions[-1]
+        elif sid not in self.sessions:
+            return refuse(wire.ERROR_UNKNOWN_SESSION, f"WatchSession.session_id: no open session "
+                                                      f"{sid:016x}")
+        if not (w.frames or w.bricks):
+            return refuse(wire.ERROR_BAD_PARAMETER, "WatchSession: neither frames nor bricks asked")
+        if w.frames and not self.frames_built:
+            return refuse(wire.ERROR_NOT_BUILT, "WatchSession.frames: the scene does not ask for "
+                                                "frames (effects.frames)")
+        if w.bricks and not self.bricks_built:
+            return refuse(wire.ERROR_NOT_BUILT, "WatchSession.bricks: the scene does not ask for "
+                                                "bricks (effects.bricks)")
+        bad = check_view(w.view)
+        if bad:
+            return refuse(wire.ERROR_BAD_VIEW, bad)
+        self.views[sid].MergeFrom(w.view)
+        if w.bricks:
+            self.encoding[sid] = (w.brick_encoding, w.brick_compression)
+        r = rep.watch
+        r.session_id, r.stream_endpoint = sid, self.stream_endpoint
+        r.frame_topic = frame_topic(sid) if w.frames else b""
+        r.brick_topic = brick_topic(sid) if w.bricks else b""
+        r.view.CopyFrom(self.views[sid])
+        r.brick_encoding, r.brick_compression = self.encoding[sid]
+
+
+# ---------------------------------------------------------------------------------------
+# Scripts
+
+
+def frames_forever(fps: float = 50.0, last_seq: int | None = None) -> Script:
+    """Frames 1, 2, ... at `fps` in the session's view size (the server's renderer)."""
+    def script(fake: FakeServer, topic: bytes) -> Iterator[Any]:
+        if not topic.startswith(b"frame."):
+            return
+        sid = int(topic[6:], 16)
+        seq = 0
+        while last_seq is None or seq < last_seq:
+            seq += 1
+            v = fake.views[sid]
+            yield frame_parts(sid, seq, v.width, v.height)
+            yield 1.0 / fps
+    return script
+
+
+def run_view(argv: list[str], capsys) -> tuple[int, str, str]:
+    """palpsim-view in this process; (exit status, stdout, stderr)."""
+    try:
+        rc = view_mod.main(argv)
+    except SystemExit as e:  # argparse
+        rc = e.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def summary_numbers(out: str) -> dict[str, float]:
+    """The numbers of the summary line: received, shown, fps, missed, skipped, p50, p99."""
+    m = re.search(r"(\d+) frames received, (\d+) shown, ([\d.na]+) fps, (\d+) missed, (\d+) skipped, "
+                  r"pose-to-frame p50 ([\d.na]+) ms p99 ([\d.na]+) ms", out)
+    assert m, f"no summary line in {out!r}"
+    keys = ("received", "shown", "fps", "missed", "skipped", "p50", "p99")
+    return {k: float(v) for k, v in zip(keys, m.groups())}
+
+
+# ---------------------------------------------------------------------------------------
+# Frames: PNG, MP4, newest wins
+
+
+def test_png_frames_and_view_fields(tmp_path, capsys):
+    with FakeServer(script=frames_forever(fps=50)) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--any", "--frames", "3",
+                                 "--out", str(tmp_path), "--size", "320x180", "--preset", "skin",
+                                 "--azimuth", "30", "--center", "1,2,-3.5", "--no-tip-marker",
+                                 "--timeout", "10"], capsys)
+    assert rc == 0, err
+    pngs = sorted(tmp_path.glob("frame_*.png"))
+    assert [p.name for p in pngs] == ["frame_000001.png", "frame_000002.png", "frame_000003.png"]
+    seqs = []
+    for p in pngs:
+        rgb = read_png(p)
+        assert rgb.shape == (180, 320, 3)           # the size the view asked for
+        seqs.append(read_seq(rgb))
+    assert seqs == sorted(seqs) and len(set(seqs)) == 3 and seqs[0] >= 1
+    n = summary_numbers(out)
+    assert n["shown"] == 3 and n["received"] >= 3
+    assert n["p50"] == pytest.approx(5.0) and n["p99"] == pytest.approx(5.0)  # the fake's 5 ms
+    # what was sent: session 0 (any), frames only, exactly the fields the options set
+    (w,) = fake.watches
+    assert w.session_id == 0 and w.frames and not w.bricks
+    v = w.view
+    assert (v.width, v.height, v.preset, v.azimuth_deg) == (320, 180, "skin", 30.0)
+    assert v.HasField("look_at_tip") and not v.look_at_tip and not v.show_tip
+    assert (v.center_mm.x, v.center_mm.y, v.center_mm.z) == (1.0, 2.0, -3.5)
+    for unset in ("elevation_deg", "zoom", "jpeg_quality", "show_proxy", "slice_fov_mm"):
+        assert not v.HasField(unset), unset        # left as the session has them
+    assert f"{SID:016x}" in err
+
+
+def test_mp4_readable_with_frame_count_size_and_fps(tmp_path, capsys):
+    mp4 = tmp_path / "v.mp4"
+    # an odd size: the video is padded to even edges (yuv420p); the fake's server clock
+    # puts frames 0.05 s apart, so the measured rate is 20 fps exactly
+    with FakeServer(script=frames_forever(fps=25)) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--frames", "12", "--size", "321x181",
+                                 "--mp4", str(mp4), "--out", str(tmp_path / "png"),
+                                 "--timeout", "10"], capsys)
+    assert rc == 0, err
+    n = summary_numbers(out)
+    assert n["shown"] == 12
+    frames, meta = read_mp4(mp4)
+    assert len(frames) == 12
+    assert frames[0].shape == (182, 322, 3)
+    assert float(meta["fps"]) == pytest.approx(20.0, abs=1e-3)
+    assert "12 MP4 frames at 20 fps" in out
+    # the same frames as the PNGs, in order: the bars read the same seq (h264 is lossy, the
+    # bars' threshold has ~100 levels of margin), and the pixels differ by a few levels
+    pngs = sorted((tmp_path / "png").glob("frame_*.png"))
+    assert len(pngs) == 12
+    for f, p in zip(frames, pngs):
+        ref = read_png(p)
+        assert read_seq(f[:181, :321]) == read_seq(ref)
+        assert np.abs(f[:181, :321].astype(int) - ref).mean() < 6.0
+
+
+def test_newest_wins_under_a_burst(tmp_path, capsys):
+    """The fake publishes 300 frames as fast as it can (a viewer writes ~100 PNG a second),
+    then, 1 s later, frame 301, then the closed notice: the viewer shows far fewer frames
+    than were sent, each newer than the last, the last one is 301, and every frame is
+    accounted for as shown, skipped (drained but replaced) or missed (a seq gap)."""
+    w, h, burst = 640, 360, 300
+    jpegs = {s: jpeg(seq_image(s, w, h)) for s in range(1, burst + 2)}
+
+    def script(fake: FakeServer, topic: bytes) -> Iterator[Any]:
+        for s in range(1, burst + 1):
+            yield frame_parts(SID, s, w, h, data=jpegs[s])
+        yield 1.0
+        yield frame_parts(SID, burst + 1, w, h, data=jpegs[burst + 1])
+        yield 1.0
+        yield notice_parts(topic, SID, "closed", f"session {SID:016x} closed by its client")
+
+    with FakeServer(script=script) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--out", str(tmp_path),
+                                 "--timeout", "10"], capsys)
+    published = fake.published  # read once the fake's thread has ended
+    assert rc == 0, err
+    assert published == burst + 2
+    assert "closed by its client" in err
+    pngs = sorted(tmp_path.glob("frame_*.png"))
+    seqs = [read_seq(read_png(p)) for p in pngs]
+    assert seqs == sorted(set(seqs)), seqs            # strictly newer each time
+    assert seqs[-1] == burst + 1                        # the newest frame is shown
+    n = summary_numbers(out)
+    assert n["shown"] == len(pngs)
+    assert len(pngs) <= (burst + 1) / 2                 # newest wins: most frames never shown
+    assert n["received"] == n["shown"] + n["skipped"]
+    # frame 1 meets an empty queue, so it arrives; every later one arrived or is a gap
+    assert n["received"] + n["missed"] == burst + 1
+    # the viewer drains: while it writes a PNG, the burst queues up at its socket, so a
+    # drain finds several frames and decodes only the newest
+    assert n["skipped"] > 0
+
+
+def test_stream_timeout_exits_1(capsys):
+    with FakeServer(script=None) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--out", "/tmp/unused-palpsim-view",
+                                 "--timeout", "0.5"], capsys)
+    assert rc == 1
+    assert "no stream message within 0.5 s" in err
+    assert "0 frames received" in out
+
+
+# ---------------------------------------------------------------------------------------
+# Notices and refusals
+
+
+def test_closed_notice_exits_0_with_message(tmp_path, capsys):
+    def script(fake, topic):
+        yield frame_parts(SID, 1, 320, 180)
+        yield frame_parts(SID, 2, 320, 180)
+        yield 0.3
+        yield notice_parts(topic, SID, "closed", "session timed out after 5 s without a message")
+
+    with FakeServer(script=script) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--out", str(tmp_path)], capsys)
+    assert rc == 0, err
+    assert "session ended: session timed out after 5 s without a message" in err
+    assert summary_numbers(out)["received"] == 2
+    assert len(list(tmp_path.glob("frame_*.png"))) >= 1
+
+
+def test_unknown_session_notice_exits_2(tmp_path, capsys):
+    def script(fake, topic):
+        yield notice_parts(topic, SID, "unknown_session", f"topic {topic.decode()} names no open "
+                           "session", code=wire.ERROR_UNKNOWN_SESSION)
+
+    with FakeServer(script=script) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--out", str(tmp_path),
+                                 "--timeout", "10"], capsys)
+    assert rc == 2
+    assert f"ERROR_UNKNOWN_SESSION: topic frame.{SID:016x} names no open session" in err
+
+
+def test_unknown_session_reply_exits_2(tmp_path, capsys):
+    with FakeServer(script=frames_forever()) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--session", f"{OTHER_SID:016x}",
+                                 "--out", str(tmp_path)], capsys)
+    assert rc == 2
+    assert f"ERROR_UNKNOWN_SESSION: WatchSession.session_id: no open session {OTHER_SID:016x}" in err
+    assert fake.watches[0].session_id == OTHER_SID     # the 16-hex-digit form was parsed as hex
+
+
+@pytest.mark.parametrize("size,message", [
+    ("0x0", "WatchSession.view.width = 0 is outside 64..3840 pixels"),
+    ("100000x100000", "WatchSession.view.width = 100000 is outside 64..3840 pixels"),
+    ("640x4000", "WatchSession.view.height = 4000 is outside 64..2160 pixels"),
+])
+def test_bad_view_size_is_the_servers_refusal(size, message, tmp_path, capsys):
+    with FakeServer(script=frames_forever()) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--size", size, "--out", str(tmp_path)],
+                                capsys)
+    assert rc == 2
+    assert f"ERROR_BAD_VIEW: {message}" in err
+    assert len(fake.watches) == 1 and not fake.subscriptions   # refused before any subscription
+
+
+def test_other_refusals_exit_2(tmp_path, capsys):
+    with FakeServer(sessions=(), script=None) as fake:
+        rc, _, err = run_view(["--connect", fake.address, "--out", str(tmp_path)], capsys)
+    assert rc == 2 and "ERROR_NO_SESSION_OPEN" in err
+    with FakeServer(frames=True, bricks=False, script=None) as fake:
+        rc, _, err = run_view(["--connect", fake.address, "--bricks", "--out", str(tmp_path)], capsys)
+    assert rc == 2 and "ERROR_NOT_BUILT: WatchSession.bricks" in err
+
+
+@pytest.mark.parametrize("argv,words", [
+    (["--size", "abc"], ["--size", "WIDTHxHEIGHT"]),
+    (["--size=-5x10"], ["--size", "WIDTHxHEIGHT"]),
+    (["--center=-1,2"], ["--center", "X,Y,Z"]),
+    (["--center", "1,2"], ["--center", "X,Y,Z"]),
+    (["--session", "nope"], ["--session", "not a session id"]),
+    (["--frames", "0"], ["--frames", "1 or more"]),
+    (["--encoding", "int8"], ["--encoding", "int16"]),
+    (["--session", "5", "--any"], ["not allowed with"]),
+])
+def test_command_line_errors_exit_2(argv, words, capsys):
+    rc, _, err = run_view(["--connect", "tcp://127.0.0.1:1", *argv], capsys)
+    assert rc == 2
+    for w in words:
+        assert w in err, err
+
+
+def test_no_server_answer_exits_1(tmp_path, capsys):
+    ctx = zmq.Context.instance()
+    s = ctx.socket(zmq.ROUTER)    # bound, never answers
+    s.setsockopt(zmq.LINGER, 0)
+    port = s.bind_to_random_port("tcp://127.0.0.1")
+    try:
+        rc, _, err = run_view(["--connect", f"tcp://127.0.0.1:{port}", "--timeout", "0.3",
+                               "--out", str(tmp_path)], capsys)
+    finally:
+        s.close(0)
+    assert rc == 1 and "no reply to watch" in err
+
+
+def test_malformed_stream_message_exits_1(tmp_path, capsys):
+    def script(fake, topic):
+        yield [topic, stream_message(), b"extra"]
+
+    with FakeServer(script=script) as fake:
+        rc, _, err = run_view(["--connect", fake.address, "--out", str(tmp_path),
+                               "--timeout", "10"], capsys)
+    assert rc == 1
+    assert "3 ZeroMQ frames, expected 2" in err
+
+
+def test_frame_size_mismatch_names_the_field(tmp_path, capsys):
+    def script(fake, topic):
+        f = frame_parts(SID, 1, 320, 180, data=jpeg(seq_image(1, 160, 90)))
+        yield f
+
+    with FakeServer(script=script) as fake:
+        rc, _, err = run_view(["--connect", fake.address, "--out", str(tmp_path),
+                               "--timeout", "10"], capsys)
+    assert rc == 1 and "Frame.width x height = 320x180" in err and "160x90" in err
+
+
+# ---------------------------------------------------------------------------------------
+# Bricks
+
+
+def brick_volume(grid: GridSpec, encoding: int, rng: np.random.Generator) -> np.ndarray:
+    """An image I: whole HU for int16, fractional values for float32."""
+    shape = grid.size[::-1]
+    if encoding == wire.BRICK_INT16:
+        return rng.integers(-1024, 3000, size=shape).astype(np.int16)
+    return (rng.standard_normal(shape) * 300.0).astype(np.float32)
+
+
+ENC = {"int16": wire.BRICK_INT16, "float32": wire.BRICK_FLOAT32}
+COMP = {"none": wire.COMPRESSION_NONE, "zstd": wire.COMPRESSION_ZSTD}
+
+
+@pytest.mark.parametrize("encoding", ["int16", "float32"])
+@pytest.mark.parametrize("compression", ["none", "zstd"])
+def test_brick_reconstruction_is_exact_over_the_stream(encoding, compression):
+    """Key in 4 slabs, a deformed VOI brick, then an undeformed one, through the fake's
+    XPUB in the encoding the watch asked for: J equals I with the VOI box written over it,
+    then I, exactly (int16 and float32 values are exact in the viewer's float32 volume,
+    and nothing is computed on them)."""
+    rng = np.random.default_rng(7)
+    grid = GridSpec(direction=(0, 1, 0, -1, 0, 0, 0, 0, 1))  # a rotated grid
+    enc = ENC[encoding]
+    image = brick_volume(grid, enc, rng)
+    lo, box = (3, 4, 5), (6, 7, 8)                              # (i, j, k)
+    voi = brick_volume(GridSpec(size=box), enc, rng)
+
+    def script(fake, topic):
+        e, c = fake.encoding[SID]
+        assert (e, c) == (enc, COMP[compression])
+        for b in key_bricks(SID, grid, image, 4, encoding=e, compression=c):
+            yield brick_parts(b)
+        yield brick_parts(make_brick(SID, 5, grid, voi, lo, encoding=e, compression=c,
+                                     pose_seq=42, deform_step=1))
+        yield 0.3
+        yield brick_parts(make_brick(SID, 6, grid, np.zeros((0, 0, 0)), (0, 0, 0), encoding=e,
+                                     compression=c, deformed=False, deform_step=2))
+
+    with FakeServer(script=script) as fake, Client(fake.address) as c:
+        reply = c.watch(frames=False, bricks=True, brick_encoding=encoding, compression=compression)
+        assert reply.brick_topic == brick_topic(SID) and reply.frame_topic == b""
+        vol = DeformedVolume()
+        deformed_seen = False
+        with StreamClient.from_watch(reply, fake.address) as sc:
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline:
+                u = sc.receive(0.5)
+                for b in (u.bricks if u else []):
+                    vol.apply(b)
+                    if not b.key and b.deformed:
+                        assert vol.complete and vol.key_parts == 4
+                        want = image.astype(np.float32)
+                        want[5:13, 4:11, 3:9] = voi
+                        assert vol.volume.dtype == np.float32
+                        assert np.array_equal(vol.volume, want)
+                        np.testing.assert_allclose(vol.voi_center_mm(),
+                                                   grid.box_origin((5.5, 7.0, 8.5)), atol=1e-9)
+                        deformed_seen = True
+                    elif not b.key:
+                        assert deformed_seen
+                        assert np.array_equal(vol.volume, image.astype(np.float32))
+                        assert not vol.deformed
+                        return
+    pytest.fail("the undeformed brick never came")
+
+
+def test_bricks_cli_writes_slices(tmp_path, capsys):
+    rng = np.random.default_rng(3)
+    grid = GridSpec()
+    image = np.full(grid.size[::-1], -100, dtype=np.float32)
+    voi = (rng.random((8, 8, 8)) * 50 + 900).astype(np.float32)   # bright: bone in the VOI
+
+    def script(fake, topic):
+        e, c = fake.encoding[SID]
+        for b in key_bricks(SID, grid, image, 3, encoding=e, compression=c):
+            yield brick_parts(b)
+        yield brick_parts(make_brick(SID, 4, grid, voi, (6, 5, 7), encoding=e, compression=c))
+        yield 0.2
+        yield brick_parts(make_brick(SID, 5, grid, np.zeros((0, 0, 0)), encoding=e, compression=c,
+                                     deformed=False))
+        yield 0.2
+        yield brick_parts(make_brick(SID, 6, grid, voi, (6, 5, 7), encoding=e, compression=c))
+
+    with FakeServer(script=script) as fake:
+        rc, out, err = run_view(["--connect", fake.address, "--bricks", "--frames", "2",
+                                 "--encoding", "float32", "--zstd", "--out", str(tmp_path),
+                                 "--timeout", "10"], capsys)
+    assert rc == 0, err
+    (w,) = fake.watches
+    assert w.bricks and not w.frames
+    assert (w.brick_encoding, w.brick_compression) == (wire.BRICK_FLOAT32, wire.COMPRESSION_ZSTD)
+    assert not w.HasField("view")                       # bricks only: the frames' view untouched
+    pngs = sorted(tmp_path.glob("bricks_*.png"))
+    assert [p.name for p in pngs] == ["bricks_000001.png", "bricks_000002.png"]
+    a, b = read_png(pngs[0]).astype(int), read_png(pngs[1]).astype(int)
+    assert a.shape == b.shape
+    # the deformed slices show the bright VOI (bone window: 900 HU -> ~178 grey), the
+    # undeformed ones only -100 HU (0 in the bone window) at the same place
+    assert (np.abs(a - b) > 100).sum() > 1000
+    assert "2 bricks received" in out and "key 20x17x23 voxels in 3 parts" in out
+
+
+# ---------------------------------------------------------------------------------------
+# The live window's keys (no display needed: the controller and the view it sends)
+
+
+def test_keys_send_views():
+    with FakeServer(script=None) as fake, Client(fake.address) as c:
+        reply = c.watch(frames=True)
+        args = view_mod.build_parser().parse_args(["--connect", fake.address])
+        viewer = view_mod.Viewer(args, c, reply)
+        try:
+            for key in ("right", "up", "up", "up", "up", "up", "up", "up", "+", "p", "x", "q"):
+                viewer._on_key(key)
+        finally:
+            viewer.close()
+        sent = fake.watches[1:]
+        assert [w.session_id for w in sent] == [SID] * len(sent)
+        assert sent[0].view.azimuth_deg == 45.0 and not sent[0].view.HasField("zoom")
+        # elevation 25 + 7 x 10 would be 95: held at 89, inside the server's range
+        assert [w.view.elevation_deg for w in sent[1:8]] == [35, 45, 55, 65, 75, 85, 89]
+        assert sent[8].view.zoom == pytest.approx(1.25)
+        assert sent[9].view.preset == "soft_tissue"      # bone -> soft_tissue
+        assert len(sent) == 10 and viewer.controller.quit  # "x" sends nothing, q quits
+        assert fake.views[SID].elevation_deg == 89
+
+
+def test_live_window_shows_frames_and_sends_keys(capsys):
+    """Under a display (e.g. xvfb-run): the window opens (no --out/--mp4), key events on
+    its canvas reach the server as WatchSession views, and --frames ends it."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        _skip("no display ($DISPLAY unset; run under xvfb-run -a for the live window test)")
+    backend = matplotlib.get_backend()   # palpsim.plots picks Agg for the other tests
+    if not view_mod.gui_available():
+        _skip(f"$DISPLAY={os.environ.get('DISPLAY')} but no GUI matplotlib backend opens a "
+              "figure (tkinter or Qt missing?)")
+    try:
+        _live_window(capsys)
+    finally:
+        plt.close("all")
+        plt.switch_backend(backend)
+
+
+def _live_window(capsys):
+    from matplotlib.backend_bases import KeyEvent
+
+    sent_keys = []
+    original = view_mod.Viewer.open_outputs
+
+    def open_outputs(self, live):
+        original(self, live)
+        assert live and self.window is not None
+        canvas = self.window.fig.canvas
+        for key in ("left", "p"):
+            canvas.callbacks.process("key_press_event", KeyEvent("key_press_event", canvas, key))
+            sent_keys.append(key)
+
+    with FakeServer(script=frames_forever(fps=30)) as fake:
+        view_mod.Viewer.open_outputs = open_outputs
+        try:
+            rc, out, err = run_view(["--connect", fake.address, "--frames", "5", "--size", "320x180",
+                                     "--timeout", "10"], capsys)
+        finally:
+            view_mod.Viewer.open_outputs = original
+    assert rc == 0, err
+    assert summary_numbers(out)["shown"] == 5
+    assert sent_keys == ["left", "p"]
+    views = [w.view for w in fake.watches[1:]]
+    assert [v.azimuth_deg for v in views[:1]] == [25.0] and views[1].preset == "soft_tissue"
+
+
+# ---------------------------------------------------------------------------------------
+# Ctrl-C
+
+
+def test_ctrl_c_exits_cleanly_with_summary_and_a_finished_mp4(tmp_path):
+    with FakeServer(script=frames_forever(fps=30)) as fake:
+        out_dir, mp4 = tmp_path / "png", tmp_path / "v.mp4"
+        cmd = [sys.executable, "-m", "palpsim.view", "--connect", fake.address, "--size", "320x180",
+               "--out", str(out_dir), "--mp4", str(mp4)]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while len(list(out_dir.glob("frame_*.png"))) < 5:
+                assert proc.poll() is None, proc.communicate()
+                assert time.monotonic() < deadline, "no frames written within 30 s"
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "interrupted" in err
+    n = summary_numbers(out)
+    pngs = len(list(out_dir.glob("frame_*.png")))
+    assert n["shown"] == pngs >= 5
+    assert len(read_mp4(mp4)[0]) == pngs
+
+
+# ---------------------------------------------------------------------------------------
+# End to end: the real palpsim-server (skipped until it serves frames and bricks)
+
+E2E_SCENE = """
+name: "phantom 2 mm, frames and bricks (palpsim-view end-to-end test)"
+phantom { voxel_mm: 2.0 }
+effects { haptics: true chainmail: true relaxation: true inversion: true frames: true bricks: true }
+render { width: 320 height: 180 }
+deform { backend: "cpu" }
+"""
+
+# bricks need no OpenGL: this scene serves them where frames cannot be rendered
+E2E_BRICKS_SCENE = """
+name: "phantom 2 mm, bricks only (palpsim-view end-to-end test)"
+phantom { voxel_mm: 2.0 }
+effects { haptics: true chainmail: true relaxation: true inversion: true bricks: true }
+deform { backend: "cpu" }
+"""
+
+
+def _server_binary() -> Path | None:
+    d = os.environ.get("PALPSIM_BUILD_DIR")
+    p = Path(d) / "palpsim-server" if d else ROOT / "build" / "palpsim-server"
+    return p if p.is_file() and os.access(p, os.X_OK) else None
+
+
+def _skip(reason: str) -> None:
+    print(f"SKIPPED: {reason}")
+    pytest.skip(reason)
+
+
+def _start_stream_server(tmp: Path, scene_text: str) -> Iterator[Any]:
+    """A real palpsim-server on `scene_text`, or a skip with the reason when there is none,
+    when it predates the stream path (it does not know the scene's new fields), when it
+    cannot render here (EGL / OpenGL), or when its Info reply has no stream endpoint."""
+    from palpsim.server import LocalServer, ServerStartError
+
+    binary = _server_binary()
+    if binary is None:
+        _skip("no palpsim-server in $PALPSIM_BUILD_DIR="
+              f"{os.environ.get('PALPSIM_BUILD_DIR', '(unset, looked in build/)')}")
+    scene = tmp / "scene.textproto"
+    scene.write_text(scene_text)
+    srv = LocalServer(binary, scene=scene, startup_timeout_s=180, log_path=tmp / "server.log")
+    try:
+        srv.start()
+    except ServerStartError as e:
+        srv.stop()  # closes its log
+        text = str(e)
+        if re.search(r"(frames|bricks|render)\b.*(unknown|no field|not.*found)|"
+                     r"(unknown|no field).*(frames|bricks|render)|EGL|OpenGL", text, re.I | re.S):
+            last = (srv.tail().splitlines() or ["(no output)"])[-1]
+            _skip(f"{binary} does not serve this stream here (a build from before the stream "
+                  f"path, or no OpenGL): {last}")
+        raise
+    try:
+        with Client(srv.address) as c:
+            info = c.info()
+        if not info.stream_endpoint:
+            _skip(f"{binary}'s Info reply has an empty stream_endpoint (a server without the "
+                  "stream path)")
+        yield srv
+    finally:
+        status = srv.stop()
+    assert status == 0, f"the server did not stop cleanly:\n{srv.tail()}"
+
+
+@pytest.fixture(scope="module")
+def stream_server(tmp_path_factory):
+    yield from _start_stream_server(tmp_path_factory.mktemp("view-e2e"), E2E_SCENE)
+
+
+@pytest.fixture(scope="module")
+def bricks_server(tmp_path_factory):
+    yield from _start_stream_server(tmp_path_factory.mktemp("view-e2e-bricks"), E2E_BRICKS_SCENE)
+
+
+def _press_while(proc: subprocess.Popen, session, seconds: float = 60.0) -> int:
+    """Presses the back over L4 (x = 0, z = -38 mm, skin near y = 110 mm) in and out at
+    ~200 poses a second until `proc` exits; returns the poses sent."""
+    poses = 0
+    t0 = time.monotonic()
+    while proc.poll() is None and time.monotonic() - t0 < seconds:
+        phase = (poses % 400) / 400.0
+        depth_mm = 12.0 * (1 - abs(2 * phase - 1))       # 0 -> 12 -> 0 mm
+        session.pose((0.0, 118.0 - 8.0 - depth_mm, -38.0), client_time_s=poses * 0.005)
+        poses += 1
+        time.sleep(0.005)
+    return poses
+
+
+def _view_cmd(address: str, *args: str) -> list[str]:
+    return [sys.executable, "-m", "palpsim.view", "--connect", address, *args]
+
+
+def test_end_to_end_frames(stream_server, tmp_path):
+    out_dir = tmp_path / "frames"
+    with Client(stream_server.address) as c, c.open_session("view-e2e") as s:
+        s.pose((0.0, 130.0, -38.0))                      # a first pose, out of contact
+        proc = subprocess.Popen(_view_cmd(stream_server.address, "--session", f"{s.id:016x}",
+                                          "--frames", "3", "--out", str(out_dir),
+                                          "--timeout", "60"),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        poses = _press_while(proc, s)
+        out, err = proc.communicate(timeout=60)
+        stats = s.stats()
+    assert proc.returncode == 0, f"{err}\n{stream_server.tail()}"
+    pngs = sorted(out_dir.glob("frame_*.png"))
+    assert len(pngs) == 3, (out, err)
+    for p in pngs:
+        rgb = read_png(p)
+        assert rgb.shape == (180, 320, 3)
+        assert rgb.std() > 5.0                           # a picture, not a blank frame
+    n = summary_numbers(out)
+    assert n["shown"] == 3 and n["p50"] >= 0
+    assert poses > 0 and stats.HasField("stream") and stats.stream.frames_published >= 3
+
+
+def test_end_to_end_bricks(bricks_server, tmp_path):
+    out_dir = tmp_path / "bricks"
+    with Client(bricks_server.address) as c, c.open_session("view-e2e-bricks") as s:
+        s.pose((0.0, 130.0, -38.0))
+        proc = subprocess.Popen(_view_cmd(bricks_server.address, "--session", f"{s.id:016x}",
+                                          "--bricks", "--zstd", "--frames", "2", "--out",
+                                          str(out_dir), "--timeout", "60"),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _press_while(proc, s)
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, f"{err}\n{bricks_server.tail()}"
+    assert len(sorted(out_dir.glob("bricks_*.png"))) == 2
+    assert "(incomplete)" not in out and re.search(r"key \d+x\d+x\d+ voxels", out), out
+
+
+def test_end_to_end_bricks_rebuild_the_volume(bricks_server):
+    """The library on the real stream: the key is the patient grid of the Info reply, a
+    press brings a deformed VOI brick (J differs from the key inside its box only), and
+    lifting the tip out brings an undeformed one (J equals the key again, exactly)."""
+    addr = bricks_server.address
+    with Client(addr) as c, c.open_session("view-e2e-library") as s:
+        patient = c.info().patient
+        s.pose((0.0, 130.0, -38.0))
+        reply = c.watch(session_id=s.id, frames=False, bricks=True, brick_encoding="float32",
+                        compression="zstd")
+        vol, key, deformed_box, released = DeformedVolume(), None, None, False
+        with StreamClient.from_watch(reply, addr) as sc:
+            deadline = time.monotonic() + 60
+            while not released and time.monotonic() < deadline:
+                # 10 mm into the back over L4 until a deformed brick came, then out of the body
+                s.pose((0.0, 100.0, -38.0) if deformed_box is None else (0.0, 130.0, -38.0))
+                u = sc.receive(0.01)
+                for b in (u.bricks if u else []):
+                    vol.apply(b)
+                    if b.key and vol.complete:
+                        key = vol.volume.copy()
+                    elif not b.key and key is not None and b.deformed and deformed_box is None:
+                        deformed_box = (slice(b.lo_k, b.lo_k + b.size_k),
+                                        slice(b.lo_j, b.lo_j + b.size_j),
+                                        slice(b.lo_i, b.lo_i + b.size_i))
+                        outside = vol.volume.copy()
+                        outside[deformed_box] = key[deformed_box]
+                        assert np.array_equal(outside, key)
+                        assert np.abs(vol.volume[deformed_box] - key[deformed_box]).max() > 0
+                    elif not b.key and deformed_box is not None and not b.deformed:
+                        assert np.array_equal(vol.volume, key)
+                        released = True
+    assert key is not None, "no complete key within 60 s"
+    assert deformed_box is not None, "no deformed VOI brick within 60 s of pressing"
+    assert released, "no undeformed VOI brick after the tip left the body"
+    assert vol.grid.size == (patient.size_i, patient.size_j, patient.size_k)
+    assert vol.grid.spacing_mm == pytest.approx(patient.spacing_mm)
+    np.testing.assert_allclose(vol.grid.origin_mm, (patient.origin_mm.x, patient.origin_mm.y,
+                                                    patient.origin_mm.z), atol=1e-9)

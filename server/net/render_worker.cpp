@@ -1,0 +1,341 @@
+#include "net/render_worker.h"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cinttypes>
+#include <cmath>
+#include <cstdio>
+#include <exception>
+
+#ifdef __linux__
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+#endif
+
+#include "core/error.h"
+#include "render/egl_context.h"
+#include "render/frame_encoder.h"
+#include "render/frame_renderer.h"
+#include "render/overlay_writer.h"
+
+namespace palpsim::net {
+namespace {
+
+// how long the thread naps when no watched session needs a frame (s): well below a
+// frame interval, so a new pose or J is drawn within about a millisecond
+constexpr double kIdleSleepS = 1e-3;
+// and while nobody watches anything (s)
+constexpr double kUnwatchedSleepS = 10e-3;
+
+std::string hex_id(std::uint64_t id) {
+  char b[32];
+  std::snprintf(b, sizeof b, "%016" PRIx64, id);
+  return b;
+}
+
+void add_times(render::FrameTimes& a, const render::FrameTimes& b) {
+  a.j_to_texture_ms += b.j_to_texture_ms;
+  a.raycast_ms += b.raycast_ms;
+  a.slices_ms += b.slices_ms;
+  a.composite_ms += b.composite_ms;
+  a.readback_ms += b.readback_ms;
+  a.encode_ms += b.encode_ms;
+  a.total_ms += b.total_ms;
+}
+
+bool same_marks(const render::FrameMarks& a, const render::FrameMarks& b) {
+  return a.has_tip == b.has_tip && a.tip_mm == b.tip_mm && a.proxy_mm == b.proxy_mm && a.contact == b.contact;
+}
+
+}  // namespace
+
+// the render thread's own state of one session slot
+struct RenderWorker::View {
+  std::uint64_t session = 0;               // 0: not rendered
+  render::FrameRenderer::OverlayId overlay = -1;
+  std::uint64_t deform_step = 0;           // J in the overlay: its step and pose
+  std::uint64_t deform_pose_seq = 0;
+  bool deformed = false;
+  double pending_j_ms = 0;                 // J-to-texture time not yet counted in a frame
+  std::uint64_t view_version = ~std::uint64_t(0);
+  render::ViewSettings view;
+  render::FrameMarks marks;                // of the latest frame, or the newest pose seen
+  std::uint64_t pose_seq = 0;
+  double pose_server_time_s = 0;
+  std::uint64_t frame_seq = 0;
+  double next_frame_s = 0;                 // server clock: not before then (render.max_fps)
+  bool dirty = true;                       // something changed since the latest frame
+};
+
+RenderWorker::RenderWorker(ServerShared& shared, StreamState& stream, std::chrono::steady_clock::time_point start,
+                           int nice)
+    : sh_(shared), st_(stream), start_(start), nice_(nice) {}
+
+RenderWorker::~RenderWorker() { stop(); }
+
+double RenderWorker::now_s() const {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+}
+
+void RenderWorker::start() {
+  if (thread_.joinable()) return;
+  const World* w = sh_.world.load(std::memory_order_acquire);
+  sh_.render_seen_generation.store(w ? w->generation : 0, std::memory_order_release);
+  thread_ = std::thread([this] { run(); });
+  std::unique_lock<std::mutex> lock(setup_mu_);
+  setup_cv_.wait(lock, [this] { return setup_done_; });
+  if (!setup_error_.empty()) {
+    lock.unlock();
+    stop();
+    throw Error(setup_error_);
+  }
+}
+
+void RenderWorker::stop() {
+  stop_.store(true);
+  if (thread_.joinable()) thread_.join();
+  sh_.render_seen_generation.store(~std::uint64_t(0), std::memory_order_release);
+  st_.render_wants_device.store(false, std::memory_order_release);
+  std::lock_guard<std::mutex> lock(st_.info_mu);
+  st_.info.render_thread = false;
+  st_.info.egl_context = false;
+  st_.info.render_bytes = 0;
+}
+
+void RenderWorker::run() {
+#ifdef __linux__
+  // a per-thread nice value, inherited by the threads Mesa's llvmpipe starts from here
+  setpriority(PRIO_PROCESS, pid_t(syscall(SYS_gettid)), nice_);
+#endif
+  bool first = true;
+  try {
+    ctx_ = render::EglContext::create();
+    spdlog::info("render thread: OpenGL {}", ctx_->describe());
+    std::lock_guard<std::mutex> lock(st_.info_mu);
+    st_.info.render_thread = true;
+    st_.info.egl_context = true;
+    st_.info.gl_renderer = ctx_->renderer();
+    st_.info.gl_version = ctx_->version();
+  } catch (const std::exception& e) {
+    const World* w = sh_.world.load(std::memory_order_acquire);
+    setup_error_ = "scene '" + (w ? w->scene.name : std::string()) +
+                   "' asks for frames (effects.frames) but no OpenGL 4.5 context could be made: " + e.what();
+    std::lock_guard<std::mutex> lock(setup_mu_);
+    setup_done_ = true;
+    setup_cv_.notify_all();
+    return;
+  }
+  views_.assign(kMaxSlots, View{});
+  while (!stop_.load(std::memory_order_relaxed)) {
+    // a new scene: a renderer of its patient (or none)
+    const World* w = sh_.world.load(std::memory_order_acquire);
+    if (w && w->generation != generation_) {
+      set_up_world();
+      if (first) {
+        first = false;
+        std::lock_guard<std::mutex> lock(setup_mu_);
+        setup_done_ = true;
+        setup_cv_.notify_all();
+        if (!setup_error_.empty()) break;
+      }
+    }
+    // one pass over the watched sessions: at most one frame each
+    bool worked = false, any = false;
+    const double now = now_s();
+    for (int i = 0; i < kMaxSlots && !stop_.load(std::memory_order_relaxed); ++i) {
+      worked = serve(i, now) || worked;
+      any = any || views_[i].session != 0;
+    }
+    if (!worked) std::this_thread::sleep_for(std::chrono::duration<double>(any ? kIdleSleepS : kUnwatchedSleepS));
+  }
+  // every GL object is destroyed on this thread, the context last
+  for (View& v : views_) release_view(v);
+  writer_.reset();
+  encoder_.reset();
+  renderer_.reset();
+  ctx_.reset();
+  if (first) {
+    std::lock_guard<std::mutex> lock(setup_mu_);
+    setup_done_ = true;
+    setup_cv_.notify_all();
+  }
+}
+
+void RenderWorker::set_up_world() {
+  const World* w = sh_.world.load(std::memory_order_acquire);
+  generation_ = w->generation;
+  const Scene scene = w->scene;
+  const bool same_patient = patient_ == w->patient;
+  patient_ = w->patient;
+  sh_.render_seen_generation.store(generation_, std::memory_order_release);
+  settings_ = scene.render;
+  // overlays hold at most one VOI: deform.voi_edge^3 within the grid, or the whole grid
+  const Vec3i g = patient_->grid.size;
+  const int e = scene.deform.voi_edge;
+  max_voi_ = scene.deform.whole_volume ? g : Vec3i{std::min(e, g.x), std::min(e, g.y), std::min(e, g.z)};
+  for (View& v : views_) release_view(v);
+  std::string note;
+  try {
+    if (!scene.effects.frames) {
+      writer_.reset();  // before the renderer whose textures they may have registered
+      encoder_.reset();
+      renderer_.reset();
+      note = "scene '" + scene.name + "' asks for no frames";
+    } else {
+      // the writer and encoder hold CUDA registrations of the renderer's textures: they go first
+      writer_.reset();
+      encoder_.reset();
+      if (!renderer_ || !same_patient) {
+        renderer_.reset();
+        renderer_ = std::make_unique<render::FrameRenderer>(patient_);
+      }
+      std::string enc_note, writer_note;
+      encoder_ = render::make_frame_encoder(settings_.jpeg_encoder, *ctx_, &enc_note);
+      writer_ = render::make_overlay_writer(settings_.overlay_writer, *ctx_, &writer_note);
+      note = enc_note + "; " + writer_note;
+      spdlog::info("frames for scene '{}': {}; at most {:g} frames/s per watched session", scene.name, note,
+                   settings_.max_fps);
+    }
+  } catch (const std::exception& e) {
+    writer_.reset();
+    encoder_.reset();
+    renderer_.reset();
+    note = "scene '" + scene.name + "': frames cannot be served: " + e.what();
+    if (!setup_done_)
+      setup_error_ = note;
+    else
+      spdlog::error("{}; its sessions get no frames", note);
+  }
+  // the deformation worker hands J over in device memory when the writer reads it from there
+  st_.render_wants_device.store(writer_ && std::string(writer_->name()) == "cuda-gl", std::memory_order_release);
+  std::lock_guard<std::mutex> lock(st_.info_mu);
+  st_.info.jpeg_encoder = encoder_ ? encoder_->name() : "";
+  st_.info.overlay_writer = writer_ ? writer_->name() : "";
+  st_.info.render_note = note;
+  st_.info.render_bytes = renderer_ ? renderer_->bytes() : 0;
+}
+
+void RenderWorker::release_view(View& v) {
+  if (v.overlay >= 0 && renderer_) {
+    try {
+      renderer_->remove_overlay(v.overlay);
+    } catch (const std::exception&) {
+      // a failing GL delete leaves nothing to undo
+    }
+    std::lock_guard<std::mutex> lock(st_.info_mu);
+    st_.info.render_bytes = renderer_->bytes();
+  }
+  v = View{};
+}
+
+bool RenderWorker::serve(int index, double now) {
+  View& v = views_[index];
+  StreamSlot& ss = st_.slots[index];
+  const std::uint64_t id = renderer_ ? ss.frames_for.load(std::memory_order_acquire) : 0;
+  // a session no longer watched, or another one in this slot
+  if (id != v.session) {
+    release_view(v);
+    v.session = id;
+    if (id == 0) return false;
+  }
+  if (id == 0) return false;
+  try {
+    if (v.overlay < 0) {
+      v.overlay = renderer_->add_overlay(max_voi_);
+      std::lock_guard<std::mutex> lock(st_.info_mu);
+      st_.info.render_bytes = renderer_->bytes();
+    }
+    // the newest J into the overlay
+    if (ss.j_render.take()) {
+      const JSnapshot& j = ss.j_render.front();
+      if (j.session_id == id) {
+        const auto t0 = std::chrono::steady_clock::now();
+        render::OverlaySource src;
+        src.voi = j.deformed ? j.voi : Voi{};
+        src.host_j = j.host_valid ? j.host_j.data() : nullptr;
+        src.device_j = j.device_valid ? j.device_j.get() : nullptr;
+        writer_->write(*renderer_, v.overlay, src);
+        v.pending_j_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+        v.deform_step = j.step;
+        v.deform_pose_seq = j.pose_seq;
+        v.deformed = j.deformed;
+        v.dirty = true;
+      }
+    }
+    // the session's view, as its viewers last set it (the scene's defaults before)
+    {
+      std::lock_guard<std::mutex> lock(ss.mu);
+      const std::uint64_t version = ss.watch.session_id == id ? ss.watch.view_version : 0;
+      if (version != v.view_version) {
+        v.view = ss.watch.session_id == id ? ss.watch.view : default_view(settings_);
+        v.view_version = version;
+        v.dirty = true;
+      }
+    }
+    // the newest pose: the tip and proxy markers, the camera and slice centre
+    Contact c;
+    sh_.slots[index].latest.read(c);
+    if (c.session_id == id && c.seq != 0) {
+      render::FrameMarks m;
+      m.has_tip = true;
+      m.tip_mm = c.tip_mm;
+      m.proxy_mm = c.proxy_mm;
+      m.contact = c.contact;
+      if (!same_marks(m, v.marks)) v.dirty = true;
+      v.marks = m;
+      v.pose_seq = c.seq;
+      v.pose_server_time_s = c.server_time_s;
+    }
+    if (!v.dirty || now < v.next_frame_s) return false;
+
+    // render, encode and hand the frame over (newest wins)
+    EncodedFrame& f = ss.frames.back();
+    f.times = render::FrameTimes{};
+    f.times.j_to_texture_ms = v.pending_j_ms;
+    const auto t0 = std::chrono::steady_clock::now();
+    renderer_->render(v.overlay, v.view, v.marks, f.times);
+    encoder_->encode(*renderer_, v.view.jpeg_quality, f.jpeg, f.times);
+    f.times.total_ms =
+        v.pending_j_ms + std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    f.session_id = id;
+    f.frame_seq = ++v.frame_seq;
+    f.pose_seq = v.pose_seq;
+    f.pose_server_time_s = v.pose_server_time_s;
+    f.deform_step = v.deform_step;
+    f.deform_pose_seq = v.deform_pose_seq;
+    f.deformed = v.deformed;
+    f.marks = v.marks;
+    f.view = v.view;
+    f.encoder = encoder_->name();
+    const bool replaced = ss.frames.publish();
+    ss.frame_bytes.store(held_bytes(ss.frames), std::memory_order_relaxed);
+    v.pending_j_ms = 0;
+    v.dirty = false;
+    v.next_frame_s = now + 1.0 / settings_.max_fps;
+    st_.frames_rendered.fetch_add(1, std::memory_order_relaxed);
+    if (replaced) st_.frames_replaced.fetch_add(1, std::memory_order_relaxed);
+    std::lock_guard<std::mutex> lock(ss.mu);
+    SessionStreamReport& r = ss.report_of(id);
+    ++r.frames_rendered;
+    if (replaced) ++r.frames_replaced;
+    r.last = f.times;
+    add_times(r.sum, f.times);
+    std::lock_guard<std::mutex> info_lock(st_.info_mu);
+    add_times(st_.frame_time_sum, f.times);
+    return true;
+  } catch (const std::exception& e) {
+    // a failed frame poisons nothing: the session's next change is drawn again
+    st_.render_failures.fetch_add(1, std::memory_order_relaxed);
+    v.dirty = false;
+    v.next_frame_s = now + 1.0 / settings_.max_fps;
+    const std::string msg = "session " + hex_id(id) + ": frame failed: " + e.what();
+    std::lock_guard<std::mutex> lock(st_.info_mu);
+    if (st_.info.last_error != msg) spdlog::warn("{} (counted in stats)", msg);
+    st_.info.last_error = msg;
+    return false;
+  }
+}
+
+}  // namespace palpsim::net

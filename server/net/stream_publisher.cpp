@@ -1,0 +1,602 @@
+#include "net/stream_publisher.h"
+
+#include <spdlog/spdlog.h>
+#include <zstd.h>
+
+#include <algorithm>
+#include <cinttypes>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <unordered_set>
+#include <vector>
+#include <zmq.hpp>
+
+#include "core/error.h"
+#include "palpsim/wire.pb.h"
+
+namespace palpsim::net {
+namespace {
+
+namespace v1 = ::palpsim::v1;
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+// Why 64: ZeroMQ counts every part of a message against the high-water mark, and a
+// whole-volume key is at most kMaxKeyParts two-part messages; a slow subscriber's pipe
+// then holds at most one key plus a few frames. Beyond it, messages to that subscriber
+// are dropped (the XPUB default), never queued and never waited for.
+constexpr int kSendHwm = 64;
+// the key (undeformed image) goes in slabs along k of about this many voxels, at most
+// kMaxKeyParts of them
+constexpr std::size_t kKeySlabVoxels = std::size_t(2) << 20;
+constexpr int kMaxKeyParts = 16;
+// subscription messages longer than this are not topics of this server
+constexpr std::int64_t kMaxSubscriptionBytes = 1024;
+// the thread polls for subscriptions this long at most between passes (ms)
+constexpr int kPollMs = 1;
+// a topic's length: "frame." or "brick." and 16 hex digits
+constexpr std::size_t kTopicLength = 6 + 16;
+// Why messages are sent once more after this long (s): at a full pipe ZeroMQ drops the
+// message being sent, not the oldest queued one, so the last frame of a burst (or a
+// "closed" notice) may never reach a viewer that was behind. The newest frame of a
+// session that went quiet, and every "closed" notice, are sent again once, by when a
+// viewer that drains its socket has room again.
+constexpr double kResendAfterS = 0.25;
+
+std::string hex_id(std::uint64_t id) {
+  char b[32];
+  std::snprintf(b, sizeof b, "%016" PRIx64, id);
+  return b;
+}
+
+void set_vec(v1::Vec3* out, const Vec3& v) {
+  out->set_x(v.x);
+  out->set_y(v.y);
+  out->set_z(v.z);
+}
+
+// the session id of a full topic ("frame.<16 hex>"), or 0
+std::uint64_t topic_session(const std::string& t) {
+  if (t.size() != kTopicLength) return 0;
+  std::uint64_t id = 0;
+  for (std::size_t i = 6; i < t.size(); ++i) {
+    const char c = t[i];
+    int d = -1;
+    if (c >= '0' && c <= '9') d = c - '0';
+    if (c >= 'a' && c <= 'f') d = c - 'a' + 10;
+    if (d < 0) return 0;
+    id = (id << 4) | std::uint64_t(d);
+  }
+  return id;
+}
+
+}  // namespace
+
+std::string derive_stream_endpoint(const std::string& control) {
+  if (control.rfind("tcp://", 0) == 0) {
+    const auto colon = control.rfind(':');
+    if (colon == std::string::npos || colon < 6) throw Error("--bind " + control + ": a tcp address needs :PORT");
+    const std::string port = control.substr(colon + 1);
+    if (port == "*") return control;
+    try {
+      std::size_t used = 0;
+      const int p = std::stoi(port, &used);
+      if (used != port.size() || p <= 0 || p >= 65534) throw std::invalid_argument(port);
+      return control.substr(0, colon + 1) + std::to_string(p + 2);
+    } catch (const std::exception&) {
+      throw Error("--bind " + control + ": port '" + port + "' is not a number in 1..65533 or *");
+    }
+  }
+  if (control.rfind("ipc://", 0) == 0) return control + ".stream";
+  if (control.rfind("inproc://", 0) == 0) return control + "-stream";
+  throw Error("--bind " + control + ": expected tcp://HOST:PORT, ipc://PATH or inproc://NAME");
+}
+
+// the publisher's own state of one session slot
+struct PubSlot {
+  std::uint64_t session = 0;        // the open session in the slot (0: none)
+  bool frames = false, bricks = false;  // watched at the last pass
+  bool key_pending = false;         // a key is owed to brick subscribers
+  std::uint64_t key_id = 0;         // keys sent so far
+  std::uint64_t brick_seq = 0;      // bricks sent so far (VOI and key parts)
+  std::string last_voi_brick;       // the latest VOI brick's payload, sent again after a key
+  double next_brick_s = 0;          // server clock: no VOI brick before then (render.max_fps)
+  std::string last_frame;           // the latest frame's payload and when it was sent
+  double last_frame_s = 0;
+  bool frame_resent = true;         // the latest frame was sent again after the session went quiet
+  // recording (render.record_dir): the session's folder and index
+  fs::path record_dir;
+  std::ofstream record_index;
+};
+
+struct StreamPublisher::Impl {
+  ServerShared& sh;
+  StreamState& st;
+  Clock::time_point start;
+  zmq::context_t ctx{1};
+  zmq::socket_t xpub{ctx, zmq::socket_type::xpub};
+  std::atomic<bool> stop{false};
+
+  // subscriptions: full topics, and shorter prefixes (a prefix of "frame." watches every session)
+  std::unordered_set<std::string> exact;
+  std::vector<std::string> prefixes;
+  std::vector<PubSlot> pub = std::vector<PubSlot>(kMaxSlots);
+
+  // the world whose patient the keys are made of
+  std::uint64_t generation = 0;
+  PatientPtr patient;
+  Scene scene;
+
+  // notices sent again once (kResendAfterS)
+  struct Late {
+    double due_s;
+    std::string topic, payload;
+  };
+  std::vector<Late> late;
+
+  // reused buffers: no allocation per message once they have grown
+  v1::StreamMessage msg;
+  std::string payload;
+  std::vector<std::int16_t> i16;
+  std::vector<char> packed;
+  ZSTD_CCtx* zstd = ZSTD_createCCtx();
+
+  Impl(ServerShared& s, StreamState& t, Clock::time_point t0) : sh(s), st(t), start(t0) {}
+  ~Impl() { ZSTD_freeCCtx(zstd); }
+
+  double now_s() const { return std::chrono::duration<double>(Clock::now() - start).count(); }
+
+  void send(const std::string& topic, const std::string& body) {
+    try {
+      xpub.send(zmq::buffer(topic), zmq::send_flags::sndmore | zmq::send_flags::dontwait);
+      xpub.send(zmq::buffer(body), zmq::send_flags::dontwait);
+      st.bytes_published.fetch_add(topic.size() + body.size(), std::memory_order_relaxed);
+    } catch (const zmq::error_t& e) {
+      spdlog::warn("stream: sending on {} failed: {}", topic, e.what());
+    }
+  }
+
+  void notice(const std::string& topic, std::uint64_t id, const char* event, const std::string& message,
+              bool unknown, bool again = false) {
+    msg.Clear();
+    msg.set_schema_version(v1::VERSION_CURRENT);
+    auto* n = msg.mutable_notice();
+    n->set_session_id(id);
+    n->set_event(event);
+    n->set_message(message);
+    if (unknown) {
+      n->mutable_error()->set_code(v1::ERROR_UNKNOWN_SESSION);
+      n->mutable_error()->set_message(message);
+    }
+    msg.SerializeToString(&payload);
+    send(topic, payload);
+    if (again) late.push_back({now_s() + kResendAfterS, topic, payload});
+  }
+
+  // is a topic watched by some subscription (exact, or a prefix of it)?
+  bool watched(const std::string& topic) const {
+    if (exact.count(topic)) return true;
+    for (const std::string& p : prefixes)
+      if (topic.compare(0, p.size(), p) == 0) return true;
+    return false;
+  }
+
+  bool open(std::uint64_t id) const {
+    return id != 0 && sh.slots[id & (kMaxSlots - 1)].id.load(std::memory_order_acquire) == id;
+  }
+
+  // one subscription message: 1 or 0, then the topic
+  void subscription(const zmq::message_t& m) {
+    if (m.size() == 0) return;
+    const bool on = static_cast<const char*>(m.data())[0] == 1;
+    const std::string topic(static_cast<const char*>(m.data()) + 1, m.size() - 1);
+    const bool is_frame = topic.rfind("frame.", 0) == 0, is_brick = topic.rfind("brick.", 0) == 0;
+    // a shorter topic that begins some session's topics ("", "frame.", "brick.00ab", ...)
+    const auto begins = [&topic](const char* kind) {
+      const std::string k(kind);
+      const std::size_t n = std::min(topic.size(), k.size());
+      return topic.compare(0, n, k, 0, n) == 0;
+    };
+    const bool prefix = topic.size() < kTopicLength && (begins("frame.") || begins("brick."));
+    if (!on) {
+      exact.erase(topic);
+      prefixes.erase(std::remove(prefixes.begin(), prefixes.end(), topic), prefixes.end());
+      return;
+    }
+    const std::uint64_t id = (is_frame || is_brick) ? topic_session(topic) : 0;
+    if (id != 0) {
+      if (!open(id)) {
+        st.bad_subscriptions.fetch_add(1, std::memory_order_relaxed);
+        notice(topic, id, "unknown_session",
+               "subscription " + topic + ": session " + hex_id(id) +
+                   " is not open (never opened, closed, or timed out)",
+               true);
+        return;
+      }
+      exact.insert(topic);
+      // every brick subscriber gets a key, so it can rebuild the whole deformed volume
+      if (is_brick) pub[id & (kMaxSlots - 1)].key_pending = true;
+      return;
+    }
+    if (prefix) {
+      if (std::find(prefixes.begin(), prefixes.end(), topic) == prefixes.end()) prefixes.push_back(topic);
+      // brick subscribers of the sessions it covers get a key
+      for (PubSlot& p : pub)
+        if (p.session != 0 && brick_topic(p.session).compare(0, topic.size(), topic) == 0) p.key_pending = true;
+      return;
+    }
+    st.bad_subscriptions.fetch_add(1, std::memory_order_relaxed);
+    notice(topic, 0, "unknown_session",
+           "subscription '" + topic + "' names no stream: subscribe to frame.<16 hex digits of the session id> or "
+                                      "brick.<...> (WatchReply.frame_topic, brick_topic)",
+           true);
+  }
+
+  // a new scene: its patient for keys; brick subscribers get a new key
+  void pick_up_world() {
+    const World* w = sh.world.load(std::memory_order_acquire);
+    if (!w || w->generation == generation) return;
+    const bool changed = generation != 0;
+    generation = w->generation;
+    patient = w->patient;
+    scene = w->scene;
+    sh.publish_seen_generation.store(generation, std::memory_order_release);
+    if (!changed) return;
+    for (PubSlot& p : pub) {
+      if (p.session == 0) continue;
+      const std::string m = "scene changed to '" + scene.name + "' (generation " + std::to_string(generation) + ")";
+      if (p.frames) notice(frame_topic(p.session), p.session, "scene_changed", m, false);
+      if (p.bricks) notice(brick_topic(p.session), p.session, "scene_changed", m, false);
+      p.key_pending = p.bricks;
+      p.last_voi_brick.clear();
+    }
+  }
+
+  // encodes `n` floats into packed bytes (int16 HU or float32), compressed when asked
+  std::uint64_t encode(const float* v, std::size_t n, bool float32, bool zstd_on, std::string* out) {
+    const char* raw = nullptr;
+    std::size_t raw_bytes = 0;
+    if (float32) {
+      raw = reinterpret_cast<const char*>(v);
+      raw_bytes = n * sizeof(float);
+    } else {
+      // round to nearest (halves away from zero) and clamp to the int16 range
+      i16.resize(n);
+      for (std::size_t e = 0; e < n; ++e) {
+        const float c = std::min(32767.0f, std::max(-32768.0f, v[e]));
+        i16[e] = std::int16_t(std::lround(c));
+      }
+      raw = reinterpret_cast<const char*>(i16.data());
+      raw_bytes = n * sizeof(std::int16_t);
+    }
+    if (!zstd_on) {
+      out->assign(raw, raw_bytes);
+      return raw_bytes;
+    }
+    packed.resize(ZSTD_compressBound(raw_bytes));
+    const std::size_t z = ZSTD_compressCCtx(zstd, packed.data(), packed.size(), raw, raw_bytes, 1);
+    if (ZSTD_isError(z)) throw Error(std::string("zstd: ") + ZSTD_getErrorName(z));
+    out->assign(packed.data(), z);
+    return raw_bytes;
+  }
+
+  // the brick's geometry: the patient grid and the box
+  void geometry(v1::Brick* b, const Voi& box) {
+    const Grid& g = patient->grid;
+    b->set_lo_i(box.lo.x);
+    b->set_lo_j(box.lo.y);
+    b->set_lo_k(box.lo.z);
+    b->set_size_i(box.size.x);
+    b->set_size_j(box.size.y);
+    b->set_size_k(box.size.z);
+    b->set_grid_size_i(g.size.x);
+    b->set_grid_size_j(g.size.y);
+    b->set_grid_size_k(g.size.z);
+    b->set_spacing_mm(g.spacing_mm.x);
+    set_vec(b->mutable_grid_origin_mm(), g.origin_mm);
+    for (double d : g.direction) b->add_direction(d);
+    set_vec(b->mutable_origin_mm(), g.to_physical(Vec3(box.lo)));
+  }
+
+  void send_key(PubSlot& p, StreamSlot& ss, bool float32, bool zstd_on) {
+    const Grid& g = patient->grid;
+    const std::size_t plane = std::size_t(g.size.x) * g.size.y;
+    int slab = int(std::max<std::size_t>(1, kKeySlabVoxels / std::max<std::size_t>(1, plane)));
+    slab = std::max(slab, (g.size.z + kMaxKeyParts - 1) / kMaxKeyParts);
+    const int parts = (g.size.z + slab - 1) / slab;
+    ++p.key_id;
+    const std::string topic = brick_topic(p.session);
+    for (int part = 0; part < parts; ++part) {
+      const int k0 = part * slab, nk = std::min(slab, g.size.z - k0);
+      msg.Clear();
+      msg.set_schema_version(v1::VERSION_CURRENT);
+      auto* b = msg.mutable_brick();
+      b->set_session_id(p.session);
+      b->set_brick_seq(++p.brick_seq);
+      b->set_key(true);
+      b->set_key_id(p.key_id);
+      b->set_key_part(part);
+      b->set_key_parts(parts);
+      b->set_deformed(false);
+      Voi box;
+      box.lo = {0, 0, k0};
+      box.size = {g.size.x, g.size.y, nk};
+      geometry(b, box);
+      b->set_encoding(float32 ? v1::BRICK_FLOAT32 : v1::BRICK_INT16);
+      b->set_compression(zstd_on ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE);
+      b->set_raw_bytes(encode(&patient->intensity.data[plane * k0], plane * nk, float32, zstd_on, b->mutable_data()));
+      b->set_server_time_s(now_s());
+      msg.SerializeToString(&payload);
+      send(topic, payload);
+    }
+    st.key_bricks_published.fetch_add(parts, std::memory_order_relaxed);
+    p.key_pending = false;
+    std::lock_guard<std::mutex> lock(ss.mu);
+    ss.report_of(p.session).key_bricks_published += parts;
+  }
+
+  void send_voi_brick(PubSlot& p, StreamSlot& ss, const JSnapshot& j, bool float32, bool zstd_on) {
+    msg.Clear();
+    msg.set_schema_version(v1::VERSION_CURRENT);
+    auto* b = msg.mutable_brick();
+    b->set_session_id(p.session);
+    b->set_brick_seq(++p.brick_seq);
+    b->set_pose_seq(j.pose_seq);
+    b->set_deform_step(j.step);
+    b->set_deformed(j.deformed && j.host_valid);
+    const Voi box = b->deformed() ? j.voi : Voi{};
+    geometry(b, box);
+    b->set_encoding(float32 ? v1::BRICK_FLOAT32 : v1::BRICK_INT16);
+    b->set_compression(zstd_on ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE);
+    if (b->deformed()) b->set_raw_bytes(encode(j.host_j.data(), std::size_t(box.count()), float32, zstd_on, b->mutable_data()));
+    b->set_server_time_s(now_s());
+    set_vec(b->mutable_tip_mm(), j.tip_mm);
+    set_vec(b->mutable_proxy_mm(), j.proxy_mm);
+    msg.SerializeToString(&p.last_voi_brick);
+    send(brick_topic(p.session), p.last_voi_brick);
+    st.bricks_published.fetch_add(1, std::memory_order_relaxed);
+    std::lock_guard<std::mutex> lock(ss.mu);
+    ++ss.report_of(p.session).bricks_published;
+  }
+
+  void send_frame(PubSlot& p, StreamSlot& ss, const EncodedFrame& f) {
+    const double now = now_s();
+    msg.Clear();
+    msg.set_schema_version(v1::VERSION_CURRENT);
+    auto* o = msg.mutable_frame();
+    o->set_session_id(f.session_id);
+    o->set_frame_seq(f.frame_seq);
+    o->set_pose_seq(f.pose_seq);
+    o->set_pose_server_time_s(f.pose_server_time_s);
+    o->set_deform_step(f.deform_step);
+    o->set_deform_pose_seq(f.deform_pose_seq);
+    o->set_server_time_s(now);
+    const double latency_ms = f.pose_seq ? (now - f.pose_server_time_s) * 1e3 : 0.0;
+    o->set_pose_to_frame_ms(latency_ms);
+    o->set_width(f.view.width);
+    o->set_height(f.view.height);
+    o->set_jpeg(f.jpeg.data(), f.jpeg.size());
+    o->set_encoder(f.encoder);
+    auto* t = o->mutable_times();
+    t->set_j_to_texture_ms(f.times.j_to_texture_ms);
+    t->set_raycast_ms(f.times.raycast_ms);
+    t->set_slices_ms(f.times.slices_ms);
+    t->set_composite_ms(f.times.composite_ms);
+    t->set_readback_ms(f.times.readback_ms);
+    t->set_encode_ms(f.times.encode_ms);
+    t->set_total_ms(f.times.total_ms);
+    set_vec(o->mutable_tip_mm(), f.marks.tip_mm);
+    set_vec(o->mutable_proxy_mm(), f.marks.proxy_mm);
+    o->set_contact(f.marks.contact);
+    fill_view(o->mutable_view(), f.view);
+    o->set_deformed(f.deformed);
+    msg.SerializeToString(&p.last_frame);
+    send(frame_topic(f.session_id), p.last_frame);
+    p.last_frame_s = now;
+    p.frame_resent = false;
+    st.frames_published.fetch_add(1, std::memory_order_relaxed);
+    if (!scene.render.record_dir.empty()) record(p, f, now);
+    std::lock_guard<std::mutex> lock(ss.mu);
+    SessionStreamReport& r = ss.report_of(p.session);
+    ++r.frames_published;
+    if (f.pose_seq) r.pose_to_frame.add(latency_ms);
+  }
+
+  // render.record_dir: the frame as a JPEG file and a line of the session's index
+  void record(PubSlot& p, const EncodedFrame& f, double now) {
+    try {
+      if (p.record_dir.empty()) {
+        p.record_dir = fs::path(scene.render.record_dir) / hex_id(p.session);
+        fs::create_directories(p.record_dir);
+        p.record_index.open(p.record_dir / "frames.csv");
+        p.record_index << "frame_seq,file,pose_seq,pose_server_time_s,server_time_s,deform_step,deformed\n";
+      }
+      char name[32];
+      std::snprintf(name, sizeof name, "frame_%06llu.jpg", (unsigned long long)f.frame_seq);
+      std::ofstream out(p.record_dir / name, std::ios::binary);
+      out.write(reinterpret_cast<const char*>(f.jpeg.data()), std::streamsize(f.jpeg.size()));
+      if (!out) throw Error("cannot write " + (p.record_dir / name).string());
+      p.record_index << f.frame_seq << ',' << name << ',' << f.pose_seq << ',' << f.pose_server_time_s << ','
+                     << now << ',' << f.deform_step << ',' << (f.deformed ? 1 : 0) << '\n';
+      p.record_index.flush();
+    } catch (const std::exception& e) {
+      std::lock_guard<std::mutex> lock(st.info_mu);
+      const std::string m = std::string("recording frames: ") + e.what();
+      if (st.info.last_error != m) spdlog::error("{}", m);
+      st.info.last_error = m;
+    }
+  }
+
+  static void fill_view(v1::ViewSettings* o, const render::ViewSettings& v) {
+    o->set_width(v.width);
+    o->set_height(v.height);
+    o->set_preset(render::preset_name(v.preset));
+    o->set_azimuth_deg(v.azimuth_deg);
+    o->set_elevation_deg(v.elevation_deg);
+    o->set_zoom(v.zoom);
+    o->set_look_at_tip(v.look_at_tip);
+    set_vec(o->mutable_center_mm(), v.center_mm);
+    o->set_jpeg_quality(v.jpeg_quality);
+    o->set_show_tip(v.show_tip);
+    o->set_show_proxy(v.show_proxy);
+    o->set_slice_fov_mm(v.slice_fov_mm);
+  }
+
+  // one session slot: watched or not, then its newest frame and brick
+  void serve(int index, double now, std::uint32_t& watched_count) {
+    PubSlot& p = pub[index];
+    StreamSlot& ss = st.slots[index];
+    const std::uint64_t id = sh.slots[index].id.load(std::memory_order_acquire);
+    if (id != p.session) {
+      // the session closed or timed out: its subscribers are told
+      if (p.session != 0) {
+        const std::string m = "session " + hex_id(p.session) + " closed (or timed out)";
+        if (p.frames || watched(frame_topic(p.session)))
+          notice(frame_topic(p.session), p.session, "closed", m, false, true);
+        if (p.bricks || watched(brick_topic(p.session)))
+          notice(brick_topic(p.session), p.session, "closed", m, false, true);
+        exact.erase(frame_topic(p.session));
+        exact.erase(brick_topic(p.session));
+      }
+      p.session = id;
+      p.frames = p.bricks = false;
+      // a brick subscriber that came before this pass noticed the session is owed a key too
+      p.key_pending = id != 0 && watched(brick_topic(id));
+      p.key_id = p.brick_seq = 0;
+      p.last_voi_brick.clear();
+      p.next_brick_s = 0;
+      p.last_frame.clear();
+      p.frame_resent = true;
+      p.record_dir.clear();
+      if (p.record_index.is_open()) p.record_index.close();
+    }
+    if (id == 0) {
+      ss.frames_for.store(0, std::memory_order_release);
+      ss.bricks_for.store(0, std::memory_order_release);
+      return;
+    }
+    bool float32 = false, zstd_on = false, frames_hold = false, bricks_hold = false;
+    {
+      std::lock_guard<std::mutex> lock(ss.mu);
+      if (ss.watch.session_id == id) {
+        float32 = ss.watch.brick_float32;
+        zstd_on = ss.watch.brick_zstd;
+        frames_hold = now < ss.watch.frames_hold_until_s;
+        bricks_hold = now < ss.watch.bricks_hold_until_s;
+      }
+    }
+    const bool frames = scene.effects.frames &&
+                        (watched(frame_topic(id)) || frames_hold || !scene.render.record_dir.empty());
+    const bool bricks = scene.effects.bricks && (watched(brick_topic(id)) || bricks_hold);
+    p.frames = frames;
+    p.bricks = bricks;
+    ss.frames_for.store(frames ? id : 0, std::memory_order_release);
+    ss.bricks_for.store(bricks ? id : 0, std::memory_order_release);
+    if (frames || bricks) ++watched_count;
+    if (frames && ss.frames.take() && ss.frames.front().session_id == id) {
+      send_frame(p, ss, ss.frames.front());
+    } else if (frames && !p.frame_resent && now - p.last_frame_s >= kResendAfterS) {
+      // the session went quiet: its newest frame once more
+      send(frame_topic(id), p.last_frame);
+      p.frame_resent = true;
+    }
+    if (!bricks) return;
+    if (p.key_pending && patient) {
+      send_key(p, ss, float32, zstd_on);
+      // the newest VOI brick again, after the key it belongs on
+      if (!p.last_voi_brick.empty()) send(brick_topic(id), p.last_voi_brick);
+    }
+    // VOI bricks at most render.max_fps a second per session, the newest each time
+    if (now >= p.next_brick_s && ss.j_bricks.take() && ss.j_bricks.front().session_id == id) {
+      send_voi_brick(p, ss, ss.j_bricks.front(), float32, zstd_on);
+      p.next_brick_s = now + 1.0 / scene.render.max_fps;
+    }
+  }
+
+  void run() {
+    zmq::pollitem_t items[] = {{xpub.handle(), 0, ZMQ_POLLIN, 0}};
+    while (!stop.load(std::memory_order_relaxed)) {
+      zmq::poll(items, 1, std::chrono::milliseconds(kPollMs));
+      // subscriptions first: who watches what
+      for (;;) {
+        zmq::message_t m;
+        if (!xpub.recv(m, zmq::recv_flags::dontwait)) break;
+        subscription(m);
+      }
+      pick_up_world();
+      const double now = now_s();
+      std::uint32_t count = 0;
+      for (int i = 0; i < kMaxSlots && !stop.load(std::memory_order_relaxed); ++i) {
+        try {
+          serve(i, now, count);
+        } catch (const std::exception& e) {
+          std::lock_guard<std::mutex> lock(st.info_mu);
+          const std::string m = "stream: session " + hex_id(pub[i].session) + ": " + e.what();
+          if (st.info.last_error != m) spdlog::error("{}", m);
+          st.info.last_error = m;
+        }
+      }
+      // notices due to be sent again
+      for (std::size_t i = 0; i < late.size();) {
+        if (late[i].due_s > now) {
+          ++i;
+          continue;
+        }
+        send(late[i].topic, late[i].payload);
+        late[i] = std::move(late.back());
+        late.pop_back();
+      }
+      st.sessions_watched.store(count, std::memory_order_relaxed);
+      st.subscriptions.store(std::uint32_t(exact.size() + prefixes.size()), std::memory_order_relaxed);
+    }
+    // nobody is watched once the publisher is gone
+    for (int i = 0; i < kMaxSlots; ++i) {
+      st.slots[i].frames_for.store(0, std::memory_order_release);
+      st.slots[i].bricks_for.store(0, std::memory_order_release);
+    }
+    st.sessions_watched.store(0);
+    st.subscriptions.store(0);
+  }
+};
+
+StreamPublisher::StreamPublisher(ServerShared& shared, StreamState& stream, const std::string& bind,
+                                 std::chrono::steady_clock::time_point start)
+    : impl_(std::make_unique<Impl>(shared, stream, start)) {
+  zmq::socket_t& s = impl_->xpub;
+  s.set(zmq::sockopt::linger, 0);
+  s.set(zmq::sockopt::sndhwm, kSendHwm);
+  s.set(zmq::sockopt::maxmsgsize, kMaxSubscriptionBytes);
+  s.set(zmq::sockopt::xpub_verbose, 1);  // every subscribe (a key per brick subscriber); an unsubscribe when the last leaves
+  try {
+    s.bind(bind);
+  } catch (const zmq::error_t& e) {
+    throw Error("--stream-bind " + bind + ": cannot bind: " + e.what());
+  }
+  endpoint_ = s.get(zmq::sockopt::last_endpoint);
+}
+
+StreamPublisher::~StreamPublisher() { stop(); }
+
+void StreamPublisher::start() {
+  if (thread_.joinable()) return;
+  impl_->pick_up_world();
+  {
+    std::lock_guard<std::mutex> lock(impl_->st.info_mu);
+    impl_->st.info.publisher_thread = true;
+    impl_->st.info.endpoint = endpoint_;
+  }
+  thread_ = std::thread([this] { impl_->run(); });
+}
+
+void StreamPublisher::stop() {
+  impl_->stop.store(true);
+  if (thread_.joinable()) thread_.join();
+  impl_->sh.publish_seen_generation.store(~std::uint64_t(0), std::memory_order_release);
+  std::lock_guard<std::mutex> lock(impl_->st.info_mu);
+  impl_->st.info.publisher_thread = false;
+}
+
+}  // namespace palpsim::net

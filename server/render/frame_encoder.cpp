@@ -1,0 +1,147 @@
+#include "render/frame_encoder.h"
+
+#include <turbojpeg.h>
+
+#include <chrono>
+#include <string>
+
+#include "core/error.h"
+
+#ifdef PALPSIM_HAVE_CUDA
+#include "cuda/render_interop.h"
+#endif
+
+namespace palpsim::render {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// A TurboJPEG compressor and its output buffer, kept across frames: after the first
+// frame of a size nothing is allocated.
+class TjCompressor {
+ public:
+  TjCompressor() : handle_(tjInitCompress()) {
+    if (!handle_) throw Error(std::string("TurboJPEG: tjInitCompress failed: ") + tjGetErrorStr2(nullptr));
+  }
+  ~TjCompressor() {
+    if (buf_) tjFree(buf_);
+    tjDestroy(handle_);
+  }
+  TjCompressor(const TjCompressor&) = delete;
+  TjCompressor& operator=(const TjCompressor&) = delete;
+
+  // RGB8 rows top-down to a 4:2:0 JPEG in `out` (replaced)
+  void encode(const std::uint8_t* rgb, int width, int height, int quality, std::vector<std::uint8_t>& out) {
+    if (!rgb || width < 1 || height < 1)
+      throw Error("TurboJPEG: nothing to encode (" + std::to_string(width) + " x " + std::to_string(height) + ")");
+    if (quality < 1 || quality > 100) throw Error("TurboJPEG: quality " + std::to_string(quality) + " is outside 1..100");
+    // the largest JPEG this size can give, so TurboJPEG never reallocates
+    const unsigned long need = tjBufSize(width, height, TJSAMP_420);
+    if (need > cap_) {
+      if (buf_) tjFree(buf_);
+      buf_ = tjAlloc(int(need));
+      if (!buf_) throw Error("TurboJPEG: cannot allocate " + std::to_string(need) + " bytes");
+      cap_ = need;
+    }
+    unsigned long size = cap_;
+    if (tjCompress2(handle_, rgb, width, 0, height, TJPF_RGB, &buf_, &size, TJSAMP_420, quality,
+                    TJFLAG_NOREALLOC) != 0)
+      throw Error(std::string("TurboJPEG: tjCompress2 failed: ") + tjGetErrorStr2(handle_));
+    out.assign(buf_, buf_ + size);
+  }
+
+ private:
+  tjhandle handle_;
+  unsigned char* buf_ = nullptr;
+  unsigned long cap_ = 0;
+};
+
+// The CPU encoder: glReadPixels, then TurboJPEG.
+class TurboJpegEncoder final : public FrameEncoder {
+ public:
+  const char* name() const override { return "turbojpeg"; }
+  void encode(FrameRenderer& r, int quality, std::vector<std::uint8_t>& out, FrameTimes& times) override {
+    r.read_rgb(rgb_, times);
+    const auto t0 = Clock::now();
+    tj_.encode(rgb_.data(), r.width(), r.height(), quality, out);
+    times.encode_ms += std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+  }
+
+ private:
+  std::vector<std::uint8_t> rgb_;  // the frame, reused
+  TjCompressor tj_;
+};
+
+}  // namespace
+
+std::unique_ptr<FrameEncoder> make_frame_encoder(const std::string& name, const EglContext& ctx, std::string* note) {
+  auto say = [&](const std::string& s) {
+    if (note) *note = s;
+  };
+  const bool cpu = name == "cpu" || name == "turbojpeg";
+  if (!cpu && name != "nvjpeg" && name != "auto")
+    throw Error("jpeg encoder '" + name + "' is unknown; allowed: auto, cpu, nvjpeg");
+#ifdef PALPSIM_HAVE_CUDA
+  if (name == "nvjpeg" || name == "auto") {
+    std::string why;
+    if (!ctx.nvidia()) {
+      why = "the OpenGL device is not an NVIDIA GPU (" + ctx.renderer() + ")";
+    } else if (!cuda::cuda_render_available(&why)) {
+      // why says it
+    } else {
+      try {
+        auto e = cuda::make_nvjpeg_frame_encoder();
+        say("jpeg encoder nvjpeg (" + std::string(name == "auto" ? "auto: " : "") + "CUDA-GL interop on " +
+            ctx.renderer() + ")");
+        return e;
+      } catch (const std::exception& ex) {
+        if (name == "nvjpeg") throw;
+        why = ex.what();
+      }
+    }
+    if (name == "nvjpeg") throw Error("jpeg encoder nvjpeg is not available: " + why);
+    say("jpeg encoder turbojpeg (auto: nvjpeg not usable: " + why + ")");
+    return std::make_unique<TurboJpegEncoder>();
+  }
+#else
+  if (name == "nvjpeg") throw Error("jpeg encoder nvjpeg is not available: this build has no CUDA");
+  if (name == "auto") {
+    say("jpeg encoder turbojpeg (auto: this build has no CUDA)");
+    return std::make_unique<TurboJpegEncoder>();
+  }
+#endif
+  (void)ctx;
+  say("jpeg encoder turbojpeg (asked for " + name + ")");
+  return std::make_unique<TurboJpegEncoder>();
+}
+
+void encode_jpeg_rgb(const std::uint8_t* rgb, int width, int height, int quality, std::vector<std::uint8_t>& out) {
+  // one compressor per thread, kept for the thread's life
+  thread_local TjCompressor tj;
+  tj.encode(rgb, width, height, quality, out);
+}
+
+bool decode_jpeg_rgb(const std::uint8_t* jpeg, std::size_t size, std::vector<std::uint8_t>& rgb, int& width,
+                     int& height) {
+  struct Handle {
+    tjhandle h = tjInitDecompress();
+    ~Handle() {
+      if (h) tjDestroy(h);
+    }
+  };
+  thread_local Handle d;
+  if (!d.h || !jpeg || size == 0) return false;
+  int w = 0, h = 0, subsamp = 0, colorspace = 0;
+  if (tjDecompressHeader3(d.h, jpeg, static_cast<unsigned long>(size), &w, &h, &subsamp, &colorspace) != 0) return false;
+  if (w < 1 || h < 1) return false;
+  rgb.resize(std::size_t(w) * h * 3);
+  if (tjDecompress2(d.h, jpeg, static_cast<unsigned long>(size), rgb.data(), w, 0, h, TJPF_RGB, 0) != 0) {
+    // a warning (e.g. a truncated tail) still leaves usable pixels; an error does not
+    if (tjGetErrorCode(d.h) != TJERR_WARNING) return false;
+  }
+  width = w;
+  height = h;
+  return true;
+}
+
+}  // namespace palpsim::render

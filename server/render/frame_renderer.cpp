@@ -1,0 +1,711 @@
+#include "render/frame_renderer.h"
+
+#define GL_GLEXT_PROTOTYPES
+#include <GL/glcorearb.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdlib>
+#include <cmath>
+#include <map>
+#include <string>
+#include <unordered_map>
+
+#include "core/error.h"
+#include "render/shaders.h"
+#include "render/transfer_function.h"
+
+namespace palpsim::render {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr float kAirHu = -1024;       // what voxels outside the body mask become
+constexpr double kStepVox = 1.0;      // ray step (voxel); the pre-integrated table makes 1 enough
+constexpr double kHalfFovDeg = 15;    // half the vertical field of view at zoom 1
+constexpr int kCtSlab = 8;            // k-slices per chunk of the CT upload
+constexpr int kBlockVox = 8;          // edge of the blocks for skipping faint space (voxel)
+constexpr float kShellMaxHu = -450;   // the shell around the body keeps its CT value up to this
+constexpr float kFaintTauPerMm = 0.004f;  // extinction below which space is faint enough to skip
+
+// Mask classes in the R8 mask texture: the body, the one-voxel shell around it, outside.
+// The shell keeps the CT's partial-volume values (capped at kShellMaxHu), so the skin is
+// a smooth surface and not the body mask's voxel staircase, while the table and
+// blankets (beyond the shell, or capped in it) stay air.
+constexpr std::uint8_t kMaskBody = 255, kMaskShell = 128;
+
+// the intensity the renderer shows for a voxel of intensity `hu` and mask class `cls` (HU)
+float masked_hu(float hu, std::uint8_t cls) {
+  return cls == kMaskBody ? hu : cls == kMaskShell ? std::min(hu, kShellMaxHu) : kAirHu;
+}
+
+// marks every non-body voxel touching a body voxel (26-neighbourhood) as shell:
+// a separable 3x3x3 dilation
+void dilate_shell(std::vector<std::uint8_t>& cls, const Vec3i& size) {
+  std::vector<std::uint8_t> a(cls.size()), b(cls.size());
+  for (std::size_t n = 0; n < cls.size(); ++n) a[n] = cls[n] == kMaskBody;
+  const std::size_t sx = 1, sy = std::size_t(size.x), sz = std::size_t(size.x) * size.y;
+  const int ext[3] = {size.x, size.y, size.z};
+  const std::size_t stride[3] = {sx, sy, sz};
+  for (int axis = 0; axis < 3; ++axis) {
+    for (int k = 0; k < size.z; ++k)
+      for (int j = 0; j < size.y; ++j)
+        for (int i = 0; i < size.x; ++i) {
+          const std::size_t n = k * sz + j * sy + i;
+          const int c = axis == 0 ? i : axis == 1 ? j : k;
+          std::uint8_t v = a[n];
+          if (c > 0) v |= a[n - stride[axis]];
+          if (c + 1 < ext[axis]) v |= a[n + stride[axis]];
+          b[n] = v;
+        }
+    std::swap(a, b);
+  }
+  for (std::size_t n = 0; n < cls.size(); ++n)
+    if (cls[n] != kMaskBody && a[n]) cls[n] = kMaskShell;
+}
+
+// the highest intensity (HU) below which a preset's extinction stays under kFaintTauPerMm
+float faint_below_hu(Preset p) {
+  const TransferFunction tf = make_transfer_function(p);
+  for (int n = 0; n < kTfSize; ++n)
+    if (tf.tau[n] >= kFaintTauPerMm) return n > 0 ? TransferFunction::hu_of(n - 1) : kTfMinHu - 1;
+  return kTfMaxHu;
+}
+
+// texture units of the volume shaders (the binding = N in shaders.h)
+enum Unit { kUnitCt = 0, kUnitOverlay = 1, kUnitBody = 2, kUnitTf = 3, kUnitBlock = 4 };
+
+double ms_since(Clock::time_point t0) { return std::chrono::duration<double, std::milli>(Clock::now() - t0).count(); }
+
+Vec3 normalized(const Vec3& v) {
+  const double n = norm(v);
+  return n > 0 ? v / n : v;
+}
+
+// a GL error as text, or "" when there is none (clears every pending error)
+std::string gl_errors() {
+  std::string s;
+  for (GLenum e; (e = glGetError()) != GL_NO_ERROR;) {
+    char b[16];
+    std::snprintf(b, sizeof b, "0x%04X", unsigned(e));
+    s += (s.empty() ? "" : ", ") + std::string(b) + (e == GL_OUT_OF_MEMORY ? " (out of memory)" : "");
+  }
+  return s;
+}
+
+void check_gl(const char* what) {
+  const std::string e = gl_errors();
+  if (!e.empty()) throw Error(std::string("OpenGL error during ") + what + ": " + e);
+}
+
+GLuint compile(GLenum type, const std::string& src, const char* name) {
+  const GLuint s = glCreateShader(type);
+  const char* p = src.c_str();
+  glShaderSource(s, 1, &p, nullptr);
+  glCompileShader(s);
+  GLint ok = 0;
+  glGetShaderiv(s, GL_COMPILE_STATUS, &ok);
+  if (!ok) {
+    GLint n = 0;
+    glGetShaderiv(s, GL_INFO_LOG_LENGTH, &n);
+    std::string log(std::size_t(std::max(n, 1)), '\0');
+    glGetShaderInfoLog(s, n, nullptr, log.data());
+    glDeleteShader(s);
+    throw Error(std::string("the ") + name + " shader does not compile: " + log);
+  }
+  return s;
+}
+
+// A linked program with its uniform locations looked up once by name.
+struct Program {
+  GLuint id = 0;
+  std::unordered_map<std::string, GLint> loc;
+
+  void build(const std::string& fs, const char* name) {
+    const GLuint v = compile(GL_VERTEX_SHADER, shaders::kFullscreenVs, name);
+    const GLuint f = compile(GL_FRAGMENT_SHADER, fs, name);
+    id = glCreateProgram();
+    glAttachShader(id, v);
+    glAttachShader(id, f);
+    glLinkProgram(id);
+    glDeleteShader(v);
+    glDeleteShader(f);
+    GLint ok = 0;
+    glGetProgramiv(id, GL_LINK_STATUS, &ok);
+    if (!ok) {
+      GLint n = 0;
+      glGetProgramiv(id, GL_INFO_LOG_LENGTH, &n);
+      std::string log(std::size_t(std::max(n, 1)), '\0');
+      glGetProgramInfoLog(id, n, nullptr, log.data());
+      throw Error(std::string("the ") + name + " shader does not link: " + log);
+    }
+  }
+  // location of a uniform (-1, which GL ignores, when the compiler removed it)
+  GLint operator[](const std::string& name) {
+    auto it = loc.find(name);
+    if (it != loc.end()) return it->second;
+    return loc[name] = glGetUniformLocation(id, name.c_str());
+  }
+  void set(const char* n, float a) { glUniform1f((*this)[n], a); }
+  void set(const char* n, float a, float b) { glUniform2f((*this)[n], a, b); }
+  void set(const char* n, const Vec3& v) { glUniform3f((*this)[n], float(v.x), float(v.y), float(v.z)); }
+  void set(const char* n, float a, float b, float c, float d) { glUniform4f((*this)[n], a, b, c, d); }
+};
+
+// viewport uniform and GL viewport of a rectangle whose top row is image row y0
+void set_viewport(Program& p, int x0, int y0, int w, int h) {
+  glViewport(x0, y0, w, h);
+  p.set("u_viewport", float(x0), float(y0), float(w), float(h));
+}
+
+// How one slice lies on the screen: the grid axis it holds fixed, and the grid axes
+// (with signs) that run right and down on the screen.
+struct SliceAxes {
+  int fixed = 2;
+  int right_axis = 0, down_axis = 1;
+  double right_sign = 1, down_sign = 1;
+};
+
+// Radiological orientation, chosen per grid by the closest grid axis: axial (k plane)
+// seen from the feet with anterior up (screen right = patient's left +x, down =
+// posterior +y); coronal (j plane) seen from the front with superior up (right = +x,
+// down = -z); sagittal (i plane) seen from the patient's left with anterior on the
+// left (right = posterior +y, down = -z).
+SliceAxes slice_axes(const Grid& g, int fixed, const Vec3& want_right, const Vec3& want_down) {
+  SliceAxes s;
+  s.fixed = fixed;
+  const int a = (fixed + 1) % 3, b = (fixed + 2) % 3;
+  auto axis = [&](int n) {
+    Vec3 e{0, 0, 0};
+    e[n] = 1;
+    return g.axes_to_physical(e);
+  };
+  const double ra = dot(axis(a), want_right), rb = dot(axis(b), want_right);
+  s.right_axis = std::fabs(ra) >= std::fabs(rb) ? a : b;
+  s.down_axis = s.right_axis == a ? b : a;
+  s.right_sign = dot(axis(s.right_axis), want_right) < 0 ? -1 : 1;
+  s.down_sign = dot(axis(s.down_axis), want_down) < 0 ? -1 : 1;
+  return s;
+}
+
+// the frame colours of the slices (axial red, coronal green, sagittal yellow, as 3D Slicer)
+const Vec3 kSliceColor[3] = {{0.90, 0.28, 0.22}, {0.35, 0.80, 0.35}, {0.95, 0.82, 0.25}};
+// marker colours: tip out of contact, tip in contact, proxy
+const Vec3 kTipColor{0.25, 0.95, 0.35}, kTipContactColor{1.0, 0.55, 0.10}, kProxyColor{0.30, 0.55, 1.0};
+
+// which slice (0 axial, 1 coronal, 2 sagittal) holds grid axis n fixed
+int slice_of_axis(int n) { return 2 - n; }
+
+}  // namespace
+
+struct FrameRenderer::Impl {
+  // one session's overlay: J on a VOI box
+  struct Overlay {
+    GLuint tex = 0;
+    Vec3i max_voi{0, 0, 0};
+    Voi box;
+    bool active = false;
+  };
+
+  PatientPtr patient;
+  GLuint ct_tex = 0, body_tex = 0, block_tex = 0, vao = 0, fbo = 0, color_tex = 0;
+  Vec3i block_count{0, 0, 0};    // blocks of kBlockVox voxels per axis
+  GLuint tf_tex[3] = {0, 0, 0};  // per preset (Preset's order)
+  Program ray, slice, composite, triad;
+  int width = 0, height = 0;
+  Vec3 box_lo, box_hi;           // the body's bounding box (voxel index, voxel edges)
+  Vec3 body_center_mm;           // its centre (mm)
+  std::map<int, Overlay> overlays;
+  int next_id = 1;
+  std::size_t ct_bytes = 0, tf_bytes = 0;
+
+  Overlay& overlay(OverlayId id) {
+    auto it = overlays.find(id);
+    if (it == overlays.end()) throw Error("frame renderer: no overlay " + std::to_string(id));
+    return it->second;
+  }
+  const Overlay& overlay(OverlayId id) const { return const_cast<Impl*>(this)->overlay(id); }
+
+  Impl() = default;
+  Impl(const Impl&) = delete;
+  Impl& operator=(const Impl&) = delete;
+  // frees every GL object made so far (also when the constructor failed half way)
+  ~Impl() {
+    for (auto& [id, o] : overlays) glDeleteTextures(1, &o.tex);
+    glDeleteTextures(1, &ct_tex);
+    glDeleteTextures(1, &body_tex);
+    glDeleteTextures(1, &block_tex);
+    glDeleteTextures(3, tf_tex);
+    glDeleteTextures(1, &color_tex);
+    glDeleteFramebuffers(1, &fbo);
+    glDeleteVertexArrays(1, &vao);
+    for (Program* p : {&ray, &slice, &composite, &triad})
+      if (p->id) glDeleteProgram(p->id);
+  }
+
+  void upload_volumes();
+  void build_programs();
+  void resize(int w, int h);
+  void check_voi(const Overlay& o, const Voi& voi) const;
+  void bind_volume(Program& p, const Overlay& o);
+};
+
+// --- construction -------------------------------------------------------------------
+
+void FrameRenderer::Impl::upload_volumes() {
+  const Patient& p = *patient;
+  const Grid& g = p.grid;
+  if (g.size.x < 1 || g.size.y < 1 || g.size.z < 1) throw Error("frame renderer: the patient grid is empty");
+  if (p.intensity.data.size() != g.count() || p.body.data.size() != g.count())
+    throw Error("frame renderer: the patient's intensity and body mask do not fill its grid");
+  GLint max3d = 0;
+  glGetIntegerv(GL_MAX_3D_TEXTURE_SIZE, &max3d);
+  if (g.size.x > max3d || g.size.y > max3d || g.size.z > max3d)
+    throw Error("frame renderer: the patient grid " + std::to_string(g.size.x) + " x " + std::to_string(g.size.y) +
+                " x " + std::to_string(g.size.z) + " voxels exceeds GL_MAX_3D_TEXTURE_SIZE = " +
+                std::to_string(max3d) + " of this OpenGL device; prepare the patient at a coarser prep.spacing_mm");
+
+  // the mask classes: body, the shell of voxels touching it (26-neighbourhood), outside
+  const std::size_t plane = std::size_t(g.size.x) * g.size.y;
+  std::vector<std::uint8_t> cls(g.count());
+  for (std::size_t n = 0; n < cls.size(); ++n) cls[n] = p.body.data[n] ? kMaskBody : 0;
+  dilate_shell(cls, g.size);
+
+  // the CT with the body's surroundings as air, and the mask classes, a slab of k-slices at a time
+  auto make3d = [&](GLenum format, GLenum filter, const Vec3i& size) {
+    GLuint t = 0;
+    glCreateTextures(GL_TEXTURE_3D, 1, &t);
+    glTextureStorage3D(t, 1, format, size.x, size.y, size.z);
+    glTextureParameteri(t, GL_TEXTURE_MIN_FILTER, filter);
+    glTextureParameteri(t, GL_TEXTURE_MAG_FILTER, filter);
+    for (GLenum w : {GL_TEXTURE_WRAP_S, GL_TEXTURE_WRAP_T, GL_TEXTURE_WRAP_R})
+      glTextureParameteri(t, w, GL_CLAMP_TO_EDGE);
+    return t;
+  };
+  ct_tex = make3d(GL_R32F, GL_LINEAR, g.size);
+  body_tex = make3d(GL_R8, GL_LINEAR, g.size);
+  check_gl("the CT texture's allocation");
+  glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
+  std::vector<float> hu(plane * kCtSlab);
+  // the largest masked intensity of each block (HU), for skipping faint space
+  const Vec3i nb{(g.size.x + kBlockVox - 1) / kBlockVox, (g.size.y + kBlockVox - 1) / kBlockVox,
+                 (g.size.z + kBlockVox - 1) / kBlockVox};
+  std::vector<float> block(std::size_t(nb.x) * nb.y * nb.z, kAirHu);
+  Vec3i lo{g.size.x, g.size.y, g.size.z}, hi{-1, -1, -1};
+  for (int k0 = 0; k0 < g.size.z; k0 += kCtSlab) {
+    const int nk = std::min(kCtSlab, g.size.z - k0);
+    const std::size_t base = plane * std::size_t(k0);
+    for (int k = k0; k < k0 + nk; ++k)
+      for (int j = 0; j < g.size.y; ++j)
+        for (int i = 0; i < g.size.x; ++i) {
+          const std::size_t n = g.index(i, j, k);
+          const float v = masked_hu(p.intensity.data[n], cls[n]);
+          hu[n - base] = v;
+          float& b = block[(std::size_t(k / kBlockVox) * nb.y + j / kBlockVox) * nb.x + i / kBlockVox];
+          b = std::max(b, v);
+          if (cls[n] == kMaskBody) {
+            // the body's bounding box
+            lo = {std::min(lo.x, i), std::min(lo.y, j), std::min(lo.z, k)};
+            hi = {std::max(hi.x, i), std::max(hi.y, j), std::max(hi.z, k)};
+          }
+        }
+    glTextureSubImage3D(ct_tex, 0, 0, 0, k0, g.size.x, g.size.y, nk, GL_RED, GL_FLOAT, hu.data());
+    glTextureSubImage3D(body_tex, 0, 0, 0, k0, g.size.x, g.size.y, nk, GL_RED, GL_UNSIGNED_BYTE, &cls[base]);
+  }
+  check_gl("the CT texture's upload");
+  // each block's bound covers its 26 neighbours, so a step of up to kBlockVox - 1 voxels
+  // (and the trilinear footprint of every sample on it) stays within the bound
+  std::vector<float> dilated(block.size(), kAirHu);
+  for (int k = 0; k < nb.z; ++k)
+    for (int j = 0; j < nb.y; ++j)
+      for (int i = 0; i < nb.x; ++i) {
+        float m = kAirHu;
+        for (int dk = std::max(k - 1, 0); dk <= std::min(k + 1, nb.z - 1); ++dk)
+          for (int dj = std::max(j - 1, 0); dj <= std::min(j + 1, nb.y - 1); ++dj)
+            for (int di = std::max(i - 1, 0); di <= std::min(i + 1, nb.x - 1); ++di)
+              m = std::max(m, block[(std::size_t(dk) * nb.y + dj) * nb.x + di]);
+        dilated[(std::size_t(k) * nb.y + j) * nb.x + i] = m;
+      }
+  block_tex = make3d(GL_R32F, GL_NEAREST, nb);
+  glTextureSubImage3D(block_tex, 0, 0, 0, 0, nb.x, nb.y, nb.z, GL_RED, GL_FLOAT, dilated.data());
+  check_gl("the block texture's upload");
+  block_count = nb;
+  ct_bytes = g.count() * (sizeof(float) + 1) + dilated.size() * sizeof(float);
+  if (hi.x < 0) {
+    // no body at all: the whole grid
+    lo = {0, 0, 0};
+    hi = {g.size.x - 1, g.size.y - 1, g.size.z - 1};
+  }
+  box_lo = Vec3(lo.x - 0.5, lo.y - 0.5, lo.z - 0.5);
+  box_hi = Vec3(hi.x + 0.5, hi.y + 0.5, hi.z + 0.5);
+  body_center_mm = g.to_physical((Vec3(lo) + Vec3(hi)) * 0.5);
+  // the pre-integrated transfer functions, for steps of kStepVox voxels (mean voxel edge)
+  const double voxel_mm = std::cbrt(g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z);
+  for (Preset pr : {Preset::Skin, Preset::Bone, Preset::SoftTissue}) {
+    const std::vector<float> table = preintegrate(make_transfer_function(pr), kStepVox * voxel_mm);
+    GLuint& t = tf_tex[int(pr)];
+    glCreateTextures(GL_TEXTURE_2D, 1, &t);
+    glTextureStorage2D(t, 1, GL_RGBA16F, kTfSize, kTfSize);
+    glTextureSubImage2D(t, 0, 0, 0, kTfSize, kTfSize, GL_RGBA, GL_FLOAT, table.data());
+    glTextureParameteri(t, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
+    glTextureParameteri(t, GL_TEXTURE_MAG_FILTER, GL_LINEAR);
+    glTextureParameteri(t, GL_TEXTURE_WRAP_S, GL_CLAMP_TO_EDGE);
+    glTextureParameteri(t, GL_TEXTURE_WRAP_T, GL_CLAMP_TO_EDGE);
+    tf_bytes += std::size_t(kTfSize) * kTfSize * 8;
+  }
+  check_gl("the transfer functions' upload");
+}
+
+void FrameRenderer::Impl::build_programs() {
+  const std::string head = "#version 450 core\n";
+  ray.build(head + shaders::kSampleGlsl + shaders::kRaycastFs, "ray casting");
+  slice.build(head + shaders::kSampleGlsl + shaders::kSliceFs, "slice");
+  composite.build(head + shaders::kCompositeFs, "composite");
+  triad.build(head + shaders::kTriadFs, "orientation triad");
+  glCreateVertexArrays(1, &vao);
+  glCreateFramebuffers(1, &fbo);
+  check_gl("the shaders' set-up");
+}
+
+FrameRenderer::FrameRenderer(PatientPtr patient) : impl_(std::make_unique<Impl>()) {
+  if (!patient) throw Error("frame renderer: no patient");
+  if (!glGetString(GL_VERSION)) throw Error("frame renderer: no OpenGL context is current on this thread");
+  gl_errors();  // start clean
+  impl_->patient = std::move(patient);
+  // on a throw, ~Impl frees what was made
+  impl_->build_programs();
+  impl_->upload_volumes();
+}
+
+FrameRenderer::~FrameRenderer() = default;
+
+// --- overlays -----------------------------------------------------------------------
+
+FrameRenderer::OverlayId FrameRenderer::add_overlay(const Vec3i& max_voi) {
+  if (max_voi.x < 1 || max_voi.y < 1 || max_voi.z < 1)
+    throw Error("frame renderer: an overlay of " + std::to_string(max_voi.x) + " x " + std::to_string(max_voi.y) +
+                " x " + std::to_string(max_voi.z) + " voxels is empty");
+  GLint max3d = 0;
+  glGetIntegerv(GL_MAX_3D_TEXTURE_SIZE, &max3d);
+  if (max_voi.x > max3d || max_voi.y > max3d || max_voi.z > max3d)
+    throw Error("frame renderer: an overlay of " + std::to_string(max_voi.x) + " x " + std::to_string(max_voi.y) +
+                " x " + std::to_string(max_voi.z) + " voxels exceeds GL_MAX_3D_TEXTURE_SIZE = " +
+                std::to_string(max3d));
+  Impl::Overlay o;
+  o.max_voi = max_voi;
+  glCreateTextures(GL_TEXTURE_3D, 1, &o.tex);
+  glTextureStorage3D(o.tex, 1, GL_R32F, max_voi.x, max_voi.y, max_voi.z);
+  glTextureParameteri(o.tex, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
+  glTextureParameteri(o.tex, GL_TEXTURE_MAG_FILTER, GL_LINEAR);
+  for (GLenum w : {GL_TEXTURE_WRAP_S, GL_TEXTURE_WRAP_T, GL_TEXTURE_WRAP_R}) glTextureParameteri(o.tex, w, GL_CLAMP_TO_EDGE);
+  // defined contents (air) until the first upload
+  const float air = kAirHu;
+  glClearTexImage(o.tex, 0, GL_RED, GL_FLOAT, &air);
+  const std::string e = gl_errors();
+  if (!e.empty()) {
+    glDeleteTextures(1, &o.tex);
+    throw Error("frame renderer: an overlay of " + std::to_string(max_voi.x) + " x " + std::to_string(max_voi.y) +
+                " x " + std::to_string(max_voi.z) + " voxels cannot be made: OpenGL error " + e);
+  }
+  const int id = impl_->next_id++;
+  impl_->overlays[id] = o;
+  return id;
+}
+
+void FrameRenderer::remove_overlay(OverlayId id) {
+  auto it = impl_->overlays.find(id);
+  if (it == impl_->overlays.end()) return;
+  glDeleteTextures(1, &it->second.tex);
+  impl_->overlays.erase(it);
+}
+
+void FrameRenderer::Impl::check_voi(const Overlay& o, const Voi& voi) const {
+  const Vec3i& s = voi.size;
+  const Vec3i& g = patient->grid.size;
+  auto box = [](const Vec3i& lo, const Vec3i& size) {
+    return "[" + std::to_string(lo.x) + ", " + std::to_string(lo.y) + ", " + std::to_string(lo.z) + "] + " +
+           std::to_string(size.x) + " x " + std::to_string(size.y) + " x " + std::to_string(size.z);
+  };
+  if (s.x < 0 || s.y < 0 || s.z < 0 || s.x > o.max_voi.x || s.y > o.max_voi.y || s.z > o.max_voi.z)
+    throw Error("frame renderer: VOI " + box(voi.lo, s) + " does not fit the overlay of " +
+                std::to_string(o.max_voi.x) + " x " + std::to_string(o.max_voi.y) + " x " +
+                std::to_string(o.max_voi.z) + " voxels");
+  if (voi.lo.x < 0 || voi.lo.y < 0 || voi.lo.z < 0 || voi.lo.x + s.x > g.x || voi.lo.y + s.y > g.y ||
+      voi.lo.z + s.z > g.z)
+    throw Error("frame renderer: VOI " + box(voi.lo, s) + " leaves the patient grid of " + std::to_string(g.x) +
+                " x " + std::to_string(g.y) + " x " + std::to_string(g.z) + " voxels");
+}
+
+void FrameRenderer::upload_overlay(OverlayId id, const Voi& voi, const float* j) {
+  Impl::Overlay& o = impl_->overlay(id);
+  impl_->check_voi(o, voi);
+  if (voi.count() == 0) {
+    o.active = false;
+    return;
+  }
+  if (!j) throw Error("frame renderer: upload_overlay without J");
+  glPixelStorei(GL_UNPACK_ALIGNMENT, 4);
+  glTextureSubImage3D(o.tex, 0, 0, 0, 0, voi.size.x, voi.size.y, voi.size.z, GL_RED, GL_FLOAT, j);
+  check_gl("the overlay upload");
+  o.box = voi;
+  o.active = true;
+}
+
+void FrameRenderer::set_overlay_box(OverlayId id, const Voi& voi) {
+  Impl::Overlay& o = impl_->overlay(id);
+  impl_->check_voi(o, voi);
+  o.box = voi;
+  o.active = voi.count() > 0;
+}
+
+void FrameRenderer::clear_overlay(OverlayId id) { impl_->overlay(id).active = false; }
+
+unsigned FrameRenderer::overlay_texture(OverlayId id) const { return impl_->overlay(id).tex; }
+
+// --- rendering ----------------------------------------------------------------------
+
+void FrameRenderer::Impl::resize(int w, int h) {
+  if (w == width && h == height && color_tex) return;
+  // a new texture (immutable storage): interop users see a new name after a resize
+  if (color_tex) glDeleteTextures(1, &color_tex);
+  glCreateTextures(GL_TEXTURE_2D, 1, &color_tex);
+  glTextureStorage2D(color_tex, 1, GL_RGBA8, w, h);
+  glTextureParameteri(color_tex, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+  glTextureParameteri(color_tex, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+  glNamedFramebufferTexture(fbo, GL_COLOR_ATTACHMENT0, color_tex, 0);
+  const GLenum status = glCheckNamedFramebufferStatus(fbo, GL_FRAMEBUFFER);
+  check_gl("the framebuffer's allocation");
+  if (status != GL_FRAMEBUFFER_COMPLETE)
+    throw Error("frame renderer: the " + std::to_string(w) + " x " + std::to_string(h) +
+                " framebuffer is incomplete (status " + std::to_string(status) + ")");
+  width = w;
+  height = h;
+}
+
+void FrameRenderer::Impl::bind_volume(Program& p, const Overlay& o) {
+  const Grid& g = patient->grid;
+  glBindTextureUnit(kUnitCt, ct_tex);
+  glBindTextureUnit(kUnitOverlay, o.tex);
+  glBindTextureUnit(kUnitBody, body_tex);
+  p.set("u_grid_size", Vec3(g.size));
+  glUniform1i(p["u_overlay_on"], o.active ? 1 : 0);
+  p.set("u_voi_lo", Vec3(o.box.lo));
+  p.set("u_voi_size", Vec3(o.box.size));
+  p.set("u_overlay_tex_size", Vec3(o.max_voi));
+}
+
+void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMarks& marks, FrameTimes& times) {
+  Impl& m = *impl_;
+  const std::string bad = check_view(view);
+  if (!bad.empty()) throw Error("frame renderer: " + bad);
+  const Impl::Overlay& ov = m.overlay(id);
+  const Grid& g = m.patient->grid;
+  m.resize(view.width, view.height);
+
+  // layout: the 3D view on the left, slices of edge s stacked on the right
+  const int W = view.width, H = view.height, s = H / 3, view_w = W - s;
+  // the look-at point and slice centre (mm)
+  const Vec3 target = (view.look_at_tip && marks.has_tip) ? marks.tip_mm
+                      : view.center_set                   ? view.center_mm
+                                                          : m.body_center_mm;
+  // index-space image of a physical direction (voxel per mm)
+  auto to_idx_dir = [&](const Vec3& v) {
+    const Vec3 a = g.physical_to_axes(v);
+    return Vec3{a.x / g.spacing_mm.x, a.y / g.spacing_mm.y, a.z / g.spacing_mm.z};
+  };
+
+  glBindFramebuffer(GL_FRAMEBUFFER, m.fbo);
+  glBindVertexArray(m.vao);
+  glDisable(GL_DEPTH_TEST);
+  glDisable(GL_BLEND);
+  glDisable(GL_SCISSOR_TEST);
+  glViewport(0, 0, W, H);
+  glClearColor(0, 0, 0, 1);
+  glClear(GL_COLOR_BUFFER_BIT);
+
+  // 1. the 3D view: camera on its orbit about the target (view.h), zoom narrows the field
+  auto t0 = Clock::now();
+  const double pi = 3.14159265358979323846;
+  const double az = view.azimuth_deg * pi / 180, el = view.elevation_deg * pi / 180;
+  const Vec3 extent{g.size.x * g.spacing_mm.x, g.size.y * g.spacing_mm.y, g.size.z * g.spacing_mm.z};
+  const double radius_mm = 0.5 * norm(extent);
+  const double half_fov = kHalfFovDeg * pi / 180;
+  const double dist_mm = radius_mm / std::sin(half_fov);
+  const double tan_h = std::tan(half_fov) / view.zoom;
+  const Vec3 to_eye{std::sin(az) * std::cos(el), std::cos(az) * std::cos(el), std::sin(el)};
+  const Vec3 eye = target + to_eye * dist_mm;
+  const Vec3 fwd = -to_eye;
+  const Vec3 right = normalized(cross(fwd, Vec3{0, 0, 1}));
+  const Vec3 up = cross(right, fwd);
+  const double aspect = double(view_w) / H;
+  const Vec3 light = normalized(-fwd + up * 0.45 - right * 0.35);
+  const double mm_per_px = 2 * dist_mm * tan_h / H;  // at the target's distance
+  if (view_w > 0) {
+    Program& p = m.ray;
+    glUseProgram(p.id);
+    set_viewport(p, 0, 0, view_w, H);
+    m.bind_volume(p, ov);
+    glBindTextureUnit(kUnitTf, m.tf_tex[int(view.preset)]);
+    p.set("u_eye", g.to_index(eye));
+    p.set("u_fwd", to_idx_dir(fwd));
+    p.set("u_right", to_idx_dir(right * (tan_h * aspect)));
+    p.set("u_up", to_idx_dir(up * tan_h));
+    p.set("u_box_lo", m.box_lo);
+    p.set("u_box_hi", m.box_hi);
+    p.set("u_spacing", g.spacing_mm);
+    p.set("u_light", g.physical_to_axes(light));
+    p.set("u_step", float(kStepVox));
+    // HU to the table's texel centres
+    const double tf_scale = (kTfSize - 1) / double(kTfMaxHu - kTfMinHu) / kTfSize;
+    p.set("u_tf_map", float(tf_scale), float(-kTfMinHu * tf_scale + 0.5 / kTfSize));
+    p.set("u_grad_ramp", 15.f, 80.f);
+    p.set("u_surface_hu", surface_hu(view.preset));
+    // faint space (every voxel of the block's neighbourhood below the preset's faint
+    // intensity) is crossed in steps of kBlockVox - 1 voxels
+    glBindTextureUnit(kUnitBlock, m.block_tex);
+    p.set("u_block_vox", float(kBlockVox));
+    p.set("u_block_count", Vec3(m.block_count));
+    p.set("u_skip_step", float(kBlockVox - 1));
+    p.set("u_faint_hu", faint_below_hu(view.preset));
+    // markers: spheres of about 6 pixels' radius at the target's distance, 1.5..8 mm
+    const double r_mm = std::clamp(6 * mm_per_px, 1.5, 8.0);
+    const bool tip = marks.has_tip && view.show_tip, proxy = marks.has_tip && view.show_proxy;
+    const Vec3 ti = g.to_index(marks.tip_mm), pi_ = g.to_index(marks.proxy_mm);
+    const float mk[8] = {float(ti.x), float(ti.y), float(ti.z), float(tip ? r_mm : 0),
+                         float(pi_.x), float(pi_.y), float(pi_.z), float(proxy ? r_mm : 0)};
+    glUniform4fv(p["u_marker[0]"], 2, mk);
+    const Vec3 tc = marks.contact ? kTipContactColor : kTipColor;
+    const float mc[6] = {float(tc.x), float(tc.y), float(tc.z),
+                         float(kProxyColor.x), float(kProxyColor.y), float(kProxyColor.z)};
+    glUniform3fv(p["u_marker_color[0]"], 2, mc);
+    p.set("u_bg_top", Vec3{0.16, 0.17, 0.21});
+    p.set("u_bg_bottom", Vec3{0.03, 0.03, 0.04});
+    glDrawArrays(GL_TRIANGLES, 0, 3);
+  }
+  glFinish();
+  times.raycast_ms += ms_since(t0);
+
+  // 2. the slices: axial (k), coronal (j), sagittal (i) through the target, top to bottom
+  t0 = Clock::now();
+  const SliceAxes axes[3] = {slice_axes(g, 2, {1, 0, 0}, {0, 1, 0}), slice_axes(g, 1, {1, 0, 0}, {0, 0, -1}),
+                             slice_axes(g, 0, {0, 1, 0}, {0, 0, -1})};
+  const double slice_mm_per_px = view.slice_fov_mm / std::max(s, 1);
+  const Vec3 center_idx = g.to_index(target);
+  if (s > 0) {
+    Program& p = m.slice;
+    glUseProgram(p.id);
+    m.bind_volume(p, ov);
+    const Window win = slice_window(view.preset);
+    p.set("u_window", float(win.level_hu - 0.5 * win.width_hu), float(1.0 / win.width_hu));
+    p.set("u_center", center_idx);
+    for (int n = 0; n < 3; ++n) {
+      Vec3 r{0, 0, 0}, d{0, 0, 0};
+      r[axes[n].right_axis] = axes[n].right_sign * slice_mm_per_px / g.spacing_mm[axes[n].right_axis];
+      d[axes[n].down_axis] = axes[n].down_sign * slice_mm_per_px / g.spacing_mm[axes[n].down_axis];
+      p.set("u_right", r);
+      p.set("u_down", d);
+      set_viewport(p, view_w, n * s, s, s);
+      glDrawArrays(GL_TRIANGLES, 0, 3);
+    }
+  }
+  glFinish();
+  times.slices_ms += ms_since(t0);
+
+  // 3. composite: slice frames, cut lines and marker dots; the orientation triad
+  t0 = Clock::now();
+  glEnable(GL_BLEND);
+  glBlendFunc(GL_ONE, GL_ONE_MINUS_SRC_ALPHA);
+  if (s > 0) {
+    Program& p = m.composite;
+    glUseProgram(p.id);
+    set_viewport(p, view_w, 0, s, 3 * s);
+    p.set("u_edge", float(s));
+    float frame[9], vline[9], hline[9], cut[6], dots[24];
+    const double dot_px = std::max(3.0, s / 45.0);
+    for (int n = 0; n < 3; ++n) {
+      const SliceAxes& a = axes[n];
+      for (int c = 0; c < 3; ++c) {
+        frame[3 * n + c] = float(kSliceColor[n][c]);
+        vline[3 * n + c] = float(kSliceColor[slice_of_axis(a.right_axis)][c]);
+        hline[3 * n + c] = float(kSliceColor[slice_of_axis(a.down_axis)][c]);
+      }
+      cut[2 * n] = cut[2 * n + 1] = float(0.5 * s);
+      // a marker's pixel in this slice: its offset from the centre along the screen axes
+      auto dot_at = [&](const Vec3& mm, bool show, float* out) {
+        const Vec3 di = g.to_index(mm) - center_idx;
+        const double u = a.right_sign * di[a.right_axis] * g.spacing_mm[a.right_axis] / slice_mm_per_px;
+        const double v = a.down_sign * di[a.down_axis] * g.spacing_mm[a.down_axis] / slice_mm_per_px;
+        out[0] = float(0.5 * s + u);
+        out[1] = float(0.5 * s + v);
+        out[2] = show ? float(dot_px) : 0.f;
+        out[3] = 0;
+      };
+      dot_at(marks.tip_mm, marks.has_tip && view.show_tip, &dots[8 * n]);
+      dot_at(marks.proxy_mm, marks.has_tip && view.show_proxy, &dots[8 * n + 4]);
+    }
+    glUniform3fv(p["u_frame_color[0]"], 3, frame);
+    glUniform3fv(p["u_vline_color[0]"], 3, vline);
+    glUniform3fv(p["u_hline_color[0]"], 3, hline);
+    glUniform2fv(p["u_cut[0]"], 3, cut);
+    glUniform4fv(p["u_dot[0]"], 6, dots);
+    const Vec3 tc = marks.contact ? kTipContactColor : kTipColor;
+    const float dc[6] = {float(tc.x), float(tc.y), float(tc.z),
+                         float(kProxyColor.x), float(kProxyColor.y), float(kProxyColor.z)};
+    glUniform3fv(p["u_dot_color[0]"], 2, dc);
+    glDrawArrays(GL_TRIANGLES, 0, 3);
+  }
+  if (view_w > 0) {
+    // L (red), P (green), S (blue) as the camera sees them, in the 3D view's bottom left
+    Program& p = m.triad;
+    glUseProgram(p.id);
+    const int e = std::clamp(H / 7, 32, 110);
+    if (e + 8 <= view_w) {
+      set_viewport(p, 6, H - e - 6, e, e);
+      float ax[9];
+      const float col[9] = {0.95f, 0.3f, 0.3f, 0.3f, 0.9f, 0.3f, 0.35f, 0.55f, 1.0f};
+      for (int n = 0; n < 3; ++n) {
+        Vec3 a{0, 0, 0};
+        a[n] = 1;
+        ax[3 * n + 0] = float(0.42 * e * dot(a, right));
+        ax[3 * n + 1] = float(-0.42 * e * dot(a, up));
+        ax[3 * n + 2] = float(dot(a, -fwd));
+      }
+      glUniform3fv(p["u_axis[0]"], 3, ax);
+      glUniform3fv(p["u_axis_color[0]"], 3, col);
+      glDrawArrays(GL_TRIANGLES, 0, 3);
+    }
+  }
+  glDisable(GL_BLEND);
+  glFinish();
+  times.composite_ms += ms_since(t0);
+  check_gl("rendering a frame");
+}
+
+void FrameRenderer::read_rgb(std::vector<std::uint8_t>& rgb, FrameTimes& times) {
+  const auto t0 = Clock::now();
+  Impl& m = *impl_;
+  if (!m.color_tex) throw Error("frame renderer: read_rgb before the first frame");
+  rgb.resize(std::size_t(m.width) * m.height * 3);
+  glBindFramebuffer(GL_READ_FRAMEBUFFER, m.fbo);
+  glReadBuffer(GL_COLOR_ATTACHMENT0);
+  glPixelStorei(GL_PACK_ALIGNMENT, 1);
+  // texel row 0 is the image's top row: glReadPixels' first row is the top
+  glReadPixels(0, 0, m.width, m.height, GL_RGB, GL_UNSIGNED_BYTE, rgb.data());
+  check_gl("reading the frame back");
+  times.readback_ms += ms_since(t0);
+}
+
+unsigned FrameRenderer::color_texture() const { return impl_->color_tex; }
+int FrameRenderer::width() const { return impl_->width; }
+int FrameRenderer::height() const { return impl_->height; }
+
+std::size_t FrameRenderer::bytes() const {
+  const Impl& m = *impl_;
+  std::size_t b = m.ct_bytes + m.tf_bytes + std::size_t(m.width) * m.height * 4;
+  for (const auto& [id, o] : m.overlays) b += std::size_t(o.max_voi.x) * o.max_voi.y * o.max_voi.z * sizeof(float);
+  return b;
+}
+
+const Patient& FrameRenderer::patient() const { return *impl_->patient; }
+
+}  // namespace palpsim::render

@@ -1,0 +1,39 @@
+// How a session's deformed VOI (J) reaches its overlay texture: a sub-box upload from
+// host memory (the cpu deformation backend), or CUDA-GL interop from device memory (the
+// cuda backend: cuda/render_interop.h), chosen once per render thread.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include "core/device_bytes.h"
+#include "render/egl_context.h"
+#include "render/frame_renderer.h"
+
+namespace palpsim::render {
+
+/// J of one session's latest deformation step, as the render thread gets it.
+struct OverlaySource {
+  Voi voi;                            // the step's VOI (patient voxel indices)
+  const float* host_j = nullptr;      // J on voi (voi.count() floats, i fastest), or nullptr
+  const DeviceBytes* device_j = nullptr;  // the same on the GPU (cuda backend), or nullptr
+};
+
+/// Writes J into a session's overlay.
+class OverlayWriter {
+ public:
+  virtual ~OverlayWriter() = default;
+  /// "upload" (host memory, glTexSubImage3D) or "cuda-gl" (device memory, interop).
+  virtual const char* name() const = 0;
+  /// Makes the overlay `id` show J on src.voi; throws palpsim::Error when `src` has
+  /// neither a host nor (for this writer) a usable device copy.
+  virtual void write(FrameRenderer& r, FrameRenderer::OverlayId id, const OverlaySource& src) = 0;
+};
+
+/// "upload", "cuda-gl" (this build has CUDA and the context is on an NVIDIA GPU) or
+/// "auto" (cuda-gl where it can be used, else upload). Throws palpsim::Error for an
+/// unknown name or an unusable "cuda-gl"; `note` says what was chosen and why.
+std::unique_ptr<OverlayWriter> make_overlay_writer(const std::string& name, const EglContext& ctx,
+                                                   std::string* note = nullptr);
+
+}  // namespace palpsim::render

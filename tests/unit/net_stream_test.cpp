@@ -1,0 +1,508 @@
+// Frames and bricks inside the server, in-process on the synthetic slab (llvmpipe here):
+// a session is rendered only while watched; bricks decode to exactly the J the server
+// computed; a press changes the frame near the tip and nowhere else, and with
+// deformation off it changes nothing; bad viewer input gets a clear error while the
+// other viewers and the poses go on; a scene without frames and bricks builds nothing.
+#include <catch2/catch.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <thread>
+#include <vector>
+#include <zmq.hpp>
+
+#include "net/scene_io.h"
+#include "net/server.h"
+#include "palpsim/wire.pb.h"
+#include "render/frame_encoder.h"
+#include "support/net_client.h"
+#include "support/stream_viewer.h"
+#include "support/synthetic_patient.h"
+
+using namespace palpsim;
+namespace v1 = palpsim::v1;
+
+namespace {
+
+// how long a test waits for the render thread or the worker (a loaded 2-core machine
+// rendering with llvmpipe at nice 19)
+constexpr double kWaitS = 60;
+
+// the press point on the slab's skin (z = 39.5 mm), away from its bone block
+constexpr double kPressX = 45, kPressY = 45;
+
+// a session as "stream-unit", with watch requests and numbered poses
+struct Client : test::NetClient {
+  std::uint64_t seq = 0;
+  explicit Client(const net::Server& s) : NetClient(s, "stream-unit") {}
+
+  v1::ControlReply watch(const v1::WatchSession& w) {
+    v1::ControlRequest q;
+    *q.mutable_watch() = w;
+    return call(q);
+  }
+  v1::StatsReply stats() {
+    v1::ControlRequest q;
+    q.mutable_stats()->set_session_id(id);
+    const auto r = call(q);
+    REQUIRE(r.has_stats());
+    return r.stats();
+  }
+  v1::PoseReply send_pose(const Vec3& x) {
+    ++seq;
+    const v1::PoseReply r = NetClient::send_pose(seq, x, 1.0 + seq * 1e-3);
+    REQUIRE(r.error().code() == v1::ERROR_NONE);
+    return r;
+  }
+  // presses straight down from 2 mm above the skin to `depth_mm` under it
+  void press(double depth_mm, int poses = 40) {
+    const double z0 = test::kSlabSkinZ + 2, z1 = test::kSlabSkinZ - depth_mm;
+    for (int n = 0; n <= poses; ++n) send_pose({kPressX, kPressY, z0 + (z1 - z0) * n / poses});
+  }
+};
+
+net::ServerOptions loopback() {
+  net::ServerOptions o = test::loopback_options();
+  o.stream_bind = "tcp://127.0.0.1:*";
+  // the workers at the haptic thread's priority: ctest runs other suites beside this one
+  o.deform_nice = 0;
+  return o;
+}
+
+// the slab with frames and bricks (small frames: llvmpipe renders them in milliseconds)
+Scene stream_scene(bool deform) {
+  Scene s = default_scene();
+  s.name = deform ? "stream with deformation" : "stream without deformation";
+  s.effects.frames = s.effects.bricks = true;
+  if (deform) {
+    s.effects.chainmail = s.effects.relaxation = s.effects.inversion = true;
+    s.deform.backend = "cpu";
+    s.deform.voi_edge = 32;
+  }
+  s.render.width = 192;
+  s.render.height = 108;
+  s.render.max_fps = 100;
+  s.render.jpeg_encoder = "cpu";
+  s.render.overlay_writer = "upload";
+  return s;
+}
+
+const v1::StageInfo* stage(const google::protobuf::RepeatedPtrField<v1::StageInfo>& stages, const std::string& name) {
+  for (const auto& s : stages)
+    if (s.name() == name) return &s;
+  return nullptr;
+}
+
+// a decoded frame
+struct Rgb {
+  std::vector<std::uint8_t> px;
+  int w = 0, h = 0;
+  int at(int x, int y, int c) const { return px[(std::size_t(y) * w + x) * 3 + c]; }
+};
+Rgb decode(const v1::Frame& f) {
+  Rgb r;
+  REQUIRE(render::decode_jpeg_rgb(reinterpret_cast<const std::uint8_t*>(f.jpeg().data()), f.jpeg().size(), r.px, r.w,
+                                  r.h));
+  REQUIRE(r.w == int(f.width()));
+  REQUIRE(r.h == int(f.height()));
+  return r;
+}
+// the largest channel difference of two frames inside a pixel box [x0, x1) x [y0, y1)
+int max_diff(const Rgb& a, const Rgb& b, int x0, int y0, int x1, int y1) {
+  int m = 0;
+  for (int y = y0; y < y1; ++y)
+    for (int x = x0; x < x1; ++x)
+      for (int c = 0; c < 3; ++c) m = std::max(m, std::abs(a.at(x, y, c) - b.at(x, y, c)));
+  return m;
+}
+
+}  // namespace
+
+TEST_CASE("a scene without frames and bricks builds no stream, no render thread and no EGL context",
+          "[net][stream]") {
+  Scene s = default_scene();
+  s.effects.chainmail = true;
+  s.deform.backend = "cpu";
+  s.deform.voi_edge = 32;
+  net::Server server(s, test::slab_patient(), nullptr, loopback());
+  server.start();
+  CHECK(server.stream_endpoint().empty());
+  Client c(server);
+  const v1::StatsReply st = c.stats();
+  CHECK_FALSE(st.server().has_stream());  // no publisher, no render thread, no EGL context
+  CHECK(st.info().stream_endpoint().empty());
+  for (const char* name : {"frames", "bricks"}) {
+    INFO(name);
+    const v1::StageInfo* a = stage(st.server().stages(), name);
+    REQUIRE(a != nullptr);
+    CHECK_FALSE(a->built());
+    CHECK(a->bytes_allocated() == 0);
+    CHECK(a->runs() == 0);
+    const v1::StageInfo* b = stage(st.session().stages(), name);
+    REQUIRE(b != nullptr);
+    CHECK_FALSE(b->built());
+    CHECK(b->bytes_allocated() == 0);
+  }
+  CHECK_FALSE(st.session().has_stream());
+  // and a viewer is told so
+  v1::WatchSession w;
+  w.set_session_id(c.id);
+  w.set_frames(true);
+  const v1::ControlReply r = c.watch(w);
+  CHECK(r.error().code() == v1::ERROR_NOT_BUILT);
+  CHECK(r.error().message().find("effects.frames") != std::string::npos);
+  server.stop();
+}
+
+TEST_CASE("bricks only: a publisher but no render thread and no EGL context", "[net][stream]") {
+  Scene s = stream_scene(false);
+  s.effects.frames = false;
+  net::Server server(s, test::slab_patient(), nullptr, loopback());
+  server.start();
+  CHECK_FALSE(server.stream_endpoint().empty());
+  Client c(server);
+  const v1::StatsReply st = c.stats();
+  REQUIRE(st.server().has_stream());
+  CHECK(st.server().stream().publisher_thread());
+  CHECK_FALSE(st.server().stream().render_thread());
+  CHECK_FALSE(st.server().stream().egl_context());
+  CHECK(st.server().stream().gl_renderer().empty());
+  const v1::StageInfo* f = stage(st.server().stages(), "frames");
+  REQUIRE(f != nullptr);
+  CHECK_FALSE(f->built());
+  CHECK(f->bytes_allocated() == 0);
+  v1::WatchSession w;
+  w.set_session_id(c.id);
+  w.set_frames(true);
+  CHECK(c.watch(w).error().code() == v1::ERROR_NOT_BUILT);
+  server.stop();
+}
+
+TEST_CASE("a session is rendered while a subscriber holds its frame topic, and only then", "[net][stream]") {
+  net::Server server(stream_scene(false), test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client c(server);
+  // the render thread runs on an EGL context and says which renderer it got
+  v1::StatsReply st = c.stats();
+  REQUIRE(st.server().has_stream());
+  CHECK(st.server().stream().render_thread());
+  CHECK(st.server().stream().egl_context());
+  CHECK_FALSE(st.server().stream().gl_renderer().empty());
+  CHECK(st.server().stream().jpeg_encoder() == "turbojpeg");
+  // poses without a viewer: nothing is rendered
+  for (int n = 0; n < 50; ++n) c.send_pose({kPressX, kPressY, 45.0 - n * 0.01});
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  CHECK(c.stats().server().stream().frames_rendered() == 0);
+
+  v1::WatchSession w;
+  w.set_session_id(c.id);
+  w.set_frames(true);
+  const v1::ControlReply r = c.watch(w);
+  REQUIRE(r.error().code() == v1::ERROR_NONE);
+  REQUIRE(r.has_watch());
+  CHECK(r.watch().session_id() == c.id);
+  CHECK(r.watch().stream_endpoint() == server.stream_endpoint());
+  CHECK(r.watch().view().width() == 192);
+  CHECK(r.watch().view().preset() == "bone");
+  test::StreamViewer v(r.watch().stream_endpoint());
+  v.subscribe(r.watch().frame_topic());
+  // frames come while poses change the tip; each decodes at its size and names its pose
+  v1::StreamMessage m;
+  std::uint64_t last_seq = 0;
+  int frames = 0;
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWaitS);
+  while (frames < 3 && std::chrono::steady_clock::now() < end) {
+    c.send_pose({kPressX, kPressY, 44.0 - frames});
+    if (!v.next(m, nullptr, 200) || !m.has_frame()) continue;
+    const v1::Frame& f = m.frame();
+    CHECK(f.session_id() == c.id);
+    CHECK(f.frame_seq() > last_seq);
+    last_seq = f.frame_seq();
+    CHECK(f.pose_seq() >= 1);
+    CHECK(f.pose_seq() <= c.seq);
+    CHECK(f.pose_to_frame_ms() >= 0);
+    CHECK(f.encoder() == "turbojpeg");
+    CHECK(f.times().raycast_ms() > 0);
+    CHECK(f.times().encode_ms() > 0);
+    const Rgb img = decode(f);
+    // not blank: the slab's slices and its surface give some non-black pixels
+    long lit = 0;
+    for (std::size_t e = 0; e < img.px.size(); ++e) lit += img.px[e] > 40;
+    CHECK(lit > long(img.px.size() / 50));
+    ++frames;
+  }
+  REQUIRE(frames == 3);
+  st = c.stats();
+  CHECK(st.session().stream().frames_watched());
+  CHECK(st.session().stream().frames_published() >= 3);
+  CHECK(st.session().stream().pose_to_frame_p50_ms() > 0);
+  const v1::StageInfo* fs = stage(st.server().stages(), "frames");
+  REQUIRE(fs != nullptr);
+  CHECK(fs->built());
+  CHECK(fs->bytes_allocated() > 0);  // the slab's texture and the framebuffer
+  CHECK(fs->runs() >= 3);
+
+  // the viewer leaves: rendering stops (after the frame in flight)
+  v.unsubscribe(r.watch().frame_topic());
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  const std::uint64_t before = c.stats().server().stream().frames_rendered();
+  for (int n = 0; n < 50; ++n) c.send_pose({kPressX, kPressY, 40.0 + n * 0.02});
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  CHECK(c.stats().server().stream().frames_rendered() == before);
+  CHECK_FALSE(c.stats().session().stream().frames_watched());
+  server.stop();
+}
+
+TEST_CASE("a hold on the control socket renders without a subscriber; any session picks the newest",
+          "[net][stream]") {
+  net::Server server(stream_scene(false), test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client a(server), b(server);
+  v1::WatchSession w;
+  w.set_frames(true);
+  w.set_hold_s(30);
+  const v1::ControlReply r = a.watch(w);  // session 0: the newest open one, b
+  REQUIRE(r.has_watch());
+  CHECK(r.watch().session_id() == b.id);
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWaitS);
+  while (b.stats().session().stream().frames_rendered() == 0 && std::chrono::steady_clock::now() < end) {
+    b.send_pose({kPressX, kPressY, 45});
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  const v1::StatsReply st = b.stats();
+  CHECK(st.session().stream().frames_rendered() > 0);
+  CHECK(st.session().stream().hold_left_s() > 0);
+  CHECK(a.stats().session().stream().frames_rendered() == 0);
+  server.stop();
+}
+
+TEST_CASE("bricks decode to exactly the J the server computed", "[net][stream][bricks]") {
+  const auto patient = test::slab_patient();
+  net::Server server(stream_scene(true), patient, nullptr, loopback());
+  server.start();
+  // float32 bricks are J bit for bit; int16 bricks are J rounded to the nearest HU
+  for (const bool float32 : {true, false}) {
+    const bool zstd = !float32;
+    DYNAMIC_SECTION((float32 ? "float32" : "int16, zstd")) {
+      Client c(server);
+      v1::WatchSession w;
+      w.set_session_id(c.id);
+      w.set_bricks(true);
+      w.set_brick_encoding(float32 ? v1::BRICK_FLOAT32 : v1::BRICK_INT16);
+      w.set_brick_compression(zstd ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE);
+      const v1::ControlReply r = c.watch(w);
+      REQUIRE(r.has_watch());
+      CHECK(r.watch().frame_topic().empty());
+      test::StreamViewer v(r.watch().stream_endpoint());
+      v.subscribe(r.watch().brick_topic());
+      // the key: the undeformed image in slabs along k, all of one key id
+      Volume<float> key(patient->grid, std::numeric_limits<float>::quiet_NaN());
+      std::uint32_t parts = 0, got = 0;
+      REQUIRE(v.until(
+          [&](const v1::StreamMessage& m) {
+            if (!m.has_brick() || !m.brick().key()) return false;
+            const v1::Brick& b = m.brick();
+            CHECK(b.session_id() == c.id);
+            CHECK(b.grid_size_i() == 60);
+            CHECK(b.spacing_mm() == 1.0);
+            CHECK(b.direction_size() == 9);
+            CHECK(b.encoding() == (float32 ? v1::BRICK_FLOAT32 : v1::BRICK_INT16));
+            CHECK(b.compression() == (zstd ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE));
+            test::paste_brick(b, key);
+            parts = b.key_parts();
+            return ++got == parts;
+          },
+          kWaitS));
+      for (std::size_t e = 0; e < key.data.size(); ++e) {
+        const float want = float32 ? patient->intensity.data[e] : float(std::lround(patient->intensity.data[e]));
+        if (std::memcmp(&key.data[e], &want, sizeof want) != 0) FAIL("key voxel " << e << ": " << key.data[e]);
+      }
+      // a press; when the worker has stepped on its last pose, the brick of that step
+      c.press(8);
+      const std::uint64_t last = c.seq;
+      v1::StreamMessage m;
+      REQUIRE(v.until(
+          [&](const v1::StreamMessage& x) {
+            return x.has_brick() && !x.brick().key() && x.brick().pose_seq() == last && x.brick().deformed();
+          },
+          kWaitS, &m));
+      const v1::Brick& b = m.brick();
+      CHECK(b.deform_step() >= 1);
+      CHECK(b.size_i() <= 32);
+      Volume<float> j;
+      REQUIRE(server.deformed_volume(c.id, j));
+      Volume<float> rebuilt = key;
+      test::paste_brick(b, rebuilt);
+      long long differ = 0, changed = 0;
+      for (std::size_t e = 0; e < j.data.size(); ++e) {
+        const float want = float32 ? j.data[e] : float(std::lround(std::clamp(j.data[e], -32768.f, 32767.f)));
+        differ += std::memcmp(&rebuilt.data[e], &want, sizeof want) != 0;
+        changed += j.data[e] != patient->intensity.data[e];
+      }
+      CHECK(changed > 0);  // the press did deform the image
+      CHECK(differ == 0);
+    }
+  }
+  server.stop();
+}
+
+TEST_CASE("a press changes the frame near the tip and nowhere else; without deformation it changes nothing",
+          "[net][stream]") {
+  for (const bool deform : {true, false}) {
+    DYNAMIC_SECTION((deform ? "deformation on" : "deformation off")) {
+      net::Server server(stream_scene(deform), test::slab_patient(), nullptr, loopback());
+      server.start();
+      Client c(server);
+      // a fixed view centred on the press point, no markers: only the image can change
+      v1::WatchSession w;
+      w.set_session_id(c.id);
+      w.set_frames(true);
+      auto* view = w.mutable_view();
+      view->set_look_at_tip(false);
+      view->mutable_center_mm()->set_x(kPressX);
+      view->mutable_center_mm()->set_y(kPressY);
+      view->mutable_center_mm()->set_z(test::kSlabSkinZ);
+      view->set_show_tip(false);
+      view->set_preset("soft_tissue");
+      view->set_slice_fov_mm(40);
+      view->set_jpeg_quality(95);
+      const v1::ControlReply r = c.watch(w);
+      REQUIRE(r.has_watch());
+      test::StreamViewer v(r.watch().stream_endpoint());
+      v.subscribe(r.watch().frame_topic());
+      // before: the tip above the skin
+      v1::StreamMessage before, after;
+      c.send_pose({kPressX, kPressY, test::kSlabSkinZ + 3});
+      REQUIRE(v.until([&](const v1::StreamMessage& m) { return m.has_frame() && m.frame().pose_seq() == c.seq; },
+                      kWaitS, &before));
+      // after: pressed 8 mm in, and (with deformation) once J of that pose is drawn
+      c.press(8);
+      const std::uint64_t last = c.seq;
+      const bool got = v.until(
+          [&](const v1::StreamMessage& m) {
+            return m.has_frame() && m.frame().pose_seq() == last &&
+                   (!deform || (m.frame().deformed() && m.frame().deform_pose_seq() == last));
+          },
+          kWaitS, &after);
+      REQUIRE(got);
+      const Rgb a = decode(before.frame()), b = decode(after.frame());
+      const int side = a.h / 3, left = a.w - side;
+      if (!deform) {
+        CHECK(after.frame().deform_step() == 0);
+        CHECK(a.px == b.px);  // bit-identical frames
+      } else {
+        CHECK(after.frame().deform_step() >= 1);
+        // near the tip: the middle of each slice, where the skin was pushed in (JPEG blocks
+        // that hold changed pixels differ; 8 of 255 is far above JPEG noise of equal input, which is 0)
+        int near = 0;
+        for (int s = 0; s < 3; ++s)
+          near = std::max(near, max_diff(a, b, left + side / 4, s * side + side / 4, left + 3 * side / 4,
+                                         s * side + 3 * side / 4));
+        CHECK(near > 8);
+        // far from it: the outer 16 pixels of the 3D view hold only the background, the
+        // same before and after (JPEG works on 16x16 blocks, so unchanged blocks are equal)
+        CHECK(max_diff(a, b, 0, 0, 16, a.h) == 0);
+        CHECK(max_diff(a, b, 0, 0, left, 16) == 0);
+      }
+      server.stop();
+    }
+  }
+}
+
+TEST_CASE("bad viewer input is refused with a clear error; other viewers and the poses go on", "[net][stream]") {
+  net::Server server(stream_scene(false), test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client c(server);
+  // a good viewer first
+  v1::WatchSession w;
+  w.set_session_id(c.id);
+  w.set_frames(true);
+  const v1::ControlReply ok = c.watch(w);
+  REQUIRE(ok.has_watch());
+  test::StreamViewer good(ok.watch().stream_endpoint());
+  good.subscribe(ok.watch().frame_topic());
+
+  struct Bad {
+    const char* what;
+    std::function<void(v1::WatchSession&)> set;
+    v1::ErrorCode code;
+    const char* says;
+  };
+  const std::vector<Bad> bad = {
+      {"unknown session", [](v1::WatchSession& x) { x.set_session_id(0x1234567890ull); }, v1::ERROR_UNKNOWN_SESSION,
+       "not an open session"},
+      {"size 0x0", [](v1::WatchSession& x) { x.mutable_view()->set_width(0); x.mutable_view()->set_height(0); },
+       v1::ERROR_BAD_VIEW, "64..3840"},
+      {"size 100000x100000",
+       [](v1::WatchSession& x) { x.mutable_view()->set_width(100000); x.mutable_view()->set_height(100000); },
+       v1::ERROR_BAD_VIEW, "64..3840"},
+      {"unknown preset", [](v1::WatchSession& x) { x.mutable_view()->set_preset("xray"); }, v1::ERROR_BAD_VIEW,
+       "skin, bone, soft_tissue"},
+      {"NaN camera",
+       [](v1::WatchSession& x) { x.mutable_view()->set_azimuth_deg(std::numeric_limits<double>::quiet_NaN()); },
+       v1::ERROR_BAD_VIEW, "azimuth"},
+      {"NaN centre",
+       [](v1::WatchSession& x) { x.mutable_view()->mutable_center_mm()->set_y(std::numeric_limits<double>::infinity()); },
+       v1::ERROR_BAD_VIEW, "center"},
+      {"negative hold", [](v1::WatchSession& x) { x.set_hold_s(-1); }, v1::ERROR_BAD_PARAMETER, "hold_s"},
+  };
+  for (const Bad& b : bad) {
+    INFO(b.what);
+    v1::WatchSession x;
+    x.set_session_id(c.id);
+    x.set_frames(true);
+    b.set(x);
+    const v1::ControlReply r = c.watch(x);
+    CHECK(r.error().code() == b.code);
+    CHECK(r.error().message().find(b.says) != std::string::npos);
+    CHECK(r.error().message().find("WatchSession") != std::string::npos);
+  }
+  // the session's view is as the good viewer set it: refused requests changed nothing
+  CHECK(c.stats().session().stream().view().width() == 192);
+
+  // a subscription to a topic that names no session gets a notice on that topic
+  {
+    test::StreamViewer stray(ok.watch().stream_endpoint());
+    stray.subscribe("frame.00000000deadbeef");
+    v1::StreamMessage m;
+    REQUIRE(stray.until([](const v1::StreamMessage& x) { return x.has_notice(); }, kWaitS, &m));
+    CHECK(m.notice().event() == "unknown_session");
+    CHECK(m.notice().error().code() == v1::ERROR_UNKNOWN_SESSION);
+    CHECK(m.notice().message().find("00000000deadbeef") != std::string::npos);
+  }
+  // subscribers that disconnect mid-frame: the good viewer keeps getting frames
+  for (int n = 0; n < 5; ++n) {
+    test::StreamViewer gone(ok.watch().stream_endpoint());
+    gone.subscribe(ok.watch().frame_topic());
+    c.send_pose({kPressX, kPressY, 44.0 - n});
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }  // each closes here, maybe while a frame is on its way
+  std::uint64_t seen = 0;
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWaitS);
+  while (seen < 3 && std::chrono::steady_clock::now() < end) {
+    c.send_pose({kPressX, kPressY, 42.0 + 0.1 * double(seen)});
+    v1::StreamMessage m;
+    if (good.next(m, nullptr, 200) && m.has_frame()) ++seen;
+  }
+  CHECK(seen == 3);
+  const v1::StatsReply st = c.stats();
+  CHECK(st.server().stream().bad_subscriptions() >= 1);
+  CHECK(st.server().stream().render_failures() == 0);
+  // every refusal is counted by its kind
+  CHECK(st.server().bad_view() == 5);
+  CHECK(st.server().bad_parameter() == 1);
+  CHECK(st.server().unknown_session() >= 1);
+
+  // the session closes: its viewer is told
+  v1::ControlRequest q;
+  q.mutable_close()->set_session_id(c.id);
+  REQUIRE(c.call(q).has_close());
+  v1::StreamMessage m;
+  REQUIRE(good.until([](const v1::StreamMessage& x) { return x.has_notice(); }, kWaitS, &m));
+  CHECK(m.notice().event() == "closed");
+  CHECK(m.notice().session_id() == c.id);
+  server.stop();
+}

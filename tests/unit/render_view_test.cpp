@@ -1,0 +1,111 @@
+// View settings of the render path: preset names and check_view's ranges (a bad value
+// is refused with the field, its value and the allowed range, never clamped).
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <limits>
+#include <string>
+
+#include "render/view.h"
+
+using namespace palpsim;
+using namespace palpsim::render;
+
+namespace {
+
+// true when `text` contains `part`
+bool has(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+}  // namespace
+
+TEST_CASE("preset names round-trip and unknown names are refused", "[render][view]") {
+  for (Preset p : {Preset::Skin, Preset::Bone, Preset::SoftTissue}) {
+    Preset q = Preset::Skin;
+    REQUIRE(parse_preset(preset_name(p), &q));
+    CHECK(q == p);
+    CHECK(has(preset_names(), preset_name(p)));
+  }
+  Preset q = Preset::SoftTissue;
+  CHECK_FALSE(parse_preset("bones", &q));
+  CHECK_FALSE(parse_preset("", &q));
+  CHECK_FALSE(parse_preset("Bone", &q));  // names are lower case
+  CHECK(q == Preset::SoftTissue);         // untouched on failure
+}
+
+TEST_CASE("check_view accepts the defaults and the ends of every range", "[render][view]") {
+  ViewSettings v;
+  CHECK(check_view(v).empty());
+  v.width = kMinFrameEdge;
+  v.height = kMinFrameEdge;
+  v.zoom = kMinZoom;
+  v.elevation_deg = -89;
+  v.jpeg_quality = 1;
+  v.slice_fov_mm = kMinSliceFovMm;
+  v.azimuth_deg = -12345;  // any finite azimuth (taken modulo 360)
+  CHECK(check_view(v).empty());
+  v.width = kMaxFrameWidth;
+  v.height = kMaxFrameHeight;
+  v.zoom = kMaxZoom;
+  v.elevation_deg = 89;
+  v.jpeg_quality = 100;
+  v.slice_fov_mm = kMaxSliceFovMm;
+  CHECK(check_view(v).empty());
+}
+
+TEST_CASE("check_view names the first bad field, its value and the range", "[render][view]") {
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const double inf = std::numeric_limits<double>::infinity();
+  ViewSettings v;
+
+  SECTION("0 x 0") {
+    v.width = 0;
+    v.height = 0;
+    CHECK(check_view(v) == "width = 0 is outside 64..3840 pixels");
+    v.width = 640;
+    CHECK(check_view(v) == "height = 0 is outside 64..2160 pixels");
+  }
+  SECTION("100000 x 100000") {
+    v.width = 100000;
+    v.height = 100000;
+    CHECK(check_view(v) == "width = 100000 is outside 64..3840 pixels");
+    v.width = 3840;
+    CHECK(check_view(v) == "height = 100000 is outside 64..2160 pixels");
+  }
+  SECTION("NaN and infinity in the camera") {
+    v.azimuth_deg = nan;
+    CHECK(has(check_view(v), "azimuth_deg"));
+    v.azimuth_deg = inf;
+    CHECK(has(check_view(v), "azimuth_deg"));
+    v.azimuth_deg = 0;
+    v.elevation_deg = nan;
+    CHECK(has(check_view(v), "elevation_deg"));
+    v.elevation_deg = 90;
+    CHECK(check_view(v) == "elevation_deg = 90 is outside -89..89 degrees");
+    v.elevation_deg = 0;
+    v.zoom = nan;
+    CHECK(has(check_view(v), "zoom"));
+    v.zoom = 0;
+    CHECK(check_view(v) == "zoom = 0 is outside 0.1..20");
+    v.zoom = 1;
+    v.center_mm = {0, nan, 0};
+    CHECK(has(check_view(v), "center_mm"));
+    v.center_mm = {0, 0, -inf};
+    CHECK(has(check_view(v), "center_mm"));
+  }
+  SECTION("slices and JPEG") {
+    v.slice_fov_mm = 5;
+    CHECK(check_view(v) == "slice_fov_mm = 5 is outside 10..2000 mm");
+    v.slice_fov_mm = nan;
+    CHECK(has(check_view(v), "slice_fov_mm"));
+    v.slice_fov_mm = 100;
+    v.jpeg_quality = 0;
+    CHECK(check_view(v) == "jpeg_quality = 0 is outside 1..100");
+    v.jpeg_quality = 101;
+    CHECK(has(check_view(v), "jpeg_quality = 101"));
+  }
+  SECTION("an unknown preset") {
+    v.preset = static_cast<Preset>(7);
+    CHECK(has(check_view(v), "preset = 7"));
+    CHECK(has(check_view(v), preset_names()));
+  }
+}

@@ -159,6 +159,8 @@ std::unique_ptr<EglContext> EglContext::create() {
   std::string platform;
 
   // 1. EGL devices (EGL_EXT_platform_device): hardware first, or the one $PALPSIM_EGL_DEVICE names
+  const char* pick = std::getenv("PALPSIM_EGL_DEVICE");
+  const bool picked = pick && *pick;
   if (e.query_devices && e.get_platform_display && has_extension(client_ext, "EGL_EXT_platform_device")) {
     EGLint n = 0;
     std::vector<EGLDeviceEXT> devices;
@@ -168,14 +170,13 @@ std::unique_ptr<EglContext> EglContext::create() {
       devices.resize(std::size_t(n));
     }
     if (devices.empty()) tried.push_back("eglQueryDevicesEXT found no device (" + egl_error() + ")");
-    std::vector<int> order;
     std::vector<bool> software(devices.size(), false);
     for (std::size_t i = 0; i < devices.size(); ++i) {
       const char* dext = e.query_device_string ? e.query_device_string(devices[i], EGL_EXTENSIONS) : nullptr;
       software[i] = has_extension(dext, "EGL_MESA_device_software");
     }
-    const char* pick = std::getenv("PALPSIM_EGL_DEVICE");
-    if (pick && *pick) {
+    std::vector<int> order;
+    if (picked) {
       char* end = nullptr;
       const long want = std::strtol(pick, &end, 10);
       if (*end != '\0' || want < 0 || want >= long(devices.size()))
@@ -198,10 +199,13 @@ std::unique_ptr<EglContext> EglContext::create() {
       }
       tried.push_back(name + " (" + device_label(e, devices[std::size_t(i)], software[i]) + "): " + o.error);
     }
-    if (pick && *pick && got.context == EGL_NO_CONTEXT)
+    if (picked && got.context == EGL_NO_CONTEXT)
       throw Error("no OpenGL 4.5 core context on the EGL device PALPSIM_EGL_DEVICE = " + std::string(pick) + ": " +
                   tried.back());
   } else {
+    if (picked)
+      throw Error("PALPSIM_EGL_DEVICE = '" + std::string(pick) +
+                  "' names an EGL device, but this EGL has no EGL_EXT_platform_device");
     tried.push_back("EGL_EXT_platform_device is not available");
   }
 

@@ -5,7 +5,6 @@
 
 #include <algorithm>
 #include <chrono>
-#include <cstdlib>
 #include <cmath>
 #include <map>
 #include <string>
@@ -82,10 +81,11 @@ Vec3 normalized(const Vec3& v) {
   return n > 0 ? v / n : v;
 }
 
-// a GL error as text, or "" when there is none (clears every pending error)
+// a GL error as text, or "" when there is none (clears the pending errors)
 std::string gl_errors() {
   std::string s;
-  for (GLenum e; (e = glGetError()) != GL_NO_ERROR;) {
+  GLenum e;
+  for (int n = 0; n < 8 && (e = glGetError()) != GL_NO_ERROR; ++n) {
     char b[16];
     std::snprintf(b, sizeof b, "0x%04X", unsigned(e));
     s += (s.empty() ? "" : ", ") + std::string(b) + (e == GL_OUT_OF_MEMORY ? " (out of memory)" : "");
@@ -196,6 +196,44 @@ const Vec3 kTipColor{0.25, 0.95, 0.35}, kTipContactColor{1.0, 0.55, 0.10}, kProx
 // which slice (0 axial, 1 coronal, 2 sagittal) holds grid axis n fixed
 int slice_of_axis(int n) { return 2 - n; }
 
+// The pixels of a w x h view (row 0 at the top) where a VOI box grown by `margin_vox`
+// voxels can appear, for a camera at `eye` looking along `fwd` whose frame edges lie at
+// fwd + right and fwd + up (mm): x, y (top row), width, height, 2 pixels to spare.
+// False when it covers nothing; the whole view when the camera is in or near the box.
+bool voi_rect(const Grid& g, const Voi& voi, double margin_vox, const Vec3& eye, const Vec3& fwd, const Vec3& right,
+              const Vec3& up, int w, int h, int rect[4]) {
+  double x0 = 1e30, y0 = 1e30, x1 = -1e30, y1 = -1e30;
+  const double r2 = dot(right, right), u2 = dot(up, up);
+  for (int c = 0; c < 8; ++c) {
+    const Vec3 ijk{(c & 1) ? voi.lo.x + voi.size.x - 0.5 + margin_vox : voi.lo.x - 0.5 - margin_vox,
+                   (c & 2) ? voi.lo.y + voi.size.y - 0.5 + margin_vox : voi.lo.y - 0.5 - margin_vox,
+                   (c & 4) ? voi.lo.z + voi.size.z - 0.5 + margin_vox : voi.lo.z - 0.5 - margin_vox};
+    const Vec3 q = g.to_physical(ijk) - eye;
+    const double z = dot(q, fwd);
+    if (z < 1e-3) {
+      // a corner beside or behind the camera: any pixel may see the box
+      x0 = y0 = 0;
+      x1 = w;
+      y1 = h;
+      break;
+    }
+    const double nx = dot(q, right) / (r2 * z), ny = dot(q, up) / (u2 * z);  // -1..1 across the view
+    const double px = (nx + 1) * 0.5 * w, py = (1 - ny) * 0.5 * h;
+    x0 = std::min(x0, px);
+    x1 = std::max(x1, px);
+    y0 = std::min(y0, py);
+    y1 = std::max(y1, py);
+  }
+  const int ix0 = std::max(0, int(std::floor(x0)) - 2), iy0 = std::max(0, int(std::floor(y0)) - 2);
+  const int ix1 = std::min(w, int(std::ceil(x1)) + 2), iy1 = std::min(h, int(std::ceil(y1)) + 2);
+  if (ix1 <= ix0 || iy1 <= iy0) return false;
+  rect[0] = ix0;
+  rect[1] = iy0;
+  rect[2] = ix1 - ix0;
+  rect[3] = iy1 - iy0;
+  return true;
+}
+
 }  // namespace
 
 struct FrameRenderer::Impl {
@@ -211,7 +249,8 @@ struct FrameRenderer::Impl {
   GLuint ct_tex = 0, body_tex = 0, block_tex = 0, vao = 0, fbo = 0, color_tex = 0;
   Vec3i block_count{0, 0, 0};    // blocks of kBlockVox voxels per axis
   GLuint tf_tex[3] = {0, 0, 0};  // per preset (Preset's order)
-  Program ray, slice, composite, triad;
+  Program ray[2], slice[2];      // without and with the overlay (OVERLAY 0 and 1)
+  Program composite, triad;
   int width = 0, height = 0;
   Vec3 box_lo, box_hi;           // the body's bounding box (voxel index, voxel edges)
   Vec3 body_center_mm;           // its centre (mm)
@@ -239,7 +278,7 @@ struct FrameRenderer::Impl {
     glDeleteTextures(1, &color_tex);
     glDeleteFramebuffers(1, &fbo);
     glDeleteVertexArrays(1, &vao);
-    for (Program* p : {&ray, &slice, &composite, &triad})
+    for (Program* p : {&ray[0], &ray[1], &slice[0], &slice[1], &composite, &triad})
       if (p->id) glDeleteProgram(p->id);
   }
 
@@ -287,10 +326,14 @@ void FrameRenderer::Impl::upload_volumes() {
   check_gl("the CT texture's allocation");
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
   std::vector<float> hu(plane * kCtSlab);
-  // the largest masked intensity of each block (HU), for skipping faint space
+  // the largest masked intensity (HU) of each block and the voxels one around it (the
+  // trilinear footprint of any point in the block), for skipping faint space
   const Vec3i nb{(g.size.x + kBlockVox - 1) / kBlockVox, (g.size.y + kBlockVox - 1) / kBlockVox,
                  (g.size.z + kBlockVox - 1) / kBlockVox};
   std::vector<float> block(std::size_t(nb.x) * nb.y * nb.z, kAirHu);
+  auto block_range = [](int v, int n) {  // the blocks whose footprint holds voxel v
+    return std::pair<int, int>{std::max((v - 1) / kBlockVox, 0), std::min((v + 1) / kBlockVox, n - 1)};
+  };
   Vec3i lo{g.size.x, g.size.y, g.size.z}, hi{-1, -1, -1};
   for (int k0 = 0; k0 < g.size.z; k0 += kCtSlab) {
     const int nk = std::min(kCtSlab, g.size.z - k0);
@@ -301,8 +344,17 @@ void FrameRenderer::Impl::upload_volumes() {
           const std::size_t n = g.index(i, j, k);
           const float v = masked_hu(p.intensity.data[n], cls[n]);
           hu[n - base] = v;
-          float& b = block[(std::size_t(k / kBlockVox) * nb.y + j / kBlockVox) * nb.x + i / kBlockVox];
-          b = std::max(b, v);
+          if (v > kAirHu) {
+            const auto [bi0, bi1] = block_range(i, nb.x);
+            const auto [bj0, bj1] = block_range(j, nb.y);
+            const auto [bk0, bk1] = block_range(k, nb.z);
+            for (int bk = bk0; bk <= bk1; ++bk)
+              for (int bj = bj0; bj <= bj1; ++bj)
+                for (int bi = bi0; bi <= bi1; ++bi) {
+                  float& b = block[(std::size_t(bk) * nb.y + bj) * nb.x + bi];
+                  b = std::max(b, v);
+                }
+          }
           if (cls[n] == kMaskBody) {
             // the body's bounding box
             lo = {std::min(lo.x, i), std::min(lo.y, j), std::min(lo.z, k)};
@@ -313,24 +365,11 @@ void FrameRenderer::Impl::upload_volumes() {
     glTextureSubImage3D(body_tex, 0, 0, 0, k0, g.size.x, g.size.y, nk, GL_RED, GL_UNSIGNED_BYTE, &cls[base]);
   }
   check_gl("the CT texture's upload");
-  // each block's bound covers its 26 neighbours, so a step of up to kBlockVox - 1 voxels
-  // (and the trilinear footprint of every sample on it) stays within the bound
-  std::vector<float> dilated(block.size(), kAirHu);
-  for (int k = 0; k < nb.z; ++k)
-    for (int j = 0; j < nb.y; ++j)
-      for (int i = 0; i < nb.x; ++i) {
-        float m = kAirHu;
-        for (int dk = std::max(k - 1, 0); dk <= std::min(k + 1, nb.z - 1); ++dk)
-          for (int dj = std::max(j - 1, 0); dj <= std::min(j + 1, nb.y - 1); ++dj)
-            for (int di = std::max(i - 1, 0); di <= std::min(i + 1, nb.x - 1); ++di)
-              m = std::max(m, block[(std::size_t(dk) * nb.y + dj) * nb.x + di]);
-        dilated[(std::size_t(k) * nb.y + j) * nb.x + i] = m;
-      }
   block_tex = make3d(GL_R32F, GL_NEAREST, nb);
-  glTextureSubImage3D(block_tex, 0, 0, 0, 0, nb.x, nb.y, nb.z, GL_RED, GL_FLOAT, dilated.data());
+  glTextureSubImage3D(block_tex, 0, 0, 0, 0, nb.x, nb.y, nb.z, GL_RED, GL_FLOAT, block.data());
   check_gl("the block texture's upload");
   block_count = nb;
-  ct_bytes = g.count() * (sizeof(float) + 1) + dilated.size() * sizeof(float);
+  ct_bytes = g.count() * (sizeof(float) + 1) + block.size() * sizeof(float);
   if (hi.x < 0) {
     // no body at all: the whole grid
     lo = {0, 0, 0};
@@ -357,9 +396,15 @@ void FrameRenderer::Impl::upload_volumes() {
 }
 
 void FrameRenderer::Impl::build_programs() {
-  const std::string head = "#version 450 core\n";
-  ray.build(head + shaders::kSampleGlsl + shaders::kRaycastFs, "ray casting");
-  slice.build(head + shaders::kSampleGlsl + shaders::kSliceFs, "slice");
+  // the constants the shaders share with this file
+  const std::string head = "#version 450 core\n#define AIR_HU " + std::to_string(kAirHu) + "\n#define SHELL_MAX_HU " +
+                           std::to_string(kShellMaxHu) + "\n#define SHELL_MASK " + std::to_string(kMaskShell) +
+                           ".0 / 255.0\n";
+  for (int overlay = 0; overlay < 2; ++overlay) {
+    const std::string volume = head + "#define OVERLAY " + std::to_string(overlay) + "\n" + shaders::kSampleGlsl;
+    ray[overlay].build(volume + shaders::kRaycastFs, "ray casting");
+    slice[overlay].build(volume + shaders::kSliceFs, "slice");
+  }
   composite.build(head + shaders::kCompositeFs, "composite");
   triad.build(head + shaders::kTriadFs, "orientation triad");
   glCreateVertexArrays(1, &vao);
@@ -503,7 +548,7 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
   m.resize(view.width, view.height);
 
   // layout: the 3D view on the left, slices of edge s stacked on the right
-  const int W = view.width, H = view.height, s = H / 3, view_w = W - s;
+  const int W = view.width, H = view.height, s = std::min(H / 3, W), view_w = W - s;
   // the look-at point and slice centre (mm)
   const Vec3 target = (view.look_at_tip && marks.has_tip) ? marks.tip_mm
                       : view.center_set                   ? view.center_mm
@@ -540,8 +585,8 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
   const double aspect = double(view_w) / H;
   const Vec3 light = normalized(-fwd + up * 0.45 - right * 0.35);
   const double mm_per_px = 2 * dist_mm * tan_h / H;  // at the target's distance
-  if (view_w > 0) {
-    Program& p = m.ray;
+  // the ray caster's uniforms, the same for both programs
+  auto set_up_ray = [&](Program& p) {
     glUseProgram(p.id);
     set_viewport(p, 0, 0, view_w, H);
     m.bind_volume(p, ov);
@@ -555,17 +600,21 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
     p.set("u_spacing", g.spacing_mm);
     p.set("u_light", g.physical_to_axes(light));
     p.set("u_step", float(kStepVox));
+    glUniform1i(p["u_max_steps"], int(2 * norm(m.box_hi - m.box_lo) / kStepVox) + 64);
     // HU to the table's texel centres
     const double tf_scale = (kTfSize - 1) / double(kTfMaxHu - kTfMinHu) / kTfSize;
     p.set("u_tf_map", float(tf_scale), float(-kTfMinHu * tf_scale + 0.5 / kTfSize));
     p.set("u_grad_ramp", 15.f, 80.f);
     p.set("u_surface_hu", surface_hu(view.preset));
-    // faint space (every voxel of the block's neighbourhood below the preset's faint
-    // intensity) is crossed in steps of kBlockVox - 1 voxels
+    // steps to shade: surfaces, and interfaces the ray crosses (fat and muscle, say);
+    // homogeneous tissue stays flat (its gradient is noise)
+    p.set("u_shade_alpha", 0.1f);
+    p.set("u_interface_hu", 60.f);
+    // faint blocks (every voxel of the block and one around below the preset's faint
+    // intensity) are crossed in one step
     glBindTextureUnit(kUnitBlock, m.block_tex);
     p.set("u_block_vox", float(kBlockVox));
     p.set("u_block_count", Vec3(m.block_count));
-    p.set("u_skip_step", float(kBlockVox - 1));
     p.set("u_faint_hu", faint_below_hu(view.preset));
     // markers: spheres of about 6 pixels' radius at the target's distance, 1.5..8 mm
     const double r_mm = std::clamp(6 * mm_per_px, 1.5, 8.0);
@@ -580,7 +629,22 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
     glUniform3fv(p["u_marker_color[0]"], 2, mc);
     p.set("u_bg_top", Vec3{0.16, 0.17, 0.21});
     p.set("u_bg_bottom", Vec3{0.03, 0.03, 0.04});
+  };
+  if (view_w > 0) {
+    // every ray without the overlay; then, for a deformed session, the rays that may
+    // pass through its VOI box (or near enough to change how faint space is skipped)
+    // again with it, within the box's bounding rectangle on the screen
+    set_up_ray(m.ray[0]);
     glDrawArrays(GL_TRIANGLES, 0, 3);
+    int rect[4];
+    if (ov.active && voi_rect(g, ov.box, kBlockVox + 1.0, eye, fwd, right * (tan_h * aspect), up * tan_h, view_w, H,
+                              rect)) {
+      set_up_ray(m.ray[1]);
+      glEnable(GL_SCISSOR_TEST);
+      glScissor(rect[0], rect[1], rect[2], rect[3]);
+      glDrawArrays(GL_TRIANGLES, 0, 3);
+      glDisable(GL_SCISSOR_TEST);
+    }
   }
   glFinish();
   times.raycast_ms += ms_since(t0);
@@ -592,7 +656,7 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
   const double slice_mm_per_px = view.slice_fov_mm / std::max(s, 1);
   const Vec3 center_idx = g.to_index(target);
   if (s > 0) {
-    Program& p = m.slice;
+    Program& p = m.slice[ov.active ? 1 : 0];
     glUseProgram(p.id);
     m.bind_volume(p, ov);
     const Window win = slice_window(view.preset);
@@ -629,7 +693,8 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
         vline[3 * n + c] = float(kSliceColor[slice_of_axis(a.right_axis)][c]);
         hline[3 * n + c] = float(kSliceColor[slice_of_axis(a.down_axis)][c]);
       }
-      cut[2 * n] = cut[2 * n + 1] = float(0.5 * s);
+      // the other planes pass through the centre: lines on the pixel column and row there
+      cut[2 * n] = cut[2 * n + 1] = float(s / 2) + 0.5f;
       // a marker's pixel in this slice: its offset from the centre along the screen axes
       auto dot_at = [&](const Vec3& mm, bool show, float* out) {
         const Vec3 di = g.to_index(mm) - center_idx;

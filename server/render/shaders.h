@@ -19,6 +19,9 @@ void main() {
 
 /// Sampling of the session's volume, shared by the ray caster and the slices: J from the
 /// overlay inside the VOI box (air where the undeformed body mask is 0), the CT elsewhere.
+/// AIR_HU, SHELL_MAX_HU, SHELL_MASK and OVERLAY are defined before it
+/// (frame_renderer.cpp): programs for undeformed sessions (OVERLAY 0) leave the overlay
+/// out entirely, since a software rasteriser pays for a branch even where none takes it.
 constexpr const char* kSampleGlsl = R"GLSL(
 layout(binding = 0) uniform sampler3D u_ct;       // CT (HU), air outside the body mask
 layout(binding = 1) uniform sampler3D u_overlay;  // J: texel (i, j, k) = VOI voxel (i, j, k)
@@ -28,10 +31,9 @@ uniform bool u_overlay_on;         // the session is deformed: J on the VOI box
 uniform vec3 u_voi_lo;             // first VOI voxel (patient index)
 uniform vec3 u_voi_size;           // VOI extent (voxels)
 uniform vec3 u_overlay_tex_size;   // overlay texture extent (voxels, max_voi)
-const float kAirHu = -1024.0;
-const float kShellMaxHu = -450.0;  // the shell's cap (frame_renderer.cpp)
-const float kShellMask = 128.0 / 255.0;
-
+const float kAirHu = AIR_HU;            // outside the body (frame_renderer.cpp defines these)
+const float kShellMaxHu = SHELL_MAX_HU; // the cap of the shell around the body
+const float kShellMask = SHELL_MASK;    // the shell's mask class
 // J's cap (HU) at a filtered mask class m: air outside, kShellMaxHu on the shell, none
 // in the body; linear between, so a deformed surface stays smooth
 float cap_hu(float m) {
@@ -41,13 +43,18 @@ float cap_hu(float m) {
 
 // true inside the session's VOI box (with the overlay on), grown by `margin` voxels
 bool in_voi(vec3 p, float margin) {
+#if OVERLAY
   vec3 q = p - u_voi_lo;
   return u_overlay_on && all(greaterThanEqual(q, vec3(-0.5 - margin))) &&
          all(lessThan(q, u_voi_size - 0.5 + margin));
+#else
+  return false;
+#endif
 }
 
 // intensity (HU) at the continuous patient voxel index p
 float sample_hu(vec3 p) {
+#if OVERLAY
   if (in_voi(p, 0.0)) {
     // J inside the box, never filtered with texels beyond it; masked like the CT by
     // the undeformed body mask
@@ -55,6 +62,7 @@ float sample_hu(vec3 p) {
     float j = texture(u_overlay, (qc + 0.5) / u_overlay_tex_size).r;
     return min(j, cap_hu(texture(u_body, (p + 0.5) / u_grid_size).r));
   }
+#endif
   return texture(u_ct, (p + 0.5) / u_grid_size).r;
 }
 )GLSL";
@@ -63,9 +71,14 @@ float sample_hu(vec3 p) {
 /// box, front-to-back compositing through the pre-integrated transfer function with
 /// gradient shading, early termination; the tip and proxy spheres hit analytically so
 /// they sit at their true depth in the volume (a faint ghost where tissue hides them).
+///
+/// The march composites unshaded steps and stops at the next step that needs shading (a
+/// surface, or an interface the ray crosses); that step is shaded once, outside the
+/// march loop, and the march goes on. Software rasterisers (llvmpipe) run every branch
+/// of a loop body for all pixels of a SIMD group, so nothing costly may sit inside it.
 constexpr const char* kRaycastFs = R"GLSL(
-layout(binding = 3) uniform sampler2D u_tf;  // (front, back) HU -> premultiplied RGB, opacity
-layout(binding = 4) uniform sampler3D u_blocks;  // per block: the largest HU in it and its 26 neighbours
+layout(binding = 3) uniform sampler2D u_tf;      // (front, back) HU -> premultiplied RGB, opacity
+layout(binding = 4) uniform sampler3D u_blocks;  // per block: the largest HU in it and one voxel around
 uniform vec4 u_viewport;    // x0, y0 (row of the view's top), width, height (pixels)
 uniform vec3 u_eye;         // camera (voxel index)
 uniform vec3 u_fwd;         // view direction (voxel index per unit ray length)
@@ -76,12 +89,14 @@ uniform vec3 u_box_hi;
 uniform vec3 u_spacing;     // mm per voxel along i, j, k
 uniform vec3 u_light;       // towards the light, grid axes (unit)
 uniform float u_step;       // ray step (voxel)
+uniform int u_max_steps;    // most steps of one ray (the box's diagonal in steps, and then some)
 uniform float u_block_vox;  // block edge (voxel)
 uniform vec3 u_block_count; // blocks per axis
-uniform float u_skip_step;  // step through faint space (voxel)
 uniform float u_faint_hu;   // intensities below this are faint in the preset (HU)
 uniform vec2 u_tf_map;      // HU -> table coordinate: hu * x + y
 uniform float u_surface_hu; // where the preset's opaque surfaces lie (HU)
+uniform float u_shade_alpha;    // steps at least this opaque are shaded
+uniform float u_interface_hu;   // and steps whose intensity changes this much (HU), if not faint
 uniform vec2 u_grad_ramp;   // gradient magnitudes (HU/mm) from no shading to full shading
 uniform vec4 u_marker[2];   // xyz: sphere centre (voxel index), w: radius (mm), 0 = none
 uniform vec3 u_marker_color[2];
@@ -89,9 +104,8 @@ uniform vec3 u_bg_top;      // background at the top and bottom of the view
 uniform vec3 u_bg_bottom;
 out vec4 frag;
 
-const float kOpaque = 0.97;     // early ray termination
-const float kShadeAlpha = 0.01; // steps fainter than this are not shaded (no gradient)
-const float kSurfaceAlpha = 0.1; // steps stronger than this are surfaces: refined, smooth normals
+const float kOpaque = 0.97;      // early ray termination
+const float kShadedMinAlpha = 0.004;  // fainter steps are never shaded
 
 // distance along the ray (voxel) to the marker sphere's front, or 1e30
 float sphere_hit(vec3 o, vec3 d, vec4 m) {
@@ -119,12 +133,27 @@ vec3 gradient(vec3 p) {
   return g * 0.125;
 }
 
-// Blinn-Phong with a light from the viewer's upper left; n and v unit, grid axes
-vec3 lit(vec3 rgb, float a, vec3 n, vec3 v, float w) {
+// The colour of the ray step from a (sample s_front) to p (sample s), shaded (Blinn-
+// Phong, light from the viewer's upper left, two-sided). Where the step enters the
+// preset's surface intensity the normal is taken at the crossing, found by a secant
+// step, not at p: where the samples fall on a surface then leaves no wood-grain rings.
+// Weak gradients (texture, noise) stay unshaded.
+vec3 shade(vec4 c, vec3 a, vec3 p, vec3 v, float s_front, float s) {
+  vec3 q = p;
+  if (s_front < u_surface_hu && s >= u_surface_hu) {
+    q = mix(a, p, (u_surface_hu - s_front) / (s - s_front));
+    float sq = sample_hu(q);  // one secant step more, on the bracketing side
+    if (sq < u_surface_hu) q = mix(q, p, (u_surface_hu - sq) / max(s - sq, 1e-3));
+    else q = mix(a, q, (u_surface_hu - s_front) / max(sq - s_front, 1e-3));
+  }
+  vec3 g = gradient(q) / u_spacing;  // HU/mm along the grid axes
+  float gm = length(g);
+  if (gm <= 1e-3) return c.rgb;
+  vec3 n = -g / gm;
+  float w = smoothstep(u_grad_ramp.x, u_grad_ramp.y, gm);
   float diff = abs(dot(n, u_light));
-  vec3 h = normalize(u_light + v);
-  float spec = pow(abs(dot(n, h)), 28.0);
-  return rgb * mix(1.0, 0.28 + 0.72 * diff, w) + vec3(0.28 * w * spec * a);
+  float spec = pow(abs(dot(n, normalize(u_light + v))), 28.0);
+  return c.rgb * mix(1.0, 0.28 + 0.72 * diff, w) + vec3(0.28 * w * spec * c.a);
 }
 
 void main() {
@@ -136,7 +165,8 @@ void main() {
   vec3 bg = mix(u_bg_top, u_bg_bottom, px.y / u_viewport.w);
 
   // where it is inside the body's bounding box (slab test)
-  vec3 inv = 1.0 / d;
+  // (a zero direction component: "never" along that axis, no NaN)
+  vec3 inv = mix(1.0 / d, vec3(1e30), lessThan(abs(d), vec3(1e-12)));
   vec3 ta = (u_box_lo - u_eye) * inv, tb = (u_box_hi - u_eye) * inv;
   vec3 tmin = min(ta, tb), tmax = max(ta, tb);
   float t_in = max(max(tmin.x, tmin.y), max(tmin.z, 0.0));
@@ -156,47 +186,41 @@ void main() {
   if (t_in < t_end) {
     float t = t_in;
     float s_front = sample_hu(u_eye + t * d);
+    vec3 exit_side = step(vec3(0.0), d);  // 1 where the ray leaves a block by its upper face
+    int budget = u_max_steps;             // a bound on the march, whatever the numbers do
     for (;;) {
-      // a long step where the whole neighbourhood is faint (not in the deformed box,
-      // whose J the block bounds do not know)
-      vec3 p = u_eye + t * d;
-      ivec3 b = ivec3(clamp(floor((p + 0.5) / u_block_vox), vec3(0.0), u_block_count - 1.0));
-      bool faint = texelFetch(u_blocks, b, 0).r < u_faint_hu && !in_voi(p, u_block_vox);
-      float dt = faint ? u_skip_step : u_step;
-      t += dt;
-      if (t > t_end) break;
-      p = u_eye + t * d;
-      float s = sample_hu(p);
-      vec4 c = texture(u_tf, vec2(s_front, s) * u_tf_map.x + u_tf_map.y);
-      if (faint) {
-        // the opacity of `dt / u_step` table steps, unshaded
-        float a = 1.0 - pow(1.0 - c.a, dt / u_step);
-        c = c.a > 0.0 ? vec4(c.rgb * (a / c.a), a) : vec4(0.0);
-      } else if (c.a > kShadeAlpha) {
-        // shading: at a surface crossing (the step enters the preset's surface
-        // intensity), the normal is taken at the crossing and not at the sample, so
-        // where the samples fall on the surface leaves no wood-grain rings
-        vec3 q = p;
-        if (c.a > kSurfaceAlpha && s_front < u_surface_hu && s >= u_surface_hu) {
-          vec3 a = p - dt * d;
-          q = mix(a, p, (u_surface_hu - s_front) / (s - s_front));
-          float sq = sample_hu(q);  // one secant step more, on the bracketing side
-          if (sq < u_surface_hu) q = mix(q, p, (u_surface_hu - sq) / max(s - sq, 1e-3));
-          else q = mix(a, q, (u_surface_hu - s_front) / max(sq - s_front, 1e-3));
-        }
-        // strong steps get the box-filtered gradient, faint ones plain central differences
-        vec3 g;
-        if (c.a > kSurfaceAlpha) {
-          g = gradient(q) / u_spacing;
-        } else {
-          g = vec3(sample_hu(q + vec3(1, 0, 0)) - sample_hu(q - vec3(1, 0, 0)),
-                   sample_hu(q + vec3(0, 1, 0)) - sample_hu(q - vec3(0, 1, 0)),
-                   sample_hu(q + vec3(0, 0, 1)) - sample_hu(q - vec3(0, 0, 1))) * 0.5 / u_spacing;
-        }
-        // weak gradients (texture, noise) stay unshaded, boundaries get the full lighting
-        float gm = length(g);
-        if (gm > 1e-3) c.rgb = lit(c.rgb, c.a, -g / gm, v, smoothstep(u_grad_ramp.x, u_grad_ramp.y, gm));
+      // march: composite unshaded steps up to the next one to be shaded. A block whose
+      // intensities (and one voxel around) are all faint in the preset is crossed in one
+      // step; near the deformed box (its J is not in the block bounds) never.
+      vec4 c = vec4(0.0);
+      vec3 a = vec3(0.0), p = vec3(0.0);
+      float s = 0.0;
+      bool to_shade = false;
+      for (;;) {
+        if (--budget < 0) break;
+        a = u_eye + t * d;
+        vec3 bc = clamp(floor((a + 0.5) / u_block_vox), vec3(0.0), u_block_count - 1.0);
+        vec3 te = ((bc + exit_side) * u_block_vox - 0.5 - u_eye) * inv;
+        bool faint = texelFetch(u_blocks, ivec3(bc), 0).r < u_faint_hu && !in_voi(a, u_block_vox);
+        float dt = faint ? max(min(min(te.x, te.y), te.z) - t, 0.0) + 0.05 : u_step;
+        t += dt;
+        if (t > t_end) break;
+        p = u_eye + t * d;
+        s = sample_hu(p);
+        c = texture(u_tf, vec2(s_front, s) * u_tf_map.x + u_tf_map.y);
+        // a long step: the opacity of (dt / u_step) table steps
+        float k = dt / u_step;
+        float ak = 1.0 - pow(max(1.0 - c.a, 0.0), k);
+        c = c.a > 0.0 ? vec4(c.rgb * (ak / c.a), ak) : vec4(0.0);
+        to_shade = !faint && c.a > kShadedMinAlpha && (c.a >= u_shade_alpha || abs(s - s_front) >= u_interface_hu);
+        if (to_shade) break;
+        acc += (1.0 - acc.a) * c;
+        s_front = s;
+        if (acc.a > kOpaque) break;
       }
+      if (!to_shade) break;
+      // the step that needs shading, once
+      c.rgb = shade(c, a, p, v, s_front, s);
       acc += (1.0 - acc.a) * c;
       s_front = s;
       if (acc.a > kOpaque) break;

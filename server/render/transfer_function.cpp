@@ -43,27 +43,32 @@ TransferFunction make_transfer_function(Preset p) {
                           {-250, 0.92f, 0.72f, 0.60f, 8.0f},
                           {3000, 0.92f, 0.72f, 0.60f, 8.0f}});
     case Preset::Bone:
-      // soft tissue a faint reddish haze that gives the body's outline, bone opaque ivory
+      // soft tissue a faint reddish haze that gives the body's outline; bone (above
+      // about 200 HU) opaque ivory, so a ray's first step into the cortex takes nearly
+      // all of its opacity (no rings where the samples fall)
       return from_points({{-1024, 0.5f, 0.3f, 0.25f, 0},
                           {-400, 0.6f, 0.4f, 0.30f, 0},
                           {-100, 0.75f, 0.60f, 0.40f, 0.0008f},
                           {40, 0.75f, 0.38f, 0.30f, 0.0014f},
                           {140, 0.80f, 0.55f, 0.45f, 0.002f},
-                          {220, 0.90f, 0.82f, 0.66f, 0.5f},
-                          {400, 0.95f, 0.91f, 0.80f, 2.5f},
-                          {1500, 1.00f, 0.98f, 0.94f, 4.0f}});
+                          {200, 0.90f, 0.82f, 0.66f, 0.3f},
+                          {300, 0.94f, 0.89f, 0.76f, 4.0f},
+                          {1000, 1.00f, 0.97f, 0.90f, 8.0f}});
     case Preset::SoftTissue:
-      // the soft-tissue window (W400/L40) in translucent warm colours, fat faint, bone white
+      // the soft-tissue window (W400/L40) in translucent warm colours: fat a faint
+      // yellow, fluid and organs pink, muscle red and denser, bone white and opaque
       return from_points({{-1024, 0.8f, 0.7f, 0.4f, 0},
                           {-300, 0.85f, 0.75f, 0.45f, 0},
                           {-160, 0.90f, 0.78f, 0.48f, 0.0005f},
                           {-60, 0.92f, 0.80f, 0.50f, 0.002f},
-                          {0, 0.88f, 0.48f, 0.36f, 0.006f},
-                          {40, 0.82f, 0.32f, 0.26f, 0.014f},
-                          {100, 0.95f, 0.58f, 0.46f, 0.03f},
-                          {200, 1.00f, 0.96f, 0.92f, 0.4f},
-                          {300, 1.00f, 1.00f, 1.00f, 2.0f},
-                          {1500, 1.00f, 1.00f, 1.00f, 4.0f}});
+                          {0, 0.92f, 0.60f, 0.50f, 0.006f},
+                          {20, 0.90f, 0.50f, 0.45f, 0.015f},
+                          {40, 0.85f, 0.32f, 0.26f, 0.04f},
+                          {80, 0.80f, 0.25f, 0.20f, 0.06f},
+                          {150, 0.95f, 0.70f, 0.60f, 0.1f},
+                          {220, 1.00f, 0.97f, 0.94f, 2.0f},
+                          {300, 1.00f, 1.00f, 1.00f, 6.0f},
+                          {1000, 1.00f, 1.00f, 1.00f, 8.0f}});
   }
   return make_transfer_function(Preset::Bone);
 }
@@ -106,7 +111,7 @@ std::vector<float> preintegrate(const TransferFunction& tf, double step_mm) {
   return out;
 }
 
-float surface_hu(Preset p) { return p == Preset::Skin ? -350.f : 250.f; }
+float surface_hu(Preset p) { return p == Preset::Skin ? -350.f : p == Preset::Bone ? 240.f : 200.f; }
 
 Window slice_window(Preset p) { return p == Preset::Bone ? Window{300, 1500} : Window{40, 400}; }
 

@@ -32,9 +32,9 @@ TransferFunction make_transfer_function(Preset p);
 /// 4 floats each; the opacity of a step whose intensity runs linearly from front to back.
 std::vector<float> preintegrate(const TransferFunction& tf, double step_mm);
 
-/// Where a preset's opaque surfaces lie (HU): the middle of its main opacity ramp
-/// (skin -350, bone and the soft-tissue preset's bone 250); shading takes the normal
-/// where a ray step crosses it.
+/// Where a preset's opaque surfaces lie (HU): the middle of its main opacity ramp (skin
+/// -350, bone 240, the soft-tissue preset's bone 200); shading takes the normal where a
+/// ray step crosses it.
 float surface_hu(Preset p);
 
 /// Intensity window of the slices per preset (HU): bone W1500/L300, else W400/L40.

@@ -506,3 +506,51 @@ TEST_CASE("bad viewer input is refused with a clear error; other viewers and the
   CHECK(m.notice().session_id() == c.id);
   server.stop();
 }
+
+TEST_CASE("LoadScene starts and stops the stream's threads as the new scene asks; viewers hear of it",
+          "[net][stream]") {
+  const auto patient = test::slab_patient();
+  net::Server server(stream_scene(false), patient, [patient](const Scene&) { return patient; }, loopback());
+  server.start();
+  Client c(server);
+  v1::WatchSession w;
+  w.set_session_id(c.id);
+  w.set_bricks(true);
+  const v1::ControlReply r = c.watch(w);
+  REQUIRE(r.has_watch());
+  test::StreamViewer v(r.watch().stream_endpoint());
+  v.subscribe(r.watch().brick_topic());
+  // the first key, then a new scene with bricks but no frames: a notice and a new key
+  REQUIRE(v.until([](const v1::StreamMessage& m) { return m.has_brick() && m.brick().key_id() == 1; }, kWaitS));
+  v1::ControlRequest load;
+  load.mutable_load_scene()->set_text(
+      "name: \"bricks only\" phantom { voxel_mm: 2 } effects { haptics: true bricks: true }");
+  REQUIRE(c.call(load).has_load_scene());
+  v1::StreamMessage m;
+  REQUIRE(v.until([](const v1::StreamMessage& x) { return x.has_notice(); }, kWaitS, &m));
+  CHECK(m.notice().event() == "scene_changed");
+  CHECK(m.notice().message().find("bricks only") != std::string::npos);
+  REQUIRE(v.until([](const v1::StreamMessage& x) { return x.has_brick() && x.brick().key_id() == 2; }, kWaitS));
+  v1::StatsReply st = c.stats();
+  CHECK(st.server().stream().publisher_thread());
+  CHECK_FALSE(st.server().stream().render_thread());  // frames off: the render thread and its context are gone
+  CHECK_FALSE(st.server().stream().egl_context());
+  // a scene with neither: the publisher goes too, and the stream's stages say so
+  load.mutable_load_scene()->set_text("name: \"haptics only\" phantom { voxel_mm: 2 }");
+  REQUIRE(c.call(load).has_load_scene());
+  st = c.stats();
+  CHECK_FALSE(st.server().has_stream());
+  CHECK(st.info().stream_endpoint().empty());
+  CHECK(server.stream_endpoint().empty());
+  CHECK(c.watch(w).error().code() == v1::ERROR_NOT_BUILT);
+  // and back to frames: the render thread is started again
+  load.mutable_load_scene()->set_text(
+      "name: \"frames again\" phantom { voxel_mm: 2 } effects { haptics: true frames: true } "
+      "render { width: 128 height: 72 jpeg_encoder: \"cpu\" }");
+  REQUIRE(c.call(load).has_load_scene());
+  st = c.stats();
+  CHECK(st.server().stream().render_thread());
+  CHECK(st.server().stream().egl_context());
+  CHECK_FALSE(server.stream_endpoint().empty());
+  server.stop();
+}

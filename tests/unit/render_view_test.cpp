@@ -6,6 +6,7 @@
 #include <limits>
 #include <string>
 
+#include "render/transfer_function.h"
 #include "render/view.h"
 
 using namespace palpsim;
@@ -108,4 +109,33 @@ TEST_CASE("check_view names the first bad field, its value and the range", "[ren
     CHECK(has(check_view(v), "preset = 7"));
     CHECK(has(check_view(v), preset_names()));
   }
+}
+
+TEST_CASE("pre-integrated transfer functions: constant steps and thin ramps", "[render][tf]") {
+  const TransferFunction tf = make_transfer_function(Preset::Skin);
+  const double step_mm = 1.0;
+  const std::vector<float> t = preintegrate(tf, step_mm);
+  REQUIRE(t.size() == std::size_t(4) * kTfSize * kTfSize);
+  auto at = [&](int front, int back) { return &t[(std::size_t(back) * kTfSize + front) * 4]; };
+  auto entry = [](float hu) { return int(std::lround((hu - kTfMinHu) / (kTfMaxHu - kTfMinHu) * (kTfSize - 1))); };
+  // a step through constant intensity: opacity 1 - exp(-tau * length), colour times it
+  // (float storage: 1e-6)
+  for (int n : {entry(-1000), entry(-350), entry(40), entry(1000)}) {
+    const float* e = at(n, n);
+    const double a = 1 - std::exp(-tf.tau[n] * step_mm);
+    CHECK(e[3] == Approx(a).margin(1e-6));
+    CHECK(e[0] == Approx(tf.rgb[3 * n] * a).margin(1e-6));
+  }
+  // air stays clear; a step from air into skin, whose ends both miss the thin -450..-250
+  // ramp's middle, is still nearly opaque (what point sampling would miss), and the same
+  // both ways
+  CHECK(at(entry(-1000), entry(-1000))[3] == 0.f);
+  const float into = at(entry(-1000), entry(30))[3], out_of = at(entry(30), entry(-1000))[3];
+  CHECK(into > 0.9f);
+  CHECK(out_of == Approx(into).margin(1e-6));
+  // the presets' windows of the slices
+  CHECK(slice_window(Preset::Bone).width_hu == 1500);
+  CHECK(slice_window(Preset::Bone).level_hu == 300);
+  CHECK(slice_window(Preset::SoftTissue).width_hu == 400);
+  CHECK(slice_window(Preset::Skin).level_hu == 40);
 }

@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Runs on the GPU machine from a bundle made by ../shared/tools/device-pack (see
+# ../shared/docs/DEVICE.md): the GPU test suites, compute-sanitizer on the render
+# interop, and the deform and render benchmarks, writing everything into OUT_DIR.
+#
+#   here:  cmake -S . -B build-gpu -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_CUDA_ARCHITECTURES=90
+#          cmake --build build-gpu
+#          ../shared/tools/device-pack --data ../shared/data/ct build-gpu/palpsim-gpu-tests \
+#            build-gpu/palpsim-gpu-render-tests build-gpu/palpsim-bench build-gpu/palpsim-server
+#   there: bash scripts/gpu-check.sh "$OUT" [quick]
+set -uo pipefail
+out=${1:?usage: scripts/gpu-check.sh OUT_DIR [quick]}
+quick=${2:-}
+mkdir -p "$out"
+tar xzf .device/bundle.tgz -C /tmp && . /tmp/bundle/env.sh || { echo "gpu-check: no bundle in .device/" >&2; exit 2; }
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
+commit=$(git rev-parse --short HEAD 2>/dev/null || echo unknown)
+echo "commit $commit" | tee -a "$out/gpu.txt"
+
+step() {  # name, command...: runs it, keeps its output, prints one status line
+  local name=$1; shift
+  local t0=$SECONDS
+  "$@" > "$out/$name.txt" 2>&1
+  local rc=$?
+  printf '%-22s rc=%d  %3ds\n' "$name" "$rc" $((SECONDS - t0)) | tee -a "$out/summary.txt"
+  return 0
+}
+step gpu-tests palpsim-gpu-tests
+step gpu-render-tests palpsim-gpu-render-tests
+if command -v compute-sanitizer >/dev/null; then
+  step memcheck-render compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-render-tests
+fi
+if [ -z "$quick" ]; then
+  step bench-render palpsim-bench render --scene config/scenes/lumbar_phantom.textproto --json "$out/render.json"
+  step bench-deform palpsim-bench deform --json "$out/deform.json"
+fi
+# the tail of each: what passed, what the benchmarks measured
+for f in "$out"/*.txt; do
+  echo "=== $(basename "$f")"
+  grep -E "passed|failed|FAILED|ERROR SUMMARY|render\+encode|server,|frames/s|skipped|median" "$f" | tail -25
+done

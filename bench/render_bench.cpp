@@ -57,7 +57,16 @@ struct Options {
   std::vector<int> sessions{1, 16};      // server part
   double seconds = 0;                    // server part, per phase; 0: 6 on a GPU, 8 on llvmpipe
   bool server = true;
+  bool sweep = true;                     // ray step x CT precision x preset (GPU only unless asked)
+  bool sweep_set = false;
 };
+
+// the renderer quality a scene asks for
+render::RenderQuality quality_of(const Scene& s) {
+  render::RenderQuality q;
+  q.ray_step_vox = s.render.ray_step_vox;
+  return q;
+}
 
 std::string machine() {
   std::ifstream in("/proc/cpuinfo");
@@ -97,7 +106,7 @@ DeformContact l3_press(const Patient& p, double depth_mm) {
 
 struct StageRow {
   int width = 0, height = 0;
-  std::string writer, encoder, preset;
+  std::string writer, encoder, preset, label;
   Spread j_to_texture, raycast, slices, composite, readback, encode, render_encode, total;
   std::size_t jpeg_bytes = 0;
   int frames = 0;
@@ -106,7 +115,8 @@ struct StageRow {
 std::string json_stage(const StageRow& r) {
   std::ostringstream s;
   s << "{\"width\": " << r.width << ", \"height\": " << r.height << ", \"overlay_writer\": \"" << r.writer
-    << "\", \"jpeg_encoder\": \"" << r.encoder << "\", \"preset\": \"" << r.preset << "\", \"frames\": " << r.frames
+    << "\", \"jpeg_encoder\": \"" << r.encoder << "\", \"preset\": \"" << r.preset << "\", \"quality\": \"" << r.label
+    << "\", \"frames\": " << r.frames
     << ", \"jpeg_bytes\": " << r.jpeg_bytes << ", \"j_to_texture\": " << json_spread(r.j_to_texture)
     << ", \"raycast\": " << json_spread(r.raycast) << ", \"slices\": " << json_spread(r.slices)
     << ", \"composite\": " << json_spread(r.composite) << ", \"readback\": " << json_spread(r.readback)
@@ -119,20 +129,18 @@ std::string json_stage(const StageRow& r) {
 
 // frames of the phantom at each size, for each writer and encoder, while the deformation
 // steps a press that goes 2..12 mm deep and back between frames
-std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene, const Options& o,
+std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene, Options o,
                                    std::string& gl, bool& software) {
   auto ctx = render::EglContext::create();
   gl = ctx->describe();
   software = ctx->software();
   std::printf("GL: %s\n", gl.c_str());
-  render::FrameRenderer renderer(patient);
   DeformConfig dc = DeformConfig::from_scene(scene);
   dc.settings.backend = "auto";
   dc.settings.voi_edge = 64;
   DeformEngine engine(patient, dc);
   std::printf("deformation between frames: %s, VOI 64\n", engine.backend_note().c_str());
   const Vec3i voi{64, 64, 64};
-  const auto overlay = renderer.add_overlay(voi);
   std::unique_ptr<DeviceBytes> device_j;
 
   // every writer and encoder this build and context can use
@@ -151,17 +159,20 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
     std::printf("jpeg encoder nvjpeg: not here (%s)\n", e.what());
   }
   const int frames = o.frames > 0 ? o.frames : (software ? 8 : 200);
+  if (!o.sweep_set) o.sweep = !software;  // on llvmpipe the sweep takes minutes; ask for it with --sweep
   const int warmup = software ? 1 : 20;
 
   std::vector<StageRow> rows;
-  for (const auto& [w, h] : o.sizes)
-    for (const std::string& wname : writers)
-      for (const std::string& ename : encoders) {
+  // one configuration: `frames` frames after `warmup`, the deformation stepping between them
+  auto measure = [&](render::FrameRenderer& renderer, render::FrameRenderer::OverlayId overlay, int w, int h,
+                     const std::string& wname, const std::string& ename, render::Preset preset,
+                     const std::string& label) {
         auto writer = render::make_overlay_writer(wname, *ctx);
         auto encoder = render::make_frame_encoder(ename, *ctx);
         render::ViewSettings view;
         view.width = w;
         view.height = h;
+        view.preset = preset;
         std::vector<double> jt, rc, sl, cp, rb, en, re, tt;
         std::vector<std::uint8_t> jpeg;
         std::size_t bytes = 0;
@@ -214,15 +225,40 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
         r.render_encode = spread(re);
         r.total = spread(tt);
         r.jpeg_bytes = bytes;
+        r.label = label;
         std::printf(
-            "%4dx%-4d %-7s %-9s  J->tex %6.3f  raycast %7.3f  slices %6.3f  composite %6.3f  readback %6.3f  encode "
-            "%6.3f | render+encode %7.3f ms (p90 %7.3f)  %zu KB\n",
-            w, h, wname.c_str(), r.encoder.c_str(), r.j_to_texture.median, r.raycast.median, r.slices.median,
-            r.composite.median, r.readback.median, r.encode.median, r.render_encode.median, r.render_encode.p90,
-            bytes / 1024);
+            "%4dx%-4d %-7s %-9s %-11s %-22s J->tex %6.3f  raycast %7.3f  slices %6.3f  composite %6.3f  readback %6.3f"
+            "  encode %6.3f | render+encode %7.3f ms (p90 %7.3f)  %zu KB\n",
+            w, h, wname.c_str(), r.encoder.c_str(), r.preset.c_str(), label.c_str(), r.j_to_texture.median,
+            r.raycast.median, r.slices.median, r.composite.median, r.readback.median, r.encode.median,
+            r.render_encode.median, r.render_encode.p90, bytes / 1024);
         rows.push_back(r);
-      }
+  };
+  // every writer and encoder at every size, the default quality and preset
+  render::FrameRenderer renderer(patient, quality_of(scene));
+  const auto overlay = renderer.add_overlay(voi);
+  for (const auto& [w, h] : o.sizes)
+    for (const std::string& wname : writers)
+      for (const std::string& ename : encoders)
+        measure(renderer, overlay, w, h, wname, ename, render::Preset::Bone, "scene quality");
   renderer.remove_overlay(overlay);
+  // what the ray step and the CT texture's precision cost, per preset, at the first size
+  // with the fastest writer and encoder here
+  if (o.sweep) {
+    for (const bool half : {true, false})
+      for (const double step : {1.0, 1.5, 2.0}) {
+        render::RenderQuality q;
+        q.ray_step_vox = step;
+        q.half_float_ct = half;
+        render::FrameRenderer r(patient, q);
+        const auto ov = r.add_overlay(voi);
+        char label[64];
+        std::snprintf(label, sizeof label, "step %.1f vox, CT %s", step, half ? "fp16" : "fp32");
+        for (render::Preset pr : {render::Preset::Bone, render::Preset::Skin, render::Preset::SoftTissue})
+          measure(r, ov, o.sizes.front().first, o.sizes.front().second, writers.back(), encoders.back(), pr, label);
+        r.remove_overlay(ov);
+      }
+  }
   return rows;
 }
 
@@ -430,6 +466,9 @@ int run(int argc, char** argv) {
       o.seconds = std::stod(value());
     } else if (a == "--no-server") {
       o.server = false;
+    } else if (a == "--sweep" || a == "--no-sweep") {
+      o.sweep = a == "--sweep";
+      o.sweep_set = true;
     } else if (a == "--sessions" || a == "--sizes") {
       std::stringstream ss(value());
       std::string item;
@@ -447,7 +486,8 @@ int run(int argc, char** argv) {
       std::printf(
           "usage: palpsim-bench render [--json FILE] [--scene FILE (lumbar phantom)] [--frames N per configuration]\n"
           "                            [--sizes 1280x720,1920x1080] [--sessions 1,16] [--seconds S per phase]\n"
-          "                            [--no-server]\n");
+          "                            [--no-server] [--sweep|--no-sweep (ray step x CT precision x preset;\n"
+          "                            default: on a GPU only)]\n");
       return 0;
     } else {
       throw Error("palpsim-bench render: unknown argument '" + a + "'");

@@ -87,6 +87,7 @@ struct RenderSettings {
   std::string jpeg_encoder = "auto";    // "auto", "cpu" or "nvjpeg"
   std::string overlay_writer = "auto";  // "auto", "upload" or "cuda-gl"
   std::string record_dir;               // resolved; "" = render only watched sessions
+  double ray_step_vox = 1;              // the 3D view's ray step (voxel)
 };
 
 /// A whole validated scene.

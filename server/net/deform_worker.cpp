@@ -70,7 +70,8 @@ struct DeformWorker::Session {
   std::uint32_t pose_resets_seen = 0;   // SessionSlot::pose_resets applied
   DeformSessionReport report;
   double last_contact_time_s = 0;       // server time of the pose the latest step ran on
-  Vec3 last_tip_mm{0, 0, 0};            // and its tip and proxy
+  Vec3 last_tip_mm{0, 0, 0};            // and its tip, skin point and proxy
+  Vec3 last_skin_mm{0, 0, 0};
   Vec3 last_proxy_mm{0, 0, 0};
   // the stream's hand-overs (stream_state.h): the state's version, and what was exported
   std::uint64_t state_version = 1;      // grows with every step, reset and failure
@@ -301,6 +302,12 @@ bool DeformWorker::serve_deformation(int index) {
     if (dropped) publish(s, index);
     return worked;
   }
+  // the same contact as the step in place (a held tip): the same J, nothing to step
+  if (s.report.deformed && s.engine && c.tip_mm == s.last_tip_mm && c.skin_point_mm == s.last_skin_mm) {
+    s.report.last_contact_seq = c.seq;
+    if (dropped) publish(s, index);
+    return worked;
+  }
   step(s, index, c);
   return true;
 }
@@ -325,6 +332,7 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
   ++s.state_version;
   s.last_contact_time_s = c.server_time_s;
   s.last_tip_mm = c.tip_mm;
+  s.last_skin_mm = c.skin_point_mm;
   s.last_proxy_mm = c.proxy_mm;
   try {
     if (!s.engine) s.engine = take_engine();

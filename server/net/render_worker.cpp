@@ -23,8 +23,9 @@
 namespace palpsim::net {
 namespace {
 
-// how long the thread naps when no watched session needs a frame (s): well below a
-// frame interval, so a new pose or J is drawn within about a millisecond
+// how long the thread naps at most when no watched session needs a frame now (s): well
+// below a frame interval, so a new pose or J is drawn within about a millisecond; less
+// when a session's next frame is due sooner
 constexpr double kIdleSleepS = 1e-3;
 // and while nobody watches anything (s)
 constexpr double kUnwatchedSleepS = 10e-3;
@@ -143,12 +144,17 @@ void RenderWorker::run() {
     }
     // one pass over the watched sessions: at most one frame each
     bool worked = false, any = false;
-    const double now = now_s();
+    double nap = kUnwatchedSleepS;
     for (int i = 0; i < kMaxSlots && !stop_.load(std::memory_order_relaxed); ++i) {
+      const double now = now_s();
       worked = serve(i, now) || worked;
-      any = any || views_[i].session != 0;
+      const View& v = views_[i];
+      if (v.session == 0) continue;
+      any = true;
+      // a changed session waits for its frame time at most; an unchanged one for news
+      nap = std::min(nap, v.dirty ? std::max(v.next_frame_s - now, 0.0) : kIdleSleepS);
     }
-    if (!worked) std::this_thread::sleep_for(std::chrono::duration<double>(any ? kIdleSleepS : kUnwatchedSleepS));
+    if (!worked && nap > 0) std::this_thread::sleep_for(std::chrono::duration<double>(std::min(nap, any ? kIdleSleepS : kUnwatchedSleepS)));
   }
   // every GL object is destroyed on this thread, the context last
   for (View& v : views_) release_view(v);
@@ -187,9 +193,12 @@ void RenderWorker::set_up_world() {
       // the writer and encoder hold CUDA registrations of the renderer's textures: they go first
       writer_.reset();
       encoder_.reset();
-      if (!renderer_ || !same_patient) {
+      render::RenderQuality quality;
+      quality.ray_step_vox = settings_.ray_step_vox;
+      if (!renderer_ || !same_patient || quality_.ray_step_vox != quality.ray_step_vox) {
         renderer_.reset();
-        renderer_ = std::make_unique<render::FrameRenderer>(patient_);
+        renderer_ = std::make_unique<render::FrameRenderer>(patient_, quality);
+        quality_ = quality;
       }
       std::string enc_note, writer_note;
       encoder_ = render::make_frame_encoder(settings_.jpeg_encoder, *ctx_, &enc_note);
@@ -313,7 +322,11 @@ bool RenderWorker::serve(int index, double now) {
     ss.frame_bytes.store(held_bytes(ss.frames), std::memory_order_relaxed);
     v.pending_j_ms = 0;
     v.dirty = false;
-    v.next_frame_s = now + 1.0 / settings_.max_fps;
+    // render.max_fps on the frames' own cadence, so that waiting for other sessions'
+    // frames does not stretch the interval; more than an interval behind, from now
+    const double interval = 1.0 / settings_.max_fps;
+    if (now - v.next_frame_s > interval) v.next_frame_s = now;
+    v.next_frame_s += interval;
     st_.frames_rendered.fetch_add(1, std::memory_order_relaxed);
     if (replaced) st_.frames_replaced.fetch_add(1, std::memory_order_relaxed);
     std::lock_guard<std::mutex> lock(ss.mu);

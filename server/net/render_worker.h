@@ -17,9 +17,10 @@
 #include "net/session_table.h"
 #include "net/stream_state.h"
 
+#include "render/frame_renderer.h"
+
 namespace palpsim::render {
 class EglContext;
-class FrameRenderer;
 class FrameEncoder;
 class OverlayWriter;
 }  // namespace palpsim::render
@@ -70,6 +71,7 @@ class RenderWorker {
   std::uint64_t generation_ = 0;
   PatientPtr patient_;
   RenderSettings settings_;
+  render::RenderQuality quality_;  // the renderer's
   Vec3i max_voi_{0, 0, 0};
   std::vector<View> views_;  // by slot index
 

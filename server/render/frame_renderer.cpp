@@ -20,7 +20,6 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 constexpr float kAirHu = -1024;       // what voxels outside the body mask become
-constexpr double kStepVox = 1.0;      // ray step (voxel); the pre-integrated table makes 1 enough
 constexpr double kHalfFovDeg = 15;    // half the vertical field of view at zoom 1
 constexpr int kCtSlab = 8;            // k-slices per chunk of the CT upload
 constexpr int kBlockVox = 8;          // edge of the blocks for skipping faint space (voxel)
@@ -121,14 +120,15 @@ struct Program {
   GLuint id = 0;
   std::unordered_map<std::string, GLint> loc;
 
-  void build(const std::string& fs, const char* name) {
-    const GLuint v = compile(GL_VERTEX_SHADER, shaders::kFullscreenVs, name);
-    const GLuint f = compile(GL_FRAGMENT_SHADER, fs, name);
+  // a full-viewport triangle with fragment shader `fs`, or (compute) a compute shader
+  void build(const std::string& fs, const char* name, bool compute = false) {
+    const GLuint v = compute ? 0 : compile(GL_VERTEX_SHADER, shaders::kFullscreenVs, name);
+    const GLuint f = compile(compute ? GL_COMPUTE_SHADER : GL_FRAGMENT_SHADER, fs, name);
     id = glCreateProgram();
-    glAttachShader(id, v);
+    if (v) glAttachShader(id, v);
     glAttachShader(id, f);
     glLinkProgram(id);
-    glDeleteShader(v);
+    if (v) glDeleteShader(v);
     glDeleteShader(f);
     GLint ok = 0;
     glGetProgramiv(id, GL_LINK_STATUS, &ok);
@@ -257,6 +257,32 @@ struct FrameRenderer::Impl {
   std::map<int, Overlay> overlays;
   int next_id = 1;
   std::size_t ct_bytes = 0, tf_bytes = 0;
+  RenderQuality quality;
+  // Stage times: GL timestamps (before the ray cast, after it, the slices, the composite)
+  // on a GPU, so that no stage waits for the one before; a software rasteriser (llvmpipe)
+  // draws at the flush, after its timestamps, so there each stage is finished and timed
+  // on the wall clock instead.
+  GLuint stamps[4] = {0, 0, 0, 0};
+  bool software = false;
+  Clock::time_point wall[4];
+  void mark(int n) {
+    if (software) {
+      glFinish();
+      wall[n] = Clock::now();
+    } else {
+      glQueryCounter(stamps[n], GL_TIMESTAMP);
+    }
+  }
+  // the ms from mark a to mark b (after the last mark)
+  void stage_ms(double out[3]) {
+    if (software) {
+      for (int n = 0; n < 3; ++n) out[n] = std::chrono::duration<double, std::milli>(wall[n + 1] - wall[n]).count();
+      return;
+    }
+    GLuint64 ns[4] = {0, 0, 0, 0};
+    for (int n = 0; n < 4; ++n) glGetQueryObjectui64v(stamps[n], GL_QUERY_RESULT, &ns[n]);
+    for (int n = 0; n < 3; ++n) out[n] = double(ns[n + 1] - ns[n]) * 1e-6;
+  }
 
   Overlay& overlay(OverlayId id) {
     auto it = overlays.find(id);
@@ -278,6 +304,7 @@ struct FrameRenderer::Impl {
     glDeleteTextures(1, &color_tex);
     glDeleteFramebuffers(1, &fbo);
     glDeleteVertexArrays(1, &vao);
+    glDeleteQueries(4, stamps);
     for (Program* p : {&ray[0], &ray[1], &slice[0], &slice[1], &composite, &triad})
       if (p->id) glDeleteProgram(p->id);
   }
@@ -321,7 +348,7 @@ void FrameRenderer::Impl::upload_volumes() {
       glTextureParameteri(t, w, GL_CLAMP_TO_EDGE);
     return t;
   };
-  ct_tex = make3d(GL_R32F, GL_LINEAR, g.size);
+  ct_tex = make3d(quality.half_float_ct ? GL_R16F : GL_R32F, GL_LINEAR, g.size);
   body_tex = make3d(GL_R8, GL_LINEAR, g.size);
   check_gl("the CT texture's allocation");
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
@@ -369,7 +396,7 @@ void FrameRenderer::Impl::upload_volumes() {
   glTextureSubImage3D(block_tex, 0, 0, 0, 0, nb.x, nb.y, nb.z, GL_RED, GL_FLOAT, block.data());
   check_gl("the block texture's upload");
   block_count = nb;
-  ct_bytes = g.count() * (sizeof(float) + 1) + block.size() * sizeof(float);
+  ct_bytes = g.count() * ((quality.half_float_ct ? 2 : sizeof(float)) + 1) + block.size() * sizeof(float);
   if (hi.x < 0) {
     // no body at all: the whole grid
     lo = {0, 0, 0};
@@ -378,10 +405,10 @@ void FrameRenderer::Impl::upload_volumes() {
   box_lo = Vec3(lo.x - 0.5, lo.y - 0.5, lo.z - 0.5);
   box_hi = Vec3(hi.x + 0.5, hi.y + 0.5, hi.z + 0.5);
   body_center_mm = g.to_physical((Vec3(lo) + Vec3(hi)) * 0.5);
-  // the pre-integrated transfer functions, for steps of kStepVox voxels (mean voxel edge)
+  // the pre-integrated transfer functions, for steps of ray_step_vox voxels (mean voxel edge)
   const double voxel_mm = std::cbrt(g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z);
   for (Preset pr : {Preset::Skin, Preset::Bone, Preset::SoftTissue}) {
-    const std::vector<float> table = preintegrate(make_transfer_function(pr), kStepVox * voxel_mm);
+    const std::vector<float> table = preintegrate(make_transfer_function(pr), quality.ray_step_vox * voxel_mm);
     GLuint& t = tf_tex[int(pr)];
     glCreateTextures(GL_TEXTURE_2D, 1, &t);
     glTextureStorage2D(t, 1, GL_RGBA16F, kTfSize, kTfSize);
@@ -402,7 +429,8 @@ void FrameRenderer::Impl::build_programs() {
                            ".0 / 255.0\n";
   for (int overlay = 0; overlay < 2; ++overlay) {
     const std::string volume = head + "#define OVERLAY " + std::to_string(overlay) + "\n" + shaders::kSampleGlsl;
-    ray[overlay].build(volume + shaders::kRaycastFs, "ray casting");
+    ray[overlay].build((software ? volume : volume + "#define RAY_COMPUTE 1\n") + shaders::kRaycastFs, "ray casting",
+                       !software);
     slice[overlay].build(volume + shaders::kSliceFs, "slice");
   }
   composite.build(head + shaders::kCompositeFs, "composite");
@@ -412,11 +440,19 @@ void FrameRenderer::Impl::build_programs() {
   check_gl("the shaders' set-up");
 }
 
-FrameRenderer::FrameRenderer(PatientPtr patient) : impl_(std::make_unique<Impl>()) {
+FrameRenderer::FrameRenderer(PatientPtr patient, const RenderQuality& quality) : impl_(std::make_unique<Impl>()) {
   if (!patient) throw Error("frame renderer: no patient");
   if (!glGetString(GL_VERSION)) throw Error("frame renderer: no OpenGL context is current on this thread");
+  if (!(quality.ray_step_vox >= 0.25 && quality.ray_step_vox <= 4))
+    throw Error("frame renderer: ray_step_vox = " + std::to_string(quality.ray_step_vox) +
+                " is outside 0.25..4 voxels");
   gl_errors();  // start clean
   impl_->patient = std::move(patient);
+  impl_->quality = quality;
+  const std::string renderer = reinterpret_cast<const char*>(glGetString(GL_RENDERER));
+  impl_->software = renderer.find("llvmpipe") != std::string::npos || renderer.find("softpipe") != std::string::npos ||
+                    renderer.find("swrast") != std::string::npos;
+  glCreateQueries(GL_TIMESTAMP, 4, impl_->stamps);
   // on a throw, ~Impl frees what was made
   impl_->build_programs();
   impl_->upload_volumes();
@@ -569,7 +605,7 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
   glClear(GL_COLOR_BUFFER_BIT);
 
   // 1. the 3D view: camera on its orbit about the target (view.h), zoom narrows the field
-  auto t0 = Clock::now();
+  m.mark(0);
   const double pi = 3.14159265358979323846;
   const double az = view.azimuth_deg * pi / 180, el = view.elevation_deg * pi / 180;
   const Vec3 extent{g.size.x * g.spacing_mm.x, g.size.y * g.spacing_mm.y, g.size.z * g.spacing_mm.z};
@@ -599,8 +635,8 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
     p.set("u_box_hi", m.box_hi);
     p.set("u_spacing", g.spacing_mm);
     p.set("u_light", g.physical_to_axes(light));
-    p.set("u_step", float(kStepVox));
-    glUniform1i(p["u_max_steps"], int(2 * norm(m.box_hi - m.box_lo) / kStepVox) + 64);
+    p.set("u_step", float(m.quality.ray_step_vox));
+    glUniform1i(p["u_max_steps"], int(2 * norm(m.box_hi - m.box_lo) / m.quality.ray_step_vox) + 64);
     // HU to the table's texel centres
     const double tf_scale = (kTfSize - 1) / double(kTfMaxHu - kTfMinHu) / kTfSize;
     p.set("u_tf_map", float(tf_scale), float(-kTfMinHu * tf_scale + 0.5 / kTfSize));
@@ -634,23 +670,35 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
     // every ray without the overlay; then, for a deformed session, the rays that may
     // pass through its VOI box (or near enough to change how faint space is skipped)
     // again with it, within the box's bounding rectangle on the screen
+    // the rays of a rectangle (x0, y0 of its top row, width, height): a compute dispatch
+    // of 8x8 work groups on a GPU, a scissored full-view triangle on a software rasteriser
+    auto cast = [&](Program& p, int x0, int y0, int w, int h) {
+      if (!m.software) {
+        glUniform4i(p["u_rect"], x0, y0, w, h);
+        glDispatchCompute(GLuint((w + 7) / 8), GLuint((h + 7) / 8), 1);
+        return;
+      }
+      glEnable(GL_SCISSOR_TEST);
+      glScissor(x0, y0, w, h);
+      glDrawArrays(GL_TRIANGLES, 0, 3);
+      glDisable(GL_SCISSOR_TEST);
+    };
+    if (!m.software) glBindImageTexture(0, m.color_tex, 0, GL_FALSE, 0, GL_WRITE_ONLY, GL_RGBA8);
     set_up_ray(m.ray[0]);
-    glDrawArrays(GL_TRIANGLES, 0, 3);
+    cast(m.ray[0], 0, 0, view_w, H);
     int rect[4];
     if (ov.active && voi_rect(g, ov.box, kBlockVox + 1.0, eye, fwd, right * (tan_h * aspect), up * tan_h, view_w, H,
                               rect)) {
+      glMemoryBarrier(GL_SHADER_IMAGE_ACCESS_BARRIER_BIT);  // its pixels are written again, after the first pass
       set_up_ray(m.ray[1]);
-      glEnable(GL_SCISSOR_TEST);
-      glScissor(rect[0], rect[1], rect[2], rect[3]);
-      glDrawArrays(GL_TRIANGLES, 0, 3);
-      glDisable(GL_SCISSOR_TEST);
+      cast(m.ray[1], rect[0], rect[1], rect[2], rect[3]);
     }
+    // the image stores are seen by the passes that blend over them, the readback and CUDA
+    glMemoryBarrier(GL_ALL_BARRIER_BITS);
   }
-  glFinish();
-  times.raycast_ms += ms_since(t0);
+  m.mark(1);
 
   // 2. the slices: axial (k), coronal (j), sagittal (i) through the target, top to bottom
-  t0 = Clock::now();
   const SliceAxes axes[3] = {slice_axes(g, 2, {1, 0, 0}, {0, 1, 0}), slice_axes(g, 1, {1, 0, 0}, {0, 0, -1}),
                              slice_axes(g, 0, {0, 1, 0}, {0, 0, -1})};
   const double slice_mm_per_px = view.slice_fov_mm / std::max(s, 1);
@@ -672,11 +720,9 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
       glDrawArrays(GL_TRIANGLES, 0, 3);
     }
   }
-  glFinish();
-  times.slices_ms += ms_since(t0);
+  m.mark(2);
 
   // 3. composite: slice frames, cut lines and marker dots; the orientation triad
-  t0 = Clock::now();
   glEnable(GL_BLEND);
   glBlendFunc(GL_ONE, GL_ONE_MINUS_SRC_ALPHA);
   if (s > 0) {
@@ -741,8 +787,13 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
     }
   }
   glDisable(GL_BLEND);
-  glFinish();
-  times.composite_ms += ms_since(t0);
+  m.mark(3);
+  // the stages' times (on a GPU this waits once, for the composite: the frame is needed next anyway)
+  double ms[3];
+  m.stage_ms(ms);
+  times.raycast_ms += ms[0];
+  times.slices_ms += ms[1];
+  times.composite_ms += ms[2];
   check_gl("rendering a frame");
 }
 

@@ -31,7 +31,9 @@ struct FrameMarks {
   bool contact = false;       // the tip is in the body (the marker turns from green to orange)
 };
 
-/// Time of each stage of one frame (ms of wall time, the GL work finished).
+/// Time of each stage of one frame (ms). On a GPU the GL stages (ray cast, slices,
+/// composite) are GPU times from timestamp queries, so no stage waits for the one before;
+/// on a software rasteriser, and for the other stages, wall times with the work finished.
 struct FrameTimes {
   double j_to_texture_ms = 0;  // J of the VOI into the overlay texture
   double raycast_ms = 0;       // the 3D view
@@ -40,6 +42,13 @@ struct FrameTimes {
   double readback_ms = 0;      // the frame into host or CUDA memory
   double encode_ms = 0;        // JPEG
   double total_ms = 0;         // all of the above
+};
+
+/// What a frame's 3D view trades between accuracy and time (the scene's render section).
+struct RenderQuality {
+  double ray_step_vox = 1.0;  // ray step (voxel), 0.25..4; the pre-integrated table is made for it
+  bool half_float_ct = false; // the CT texture as 16-bit floats: half the memory and texture
+                              // traffic; steps of 0.5 HU at 1000 HU, 1 HU above 2048 HU
 };
 
 /// Renders frames of one patient. Owns the CT's 3D texture (shared by all sessions),
@@ -53,7 +62,7 @@ class FrameRenderer {
   /// Uploads the patient's intensity (voxels outside the body mask as air) into a 3D
   /// texture and builds the shaders and transfer functions. Throws palpsim::Error
   /// naming the limit when the grid exceeds GL_MAX_3D_TEXTURE_SIZE or a shader fails.
-  explicit FrameRenderer(PatientPtr patient);
+  explicit FrameRenderer(PatientPtr patient, const RenderQuality& quality = {});
   ~FrameRenderer();
   FrameRenderer(const FrameRenderer&) = delete;
   FrameRenderer& operator=(const FrameRenderer&) = delete;

@@ -10,6 +10,11 @@ Writes into --out: the batch outputs (steps.parquet, summary.json, force_vs_dept
 peak_force_map.png) and spine_profile.png, spine.json; prints a summary of the peaks
 found and, when the prepared patient (palpsim-prep's bone.nrrd and body.nrrd) is at
 hand, where its bone mask puts the spinous processes (the top of each one's posterior edge).
+
+Then, where the scene asks for frames, it records a press over one spinous process (L3
+on the phantom; elsewhere the most prominent force peak) as the server renders it
+(palpsim.record): in --record-steps steps down to --record-depth-mm and back up, one
+frame per step, written as press.mp4, press_contact_sheet.png and press.json.
 """
 
 from __future__ import annotations
@@ -31,6 +36,31 @@ from .results import point_table, write_json
 # plate about 14 mm long in z sloping down from its tip; S1's ends above z = -101 mm and
 # T12's plate reaches down to z = 78 mm, so this range holds L1-L5 and the gaps around them
 PHANTOM_LUMBAR_Z_MM = (-90.0, 72.0)
+# the recorded press on the phantom: over the tip of L3's spinous process, the middle of
+# the lumbar spine (24 mm under the skin), away from the iliac crests (L4) and ribs (T12)
+PHANTOM_L3_Z_MM = -5.0
+# the line starts (and the recorded press starts) this far above the body's highest point
+APPROACH_MM = 10.0
+
+
+def _at_least_one(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 1 or more")
+    return v
+
+
+def _positive_mm(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (np.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive depth in mm")
+    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,6 +96,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tolerance-mm", type=float, default=6.0,
                    help="a peak within this of an expected process counts as found")
     p.add_argument("--no-progress", action="store_true")
+    rec = p.add_argument_group("the recorded press (scenes with frames; palpsim.record)")
+    rec.add_argument("--no-record", action="store_true", help="do not record the press")
+    rec.add_argument("--record-steps", type=_at_least_one, default=5,
+                     help="depth steps down (and as many back up), one frame each (default "
+                          "%(default)s; a step waits about two frames: 1280x720 frames take "
+                          "0.6-1.1 s on a 2-core CPU)")
+    rec.add_argument("--record-depth-mm", type=_positive_mm, default=15.0,
+                     help="deepest step under the skin (default %(default)g)")
+    rec.add_argument("--record-z-mm", type=float,
+                     help="z of the press (default: L3, %g mm, on the phantom; else the most "
+                          "prominent force peak)" % PHANTOM_L3_Z_MM)
     return p
 
 
@@ -74,8 +115,7 @@ def make_plan(info: Any, args: argparse.Namespace) -> Plan:
     body_min, body_max = info.patient.body_min_mm, info.patient.body_max_mm
     x = args.x_mm if args.x_mm is not None else 0.5 * (body_min.x + body_max.x)
     # the phantom's lumbar spine, or (another patient) the whole back that was scanned
-    # PatientInfo.source is "phantom" by the schema's comment; v1 servers say "the phantom"
-    if info.patient.source.strip().lower() in ("phantom", "the phantom"):
+    if is_phantom(info):
         default_z = PHANTOM_LUMBAR_Z_MM
     else:
         default_z = (body_min.z + 10.0, body_max.z - 10.0)
@@ -86,7 +126,7 @@ def make_plan(info: Any, args: argparse.Namespace) -> Plan:
                         f"than one step ({args.step_mm:g} mm)")
     count = int(np.floor((z1 - z0) / args.step_mm + 1e-9)) + 1
     # start 10 mm above the highest point of the body; search for the skin down to mid-body
-    approach_mm = 10.0
+    approach_mm = APPROACH_MM
     half_thickness = 0.5 * (body_max.y - body_min.y)
     data = {
         "name": "lumbar spine line",
@@ -129,24 +169,78 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"skin, {args.sessions} sessions")
             result = run_plan(plan, address, sessions=args.sessions, progress=not args.no_progress)
             summary = write_outputs(plan, result, out, "steps.parquet")
+            report = analyse(result.table, plan, args)
+            write_json(report, out / "spine.json")
+            from .plots import spine_profile_plot
+            spine_profile_plot(result.table, report, out / "spine_profile.png",
+                               title=f"{info.scene_name}: pressing {plan.press.depth_mm:g} mm "
+                                     "along the back")
+            print(format_report(report, summary))
+            print(f"[demo] wrote {out / 'spine_profile.png'}, {out / 'spine.json'} and the batch "
+                  f"outputs in {out}")
+            # the recorded press, on the same server
+            if not args.no_record:
+                record_demo_press(address, info, plan, report, args, out)
     except (PlanError, PalpsimError, OSError, RuntimeError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 1
-
-    report = analyse(result.table, plan, args)
-    write_json(report, out / "spine.json")
-    from .plots import spine_profile_plot
-    spine_profile_plot(result.table, report, out / "spine_profile.png",
-                       title=f"{info.scene_name}: pressing {plan.press.depth_mm:g} mm along the back")
-    print(format_report(report, summary))
-    print(f"[demo] wrote {out / 'spine_profile.png'}, {out / 'spine.json'} and the batch outputs "
-          f"in {out}")
     return 0
 
 
-def analyse(df, plan: Plan, args: argparse.Namespace) -> dict[str, Any]:
-    """Peaks of the peak-force profile along z, and the processes the bone mask expects."""
-    from .spine import bone_profile, match_peaks, profile_peaks
+def is_phantom(info: Any) -> bool:
+    """Whether the server serves the built-in phantom (PatientInfo.source is "phantom" by
+    the schema's comment; v1 servers say "the phantom")."""
+    return info.patient.source.strip().lower() in ("phantom", "the phantom")
+
+
+def press_site(info: Any, plan: Plan, report: dict[str, Any],
+               args: argparse.Namespace) -> tuple[float, float, str]:
+    """(x, z, name) of the recorded press: on the line the demo palpated, over L3 on the
+    phantom, else over the most prominent force peak (the middle of the line if none)."""
+    x = plan.grid.center_mm[0]
+    if args.record_z_mm is not None:
+        return x, args.record_z_mm, f"z = {args.record_z_mm:g} mm"
+    if is_phantom(info):
+        return x, PHANTOM_L3_Z_MM, "the L3 spinous process"
+    if report["peaks"]:
+        best = max(report["peaks"], key=lambda p: p["prominence_n"])
+        return x, best["z_mm"], "the most prominent force peak"
+    return x, plan.grid.center_mm[2], "the middle of the line"
+
+
+def record_demo_press(address: str, info: Any, plan: Plan, report: dict[str, Any],
+                      args: argparse.Namespace, out: Path) -> None:
+    """Records a stepped press over a spinous process as frames and writes press.mp4,
+    press_contact_sheet.png and press.json into `out` (palpsim.record)."""
+    from .record import press_depths, record_press, summary, write_recording
+
+    if "frames" not in info.stages:
+        print("[demo] the scene asks for no frames (effects.frames): no recorded press")
+        return
+    x, z, what = press_site(info, plan, report, args)
+    top = (x, info.patient.body_max_mm.y + APPROACH_MM, z)
+    depths = press_depths(args.record_depth_mm, args.record_steps)
+    print(f"[demo] recording a press over {what} (x = {x:.1f}, z = {z:.1f} mm) in "
+          f"{args.record_steps} steps to {args.record_depth_mm:g} mm and back, one rendered "
+          "frame a step")
+
+    def progress(f: Any, steps: int) -> None:
+        where = f"depth {f.depth_mm:4.1f} mm" if f.depth_mm >= 0 else f"{-f.depth_mm:g} mm above"
+        print(f"[demo]   step {f.index + 1}/{steps}: {where}, force {f.force_n:.2f} N, frame "
+              f"after {f.wait_s:.1f} s (rendered in {f.render_ms / 1000:.1f} s)", flush=True)
+
+    with Client(address) as c:
+        rec = record_press(c, top, (0.0, -1.0, 0.0), depths, progress=progress)
+    title = (f"{info.scene_name}: press over {what}, {args.record_depth_mm:g} mm in "
+             f"{args.record_steps} steps and back")
+    paths = write_recording(rec, out, title=title, seconds_per_step=0.8)
+    print("[demo] " + summary(rec, paths))
+
+
+def force_peaks(df, plan: Plan) -> tuple[np.ndarray, np.ndarray, list[Any], float, Any]:
+    """The line's profile and its peaks: (z, peak force per point, peaks (spine.Peak),
+    the prominence a peak needs, the points' table sorted along the line)."""
+    from .spine import profile_peaks
 
     pts = point_table(df).sort_values("v_mm")
     z = plan.grid.center_mm[2] + pts["v_mm"].to_numpy()
@@ -161,6 +255,14 @@ def analyse(df, plan: Plan, args: argparse.Namespace) -> dict[str, Any]:
     # its middle
     peaks = profile_peaks(z, force, min_separation_mm=15.0, min_prominence=prominence,
                           flat_fraction=0.05)
+    return z, force, peaks, prominence, pts
+
+
+def analyse(df, plan: Plan, args: argparse.Namespace) -> dict[str, Any]:
+    """Peaks of the peak-force profile along z, and the processes the bone mask expects."""
+    from .spine import bone_profile, match_peaks
+
+    z, force, peaks, prominence, pts = force_peaks(df, plan)
     report: dict[str, Any] = {
         "line": {"x_mm": plan.grid.center_mm[0], "z_mm": z.tolist(),
                  "peak_force_n": force.tolist(),

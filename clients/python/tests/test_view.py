@@ -1,351 +1,37 @@
-"""palpsim-view and the stream library against a fake server written here: a ROUTER that
-answers ControlRequest.info and .watch as palpsim-server does (PROTOCOL.md, "Frames and
-bricks": session 0 = newest, the error codes, the view ranges of server/render/view.h)
-and an XPUB that publishes two-frame [topic, StreamMessage] messages when it sees a
-subscription, with the server's small send high-water mark. At the end, an end-to-end
-test against the real build/palpsim-server (skipped where it does not serve a stream).
+"""palpsim-view and the stream library against a fake server (stream_fakes.py): a ROUTER
+that answers ControlRequest.info and .watch as palpsim-server does (PROTOCOL.md, "Frames
+and bricks": session 0 = newest, the error codes, the view ranges of
+server/render/view.h) and an XPUB that publishes two-frame [topic, StreamMessage]
+messages when it sees a subscription, with the server's small send high-water mark. At
+the end, an end-to-end test against the real build/palpsim-server (skipped where it does
+not serve a stream).
 
-Frames carry their frame_seq as 16 bars (bit b of seq: a light or a dark bar), so a test
-can read from a PNG or an MP4 which frame it shows: the bars are 20+ pixels wide and
-light (230) or dark (25), so JPEG and h264 errors (a few levels inside a bar) are far
-from the threshold of 128 that reads them.
+Frames carry their frame_seq as 16 bars (stream_fakes.seq_image), so a test can read
+from a PNG or an MP4 which frame it shows.
 """
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import signal
 import subprocess
 import sys
-import threading
 import time
-from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 import numpy as np
 import pytest
 import zmq
+from stream_fakes import (SID, OTHER_SID, FakeServer, GridSpec, Script, brick_parts,
+                          frame_parts, jpeg, key_bricks, make_brick, notice_parts, read_mp4,
+                          read_png, read_seq, seq_image, skip, start_stream_server,
+                          stream_message)
 
 from palpsim import view as view_mod
 from palpsim.client import Client
-from palpsim.proto import SCHEMA_VERSION, wire
-from palpsim.stream import DeformedVolume, StreamClient, brick_topic, frame_topic
-
-ROOT = Path(__file__).resolve().parents[3]
-SID = 0x1234ABCD5678EF01
-OTHER_SID = 0x0FEDCBA987654321
-
-# ---------------------------------------------------------------------------------------
-# Pictures that say which frame they are
-
-
-def seq_image(seq: int, width: int, height: int) -> np.ndarray:
-    """An RGB image whose 16 vertical bars spell `seq` (bit 0 leftmost): light bars for
-    ones, dark bars for zeros, on a mid-grey background."""
-    img = np.full((height, width, 3), 90, dtype=np.uint8)
-    bw = width // 16
-    for b in range(16):
-        img[height // 4: 3 * height // 4, b * bw:(b + 1) * bw] = 230 if (seq >> b) & 1 else 25
-    return img
-
-
-def read_seq(rgb: np.ndarray) -> int:
-    """The seq a seq_image shows (each bar's mean inside a 4-pixel margin, against 128)."""
-    h, w = rgb.shape[:2]
-    bw = w // 16
-    seq = 0
-    for b in range(16):
-        bar = rgb[h // 4 + 4: 3 * h // 4 - 4, b * bw + 4:(b + 1) * bw - 4]
-        if bar.mean() > 128:
-            seq |= 1 << b
-    return seq
-
-
-def jpeg(rgb: np.ndarray, quality: int = 90) -> bytes:
-    import io
-
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(rgb).save(buf, format="JPEG", quality=quality)
-    return buf.getvalue()
-
-
-def read_mp4(path: Path) -> tuple[list[np.ndarray], dict]:
-    """Every frame of a video and its metadata (fps, size), read back with imageio-ffmpeg."""
-    import imageio.v2 as imageio
-
-    with imageio.get_reader(str(path), format="FFMPEG") as r:
-        return [np.asarray(f) for f in r], dict(r.get_meta_data())
-
-
-def read_png(path: Path) -> np.ndarray:
-    from PIL import Image
-
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
-
-
-# ---------------------------------------------------------------------------------------
-# Messages
-
-
-def stream_message(**body: Any) -> bytes:
-    m = wire.StreamMessage(schema_version=SCHEMA_VERSION)
-    for k, v in body.items():
-        getattr(m, k).CopyFrom(v)
-    return m.SerializeToString()
-
-
-def frame_parts(sid: int, seq: int, width: int, height: int, *, t_s: float | None = None,
-                pose_to_frame_ms: float = 5.0, data: bytes | None = None) -> list[bytes]:
-    f = wire.Frame(session_id=sid, frame_seq=seq, pose_seq=10 * seq,
-                   server_time_s=seq * 0.05 if t_s is None else t_s,
-                   pose_to_frame_ms=pose_to_frame_ms, width=width, height=height,
-                   jpeg=data if data is not None else jpeg(seq_image(seq, width, height)),
-                   encoder="turbojpeg")
-    return [frame_topic(sid), stream_message(frame=f)]
-
-
-def notice_parts(topic: bytes, sid: int, event: str, message: str,
-                 code: int = wire.ERROR_NONE) -> list[bytes]:
-    n = wire.StreamNotice(session_id=sid, event=event, message=message)
-    if code:
-        n.error.code, n.error.message = code, message
-    return [topic, stream_message(notice=n)]
-
-
-class GridSpec:
-    """A patient grid for fake bricks (voxels (i, j, k), spacing, origin, direction)."""
-
-    def __init__(self, size=(20, 17, 23), spacing_mm=2.0, origin_mm=(-19.0, -16.0, -22.0),
-                 direction=(1, 0, 0, 0, 1, 0, 0, 0, 1)):
-        self.size, self.spacing_mm = tuple(size), spacing_mm
-        self.origin_mm, self.direction = np.asarray(origin_mm, float), tuple(float(d) for d in direction)
-
-    def box_origin(self, lo) -> np.ndarray:
-        d = np.asarray(self.direction).reshape(3, 3)
-        return self.origin_mm + d @ (np.asarray(lo, float) * self.spacing_mm)
-
-
-def make_brick(sid: int, seq: int, grid: GridSpec, values: np.ndarray, lo=(0, 0, 0), *,
-               encoding=wire.BRICK_INT16, compression=wire.COMPRESSION_NONE, key=False,
-               key_id=0, key_part=0, key_parts=0, deformed=True, pose_seq=0, deform_step=0,
-               t_s=0.0) -> wire.Brick:
-    """A Brick as the server makes it: values (k, j, i) on the box at lo, encoded."""
-    import zstandard
-
-    size_k, size_j, size_i = values.shape
-    raw = values.astype("<i2" if encoding == wire.BRICK_INT16 else "<f4").tobytes()
-    data = zstandard.ZstdCompressor().compress(raw) if compression == wire.COMPRESSION_ZSTD else raw
-    o = grid.box_origin(lo)
-    b = wire.Brick(session_id=sid, brick_seq=seq, pose_seq=pose_seq, deform_step=deform_step,
-                   key=key, key_id=key_id, key_part=key_part, key_parts=key_parts,
-                   deformed=deformed, lo_i=lo[0], lo_j=lo[1], lo_k=lo[2], size_i=size_i,
-                   size_j=size_j, size_k=size_k, grid_size_i=grid.size[0],
-                   grid_size_j=grid.size[1], grid_size_k=grid.size[2], spacing_mm=grid.spacing_mm,
-                   encoding=encoding, compression=compression, data=data, raw_bytes=len(raw),
-                   server_time_s=t_s)
-    b.grid_origin_mm.CopyFrom(wire.Vec3(x=grid.origin_mm[0], y=grid.origin_mm[1], z=grid.origin_mm[2]))
-    b.origin_mm.CopyFrom(wire.Vec3(x=o[0], y=o[1], z=o[2]))
-    b.direction.extend(grid.direction)
-    return b
-
-
-def key_bricks(sid: int, grid: GridSpec, volume: np.ndarray, parts: int, key_id: int = 1,
-               first_seq: int = 1, **enc: Any) -> list[wire.Brick]:
-    """The whole-volume key in `parts` slabs along k (np.array_split sizes)."""
-    out, k0 = [], 0
-    for p, slab in enumerate(np.array_split(volume, parts, axis=0)):
-        out.append(make_brick(sid, first_seq + p, grid, slab, (0, 0, k0), key=True, key_id=key_id,
-                              key_part=p, key_parts=parts, deformed=False, **enc))
-        k0 += slab.shape[0]
-    return out
-
-
-def brick_parts(b: wire.Brick) -> list[bytes]:
-    return [brick_topic(b.session_id), stream_message(brick=b)]
-
-
-# ---------------------------------------------------------------------------------------
-# The fake server
-
-DEFAULT_VIEW = dict(width=1280, height=720, preset="bone", azimuth_deg=35.0, elevation_deg=25.0,
-                    zoom=1.0, look_at_tip=True, jpeg_quality=85, show_tip=True, show_proxy=False,
-                    slice_fov_mm=120.0)
-PRESETS = ("skin", "bone", "soft_tissue")
-
-
-def check_view(v: wire.ViewSettings) -> str:
-    """server/render/view.h's check_view: "" or a sentence naming the field and its range."""
-    def rng(name, lo, hi, unit=""):
-        if v.HasField(name):
-            x = getattr(v, name)
-            if not (math.isfinite(x) and lo <= x <= hi):
-                return f"WatchSession.view.{name} = {x:g} is outside {lo:g}..{hi:g}{unit}"
-        return ""
-    for msg in (rng("width", 64, 3840, " pixels"), rng("height", 64, 2160, " pixels"),
-                rng("elevation_deg", -89, 89, " degrees"), rng("zoom", 0.1, 20),
-                rng("jpeg_quality", 1, 100), rng("slice_fov_mm", 10, 2000, " mm")):
-        if msg:
-            return msg
-    if v.HasField("preset") and v.preset not in PRESETS:
-        return f"WatchSession.view.preset = '{v.preset}' is not one of {', '.join(PRESETS)}"
-    if v.HasField("azimuth_deg") and not math.isfinite(v.azimuth_deg):
-        return f"WatchSession.view.azimuth_deg = {v.azimuth_deg} is not finite"
-    c = v.center_mm
-    if not all(math.isfinite(x) for x in (c.x, c.y, c.z)):
-        return "WatchSession.view.center_mm is not finite"
-    return ""
-
-
-Script = Callable[["FakeServer", bytes], Iterator[Any]]
-
-
-class FakeServer:
-    """A fake palpsim-server: control ROUTER and stream XPUB on free loopback ports, one
-    thread. `script(fake, topic)` is started when the XPUB sees the first subscription to a
-    topic; it yields message part lists to publish, or a float to sleep that many seconds
-    (other scripts and control requests go on meanwhile)."""
-
-    def __init__(self, sessions=(SID,), frames=True, bricks=True, script: Script | None = None,
-                 sndhwm: int = 64):
-        self.sessions = list(sessions)        # open sessions, newest last
-        self.frames_built, self.bricks_built = frames, bricks
-        self.script = script
-        self.views = {s: wire.ViewSettings(**DEFAULT_VIEW) for s in self.sessions}
-        self.encoding = {s: (wire.BRICK_INT16, wire.COMPRESSION_NONE) for s in self.sessions}
-        self.watches: list[wire.WatchSession] = []
-        self.subscriptions: list[bytes] = []
-        self.published = 0
-        self._ctx = zmq.Context()
-        self.router = self._ctx.socket(zmq.ROUTER)
-        self.router.setsockopt(zmq.LINGER, 0)
-        self.router.bind("tcp://127.0.0.1:*")
-        self.address = self.router.getsockopt_string(zmq.LAST_ENDPOINT)
-        self.xpub = self._ctx.socket(zmq.XPUB)
-        self.xpub.setsockopt(zmq.LINGER, 0)
-        self.xpub.setsockopt(zmq.SNDHWM, sndhwm)  # the server's "64 message parts"
-        self.xpub.bind("tcp://127.0.0.1:*")
-        self.stream_endpoint = self.xpub.getsockopt_string(zmq.LAST_ENDPOINT)
-        self._gens: list[list[Any]] = []      # [wake_time, generator]
-        self._stop = threading.Event()
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._loop, daemon=True)
-
-    def __enter__(self) -> "FakeServer":
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self._stop.set()
-        self._thread.join(10)
-        self._ctx.destroy(linger=0)
-        if self.error is not None and exc[0] is None:
-            raise self.error
-
-    # -- the thread -----------------------------------------------------------------------
-
-    def _loop(self) -> None:
-        poller = zmq.Poller()
-        poller.register(self.router, zmq.POLLIN)
-        poller.register(self.xpub, zmq.POLLIN)
-        try:
-            while not self._stop.is_set():
-                now = time.monotonic()
-                wait = min([max(0.0, g[0] - now) for g in self._gens] + [0.02])
-                events = dict(poller.poll(int(wait * 1000)))
-                if self.router in events:
-                    while True:
-                        try:
-                            parts = self.router.recv_multipart(zmq.NOBLOCK)
-                        except zmq.Again:
-                            break
-                        self._control(parts)
-                if self.xpub in events:
-                    while True:
-                        try:
-                            ev = self.xpub.recv(zmq.NOBLOCK)
-                        except zmq.Again:
-                            break
-                        if ev[:1] == b"\x01":
-                            self.subscriptions.append(ev[1:])
-                            if self.script is not None:
-                                self._gens.append([0.0, self.script(self, ev[1:])])
-                self._step()
-        except BaseException as e:  # surfaced by __exit__
-            self.error = e
-
-    def _step(self) -> None:
-        now = time.monotonic()
-        for g in list(self._gens):
-            if g[0] > now:
-                continue
-            while True:
-                try:
-                    item = next(g[1])
-                except StopIteration:
-                    self._gens.remove(g)
-                    break
-                if isinstance(item, (int, float)):
-                    g[0] = time.monotonic() + item
-                    break
-                self.xpub.send_multipart(item)  # a PUB drops at its high-water mark, never blocks
-                self.published += 1
-
-    def _control(self, parts: list[bytes]) -> None:
-        ident, payload = parts[0], parts[-1]
-        req = wire.ControlRequest()
-        req.ParseFromString(payload)
-        rep = wire.ControlReply(schema_version=SCHEMA_VERSION, request_id=req.request_id)
-        body = req.WhichOneof("body")
-        if body == "info":
-            rep.info.scene_name = "fake"
-            rep.info.stream_endpoint = self.stream_endpoint
-            rep.info.control_endpoint = self.address
-        elif body == "watch":
-            self.watches.append(wire.WatchSession())
-            self.watches[-1].CopyFrom(req.watch)
-            self._watch(req.watch, rep)
-        else:
-            rep.error.code, rep.error.message = wire.ERROR_INTERNAL, f"fake: {body} not served"
-        self.router.send_multipart([ident, *parts[1:-1], rep.SerializeToString()])
-
-    def _watch(self, w: wire.WatchSession, rep: wire.ControlReply) -> None:
-        def refuse(code: int, msg: str) -> None:
-            rep.error.code, rep.error.message = code, msg
-        sid = w.session_id
-        if sid == 0:
-            if not self.sessions:
-                return refuse(wire.ERROR_NO_SESSION_OPEN, "WatchSession.session_id = 0 (any): no "
-                                                          "session is open")
-            sid = self.sessions[-1]
-        elif sid not in self.sessions:
-            return refuse(wire.ERROR_UNKNOWN_SESSION, f"WatchSession.session_id: no open session "
-                                                      f"{sid:016x}")
-        if not (w.frames or w.bricks):
-            return refuse(wire.ERROR_BAD_PARAMETER, "WatchSession: neither frames nor bricks asked")
-        if w.frames and not self.frames_built:
-            return refuse(wire.ERROR_NOT_BUILT, "WatchSession.frames: the scene does not ask for "
-                                                "frames (effects.frames)")
-        if w.bricks and not self.bricks_built:
-            return refuse(wire.ERROR_NOT_BUILT, "WatchSession.bricks: the scene does not ask for "
-                                                "bricks (effects.bricks)")
-        bad = check_view(w.view)
-        if bad:
-            return refuse(wire.ERROR_BAD_VIEW, bad)
-        self.views[sid].MergeFrom(w.view)
-        if w.bricks:
-            self.encoding[sid] = (w.brick_encoding, w.brick_compression)
-        r = rep.watch
-        r.session_id, r.stream_endpoint = sid, self.stream_endpoint
-        r.frame_topic = frame_topic(sid) if w.frames else b""
-        r.brick_topic = brick_topic(sid) if w.bricks else b""
-        r.view.CopyFrom(self.views[sid])
-        r.brick_encoding, r.brick_compression = self.encoding[sid]
-
+from palpsim.proto import wire
+from palpsim.stream import DeformedVolume, StreamClient, brick_topic
 
 # ---------------------------------------------------------------------------------------
 # Scripts
@@ -744,11 +430,11 @@ def test_live_window_shows_frames_and_sends_keys(capsys):
     import matplotlib.pyplot as plt
 
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        _skip("no display ($DISPLAY unset; run under xvfb-run -a for the live window test)")
+        skip("no display ($DISPLAY unset; run under xvfb-run -a for the live window test)")
     backend = matplotlib.get_backend()   # palpsim.plots picks Agg for the other tests
     if not view_mod.gui_available():
-        _skip(f"$DISPLAY={os.environ.get('DISPLAY')} but no GUI matplotlib backend opens a "
-              "figure (tkinter or Qt missing?)")
+        skip(f"$DISPLAY={os.environ.get('DISPLAY')} but no GUI matplotlib backend opens a "
+             "figure (tkinter or Qt missing?)")
     try:
         _live_window(capsys)
     finally:
@@ -833,61 +519,15 @@ deform { backend: "cpu" }
 """
 
 
-def _server_binary() -> Path | None:
-    d = os.environ.get("PALPSIM_BUILD_DIR")
-    p = Path(d) / "palpsim-server" if d else ROOT / "build" / "palpsim-server"
-    return p if p.is_file() and os.access(p, os.X_OK) else None
-
-
-def _skip(reason: str) -> None:
-    print(f"SKIPPED: {reason}")
-    pytest.skip(reason)
-
-
-def _start_stream_server(tmp: Path, scene_text: str) -> Iterator[Any]:
-    """A real palpsim-server on `scene_text`, or a skip with the reason when there is none,
-    when it predates the stream path (it does not know the scene's new fields), when it
-    cannot render here (EGL / OpenGL), or when its Info reply has no stream endpoint."""
-    from palpsim.server import LocalServer, ServerStartError
-
-    binary = _server_binary()
-    if binary is None:
-        _skip("no palpsim-server in $PALPSIM_BUILD_DIR="
-              f"{os.environ.get('PALPSIM_BUILD_DIR', '(unset, looked in build/)')}")
-    scene = tmp / "scene.textproto"
-    scene.write_text(scene_text)
-    srv = LocalServer(binary, scene=scene, startup_timeout_s=180, log_path=tmp / "server.log")
-    try:
-        srv.start()
-    except ServerStartError as e:
-        srv.stop()  # closes its log
-        text = str(e)
-        if re.search(r"(frames|bricks|render)\b.*(unknown|no field|not.*found)|"
-                     r"(unknown|no field).*(frames|bricks|render)|EGL|OpenGL", text, re.I | re.S):
-            last = (srv.tail().splitlines() or ["(no output)"])[-1]
-            _skip(f"{binary} does not serve this stream here (a build from before the stream "
-                  f"path, or no OpenGL): {last}")
-        raise
-    try:
-        with Client(srv.address) as c:
-            info = c.info()
-        if not info.stream_endpoint:
-            _skip(f"{binary}'s Info reply has an empty stream_endpoint (a server without the "
-                  "stream path)")
-        yield srv
-    finally:
-        status = srv.stop()
-    assert status == 0, f"the server did not stop cleanly:\n{srv.tail()}"
-
 
 @pytest.fixture(scope="module")
 def stream_server(tmp_path_factory):
-    yield from _start_stream_server(tmp_path_factory.mktemp("view-e2e"), E2E_SCENE)
+    yield from start_stream_server(tmp_path_factory.mktemp("view-e2e"), E2E_SCENE)
 
 
 @pytest.fixture(scope="module")
 def bricks_server(tmp_path_factory):
-    yield from _start_stream_server(tmp_path_factory.mktemp("view-e2e-bricks"), E2E_BRICKS_SCENE)
+    yield from start_stream_server(tmp_path_factory.mktemp("view-e2e-bricks"), E2E_BRICKS_SCENE)
 
 
 def _press_while(proc: subprocess.Popen, session, seconds: float = 60.0) -> int:

@@ -59,6 +59,8 @@ struct Options {
   bool server = true;
   bool sweep = true;                     // ray step x CT precision x preset (GPU only unless asked)
   bool sweep_set = false;
+  int nice = 19;                         // the server's worker threads' nice value (ServerOptions::deform_nice)
+  std::string writer, encoder;           // the server's render.overlay_writer / jpeg_encoder ("" = the scene's)
 };
 
 // the renderer quality a scene asks for
@@ -398,10 +400,13 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
   scene.deform.voi_edge = 64;
   scene.render.max_fps = 30;
   scene.server.max_sessions = 64;
+  if (!o.writer.empty()) scene.render.overlay_writer = o.writer;
+  if (!o.encoder.empty()) scene.render.jpeg_encoder = o.encoder;
   net::ServerOptions so;
   so.control_bind = "tcp://127.0.0.1:*";
   so.pose_bind = "tcp://127.0.0.1:*";
   so.stream_bind = "tcp://127.0.0.1:*";
+  so.deform_nice = o.nice;
   net::Server server(scene, patient, nullptr, so);
   server.start();
   zmq::context_t ctx(1);
@@ -435,10 +440,10 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
     row.encoder = st.stream().jpeg_encoder();
     row.writer = st.stream().overlay_writer();
     std::printf(
-        "server, %2d sessions at 1 kHz (%s deformation, %s, %s): frames/s per session min %.1f median %.1f; "
+        "server, %2d sessions at 1 kHz (%s deformation, %s, %s, nice %d): frames/s per session min %.1f median %.1f; "
         "pose-to-frame p50 %.2f ms p99 %.2f ms; round trip p99 %.0f us with viewers vs %.0f us without (%.2fx); "
         "%llu deformation steps\n",
-        n, row.backend.c_str(), row.encoder.c_str(), row.writer.c_str(), row.fps_min, row.fps_median, row.p2f_p50_ms,
+        n, row.backend.c_str(), row.encoder.c_str(), row.writer.c_str(), o.nice, row.fps_min, row.fps_median, row.p2f_p50_ms,
         row.p2f_p99_ms, row.rtt_p99_watched_us, row.rtt_p99_alone_us,
         row.rtt_p99_alone_us > 0 ? row.rtt_p99_watched_us / row.rtt_p99_alone_us : 0.0,
         (unsigned long long)row.deform_steps);
@@ -464,6 +469,12 @@ int run(int argc, char** argv) {
       o.frames = std::stoi(value());
     } else if (a == "--seconds") {
       o.seconds = std::stod(value());
+    } else if (a == "--overlay-writer") {
+      o.writer = value();
+    } else if (a == "--jpeg-encoder") {
+      o.encoder = value();
+    } else if (a == "--nice") {
+      o.nice = std::stoi(value());
     } else if (a == "--no-server") {
       o.server = false;
     } else if (a == "--sweep" || a == "--no-sweep") {
@@ -486,6 +497,8 @@ int run(int argc, char** argv) {
       std::printf(
           "usage: palpsim-bench render [--json FILE] [--scene FILE (lumbar phantom)] [--frames N per configuration]\n"
           "                            [--sizes 1280x720,1920x1080] [--sessions 1,16] [--seconds S per phase]\n"
+          "                            [--nice N (the server's deformation and render threads, 19)]\n"
+          "                            [--overlay-writer auto|upload|cuda-gl] [--jpeg-encoder auto|cpu|nvjpeg] (server)\n"
           "                            [--no-server] [--sweep|--no-sweep (ray step x CT precision x preset;\n"
           "                            default: on a GPU only)]\n");
       return 0;

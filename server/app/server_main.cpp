@@ -18,12 +18,15 @@ namespace {
 
 const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
-    "                      [--max-pose-distance-mm MM] [--log-level trace|debug|info|warn|error]\n"
+    "                      [--max-pose-distance-mm MM] [--background idle|nice]\n"
+    "                      [--log-level trace|debug|info|warn|error]\n"
     "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
     "  --bind ADDR        control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
     "  --pose-bind ADDR   pose address (default: the control port + 1; * stays *)\n"
     "  --stream-bind ADDR frames and bricks (XPUB) address, for scenes that ask for them\n"
     "                     (default: the control port + 2; * stays *)\n"
+    "  --background P     the deformation and render threads: idle (default: SCHED_IDLE and nice 19,\n"
+    "                     any pose thread takes a core at once) or nice (nice 19 only)\n"
     "Prints 'ready on ADDR poses ADDR [stream ADDR]' when serving; stops cleanly on SIGINT or SIGTERM.\n";
 
 int fail(const std::string& what) {
@@ -65,6 +68,10 @@ int main(int argc, char** argv) {
         options.pose_bind = value("--pose-bind");
       } else if (a == "--stream-bind") {
         options.stream_bind = value("--stream-bind");
+      } else if (a == "--background") {
+        const std::string p = value("--background");
+        if (p != "idle" && p != "nice") throw palpsim::Error("--background " + p + ": expected idle or nice");
+        options.background_idle = p == "idle";
       } else if (a == "--max-pose-distance-mm") {
         options.max_pose_distance_mm = std::stod(value("--max-pose-distance-mm"));
       } else if (a == "--log-level") {

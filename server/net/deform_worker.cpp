@@ -5,15 +5,18 @@
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <exception>
 
 #ifdef __linux__
+#include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 #endif
 
 #include "core/error.h"
+#include "core/thread.h"
 
 namespace palpsim::net {
 namespace {
@@ -30,6 +33,8 @@ constexpr double kDisabledSleepS = 20e-3;
 // pressing at 1 kHz: nice 0 gave round-trip p99 1.3-2.3 ms and 90-146 missed deadlines of
 // 6000; nice 19 p99 0.19-1.8 ms and 25-36; haptics alone p99 0.26-0.27 ms and 8-10. The
 // worker then runs fewer steps on a busy machine, which is what the deformation path is for.
+// SCHED_IDLE on top of nice 19 (ServerOptions::background_idle) halved p99 again:
+// core/thread.h has the figures.
 
 std::string hex_id(std::uint64_t id) {
   char b[32];
@@ -89,8 +94,8 @@ struct DeformWorker::Request {
   bool found = false;
 };
 
-DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice)
-    : sh_(shared), start_(start), nice_(nice) {}
+DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle)
+    : sh_(shared), start_(start), nice_(nice), idle_(idle) {}
 
 DeformWorker::~DeformWorker() { stop(); }
 
@@ -120,10 +125,10 @@ void DeformWorker::stop() {
 }
 
 void DeformWorker::run() {
-#ifdef __linux__
-  // a per-thread nice value (Linux): the haptic thread wins the core when both want it
-  setpriority(PRIO_PROCESS, pid_t(syscall(SYS_gettid)), nice_);
-#endif
+  name_this_thread("palpsim-deform");
+  // below the threads that serve poses (core/thread.h says why SCHED_IDLE); llvmpipe's
+  // rasteriser threads, started from the render thread, inherit it
+  lower_this_thread(nice_, idle_);
   bool first = true;
   while (!stop_.load(std::memory_order_relaxed)) {
     // a new scene: new engines (or none)
@@ -145,7 +150,8 @@ void DeformWorker::run() {
     }
     // one pass over the sessions: at most one step each, on its newest contact
     bool worked = false, any_open = false;
-    for (int i = 0; i < kMaxSlots && !stop_.load(std::memory_order_relaxed); ++i) {
+    const int used = sh_.slots_used.load(std::memory_order_acquire);
+    for (int i = 0; i < used && !stop_.load(std::memory_order_relaxed); ++i) {
       worked = serve(i) || worked;
       any_open = any_open || sessions_[i].id != 0;
       if (request_pending_.load(std::memory_order_acquire)) answer_request();

@@ -77,8 +77,9 @@ struct DeformServerReport {
 /// on one thread.
 class DeformWorker {
  public:
-  /// `nice`: the thread's nice value (Linux); the server uses 19 (deform_worker.cpp says why).
-  DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice);
+  /// `nice`, `idle`: the thread's nice value and SCHED_IDLE (Linux; core/thread.h says why
+  /// the server uses 19 and SCHED_IDLE).
+  DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle);
   ~DeformWorker();
   DeformWorker(const DeformWorker&) = delete;
   DeformWorker& operator=(const DeformWorker&) = delete;
@@ -121,6 +122,7 @@ class DeformWorker {
   ServerShared& sh_;
   std::chrono::steady_clock::time_point start_;
   int nice_ = 19;
+  bool idle_ = true;
   std::thread thread_;
   std::atomic<bool> stop_{false};
 

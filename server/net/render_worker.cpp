@@ -6,15 +6,18 @@
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <exception>
 
 #ifdef __linux__
+#include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 #endif
 
 #include "core/error.h"
+#include "core/thread.h"
 #include "render/egl_context.h"
 #include "render/frame_encoder.h"
 #include "render/frame_renderer.h"
@@ -71,8 +74,8 @@ struct RenderWorker::View {
 };
 
 RenderWorker::RenderWorker(ServerShared& shared, StreamState& stream, std::chrono::steady_clock::time_point start,
-                           int nice)
-    : sh_(shared), st_(stream), start_(start), nice_(nice) {}
+                           int nice, bool idle)
+    : sh_(shared), st_(stream), start_(start), nice_(nice), idle_(idle) {}
 
 RenderWorker::~RenderWorker() { stop(); }
 
@@ -106,10 +109,10 @@ void RenderWorker::stop() {
 }
 
 void RenderWorker::run() {
-#ifdef __linux__
-  // a per-thread nice value, inherited by the threads Mesa's llvmpipe starts from here
-  setpriority(PRIO_PROCESS, pid_t(syscall(SYS_gettid)), nice_);
-#endif
+  name_this_thread("palpsim-render");
+  // below the threads that serve poses (core/thread.h says why SCHED_IDLE); llvmpipe's
+  // rasteriser threads, started from the render thread, inherit it
+  lower_this_thread(nice_, idle_);
   bool first = true;
   try {
     ctx_ = render::EglContext::create();
@@ -145,7 +148,8 @@ void RenderWorker::run() {
     // one pass over the watched sessions: at most one frame each
     bool worked = false, any = false;
     double nap = kUnwatchedSleepS;
-    for (int i = 0; i < kMaxSlots && !stop_.load(std::memory_order_relaxed); ++i) {
+    const int used = sh_.slots_used.load(std::memory_order_acquire);
+    for (int i = 0; i < used && !stop_.load(std::memory_order_relaxed); ++i) {
       const double now = now_s();
       worked = serve(i, now) || worked;
       const View& v = views_[i];

@@ -32,11 +32,12 @@ namespace palpsim::net {
 /// Why one thread: a GL context is current on one thread at a time, and the GPU
 /// serialises the frames anyway; one thread that round-robins the watched sessions
 /// (each at most render.max_fps) shares the GPU fairly and, on a CPU-only machine
-/// (Mesa's llvmpipe), runs at nice 19 below the haptic thread like the deformation worker.
+/// (Mesa's llvmpipe), runs below the haptic thread like the deformation worker.
 class RenderWorker {
  public:
-  /// `nice`: the thread's nice value (Linux), as the deformation worker's.
-  RenderWorker(ServerShared& shared, StreamState& stream, std::chrono::steady_clock::time_point start, int nice);
+  /// `nice`, `idle`: the thread's nice value and SCHED_IDLE (Linux), as the deformation worker's.
+  RenderWorker(ServerShared& shared, StreamState& stream, std::chrono::steady_clock::time_point start, int nice,
+               bool idle);
   ~RenderWorker();
   RenderWorker(const RenderWorker&) = delete;
   RenderWorker& operator=(const RenderWorker&) = delete;
@@ -60,6 +61,7 @@ class RenderWorker {
   StreamState& st_;
   std::chrono::steady_clock::time_point start_;
   int nice_ = 19;
+  bool idle_ = true;
   std::thread thread_;
   std::atomic<bool> stop_{false};
 

@@ -10,6 +10,7 @@
 #include <zmq.hpp>
 
 #include "core/error.h"
+#include "core/thread.h"
 #include "deform/backend.h"
 #include "net/deform_worker.h"
 #include "net/pose_service.h"
@@ -239,7 +240,7 @@ class Server::Control {
   // (throws the worker's set-up error); with none asked for, nothing is built
   void start_deform() {
     if (current_->scene.effects.chainmail && !deform_) {
-      auto w = std::make_unique<DeformWorker>(sh_, start_, opt_.deform_nice);
+      auto w = std::make_unique<DeformWorker>(sh_, start_, opt_.deform_nice, opt_.background_idle);
       w->start();
       deform_ = std::move(w);
       deform_ptr_.store(deform_.get(), std::memory_order_release);
@@ -277,7 +278,7 @@ class Server::Control {
       spdlog::info("frames and bricks are published on {}", publisher_->endpoint());
     }
     if (sc.effects.frames && !render_) {
-      auto r = std::make_unique<RenderWorker>(sh_, *stream_, start_, opt_.deform_nice);
+      auto r = std::make_unique<RenderWorker>(sh_, *stream_, start_, opt_.deform_nice, opt_.background_idle);
       r->start();
       render_ = std::move(r);
     }
@@ -514,6 +515,8 @@ class Server::Control {
     s.client_name = req_.open().client_name();
     s.last_seen_ns.store(ns_since(start_));
     opened_order_[index] = ++id_counter_opened_;
+    if (index >= sh_.slots_used.load(std::memory_order_relaxed))
+      sh_.slots_used.store(index + 1, std::memory_order_release);
     s.id.store(id, std::memory_order_release);  // publishes the slot to the pose thread
     sh_.counters.sessions_opened.fetch_add(1);
     auto* o = rep_.mutable_open();
@@ -975,8 +978,14 @@ void Server::start() {
     control_->stop_deform();
     throw;
   }
-  pose_thread_ = std::thread([this, t0] { run_pose_service(control_->pose_socket(), *shared_, t0); });
-  control_thread_ = std::thread([this] { control_->run(); });
+  pose_thread_ = std::thread([this, t0] {
+    name_this_thread("palpsim-pose");
+    run_pose_service(control_->pose_socket(), *shared_, t0);
+  });
+  control_thread_ = std::thread([this] {
+    name_this_thread("palpsim-control");
+    control_->run();
+  });
 }
 
 void Server::stop() {

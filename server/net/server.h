@@ -33,7 +33,8 @@ struct ServerOptions {
   double max_pose_distance_mm = 1000;                   // poses farther from the patient grid are refused
   int housekeeping_ms = 100;                            // control thread: timeouts, freeing old worlds
   double bad_input_log_period_s = 5;                    // log a summary of new bad input at most this often
-  int deform_nice = 19;                                 // the deformation worker's nice value (Linux; 0..19)
+  int deform_nice = 19;                                 // the deformation and render threads' nice value (Linux; 0..19)
+  bool background_idle = true;                          // and SCHED_IDLE for them (Linux; core/thread.h says why)
   std::string stream_bind;                              // the stream publisher's XPUB address; "" = derived (derive_stream_endpoint)
 };
 

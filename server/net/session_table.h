@@ -148,6 +148,8 @@ struct ServerShared {
   std::atomic<bool> stop{false};
   double max_pose_distance_mm = 1000;                // poses farther than this from the grid are absurd
   std::atomic<StreamState*> stream{nullptr};         // (control) frames and bricks, once a scene asked for them
+  std::atomic<int> slots_used{0};                    // (control) one past the highest slot index ever opened:
+                                                     // the workers' passes over the sessions stop there
 };
 
 /// Limits of the two paths (PROTOCOL.md).

@@ -15,6 +15,7 @@
 #include <zmq.hpp>
 
 #include "core/error.h"
+#include "core/thread.h"
 #include "palpsim/wire.pb.h"
 
 namespace palpsim::net {
@@ -474,8 +475,9 @@ struct StreamPublisher::Impl {
       if (p.record_index.is_open()) p.record_index.close();
     }
     if (id == 0) {
-      ss.frames_for.store(0, std::memory_order_release);
-      ss.bricks_for.store(0, std::memory_order_release);
+      // (stored only on a change: the pass touches as few cache lines as it can)
+      if (ss.frames_for.load(std::memory_order_relaxed)) ss.frames_for.store(0, std::memory_order_release);
+      if (ss.bricks_for.load(std::memory_order_relaxed)) ss.bricks_for.store(0, std::memory_order_release);
       return;
     }
     bool float32 = false, zstd_on = false, frames_hold = false, bricks_hold = false;
@@ -517,6 +519,7 @@ struct StreamPublisher::Impl {
   }
 
   void run() {
+    name_this_thread("palpsim-stream");
     zmq::pollitem_t items[] = {{xpub.handle(), 0, ZMQ_POLLIN, 0}};
     while (!stop.load(std::memory_order_relaxed)) {
       zmq::poll(items, 1, std::chrono::milliseconds(kPollMs));
@@ -529,7 +532,8 @@ struct StreamPublisher::Impl {
       pick_up_world();
       const double now = now_s();
       std::uint32_t count = 0;
-      for (int i = 0; i < kMaxSlots && !stop.load(std::memory_order_relaxed); ++i) {
+      const int used = sh.slots_used.load(std::memory_order_acquire);
+      for (int i = 0; i < used && !stop.load(std::memory_order_relaxed); ++i) {
         try {
           serve(i, now, count);
         } catch (const std::exception& e) {

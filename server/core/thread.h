@@ -27,14 +27,16 @@ inline void name_this_thread(const char* name) {
 /// its nice value, and with `idle` Linux's SCHED_IDLE, under which any other thread
 /// that wakes takes the core at once rather than after the scheduler's minimum slice.
 ///
-/// Why SCHED_IDLE by default: on the 2-core VM, lumbar phantom at 2 mm, VOI 32 on the
-/// CPU, palpsim-haptic pressing at 1 kHz on the same machine (3 runs each): with the
-/// deformation worker alone at nice 19 the round trip p99 was 0.5-1.8 ms and 18-34
-/// deadlines of 5000 were missed, under SCHED_IDLE 0.35-0.39 ms and 6-14; with a viewer
-/// rendering with llvmpipe too, nice 19 gave 0.7-2.8 ms and 62-97 missed, SCHED_IDLE
-/// 0.47-0.49 ms and 14-35. A background thread then runs only on a core nothing else
-/// wants, which is what the deformation and render paths are for (fewer steps, fewer
-/// frames on a busy machine; the haptic path never waits).
+/// Why SCHED_IDLE by default: on the shared 2-core VM, phantom at 2 mm, VOI 32 on the
+/// CPU, palpsim-haptic pressing at 1 kHz for 5 s on the same machine. Deformation alone:
+/// nice 19 gave round trip p99 0.5 / 1.8 ms and 34 / 18 missed deadlines of 5000,
+/// SCHED_IDLE 0.35 / 0.39 ms and 6 / 14. With a viewer rendering 640x360 with llvmpipe
+/// too, 7 runs each: nice 19 p99 0.7-3.3 ms (median 2.5), 56-97 missed;
+/// SCHED_IDLE 0.47-4.0 ms (median 0.58), 14-202 missed (one outlier run). The VM's noise
+/// is large, SCHED_IDLE is better in most runs and never worse at p99.9. A background
+/// thread then runs only on a core nothing else wants, which is what the deformation and
+/// render paths are for (fewer steps, fewer frames on a busy machine; the haptic path
+/// never waits).
 inline void lower_this_thread(int nice, bool idle) {
 #ifdef __linux__
   setpriority(PRIO_PROCESS, pid_t(syscall(SYS_gettid)), nice);

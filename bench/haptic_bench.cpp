@@ -21,6 +21,7 @@
 #include <zmq.hpp>
 
 #include "bench/registry.h"
+#include "bench/stats.h"
 #include "core/error.h"
 #include "haptics/force_model.h"
 #include "net/scene_io.h"
@@ -33,6 +34,8 @@ namespace v1 = palpsim::v1;
 using Clock = std::chrono::steady_clock;
 
 namespace {
+
+using bench::machine;
 
 struct Options {
   std::string json;
@@ -71,18 +74,6 @@ std::string json_q(const Quantiles& q, const char* unit) {
   return s.str();
 }
 
-std::string machine() {
-  std::ifstream in("/proc/cpuinfo");
-  std::string line, model = "unknown cpu";
-  while (std::getline(in, line))
-    if (line.rfind("model name", 0) == 0) {
-      model = line.substr(line.find(':') + 2);
-      break;
-    }
-  char host[256] = "unknown";
-  gethostname(host, sizeof host - 1);
-  return std::string(host) + ", " + model + ", " + std::to_string(std::thread::hardware_concurrency()) + " cores";
-}
 
 // --- force model cost ---------------------------------------------------------------
 

@@ -38,11 +38,13 @@
 #include "render/frame_encoder.h"
 #include "render/frame_renderer.h"
 #include "render/overlay_writer.h"
+#include "tests/support/render_support.h"
 
 using namespace palpsim;
 namespace v1 = palpsim::v1;
 using Clock = std::chrono::steady_clock;
 using bench::json_number;
+using bench::machine;
 using bench::json_spread;
 using bench::spread;
 using bench::Spread;
@@ -70,41 +72,8 @@ render::RenderQuality quality_of(const Scene& s) {
   return q;
 }
 
-std::string machine() {
-  std::ifstream in("/proc/cpuinfo");
-  std::string line, model = "unknown cpu";
-  while (std::getline(in, line))
-    if (line.rfind("model name", 0) == 0) {
-      model = line.substr(line.find(':') + 2);
-      break;
-    }
-  char host[256] = "unknown";
-  gethostname(host, sizeof host - 1);
-  return std::string(host) + ", " + model + ", " + std::to_string(std::thread::hardware_concurrency()) + " cores";
-}
 
 double ms_since(Clock::time_point t0) { return std::chrono::duration<double, std::milli>(Clock::now() - t0).count(); }
-
-// the press over the L3 spinous process of the phantom: X on the back's skin on the
-// body's mid-sagittal column at z = -5 mm (server/prep/phantom.cpp), x `depth_mm` under
-// it along -y (anterior)
-DeformContact l3_press(const Patient& p, double depth_mm) {
-  const Grid& g = p.grid;
-  int ilo = g.size.x, ihi = -1;
-  const int k = std::clamp(int(std::lround(g.to_index({0, 0, -5}).z)), 0, g.size.z - 1);
-  for (int j = 0; j < g.size.y; ++j)
-    for (int i = 0; i < g.size.x; ++i)
-      if (p.body.at(i, j, k)) {
-        ilo = std::min(ilo, i);
-        ihi = std::max(ihi, i);
-      }
-  const int i = ihi >= 0 ? (ilo + ihi) / 2 : g.size.x / 2;
-  // the skin: the body voxel farthest towards +y on that column
-  int j = g.size.y - 1;
-  while (j > 0 && !p.body.at(i, j, k)) --j;
-  const Vec3 X = g.to_physical({double(i), double(j), double(k)});
-  return {X, X - g.axes_to_physical({0, depth_mm, 0})};
-}
 
 struct StageRow {
   int width = 0, height = 0;
@@ -178,7 +147,9 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
         std::vector<double> jt, rc, sl, cp, rb, en, re, tt;
         std::vector<std::uint8_t> jpeg;
         std::size_t bytes = 0;
-        const DeformContact skin = l3_press(*patient, 0);
+        // the press over the L3 spinous process of the phantom, along -y (anterior)
+        const Vec3 l3 = test::l3_skin_mm(*patient);
+        const DeformContact skin{l3, l3};
         for (int n = 0; n < frames + warmup; ++n) {
           // a new deformation step (not timed): the press 2..12 mm deep
           const double depth = 2 + 10 * (0.5 - 0.5 * std::cos(2 * M_PI * n / 40.0));

@@ -1,10 +1,15 @@
-// Summaries of benchmark samples shared by the bench areas: percentiles and their JSON.
+// Summaries of benchmark samples shared by the bench areas: percentiles and their JSON,
+// and the machine a run was taken on.
 #pragma once
+
+#include <unistd.h>
 
 #include <algorithm>
 #include <cmath>
+#include <fstream>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 namespace palpsim::bench {
@@ -39,6 +44,20 @@ inline std::string json_number(double v) {
 inline std::string json_spread(const Spread& s) {
   return "{\"median_ms\": " + json_number(s.median) + ", \"p10_ms\": " + json_number(s.p10) +
          ", \"p90_ms\": " + json_number(s.p90) + "}";
+}
+
+/// "host, cpu model, N cores": the machine a benchmark ran on, for its output.
+inline std::string machine() {
+  std::ifstream in("/proc/cpuinfo");
+  std::string line, model = "unknown cpu";
+  while (std::getline(in, line))
+    if (line.rfind("model name", 0) == 0) {
+      model = line.substr(line.find(':') + 2);
+      break;
+    }
+  char host[256] = "unknown";
+  gethostname(host, sizeof host - 1);
+  return std::string(host) + ", " + model + ", " + std::to_string(std::thread::hardware_concurrency()) + " cores";
 }
 
 }  // namespace palpsim::bench

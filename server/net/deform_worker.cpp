@@ -109,12 +109,10 @@ void DeformWorker::start() {
   const World* w = sh_.world.load(std::memory_order_acquire);
   sh_.deform_seen_generation.store(w ? w->generation : 0, std::memory_order_release);
   thread_ = std::thread([this] { run(); });
-  std::unique_lock<std::mutex> lock(setup_mu_);
-  setup_cv_.wait(lock, [this] { return setup_done_; });
-  if (!setup_error_.empty()) {
-    lock.unlock();
+  const std::string error = setup_.wait();
+  if (!error.empty()) {
     stop();
-    throw Error(setup_error_);
+    throw Error(error);
   }
 }
 
@@ -136,11 +134,9 @@ void DeformWorker::run() {
     if (w && w->generation != generation_) {
       set_up_world();
       if (first) {
-        std::lock_guard<std::mutex> lock(setup_mu_);
-        setup_done_ = true;
-        setup_cv_.notify_all();
+        setup_.open();
         first = false;
-        if (!setup_error_.empty()) break;
+        if (!setup_.error().empty()) break;
       }
     }
     if (request_pending_.load(std::memory_order_acquire)) answer_request();
@@ -162,11 +158,7 @@ void DeformWorker::run() {
   // every engine is destroyed on this thread (cuda: its stream and buffers too)
   for (Session& s : sessions_) s.engine.reset();
   spares_.clear();
-  if (first) {
-    std::lock_guard<std::mutex> lock(setup_mu_);
-    setup_done_ = true;
-    setup_cv_.notify_all();
-  }
+  setup_.open();
 }
 
 void DeformWorker::set_up_world() {
@@ -203,8 +195,8 @@ void DeformWorker::set_up_world() {
       rep.built = false;
       const std::string why = std::string("scene '") + scene.name + "': deformation cannot be served: " + e.what();
       // the first scene: start() throws it; a scene loaded later is served with haptics only
-      if (!setup_done_)
-        setup_error_ = why;
+      if (!setup_.is_open())
+        setup_.fail(why);
       else
         spdlog::error("{}; its sessions get haptics only", why);
     }

@@ -19,6 +19,7 @@
 #include "core/volume.h"
 #include "deform/engine.h"
 #include "net/session_table.h"
+#include "net/setup_gate.h"
 #include "net/stream_state.h"
 
 namespace palpsim::net {
@@ -141,10 +142,7 @@ class DeformWorker {
   DeformServerReport server_;
 
   // start() waits for the first world set-up
-  std::mutex setup_mu_;
-  std::condition_variable setup_cv_;
-  bool setup_done_ = false;
-  std::string setup_error_;
+  SetupGate setup_;
 
   // deformed_volume() requests: one at a time, answered between steps
   std::mutex request_mu_;             // requesters among themselves

@@ -4,18 +4,13 @@
 #include <cmath>
 #include <cstdio>
 
+#include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
 
 namespace palpsim::net {
 namespace {
 
 namespace v1 = ::palpsim::v1;
-
-void set_vec(v1::Vec3* out, const Vec3& v) {
-  out->set_x(v.x);
-  out->set_y(v.y);
-  out->set_z(v.z);
-}
 
 // distance (mm) from a point to an axis-aligned box; 0 inside
 double box_distance_mm(const Vec3& p, const Vec3& lo, const Vec3& hi) {

@@ -88,12 +88,10 @@ void RenderWorker::start() {
   const World* w = sh_.world.load(std::memory_order_acquire);
   sh_.render_seen_generation.store(w ? w->generation : 0, std::memory_order_release);
   thread_ = std::thread([this] { run(); });
-  std::unique_lock<std::mutex> lock(setup_mu_);
-  setup_cv_.wait(lock, [this] { return setup_done_; });
-  if (!setup_error_.empty()) {
-    lock.unlock();
+  const std::string error = setup_.wait();
+  if (!error.empty()) {
     stop();
-    throw Error(setup_error_);
+    throw Error(error);
   }
 }
 
@@ -124,11 +122,9 @@ void RenderWorker::run() {
     st_.info.gl_version = ctx_->version();
   } catch (const std::exception& e) {
     const World* w = sh_.world.load(std::memory_order_acquire);
-    setup_error_ = "scene '" + (w ? w->scene.name : std::string()) +
-                   "' asks for frames (effects.frames) but no OpenGL 4.5 context could be made: " + e.what();
-    std::lock_guard<std::mutex> lock(setup_mu_);
-    setup_done_ = true;
-    setup_cv_.notify_all();
+    setup_.fail("scene '" + (w ? w->scene.name : std::string()) +
+                "' asks for frames (effects.frames) but no OpenGL 4.5 context could be made: " + e.what());
+    setup_.open();
     return;
   }
   views_.assign(kMaxSlots, View{});
@@ -139,10 +135,8 @@ void RenderWorker::run() {
       set_up_world();
       if (first) {
         first = false;
-        std::lock_guard<std::mutex> lock(setup_mu_);
-        setup_done_ = true;
-        setup_cv_.notify_all();
-        if (!setup_error_.empty()) break;
+        setup_.open();
+        if (!setup_.error().empty()) break;
       }
     }
     // one pass over the watched sessions: at most one frame each
@@ -166,11 +160,7 @@ void RenderWorker::run() {
   encoder_.reset();
   renderer_.reset();
   ctx_.reset();
-  if (first) {
-    std::lock_guard<std::mutex> lock(setup_mu_);
-    setup_done_ = true;
-    setup_cv_.notify_all();
-  }
+  setup_.open();
 }
 
 void RenderWorker::set_up_world() {
@@ -216,8 +206,8 @@ void RenderWorker::set_up_world() {
     encoder_.reset();
     renderer_.reset();
     note = "scene '" + scene.name + "': frames cannot be served: " + e.what();
-    if (!setup_done_)
-      setup_error_ = note;
+    if (!setup_.is_open())
+      setup_.fail(note);
     else
       spdlog::error("{}; its sessions get no frames", note);
   }

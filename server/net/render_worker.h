@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "net/session_table.h"
+#include "net/setup_gate.h"
 #include "net/stream_state.h"
 
 #include "render/frame_renderer.h"
@@ -78,10 +79,7 @@ class RenderWorker {
   std::vector<View> views_;  // by slot index
 
   // start() waits for the first set-up
-  std::mutex setup_mu_;
-  std::condition_variable setup_cv_;
-  bool setup_done_ = false;
-  std::string setup_error_;
+  SetupGate setup_;
 };
 
 }  // namespace palpsim::net

@@ -19,6 +19,7 @@
 #include "net/session_table.h"
 #include "net/stream_publisher.h"
 #include "net/stream_state.h"
+#include "net/wire_convert.h"
 #include "render/view.h"
 #include "palpsim/options.pb.h"
 #include "palpsim/scene.pb.h"
@@ -30,11 +31,6 @@ namespace {
 namespace v1 = ::palpsim::v1;
 using Clock = std::chrono::steady_clock;
 
-void set_vec(v1::Vec3* out, const Vec3& v) {
-  out->set_x(v.x);
-  out->set_y(v.y);
-  out->set_z(v.z);
-}
 
 std::string hex_id(std::uint64_t id) {
   char b[32];
@@ -83,20 +79,6 @@ void fill_frame_times(v1::FrameTimes* out, const render::FrameTimes& t, double s
   out->set_total_ms(t.total_ms * scale);
 }
 
-void fill_view(v1::ViewSettings* o, const render::ViewSettings& v) {
-  o->set_width(v.width);
-  o->set_height(v.height);
-  o->set_preset(render::preset_name(v.preset));
-  o->set_azimuth_deg(v.azimuth_deg);
-  o->set_elevation_deg(v.elevation_deg);
-  o->set_zoom(v.zoom);
-  o->set_look_at_tip(v.look_at_tip);
-  set_vec(o->mutable_center_mm(), v.center_mm);
-  o->set_jpeg_quality(v.jpeg_quality);
-  o->set_show_tip(v.show_tip);
-  o->set_show_proxy(v.show_proxy);
-  o->set_slice_fov_mm(v.slice_fov_mm);
-}
 
 // applies the fields a WatchSession sets to `v`; "" or the first bad field and why
 std::string apply_view(const v1::ViewSettings& in, render::ViewSettings& v) {
@@ -192,7 +174,10 @@ std::unique_ptr<World> make_world(const Scene& scene, PatientPtr patient, std::u
   return w;
 }
 
-std::string derive_pose_endpoint(const std::string& control) {
+namespace {
+// the address `offset` ports above a tcp control address ("*" stays "*"), or the control
+// path with `suffix` for ipc:// and inproc:// ("." or "-" joined)
+std::string derive_endpoint(const std::string& control, int offset, const std::string& suffix) {
   if (control.rfind("tcp://", 0) == 0) {
     const auto colon = control.rfind(':');
     if (colon == std::string::npos || colon < 6) throw Error("--bind " + control + ": a tcp address needs :PORT");
@@ -201,16 +186,21 @@ std::string derive_pose_endpoint(const std::string& control) {
     try {
       std::size_t used = 0;
       const int p = std::stoi(port, &used);
-      if (used != port.size() || p <= 0 || p >= 65535) throw std::invalid_argument(port);
-      return control.substr(0, colon + 1) + std::to_string(p + 1);
+      if (used != port.size() || p <= 0 || p + offset > 65535) throw std::invalid_argument(port);
+      return control.substr(0, colon + 1) + std::to_string(p + offset);
     } catch (const std::exception&) {
-      throw Error("--bind " + control + ": port '" + port + "' is not a number in 1..65534 or *");
+      throw Error("--bind " + control + ": port '" + port + "' is not a number in 1.." +
+                  std::to_string(65535 - offset) + " or *");
     }
   }
-  if (control.rfind("ipc://", 0) == 0) return control + ".pose";
-  if (control.rfind("inproc://", 0) == 0) return control + "-pose";
+  if (control.rfind("ipc://", 0) == 0) return control + "." + suffix;
+  if (control.rfind("inproc://", 0) == 0) return control + "-" + suffix;
   throw Error("--bind " + control + ": expected tcp://HOST:PORT, ipc://PATH or inproc://NAME");
 }
+}  // namespace
+
+std::string derive_pose_endpoint(const std::string& control) { return derive_endpoint(control, 1, "pose"); }
+std::string derive_stream_endpoint(const std::string& control) { return derive_endpoint(control, 2, "stream"); }
 
 // the control thread: sockets, world ownership, control requests, housekeeping
 class Server::Control {

@@ -42,6 +42,10 @@ struct ServerOptions {
 /// ipc://P -> ipc://P.pose, inproc://N -> inproc://N-pose.
 std::string derive_pose_endpoint(const std::string& control);
 
+/// The default stream (frames and bricks) address for a control address: tcp port + 2
+/// ("*" stays "*"), ipc://P -> ipc://P.stream, inproc://N -> inproc://N-stream.
+std::string derive_stream_endpoint(const std::string& control);
+
 /// The server: binds both sockets in the constructor (throws palpsim::Error naming the
 /// address when it cannot), serves from start() until stop() or destruction.
 class Server {

@@ -16,6 +16,7 @@
 
 #include "core/error.h"
 #include "core/thread.h"
+#include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
 
 namespace palpsim::net {
@@ -53,11 +54,6 @@ std::string hex_id(std::uint64_t id) {
   return b;
 }
 
-void set_vec(v1::Vec3* out, const Vec3& v) {
-  out->set_x(v.x);
-  out->set_y(v.y);
-  out->set_z(v.z);
-}
 
 // the session id of a full topic ("frame.<16 hex>"), or 0
 std::uint64_t topic_session(const std::string& t) {
@@ -76,25 +72,6 @@ std::uint64_t topic_session(const std::string& t) {
 
 }  // namespace
 
-std::string derive_stream_endpoint(const std::string& control) {
-  if (control.rfind("tcp://", 0) == 0) {
-    const auto colon = control.rfind(':');
-    if (colon == std::string::npos || colon < 6) throw Error("--bind " + control + ": a tcp address needs :PORT");
-    const std::string port = control.substr(colon + 1);
-    if (port == "*") return control;
-    try {
-      std::size_t used = 0;
-      const int p = std::stoi(port, &used);
-      if (used != port.size() || p <= 0 || p >= 65534) throw std::invalid_argument(port);
-      return control.substr(0, colon + 1) + std::to_string(p + 2);
-    } catch (const std::exception&) {
-      throw Error("--bind " + control + ": port '" + port + "' is not a number in 1..65533 or *");
-    }
-  }
-  if (control.rfind("ipc://", 0) == 0) return control + ".stream";
-  if (control.rfind("inproc://", 0) == 0) return control + "-stream";
-  throw Error("--bind " + control + ": expected tcp://HOST:PORT, ipc://PATH or inproc://NAME");
-}
 
 // the publisher's own state of one session slot
 struct PubSlot {
@@ -431,20 +408,6 @@ struct StreamPublisher::Impl {
     }
   }
 
-  static void fill_view(v1::ViewSettings* o, const render::ViewSettings& v) {
-    o->set_width(v.width);
-    o->set_height(v.height);
-    o->set_preset(render::preset_name(v.preset));
-    o->set_azimuth_deg(v.azimuth_deg);
-    o->set_elevation_deg(v.elevation_deg);
-    o->set_zoom(v.zoom);
-    o->set_look_at_tip(v.look_at_tip);
-    set_vec(o->mutable_center_mm(), v.center_mm);
-    o->set_jpeg_quality(v.jpeg_quality);
-    o->set_show_tip(v.show_tip);
-    o->set_show_proxy(v.show_proxy);
-    o->set_slice_fov_mm(v.slice_fov_mm);
-  }
 
   // one session slot: watched or not, then its newest frame and brick
   void serve(int index, double now, std::uint32_t& watched_count) {

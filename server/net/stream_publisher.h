@@ -16,10 +16,6 @@
 
 namespace palpsim::net {
 
-/// The default stream address for a control address: tcp port + 2 ("*" stays "*"),
-/// ipc://P -> ipc://P.stream, inproc://N -> inproc://N-stream.
-std::string derive_stream_endpoint(const std::string& control);
-
 /// Publishes frames and bricks on one XPUB endpoint.
 class StreamPublisher {
  public:

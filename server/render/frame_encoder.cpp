@@ -6,6 +6,7 @@
 #include <string>
 
 #include "core/error.h"
+#include "render/backend_choice.h"
 
 #ifdef PALPSIM_HAVE_CUDA
 #include "cuda/render_interop.h"
@@ -75,44 +76,12 @@ class TurboJpegEncoder final : public FrameEncoder {
 }  // namespace
 
 std::unique_ptr<FrameEncoder> make_frame_encoder(const std::string& name, const EglContext& ctx, std::string* note) {
-  auto say = [&](const std::string& s) {
-    if (note) *note = s;
-  };
-  const bool cpu = name == "cpu" || name == "turbojpeg";
-  if (!cpu && name != "nvjpeg" && name != "auto")
-    throw Error("jpeg encoder '" + name + "' is unknown; allowed: auto, cpu, nvjpeg");
+  BackendChoice<FrameEncoder> c{"jpeg encoder", "cpu", "turbojpeg", "nvjpeg", "turbojpeg", nullptr,
+                                [] { return std::make_unique<TurboJpegEncoder>(); }};
 #ifdef PALPSIM_HAVE_CUDA
-  if (name == "nvjpeg" || name == "auto") {
-    std::string why;
-    if (!ctx.nvidia()) {
-      why = "the OpenGL device is not an NVIDIA GPU (" + ctx.renderer() + ")";
-    } else if (!cuda::cuda_render_available(&why)) {
-      // why says it
-    } else {
-      try {
-        auto e = cuda::make_nvjpeg_frame_encoder();
-        say("jpeg encoder nvjpeg (" + std::string(name == "auto" ? "auto: " : "") + "CUDA-GL interop on " +
-            ctx.renderer() + ")");
-        return e;
-      } catch (const std::exception& ex) {
-        if (name == "nvjpeg") throw;
-        why = ex.what();
-      }
-    }
-    if (name == "nvjpeg") throw Error("jpeg encoder nvjpeg is not available: " + why);
-    say("jpeg encoder turbojpeg (auto: nvjpeg not usable: " + why + ")");
-    return std::make_unique<TurboJpegEncoder>();
-  }
-#else
-  if (name == "nvjpeg") throw Error("jpeg encoder nvjpeg is not available: this build has no CUDA");
-  if (name == "auto") {
-    say("jpeg encoder turbojpeg (auto: this build has no CUDA)");
-    return std::make_unique<TurboJpegEncoder>();
-  }
+  c.make_gpu = [] { return cuda::make_nvjpeg_frame_encoder(); };
 #endif
-  (void)ctx;
-  say("jpeg encoder turbojpeg (asked for " + name + ")");
-  return std::make_unique<TurboJpegEncoder>();
+  return choose_backend(c, name, ctx, note);
 }
 
 void encode_jpeg_rgb(const std::uint8_t* rgb, int width, int height, int quality, std::vector<std::uint8_t>& out) {

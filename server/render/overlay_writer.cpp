@@ -3,6 +3,7 @@
 #include <string>
 
 #include "core/error.h"
+#include "render/backend_choice.h"
 
 #ifdef PALPSIM_HAVE_CUDA
 #include "cuda/render_interop.h"
@@ -31,43 +32,12 @@ class UploadWriter final : public OverlayWriter {
 }  // namespace
 
 std::unique_ptr<OverlayWriter> make_overlay_writer(const std::string& name, const EglContext& ctx, std::string* note) {
-  auto say = [&](const std::string& s) {
-    if (note) *note = s;
-  };
-  if (name != "upload" && name != "cuda-gl" && name != "auto")
-    throw Error("overlay writer '" + name + "' is unknown; allowed: auto, upload, cuda-gl");
+  BackendChoice<OverlayWriter> c{"overlay writer", "upload", "", "cuda-gl", "upload", nullptr,
+                                 [] { return std::make_unique<UploadWriter>(); }};
 #ifdef PALPSIM_HAVE_CUDA
-  if (name == "cuda-gl" || name == "auto") {
-    std::string why;
-    if (!ctx.nvidia()) {
-      why = "the OpenGL device is not an NVIDIA GPU (" + ctx.renderer() + ")";
-    } else if (!cuda::cuda_render_available(&why)) {
-      // why says it
-    } else {
-      try {
-        auto w = cuda::make_cuda_overlay_writer();
-        say("overlay writer cuda-gl (" + std::string(name == "auto" ? "auto: " : "") + "CUDA-GL interop on " +
-            ctx.renderer() + ")");
-        return w;
-      } catch (const std::exception& ex) {
-        if (name == "cuda-gl") throw;
-        why = ex.what();
-      }
-    }
-    if (name == "cuda-gl") throw Error("overlay writer cuda-gl is not available: " + why);
-    say("overlay writer upload (auto: cuda-gl not usable: " + why + ")");
-    return std::make_unique<UploadWriter>();
-  }
-#else
-  if (name == "cuda-gl") throw Error("overlay writer cuda-gl is not available: this build has no CUDA");
-  if (name == "auto") {
-    say("overlay writer upload (auto: this build has no CUDA)");
-    return std::make_unique<UploadWriter>();
-  }
+  c.make_gpu = [] { return cuda::make_cuda_overlay_writer(); };
 #endif
-  (void)ctx;
-  say("overlay writer upload (asked for upload)");
-  return std::make_unique<UploadWriter>();
+  return choose_backend(c, name, ctx, note);
 }
 
 }  // namespace palpsim::render

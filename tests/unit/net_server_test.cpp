@@ -59,6 +59,12 @@ TEST_CASE("the pose address is derived from the control address", "[net]") {
   CHECK(net::derive_pose_endpoint("ipc:///tmp/p") == "ipc:///tmp/p.pose");
   CHECK(net::derive_pose_endpoint("inproc://x") == "inproc://x-pose");
   CHECK_THROWS_AS(net::derive_pose_endpoint("tcp://127.0.0.1:http"), Error);
+  // the stream (frames and bricks) two ports up, or its own ipc/inproc name
+  CHECK(net::derive_stream_endpoint("tcp://127.0.0.1:7420") == "tcp://127.0.0.1:7422");
+  CHECK(net::derive_stream_endpoint("tcp://127.0.0.1:*") == "tcp://127.0.0.1:*");
+  CHECK(net::derive_stream_endpoint("ipc:///tmp/p") == "ipc:///tmp/p.stream");
+  CHECK(net::derive_stream_endpoint("inproc://x") == "inproc://x-stream");
+  CHECK_THROWS_AS(net::derive_stream_endpoint("tcp://127.0.0.1:65534"), Error);  // 65536 is no port
   CHECK_THROWS_AS(net::derive_pose_endpoint("udp://127.0.0.1:5"), Error);
 }
 

@@ -30,6 +30,7 @@ from .batch import run_plan, write_outputs
 from .client import Client, PalpsimError
 from .plan import Plan, PlanError, parse_plan
 from .results import point_table, write_json
+from .view import positive_int, positive_number
 
 # the line's default z-range (mm, LPS) on the built-in phantom (server/prep/phantom.cpp):
 # its spinous process tips L5..L1 lie near z = -70, -38, -5, 28, 61 mm, each process a
@@ -41,26 +42,6 @@ PHANTOM_LUMBAR_Z_MM = (-90.0, 72.0)
 PHANTOM_L3_Z_MM = -5.0
 # the line starts (and the recorded press starts) this far above the body's highest point
 APPROACH_MM = 10.0
-
-
-def _at_least_one(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected 1 or more")
-    return v
-
-
-def _positive_mm(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (np.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive depth in mm")
-    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -98,11 +79,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true")
     rec = p.add_argument_group("the recorded press (scenes with frames; palpsim.record)")
     rec.add_argument("--no-record", action="store_true", help="do not record the press")
-    rec.add_argument("--record-steps", type=_at_least_one, default=5,
+    rec.add_argument("--record-steps", type=positive_int, default=5,
                      help="depth steps down (and as many back up), one frame each (default "
                           "%(default)s; a step waits about two frames: 1280x720 frames take "
                           "0.6-1.1 s on a 2-core CPU)")
-    rec.add_argument("--record-depth-mm", type=_positive_mm, default=15.0,
+    rec.add_argument("--record-depth-mm", type=positive_number("mm of depth"), default=15.0,
                      help="deepest step under the skin (default %(default)g)")
     rec.add_argument("--record-z-mm", type=float,
                      help="z of the press (default: L3, %g mm, on the phantom; else the most "

@@ -115,7 +115,8 @@ def _session(text: str) -> int:
     return v
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
+    """argparse type: a whole number of at least 1 (also used by palpsim-demo)."""
     try:
         v = int(text)
     except ValueError:
@@ -125,14 +126,17 @@ def _positive_int(text: str) -> int:
     return v
 
 
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive number of seconds")
-    return v
+def positive_number(what: str):
+    """argparse type: a finite number above 0; `what` ends the message ("seconds", "a depth in mm")."""
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not (math.isfinite(v) and v > 0):
+            raise argparse.ArgumentTypeError(f"{text!r}: expected a positive number of {what}")
+        return v
+    return parse
 
 
 def _int(text: str) -> int:
@@ -164,10 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "with --bricks)")
     out.add_argument("--mp4", metavar="FILE", type=Path,
                      help="write an MP4 (h264, yuv420p) at the measured frame rate (else 30 fps)")
-    out.add_argument("--frames", metavar="N", type=_positive_int,
+    out.add_argument("--frames", metavar="N", type=positive_int,
                      help="stop after N frames (with --bricks: N VOI bricks) "
                           "(default: until the session ends or Ctrl-C)")
-    out.add_argument("--timeout", metavar="S", type=_positive_float,
+    out.add_argument("--timeout", metavar="S", type=positive_number("seconds"),
                      help="seconds to wait for the server's reply (default %g) and for each "
                           "stream message (default: forever)" % DEFAULT_CONTROL_TIMEOUT_S)
     v = p.add_argument_group("view (sent to the server; options left out keep the session's view)")

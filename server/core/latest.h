@@ -38,9 +38,6 @@ class Latest {
   T& front() { return buf_[front_]; }
   const T& front() const { return buf_[front_]; }
 
-  /// True when a value was published and not taken yet (either thread may ask).
-  bool pending() const { return (middle_.load(std::memory_order_acquire) & kFresh) != 0; }
-
   /// Each of the three buffers, for accounting of what they hold (any thread, only
   /// while neither side writes, or for an estimate).
   const T& buffer(int i) const { return buf_[i]; }

@@ -177,16 +177,14 @@ void RenderWorker::set_up_world() {
   max_voi_ = scene.deform.whole_volume ? g : Vec3i{std::min(e, g.x), std::min(e, g.y), std::min(e, g.z)};
   for (View& v : views_) release_view(v);
   std::string note;
+  // the writer and encoder hold CUDA registrations of the renderer's textures: they go first
+  writer_.reset();
+  encoder_.reset();
   try {
     if (!scene.effects.frames) {
-      writer_.reset();  // before the renderer whose textures they may have registered
-      encoder_.reset();
       renderer_.reset();
       note = "scene '" + scene.name + "' asks for no frames";
     } else {
-      // the writer and encoder hold CUDA registrations of the renderer's textures: they go first
-      writer_.reset();
-      encoder_.reset();
       render::RenderQuality quality;
       quality.ray_step_vox = settings_.ray_step_vox;
       if (!renderer_ || !same_patient || quality_.ray_step_vox != quality.ray_step_vox) {

@@ -31,7 +31,6 @@ namespace {
 namespace v1 = ::palpsim::v1;
 using Clock = std::chrono::steady_clock;
 
-
 std::string hex_id(std::uint64_t id) {
   char b[32];
   std::snprintf(b, sizeof b, "%016" PRIx64, id);
@@ -78,7 +77,6 @@ void fill_frame_times(v1::FrameTimes* out, const render::FrameTimes& t, double s
   out->set_encode_ms(t.encode_ms * scale);
   out->set_total_ms(t.total_ms * scale);
 }
-
 
 // applies the fields a WatchSession sets to `v`; "" or the first bad field and why
 std::string apply_view(const v1::ViewSettings& in, render::ViewSettings& v) {
@@ -719,7 +717,7 @@ class Server::Control {
     std::uint64_t id = r.session_id();
     if (id == 0) {
       std::uint64_t newest = 0;
-      for (int i = 0; i < kMaxSlots; ++i) {
+      for (int i = 0; i < sh_.slots_used.load(std::memory_order_acquire); ++i) {
         const std::uint64_t sid = sh_.slots[i].id.load(std::memory_order_acquire);
         if (sid != 0 && opened_order_[i] > newest) {
           newest = opened_order_[i];
@@ -788,16 +786,16 @@ class Server::Control {
       {
         std::lock_guard<std::mutex> lock(stream_->info_mu);
         info = stream_->info;
+        sum = stream_->frame_time_sum;
       }
-      for (int i = 0; i < kMaxSlots; ++i) {
-        StreamSlot& ss = stream_->slots[i];
-        frame_bytes += ss.frame_bytes.load(std::memory_order_relaxed);
+      // the frames path holds its copies of J and its encoded frames, the bricks path its copies of J
+      for (int i = 0; i < sh_.slots_used.load(std::memory_order_acquire); ++i) {
+        const StreamSlot& ss = stream_->slots[i];
+        frame_bytes += ss.j_render_bytes.load(std::memory_order_relaxed) + ss.frame_bytes.load(std::memory_order_relaxed);
         brick_bytes += ss.brick_bytes.load(std::memory_order_relaxed);
       }
       frames_n = stream_->frames_rendered.load();
       bricks_n = stream_->bricks_published.load();
-      std::lock_guard<std::mutex> lock(stream_->info_mu);
-      sum = stream_->frame_time_sum;
     }
     const double k = frames_n ? 1.0 / double(frames_n) : 0.0;
     add_stage(stages, "frames", frames, frames ? info.render_bytes + frame_bytes : 0, sum.total_ms * k, frames_n);
@@ -858,8 +856,9 @@ class Server::Control {
     o->set_brick_compression(watched && ss.watch.brick_zstd ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE);
     const double now = ns_since(start_) * 1e-9;
     o->set_hold_left_s(watched ? std::max({0.0, ss.watch.frames_hold_until_s - now, ss.watch.bricks_hold_until_s - now}) : 0);
-    // the session's stages: its frame hand-over and overlay share of the renderer are not split out
-    add_stage(out->mutable_stages(), "frames", frames, ss.frame_bytes.load(), n ? r.sum.total_ms / double(n) : 0, n);
+    // the session's stages: its hand-overs (the renderer's textures are counted server-wide only)
+    add_stage(out->mutable_stages(), "frames", frames, ss.j_render_bytes.load() + ss.frame_bytes.load(),
+              n ? r.sum.total_ms / double(n) : 0, n);
     add_stage(out->mutable_stages(), "bricks", bricks, ss.brick_bytes.load(), 0, mine ? r.bricks_published : 0);
   }
 

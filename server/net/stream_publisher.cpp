@@ -553,7 +553,6 @@ void StreamPublisher::start() {
   {
     std::lock_guard<std::mutex> lock(impl_->st.info_mu);
     impl_->st.info.publisher_thread = true;
-    impl_->st.info.endpoint = endpoint_;
   }
   thread_ = std::thread([this] { impl_->run(); });
 }

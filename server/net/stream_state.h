@@ -114,7 +114,6 @@ struct StreamSlot {
 
 /// Server-wide stream facts and counters.
 struct StreamInfo {
-  std::string endpoint;               // the XPUB address
   bool publisher_thread = false, render_thread = false, egl_context = false;
   std::string gl_renderer, gl_version, jpeg_encoder, overlay_writer, render_note, last_error;
   std::size_t render_bytes = 0;       // GPU memory the renderer holds (textures, framebuffer)

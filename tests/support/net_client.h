@@ -6,6 +6,7 @@
 #include <catch2/catch.hpp>
 
 #include <cstdint>
+#include <string>
 #include <zmq.hpp>
 
 #include "core/vec3.h"
@@ -40,6 +41,14 @@ inline palpsim::v1::PoseRequest pose_request(std::uint64_t session_id, std::uint
   q.mutable_tip_mm()->set_y(tip_mm.y);
   q.mutable_tip_mm()->set_z(tip_mm.z);
   return q;
+}
+
+/// The stage called `name` in a stats reply's stage list, or nullptr.
+inline const palpsim::v1::StageInfo* stage(const google::protobuf::RepeatedPtrField<palpsim::v1::StageInfo>& stages,
+                                           const std::string& name) {
+  for (const auto& s : stages)
+    if (s.name() == name) return &s;
+  return nullptr;
 }
 
 /// One session on a running server: a REQ for control requests and a DEALER for poses,

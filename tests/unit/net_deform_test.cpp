@@ -24,6 +24,7 @@
 #include "support/synthetic_patient.h"
 
 using namespace palpsim;
+using test::stage;
 namespace v1 = palpsim::v1;
 
 namespace {
@@ -90,12 +91,6 @@ Scene deform_scene() {
   s.deform.backend = "cpu";
   s.deform.voi_edge = 32;
   return s;
-}
-
-const v1::StageInfo* stage(const google::protobuf::RepeatedPtrField<v1::StageInfo>& stages, const std::string& name) {
-  for (const auto& s : stages)
-    if (s.name() == name) return &s;
-  return nullptr;
 }
 
 // voxels where two volumes differ bit for bit, inside and outside a box of voxels

@@ -23,6 +23,7 @@
 #include "support/synthetic_patient.h"
 
 using namespace palpsim;
+using test::stage;
 namespace v1 = palpsim::v1;
 
 namespace {
@@ -88,12 +89,6 @@ Scene stream_scene(bool deform) {
   s.render.jpeg_encoder = "cpu";
   s.render.overlay_writer = "upload";
   return s;
-}
-
-const v1::StageInfo* stage(const google::protobuf::RepeatedPtrField<v1::StageInfo>& stages, const std::string& name) {
-  for (const auto& s : stages)
-    if (s.name() == name) return &s;
-  return nullptr;
 }
 
 // a decoded frame

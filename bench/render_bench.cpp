@@ -57,12 +57,16 @@ struct Options {
   int frames = 0;                        // per configuration; 0: 200 on a GPU, 8 on llvmpipe
   std::vector<std::pair<int, int>> sizes{{1280, 720}, {1920, 1080}};
   std::vector<int> sessions{1, 16};      // server part
+  std::vector<int> batches;              // server part: render.max_batch values ({} = the scene's)
   double seconds = 0;                    // server part, per phase; 0: 6 on a GPU, 8 on llvmpipe
   bool server = true;
   bool sweep = true;                     // ray step x CT precision x preset (GPU only unless asked)
   bool sweep_set = false;
   int nice = 19;                         // the server's worker threads' nice value (ServerOptions::deform_nice)
   std::string writer, encoder;           // the server's render.overlay_writer / jpeg_encoder ("" = the scene's)
+  int rounds = 3;                        // server part: rounds of (without, with viewers) per row
+  bool deform = true;                    // server part: the scene's deformation on (off: frames of the
+                                         // undeformed CT, to tell GPU sharing from the render's own cost)
 };
 
 // the renderer quality a scene asks for
@@ -239,11 +243,17 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
 
 struct ServerRow {
   int sessions = 0;
+  int max_batch = 0;
+  int rounds = 0;                   // of (without, with viewers)
+  double rtt_p99_ratio_median = 0;  // the median over rounds of p99 with / p99 without viewers
   double rtt_p99_alone_us = 0, rtt_p99_watched_us = 0, rtt_p50_alone_us = 0, rtt_p50_watched_us = 0;
   double fps_min = 0, fps_median = 0;
   double p2f_p50_ms = 0, p2f_p99_ms = 0;
   std::uint64_t frames = 0, deform_steps = 0;
   std::string backend, encoder, writer;
+  // mean stage times (ms) of the frames the viewers got, under this load
+  double j_ms = 0, raycast_ms = 0, slices_ms = 0, composite_ms = 0, readback_ms = 0, encode_ms = 0, total_ms = 0;
+  double render_busy = 0;  // the render thread's share of the wall time spent on frames (total_ms summed / s)
 };
 
 double quantile(std::vector<double> v, double q) {
@@ -266,8 +276,11 @@ v1::ControlReply control(zmq::socket_t& s, v1::ControlRequest q) {
 // by side along the back); with `viewers`, each session's frames are read by its own
 // viewer thread; returns the round trips (us) and, with viewers, fills fps and latency
 void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double seconds, bool viewers,
-                  std::vector<double>& rtts, std::vector<double>& fps, std::vector<double>& p2f) {
+                  std::vector<double>& rtts, std::vector<double>& fps, std::vector<double>& p2f,
+                  ServerRow* times = nullptr) {
   std::vector<std::vector<double>> per(n), lat(n);
+  std::vector<v1::FrameTimes> tsum(n);
+  std::vector<double> twall(n, 0);
   std::vector<double> frames(n, 0);
   std::atomic<bool> done{false};
   std::vector<std::thread> threads, watchers;
@@ -352,8 +365,18 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
           if (Clock::now() < start || !msg.ParseFromArray(b.data(), int(b.size())) || !msg.has_frame()) continue;
           ++counted;
           lat[c].push_back(msg.frame().pose_to_frame_ms());
+          const v1::FrameTimes& ft = msg.frame().times();
+          v1::FrameTimes& a = tsum[c];
+          a.set_j_to_texture_ms(a.j_to_texture_ms() + ft.j_to_texture_ms());
+          a.set_raycast_ms(a.raycast_ms() + ft.raycast_ms());
+          a.set_slices_ms(a.slices_ms() + ft.slices_ms());
+          a.set_composite_ms(a.composite_ms() + ft.composite_ms());
+          a.set_readback_ms(a.readback_ms() + ft.readback_ms());
+          a.set_encode_ms(a.encode_ms() + ft.encode_ms());
+          a.set_total_ms(a.total_ms() + ft.total_ms());
         }
-        frames[c] = counted / std::max(1e-9, std::chrono::duration<double>(Clock::now() - start).count());
+        twall[c] = std::max(1e-9, std::chrono::duration<double>(Clock::now() - start).count());
+        frames[c] = counted / twall[c];
       });
   }
   for (auto& t : threads) t.join();
@@ -362,12 +385,37 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
   for (auto& v : per) rtts.insert(rtts.end(), v.begin(), v.end());
   for (auto& v : lat) p2f.insert(p2f.end(), v.begin(), v.end());
   if (viewers) fps = frames;
+  if (times) {
+    double n_frames = 0, wall = 0;
+    v1::FrameTimes a;
+    for (int c = 0; c < n; ++c) {
+      n_frames += frames[c] * twall[c];
+      wall = std::max(wall, twall[c]);
+      a.set_j_to_texture_ms(a.j_to_texture_ms() + tsum[c].j_to_texture_ms());
+      a.set_raycast_ms(a.raycast_ms() + tsum[c].raycast_ms());
+      a.set_slices_ms(a.slices_ms() + tsum[c].slices_ms());
+      a.set_composite_ms(a.composite_ms() + tsum[c].composite_ms());
+      a.set_readback_ms(a.readback_ms() + tsum[c].readback_ms());
+      a.set_encode_ms(a.encode_ms() + tsum[c].encode_ms());
+      a.set_total_ms(a.total_ms() + tsum[c].total_ms());
+    }
+    const double k = n_frames > 0 ? 1.0 / n_frames : 0.0;
+    times->j_ms = a.j_to_texture_ms() * k;
+    times->raycast_ms = a.raycast_ms() * k;
+    times->slices_ms = a.slices_ms() * k;
+    times->composite_ms = a.composite_ms() * k;
+    times->readback_ms = a.readback_ms() * k;
+    times->encode_ms = a.encode_ms() * k;
+    times->total_ms = a.total_ms() * k;
+    times->render_busy = wall > 0 ? a.total_ms() * 1e-3 / wall : 0.0;
+  }
 }
 
 std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, const Options& o, bool software) {
   std::vector<ServerRow> rows;
   const double seconds = o.seconds > 0 ? o.seconds : (software ? 8 : 6);
   scene.effects.frames = scene.effects.bricks = true;
+  if (!o.deform) scene.effects.chainmail = scene.effects.relaxation = scene.effects.inversion = false;
   scene.deform.voi_edge = 64;
   scene.render.max_fps = 30;
   scene.server.max_sessions = 64;
@@ -389,14 +437,32 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
   for (int n : o.sessions) {
     ServerRow row;
     row.sessions = n;
-    std::vector<double> alone, watched, fps, p2f, unused_fps, unused_p2f;
-    run_sessions(server, pi, n, seconds, false, alone, unused_fps, unused_p2f);
+    row.max_batch = scene.render.max_batch;
+    // rounds of (without viewers, with viewers), back to back, so that slow drifts of the
+    // machine (a VM's neighbours) fall on both sides alike; the samples are pooled and
+    // each round's p99 ratio kept
+    std::vector<double> alone, watched, fps, p2f, ratios;
     v1::ControlRequest sq;
     sq.mutable_stats();
-    const std::uint64_t steps0 = control(ctl, sq).stats().server().deform_steps();
-    const std::uint64_t frames0 = control(ctl, sq).stats().server().stream().frames_published();
-    run_sessions(server, pi, n, seconds, true, watched, fps, p2f);
-    const v1::ServerStats st = control(ctl, sq).stats().server();
+    std::uint64_t steps = 0, frames = 0;
+    v1::ServerStats st;
+    for (int round = 0; round < o.rounds; ++round) {
+      std::vector<double> a, w, f, p, unused_fps, unused_p2f;
+      run_sessions(server, pi, n, seconds, false, a, unused_fps, unused_p2f);
+      const v1::ServerStats st0 = control(ctl, sq).stats().server();
+      run_sessions(server, pi, n, seconds, true, w, f, p, &row);
+      st = control(ctl, sq).stats().server();
+      steps += st.deform_steps() - st0.deform_steps();
+      frames += st.stream().frames_published() - st0.stream().frames_published();
+      const double pa = quantile(a, 0.99);
+      if (pa > 0) ratios.push_back(quantile(w, 0.99) / pa);
+      alone.insert(alone.end(), a.begin(), a.end());
+      watched.insert(watched.end(), w.begin(), w.end());
+      fps.insert(fps.end(), f.begin(), f.end());
+      p2f.insert(p2f.end(), p.begin(), p.end());
+    }
+    row.rounds = o.rounds;
+    row.rtt_p99_ratio_median = quantile(ratios, 0.5);
     row.rtt_p50_alone_us = quantile(alone, 0.5);
     row.rtt_p99_alone_us = quantile(alone, 0.99);
     row.rtt_p50_watched_us = quantile(watched, 0.5);
@@ -405,19 +471,24 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
     row.fps_median = quantile(fps, 0.5);
     row.p2f_p50_ms = quantile(p2f, 0.5);
     row.p2f_p99_ms = quantile(p2f, 0.99);
-    row.frames = st.stream().frames_published() - frames0;
-    row.deform_steps = st.deform_steps() - steps0;
+    row.frames = frames;
+    row.deform_steps = steps;
     row.backend = st.deform_backend();
     row.encoder = st.stream().jpeg_encoder();
     row.writer = st.stream().overlay_writer();
     std::printf(
-        "server, %2d sessions at 1 kHz (%s deformation, %s, %s, nice %d): frames/s per session min %.1f median %.1f; "
-        "pose-to-frame p50 %.2f ms p99 %.2f ms; round trip p99 %.0f us with viewers vs %.0f us without (%.2fx); "
-        "%llu deformation steps\n",
-        n, row.backend.c_str(), row.encoder.c_str(), row.writer.c_str(), o.nice, row.fps_min, row.fps_median, row.p2f_p50_ms,
-        row.p2f_p99_ms, row.rtt_p99_watched_us, row.rtt_p99_alone_us,
-        row.rtt_p99_alone_us > 0 ? row.rtt_p99_watched_us / row.rtt_p99_alone_us : 0.0,
-        (unsigned long long)row.deform_steps);
+        "server, %2d sessions at 1 kHz (%s deformation, %s, %s, batch %d, nice %d): frames/s per session min %.1f "
+        "median %.1f; pose-to-frame p50 %.2f ms p99 %.2f ms; round trip p99 %.0f us with viewers vs %.0f us without "
+        "(%.2fx pooled over %d rounds, median of the rounds' ratios %.2fx); %llu deformation steps\n",
+        n, row.backend.c_str(), row.encoder.c_str(), row.writer.c_str(), row.max_batch, o.nice, row.fps_min,
+        row.fps_median, row.p2f_p50_ms, row.p2f_p99_ms, row.rtt_p99_watched_us, row.rtt_p99_alone_us,
+        row.rtt_p99_alone_us > 0 ? row.rtt_p99_watched_us / row.rtt_p99_alone_us : 0.0, row.rounds,
+        row.rtt_p99_ratio_median, (unsigned long long)row.deform_steps);
+    std::printf(
+        "        frames under this load (mean ms): J->tex %.3f raycast %.3f slices %.3f composite %.3f readback %.3f "
+        "encode %.3f | total %.3f; render thread busy %.0f%% of the time\n",
+        row.j_ms, row.raycast_ms, row.slices_ms, row.composite_ms, row.readback_ms, row.encode_ms, row.total_ms,
+        100 * row.render_busy);
     rows.push_back(row);
   }
   server.stop();
@@ -446,11 +517,25 @@ int run(int argc, char** argv) {
       o.encoder = value();
     } else if (a == "--nice") {
       o.nice = std::stoi(value());
+    } else if (a == "--rounds") {
+      o.rounds = std::stoi(value());
+      if (o.rounds < 1 || o.rounds > 100) throw Error("palpsim-bench render: --rounds is 1..100");
+    } else if (a == "--no-deform") {
+      o.deform = false;
     } else if (a == "--no-server") {
       o.server = false;
     } else if (a == "--sweep" || a == "--no-sweep") {
       o.sweep = a == "--sweep";
       o.sweep_set = true;
+    } else if (a == "--batch") {
+      std::stringstream ss(value());
+      std::string item;
+      o.batches.clear();
+      while (std::getline(ss, item, ',')) {
+        o.batches.push_back(std::stoi(item));
+        if (o.batches.back() < 1 || o.batches.back() > 64)
+          throw Error("palpsim-bench render: --batch values are 1..64; got '" + item + "'");
+      }
     } else if (a == "--sessions" || a == "--sizes") {
       std::stringstream ss(value());
       std::string item;
@@ -470,6 +555,9 @@ int run(int argc, char** argv) {
           "                            [--sizes 1280x720,1920x1080] [--sessions 1,16] [--seconds S per phase]\n"
           "                            [--nice N (the server's deformation and render threads, 19)]\n"
           "                            [--overlay-writer auto|upload|cuda-gl] [--jpeg-encoder auto|cpu|nvjpeg] (server)\n"
+          "                            [--no-deform (server part: frames of the undeformed CT)]\n"
+          "                            [--batch 1,4,16 (server part: render.max_batch; the scene's)]\n"
+          "                            [--rounds N (server part: rounds of without/with viewers, 3)]\n"
           "                            [--no-server] [--sweep|--no-sweep (ray step x CT precision x preset;\n"
           "                            default: on a GPU only)]\n");
       return 0;
@@ -488,7 +576,14 @@ int run(int argc, char** argv) {
   bool software = false;
   const std::vector<StageRow> stages = bench_stages(patient, scene, o, gl, software);
   std::vector<ServerRow> servers;
-  if (o.server) servers = bench_server(patient, scene, o, software);
+  if (o.server) {
+    if (o.batches.empty()) o.batches.push_back(scene.render.max_batch);
+    for (int b : o.batches) {
+      Scene sb = scene;
+      sb.render.max_batch = b;
+      for (const ServerRow& r : bench_server(patient, sb, o, software)) servers.push_back(r);
+    }
+  }
 
   if (!o.json.empty()) {
     std::ofstream out(o.json);
@@ -505,7 +600,7 @@ int run(int argc, char** argv) {
     out << "  ],\n  \"server\": [\n";
     for (std::size_t i = 0; i < servers.size(); ++i) {
       const ServerRow& r = servers[i];
-      out << "    {\"sessions\": " << r.sessions << ", \"deform_backend\": \"" << r.backend << "\", \"jpeg_encoder\": \""
+      out << "    {\"sessions\": " << r.sessions << ", \"max_batch\": " << r.max_batch << ", \"deform_backend\": \"" << r.backend << "\", \"jpeg_encoder\": \""
           << r.encoder << "\", \"overlay_writer\": \"" << r.writer
           << "\", \"fps_per_session_min\": " << json_number(r.fps_min)
           << ", \"fps_per_session_median\": " << json_number(r.fps_median)
@@ -515,7 +610,14 @@ int run(int argc, char** argv) {
           << ", \"round_trip_p99_us_without_viewers\": " << json_number(r.rtt_p99_alone_us)
           << ", \"round_trip_p50_us_with_viewers\": " << json_number(r.rtt_p50_watched_us)
           << ", \"round_trip_p99_us_with_viewers\": " << json_number(r.rtt_p99_watched_us)
-          << ", \"frames_published\": " << r.frames << ", \"deform_steps\": " << r.deform_steps << "}"
+          << ", \"rounds\": " << r.rounds << ", \"round_trip_p99_ratio_median_of_rounds\": "
+          << json_number(r.rtt_p99_ratio_median)
+          << ", \"frames_published\": " << r.frames << ", \"deform_steps\": " << r.deform_steps
+          << ", \"frame_ms_under_load\": {\"j_to_texture\": " << json_number(r.j_ms)
+          << ", \"raycast\": " << json_number(r.raycast_ms) << ", \"slices\": " << json_number(r.slices_ms)
+          << ", \"composite\": " << json_number(r.composite_ms) << ", \"readback\": " << json_number(r.readback_ms)
+          << ", \"encode\": " << json_number(r.encode_ms) << ", \"total\": " << json_number(r.total_ms)
+          << "}, \"render_thread_busy\": " << json_number(r.render_busy) << "}"
           << (i + 1 < servers.size() ? ",\n" : "\n");
     }
     out << "  ]\n}\n";

@@ -22,6 +22,7 @@
 #include <cstring>
 #include <map>
 #include <string>
+#include <vector>
 
 #include "core/error.h"
 #include "cuda/check.h"
@@ -118,34 +119,37 @@ void unregister_quietly(cudaGraphicsResource_t res) {
   }
 }
 
-// One mapping of a registered resource on a stream: unmap() ends it (checked); the
-// destructor unmaps on an error path so that GL never keeps a resource CUDA still maps.
+// One mapping of registered resources on a stream, all in one call (one hand-over
+// from GL to CUDA however many there are): unmap() ends it (checked); the destructor
+// unmaps on an error path so that GL never keeps a resource CUDA still maps.
 class Mapping {
  public:
-  Mapping(cudaGraphicsResource_t res, cudaStream_t stream) : res_(res), stream_(stream) {
-    PALPSIM_CUDA_CHECK(cudaGraphicsMapResources(1, &res_, stream_));
+  Mapping(std::vector<cudaGraphicsResource_t> res, cudaStream_t stream) : res_(std::move(res)), stream_(stream) {
+    if (!res_.empty()) PALPSIM_CUDA_CHECK(cudaGraphicsMapResources(int(res_.size()), res_.data(), stream_));
   }
+  Mapping(cudaGraphicsResource_t res, cudaStream_t stream) : Mapping(std::vector<cudaGraphicsResource_t>{res}, stream) {}
   ~Mapping() {
-    if (res_ && cudaGraphicsUnmapResources(1, &res_, stream_) != cudaSuccess) cudaGetLastError();
+    if (!res_.empty() && cudaGraphicsUnmapResources(int(res_.size()), res_.data(), stream_) != cudaSuccess)
+      cudaGetLastError();
   }
   Mapping(const Mapping&) = delete;
   Mapping& operator=(const Mapping&) = delete;
 
-  /// The mapped texture's level 0 as a CUDA array.
-  cudaArray_t array() const {
+  /// The i-th mapped texture's level 0 as a CUDA array.
+  cudaArray_t array(std::size_t i = 0) const {
     cudaArray_t a = nullptr;
-    PALPSIM_CUDA_CHECK(cudaGraphicsSubResourceGetMappedArray(&a, res_, 0, 0));
+    PALPSIM_CUDA_CHECK(cudaGraphicsSubResourceGetMappedArray(&a, res_.at(i), 0, 0));
     return a;
   }
   /// Ends the mapping; work issued on the stream before it completes before later GL work.
   void unmap() {
-    cudaGraphicsResource_t r = res_;
-    res_ = nullptr;
-    PALPSIM_CUDA_CHECK(cudaGraphicsUnmapResources(1, &r, stream_));
+    std::vector<cudaGraphicsResource_t> r;
+    r.swap(res_);
+    if (!r.empty()) PALPSIM_CUDA_CHECK(cudaGraphicsUnmapResources(int(r.size()), r.data(), stream_));
   }
 
  private:
-  cudaGraphicsResource_t res_;
+  std::vector<cudaGraphicsResource_t> res_;
   cudaStream_t stream_;
 };
 
@@ -177,11 +181,6 @@ class NvjpegFrameEncoder final : public render::FrameEncoder {
       check_gl_device("jpeg encoder \"nvjpeg\"");
       PALPSIM_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
       PALPSIM_NVJPEG_CHECK(nvjpegCreateSimple(&handle_));
-      PALPSIM_NVJPEG_CHECK(nvjpegEncoderStateCreate(handle_, &state_, stream_));
-      PALPSIM_NVJPEG_CHECK(nvjpegEncoderParamsCreate(handle_, &params_, stream_));
-      // 4:2:0 chroma and baseline Huffman tables, as the CPU encoder (libjpeg-turbo)
-      PALPSIM_NVJPEG_CHECK(nvjpegEncoderParamsSetSamplingFactors(params_, NVJPEG_CSS_420, stream_));
-      PALPSIM_NVJPEG_CHECK(nvjpegEncoderParamsSetOptimizedHuffman(params_, 0, stream_));
     } catch (...) {
       release();
       throw;
@@ -191,66 +190,109 @@ class NvjpegFrameEncoder final : public render::FrameEncoder {
 
   const char* name() const override { return "nvjpeg"; }
 
-  void encode(render::FrameRenderer& r, int quality, std::vector<std::uint8_t>& out,
-              render::FrameTimes& times) override {
-    if (quality < 1 || quality > 100)
-      throw Error("jpeg encoder \"nvjpeg\": quality = " + std::to_string(quality) + " is outside 1..100");
-    const int w = r.width(), h = r.height();
-    if (w <= 0 || h <= 0) throw Error("jpeg encoder \"nvjpeg\": the renderer has no frame to encode yet");
-    bind_texture(r.color_texture(), w, h);
+  // All jobs' textures are mapped in one call and copied out, then every frame is
+  // converted and encoded on one stream, and the stream is waited for once before the
+  // bitstreams are fetched: two hand-overs between GL and CUDA per batch, not per frame.
+  void encode_batch(render::FrameRenderer& r, const std::vector<render::EncodeJob>& jobs) override {
+    if (jobs.empty()) return;
+    std::vector<Slot*> slots;
+    std::vector<cudaGraphicsResource_t> res;
+    for (const render::EncodeJob& j : jobs) {
+      if (!j.out || !j.times) throw Error("jpeg encoder \"nvjpeg\": a job without output or times");
+      if (j.quality < 1 || j.quality > 100)
+        throw Error("jpeg encoder \"nvjpeg\": quality = " + std::to_string(j.quality) + " is outside 1..100");
+      const int w = r.width(j.target), h = r.height(j.target);
+      if (w <= 0 || h <= 0) throw Error("jpeg encoder \"nvjpeg\": the renderer has no frame to encode yet");
+      Slot& s = bind_texture(j.target, r.color_texture(j.target), w, h);
+      if (std::find(slots.begin(), slots.end(), &s) != slots.end())
+        throw Error("jpeg encoder \"nvjpeg\": target " + std::to_string(j.target) + " appears twice in one batch");
+      slots.push_back(&s);
+      res.push_back(s.res);
+    }
+    const double share = 1.0 / double(jobs.size());
 
-    // readback: map the colour texture, copy its w x h texels out, unmap, drop alpha
+    // readback: map every colour texture, copy its w x h texels out, unmap
     const auto t0 = std::chrono::steady_clock::now();
     {
-      Mapping m(res_, stream_);
-      const cudaArray_t a = m.array();
-      PALPSIM_CUDA_CHECK(cudaMemcpy2DFromArrayAsync(d_rgba_, std::size_t(w) * 4, a, 0, 0, std::size_t(w) * 4,
-                                                    std::size_t(h), cudaMemcpyDeviceToDevice, stream_));
+      Mapping m(res, stream_);
+      for (std::size_t i = 0; i < slots.size(); ++i) {
+        const Slot& s = *slots[i];
+        PALPSIM_CUDA_CHECK(cudaMemcpy2DFromArrayAsync(s.d_rgba, std::size_t(s.w) * 4, m.array(i), 0, 0,
+                                                      std::size_t(s.w) * 4, std::size_t(s.h),
+                                                      cudaMemcpyDeviceToDevice, stream_));
+      }
       m.unmap();
     }
-    const unsigned n = unsigned(w) * unsigned(h);
-    const unsigned threads = 256, blocks = (n + threads - 1) / threads;
-    rgba_to_rgb_kernel<<<blocks, threads, 0, stream_>>>(reinterpret_cast<const uchar4*>(d_rgba_), d_rgb_, n);
-    PALPSIM_CUDA_CHECK(cudaGetLastError());
-    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
     const auto t1 = std::chrono::steady_clock::now();
-    times.readback_ms += std::chrono::duration<double, std::milli>(t1 - t0).count();
+    for (const render::EncodeJob& j : jobs)
+      j.times->readback_ms += share * std::chrono::duration<double, std::milli>(t1 - t0).count();
 
-    // encode: nvJPEG from the RGB rows, then the bitstream into pinned host memory
-    if (quality != quality_) {
-      PALPSIM_NVJPEG_CHECK(nvjpegEncoderParamsSetQuality(params_, quality, stream_));
-      quality_ = quality;
+    // encode: drop alpha, nvJPEG from the RGB rows, every frame queued before one wait
+    for (std::size_t i = 0; i < slots.size(); ++i) {
+      Slot& s = *slots[i];
+      const unsigned n = unsigned(s.w) * unsigned(s.h);
+      const unsigned threads = 256, blocks = (n + threads - 1) / threads;
+      rgba_to_rgb_kernel<<<blocks, threads, 0, stream_>>>(reinterpret_cast<const uchar4*>(s.d_rgba), s.d_rgb, n);
+      PALPSIM_CUDA_CHECK(cudaGetLastError());
+      if (jobs[i].quality != s.quality) {
+        PALPSIM_NVJPEG_CHECK(nvjpegEncoderParamsSetQuality(s.params, jobs[i].quality, stream_));
+        s.quality = jobs[i].quality;
+      }
+      nvjpegImage_t img{};
+      img.channel[0] = s.d_rgb;
+      img.pitch[0] = std::size_t(s.w) * 3;
+      PALPSIM_NVJPEG_CHECK(nvjpegEncodeImage(handle_, s.state, s.params, &img, NVJPEG_INPUT_RGBI, s.w, s.h, stream_));
     }
-    nvjpegImage_t img{};
-    img.channel[0] = d_rgb_;
-    img.pitch[0] = std::size_t(w) * 3;
-    PALPSIM_NVJPEG_CHECK(nvjpegEncodeImage(handle_, state_, params_, &img, NVJPEG_INPUT_RGBI, w, h, stream_));
-    std::size_t length = 0;
-    PALPSIM_NVJPEG_CHECK(nvjpegEncodeRetrieveBitstream(handle_, state_, nullptr, &length, stream_));
     PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
-    if (length > jpeg_cap_) grow_host(length);  // rare: presized by nvjpegEncodeGetBufferSize
-    PALPSIM_NVJPEG_CHECK(nvjpegEncodeRetrieveBitstream(handle_, state_, h_jpeg_, &length, stream_));
-    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
-    out.assign(h_jpeg_, h_jpeg_ + length);
-    times.encode_ms += ms_since(t1);
+    // the bitstreams into pinned host memory, one after another
+    for (std::size_t i = 0; i < slots.size(); ++i) {
+      Slot& s = *slots[i];
+      std::size_t length = 0;
+      PALPSIM_NVJPEG_CHECK(nvjpegEncodeRetrieveBitstream(handle_, s.state, nullptr, &length, stream_));
+      if (length > jpeg_cap_) grow_host(length);  // rare: presized by nvjpegEncodeGetBufferSize
+      PALPSIM_NVJPEG_CHECK(nvjpegEncodeRetrieveBitstream(handle_, s.state, h_jpeg_, &length, stream_));
+      PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+      jobs[i].out->assign(h_jpeg_, h_jpeg_ + length);
+    }
+    const double encode_ms = ms_since(t1);
+    for (const render::EncodeJob& j : jobs) j.times->encode_ms += share * encode_ms;
   }
 
  private:
+  // One target's registered colour texture, its device buffers and nvJPEG state.
+  struct Slot {
+    cudaGraphicsResource_t res = nullptr;
+    GLuint tex = 0;
+    int w = 0, h = 0;
+    std::string label;
+    std::uint8_t* d_rgba = nullptr;  // the frame's texels, rows of w*4 bytes
+    std::uint8_t* d_rgb = nullptr;   // the frame as interleaved RGB, rows of w*3 bytes
+    std::size_t pixels_cap = 0;      // pixels both device buffers hold
+    nvjpegEncoderState_t state = nullptr;
+    nvjpegEncoderParams_t params = nullptr;
+    int quality = -1;                // quality set in params
+  };
+
+  // frees a slot's registration, buffers and nvJPEG objects; errors ignored
+  static void free_slot(Slot& s) noexcept {
+    unregister_quietly(s.res);
+    if (s.params) nvjpegEncoderParamsDestroy(s.params);
+    if (s.state) nvjpegEncoderStateDestroy(s.state);
+    cudaFree(s.d_rgba);
+    cudaFree(s.d_rgb);
+    cudaGetLastError();
+    s = Slot{};
+  }
+
   // frees everything; errors ignored (destructor and failed constructor)
   void release() noexcept {
-    unregister_quietly(res_);
-    res_ = nullptr;
-    if (params_) nvjpegEncoderParamsDestroy(params_);
-    if (state_) nvjpegEncoderStateDestroy(state_);
+    for (auto& [t, s] : slots_) free_slot(s);
+    slots_.clear();
     if (handle_) nvjpegDestroy(handle_);
-    params_ = nullptr;
-    state_ = nullptr;
     handle_ = nullptr;
-    cudaFree(d_rgba_);
-    cudaFree(d_rgb_);
     cudaFreeHost(h_jpeg_);
-    d_rgba_ = d_rgb_ = h_jpeg_ = nullptr;
-    pixels_cap_ = jpeg_cap_ = 0;
+    h_jpeg_ = nullptr;
+    jpeg_cap_ = 0;
     if (stream_) cudaStreamDestroy(stream_);
     stream_ = nullptr;
     cudaGetLastError();
@@ -265,20 +307,38 @@ class NvjpegFrameEncoder final : public render::FrameEncoder {
     jpeg_cap_ = bytes;
   }
 
-  // Registers the colour texture when it is not the one registered: another name,
-  // another size, or the same name now naming another texture (no label). Device
-  // buffers grow here, never per frame. Nothing is kept of a registration that fails
-  // a check, so the next frame tries again.
-  void bind_texture(GLuint tex, int w, int h) {
-    if (res_ && tex == tex_ && w == w_ && h == h_ && texture_has_label(tex, label_)) return;
-    unregister_quietly(res_);
-    res_ = nullptr;
-    tex_ = 0;
-    w_ = h_ = 0;
-    label_.clear();
+  // Target t's slot, its colour texture registered when it is not the one registered:
+  // another name, another size, or the same name now naming another texture (no
+  // label). Slots of textures that are gone (removed targets) are freed then too.
+  // Device buffers grow here, never per frame. Nothing is kept of a registration that
+  // fails a check, so the next frame tries again.
+  Slot& bind_texture(render::FrameRenderer::TargetId t, GLuint tex, int w, int h) {
+    Slot& s = slots_[t];
+    if (s.res && tex == s.tex && w == s.w && h == s.h && texture_has_label(tex, s.label)) return s;
+    unregister_quietly(s.res);
+    s.res = nullptr;
+    s.tex = 0;
+    s.w = s.h = 0;
+    s.label.clear();
+    for (auto i = slots_.begin(); i != slots_.end();) {
+      if (i->first == t || texture_has_label(i->second.tex, i->second.label)) {
+        ++i;
+      } else {
+        free_slot(i->second);
+        i = slots_.erase(i);
+      }
+    }
     if (tex == 0 || glIsTexture(tex) != GL_TRUE)
-      throw Error("jpeg encoder \"nvjpeg\": FrameRenderer::color_texture() = " + std::to_string(tex) +
-                  " is not a GL texture");
+      throw Error("jpeg encoder \"nvjpeg\": FrameRenderer::color_texture(" + std::to_string(t) + ") = " +
+                  std::to_string(tex) + " is not a GL texture");
+    if (!s.state) PALPSIM_NVJPEG_CHECK(nvjpegEncoderStateCreate(handle_, &s.state, stream_));
+    if (!s.params) {
+      PALPSIM_NVJPEG_CHECK(nvjpegEncoderParamsCreate(handle_, &s.params, stream_));
+      // 4:2:0 chroma and baseline Huffman tables, as the CPU encoder (libjpeg-turbo)
+      PALPSIM_NVJPEG_CHECK(nvjpegEncoderParamsSetSamplingFactors(s.params, NVJPEG_CSS_420, stream_));
+      PALPSIM_NVJPEG_CHECK(nvjpegEncoderParamsSetOptimizedHuffman(s.params, 0, stream_));
+      s.quality = -1;
+    }
     cudaGraphicsResource_t res = nullptr;
     const cudaError_t e = cudaGraphicsGLRegisterImage(&res, tex, GL_TEXTURE_2D, cudaGraphicsRegisterFlagsReadOnly);
     if (e != cudaSuccess) {
@@ -310,45 +370,37 @@ class NvjpegFrameEncoder final : public render::FrameEncoder {
       }
       // device buffers for the frame, grown only
       const std::size_t pixels = std::size_t(w) * std::size_t(h);
-      if (pixels > pixels_cap_) {
-        PALPSIM_CUDA_CHECK(cudaFree(d_rgba_));
-        PALPSIM_CUDA_CHECK(cudaFree(d_rgb_));
-        d_rgba_ = d_rgb_ = nullptr;
-        pixels_cap_ = 0;
-        PALPSIM_CUDA_CHECK(cudaMalloc(&d_rgba_, pixels * 4));
-        PALPSIM_CUDA_CHECK(cudaMalloc(&d_rgb_, pixels * 3));
-        pixels_cap_ = pixels;
+      if (pixels > s.pixels_cap) {
+        PALPSIM_CUDA_CHECK(cudaFree(s.d_rgba));
+        PALPSIM_CUDA_CHECK(cudaFree(s.d_rgb));
+        s.d_rgba = s.d_rgb = nullptr;
+        s.pixels_cap = 0;
+        PALPSIM_CUDA_CHECK(cudaMalloc(&s.d_rgba, pixels * 4));
+        PALPSIM_CUDA_CHECK(cudaMalloc(&s.d_rgb, pixels * 3));
+        s.pixels_cap = pixels;
       }
       // the pinned bitstream buffer, as large as nvJPEG says a frame of this size may need
       std::size_t most = 0;
-      PALPSIM_NVJPEG_CHECK(nvjpegEncodeGetBufferSize(handle_, params_, w, h, &most));
+      PALPSIM_NVJPEG_CHECK(nvjpegEncodeGetBufferSize(handle_, s.params, w, h, &most));
       if (most > jpeg_cap_) grow_host(most);
     } catch (...) {
       unregister_quietly(res);
       throw;
     }
     // committed: this texture, tagged so that a reused name is noticed
-    res_ = res;
-    tex_ = tex;
-    w_ = w;
-    h_ = h;
-    label_ = next_label("nvjpeg colour");
-    tag_texture(tex, label_);
+    s.res = res;
+    s.tex = tex;
+    s.w = w;
+    s.h = h;
+    s.label = next_label("nvjpeg colour");
+    tag_texture(tex, s.label);
+    return s;
   }
 
   cudaStream_t stream_ = nullptr;
   nvjpegHandle_t handle_ = nullptr;
-  nvjpegEncoderState_t state_ = nullptr;
-  nvjpegEncoderParams_t params_ = nullptr;
-  int quality_ = -1;                      // quality set in params_
-  cudaGraphicsResource_t res_ = nullptr;  // the registered colour texture
-  GLuint tex_ = 0;
-  int w_ = 0, h_ = 0;
-  std::string label_;
-  std::uint8_t* d_rgba_ = nullptr;        // the frame's texels, rows of w*4 bytes
-  std::uint8_t* d_rgb_ = nullptr;         // the frame as interleaved RGB, rows of w*3 bytes
-  std::size_t pixels_cap_ = 0;            // pixels both device buffers hold
-  std::uint8_t* h_jpeg_ = nullptr;        // pinned bitstream
+  std::map<render::FrameRenderer::TargetId, Slot> slots_;
+  std::uint8_t* h_jpeg_ = nullptr;        // pinned bitstream, shared by the slots
   std::size_t jpeg_cap_ = 0;
 };
 
@@ -372,51 +424,75 @@ class CudaGlOverlayWriter final : public render::OverlayWriter {
 
   const char* name() const override { return "cuda-gl"; }
 
-  void write(render::FrameRenderer& r, render::FrameRenderer::OverlayId id, const render::OverlaySource& src) override {
-    const render::Voi& voi = src.voi;
-    // undeformed: the overlay shows nothing
-    if (voi.count() == 0) {
-      r.clear_overlay(id);
-      return;
+  // Checks every write first, then maps all the textures that take a device copy in
+  // one call, copies, unmaps and waits once: one hand-over between GL and CUDA per batch.
+  void write_batch(render::FrameRenderer& r, const std::vector<render::OverlayWrite>& writes) override {
+    struct Copy {
+      render::FrameRenderer::OverlayId id;
+      cudaGraphicsResource_t res;
+      const render::OverlaySource* src;
+    };
+    std::vector<Copy> copies;
+    for (std::size_t n = 0; n < writes.size(); ++n) {
+      const render::FrameRenderer::OverlayId id = writes[n].id;
+      const render::OverlaySource& src = writes[n].src;
+      // a later write of the same overlay wins
+      bool later = false;
+      for (std::size_t m = n + 1; m < writes.size(); ++m) later = later || writes[m].id == id;
+      if (later) continue;
+      const render::Voi& voi = src.voi;
+      // undeformed: the overlay shows nothing
+      if (voi.count() == 0) {
+        r.clear_overlay(id);
+        continue;
+      }
+      // Fallback: J only in host memory (the deformation ran on the cpu backend, or its
+      // device copy failed): the plain sub-box upload, as the "upload" writer does.
+      if (!src.device_j) {
+        if (!src.host_j)
+          throw Error("overlay writer \"cuda-gl\": J on a VOI of " + std::to_string(voi.count()) +
+                      " voxels has neither a device nor a host copy");
+        r.upload_overlay(id, voi, src.host_j);
+        continue;
+      }
+      const std::size_t bytes = std::size_t(voi.count()) * sizeof(float);
+      if (src.device_j->size() < bytes || !src.device_j->data())
+        throw Error("overlay writer \"cuda-gl\": the device copy of J holds " + std::to_string(src.device_j->size()) +
+                    " bytes, the VOI needs " + std::to_string(bytes));
+      const Entry& e = registration(r.overlay_texture(id));
+      if (std::size_t(voi.size.x) > e.extent.width || std::size_t(voi.size.y) > e.extent.height ||
+          std::size_t(voi.size.z) > e.extent.depth)
+        throw Error("overlay writer \"cuda-gl\": a VOI of " + std::to_string(voi.size.x) + "x" +
+                    std::to_string(voi.size.y) + "x" + std::to_string(voi.size.z) + " exceeds the overlay texture (" +
+                    std::to_string(e.extent.width) + "x" + std::to_string(e.extent.height) + "x" +
+                    std::to_string(e.extent.depth) + ")");
+      copies.push_back({id, e.res, &src});
     }
-    // Fallback: J only in host memory (the deformation ran on the cpu backend, or its
-    // device copy failed): the plain sub-box upload, as the "upload" writer does.
-    if (!src.device_j) {
-      if (!src.host_j)
-        throw Error("overlay writer \"cuda-gl\": J on a VOI of " + std::to_string(voi.count()) +
-                    " voxels has neither a device nor a host copy");
-      r.upload_overlay(id, voi, src.host_j);
-      return;
-    }
-    const std::size_t bytes = std::size_t(voi.count()) * sizeof(float);
-    if (src.device_j->size() < bytes || !src.device_j->data())
-      throw Error("overlay writer \"cuda-gl\": the device copy of J holds " + std::to_string(src.device_j->size()) +
-                  " bytes, the VOI needs " + std::to_string(bytes));
-    const Entry& e = registration(r.overlay_texture(id));
-    if (std::size_t(voi.size.x) > e.extent.width || std::size_t(voi.size.y) > e.extent.height ||
-        std::size_t(voi.size.z) > e.extent.depth)
-      throw Error("overlay writer \"cuda-gl\": a VOI of " + std::to_string(voi.size.x) + "x" +
-                  std::to_string(voi.size.y) + "x" + std::to_string(voi.size.z) + " exceeds the overlay texture (" +
-                  std::to_string(e.extent.width) + "x" + std::to_string(e.extent.height) + "x" +
-                  std::to_string(e.extent.depth) + ")");
+    if (copies.empty()) return;
 
-    // J (i fastest, rows of voi.size.x floats) into texels (0..size) of the mapped texture
+    // J (i fastest, rows of voi.size.x floats) into texels (0..size) of each mapped texture
     {
-      Mapping m(e.res, stream_);
-      cudaMemcpy3DParms p{};
-      p.srcPtr = make_cudaPitchedPtr(const_cast<void*>(src.device_j->data()), std::size_t(voi.size.x) * sizeof(float),
-                                     std::size_t(voi.size.x), std::size_t(voi.size.y));
-      p.dstArray = m.array();
-      p.dstPos = make_cudaPos(0, 0, 0);
-      p.extent = make_cudaExtent(std::size_t(voi.size.x), std::size_t(voi.size.y), std::size_t(voi.size.z));
-      p.kind = cudaMemcpyDeviceToDevice;
-      PALPSIM_CUDA_CHECK(cudaMemcpy3DAsync(&p, stream_));
+      std::vector<cudaGraphicsResource_t> res;
+      for (const Copy& c : copies) res.push_back(c.res);
+      Mapping m(res, stream_);
+      for (std::size_t i = 0; i < copies.size(); ++i) {
+        const render::OverlaySource& src = *copies[i].src;
+        const render::Voi& voi = src.voi;
+        cudaMemcpy3DParms p{};
+        p.srcPtr = make_cudaPitchedPtr(const_cast<void*>(src.device_j->data()), std::size_t(voi.size.x) * sizeof(float),
+                                       std::size_t(voi.size.x), std::size_t(voi.size.y));
+        p.dstArray = m.array(i);
+        p.dstPos = make_cudaPos(0, 0, 0);
+        p.extent = make_cudaExtent(std::size_t(voi.size.x), std::size_t(voi.size.y), std::size_t(voi.size.z));
+        p.kind = cudaMemcpyDeviceToDevice;
+        PALPSIM_CUDA_CHECK(cudaMemcpy3DAsync(&p, stream_));
+      }
       m.unmap();
     }
-    // Unmapping orders the copy before later GL work; waiting also frees src for the
-    // deformation worker to reuse as soon as this returns, and makes the time honest.
+    // Unmapping orders the copies before later GL work; waiting also frees the sources
+    // for the deformation worker to reuse as soon as this returns, and makes the time honest.
     PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
-    r.set_overlay_box(id, voi);
+    for (const Copy& c : copies) r.set_overlay_box(c.id, c.src->voi);
   }
 
  private:

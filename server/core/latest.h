@@ -34,6 +34,10 @@ class Latest {
     return true;
   }
 
+  /// True when a value was published since the last take() (reader only): a newer
+  /// value waits, to be taken when the reader needs it.
+  bool fresh() const { return (middle_.load(std::memory_order_acquire) & kFresh) != 0; }
+
   /// The reader's buffer: the value of the last successful take().
   T& front() { return buf_[front_]; }
   const T& front() const { return buf_[front_]; }

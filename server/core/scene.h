@@ -10,9 +10,9 @@ namespace palpsim {
 struct PrepSettings {
   double spacing_mm = 0;            // 0 = smallest input spacing clamped to [0.5, 2] mm
   double air_threshold = -400;      // HU (or image units when air_threshold_set)
-  double bone_threshold = 200;      // HU (or image units when bone_threshold_set)
+  double bone_threshold = 200;      // HU (or image units when bone_threshold_set); the bone mask's only when set
   bool air_threshold_set = false;   // the scene set it explicitly
-  bool bone_threshold_set = false;  // the scene set it explicitly
+  bool bone_threshold_set = false;  // the scene set it explicitly; false: the bone mask's thresholds are automatic
   double bone_min_volume_ml = 0.5;  // smaller bone components are removed
   double bone_closing_mm = 3.0;     // closing radius before hole filling
   bool bone_fill_holes = true;      // fill cavities enclosed by bone
@@ -88,6 +88,7 @@ struct RenderSettings {
   std::string overlay_writer = "auto";  // "auto", "upload" or "cuda-gl"
   std::string record_dir;               // resolved; "" = render only watched sessions
   double ray_step_vox = 1;              // the 3D view's ray step (voxel)
+  int max_batch = 4;                    // frames drawn, then encoded together (render thread)
 };
 
 /// A whole validated scene.

@@ -59,6 +59,7 @@ bool same_marks(const render::FrameMarks& a, const render::FrameMarks& b) {
 struct RenderWorker::View {
   std::uint64_t session = 0;               // 0: not rendered
   render::FrameRenderer::OverlayId overlay = -1;
+  render::FrameRenderer::TargetId target = -1;  // its framebuffer
   std::uint64_t deform_step = 0;           // J in the overlay: its step and pose
   std::uint64_t deform_pose_seq = 0;
   bool deformed = false;
@@ -139,20 +140,26 @@ void RenderWorker::run() {
         if (!setup_.error().empty()) break;
       }
     }
-    // one pass over the watched sessions: at most one frame each
-    bool worked = false, any = false;
+    // one pass over the watched sessions: each one's news; those due for a frame are
+    // drawn render.max_batch at a time (at most one frame each)
+    bool any = false;
     double nap = kUnwatchedSleepS;
+    due_.clear();
     const int used = sh_.slots_used.load(std::memory_order_acquire);
     for (int i = 0; i < used && !stop_.load(std::memory_order_relaxed); ++i) {
       const double now = now_s();
-      worked = serve(i, now) || worked;
+      if (look(i, now)) due_.push_back(i);
       const View& v = views_[i];
       if (v.session == 0) continue;
       any = true;
       // a changed session waits for its frame time at most; an unchanged one for news
       nap = std::min(nap, v.dirty ? std::max(v.next_frame_s - now, 0.0) : kIdleSleepS);
     }
-    if (!worked && nap > 0) std::this_thread::sleep_for(std::chrono::duration<double>(std::min(nap, any ? kIdleSleepS : kUnwatchedSleepS)));
+    const int batch = std::max(1, settings_.max_batch);
+    for (std::size_t b = 0; b < due_.size() && !stop_.load(std::memory_order_relaxed); b += std::size_t(batch))
+      draw_batch(due_.data() + b, int(std::min(due_.size() - b, std::size_t(batch))));
+    if (due_.empty() && nap > 0)
+      std::this_thread::sleep_for(std::chrono::duration<double>(std::min(nap, any ? kIdleSleepS : kUnwatchedSleepS)));
   }
   // every GL object is destroyed on this thread, the context last
   for (View& v : views_) release_view(v);
@@ -219,9 +226,10 @@ void RenderWorker::set_up_world() {
 }
 
 void RenderWorker::release_view(View& v) {
-  if (v.overlay >= 0 && renderer_) {
+  if ((v.overlay >= 0 || v.target > 0) && renderer_) {
     try {
-      renderer_->remove_overlay(v.overlay);
+      if (v.overlay >= 0) renderer_->remove_overlay(v.overlay);
+      if (v.target > 0) renderer_->remove_target(v.target);
     } catch (const std::exception&) {
       // a failing GL delete leaves nothing to undo
     }
@@ -231,7 +239,7 @@ void RenderWorker::release_view(View& v) {
   v = View{};
 }
 
-bool RenderWorker::serve(int index, double now) {
+bool RenderWorker::look(int index, double now) {
   View& v = views_[index];
   StreamSlot& ss = st_.slots[index];
   const std::uint64_t id = renderer_ ? ss.frames_for.load(std::memory_order_acquire) : 0;
@@ -239,7 +247,6 @@ bool RenderWorker::serve(int index, double now) {
   if (id != v.session) {
     release_view(v);
     v.session = id;
-    if (id == 0) return false;
   }
   if (id == 0) return false;
   try {
@@ -248,23 +255,9 @@ bool RenderWorker::serve(int index, double now) {
       std::lock_guard<std::mutex> lock(st_.info_mu);
       st_.info.render_bytes = renderer_->bytes();
     }
-    // the newest J into the overlay
-    if (ss.j_render.take()) {
-      const JSnapshot& j = ss.j_render.front();
-      if (j.session_id == id) {
-        const auto t0 = std::chrono::steady_clock::now();
-        render::OverlaySource src;
-        src.voi = j.deformed ? j.voi : Voi{};
-        src.host_j = j.host_valid ? j.host_j.data() : nullptr;
-        src.device_j = j.device_valid ? j.device_j.get() : nullptr;
-        writer_->write(*renderer_, v.overlay, src);
-        v.pending_j_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-        v.deform_step = j.step;
-        v.deform_pose_seq = j.pose_seq;
-        v.deformed = j.deformed;
-        v.dirty = true;
-      }
-    }
+    if (v.target < 0) v.target = renderer_->add_target();
+    // a newer J waits (it is taken when the frame is drawn: only the newest is written)
+    if (ss.j_render.fresh()) v.dirty = true;
     // the session's view, as its viewers last set it (the scene's defaults before)
     {
       std::lock_guard<std::mutex> lock(ss.mu);
@@ -275,71 +268,142 @@ bool RenderWorker::serve(int index, double now) {
         v.dirty = true;
       }
     }
-    // the newest pose: the tip and proxy markers, the camera and slice centre
-    Contact c;
-    sh_.slots[index].latest.read(c);
-    if (c.session_id == id && c.seq != 0) {
-      render::FrameMarks m;
-      m.has_tip = true;
-      m.tip_mm = c.tip_mm;
-      m.proxy_mm = c.proxy_mm;
-      m.contact = c.contact;
-      if (!same_marks(m, v.marks)) v.dirty = true;
-      v.marks = m;
-      v.pose_seq = c.seq;
-      v.pose_server_time_s = c.server_time_s;
-    }
+    if (read_pose(index)) v.dirty = true;
     if (!v.dirty || now < v.next_frame_s) return false;
-
-    // render, encode and hand the frame over (newest wins)
-    EncodedFrame& f = ss.frames.back();
-    f.times = render::FrameTimes{};
-    f.times.j_to_texture_ms = v.pending_j_ms;
-    const auto t0 = std::chrono::steady_clock::now();
-    renderer_->render(v.overlay, v.view, v.marks, f.times);
-    encoder_->encode(*renderer_, v.view.jpeg_quality, f.jpeg, f.times);
-    f.times.total_ms =
-        v.pending_j_ms + std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-    f.session_id = id;
-    f.frame_seq = ++v.frame_seq;
-    f.pose_seq = v.pose_seq;
-    f.pose_server_time_s = v.pose_server_time_s;
-    f.deform_step = v.deform_step;
-    f.deform_pose_seq = v.deform_pose_seq;
-    f.deformed = v.deformed;
-    f.marks = v.marks;
-    f.view = v.view;
-    f.encoder = encoder_->name();
-    const bool replaced = ss.frames.publish();
-    ss.frame_bytes.store(held_bytes(ss.frames), std::memory_order_relaxed);
-    v.pending_j_ms = 0;
-    v.dirty = false;
     // render.max_fps on the frames' own cadence, so that waiting for other sessions'
     // frames does not stretch the interval; more than an interval behind, from now
     const double interval = 1.0 / settings_.max_fps;
     if (now - v.next_frame_s > interval) v.next_frame_s = now;
     v.next_frame_s += interval;
-    st_.frames_rendered.fetch_add(1, std::memory_order_relaxed);
-    if (replaced) st_.frames_replaced.fetch_add(1, std::memory_order_relaxed);
-    std::lock_guard<std::mutex> lock(ss.mu);
-    SessionStreamReport& r = ss.report_of(id);
-    ++r.frames_rendered;
-    if (replaced) ++r.frames_replaced;
-    r.last = f.times;
-    add_times(r.sum, f.times);
-    std::lock_guard<std::mutex> info_lock(st_.info_mu);
-    add_times(st_.frame_time_sum, f.times);
+    v.dirty = false;
     return true;
   } catch (const std::exception& e) {
-    // a failed frame poisons nothing: the session's next change is drawn again
-    st_.render_failures.fetch_add(1, std::memory_order_relaxed);
-    v.dirty = false;
-    v.next_frame_s = now + 1.0 / settings_.max_fps;
-    const std::string msg = "session " + hex_id(id) + ": frame failed: " + e.what();
-    std::lock_guard<std::mutex> lock(st_.info_mu);
-    if (st_.info.last_error != msg) spdlog::warn("{} (counted in stats)", msg);
-    st_.info.last_error = msg;
+    fail_frame(index, now, e.what());
     return false;
+  }
+}
+
+bool RenderWorker::read_pose(int index) {
+  // the newest pose: the tip and proxy markers, the camera and slice centre
+  View& v = views_[index];
+  Contact c;
+  sh_.slots[index].latest.read(c);
+  if (c.session_id != v.session || c.seq == 0) return false;
+  render::FrameMarks m;
+  m.has_tip = true;
+  m.tip_mm = c.tip_mm;
+  m.proxy_mm = c.proxy_mm;
+  m.contact = c.contact;
+  const bool changed = !same_marks(m, v.marks);
+  v.marks = m;
+  v.pose_seq = c.seq;
+  v.pose_server_time_s = c.server_time_s;
+  return changed;
+}
+
+void RenderWorker::fail_frame(int index, double now, const std::string& what) {
+  // a failed frame poisons nothing: the session's next change is drawn again
+  View& v = views_[index];
+  st_.render_failures.fetch_add(1, std::memory_order_relaxed);
+  v.dirty = false;
+  v.next_frame_s = now + 1.0 / settings_.max_fps;
+  v.pending_j_ms = 0;
+  const std::string msg = "session " + hex_id(v.session) + ": frame failed: " + what;
+  std::lock_guard<std::mutex> lock(st_.info_mu);
+  if (st_.info.last_error != msg) spdlog::warn("{} (counted in stats)", msg);
+  st_.info.last_error = msg;
+}
+
+void RenderWorker::draw_batch(const int* index, int n) {
+  try {
+    // 1. the newest J of each session into its overlay, in one write
+    writes_.clear();
+    written_.clear();
+    for (int b = 0; b < n; ++b) {
+      View& v = views_[index[b]];
+      StreamSlot& ss = st_.slots[index[b]];
+      if (!ss.j_render.take()) continue;
+      const JSnapshot& j = ss.j_render.front();
+      if (j.session_id != v.session) continue;
+      render::OverlayWrite w;
+      w.id = v.overlay;
+      w.src.voi = j.deformed ? j.voi : Voi{};
+      w.src.host_j = j.host_valid ? j.host_j.data() : nullptr;
+      w.src.device_j = j.device_valid ? j.device_j.get() : nullptr;
+      writes_.push_back(w);
+      written_.push_back(index[b]);
+      v.deform_step = j.step;
+      v.deform_pose_seq = j.pose_seq;
+      v.deformed = j.deformed;
+    }
+    if (!writes_.empty()) {
+      const auto tj = std::chrono::steady_clock::now();
+      writer_->write_batch(*renderer_, writes_);
+      const double share =
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - tj).count() / double(writes_.size());
+      for (int i : written_) views_[i].pending_j_ms += share;
+    }
+    // 2. every frame drawn into its session's framebuffer, nothing waited for; each
+    // with the pose newest now (the pass looked at it before the batches ahead of this one)
+    const auto t1 = std::chrono::steady_clock::now();
+    for (int b = 0; b < n; ++b) {
+      read_pose(index[b]);
+      const View& v = views_[index[b]];
+      renderer_->draw(v.overlay, v.target, v.view, v.marks);
+    }
+    // 3. all encoded together, each into its slot's frame buffer
+    jobs_.clear();
+    for (int b = 0; b < n; ++b) {
+      const View& v = views_[index[b]];
+      EncodedFrame& f = st_.slots[index[b]].frames.back();
+      f.times = render::FrameTimes{};
+      jobs_.push_back(render::EncodeJob{v.target, v.view.jpeg_quality, &f.jpeg, &f.times});
+    }
+    encoder_->encode_batch(*renderer_, jobs_);
+    // each frame's total: its J and its share of the batch's drawing and encoding
+    const double batch_ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t1).count() / double(n);
+
+    // 4. the frames handed over (newest wins)
+    for (int b = 0; b < n; ++b) {
+      View& v = views_[index[b]];
+      StreamSlot& ss = st_.slots[index[b]];
+      EncodedFrame& f = ss.frames.back();
+      renderer_->draw_times(v.target, f.times);
+      f.times.j_to_texture_ms = v.pending_j_ms;
+      f.times.total_ms = v.pending_j_ms + batch_ms;
+      f.session_id = v.session;
+      f.frame_seq = ++v.frame_seq;
+      f.pose_seq = v.pose_seq;
+      f.pose_server_time_s = v.pose_server_time_s;
+      f.deform_step = v.deform_step;
+      f.deform_pose_seq = v.deform_pose_seq;
+      f.deformed = v.deformed;
+      f.marks = v.marks;
+      f.view = v.view;
+      f.encoder = encoder_->name();
+      const bool replaced = ss.frames.publish();
+      ss.frame_bytes.store(held_bytes(ss.frames), std::memory_order_relaxed);
+      v.pending_j_ms = 0;
+      st_.frames_rendered.fetch_add(1, std::memory_order_relaxed);
+      if (replaced) st_.frames_replaced.fetch_add(1, std::memory_order_relaxed);
+      std::lock_guard<std::mutex> lock(ss.mu);
+      SessionStreamReport& r = ss.report_of(v.session);
+      ++r.frames_rendered;
+      if (replaced) ++r.frames_replaced;
+      r.last = f.times;
+      add_times(r.sum, f.times);
+      std::lock_guard<std::mutex> info_lock(st_.info_mu);
+      add_times(st_.frame_time_sum, f.times);
+    }
+  } catch (const std::exception& e) {
+    // the whole batch failed: each of its sessions counts one failed frame
+    const double now = now_s();
+    for (int b = 0; b < n; ++b) fail_frame(index[b], now, e.what());
+  }
+  {
+    std::lock_guard<std::mutex> lock(st_.info_mu);
+    st_.info.render_bytes = renderer_->bytes();
   }
 }
 

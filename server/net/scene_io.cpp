@@ -224,6 +224,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.render.show_proxy = r.show_proxy();
   out.render.max_fps = r.max_fps();
   out.render.ray_step_vox = r.ray_step_vox();
+  out.render.max_batch = r.max_batch();
   out.render.jpeg_encoder = r.jpeg_encoder();
   if (out.render.jpeg_encoder != "auto" && out.render.jpeg_encoder != "cpu" && out.render.jpeg_encoder != "nvjpeg")
     throw Error(origin + ": render.jpeg_encoder = \"" + out.render.jpeg_encoder +

@@ -61,11 +61,15 @@ class TjCompressor {
 class TurboJpegEncoder final : public FrameEncoder {
  public:
   const char* name() const override { return "turbojpeg"; }
-  void encode(FrameRenderer& r, int quality, std::vector<std::uint8_t>& out, FrameTimes& times) override {
-    r.read_rgb(rgb_, times);
-    const auto t0 = Clock::now();
-    tj_.encode(rgb_.data(), r.width(), r.height(), quality, out);
-    times.encode_ms += std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+  // one frame after another: the CPU does the work, nothing is gained by batching
+  void encode_batch(FrameRenderer& r, const std::vector<EncodeJob>& jobs) override {
+    for (const EncodeJob& j : jobs) {
+      if (!j.out || !j.times) throw Error("jpeg encoder \"turbojpeg\": a job without output or times");
+      r.read_rgb(j.target, rgb_, *j.times);
+      const auto t0 = Clock::now();
+      tj_.encode(rgb_.data(), r.width(j.target), r.height(j.target), j.quality, *j.out);
+      j.times->encode_ms += std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+    }
   }
 
  private:

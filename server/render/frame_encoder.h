@@ -13,15 +13,31 @@
 
 namespace palpsim::render {
 
-/// Encodes the renderer's last frame as JPEG.
+/// One frame to encode: the renderer's target holding it, the quality and where the
+/// JPEG and the readback and encode times go.
+struct EncodeJob {
+  FrameRenderer::TargetId target = 0;
+  int quality = 90;                            // 1..100
+  std::vector<std::uint8_t>* out = nullptr;    // the JPEG (replaced)
+  FrameTimes* times = nullptr;                 // readback_ms and encode_ms are added
+};
+
+/// Encodes rendered frames as JPEG.
 class FrameEncoder {
  public:
   virtual ~FrameEncoder() = default;
   /// "turbojpeg" or "nvjpeg".
   virtual const char* name() const = 0;
-  /// Encodes the last frame of `r` at `quality` (1..100) into `out` (replaced); adds
-  /// the readback and encode times to `times`. Throws palpsim::Error on failure.
-  virtual void encode(FrameRenderer& r, int quality, std::vector<std::uint8_t>& out, FrameTimes& times) = 0;
+  /// Encodes the frames of several targets of `r` in one go (nvjpeg: one mapping of all
+  /// their textures into CUDA, then every encode queued before the first wait); each
+  /// job's times get an equal share of the batch's readback and encode time. Throws
+  /// palpsim::Error on failure; then no job's output is to be trusted.
+  virtual void encode_batch(FrameRenderer& r, const std::vector<EncodeJob>& jobs) = 0;
+  /// Encodes target 0's last frame at `quality` (1..100) into `out` (replaced); adds
+  /// the readback and encode times to `times`.
+  void encode(FrameRenderer& r, int quality, std::vector<std::uint8_t>& out, FrameTimes& times) {
+    encode_batch(r, {EncodeJob{0, quality, &out, &times}});
+  }
 };
 
 /// Makes an encoder by name: "cpu" (libjpeg-turbo), "nvjpeg" (this build has CUDA and

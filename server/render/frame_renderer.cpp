@@ -245,43 +245,71 @@ struct FrameRenderer::Impl {
     bool active = false;
   };
 
+  // one framebuffer: its colour texture, size and the timestamps of its latest frame
+  // (before the ray cast, after it, the slices, the composite). On a GPU the stages are
+  // timed by GL timestamps, so that no stage waits for the one before; a software
+  // rasteriser (llvmpipe) draws at the flush, after its timestamps, so there each stage
+  // is finished and timed on the wall clock instead.
+  struct Target {
+    GLuint fbo = 0, color_tex = 0;
+    int width = 0, height = 0;
+    GLuint stamps[4] = {0, 0, 0, 0};
+    Clock::time_point wall[4];
+    bool timed = false;  // a frame was drawn whose times were not read yet
+  };
+
   PatientPtr patient;
-  GLuint ct_tex = 0, body_tex = 0, block_tex = 0, vao = 0, fbo = 0, color_tex = 0;
+  GLuint ct_tex = 0, body_tex = 0, block_tex = 0, vao = 0;
   Vec3i block_count{0, 0, 0};    // blocks of kBlockVox voxels per axis
   GLuint tf_tex[3] = {0, 0, 0};  // per preset (Preset's order)
   Program ray[2], slice[2];      // without and with the overlay (OVERLAY 0 and 1)
   Program composite, triad;
-  int width = 0, height = 0;
+  std::map<int, Target> targets;  // 0: the default
+  int next_target = 1;
   Vec3 box_lo, box_hi;           // the body's bounding box (voxel index, voxel edges)
   Vec3 body_center_mm;           // its centre (mm)
   std::map<int, Overlay> overlays;
   int next_id = 1;
   std::size_t ct_bytes = 0, tf_bytes = 0;
   RenderQuality quality;
-  // Stage times: GL timestamps (before the ray cast, after it, the slices, the composite)
-  // on a GPU, so that no stage waits for the one before; a software rasteriser (llvmpipe)
-  // draws at the flush, after its timestamps, so there each stage is finished and timed
-  // on the wall clock instead.
-  GLuint stamps[4] = {0, 0, 0, 0};
   bool software = false;
-  Clock::time_point wall[4];
-  void mark(int n) {
+  void mark(Target& t, int n) {
     if (software) {
       glFinish();
-      wall[n] = Clock::now();
+      t.wall[n] = Clock::now();
     } else {
-      glQueryCounter(stamps[n], GL_TIMESTAMP);
+      glQueryCounter(t.stamps[n], GL_TIMESTAMP);
     }
   }
-  // the ms from mark a to mark b (after the last mark)
-  void stage_ms(double out[3]) {
+  // the ms from mark a to mark b of t's latest frame (waits for its last mark on a GPU)
+  void stage_ms(Target& t, double out[3]) {
     if (software) {
-      for (int n = 0; n < 3; ++n) out[n] = std::chrono::duration<double, std::milli>(wall[n + 1] - wall[n]).count();
+      for (int n = 0; n < 3; ++n) out[n] = std::chrono::duration<double, std::milli>(t.wall[n + 1] - t.wall[n]).count();
       return;
     }
     GLuint64 ns[4] = {0, 0, 0, 0};
-    for (int n = 0; n < 4; ++n) glGetQueryObjectui64v(stamps[n], GL_QUERY_RESULT, &ns[n]);
+    for (int n = 0; n < 4; ++n) glGetQueryObjectui64v(t.stamps[n], GL_QUERY_RESULT, &ns[n]);
     for (int n = 0; n < 3; ++n) out[n] = double(ns[n + 1] - ns[n]) * 1e-6;
+  }
+  Target& target(TargetId id) {
+    auto it = targets.find(id);
+    if (it == targets.end()) throw Error("frame renderer: no target " + std::to_string(id));
+    return it->second;
+  }
+  const Target& target(TargetId id) const { return const_cast<Impl*>(this)->target(id); }
+  // a framebuffer and its timestamp queries (its texture comes with the first frame)
+  Target make_target() {
+    Target t;
+    glCreateFramebuffers(1, &t.fbo);
+    glCreateQueries(GL_TIMESTAMP, 4, t.stamps);
+    check_gl("a framebuffer's set-up");
+    return t;
+  }
+  static void free_target(Target& t) {
+    glDeleteTextures(1, &t.color_tex);
+    glDeleteFramebuffers(1, &t.fbo);
+    glDeleteQueries(4, t.stamps);
+    t = Target{};
   }
 
   Overlay& overlay(OverlayId id) {
@@ -301,17 +329,15 @@ struct FrameRenderer::Impl {
     glDeleteTextures(1, &body_tex);
     glDeleteTextures(1, &block_tex);
     glDeleteTextures(3, tf_tex);
-    glDeleteTextures(1, &color_tex);
-    glDeleteFramebuffers(1, &fbo);
+    for (auto& [id, t] : targets) free_target(t);
     glDeleteVertexArrays(1, &vao);
-    glDeleteQueries(4, stamps);
     for (Program* p : {&ray[0], &ray[1], &slice[0], &slice[1], &composite, &triad})
       if (p->id) glDeleteProgram(p->id);
   }
 
   void upload_volumes();
   void build_programs();
-  void resize(int w, int h);
+  void resize(Target& t, int w, int h);
   void check_voi(const Overlay& o, const Voi& voi) const;
   void bind_volume(Program& p, const Overlay& o);
 };
@@ -436,8 +462,8 @@ void FrameRenderer::Impl::build_programs() {
   composite.build(head + shaders::kCompositeFs, "composite");
   triad.build(head + shaders::kTriadFs, "orientation triad");
   glCreateVertexArrays(1, &vao);
-  glCreateFramebuffers(1, &fbo);
   check_gl("the shaders' set-up");
+  targets[0] = make_target();
 }
 
 FrameRenderer::FrameRenderer(PatientPtr patient, const RenderQuality& quality) : impl_(std::make_unique<Impl>()) {
@@ -452,7 +478,6 @@ FrameRenderer::FrameRenderer(PatientPtr patient, const RenderQuality& quality) :
   const std::string renderer = reinterpret_cast<const char*>(glGetString(GL_RENDERER));
   impl_->software = renderer.find("llvmpipe") != std::string::npos || renderer.find("softpipe") != std::string::npos ||
                     renderer.find("swrast") != std::string::npos;
-  glCreateQueries(GL_TIMESTAMP, 4, impl_->stamps);
   // on a throw, ~Impl frees what was made
   impl_->build_programs();
   impl_->upload_volumes();
@@ -545,22 +570,39 @@ unsigned FrameRenderer::overlay_texture(OverlayId id) const { return impl_->over
 
 // --- rendering ----------------------------------------------------------------------
 
-void FrameRenderer::Impl::resize(int w, int h) {
-  if (w == width && h == height && color_tex) return;
+FrameRenderer::TargetId FrameRenderer::add_target() {
+  Impl& m = *impl_;
+  const TargetId id = m.next_target++;
+  m.targets[id] = m.make_target();
+  return id;
+}
+
+void FrameRenderer::remove_target(TargetId t) {
+  if (t == 0) throw Error("frame renderer: target 0 cannot be removed");
+  auto it = impl_->targets.find(t);
+  if (it == impl_->targets.end()) return;
+  Impl::free_target(it->second);
+  impl_->targets.erase(it);
+}
+
+void FrameRenderer::Impl::resize(Target& t, int w, int h) {
+  if (w == t.width && h == t.height && t.color_tex) return;
   // a new texture (immutable storage): interop users see a new name after a resize
-  if (color_tex) glDeleteTextures(1, &color_tex);
-  glCreateTextures(GL_TEXTURE_2D, 1, &color_tex);
-  glTextureStorage2D(color_tex, 1, GL_RGBA8, w, h);
-  glTextureParameteri(color_tex, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
-  glTextureParameteri(color_tex, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
-  glNamedFramebufferTexture(fbo, GL_COLOR_ATTACHMENT0, color_tex, 0);
-  const GLenum status = glCheckNamedFramebufferStatus(fbo, GL_FRAMEBUFFER);
+  if (t.color_tex) glDeleteTextures(1, &t.color_tex);
+  t.color_tex = 0;
+  t.width = t.height = 0;
+  glCreateTextures(GL_TEXTURE_2D, 1, &t.color_tex);
+  glTextureStorage2D(t.color_tex, 1, GL_RGBA8, w, h);
+  glTextureParameteri(t.color_tex, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+  glTextureParameteri(t.color_tex, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+  glNamedFramebufferTexture(t.fbo, GL_COLOR_ATTACHMENT0, t.color_tex, 0);
+  const GLenum status = glCheckNamedFramebufferStatus(t.fbo, GL_FRAMEBUFFER);
   check_gl("the framebuffer's allocation");
   if (status != GL_FRAMEBUFFER_COMPLETE)
     throw Error("frame renderer: the " + std::to_string(w) + " x " + std::to_string(h) +
                 " framebuffer is incomplete (status " + std::to_string(status) + ")");
-  width = w;
-  height = h;
+  t.width = w;
+  t.height = h;
 }
 
 void FrameRenderer::Impl::bind_volume(Program& p, const Overlay& o) {
@@ -576,12 +618,30 @@ void FrameRenderer::Impl::bind_volume(Program& p, const Overlay& o) {
 }
 
 void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMarks& marks, FrameTimes& times) {
+  draw(id, 0, view, marks);
+  draw_times(0, times);
+}
+
+void FrameRenderer::draw_times(TargetId t, FrameTimes& times) {
+  Impl::Target& tg = impl_->target(t);
+  if (!tg.timed) return;
+  double ms[3];
+  impl_->stage_ms(tg, ms);
+  tg.timed = false;
+  times.raycast_ms += ms[0];
+  times.slices_ms += ms[1];
+  times.composite_ms += ms[2];
+}
+
+void FrameRenderer::draw(OverlayId id, TargetId t, const ViewSettings& view, const FrameMarks& marks) {
   Impl& m = *impl_;
   const std::string bad = check_view(view);
   if (!bad.empty()) throw Error("frame renderer: " + bad);
   const Impl::Overlay& ov = m.overlay(id);
   const Grid& g = m.patient->grid;
-  m.resize(view.width, view.height);
+  Impl::Target& tg = m.target(t);
+  tg.timed = false;
+  m.resize(tg, view.width, view.height);
 
   // layout: the 3D view on the left, slices of edge s stacked on the right
   const int W = view.width, H = view.height, s = std::min(H / 3, W), view_w = W - s;
@@ -595,7 +655,7 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
     return Vec3{a.x / g.spacing_mm.x, a.y / g.spacing_mm.y, a.z / g.spacing_mm.z};
   };
 
-  glBindFramebuffer(GL_FRAMEBUFFER, m.fbo);
+  glBindFramebuffer(GL_FRAMEBUFFER, tg.fbo);
   glBindVertexArray(m.vao);
   glDisable(GL_DEPTH_TEST);
   glDisable(GL_BLEND);
@@ -605,7 +665,7 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
   glClear(GL_COLOR_BUFFER_BIT);
 
   // 1. the 3D view: camera on its orbit about the target (view.h), zoom narrows the field
-  m.mark(0);
+  m.mark(tg, 0);
   const double pi = 3.14159265358979323846;
   const double az = view.azimuth_deg * pi / 180, el = view.elevation_deg * pi / 180;
   const Vec3 extent{g.size.x * g.spacing_mm.x, g.size.y * g.spacing_mm.y, g.size.z * g.spacing_mm.z};
@@ -683,7 +743,7 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
       glDrawArrays(GL_TRIANGLES, 0, 3);
       glDisable(GL_SCISSOR_TEST);
     };
-    if (!m.software) glBindImageTexture(0, m.color_tex, 0, GL_FALSE, 0, GL_WRITE_ONLY, GL_RGBA8);
+    if (!m.software) glBindImageTexture(0, tg.color_tex, 0, GL_FALSE, 0, GL_WRITE_ONLY, GL_RGBA8);
     set_up_ray(m.ray[0]);
     cast(m.ray[0], 0, 0, view_w, H);
     int rect[4];
@@ -696,7 +756,7 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
     // the image stores are seen by the passes that blend over them, the readback and CUDA
     glMemoryBarrier(GL_ALL_BARRIER_BITS);
   }
-  m.mark(1);
+  m.mark(tg, 1);
 
   // 2. the slices: axial (k), coronal (j), sagittal (i) through the target, top to bottom
   const SliceAxes axes[3] = {slice_axes(g, 2, {1, 0, 0}, {0, 1, 0}), slice_axes(g, 1, {1, 0, 0}, {0, 0, -1}),
@@ -720,7 +780,7 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
       glDrawArrays(GL_TRIANGLES, 0, 3);
     }
   }
-  m.mark(2);
+  m.mark(tg, 2);
 
   // 3. composite: slice frames, cut lines and marker dots; the orientation triad
   glEnable(GL_BLEND);
@@ -787,19 +847,14 @@ void FrameRenderer::render(OverlayId id, const ViewSettings& view, const FrameMa
     }
   }
   glDisable(GL_BLEND);
-  m.mark(3);
-  // the stages' times (on a GPU this waits once, for the composite: the frame is needed next anyway)
-  double ms[3];
-  m.stage_ms(ms);
-  times.raycast_ms += ms[0];
-  times.slices_ms += ms[1];
-  times.composite_ms += ms[2];
+  m.mark(tg, 3);
+  tg.timed = true;
   check_gl("rendering a frame");
 }
 
-void FrameRenderer::read_rgb(std::vector<std::uint8_t>& rgb, FrameTimes& times) {
+void FrameRenderer::read_rgb(TargetId t, std::vector<std::uint8_t>& rgb, FrameTimes& times) {
   const auto t0 = Clock::now();
-  Impl& m = *impl_;
+  const Impl::Target& m = impl_->target(t);
   if (!m.color_tex) throw Error("frame renderer: read_rgb before the first frame");
   rgb.resize(std::size_t(m.width) * m.height * 3);
   glBindFramebuffer(GL_READ_FRAMEBUFFER, m.fbo);
@@ -811,13 +866,14 @@ void FrameRenderer::read_rgb(std::vector<std::uint8_t>& rgb, FrameTimes& times) 
   times.readback_ms += ms_since(t0);
 }
 
-unsigned FrameRenderer::color_texture() const { return impl_->color_tex; }
-int FrameRenderer::width() const { return impl_->width; }
-int FrameRenderer::height() const { return impl_->height; }
+unsigned FrameRenderer::color_texture(TargetId t) const { return impl_->target(t).color_tex; }
+int FrameRenderer::width(TargetId t) const { return impl_->target(t).width; }
+int FrameRenderer::height(TargetId t) const { return impl_->target(t).height; }
 
 std::size_t FrameRenderer::bytes() const {
   const Impl& m = *impl_;
-  std::size_t b = m.ct_bytes + m.tf_bytes + std::size_t(m.width) * m.height * 4;
+  std::size_t b = m.ct_bytes + m.tf_bytes;
+  for (const auto& [id, t] : m.targets) b += std::size_t(t.width) * t.height * 4;
   for (const auto& [id, o] : m.overlays) b += std::size_t(o.max_voi.x) * o.max_voi.y * o.max_voi.z * sizeof(float);
   return b;
 }

@@ -53,11 +53,16 @@ struct RenderQuality {
 
 /// Renders frames of one patient. Owns the CT's 3D texture (shared by all sessions),
 /// one overlay per session (a 3D texture holding J on the session's VOI) and the
-/// framebuffer the frames are drawn into.
+/// framebuffers (targets) the frames are drawn into: target 0 always exists; more can
+/// be added so that several frames are drawn one after another and encoded together
+/// (the render thread's batches: each switch between GL and CUDA costs a GPU time slice
+/// while the deformation runs, so fewer switches mean more frames).
 class FrameRenderer {
  public:
   /// A session's overlay handle.
   using OverlayId = int;
+  /// A framebuffer's handle; 0 is the default one.
+  using TargetId = int;
 
   /// Uploads the patient's intensity (voxels outside the body mask as air) into a 3D
   /// texture and builds the shaders and transfer functions. Throws palpsim::Error
@@ -84,22 +89,33 @@ class FrameRenderer {
   /// (i, j, k) of the VOI at texel (i, j, k)), for CUDA-GL interop.
   unsigned overlay_texture(OverlayId id) const;
 
+  /// A new framebuffer, sized at its first frame.
+  TargetId add_target();
+  /// Frees a framebuffer (not target 0).
+  void remove_target(TargetId t);
+
   /// Renders one frame of the session whose overlay is `id` at view.width x view.height
-  /// into the renderer's framebuffer; `view` must pass check_view. Adds the ray cast,
-  /// slices and composite times to `times`.
+  /// into target 0; `view` must pass check_view. Adds the ray cast, slices and
+  /// composite times to `times` (on a GPU, waiting for the frame).
   void render(OverlayId id, const ViewSettings& view, const FrameMarks& marks, FrameTimes& times);
+  /// Queues the same frame into target `t` without waiting for the GPU; draw_times()
+  /// gives its stage times later.
+  void draw(OverlayId id, TargetId t, const ViewSettings& view, const FrameMarks& marks);
+  /// Adds the stage times of target t's latest frame to `times` (waits for it on a GPU).
+  void draw_times(TargetId t, FrameTimes& times);
 
-  /// The last frame as RGB8, rows top-down (width() * height() * 3 bytes); adds the
-  /// readback time to `times`.
-  void read_rgb(std::vector<std::uint8_t>& rgb, FrameTimes& times);
-  /// The GL texture holding the last frame (GL_TEXTURE_2D, GL_RGBA8; texel row 0 is the
-  /// image's top row), for CUDA-GL interop and GPU encoding.
-  unsigned color_texture() const;
-  /// Size of the last frame (pixels).
-  int width() const;
-  int height() const;
+  /// Target t's last frame as RGB8, rows top-down (width(t) * height(t) * 3 bytes);
+  /// adds the readback time to `times`.
+  void read_rgb(std::vector<std::uint8_t>& rgb, FrameTimes& times) { read_rgb(0, rgb, times); }
+  void read_rgb(TargetId t, std::vector<std::uint8_t>& rgb, FrameTimes& times);
+  /// The GL texture holding target t's last frame (GL_TEXTURE_2D, GL_RGBA8; texel row 0
+  /// is the image's top row), for CUDA-GL interop and GPU encoding; 0 before its first.
+  unsigned color_texture(TargetId t = 0) const;
+  /// Size of target t's last frame (pixels).
+  int width(TargetId t = 0) const;
+  int height(TargetId t = 0) const;
 
-  /// GPU memory the renderer holds (bytes): CT texture, overlays, framebuffer.
+  /// GPU memory the renderer holds (bytes): CT texture, overlays, framebuffers.
   std::size_t bytes() const;
   /// The patient it draws.
   const Patient& patient() const;

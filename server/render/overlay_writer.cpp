@@ -16,16 +16,19 @@ namespace {
 class UploadWriter final : public OverlayWriter {
  public:
   const char* name() const override { return "upload"; }
-  void write(FrameRenderer& r, FrameRenderer::OverlayId id, const OverlaySource& src) override {
-    // an empty VOI: the session is undeformed
-    if (src.voi.count() <= 0) {
-      r.clear_overlay(id);
-      return;
+  void write_batch(FrameRenderer& r, const std::vector<OverlayWrite>& writes) override {
+    for (const OverlayWrite& w : writes) {
+      const OverlaySource& src = w.src;
+      // an empty VOI: the session is undeformed
+      if (src.voi.count() <= 0) {
+        r.clear_overlay(w.id);
+        continue;
+      }
+      if (!src.host_j)
+        throw Error("overlay writer upload: J of the VOI is not in host memory (the deformation handed over " +
+                    std::string(src.device_j ? "only a device copy" : "nothing") + ")");
+      r.upload_overlay(w.id, src.voi, src.host_j);
     }
-    if (!src.host_j)
-      throw Error("overlay writer upload: J of the VOI is not in host memory (the deformation handed over " +
-                  std::string(src.device_j ? "only a device copy" : "nothing") + ")");
-    r.upload_overlay(id, src.voi, src.host_j);
   }
 };
 

@@ -5,6 +5,7 @@
 
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "core/device_bytes.h"
 #include "render/egl_context.h"
@@ -19,15 +20,28 @@ struct OverlaySource {
   const DeviceBytes* device_j = nullptr;  // the same on the GPU (cuda backend), or nullptr
 };
 
-/// Writes J into a session's overlay.
+/// One overlay to write: which, and J for it.
+struct OverlayWrite {
+  FrameRenderer::OverlayId id = -1;
+  OverlaySource src;
+};
+
+/// Writes J into sessions' overlays.
 class OverlayWriter {
  public:
   virtual ~OverlayWriter() = default;
   /// "upload" (host memory, glTexSubImage3D) or "cuda-gl" (device memory, interop).
   virtual const char* name() const = 0;
-  /// Makes the overlay `id` show J on src.voi; throws palpsim::Error when `src` has
-  /// neither a host nor (for this writer) a usable device copy.
-  virtual void write(FrameRenderer& r, FrameRenderer::OverlayId id, const OverlaySource& src) = 0;
+  /// Makes each overlay show its J (cuda-gl: one mapping of all the textures, one wait
+  /// at the end; when an overlay appears twice, the last write wins). On return every
+  /// source may be reused. Throws palpsim::Error when a source has neither a host nor
+  /// (for this writer) a usable device copy; then the overlays' contents are undefined
+  /// until their next write.
+  virtual void write_batch(FrameRenderer& r, const std::vector<OverlayWrite>& writes) = 0;
+  /// Makes the overlay `id` show J on src.voi.
+  void write(FrameRenderer& r, FrameRenderer::OverlayId id, const OverlaySource& src) {
+    write_batch(r, {OverlayWrite{id, src}});
+  }
 };
 
 /// "upload", "cuda-gl" (this build has CUDA and the context is on an NVIDIA GPU) or

@@ -412,6 +412,81 @@ TEST_CASE("the nvjpeg encoder's JPEG decodes to the frame within JPEG error and 
   CHECK_THROWS_AS(nv->encode(r, 101, j_nv, tn), Error);
 }
 
+TEST_CASE("batches: cuda-gl writes of several overlays and nvjpeg encodes of several targets equal one at a time") {
+  if (!have_gpu()) return;
+  auto ctx = nvidia_context();
+  const PatientPtr patient = render_patient();
+  DeformEngine eng(patient, cuda_config(48));
+  const DeformContact c = press(0);
+  REQUIRE(eng.step(c).chainmail.moved > 0);
+  const Voi voi = eng.voi();
+  const float* host_j = eng.deformed_brick();
+  std::unique_ptr<DeviceBytes> dev_j;
+  REQUIRE(eng.copy_brick_to_device(dev_j));
+  render::FrameRenderer r(patient);
+  auto cudagl = cuda::make_cuda_overlay_writer();
+  render::OverlaySource dev_src, host_src;
+  dev_src.voi = host_src.voi = voi;
+  dev_src.device_j = dev_j.get();
+  host_src.host_j = host_j;
+
+  // one write_batch: two overlays from the device copy (one of them twice: the last
+  // write wins), one from the host copy, one cleared
+  const auto a = r.add_overlay(voi.size), b = r.add_overlay(voi.size), h = r.add_overlay(voi.size),
+             e = r.add_overlay(voi.size);
+  cudagl->write(r, e, dev_src);
+  cudagl->write_batch(r, {render::OverlayWrite{a, render::OverlaySource{}}, render::OverlayWrite{b, dev_src},
+                          render::OverlayWrite{h, host_src}, render::OverlayWrite{e, render::OverlaySource{}},
+                          render::OverlayWrite{a, dev_src}});
+  CHECK(texture_differs(r.overlay_texture(a), voi, host_j) == 0);
+  CHECK(texture_differs(r.overlay_texture(b), voi, host_j) == 0);
+  CHECK(texture_differs(r.overlay_texture(h), voi, host_j) == 0);
+
+  // three frames drawn into three targets (sizes, views, qualities differ), encoded in
+  // one batch: the same JPEG bytes as each frame rendered and encoded alone
+  auto nv = cuda::make_nvjpeg_frame_encoder();
+  const render::FrameMarks marks = marks_at(c);
+  render::ViewSettings views[3] = {view_of(640, 360), view_of(320, 180), view_of(1280, 720)};
+  views[1].azimuth_deg = -50;
+  const int quality[3] = {90, 60, 85};
+  const render::FrameRenderer::OverlayId ovs[3] = {a, e, h};
+  std::vector<std::uint8_t> alone[3], batched[3];
+  render::FrameTimes t;
+  for (int n = 0; n < 3; ++n) {
+    r.render(ovs[n], views[n], marks, t);
+    nv->encode(r, quality[n], alone[n], t);
+  }
+  render::FrameRenderer::TargetId tg[3];
+  render::FrameTimes times[3];
+  std::vector<render::EncodeJob> jobs;
+  for (int n = 0; n < 3; ++n) {
+    tg[n] = r.add_target();
+    r.draw(ovs[n], tg[n], views[n], marks);
+    jobs.push_back(render::EncodeJob{tg[n], quality[n], &batched[n], &times[n]});
+  }
+  nv->encode_batch(r, jobs);
+  for (int n = 0; n < 3; ++n) {
+    INFO("frame " << n);
+    CHECK(batched[n] == alone[n]);
+    r.draw_times(tg[n], times[n]);
+    CHECK(times[n].raycast_ms > 0);
+    CHECK(times[n].encode_ms > 0);
+  }
+  // a target twice in one batch is refused; after a target is removed and another made,
+  // the encoder registers the new texture (again the same bytes)
+  CHECK_THROWS_AS(nv->encode_batch(r, {render::EncodeJob{tg[0], 90, &batched[0], &times[0]},
+                                       render::EncodeJob{tg[0], 90, &batched[1], &times[1]}}),
+                  Error);
+  r.remove_target(tg[1]);
+  const auto again = r.add_target();
+  r.draw(ovs[1], again, views[1], marks);
+  std::vector<std::uint8_t> re;
+  nv->encode_batch(r, {render::EncodeJob{again, quality[1], &re, &times[1]}});
+  CHECK(re == alone[1]);
+  nv.reset();
+  cudagl.reset();
+}
+
 TEST_CASE("the nvjpeg encoder follows the frame size: 320x180, 640x360, 320x180") {
   if (!have_gpu()) return;
   auto ctx = nvidia_context();

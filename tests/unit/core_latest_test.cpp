@@ -15,12 +15,16 @@ using palpsim::Latest;
 
 TEST_CASE("Latest hands over the newest value and says when one was replaced", "[core]") {
   Latest<int> h;
+  CHECK_FALSE(h.fresh());
   CHECK_FALSE(h.take());  // nothing published yet
   h.back() = 1;
   CHECK_FALSE(h.publish());  // the first value replaces nothing
+  CHECK(h.fresh());
+  CHECK(h.fresh());  // asking takes nothing
   h.back() = 2;
   CHECK(h.publish());  // 1 was never taken: replaced
   REQUIRE(h.take());
+  CHECK_FALSE(h.fresh());
   CHECK(h.front() == 2);  // the newest, not the first
   CHECK_FALSE(h.take());  // taken already; front() stays
   CHECK(h.front() == 2);

@@ -115,6 +115,24 @@ DeformContact l3_press(const Patient& p, double depth_mm) {
   return {x, x - Vec3{0, depth_mm, 0}};
 }
 
+// the CPU deformation with a VOI of 32 voxels (64 mm on the 2 mm phantom)
+DeformConfig cpu_voi32() {
+  DeformConfig dc;
+  dc.settings.backend = "cpu";
+  dc.settings.voi_edge = 32;
+  return dc;
+}
+
+// the markers of a contact: tip, proxy (the skin point), in contact
+FrameMarks marks_of(const DeformContact& c) {
+  FrameMarks m;
+  m.has_tip = true;
+  m.tip_mm = c.tip_mm;
+  m.proxy_mm = c.skin_point_mm;
+  m.contact = true;
+  return m;
+}
+
 double cpu_s() {
   rusage u{};
   getrusage(RUSAGE_SELF, &u);
@@ -232,10 +250,7 @@ TEST_CASE("a deformed overlay changes the frame near the tip only; clearing it r
   FrameRenderer& r = renderer_2mm();
   const PatientPtr& p = phantom_2mm();
   // the real CPU deformation: a 10 mm press over L3, VOI of 32 voxels (64 mm)
-  DeformConfig dc;
-  dc.settings.backend = "cpu";
-  dc.settings.voi_edge = 32;
-  DeformEngine engine(p, dc);
+  DeformEngine engine(p, cpu_voi32());
   const DeformContact press = l3_press(*p, 10);
   engine.step(press);
   REQUIRE(engine.deformed_brick() != nullptr);
@@ -243,11 +258,7 @@ TEST_CASE("a deformed overlay changes the frame near the tip only; clearing it r
   const auto id = r.add_overlay({32, 32, 32});
 
   ViewSettings v = small_view(Preset::Skin);
-  FrameMarks m;
-  m.has_tip = true;
-  m.tip_mm = press.tip_mm;
-  m.proxy_mm = press.skin_point_mm;
-  m.contact = true;
+  const FrameMarks m = marks_of(press);
   const Rgb before = frame(r, id, v, m);
   auto writer = make_overlay_writer("upload", test::render_context());
   OverlaySource src;
@@ -360,6 +371,81 @@ TEST_CASE("the framebuffer follows the frame size; bad views are refused", "[ren
   v.zoom = std::nan("");
   CHECK_THROWS_AS(frame(r, id, v, FrameMarks{}), Error);
   r.remove_overlay(id);
+}
+
+TEST_CASE("frames drawn into several targets, then encoded and written in batches, equal one at a time",
+          "[render][frame][batch]") {
+  FrameRenderer& r = renderer_2mm();
+  const PatientPtr& p = phantom_2mm();
+  // two sessions: one pressed (a real CPU deformation over L3), one undeformed
+  DeformEngine engine(p, cpu_voi32());
+  const DeformContact press = l3_press(*p, 10);
+  engine.step(press);
+  REQUIRE(engine.deformed_brick() != nullptr);
+  const auto pressed = r.add_overlay({32, 32, 32}), plain = r.add_overlay({32, 32, 32});
+  const FrameMarks m = marks_of(press);
+  ViewSettings va = small_view(Preset::Skin), vb = small_view(Preset::Bone);
+  vb.width = 256;
+  vb.height = 144;
+  vb.azimuth_deg = -60;
+
+  // the reference: each frame alone, its overlay written alone, in target 0
+  auto writer = make_overlay_writer("upload", test::render_context());
+  OverlaySource src;
+  src.voi = engine.voi();
+  src.host_j = engine.deformed_brick();
+  writer->write(r, pressed, src);
+  writer->write(r, plain, OverlaySource{});
+  const Rgb ref_a = frame(r, pressed, va, m), ref_b = frame(r, plain, vb, FrameMarks{});
+  auto enc = make_frame_encoder("cpu", test::render_context());
+  std::vector<std::uint8_t> jpeg_a, jpeg_b;
+  FrameTimes t;
+  r.render(pressed, va, m, t);
+  enc->encode(r, 80, jpeg_a, t);
+  r.render(plain, vb, FrameMarks{}, t);
+  enc->encode(r, 60, jpeg_b, t);
+
+  // the batch: both overlays cleared, then written in one call (the pressed one twice:
+  // the last write wins), both frames drawn into their own targets, then encoded at once
+  r.clear_overlay(pressed);
+  writer->write_batch(r, {OverlayWrite{pressed, OverlaySource{}}, OverlayWrite{plain, OverlaySource{}},
+                          OverlayWrite{pressed, src}});
+  const auto ta = r.add_target(), tb = r.add_target();
+  CHECK(ta != tb);
+  CHECK(ta != 0);
+  r.draw(pressed, ta, va, m);
+  r.draw(plain, tb, vb, FrameMarks{});
+  CHECK(r.width(ta) == 320);
+  CHECK(r.height(tb) == 144);
+  CHECK(r.color_texture(ta) != r.color_texture(tb));
+  FrameTimes fa, fb;
+  Rgb a, b;
+  r.read_rgb(ta, a, fa);
+  r.read_rgb(tb, b, fb);
+  CHECK(a == ref_a);
+  CHECK(b == ref_b);
+  std::vector<std::uint8_t> out_a, out_b;
+  enc->encode_batch(r, {EncodeJob{ta, 80, &out_a, &fa}, EncodeJob{tb, 60, &out_b, &fb}});
+  CHECK(out_a == jpeg_a);
+  CHECK(out_b == jpeg_b);
+  CHECK(fa.encode_ms > 0);
+  // stage times come once per drawn frame
+  r.draw_times(ta, fa);
+  CHECK(fa.raycast_ms > 0);
+  const double once = fa.raycast_ms;
+  r.draw_times(ta, fa);
+  CHECK(fa.raycast_ms == once);
+  // the bytes count every framebuffer; a removed target is gone, target 0 stays
+  const std::size_t with = r.bytes();
+  r.remove_target(tb);
+  CHECK(r.bytes() == with - std::size_t(256 * 144 * 4));
+  CHECK_THROWS_AS(r.color_texture(tb), Error);
+  CHECK_THROWS_AS(r.draw(plain, tb, vb, FrameMarks{}), Error);
+  CHECK_THROWS_AS(r.remove_target(0), Error);
+  CHECK_THROWS_AS(enc->encode_batch(r, {EncodeJob{ta, 80, nullptr, &fa}}), Error);
+  r.remove_target(ta);
+  r.remove_overlay(pressed);
+  r.remove_overlay(plain);
 }
 
 TEST_CASE("frame stage times are measured", "[render][frame]") {

@@ -243,6 +243,7 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
 
 struct ServerRow {
   int sessions = 0;
+  int width = 0, height = 0;  // frame size (pixels)
   int max_batch = 0;
   int rounds = 0;                   // of (without, with viewers)
   double rtt_p99_ratio_median = 0;  // the median over rounds of p99 with / p99 without viewers
@@ -411,7 +412,8 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
   }
 }
 
-std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, const Options& o, bool software) {
+std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, const Options& o, bool software,
+                                    const std::vector<int>& sessions) {
   std::vector<ServerRow> rows;
   const double seconds = o.seconds > 0 ? o.seconds : (software ? 8 : 6);
   scene.effects.frames = scene.effects.bricks = true;
@@ -434,9 +436,11 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
   v1::ControlRequest iq;
   iq.mutable_info();
   const v1::PatientInfo pi = control(ctl, iq).info().patient();
-  for (int n : o.sessions) {
+  for (int n : sessions) {
     ServerRow row;
     row.sessions = n;
+    row.width = scene.render.width;
+    row.height = scene.render.height;
     row.max_batch = scene.render.max_batch;
     // rounds of (without viewers, with viewers), back to back, so that slow drifts of the
     // machine (a VM's neighbours) fall on both sides alike; the samples are pooled and
@@ -477,10 +481,11 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
     row.encoder = st.stream().jpeg_encoder();
     row.writer = st.stream().overlay_writer();
     std::printf(
-        "server, %2d sessions at 1 kHz (%s deformation, %s, %s, batch %d, nice %d): frames/s per session min %.1f "
-        "median %.1f; pose-to-frame p50 %.2f ms p99 %.2f ms; round trip p99 %.0f us with viewers vs %.0f us without "
+        "server, %2d sessions at 1 kHz, %dx%d (%s deformation, %s, %s, batch %d, nice %d): frames/s per session min "
+        "%.1f median %.1f; pose-to-frame p50 %.2f ms p99 %.2f ms; round trip p99 %.0f us with viewers vs %.0f us without "
         "(%.2fx pooled over %d rounds, median of the rounds' ratios %.2fx); %llu deformation steps\n",
-        n, row.backend.c_str(), row.encoder.c_str(), row.writer.c_str(), row.max_batch, o.nice, row.fps_min,
+        n, row.width, row.height, row.backend.c_str(), row.encoder.c_str(), row.writer.c_str(), row.max_batch, o.nice,
+        row.fps_min,
         row.fps_median, row.p2f_p50_ms, row.p2f_p99_ms, row.rtt_p99_watched_us, row.rtt_p99_alone_us,
         row.rtt_p99_alone_us > 0 ? row.rtt_p99_watched_us / row.rtt_p99_alone_us : 0.0, row.rounds,
         row.rtt_p99_ratio_median, (unsigned long long)row.deform_steps);
@@ -578,11 +583,18 @@ int run(int argc, char** argv) {
   std::vector<ServerRow> servers;
   if (o.server) {
     if (o.batches.empty()) o.batches.push_back(scene.render.max_batch);
-    for (int b : o.batches) {
-      Scene sb = scene;
-      sb.render.max_batch = b;
-      for (const ServerRow& r : bench_server(patient, sb, o, software)) servers.push_back(r);
-    }
+    // every session count at the first size; one session at the other sizes (pose to frame)
+    for (int b : o.batches)
+      for (std::size_t k = 0; k < o.sizes.size(); ++k) {
+        Scene sb = scene;
+        sb.render.max_batch = b;
+        sb.render.width = o.sizes[k].first;
+        sb.render.height = o.sizes[k].second;
+        const std::vector<int> one{1};
+        if (k > 0 && std::find(o.sessions.begin(), o.sessions.end(), 1) == o.sessions.end()) continue;
+        for (const ServerRow& r : bench_server(patient, sb, o, software, k == 0 ? o.sessions : one))
+          servers.push_back(r);
+      }
   }
 
   if (!o.json.empty()) {
@@ -600,7 +612,8 @@ int run(int argc, char** argv) {
     out << "  ],\n  \"server\": [\n";
     for (std::size_t i = 0; i < servers.size(); ++i) {
       const ServerRow& r = servers[i];
-      out << "    {\"sessions\": " << r.sessions << ", \"max_batch\": " << r.max_batch << ", \"deform_backend\": \"" << r.backend << "\", \"jpeg_encoder\": \""
+      out << "    {\"sessions\": " << r.sessions << ", \"width\": " << r.width << ", \"height\": " << r.height
+        << ", \"max_batch\": " << r.max_batch << ", \"deform_backend\": \"" << r.backend << "\", \"jpeg_encoder\": \""
           << r.encoder << "\", \"overlay_writer\": \"" << r.writer
           << "\", \"fps_per_session_min\": " << json_number(r.fps_min)
           << ", \"fps_per_session_median\": " << json_number(r.fps_median)

@@ -34,7 +34,7 @@ if command -v compute-sanitizer >/dev/null; then
   step memcheck-render compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-render-tests
 fi
 if [ -z "$quick" ]; then
-  step bench-render palpsim-bench render --scene config/scenes/lumbar_phantom.textproto --json "$out/render.json"
+  step bench-render palpsim-bench render --scene config/scenes/lumbar_phantom.textproto --rounds 5 --json "$out/render.json"
   step bench-deform palpsim-bench deform --json "$out/deform.json"
 fi
 # the tail of each: what passed, what the benchmarks measured

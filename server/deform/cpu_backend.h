@@ -40,7 +40,7 @@ void chainmail_cpu(const Patient& p, const ChainMailLimits& limits, int max_swee
 void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float step, float threshold,
                float width, CpuState& s);
 
-/// J on the VOI by inverting the displacement (fixed-point iteration, trilinear
+/// J on the VOI by inverting the displacement (Newton steps, deform_math.h; trilinear
 /// sampling of u and I); returns the largest residual |p + u(p) - y| (voxel) and
 /// the count of voxels left unresolved.
 InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s);

@@ -2,7 +2,9 @@
 // worker steps on the newest contact and reports stage times; poses keep being answered
 // while a slow step runs (stale contacts are dropped); resets and leaving the body
 // restore the undeformed image; failures are counted and the session keeps being
-// served; a scene without chainmail builds nothing for it and says so.
+// served; a scene without chainmail builds nothing for it and says so, nor does one
+// without relaxation or inversion for those; the forces are the same bits with and
+// without the deformation.
 #include <catch2/catch.hpp>
 
 #include <algorithm>
@@ -371,6 +373,88 @@ TEST_CASE("a scene without chainmail builds no deformation and says so", "[net][
   Volume<float> j;
   CHECK_FALSE(server.deformed_volume(c.id, j));
   server.stop();
+}
+
+TEST_CASE("relaxation or inversion switched off alone: its stage is not built, holds nothing, never runs",
+          "[net][deform]") {
+  const std::string off = GENERATE(std::string("relaxation"), std::string("inversion"));
+  INFO("switched off: " << off);
+  Scene scene = deform_scene();
+  (off == "relaxation" ? scene.effects.relaxation : scene.effects.inversion) = false;
+  const auto patient = test::slab_patient();
+  net::Server server(scene, patient, nullptr, loopback());
+  server.start();
+  Client c(server);
+  c.press(kPressX, kPressY, 8);
+  const std::uint64_t last = c.seq;
+  v1::DeformSessionStats d;
+  REQUIRE(c.wait_deform([&](const v1::DeformSessionStats& s) { return s.last_contact_seq() == last; }, &d));
+  CHECK(d.steps() >= 1);
+  // the switched-off stage costs no time in any step
+  CHECK((off == "relaxation" ? d.last().relax_ms() : d.last().invert_ms()) == 0);
+  CHECK((off == "relaxation" ? d.mean().relax_ms() : d.mean().invert_ms()) == 0);
+  const v1::StatsReply st = c.stats();
+  for (const auto* stages : {&st.server().stages(), &st.session().stages()})
+    for (const char* name : {"chainmail", "relaxation", "inversion"}) {
+      INFO(name);
+      const v1::StageInfo* sg = stage(*stages, name);
+      REQUIRE(sg != nullptr);
+      if (name == off) {
+        CHECK_FALSE(sg->built());
+        CHECK(sg->bytes_allocated() == 0);
+        CHECK(sg->runs() == 0);
+        CHECK(sg->mean_ms() == 0);
+      } else {
+        CHECK(sg->built());
+        CHECK(sg->bytes_allocated() > 0);
+        CHECK(sg->runs() >= 1);
+      }
+    }
+  const auto& names = st.info().stages();
+  CHECK(std::find(names.begin(), names.end(), off) == names.end());
+  // without inversion no J is made: the image stays I; with it the press shows
+  Volume<float> j;
+  REQUIRE(server.deformed_volume(c.id, j));
+  CHECK((j.data == patient->intensity.data) == (off == "inversion"));
+  server.stop();
+}
+
+TEST_CASE("the forces are the same bits with and without the deformation", "[net][deform]") {
+  // the force model reads the undeformed force image: a deformation running beside the
+  // poses changes no reply (the pose path shares nothing with it but the contact slot)
+  std::vector<v1::PoseReply> replies[2];
+  for (int with = 0; with < 2; ++with) {
+    Scene scene = with ? deform_scene() : default_scene();
+    net::Server server(scene, test::slab_patient(), nullptr, loopback());
+    server.start();
+    REQUIRE(server.deformation_running() == bool(with));
+    Client c(server);
+    // a press, a slide across the skin and back out
+    const double z0 = test::kSlabSkinZ + 2, z1 = test::kSlabSkinZ - 8;
+    for (int n = 0; n <= 120; ++n) {
+      const double t = n / 120.0;
+      const Vec3 x{kPressX + 6 * std::sin(6.28 * t), kPressY - 4 * t, t < 0.5 ? z0 + (z1 - z0) * 2 * t
+                                                                             : z1 + (z0 - z1) * (2 * t - 1)};
+      replies[with].push_back(c.send_pose(x));
+    }
+    server.stop();
+  }
+  REQUIRE(replies[0].size() == replies[1].size());
+  int in_contact = 0;
+  for (std::size_t n = 0; n < replies[0].size(); ++n) {
+    INFO("pose " << n);
+    const v1::PoseReply& a = replies[0][n];
+    const v1::PoseReply& b = replies[1][n];
+    in_contact += a.contact();
+    CHECK(a.contact() == b.contact());
+    CHECK(a.force_n().x() == b.force_n().x());
+    CHECK(a.force_n().y() == b.force_n().y());
+    CHECK(a.force_n().z() == b.force_n().z());
+    CHECK(a.proxy_mm().x() == b.proxy_mm().x());
+    CHECK(a.proxy_mm().y() == b.proxy_mm().y());
+    CHECK(a.proxy_mm().z() == b.proxy_mm().z());
+  }
+  CHECK(in_contact > 20);  // the press reached the tissue: the comparison covers real forces
 }
 
 TEST_CASE("a scene whose deformation cannot be served refuses to start, naming the setting", "[net][deform]") {

@@ -287,6 +287,12 @@ struct StreamPublisher::Impl {
     const int parts = (g.size.z + slab - 1) / slab;
     ++p.key_id;
     const std::string topic = brick_topic(p.session);
+    // counted before they are sent (as frames)
+    st.key_bricks_published.fetch_add(parts, std::memory_order_relaxed);
+    {
+      std::lock_guard<std::mutex> lock(ss.mu);
+      ss.report_of(p.session).key_bricks_published += parts;
+    }
     for (int part = 0; part < parts; ++part) {
       const int k0 = part * slab, nk = std::min(slab, g.size.z - k0);
       msg.Clear();
@@ -310,10 +316,7 @@ struct StreamPublisher::Impl {
       msg.SerializeToString(&payload);
       send(topic, payload);
     }
-    st.key_bricks_published.fetch_add(parts, std::memory_order_relaxed);
     p.key_pending = false;
-    std::lock_guard<std::mutex> lock(ss.mu);
-    ss.report_of(p.session).key_bricks_published += parts;
   }
 
   void send_voi_brick(PubSlot& p, StreamSlot& ss, const JSnapshot& j, bool float32, bool zstd_on) {
@@ -334,10 +337,13 @@ struct StreamPublisher::Impl {
     set_vec(b->mutable_tip_mm(), j.tip_mm);
     set_vec(b->mutable_proxy_mm(), j.proxy_mm);
     msg.SerializeToString(&p.last_voi_brick);
-    send(brick_topic(p.session), p.last_voi_brick);
+    // counted before it is sent (as frames)
     st.bricks_published.fetch_add(1, std::memory_order_relaxed);
-    std::lock_guard<std::mutex> lock(ss.mu);
-    ++ss.report_of(p.session).bricks_published;
+    {
+      std::lock_guard<std::mutex> lock(ss.mu);
+      ++ss.report_of(p.session).bricks_published;
+    }
+    send(brick_topic(p.session), p.last_voi_brick);
   }
 
   void send_frame(PubSlot& p, StreamSlot& ss, const EncodedFrame& f) {
@@ -372,15 +378,18 @@ struct StreamPublisher::Impl {
     fill_view(o->mutable_view(), f.view);
     o->set_deformed(f.deformed);
     msg.SerializeToString(&p.last_frame);
+    // counted before it is sent, so that a viewer that got the frame finds it in the stats
+    st.frames_published.fetch_add(1, std::memory_order_relaxed);
+    {
+      std::lock_guard<std::mutex> lock(ss.mu);
+      SessionStreamReport& r = ss.report_of(p.session);
+      ++r.frames_published;
+      if (f.pose_seq) r.pose_to_frame.add(latency_ms);
+    }
     send(frame_topic(f.session_id), p.last_frame);
     p.last_frame_s = now;
     p.frame_resent = false;
-    st.frames_published.fetch_add(1, std::memory_order_relaxed);
     if (!scene.render.record_dir.empty()) record(p, f, now);
-    std::lock_guard<std::mutex> lock(ss.mu);
-    SessionStreamReport& r = ss.report_of(p.session);
-    ++r.frames_published;
-    if (f.pose_seq) r.pose_to_frame.add(latency_ms);
   }
 
   // render.record_dir: the frame as a JPEG file and a line of the session's index

@@ -6,6 +6,7 @@
 #   here:  cmake -S . -B build-gpu -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_CUDA_ARCHITECTURES=90
 #          cmake --build build-gpu
 #          ../shared/tools/device-pack build-gpu/palpsim-gpu-tests build-gpu/palpsim-gpu-render-tests \
+#            build-gpu/palpsim-gpu-stability-tests \
 #            build-gpu/palpsim-bench build-gpu/palpsim-test-render build-gpu/palpsim-test-net-stream
 #   there: bash scripts/gpu-check.sh "$OUT" [quick]
 set -uo pipefail
@@ -27,6 +28,8 @@ step() {  # name, command...: runs it, keeps its output, prints one status line
 }
 step gpu-tests palpsim-gpu-tests
 step gpu-render-tests palpsim-gpu-render-tests
+# the stability catalogue's deformation cases on "cuda" (tests/stability/, issue 8 section 5)
+command -v palpsim-gpu-stability-tests >/dev/null && step gpu-stability-tests palpsim-gpu-stability-tests
 # the render and stream unit tests of CI, here on the NVIDIA driver (the compute-shader ray cast)
 command -v palpsim-test-render >/dev/null && step render-tests palpsim-test-render
 command -v palpsim-test-net-stream >/dev/null && step net-stream-tests palpsim-test-net-stream

@@ -70,23 +70,53 @@ bool skin_crossing(const Patient& patient, const Vec3& tip_mm, const Vec3& out, 
   return true;
 }
 
+// p_mm moved into the box of the grid's voxel centres (index space, so oblique grids too)
+Vec3 clamp_to_voxel_centres(const Grid& g, const Vec3& p_mm) {
+  Vec3 ijk = g.to_index(p_mm);
+  for (int a = 0; a < 3; ++a) ijk[a] = std::clamp(ijk[a], 0.0, double(g.size[a] - 1));
+  return g.to_physical(ijk);
+}
+
+// the point where the segment from `from_mm` (in the grid) to `to_mm` leaves the grid's
+// outer faces (half a voxel beyond the border voxels' centres), or `to_mm` when it does not
+Vec3 cut_at_grid(const Grid& g, const Vec3& from_mm, const Vec3& to_mm) {
+  const Vec3 a = g.to_index(from_mm), b = g.to_index(to_mm);
+  double t = 1;
+  for (int k = 0; k < 3; ++k) {
+    const double lo = -0.5, hi = g.size[k] - 0.5, d = b[k] - a[k];
+    if (b[k] < lo && d < 0) t = std::min(t, (lo - a[k]) / d);
+    if (b[k] > hi && d > 0) t = std::min(t, (hi - a[k]) / d);
+  }
+  return from_mm + (to_mm - from_mm) * std::max(t, 0.0);
+}
+
 // the skin point nearest to the tip: out along -grad B (B = depth under the skin, by
 // central differences of one voxel), then the crossing on that line
 Vec3 nearest_skin_point(const Patient& patient, const Vec3& tip_mm, double depth_mm) {
   const double h = voxel_mm(patient);
+  const Grid& g = patient.grid;
   Vec3 grad_b{0, 0, 0};
   for (int a = 0; a < 3; ++a) {
     Vec3 e{0, 0, 0};
     e[a] = h;
-    grad_b[a] = (sample_skin(patient, tip_mm + e).dist_skin_mm - sample_skin(patient, tip_mm - e).dist_skin_mm) /
-                (2 * h);
+    // the probes stay within the grid's voxel centres: beyond the grid B samples as 0,
+    // which is no skin but missing data, and where the grid cuts the body (every CT's
+    // first and last slice) it turned the gradient towards the grid's face, so X was put
+    // outside the grid and the deformation refused the contact (stability catalogue,
+    // tests/stability: "tip on the volume border")
+    const Vec3 p1 = clamp_to_voxel_centres(g, tip_mm + e), p0 = clamp_to_voxel_centres(g, tip_mm - e);
+    const double span = p1[a] - p0[a];
+    if (span > 1e-9 * h)
+      grad_b[a] = (sample_skin(patient, p1).dist_skin_mm - sample_skin(patient, p0).dist_skin_mm) / span;
   }
   const double gn = norm(grad_b);
   if (!(gn > 1e-9)) return tip_mm;
   const Vec3 out = grad_b * (-1.0 / gn);
   Vec3 x;
   if (skin_crossing(patient, tip_mm, out, depth_mm, 3.0 * depth_mm + 4.0 * h, x)) return x;
-  return tip_mm + out * depth_mm;
+  // no crossing within reach: a depth along the line, but never beyond the grid's faces,
+  // since X must lie in the patient grid for the deformation (it refuses other contacts)
+  return cut_at_grid(g, tip_mm, tip_mm + out * depth_mm);
 }
 
 }  // namespace

@@ -206,6 +206,7 @@ PALPSIM_BENCH(prep, "prep stages on the phantom (1 mm, 0.5 mm) and the real CT; 
       PrepSettings prep;
       prep.spacing_mm = 1.5;
       prep.bone_threshold = 180;
+      prep.bone_threshold_set = true;  // explicit in the scene, as in lumbar_ct.textproto
       auto t = Clock::now();
       CtImage img = read_ct(ct, prep);
       const double s = since(t);

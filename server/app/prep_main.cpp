@@ -79,11 +79,13 @@ int main(int argc, char** argv) {
 
     palpsim::PrepReport report;
     const palpsim::PatientPtr patient = palpsim::prepare_patient(scene, &report);
-    palpsim::write_patient_outputs(out, *patient, report.json);
+    palpsim::write_patient_outputs(out, *patient, report.json, report.summary_lines());
     std::printf("palpsim-prep: %s -> %s (%d x %d x %d voxels of %.3g mm, body %.0f ml, bone %.0f ml, %.2f s%s)\n",
                 patient->source.c_str(), out.c_str(), patient->grid.size.x, patient->grid.size.y,
                 patient->grid.size.z, patient->grid.spacing_mm.x, report.body_ml, report.bone_ml, report.total_s,
                 report.from_cache ? ", from cache" : "");
+    // the chosen bone thresholds and the warnings, also in prep.json and under the preview
+    for (const std::string& line : report.summary_lines()) std::printf("  %s\n", line.c_str());
     return 0;
   } catch (const palpsim::Error& e) {
     std::fprintf(stderr, "palpsim-prep: error: %s\n", e.what());

@@ -97,6 +97,118 @@ void write_rgb_png(const std::string& path, const std::vector<std::array<std::ui
   if (std::fclose(fp) != 0) throw Error("error writing '" + path + "' (disk full?)");
 }
 
+// a 5 x 7 pixel font for the preview's caption: rows top to bottom, bit 4 the left
+// column; lowercase is drawn as uppercase, unknown characters as '?'
+struct Glyph {
+  char c;
+  std::array<std::uint8_t, 7> rows;
+};
+constexpr Glyph kFont[] = {
+    {' ', {0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00}},
+    {'!', {0x04, 0x04, 0x04, 0x04, 0x04, 0x00, 0x04}},
+    {'"', {0x0a, 0x0a, 0x00, 0x00, 0x00, 0x00, 0x00}},
+    {'%', {0x18, 0x19, 0x02, 0x04, 0x08, 0x13, 0x03}},
+    {'\'', {0x04, 0x04, 0x08, 0x00, 0x00, 0x00, 0x00}},
+    {'(', {0x02, 0x04, 0x08, 0x08, 0x08, 0x04, 0x02}},
+    {')', {0x08, 0x04, 0x02, 0x02, 0x02, 0x04, 0x08}},
+    {'+', {0x00, 0x04, 0x04, 0x1f, 0x04, 0x04, 0x00}},
+    {',', {0x00, 0x00, 0x00, 0x00, 0x0c, 0x04, 0x08}},
+    {'-', {0x00, 0x00, 0x00, 0x1f, 0x00, 0x00, 0x00}},
+    {'.', {0x00, 0x00, 0x00, 0x00, 0x00, 0x0c, 0x0c}},
+    {'/', {0x00, 0x01, 0x02, 0x04, 0x08, 0x10, 0x00}},
+    {'0', {0x0e, 0x11, 0x13, 0x15, 0x19, 0x11, 0x0e}},
+    {'1', {0x04, 0x0c, 0x04, 0x04, 0x04, 0x04, 0x0e}},
+    {'2', {0x0e, 0x11, 0x01, 0x02, 0x04, 0x08, 0x1f}},
+    {'3', {0x1f, 0x02, 0x04, 0x02, 0x01, 0x11, 0x0e}},
+    {'4', {0x02, 0x06, 0x0a, 0x12, 0x1f, 0x02, 0x02}},
+    {'5', {0x1f, 0x10, 0x1e, 0x01, 0x01, 0x11, 0x0e}},
+    {'6', {0x06, 0x08, 0x10, 0x1e, 0x11, 0x11, 0x0e}},
+    {'7', {0x1f, 0x01, 0x02, 0x04, 0x08, 0x08, 0x08}},
+    {'8', {0x0e, 0x11, 0x11, 0x0e, 0x11, 0x11, 0x0e}},
+    {'9', {0x0e, 0x11, 0x11, 0x0f, 0x01, 0x02, 0x0c}},
+    {':', {0x00, 0x0c, 0x0c, 0x00, 0x0c, 0x0c, 0x00}},
+    {';', {0x00, 0x0c, 0x0c, 0x00, 0x0c, 0x04, 0x08}},
+    {'<', {0x02, 0x04, 0x08, 0x10, 0x08, 0x04, 0x02}},
+    {'=', {0x00, 0x00, 0x1f, 0x00, 0x1f, 0x00, 0x00}},
+    {'>', {0x08, 0x04, 0x02, 0x01, 0x02, 0x04, 0x08}},
+    {'?', {0x0e, 0x11, 0x01, 0x02, 0x04, 0x00, 0x04}},
+    {'A', {0x0e, 0x11, 0x11, 0x1f, 0x11, 0x11, 0x11}},
+    {'B', {0x1e, 0x11, 0x11, 0x1e, 0x11, 0x11, 0x1e}},
+    {'C', {0x0e, 0x11, 0x10, 0x10, 0x10, 0x11, 0x0e}},
+    {'D', {0x1e, 0x11, 0x11, 0x11, 0x11, 0x11, 0x1e}},
+    {'E', {0x1f, 0x10, 0x10, 0x1e, 0x10, 0x10, 0x1f}},
+    {'F', {0x1f, 0x10, 0x10, 0x1e, 0x10, 0x10, 0x10}},
+    {'G', {0x0e, 0x11, 0x10, 0x17, 0x11, 0x11, 0x0f}},
+    {'H', {0x11, 0x11, 0x11, 0x1f, 0x11, 0x11, 0x11}},
+    {'I', {0x0e, 0x04, 0x04, 0x04, 0x04, 0x04, 0x0e}},
+    {'J', {0x07, 0x02, 0x02, 0x02, 0x02, 0x12, 0x0c}},
+    {'K', {0x11, 0x12, 0x14, 0x18, 0x14, 0x12, 0x11}},
+    {'L', {0x10, 0x10, 0x10, 0x10, 0x10, 0x10, 0x1f}},
+    {'M', {0x11, 0x1b, 0x15, 0x15, 0x11, 0x11, 0x11}},
+    {'N', {0x11, 0x11, 0x19, 0x15, 0x13, 0x11, 0x11}},
+    {'O', {0x0e, 0x11, 0x11, 0x11, 0x11, 0x11, 0x0e}},
+    {'P', {0x1e, 0x11, 0x11, 0x1e, 0x10, 0x10, 0x10}},
+    {'Q', {0x0e, 0x11, 0x11, 0x11, 0x15, 0x12, 0x0d}},
+    {'R', {0x1e, 0x11, 0x11, 0x1e, 0x14, 0x12, 0x11}},
+    {'S', {0x0f, 0x10, 0x10, 0x0e, 0x01, 0x01, 0x1e}},
+    {'T', {0x1f, 0x04, 0x04, 0x04, 0x04, 0x04, 0x04}},
+    {'U', {0x11, 0x11, 0x11, 0x11, 0x11, 0x11, 0x0e}},
+    {'V', {0x11, 0x11, 0x11, 0x11, 0x11, 0x0a, 0x04}},
+    {'W', {0x11, 0x11, 0x11, 0x15, 0x15, 0x15, 0x0a}},
+    {'X', {0x11, 0x11, 0x0a, 0x04, 0x0a, 0x11, 0x11}},
+    {'Y', {0x11, 0x11, 0x0a, 0x04, 0x04, 0x04, 0x04}},
+    {'Z', {0x1f, 0x01, 0x02, 0x04, 0x08, 0x10, 0x1f}},
+    {'_', {0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x1f}},
+
+};
+
+const std::array<std::uint8_t, 7>& glyph(char c) {
+  if (c >= 'a' && c <= 'z') c = char(c - 'a' + 'A');
+  for (const Glyph& g : kFont)
+    if (g.c == c) return g.rows;
+  for (const Glyph& g : kFont)
+    if (g.c == '?') return g.rows;
+  return kFont[0].rows;
+}
+
+using Rgb = std::array<std::uint8_t, 3>;
+
+// draws `text` with its top-left corner at (x, y), each font pixel `fs` x `fs` image pixels
+void draw_text(std::vector<Rgb>& img, int width, int height, int x, int y, const std::string& text, int fs,
+               const Rgb& colour) {
+  for (std::size_t n = 0; n < text.size(); ++n) {
+    const auto& rows = glyph(text[n]);
+    const int gx = x + int(n) * 6 * fs;
+    for (int r = 0; r < 7; ++r)
+      for (int c = 0; c < 5; ++c) {
+        if (!(rows[std::size_t(r)] & (0x10 >> c))) continue;
+        for (int dy = 0; dy < fs; ++dy)
+          for (int dx = 0; dx < fs; ++dx) {
+            const int px = gx + c * fs + dx, py = y + r * fs + dy;
+            if (px >= 0 && py >= 0 && px < width && py < height) img[std::size_t(py) * width + px] = colour;
+          }
+      }
+  }
+}
+
+// splits `line` at spaces into pieces of at most `max_chars` characters (longer words are cut)
+std::vector<std::string> wrap(const std::string& line, std::size_t max_chars) {
+  std::vector<std::string> out;
+  std::string cur;
+  std::istringstream words(line);
+  for (std::string w; words >> w;) {
+    while (w.size() > max_chars) {
+      if (!cur.empty()) out.push_back(cur), cur.clear();
+      out.push_back(w.substr(0, max_chars));
+      w = w.substr(max_chars);
+    }
+    if (!cur.empty() && cur.size() + 1 + w.size() > max_chars) out.push_back(cur), cur.clear();
+    cur += (cur.empty() ? "" : " ") + w;
+  }
+  if (!cur.empty()) out.push_back(cur);
+  return out;
+}
+
 }  // namespace
 
 void write_nrrd(const std::string& path, const Volume<float>& v) { write_nrrd_any(path, v, "float"); }
@@ -117,7 +229,8 @@ Vec3 preview_centre_mm(const Patient& p) {
   return g.to_physical(Vec3{(lo.x + hi.x) / 2.0, (lo.y + hi.y) / 2.0, (lo.z + hi.z) / 2.0});
 }
 
-void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm) {
+void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm,
+                       const std::vector<std::string>& caption) {
   const Grid& g = p.grid;
   const double px = g.spacing_mm.x;  // isotropic grid: one pixel per voxel edge
   Vec3 lo, hi;
@@ -150,6 +263,17 @@ void write_preview_png(const std::string& path, const Patient& p, const Vec3& ce
   width += 2 * gap;
   // small grids are enlarged so the preview stays readable
   const int scale = std::max(1, int(std::ceil(400.0 / std::max(height, 1))));
+  // the caption below the slices: font pixels of 2 image pixels on large previews,
+  // wrapped to the preview's width; warnings in orange
+  const int fs = scale >= 2 ? 1 : 2, line_h = 9 * fs;
+  std::vector<std::pair<std::string, bool>> lines;
+  for (const std::string& c : caption) {
+    const bool warning = c.rfind("warning", 0) == 0;
+    for (const std::string& piece : wrap(c, std::size_t(std::max(10, (width - 8) / (6 * fs)))))
+      lines.emplace_back(piece, warning);
+  }
+  const int slices_h = height;
+  if (!lines.empty()) height += int(lines.size()) * line_h + 2 * fs + 4;
   std::vector<std::array<std::uint8_t, 3>> img(std::size_t(width) * height, {24, 24, 48});
   int x0 = 0;
   for (int v = 0; v < 3; ++v) {
@@ -168,6 +292,11 @@ void write_preview_png(const std::string& path, const Patient& p, const Vec3& ce
       const long long i = vox[std::size_t(y) * sw + x];
       return i >= 0 && p.body.data[std::size_t(i)] != 0;
     };
+    const auto in_bone = [&](int x, int y) {
+      if (x < 0 || y < 0 || x >= sw || y >= sh) return false;
+      const long long i = vox[std::size_t(y) * sw + x];
+      return i >= 0 && p.bone.data[std::size_t(i)] != 0;
+    };
     for (int y = 0; y < sh; ++y)
       for (int x = 0; x < sw; ++x) {
         const long long i = vox[std::size_t(y) * sw + x];
@@ -180,14 +309,23 @@ void write_preview_png(const std::string& path, const Patient& p, const Vec3& ce
         // skin contour: body pixels with a non-body 4-neighbour
         if (in_body(x, y) && (!in_body(x - 1, y) || !in_body(x + 1, y) || !in_body(x, y - 1) || !in_body(x, y + 1)))
           px_out = {255, 0, 0};
+        // bone contour, the same way, in yellow
+        else if (in_bone(x, y) &&
+                 (!in_bone(x - 1, y) || !in_bone(x + 1, y) || !in_bone(x, y - 1) || !in_bone(x, y + 1)))
+          px_out = {255, 210, 0};
       }
     x0 += sw + gap;
   }
+  // the caption
+  for (std::size_t n = 0; n < lines.size(); ++n)
+    draw_text(img, width, height, 4, slices_h + 2 * fs + 2 + int(n) * line_h, lines[n].first, fs,
+              lines[n].second ? Rgb{255, 150, 40} : Rgb{230, 230, 230});
 
   write_rgb_png(path, img, width, height, scale);
 }
 
-void write_patient_outputs(const std::string& out_dir, const Patient& p, const std::string& prep_json) {
+void write_patient_outputs(const std::string& out_dir, const Patient& p, const std::string& prep_json,
+                           const std::vector<std::string>& caption) {
   const fs::path out = fs::absolute(fs::path(out_dir)).lexically_normal();
   const fs::path parent = out.has_filename() ? out.parent_path() : out.parent_path().parent_path();
   const std::string name = (out.has_filename() ? out : out.parent_path()).filename().string();
@@ -208,7 +346,7 @@ void write_patient_outputs(const std::string& out_dir, const Patient& p, const s
     write_nrrd((tmp / "bone.nrrd").string(), p.bone);
     write_nrrd((tmp / "dist_bone.nrrd").string(), p.dist_bone_mm);
     write_nrrd((tmp / "dist_skin.nrrd").string(), p.dist_skin_mm);
-    write_preview_png((tmp / "preview.png").string(), p, preview_centre_mm(p));
+    write_preview_png((tmp / "preview.png").string(), p, preview_centre_mm(p), caption);
     {
       std::ofstream j(tmp / "prep.json");
       j << prep_json << "\n";

@@ -5,6 +5,7 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "core/patient.h"
 #include "core/volume.h"
@@ -19,8 +20,11 @@ void write_nrrd(const std::string& path, const Volume<std::uint8_t>& v);
 
 /// Writes preview.png: axial, coronal and sagittal slices of F through `centre_mm`
 /// (grey: the square root of F over its 99th percentile in the body), skin contour (the border of
-/// C) in red; patient's right on the image's left, anterior and superior up.
-void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm);
+/// C) in red, bone contour in yellow; patient's right on the image's left, anterior and
+/// superior up; below them the `caption` lines (PrepReport::summary_lines: thresholds,
+/// bone per region), those starting with "warning" in orange.
+void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm,
+                       const std::vector<std::string>& caption = {});
 
 /// A good place for the preview's slices: the centre of the bone mask's bounding
 /// box (the spine and pelvis), else the centre of the body.
@@ -30,6 +34,8 @@ Vec3 preview_centre_mm(const Patient& p);
 /// dist_bone.nrrd, dist_skin.nrrd, preview.png, prep.json) into a temporary
 /// sibling folder of `out_dir` and renames it to `out_dir` at the end (an existing
 /// `out_dir` is replaced only then); on any error nothing half-written is left.
-void write_patient_outputs(const std::string& out_dir, const Patient& p, const std::string& prep_json);
+/// `caption` goes under the preview's slices.
+void write_patient_outputs(const std::string& out_dir, const Patient& p, const std::string& prep_json,
+                           const std::vector<std::string>& caption = {});
 
 }  // namespace palpsim

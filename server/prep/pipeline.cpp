@@ -4,6 +4,7 @@
 #include <cmath>
 #include <limits>
 #include <numeric>
+#include <sstream>
 #include <vector>
 
 #include "core/error.h"
@@ -332,15 +333,41 @@ Volume<T> crop(const Volume<T>& v, Vec3i lo, Vec3i size) {
   return c;
 }
 
-// bone_mask on a volume already cropped to the bone and its margin
+// the hysteresis on a volume already cropped to the seeds and the growth's reach:
+// candidates (body voxels at or above t.low) within t.grow_mm of a seed (at or above
+// t.high), in 6-connected components holding a seed
+Volume<std::uint8_t> hysteresis(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                                const BoneThresholds& t, int threads) {
+  const Grid& g = image.grid;
+  Volume<std::uint8_t> raw(g), seed(g);
+  parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+    for (std::size_t i = b; i < e; ++i) {
+      raw.data[i] = body.data[i] && image.data[i] >= t.low;
+      seed.data[i] = raw.data[i] && image.data[i] >= t.high;
+    }
+  });
+  if (!(t.high > t.low)) return raw;
+  if (t.grow_mm > 0) {
+    const Volume<float> d2 = squared_distance_mm2(seed, true, threads);
+    const float r2 = float(t.grow_mm * t.grow_mm);
+    parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+      for (std::size_t i = b; i < e; ++i) raw.data[i] &= d2.data[i] <= r2;
+    });
+  }
+  const Components c = label_components(raw, true);
+  std::vector<std::uint8_t> seeded(c.size.size(), 0);
+  for (std::size_t i = 0; i < raw.data.size(); ++i)
+    if (seed.data[i]) seeded[c.label[i]] = 1;
+  for (std::size_t i = 0; i < raw.data.size(); ++i) raw.data[i] = c.label[i] && seeded[c.label[i]];
+  return raw;
+}
+
+// the rest of bone_mask on a volume already cropped to the hysteresis result `raw`
+// and a margin beyond every closing's reach
 Volume<std::uint8_t> bone_mask_cropped(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                                       const Volume<std::uint8_t>& raw, const BoneThresholds& t,
                                        const PrepSettings& prep, double fill_closing_mm, int threads) {
   const Grid& g = image.grid;
-  Volume<std::uint8_t> raw(g);
-  parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
-    for (std::size_t i = b; i < e; ++i) raw.data[i] = body.data[i] && image.data[i] >= prep.bone_threshold;
-  });
-
   // closing joins nearby bone (a blurred cortex, thin processes)
   Volume<std::uint8_t> bone = closing(raw, prep.bone_closing_mm, threads);
   for (std::size_t i = 0; i < bone.data.size(); ++i) bone.data[i] &= body.data[i];
@@ -348,25 +375,28 @@ Volume<std::uint8_t> bone_mask_cropped(const Volume<float>& image, const Volume<
   // cavities enclosed by bone are bone (cancellous interior, marrow): enclosed in
   // 3D, or (a cortex blurred by thick slices has gaps) enclosed within a slice of
   // any orientation after a wider closing, no larger than kMaxBoneHoleMm2, and
-  // with a mean value at least the cancellous level (the spinal canal, the pelvis
-  // and the thorax are enclosed too, but hold CSF, soft tissue or air)
+  // with a mean value at least the cancellous level (the spinal canal, the discs,
+  // the pelvis and the thorax are enclosed too, but hold CSF, soft tissue or air)
   if (prep.bone_fill_holes) {
     fill_holes_3d(bone);
-    const double level = cancellous_level(prep);
     const double wide_mm = std::max(fill_closing_mm, prep.bone_closing_mm);
     const Volume<std::uint8_t> wide = wide_mm > prep.bone_closing_mm ? closing(raw, wide_mm, threads) : bone;
     const std::size_t max_pixels = std::size_t(kMaxBoneHoleMm2 / (g.spacing_mm.x * g.spacing_mm.x));
-    const HoleFilter dense = [&](const std::vector<std::size_t>& vox) {
-      double sum = 0;
-      for (std::size_t i : vox) sum += image.data[i];
-      return sum / double(vox.size()) >= level;
+    const auto dense_from = [&](double level) -> HoleFilter {
+      return [&image, level](const std::vector<std::size_t>& vox) {
+        double sum = 0;
+        for (std::size_t i : vox) sum += image.data[i];
+        return sum / double(vox.size()) >= level;
+      };
     };
+    const HoleFilter dense = dense_from(t.cancellous), dense_axial = dense_from(t.cancellous_axial);
+    const int axial = axial_axis(g);
     // two rounds: what one orientation fills can close a cavity in another
     Volume<std::uint8_t> cavity(g), grown = wide;
     for (int round = 0; round < 2; ++round) {
       for (int axis = 0; axis < 3; ++axis) {
         Volume<std::uint8_t> filled = grown;
-        fill_holes_per_slice(filled, axis, max_pixels, dense);
+        fill_holes_per_slice(filled, axis, max_pixels, axis == axial ? dense_axial : dense);
         for (std::size_t i = 0; i < cavity.data.size(); ++i) cavity.data[i] |= filled.data[i] && !wide.data[i];
       }
       for (std::size_t i = 0; i < cavity.data.size(); ++i) grown.data[i] = wide.data[i] | cavity.data[i];
@@ -395,35 +425,211 @@ Volume<std::uint8_t> bone_mask_cropped(const Volume<float>& image, const Volume<
 
 }  // namespace
 
+BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                                      const PrepSettings& prep) {
+  BoneThresholds t;
+  // an explicit threshold wins: a plain threshold, the cancellous level from it
+  if (prep.bone_threshold_set) {
+    t.low = t.high = prep.bone_threshold;
+    t.cancellous = t.cancellous_axial = cancellous_level(prep);
+    t.reason = "prep.bone_threshold set in the scene";
+    return t;
+  }
+  t.automatic = true;
+
+  // histogram of the body's voxels, 1 HU bins from -1024 to 3071 HU
+  constexpr int kLo = -1024, kBins = 4096;
+  std::vector<double> hist(kBins, 0.0);
+  std::size_t n = 0;
+  for (std::size_t i = 0; i < image.data.size(); ++i) {
+    if (!body.data[i]) continue;
+    const float v = image.data[i];
+    if (!(v >= kLo && v < kLo + kBins)) continue;
+    hist[std::size_t(int(std::floor(v)) - kLo)] += 1;
+    ++n;
+  }
+  if (n == 0) throw Error("choose_bone_thresholds: the body mask is empty or holds no value in -1024..3071 HU");
+
+  // smoothed with a 21 HU box (integer-valued CTs leave every other bin empty after rescaling)
+  std::vector<double> smooth(kBins, 0.0);
+  {
+    double run = 0;
+    for (int b = 0; b < kBins + 10; ++b) {
+      if (b < kBins) run += hist[std::size_t(b)];
+      if (b >= 21) run -= hist[std::size_t(b - 21)];
+      if (b >= 10 && b - 10 < kBins) smooth[std::size_t(b - 10)] = run / 21.0;
+    }
+  }
+
+  // the soft-tissue peak: the mode between -50 and 150 HU (fat lies below, bone above)
+  int mode = -50 - kLo;
+  for (int b = -50 - kLo; b <= 150 - kLo; ++b)
+    if (smooth[std::size_t(b)] > smooth[std::size_t(mode)]) mode = b;
+  const double peak = smooth[std::size_t(mode)];
+  std::ostringstream why;
+  if (peak < 1e-3 * double(n) / 21.0) {
+    // no soft tissue to speak of (a phantom of bone in air, a non-CT image): the default
+    t.low = t.high = PrepSettings{}.bone_threshold;
+    t.cancellous = t.cancellous_axial = cancellous_level(PrepSettings{});
+    why << "automatic: the body's histogram has no soft-tissue peak between -50 and 150 HU, so the default "
+        << t.low << " HU is used as a plain threshold";
+    t.reason = why.str();
+    return t;
+  }
+  // its spread: the upper half width at half height (the lower side mixes with fat)
+  int up = mode;
+  while (up + 1 < kBins && smooth[std::size_t(up)] >= 0.5 * peak) ++up;
+  const double mu = mode + kLo, sigma = (up - mode) / 1.1774;
+  t.soft_tissue_hu = mu;
+  t.soft_tissue_sigma_hu = sigma;
+
+  // low: 100 HU or 3 sigma above soft tissue, within the bounds; seeds twice as far
+  // above soft tissue (cortical bone); cavities filled from halfway up, within bounds
+  t.low = std::clamp(mu + std::max(100.0, 3 * sigma), kAutoBoneLowMinHu, kAutoBoneLowMaxHu);
+  t.high = std::max(kAutoBoneSeedMinHu, mu + 2 * (t.low - mu));
+  t.cancellous = std::clamp(mu + 0.5 * (t.low - mu), kAutoCancellousMinHu, kAutoCancellousMaxHu);
+  t.cancellous_axial = t.cancellous - kAxialCancellousDropHu;
+  t.grow_mm = kAutoBoneGrowMm;
+  why << "automatic from the body's histogram: soft-tissue peak " << mu << " HU, spread " << std::lround(sigma)
+      << " HU; bone from " << std::lround(t.low) << " HU (soft tissue + max(100, 3 spread), kept within "
+      << kAutoBoneLowMinHu << ".." << kAutoBoneLowMaxHu << " HU) where joined within " << t.grow_mm
+      << " mm to seeds from " << std::lround(t.high) << " HU (cortex); cavities enclosed by bone filled from a mean of "
+      << std::lround(t.cancellous) << " HU (" << std::lround(t.cancellous_axial) << " HU in axial slices)";
+  t.reason = why.str();
+  return t;
+}
+
 Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uint8_t>& body,
                                const PrepSettings& prep, double fill_closing_mm, int threads) {
-  // the bounding box of the bone candidates
+  return bone_mask(image, body, choose_bone_thresholds(image, body, prep), prep, fill_closing_mm, threads);
+}
+
+Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                               const BoneThresholds& t, const PrepSettings& prep, double fill_closing_mm,
+                               int threads) {
   const Grid& g = image.grid;
-  Vec3i lo{g.size.x, g.size.y, g.size.z}, hi{-1, -1, -1};
-  for (int k = 0; k < g.size.z; ++k)
-    for (int j = 0; j < g.size.y; ++j)
-      for (int i = 0; i < g.size.x; ++i) {
-        const std::size_t idx = g.index(i, j, k);
-        if (!body.data[idx] || !(image.data[idx] >= prep.bone_threshold)) continue;
-        lo = {std::min(lo.x, i), std::min(lo.y, j), std::min(lo.z, k)};
-        hi = {std::max(hi.x, i), std::max(hi.y, j), std::max(hi.z, k)};
-      }
   Volume<std::uint8_t> bone(g);
-  if (hi.x < 0) return bone;
-  // work on the box plus a margin beyond every closing's reach: outside it nothing
-  // can become bone, and background at the box's edge is connected to the
-  // volume's border exactly when it is in the whole volume, so the result is the same
+  const double h_min = std::min({g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z});
+  // the bounding box of the voxels where `pred` holds, grown by m voxels and clipped;
+  // false when there is none
+  const auto box = [&](auto&& pred, int m, Vec3i& lo, Vec3i& size) {
+    Vec3i hi{-1, -1, -1};
+    lo = {g.size.x, g.size.y, g.size.z};
+    for (int k = 0; k < g.size.z; ++k)
+      for (int j = 0; j < g.size.y; ++j)
+        for (int i = 0; i < g.size.x; ++i) {
+          if (!pred(g.index(i, j, k))) continue;
+          lo = {std::min(lo.x, i), std::min(lo.y, j), std::min(lo.z, k)};
+          hi = {std::max(hi.x, i), std::max(hi.y, j), std::max(hi.z, k)};
+        }
+    if (hi.x < 0) return false;
+    lo = {std::max(lo.x - m, 0), std::max(lo.y - m, 0), std::max(lo.z - m, 0)};
+    hi = {std::min(hi.x + m, g.size.x - 1), std::min(hi.y + m, g.size.y - 1), std::min(hi.z + m, g.size.z - 1)};
+    size = {hi.x - lo.x + 1, hi.y - lo.y + 1, hi.z - lo.z + 1};
+    return true;
+  };
+  // copies a cropped mask back into a whole-volume one at lo
+  const auto paste = [&](const Volume<std::uint8_t>& part, Vec3i lo, Volume<std::uint8_t>& whole) {
+    for (int k = 0; k < part.grid.size.z; ++k)
+      for (int j = 0; j < part.grid.size.y; ++j)
+        std::copy_n(&part.data[part.grid.index(0, j, k)], part.grid.size.x,
+                    &whole.data[g.index(lo.x, lo.y + j, lo.z + k)]);
+  };
+
+  // stage 1, the hysteresis, on the seeds' box plus the growth's reach (every bone
+  // voxel is joined to a seed; unlimited growth needs the whole volume)
+  Vec3i lo, size;
+  const bool unlimited = t.high > t.low && t.grow_mm <= 0;
+  const int m1 = unlimited ? std::max({g.size.x, g.size.y, g.size.z}) : int(std::ceil(t.grow_mm / h_min)) + 2;
+  if (!box([&](std::size_t i) { return body.data[i] && image.data[i] >= t.high; }, m1, lo, size)) return bone;
+  Volume<std::uint8_t> raw(g);
+  paste(hysteresis(crop(image, lo, size), crop(body, lo, size), t, threads), lo, raw);
+
+  // stage 2 on the hysteresis result's box plus a margin beyond every closing's
+  // reach: outside it nothing can become bone, and background at the box's edge is
+  // connected to the volume's border exactly when it is in the whole volume, so the
+  // result is the same as on the whole volume
   const double reach_mm = std::max(fill_closing_mm, prep.bone_closing_mm) + 2 * g.spacing_mm.x;
-  const int m = int(std::ceil(reach_mm / std::min({g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z}))) + 2;
-  lo = {std::max(lo.x - m, 0), std::max(lo.y - m, 0), std::max(lo.z - m, 0)};
-  hi = {std::min(hi.x + m, g.size.x - 1), std::min(hi.y + m, g.size.y - 1), std::min(hi.z + m, g.size.z - 1)};
-  const Vec3i size{hi.x - lo.x + 1, hi.y - lo.y + 1, hi.z - lo.z + 1};
-  const Volume<std::uint8_t> part = bone_mask_cropped(crop(image, lo, size), crop(body, lo, size), prep,
-                                                      fill_closing_mm, threads);
-  for (int k = 0; k < size.z; ++k)
-    for (int j = 0; j < size.y; ++j)
-      std::copy_n(&part.data[part.grid.index(0, j, k)], size.x, &bone.data[g.index(lo.x, lo.y + j, lo.z + k)]);
+  if (!box([&](std::size_t i) { return raw.data[i] != 0; }, int(std::ceil(reach_mm / h_min)) + 2, lo, size))
+    return bone;
+  paste(bone_mask_cropped(crop(image, lo, size), crop(body, lo, size), crop(raw, lo, size), t, prep,
+                          fill_closing_mm, threads),
+        lo, bone);
   return bone;
+}
+
+BoneSummary summarize_bone(const Volume<std::uint8_t>& body, const Volume<std::uint8_t>& bone) {
+  const Grid& g = body.grid;
+  if (!(bone.grid.size == g.size)) throw Error("summarize_bone: the body and bone masks are on different grids");
+  BoneSummary s;
+  const double voxel_ml = g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z / 1000.0;
+  const int ax = axial_axis(g), u = ax == 0 ? 1 : 0, v = ax == 2 ? 1 : 2;
+  const int n[3] = {g.size.x, g.size.y, g.size.z};
+  // area (mm^2) of one voxel in an axial slice
+  const double sp[3] = {g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z};
+  const double pixel_mm2 = sp[u] * sp[v];
+  std::size_t body_n = 0, bone_n = 0, spine_n = 0, left_n = 0, right_n = 0, anterior_n = 0;
+  for (int s_ = 0; s_ < n[ax]; ++s_) {
+    // the body's centroid in this slice (physical x and y)
+    double cx = 0, cy = 0;
+    std::size_t cn = 0;
+    int ijk[3];
+    ijk[ax] = s_;
+    for (int b = 0; b < n[v]; ++b)
+      for (int a = 0; a < n[u]; ++a) {
+        ijk[u] = a, ijk[v] = b;
+        if (!body.at(ijk[0], ijk[1], ijk[2])) continue;
+        const Vec3 p = g.to_physical(Vec3{double(ijk[0]), double(ijk[1]), double(ijk[2])});
+        cx += p.x, cy += p.y, ++cn;
+      }
+    if (cn == 0) continue;
+    ++s.body_slices;
+    body_n += cn;
+    cx /= double(cn), cy /= double(cn);
+    // each bone voxel to its region
+    std::size_t slice_spine = 0;
+    for (int b = 0; b < n[v]; ++b)
+      for (int a = 0; a < n[u]; ++a) {
+        ijk[u] = a, ijk[v] = b;
+        if (!bone.at(ijk[0], ijk[1], ijk[2])) continue;
+        ++bone_n;
+        const Vec3 p = g.to_physical(Vec3{double(ijk[0]), double(ijk[1]), double(ijk[2])});
+        if (p.x > cx + kSpineHalfWidthMm) ++left_n;
+        else if (p.x < cx - kSpineHalfWidthMm) ++right_n;
+        else if (p.y >= cy - kSpineAnteriorMm) ++slice_spine;
+        else ++anterior_n;
+      }
+    spine_n += slice_spine;
+    if (double(slice_spine) * pixel_mm2 >= kSpineMinAreaMm2) ++s.spine_slices;
+  }
+  s.body_ml = double(body_n) * voxel_ml;
+  s.bone_ml = double(bone_n) * voxel_ml;
+  s.spine_ml = double(spine_n) * voxel_ml;
+  s.left_ml = double(left_n) * voxel_ml;
+  s.right_ml = double(right_n) * voxel_ml;
+  s.anterior_ml = double(anterior_n) * voxel_ml;
+  s.bone_fraction = s.body_ml > 0 ? s.bone_ml / s.body_ml : 0;
+  s.spine_found = s.body_slices > 0 && 2 * s.spine_slices >= s.body_slices;
+
+  // the warnings
+  std::ostringstream w;
+  if (s.bone_ml == 0) {
+    s.warnings.push_back("no bone found: the force image has no bone term; check prep.bone_threshold and the CT");
+  } else if (!s.spine_found) {
+    w << "no spine found: only " << s.spine_slices << " of " << s.body_slices
+      << " axial slices hold bone behind the body's centre near its midline; check the bone mask (bone.nrrd) "
+         "and prep.bone_threshold";
+    s.warnings.push_back(w.str());
+    w.str("");
+  }
+  if (s.bone_fraction > kMaxBoneFraction) {
+    w << "bone is " << std::lround(100 * s.bone_fraction) << "% of the body, above the plausible "
+      << std::lround(100 * kMaxBoneFraction)
+      << "%: contrast, metal or a bone threshold too low; check prep.bone_threshold (left out, it is "
+         "chosen from the image)";
+    s.warnings.push_back(w.str());
+  }
+  return s;
 }
 
 Volume<float> force_image(const Patient& p, const ForceImageSettings& f, int threads) {

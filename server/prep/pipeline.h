@@ -6,6 +6,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <functional>
+#include <string>
 #include <vector>
 
 #include "core/patient.h"
@@ -51,24 +52,114 @@ inline int axial_axis(const Grid& g) { return grid_axis_along(g, 2); }
 Volume<std::uint8_t> body_mask(const Volume<float>& image, double air_threshold, double opening_mm = 5.0,
                                double min_part_ml = 20.0, int threads = 0);
 
-/// Bone mask: voxels of the body >= prep.bone_threshold, closed with a ball of
-/// prep.bone_closing_mm, cavities enclosed by bone filled (prep.bone_fill_holes:
-/// the cancellous interior of a vertebral body is rigid too), and components
-/// smaller than prep.bone_min_volume_ml removed. A cavity is filled when it is
-/// enclosed in 3D, or when, after a wider closing of `fill_closing_mm` (a cortex
-/// blurred by thick slices has gaps; build_patient passes twice the input's
-/// coarsest spacing), it is enclosed within an axial, coronal or sagittal slice,
-/// covers at most kMaxBoneHoleMm2 there, and its mean value reaches
-/// cancellous_level(prep). That fills vertebral bodies but not the spinal canal
-/// (CSF), the pelvis or the thorax.
+/// The thresholds the bone mask used and why (reported in prep.json). With an
+/// explicit prep.bone_threshold, low = high = that value (a plain threshold, as
+/// before); without one they are chosen from the body's intensity histogram
+/// (choose_bone_thresholds).
+struct BoneThresholds {
+  bool automatic = false;        // chosen from the image (the scene set no prep.bone_threshold)
+  double low = 200;              // HU: voxels at or above it are bone when joined to a seed
+  double high = 200;             // HU: seeds; voxels at or above it start bone
+  double cancellous = 80;        // HU: a cavity enclosed in 3D, or in a coronal or sagittal slice, with
+                                 // at least this mean is filled
+  double cancellous_axial = 80;  // HU: the same for a cavity enclosed in an axial slice (no disc is)
+  double grow_mm = 0;            // the low threshold reaches this far (mm) from a seed; 0 = unlimited
+  double soft_tissue_hu = 0;     // automatic: the soft-tissue peak of the body's histogram (HU)
+  double soft_tissue_sigma_hu = 0;  // automatic: its spread (HU), from the upper half width at half height
+  std::string reason;            // one sentence: where the values come from
+};
+
+/// Bounds (HU) on the automatic thresholds: the low one stays within
+/// [kAutoBoneLowMinHu, kAutoBoneLowMaxHu] (above discs, muscle and enhanced
+/// organs; at or below the 140-160 HU of a thick-slice vertebral body), the seeds
+/// at or above kAutoBoneSeedMinHu (cortical bone, above most contrast in vessels).
+constexpr double kAutoBoneLowMinHu = 110;
+constexpr double kAutoBoneLowMaxHu = 180;
+constexpr double kAutoBoneSeedMinHu = 300;
+/// How far (mm) the automatic low threshold grows from a seed: half a lumbar
+/// vertebral body's width, so its cancellous bone is reached from the cortex on
+/// either side; a vessel or organ at or above the low threshold that touches bone
+/// is taken no deeper than that.
+constexpr double kAutoBoneGrowMm = 15;
+/// Bounds (HU) on the automatic cancellous level: cavities of intervertebral discs
+/// (70-90 HU in the shared scans) stay open, the darker centres of thick-slice
+/// vertebral bodies (100-160 HU) are filled. Axial slices, where a disc is never
+/// enclosed by bone but the spinal canal (CSF, 0-40 HU) is, use a level
+/// kAxialCancellousDropHu lower.
+constexpr double kAutoCancellousMinHu = 100;
+constexpr double kAutoCancellousMaxHu = 120;
+constexpr double kAxialCancellousDropHu = 40;
+
+/// Chooses the bone thresholds for `image` inside `body`: prep.bone_threshold when
+/// the scene set it, else from the histogram of the body's voxels: the soft-tissue
+/// peak mu (the mode between -50 and 150 HU) and its spread sigma (upper half width
+/// at half height / 1.18); low = mu + max(100, 3 sigma) clamped to
+/// [kAutoBoneLowMinHu, kAutoBoneLowMaxHu], high = max(kAutoBoneSeedMinHu,
+/// mu + 2 (low - mu)), cancellous = mu + 0.5 (low - mu) clamped to
+/// [kAutoCancellousMinHu, kAutoCancellousMaxHu], cancellous_axial = cancellous -
+/// kAxialCancellousDropHu, grow_mm = kAutoBoneGrowMm.
+/// Throws palpsim::Error for an empty body.
+BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                                      const PrepSettings& prep);
+
+/// Bone mask with hysteresis: seeds (body voxels >= t.high) grown into the
+/// 6-connected body voxels >= t.low that lie within t.grow_mm of a seed, closed
+/// with a ball of prep.bone_closing_mm, cavities enclosed by bone filled
+/// (prep.bone_fill_holes: the cancellous interior of a vertebral body is rigid
+/// too), and components smaller than prep.bone_min_volume_ml removed. A cavity is
+/// filled when it is enclosed in 3D, or when, after a wider closing of
+/// `fill_closing_mm` (a cortex blurred by thick slices has gaps; build_patient
+/// passes twice the input's coarsest spacing), it is enclosed within an axial,
+/// coronal or sagittal slice, covers at most kMaxBoneHoleMm2 there, and its mean
+/// value reaches t.cancellous (t.cancellous_axial in an axial slice). That fills
+/// vertebral bodies but not the spinal canal (CSF), the discs, the pelvis or the thorax.
 constexpr double kMaxBoneHoleMm2 = 2500;
+Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                               const BoneThresholds& t, const PrepSettings& prep, double fill_closing_mm = 0,
+                               int threads = 0);
+
+/// Same, with the thresholds of choose_bone_thresholds(image, body, prep).
 Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uint8_t>& body,
                                const PrepSettings& prep, double fill_closing_mm = 0, int threads = 0);
 
-/// The mean value above which a cavity enclosed by bone counts as cancellous bone:
-/// 80% of the way from prep.air_threshold to prep.bone_threshold (80 HU with the
-/// defaults: above CSF, fat and muscle, below the cortex).
+/// The mean value above which a cavity enclosed by bone counts as cancellous bone
+/// with an explicit prep.bone_threshold: 80% of the way from prep.air_threshold to
+/// prep.bone_threshold (80 HU with -400 and 200 HU: above CSF, fat and muscle,
+/// below the cortex).
 double cancellous_level(const PrepSettings& prep);
+
+/// What a user needs to judge a bone mask at a glance: bone volume per region and
+/// warnings where it looks implausible. Regions, per axial slice, relative to the
+/// body in that slice: "spine" (within kSpineHalfWidthMm of the body's left-right
+/// centre and posterior of its antero-posterior centre less kSpineAnteriorMm),
+/// "left" and "right" (beyond kSpineHalfWidthMm on the patient's left, +x, or
+/// right: ribs, pelvis, arms), "anterior" (the rest: sternum, pubis).
+struct BoneSummary {
+  double body_ml = 0;            // volume of the body mask (ml)
+  double bone_ml = 0;            // volume of the bone mask (ml)
+  double spine_ml = 0, left_ml = 0, right_ml = 0, anterior_ml = 0;  // bone per region (ml)
+  int body_slices = 0;           // axial slices holding body
+  int spine_slices = 0;          // of those, slices with at least kSpineMinAreaMm2 of bone in the spine region
+  bool spine_found = false;      // spine_slices reach half of body_slices
+  double bone_fraction = 0;      // bone_ml / body_ml
+  std::vector<std::string> warnings;  // one sentence each; empty when the mask looks plausible
+};
+/// Half width (mm) of the spine region: a lumbar vertebra with its transverse
+/// processes; ribs and iliac wings lie beyond.
+constexpr double kSpineHalfWidthMm = 40;
+/// How far (mm) in front of the body's antero-posterior centre the spine region
+/// reaches (the front of the lumbar vertebral bodies lies about at that centre in
+/// the shared abdomen; thoracic ones lie further back).
+constexpr double kSpineAnteriorMm = 20;
+/// Bone area (mm^2) in the spine region that counts an axial slice as showing the
+/// spine: a lamina or a spinous process at a disc's level is more.
+constexpr double kSpineMinAreaMm2 = 50;
+/// Bone above this fraction of the body is implausible (an adult's skeleton is
+/// about 10-15% of the body's volume, less in a trunk scan).
+constexpr double kMaxBoneFraction = 0.25;
+
+/// Measures `bone` against `body` (same grid) as BoneSummary describes.
+BoneSummary summarize_bone(const Volume<std::uint8_t>& body, const Volume<std::uint8_t>& bone);
 
 /// Labels 6-connected components of `mask` and clears those smaller than
 /// `min_voxels`; returns the number of components kept.

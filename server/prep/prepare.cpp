@@ -101,6 +101,24 @@ std::string stages_json(const PrepReport& r) {
   return s + "}";
 }
 
+// the bone section of the report: thresholds and why, volume per region, warnings
+std::string bone_json(const BoneThresholds& t, const BoneSummary& b) {
+  std::string w = "[";
+  for (std::size_t i = 0; i < b.warnings.size(); ++i) w += (i ? ", " : "") + jstr(b.warnings[i]);
+  w += "]";
+  return "{\"thresholds\": {\"automatic\": " + std::string(t.automatic ? "true" : "false") + ", \"low_hu\": " +
+         jnum(t.low) + ", \"high_hu\": " + jnum(t.high) + ", \"cancellous_hu\": " + jnum(t.cancellous) +
+         ", \"cancellous_axial_hu\": " + jnum(t.cancellous_axial) + ", \"grow_mm\": " + jnum(t.grow_mm) +
+         (t.automatic ? ", \"soft_tissue_hu\": " + jnum(t.soft_tissue_hu) + ", \"soft_tissue_sigma_hu\": " +
+                            jnum(t.soft_tissue_sigma_hu)
+                      : std::string()) +
+         ", \"reason\": " + jstr(t.reason) + "}, \"regions_ml\": {\"spine\": " + jnum(b.spine_ml) +
+         ", \"left\": " + jnum(b.left_ml) + ", \"right\": " + jnum(b.right_ml) + ", \"anterior\": " +
+         jnum(b.anterior_ml) + "}, \"fraction_of_body\": " + jnum(b.bone_fraction) + ", \"spine_found\": " +
+         (b.spine_found ? "true" : "false") + ", \"spine_slices\": " + std::to_string(b.spine_slices) +
+         ", \"body_slices\": " + std::to_string(b.body_slices) + ", \"warnings\": " + w + "}";
+}
+
 // derives F and grad F, which the cache does not store
 void derive_force(Patient& p, const Scene& scene, PrepReport& r) {
   p.force = timed(r, "force", [&] { return force_image(p, scene.force_image); });
@@ -167,8 +185,13 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
                 jnum(prep.air_threshold) + ", e.g. a table or noise)");
   // cavities are looked for after a closing of twice the input's coarsest spacing
   const double coarsest = std::max({image.grid.spacing_mm.x, image.grid.spacing_mm.y, image.grid.spacing_mm.z});
-  p->bone = timed(r, "bone_mask", [&] { return bone_mask(p->intensity, p->body, prep, 2 * coarsest); });
+  p->bone = timed(r, "bone_mask", [&] {
+    r.bone_thresholds = choose_bone_thresholds(p->intensity, p->body, prep);
+    return bone_mask(p->intensity, p->body, r.bone_thresholds, prep, 2 * coarsest);
+  });
   r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
+  r.bone_summary = summarize_bone(p->body, p->bone);
+  for (const std::string& w : r.bone_summary.warnings) spdlog::warn("prep: {}: {}", source, w);
   p->has_bone = r.bone_ml > 0;
 
   // distance maps: A to bone (inf without bone), B depth under the skin
@@ -242,6 +265,8 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
       const double voxel_ml = p->grid.spacing_mm.x * p->grid.spacing_mm.y * p->grid.spacing_mm.z / 1000.0;
       r.body_ml = double(count_nonzero(p->body)) * voxel_ml;
       r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
+      r.bone_thresholds = choose_bone_thresholds(p->intensity, p->body, prep);
+      r.bone_summary = summarize_bone(p->body, p->bone);
       r.total_s = seconds_since(t0);
       r.json = "{" + core + ",\n  \"cache\": {\"hit\": true, \"key\": " + jstr(r.cache_key) + ", \"path\": " +
                jstr(entry) + ", \"this_run_stages_s\": " + stages_json(r) + "},\n  \"total_s\": " +
@@ -287,7 +312,8 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
       << jnum(info.min_value) << ", \"max\": " << jnum(info.max_value) << ", \"units\": "
       << jstr(hu ? "HU" : "image units") << "},\n  \"grid\": " << jgrid(p->grid) << ",\n  \"settings\": "
       << settings_json(scene) << ",\n  \"body_ml\": " << jnum(r.body_ml) << ",\n  \"bone_ml\": " << jnum(r.bone_ml)
-      << ",\n  \"has_bone\": " << (p->has_bone ? "true" : "false") << ",\n  \"force_max_mm\": " << jnum(fmax)
+      << ",\n  \"has_bone\": " << (p->has_bone ? "true" : "false")
+      << ",\n  \"bone\": " << bone_json(r.bone_thresholds, r.bone_summary) << ",\n  \"force_max_mm\": " << jnum(fmax)
       << ",\n  \"patient_mb\": " << jnum(double(patient_bytes) / (1024.0 * 1024.0))
       << ",\n  \"stages_s\": " << stages_json(r);
     core = s.str();
@@ -310,6 +336,27 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
   spdlog::info("prep: {} prepared in {:.2f} s ({} x {} x {} voxels of {} mm)", source, r.total_s, p->grid.size.x,
                p->grid.size.y, p->grid.size.z, p->grid.spacing_mm.x);
   return p;
+}
+
+std::vector<std::string> PrepReport::summary_lines() const {
+  const BoneThresholds& t = bone_thresholds;
+  const BoneSummary& b = bone_summary;
+  std::vector<std::string> lines;
+  std::ostringstream s;
+  s << std::fixed << std::setprecision(0);
+  if (t.automatic && t.high > t.low)
+    s << "bone auto: " << t.low << " HU grown from seeds " << t.high << " HU (soft tissue " << t.soft_tissue_hu
+      << " HU), cavities from " << t.cancellous << " HU";
+  else
+    s << "bone threshold " << t.low << " HU (" << t.reason << "), cavities from " << t.cancellous << " HU";
+  lines.push_back(s.str());
+  s.str("");
+  s << "bone " << b.bone_ml << " ml (" << std::setprecision(1) << 100 * b.bone_fraction << std::setprecision(0)
+    << "% of body " << b.body_ml << " ml): spine " << b.spine_ml << ", left " << b.left_ml << ", right " << b.right_ml
+    << ", anterior " << b.anterior_ml << " ml";
+  lines.push_back(s.str());
+  for (const std::string& w : b.warnings) lines.push_back("warning: " + w);
+  return lines;
 }
 
 }  // namespace palpsim

@@ -8,6 +8,7 @@
 
 #include "core/patient.h"
 #include "core/scene.h"
+#include "prep/pipeline.h"
 
 namespace palpsim {
 
@@ -21,6 +22,10 @@ struct PrepReport {
   std::vector<std::pair<std::string, double>> stage_s;  // wall time of each stage (s), in order
   double body_ml = 0;        // volume of the body mask C
   double bone_ml = 0;        // volume of the bone mask
+  BoneThresholds bone_thresholds;  // the bone mask's thresholds and why
+  BoneSummary bone_summary;  // bone volume per region, whether a spine was found, warnings
+  /// Lines for a reader at a glance (the preview's caption): thresholds, bone per region, warnings.
+  std::vector<std::string> summary_lines() const;
 };
 
 /// Prepares the scene's patient. Throws palpsim::Error naming the file and the
@@ -30,7 +35,7 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report = nullptr);
 /// Builds a patient from an image already in memory (HU, or image units with
 /// both prep thresholds set): resampling, masks, distance maps, F and grad F.
 /// No cache, no file I/O; `source` names it. Appends stage times to
-/// report->stage_s and sets body_ml and bone_ml. Throws palpsim::Error for an
+/// report->stage_s and sets body_ml, bone_ml, bone_thresholds and bone_summary. Throws palpsim::Error for an
 /// all-air image or one without a body.
 PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const std::string& source,
                          PrepReport* report = nullptr);

@@ -49,6 +49,14 @@ TEST_CASE("palpsim-prep writes every output for a CT file") {
   CHECK_THAT(json, Catch::Contains("\"body_ml\"") && Catch::Contains("\"bone_ml\"") &&
                        Catch::Contains("\"stages_s\"") && Catch::Contains("\"value_range\"") &&
                        Catch::Contains("\"spacing_mm\": [1.5, 1.5, 2.5]"));
+  // the bone section: automatic thresholds and why, volume per region, warnings (the
+  // torso's bone tube lies behind its centre, on the midline: a spine, so none); the
+  // thresholds are printed too
+  CHECK_THAT(json, Catch::Contains("\"bone\": {\"thresholds\": {\"automatic\": true") &&
+                       Catch::Contains("\"reason\": \"automatic from the body's histogram") &&
+                       Catch::Contains("\"regions_ml\": {\"spine\": ") && Catch::Contains("\"spine_found\": true") &&
+                       Catch::Contains("\"warnings\": []"));
+  CHECK_THAT(r.output, Catch::Contains("bone auto: "));
 }
 
 TEST_CASE("palpsim-prep on bad input exits non-zero, names the problem and writes nothing") {

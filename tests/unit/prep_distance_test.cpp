@@ -46,11 +46,14 @@ Volume<std::uint8_t> random_mask(std::mt19937& rng, Vec3i size, Vec3 spacing, do
 
 TEST_CASE("EDT equals brute force on random masks with anisotropic spacing") {
   std::mt19937 rng(1234);
-  const Vec3i sizes[] = {{9, 7, 5}, {17, 3, 11}, {1, 12, 8}, {13, 13, 1}, {20, 9, 6}};
-  const Vec3 spacings[] = {{0.7, 1.3, 3.0}, {2.5, 0.5, 1.0}, {1, 1, 1}, {0.977, 0.977, 2.0}, {3, 0.6, 1.7}};
+  // the last three: a single row, a single column of slices, a 2D slice one voxel high
+  // (every pass of the EDT, and where its square root is taken, on its own)
+  const Vec3i sizes[] = {{9, 7, 5}, {17, 3, 11}, {1, 12, 8}, {13, 13, 1}, {20, 9, 6}, {40, 1, 1}, {7, 1, 9}, {11, 1, 1}};
+  const Vec3 spacings[] = {{0.7, 1.3, 3.0}, {2.5, 0.5, 1.0}, {1, 1, 1}, {0.977, 0.977, 2.0}, {3, 0.6, 1.7},
+                           {0.8, 1, 1},     {1.5, 1, 0.4},   {2, 2, 2}};
   const double fills[] = {0.002, 0.02, 0.2, 0.6};
   int checked = 0;
-  for (int s = 0; s < 5; ++s)
+  for (int s = 0; s < 8; ++s)
     for (double fill : fills)
       for (int threads : {1, 3}) {
         const auto m = random_mask(rng, sizes[s], spacings[s], fill);

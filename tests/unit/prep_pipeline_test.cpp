@@ -105,7 +105,10 @@ TEST_CASE("bone mask fills a cortical tube's marrow, not a canal of soft tissue;
         if (rc <= 10) v.at(i, j, k) = rc >= 8 ? 900.0f : 15.0f;   // ring around a canal of CSF
       }
   v.at(70, 10, 15) = 900;  // a 1-voxel calcification
+  // a plain 200 HU threshold (an explicit scene value): the marrow comes in by the fill
+  // alone (automatic thresholds would take it in by hysteresis; prep_bone_test.cpp)
   PrepSettings prep;
+  prep.bone_threshold_set = true;
   const auto bone = bone_mask(v, body, prep, 6.0);
   CHECK(bone.at(25, 40, 15) == 1);  // the marrow is bone
   CHECK(bone.at(25, 40, 0) == 1);   // also where the tube leaves the volume

@@ -30,6 +30,7 @@ TEST_CASE("abdomen CT: table outside C, bowel gas inside, spinous processes and 
   Scene s = ct_scene(path, "");
   s.prep.spacing_mm = 1.5;
   s.prep.bone_threshold = 180;
+  s.prep.bone_threshold_set = true;
   const CtImage ct = read_ct(path, s.prep);
   const Grid& g = ct.image.grid;
   REQUIRE(g.size == Vec3i{122, 101, 112});

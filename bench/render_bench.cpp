@@ -29,6 +29,7 @@
 #include "bench/registry.h"
 #include "bench/stats.h"
 #include "core/error.h"
+#include "core/thread.h"
 #include "deform/engine.h"
 #include "net/scene_io.h"
 #include "net/server.h"
@@ -65,6 +66,7 @@ struct Options {
   int nice = 19;                         // the server's worker threads' nice value (ServerOptions::deform_nice)
   std::string writer, encoder;           // the server's render.overlay_writer / jpeg_encoder ("" = the scene's)
   int rounds = 3;                        // server part: rounds of (without, with viewers) per row
+  int viewers_nice = 19;                 // server part: the viewer threads' nice value (0: as the server's)
   bool deform = true;                    // server part: the scene's deformation on (off: frames of the
                                          // undeformed CT, to tell GPU sharing from the render's own cost)
 };
@@ -278,7 +280,7 @@ v1::ControlReply control(zmq::socket_t& s, v1::ControlRequest q) {
 // viewer thread; returns the round trips (us) and, with viewers, fills fps and latency
 void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double seconds, bool viewers,
                   std::vector<double>& rtts, std::vector<double>& fps, std::vector<double>& p2f,
-                  ServerRow* times = nullptr) {
+                  ServerRow* times = nullptr, int o_viewers_nice = 19) {
   std::vector<std::vector<double>> per(n), lat(n);
   std::vector<v1::FrameTimes> tsum(n);
   std::vector<double> twall(n, 0);
@@ -338,6 +340,10 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
     while (opened < n) std::this_thread::sleep_for(std::chrono::milliseconds(1));
     for (int c = 0; c < n; ++c)
       watchers.emplace_back([&, c] {
+        // the viewers stand in for remote training stations: on the server's machine
+        // they run at the lowest nice (unless --viewers-nice 0) so that their wake-ups
+        // do not preempt the server's pose thread, which real remote viewers never do
+        if (o_viewers_nice > 0) lower_this_thread(o_viewers_nice, false);
         zmq::context_t ctx(1);
         zmq::socket_t ctl(ctx, zmq::socket_type::req), sub(ctx, zmq::socket_type::sub);
         ctl.set(zmq::sockopt::linger, 0);
@@ -454,7 +460,7 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
       std::vector<double> a, w, f, p, unused_fps, unused_p2f;
       run_sessions(server, pi, n, seconds, false, a, unused_fps, unused_p2f);
       const v1::ServerStats st0 = control(ctl, sq).stats().server();
-      run_sessions(server, pi, n, seconds, true, w, f, p, &row);
+      run_sessions(server, pi, n, seconds, true, w, f, p, &row, o.viewers_nice);
       st = control(ctl, sq).stats().server();
       steps += st.deform_steps() - st0.deform_steps();
       frames += st.stream().frames_published() - st0.stream().frames_published();
@@ -483,12 +489,13 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
     std::printf(
         "server, %2d sessions at 1 kHz, %dx%d (%s deformation, %s, %s, batch %d, nice %d): frames/s per session min "
         "%.1f median %.1f; pose-to-frame p50 %.2f ms p99 %.2f ms; round trip p99 %.0f us with viewers vs %.0f us without "
-        "(%.2fx pooled over %d rounds, median of the rounds' ratios %.2fx); %llu deformation steps\n",
+        "(%.2fx pooled over %d rounds, median of the rounds' ratios %.2fx; viewer threads at nice %d); "
+        "%llu deformation steps\n",
         n, row.width, row.height, row.backend.c_str(), row.encoder.c_str(), row.writer.c_str(), row.max_batch, o.nice,
         row.fps_min,
         row.fps_median, row.p2f_p50_ms, row.p2f_p99_ms, row.rtt_p99_watched_us, row.rtt_p99_alone_us,
         row.rtt_p99_alone_us > 0 ? row.rtt_p99_watched_us / row.rtt_p99_alone_us : 0.0, row.rounds,
-        row.rtt_p99_ratio_median, (unsigned long long)row.deform_steps);
+        row.rtt_p99_ratio_median, o.viewers_nice, (unsigned long long)row.deform_steps);
     std::printf(
         "        frames under this load (mean ms): J->tex %.3f raycast %.3f slices %.3f composite %.3f readback %.3f "
         "encode %.3f | total %.3f; render thread busy %.0f%% of the time\n",
@@ -522,6 +529,9 @@ int run(int argc, char** argv) {
       o.encoder = value();
     } else if (a == "--nice") {
       o.nice = std::stoi(value());
+    } else if (a == "--viewers-nice") {
+      o.viewers_nice = std::stoi(value());
+      if (o.viewers_nice < 0 || o.viewers_nice > 19) throw Error("palpsim-bench render: --viewers-nice is 0..19");
     } else if (a == "--rounds") {
       o.rounds = std::stoi(value());
       if (o.rounds < 1 || o.rounds > 100) throw Error("palpsim-bench render: --rounds is 1..100");
@@ -563,6 +573,7 @@ int run(int argc, char** argv) {
           "                            [--no-deform (server part: frames of the undeformed CT)]\n"
           "                            [--batch 1,4,16 (server part: render.max_batch; the scene's)]\n"
           "                            [--rounds N (server part: rounds of without/with viewers, 3)]\n"
+          "                            [--viewers-nice N (server part: the viewer threads', 19)]\n"
           "                            [--no-server] [--sweep|--no-sweep (ray step x CT precision x preset;\n"
           "                            default: on a GPU only)]\n");
       return 0;
@@ -623,7 +634,8 @@ int run(int argc, char** argv) {
           << ", \"round_trip_p99_us_without_viewers\": " << json_number(r.rtt_p99_alone_us)
           << ", \"round_trip_p50_us_with_viewers\": " << json_number(r.rtt_p50_watched_us)
           << ", \"round_trip_p99_us_with_viewers\": " << json_number(r.rtt_p99_watched_us)
-          << ", \"rounds\": " << r.rounds << ", \"round_trip_p99_ratio_median_of_rounds\": "
+          << ", \"viewers_nice\": " << o.viewers_nice << ", \"rounds\": " << r.rounds
+          << ", \"round_trip_p99_ratio_median_of_rounds\": "
           << json_number(r.rtt_p99_ratio_median)
           << ", \"frames_published\": " << r.frames << ", \"deform_steps\": " << r.deform_steps
           << ", \"frame_ms_under_load\": {\"j_to_texture\": " << json_number(r.j_ms)

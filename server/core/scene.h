@@ -88,7 +88,7 @@ struct RenderSettings {
   std::string overlay_writer = "auto";  // "auto", "upload" or "cuda-gl"
   std::string record_dir;               // resolved; "" = render only watched sessions
   double ray_step_vox = 1;              // the 3D view's ray step (voxel)
-  int max_batch = 4;                    // frames drawn, then encoded together (render thread)
+  int max_batch = 2;                    // frames drawn, then encoded together (render thread)
 };
 
 /// A whole validated scene.

@@ -112,7 +112,7 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
   gl = ctx->describe();
   software = ctx->software();
   std::printf("GL: %s\n", gl.c_str());
-  DeformConfig dc = DeformConfig::from_scene(scene);
+  DeformConfig dc = DeformConfig::from_scene(scene, patient.get());
   dc.settings.backend = "auto";
   dc.settings.voi_edge = 64;
   DeformEngine engine(patient, dc);

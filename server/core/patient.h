@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <string>
 
@@ -22,6 +23,8 @@ struct Patient {
   Volume<float> force;             // F = alpha*C/(beta+A) + gamma*B (mm), eq. 1
   Volume<Vec3f> grad_force;        // grad F in physical axes (mm/mm), central differences
   bool has_bone = false;           // false when the bone mask is empty (A is then +inf)
+  double bone_threshold_hu = std::numeric_limits<double>::quiet_NaN();  // the low bone threshold prep used
+                                   // (automatic or the scene's); NaN for patients not made by prep
   std::string source;              // what it was made from (path or "phantom")
 };
 

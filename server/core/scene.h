@@ -13,6 +13,7 @@ struct PrepSettings {
   double bone_threshold = 200;      // HU (or image units when bone_threshold_set); the bone mask's only when set
   bool air_threshold_set = false;   // the scene set it explicitly
   bool bone_threshold_set = false;  // the scene set it explicitly; false: the bone mask's thresholds are automatic
+                                    // (and relaxation's material function steps at the automatic low one)
   double bone_min_volume_ml = 0.5;  // smaller bone components are removed
   double bone_closing_mm = 3.0;     // closing radius before hole filling
   bool bone_fill_holes = true;      // fill cavities enclosed by bone

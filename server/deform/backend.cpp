@@ -31,10 +31,12 @@ bool finite(const Vec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && 
 
 }  // namespace
 
-DeformConfig DeformConfig::from_scene(const Scene& scene) {
+DeformConfig DeformConfig::from_scene(const Scene& scene, const Patient* patient) {
   DeformConfig c;
   c.settings = scene.deform;
   c.bone_threshold = scene.prep.bone_threshold;
+  if (!scene.prep.bone_threshold_set && patient && std::isfinite(patient->bone_threshold_hu))
+    c.bone_threshold = patient->bone_threshold_hu;
   c.relax = scene.effects.relaxation;
   c.invert = scene.effects.inversion;
   return c;

@@ -34,7 +34,10 @@ struct DeformConfig {
   bool invert = true;          // produce the deformed image J (scene effect "inversion")
 
   /// The configuration a scene asks for: Deform{}, prep's bone threshold and the effects.
-  static DeformConfig from_scene(const Scene& scene);
+  /// The scene's settings; the material function's bone threshold is the scene's
+  /// prep.bone_threshold where the scene sets one, else the one prep chose for `patient`
+  /// (Patient::bone_threshold_hu), so that relaxation steps at the bone mask's own edge.
+  static DeformConfig from_scene(const Scene& scene, const Patient* patient = nullptr);
 };
 
 /// What ChainMail did in one step.

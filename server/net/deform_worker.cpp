@@ -168,7 +168,7 @@ void DeformWorker::set_up_world() {
   const Scene scene = w->scene;
   patient_ = w->patient;
   sh_.deform_seen_generation.store(generation_, std::memory_order_release);
-  config_ = DeformConfig::from_scene(scene);
+  config_ = DeformConfig::from_scene(scene, patient_.get());
   // engines of the previous world are bound to its patient and settings
   std::vector<Session>().swap(sessions_);
   spares_.clear();

@@ -190,6 +190,7 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
     return bone_mask(p->intensity, p->body, r.bone_thresholds, prep, 2 * coarsest);
   });
   r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
+  p->bone_threshold_hu = r.bone_thresholds.low;
   r.bone_summary = summarize_bone(p->body, p->bone);
   for (const std::string& w : r.bone_summary.warnings) spdlog::warn("prep: {}: {}", source, w);
   p->has_bone = r.bone_ml > 0;
@@ -266,6 +267,7 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
       r.body_ml = double(count_nonzero(p->body)) * voxel_ml;
       r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
       r.bone_thresholds = choose_bone_thresholds(p->intensity, p->body, prep);
+      p->bone_threshold_hu = r.bone_thresholds.low;
       r.bone_summary = summarize_bone(p->body, p->bone);
       r.total_s = seconds_since(t0);
       r.json = "{" + core + ",\n  \"cache\": {\"hit\": true, \"key\": " + jstr(r.cache_key) + ", \"path\": " +

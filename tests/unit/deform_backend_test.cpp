@@ -69,4 +69,11 @@ TEST_CASE("DeformConfig::from_scene takes Deform{}, prep's bone threshold and th
   CHECK(c.bone_threshold == 250);
   CHECK_FALSE(c.relax);
   CHECK(c.invert);
+  // the threshold prep chose for the patient, unless the scene set one explicitly
+  Patient p;
+  CHECK(DeformConfig::from_scene(s, &p).bone_threshold == 250);  // prep chose none (NaN)
+  p.bone_threshold_hu = 137;
+  CHECK(DeformConfig::from_scene(s, &p).bone_threshold == 137);
+  s.prep.bone_threshold_set = true;
+  CHECK(DeformConfig::from_scene(s, &p).bone_threshold == 250);
 }

@@ -2,6 +2,8 @@
 // setting changes, corrupt and half-written entries never used.
 #include <catch2/catch.hpp>
 
+#include <cmath>
+
 #include <filesystem>
 #include <fstream>
 
@@ -49,11 +51,17 @@ TEST_CASE("a prepared patient is reused while the CT and settings are unchanged"
   CHECK(same_patient(*a, *b));
   CHECK_THAT(r2.json, Catch::Contains("\"hit\": true"));
   CHECK(entries(d / "cache") == 1);
+  // the bone threshold prep chose (for the deformation's material function): the same
+  // from the cache as made fresh
+  CHECK(a->bone_threshold_hu == r1.bone_thresholds.low);
+  CHECK(b->bone_threshold_hu == a->bone_threshold_hu);
+  CHECK(std::isfinite(a->bone_threshold_hu));
 
   // another setting: another key
   s.prep.bone_threshold = 250;
+  s.prep.bone_threshold_set = true;
   PrepReport r3;
-  prepare_patient(s, &r3);
+  CHECK(prepare_patient(s, &r3)->bone_threshold_hu == 250);  // the scene's explicit one
   CHECK_FALSE(r3.from_cache);
   CHECK(r3.cache_key != r1.cache_key);
   s.prep.bone_threshold = 200;

@@ -600,6 +600,25 @@ inline void deform_relax_stability_limit(Case& c) {
   }
 }
 
+#ifdef PALPSIM_STABILITY_PREP
+/// `count` contacts the force model makes at random tips in the grid of `h` (of at most
+/// ten times as many tries), each deformed with `cfg` and checked by DeformRun.
+inline void deform_haptic_contacts(Case& c, const HapticPatient& h, const DeformConfig& cfg, int count) {
+  DeformRun rp(c, h.patient, cfg);
+  const Grid& g = h.patient->grid;
+  int n = 0;
+  for (int s = 0; s < 10 * count && n < count; ++s) {
+    const Vec3 tip = g.to_physical({c.uniform(0, g.size.x - 1), c.uniform(0, g.size.y - 1), c.uniform(0, g.size.z - 1)});
+    DeformContact k;
+    if (haptic_contact(*h.patient, tip, k)) {
+      rp.contact(k);
+      ++n;
+    }
+  }
+  REQUIRE(n == count);
+}
+#endif
+
 /// The anisotropic grid itself (0.5 x 0.5 x 5 mm voxels): pushes of a few mm, i.e. up to
 /// 20 voxels along x and y and one along z; with prep, the contacts the force model makes
 /// on a patient prepared from a 0.5 x 0.5 x 5 mm CT.
@@ -612,18 +631,7 @@ inline void deform_anisotropic(Case& c) {
   }
 #ifdef PALPSIM_STABILITY_PREP
   const HapticPatient h = prep_anisotropic_patient();
-  DeformRun rp(c, h.patient, config(2, 32));
-  const Grid& g = h.patient->grid;
-  int n = 0;
-  for (int s = 0; s < 60 && n < 6; ++s) {
-    const Vec3 tip = g.to_physical({c.uniform(0, g.size.x - 1), c.uniform(0, g.size.y - 1), c.uniform(0, g.size.z - 1)});
-    DeformContact k;
-    if (haptic_contact(*h.patient, tip, k)) {
-      rp.contact(k);
-      ++n;
-    }
-  }
-  REQUIRE(n == 6);
+  deform_haptic_contacts(c, h, config(2, 32), 6);
 #endif
 }
 
@@ -644,18 +652,7 @@ inline void deform_extreme_hu(Case& c) {
   }
 #ifdef PALPSIM_STABILITY_PREP
   const HapticPatient h = prep_extreme_hu_patient();
-  DeformRun rp(c, h.patient, config(1, 24));
-  const Grid& g = h.patient->grid;
-  int n = 0;
-  for (int s = 0; s < 60 && n < 6; ++s) {
-    const Vec3 tip = g.to_physical({c.uniform(0, g.size.x - 1), c.uniform(0, g.size.y - 1), c.uniform(0, g.size.z - 1)});
-    DeformContact k;
-    if (haptic_contact(*h.patient, tip, k)) {
-      rp.contact(k);
-      ++n;
-    }
-  }
-  REQUIRE(n == 6);
+  deform_haptic_contacts(c, h, config(1, 24), 6);
 #endif
 }
 

@@ -148,8 +148,16 @@ Case run_case(const std::string& name, Volume<float> image, double in_s, const c
   c.patient_mb = double(p.intensity.bytes() + p.body.bytes() + p.bone.bytes() + p.dist_bone_mm.bytes() +
                         p.dist_skin_mm.bytes() + p.force.bytes() + p.grad_force.bytes()) / (1024.0 * 1024.0);
   c.peak_rss_mb = peak_rss_mb();
-  // the same EDT in scipy: depth under the skin (inside C to its outside)
-  if (repeats > 0) compare_scipy(c, p.body, p.dist_skin_mm, repeats);
+  // the same EDT in scipy: depth under the skin (inside C to its outside); scipy's time is
+  // the best of `repeats` runs, so ours for the ratio is too (the stage above is one run)
+  if (repeats > 0) {
+    for (int r = 1; r < repeats; ++r) {
+      t = Clock::now();
+      const Volume<float> again = distance_to_background_mm(p.body);
+      c.our_edt_s = std::min(c.our_edt_s, since(t));
+    }
+    compare_scipy(c, p.body, p.dist_skin_mm, repeats);
+  }
   return c;
 }
 

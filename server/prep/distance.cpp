@@ -98,35 +98,36 @@ struct EnvelopeLine {
   }
 };
 
-// 1-D squared distances (mm^2) along each row of slice k to the row's nearest site
-void rows_pass(const Volume<std::uint8_t>& mask, bool to_nonzero, const std::vector<float>& sq, int k,
-               Volume<float>& d) {
-  const int nx = mask.grid.size.x, ny = mask.grid.size.y;
-  for (int j = 0; j < ny; ++j) {
-    const std::size_t base = (std::size_t(k) * ny + j) * nx;
-    const std::uint8_t* m = mask.data.data() + base;
-    float* o = d.data.data() + base;
-    // runs of sites are zeros; a run between sites takes the nearer one's distance
-    int prev = -1;  // the last site before the run, -1 for none
-    int i = 0;
-    while (i < nx) {
-      const int a = i;
-      if ((m[i] != 0) == to_nonzero) {
-        while (i < nx && (m[i] != 0) == to_nonzero) ++i;
-        std::fill(o + a, o + i, 0.0f);
-        prev = i - 1;
-        continue;
-      }
-      while (i < nx && (m[i] != 0) != to_nonzero) ++i;
-      if (prev < 0 && i == nx) {
-        std::fill(o + a, o + i, kInf);  // no site in the row
-      } else if (prev < 0) {
-        for (int q = a; q < i; ++q) o[q] = sq[std::size_t(i - q)];
-      } else if (i == nx) {
-        for (int q = a; q < i; ++q) o[q] = sq[std::size_t(q - prev)];
-      } else {
-        for (int q = a; q < i; ++q) o[q] = sq[std::size_t(std::min(q - prev, i - q))];
-      }
+// 1-D squared distances (mm^2) along k, for the columns (i, j) with plane index e in
+// [e0, e1), to each column's nearest site: a forward sweep keeps the last site's k per
+// column, a backward sweep the next one's; every sweep walks whole rows of a plane,
+// so memory streams and the loops vectorise (no gathering of strided lines)
+void columns_pass(const Volume<std::uint8_t>& mask, bool to_nonzero, double hz, std::size_t e0, std::size_t e1,
+                  std::vector<int>& near, Volume<float>& d) {
+  const int nz = mask.grid.size.z;
+  const std::size_t sxy = std::size_t(mask.grid.size.x) * mask.grid.size.y, n = e1 - e0;
+  const std::uint8_t want = to_nonzero ? 1 : 0;
+  near.assign(n, -1);
+  // forward: distance (voxels) to the last site at or below k; -1: none yet
+  for (int k = 0; k < nz; ++k) {
+    const std::uint8_t* m = mask.data.data() + std::size_t(k) * sxy + e0;
+    float* o = d.data.data() + std::size_t(k) * sxy + e0;
+    for (std::size_t e = 0; e < n; ++e) {
+      if ((m[e] != 0) == want) near[e] = k;
+      o[e] = near[e] < 0 ? kInf : float(k - near[e]);
+    }
+  }
+  // backward: the nearer of that and the next site above, squared in mm^2
+  near.assign(n, -1);
+  const double h2 = hz * hz;
+  for (int k = nz - 1; k >= 0; --k) {
+    const std::uint8_t* m = mask.data.data() + std::size_t(k) * sxy + e0;
+    float* o = d.data.data() + std::size_t(k) * sxy + e0;
+    for (std::size_t e = 0; e < n; ++e) {
+      if ((m[e] != 0) == want) near[e] = k;
+      const float up = near[e] < 0 ? kInf : float(near[e] - k);
+      const float c = std::min(o[e], up);
+      o[e] = c == kInf ? kInf : float(h2 * double(c) * double(c));
     }
   }
 }
@@ -182,7 +183,10 @@ struct LineScratch {
   explicit LineScratch(int n) : env(n), buf(std::size_t(n) * kBlock), res(std::size_t(n) * kBlock) {}
 };
 
-// the exact EDT: squared distances (mm^2), or distances (mm) when `root`
+// the exact EDT: squared distances (mm^2), or distances (mm) when `root`. The 1-D
+// passes may go in any order (the squared distance separates by axis): along k first,
+// on the mask itself, streaming whole planes; then slice by slice (a slice stays in
+// cache) the lower envelopes along j and along i, the rows along i contiguous
 Volume<float> edt(const Volume<std::uint8_t>& mask, bool to_nonzero, bool root, int threads) {
   const Grid& g = mask.grid;
   const int nx = g.size.x, ny = g.size.y, nz = g.size.z;
@@ -191,39 +195,47 @@ Volume<float> edt(const Volume<std::uint8_t>& mask, bool to_nonzero, bool root, 
   const double hx = g.spacing_mm.x, hy = g.spacing_mm.y, hz = g.spacing_mm.z;
   const std::size_t sx = std::size_t(nx), sxy = std::size_t(nx) * ny;
   const int iblocks = (nx + kBlock - 1) / kBlock;
-  // squared row distances (mm^2) by sample count: (h q)^2
-  std::vector<float> sq(std::size_t(nx) + 1);
-  for (int q = 0; q <= nx; ++q) sq[std::size_t(q)] = float((hx * q) * (hx * q));
 
-  // passes 1 and 2 slice by slice (a slice stays in cache between them): along i,
-  // then lower envelopes along j; the square root here when the volume has one slice
-  const bool root_j = root && nz == 1;
+  // pass 1 along k: the plane's columns in chunks of whole rows, one chunk per item
+  const std::size_t chunk = std::max<std::size_t>(sx, (4096 / sx) * sx);
+  const std::size_t chunks = (sxy + chunk - 1) / chunk;
   dynamic_for(
-      std::size_t(nz), threads, [&] { return LineScratch(ny); },
-      [&](std::size_t k, LineScratch& sc) {
-        rows_pass(mask, to_nonzero, sq, int(k), d);
-        if (ny > 1) {
-          for (int ib = 0; ib < iblocks; ++ib) {
-            const int i0 = ib * kBlock;
-            lines_pass(d.data.data() + k * sxy + i0, std::min(kBlock, nx - i0), ny, hy, sx, root_j, sc.env, sc.buf,
-                       sc.res);
-          }
-        } else if (root_j) {
-          for (std::size_t i = k * sxy; i < (k + 1) * sxy; ++i) d.data[i] = std::sqrt(d.data[i]);
-        }
+      chunks, threads, [] { return std::vector<int>(); },
+      [&](std::size_t c, std::vector<int>& near) {
+        columns_pass(mask, to_nonzero, hz, c * chunk, std::min(sxy, (c + 1) * chunk), near, d);
       });
 
-  // pass 3 along k, one set of lines per j, with the square root when asked
-  if (nz > 1) {
-    dynamic_for(
-        std::size_t(ny) * iblocks, threads, [&] { return LineScratch(nz); },
-        [&](std::size_t w, LineScratch& sc) {
-          const std::size_t j = w / iblocks;
-          const int i0 = int(w % iblocks) * kBlock;
-          lines_pass(d.data.data() + j * sx + i0, std::min(kBlock, nx - i0), nz, hz, sxy, root, sc.env, sc.buf,
-                     sc.res);
-        });
-  }
+  // passes 2 and 3 slice by slice: lower envelopes along j (blocks of i gathered), then
+  // along each row i in place, with the square root when asked
+  struct SliceScratch {
+    LineScratch j;
+    EnvelopeLine row;
+    std::vector<float> out;
+    SliceScratch(int ny, int nx) : j(ny), row(nx), out(std::size_t(nx)) {}
+  };
+  dynamic_for(
+      std::size_t(nz), threads, [&] { return SliceScratch(ny, nx); },
+      [&](std::size_t k, SliceScratch& sc) {
+        float* slice = d.data.data() + k * sxy;
+        if (ny > 1)
+          for (int ib = 0; ib < iblocks; ++ib) {
+            const int i0 = ib * kBlock;
+            lines_pass(slice + i0, std::min(kBlock, nx - i0), ny, hy, sx, false, sc.j.env, sc.j.buf, sc.j.res);
+          }
+        for (int j = 0; j < ny; ++j) {
+          float* row = slice + std::size_t(j) * sx;
+          // a row of sites (zeros) is its own result
+          bool any = false;
+          for (int i = 0; i < nx; ++i) any |= row[i] != 0;
+          if (!any) continue;
+          if (nx > 1) {
+            sc.row.run(row, nx, hx, sc.out.data());
+            std::copy(sc.out.begin(), sc.out.end(), row);
+          }
+          if (root)
+            for (int i = 0; i < nx; ++i) row[i] = std::sqrt(row[i]);
+        }
+      });
   return d;
 }
 

@@ -1,5 +1,6 @@
 """The batch plan end to end: the real palpsim-server (from $PALPSIM_BUILD_DIR) on the
-phantom, on a free loopback port, with parallel sessions."""
+phantom, on a free loopback port, with parallel sessions; a haptics-only run builds
+nothing else (no deformation, no render thread, no EGL context)."""
 
 from __future__ import annotations
 
@@ -217,3 +218,22 @@ def test_demo_finds_the_spinous_processes(server, tmp_path, capsys):
             assert _over_process(e, tip)
     assert (tmp_path / "demo" / "spine_profile.png").read_bytes()[:4] == b"\x89PNG"
     assert "spinous processes found as force peaks: 5" in capsys.readouterr().out
+
+
+def test_haptics_only_batch_run_builds_no_gpu_buffer_and_no_egl_context(server):
+    # a scene that asks for haptics only: after a whole batch run the server made no
+    # deformation (no device buffer, no backend), no render thread, no EGL context and no
+    # publisher; only the haptics stage is built and holds memory
+    plan = parse_plan(PLAN, source="e2e")
+    result = run_plan(plan, server.address, sessions=2, progress=False)
+    assert len(result.table) > 0
+    with Client(server.address) as c:
+        st = c.stats().server
+    stages = {g.name: g for g in st.stages}
+    assert stages["haptics"].built and stages["haptics"].runs > 0
+    for name in ("chainmail", "relaxation", "inversion", "frames", "bricks"):
+        assert not stages[name].built, name
+        assert stages[name].bytes_allocated == 0 and stages[name].runs == 0, name
+    assert st.deform_backend == "" and st.deform_steps == 0
+    assert not st.HasField("stream") or not (st.stream.render_thread or st.stream.egl_context
+                                             or st.stream.publisher_thread)

@@ -6,6 +6,7 @@
 #include <csignal>
 #include <cstdio>
 #include <cstring>
+#include <filesystem>
 #include <pthread.h>
 #include <string>
 
@@ -18,7 +19,7 @@ namespace {
 
 const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
-    "                      [--max-pose-distance-mm MM] [--background idle|nice]\n"
+    "                      [--max-pose-distance-mm MM] [--background idle|nice] [--scene-dir DIR ...]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
     "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
     "  --bind ADDR        control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
@@ -27,6 +28,8 @@ const char* kUsage =
     "                     (default: the control port + 2; * stays *)\n"
     "  --background P     the deformation and render threads: idle (default: SCHED_IDLE and nice 19,\n"
     "                     any pose thread takes a core at once) or nice (nice 19 only)\n"
+    "  --scene-dir DIR    a folder LoadScene requests may read scene files and CTs from and record\n"
+    "                     frames into (repeatable; default: the folder of --scene, none without it)\n"
     "Prints 'ready on ADDR poses ADDR [stream ADDR]' when serving; stops cleanly on SIGINT or SIGTERM.\n";
 
 int fail(const std::string& what) {
@@ -62,6 +65,8 @@ int main(int argc, char** argv) {
         return 0;
       } else if (a == "--scene") {
         scene_file = value("--scene");
+      } else if (a == "--scene-dir") {
+        options.scene_dirs.push_back(value("--scene-dir"));
       } else if (a == "--bind") {
         options.control_bind = value("--bind");
       } else if (a == "--pose-bind") {
@@ -101,6 +106,10 @@ int main(int argc, char** argv) {
     return fail(std::string("cannot start: ") + e.what());
   }
   // deformation, frames and bricks are built by the server (and logged) when the scene asks for them
+
+  // LoadScene's files: the folder of the starting scene unless the operator names folders
+  if (options.scene_dirs.empty() && !scene_file.empty())
+    options.scene_dirs.push_back(std::filesystem::absolute(scene_file).parent_path().string());
 
   // serve
   try {

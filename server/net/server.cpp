@@ -13,6 +13,7 @@
 #include "core/thread.h"
 #include "deform/backend.h"
 #include "net/deform_worker.h"
+#include "net/path_policy.h"
 #include "net/pose_service.h"
 #include "net/render_worker.h"
 #include "net/scene_io.h"
@@ -204,7 +205,8 @@ std::string derive_stream_endpoint(const std::string& control) { return derive_e
 class Server::Control {
  public:
   Control(ServerShared& sh, const Scene& scene, PatientPtr patient, PatientLoader loader, const ServerOptions& o)
-      : sh_(sh), loader_(std::move(loader)), opt_(o), ctx_(1), control_(ctx_, zmq::socket_type::router),
+      : sh_(sh), loader_(std::move(loader)), opt_(o), paths_(o.scene_dirs), ctx_(1),
+        control_(ctx_, zmq::socket_type::router),
         pose_(ctx_, zmq::socket_type::router), in_(kMaxControlBytes + 1) {
     start_ = Clock::now();
     seed_ = std::random_device{}() ^ (std::uint64_t(std::random_device{}()) << 32);
@@ -315,6 +317,7 @@ class Server::Control {
   ServerShared& sh_;
   PatientLoader loader_;
   ServerOptions opt_;
+  PathPolicy paths_;  // the folders LoadScene may touch
   zmq::context_t ctx_;
   zmq::socket_t control_, pose_;
   std::string control_endpoint_, pose_endpoint_;
@@ -868,7 +871,15 @@ class Server::Control {
     try {
       if (r.path().empty() == r.text().empty())
         throw Error("LoadScene: set exactly one of path or text");
+      // no file outside the operator's folders is read or written for a client
+      auto allowed = [&](const std::string& path, const std::string& field) {
+        const std::string why = paths_.check(path, "LoadScene: " + field);
+        if (!why.empty()) throw Error(why);
+      };
+      if (!r.path().empty()) allowed(r.path(), "path");
       const Scene scene = r.path().empty() ? parse_scene_text(r.text(), "") : load_scene_file(r.path());
+      if (!scene.use_phantom) allowed(scene.ct_path, what + ": ct_path");
+      if (!scene.render.record_dir.empty()) allowed(scene.render.record_dir, what + ": render.record_dir");
       // deformation settings no backend can serve refuse the scene before its patient is made
       if (scene.effects.chainmail) {
         check_deform_config(DeformConfig::from_scene(scene), "LoadScene: " + what);

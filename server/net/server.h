@@ -36,6 +36,8 @@ struct ServerOptions {
   int deform_nice = 19;                                 // the deformation and render threads' nice value (Linux; 0..19)
   bool background_idle = true;                          // and SCHED_IDLE for them (Linux; core/thread.h says why)
   std::string stream_bind;                              // the stream publisher's XPUB address; "" = derived (derive_stream_endpoint)
+  std::vector<std::string> scene_dirs;                  // folders LoadScene may read (scene file, CT) and write
+                                                        // (render.record_dir) in; none: LoadScene names no file
 };
 
 /// The default pose address for a control address: tcp port + 1 ("*" stays "*"),

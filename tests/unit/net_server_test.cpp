@@ -1,13 +1,18 @@
 // The server's network edge in-process on synthetic patients: what comes over the wire
 // is exactly the force model's answer, resets and parameter changes apply from the next
 // pose on, the contact hook sees the newest pose, and scene reloads swap the patient or
-// are refused with the old one kept.
+// are refused with the old one kept, and read or write no file outside the operator's
+// folders.
 #include <catch2/catch.hpp>
 
 #include <chrono>
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <unistd.h>
 #include <zmq.hpp>
 
 #include "core/error.h"
@@ -221,4 +226,77 @@ TEST_CASE("a REQ socket works on the pose path too (empty delimiter mirrored)", 
     CHECK(r.contact());
   }
   server.stop();
+}
+
+TEST_CASE("LoadScene touches no file outside the operator's folders (--scene-dir)", "[net][security]") {
+  namespace fs = std::filesystem;
+  // a scratch tree: allowed/ holds a scene, other/ one too, allowed/out a link to other/
+  const fs::path root = fs::temp_directory_path() / ("palpsim-scene-dir-" + std::to_string(::getpid()));
+  fs::remove_all(root);
+  fs::create_directories(root / "allowed");
+  fs::create_directories(root / "other");
+  const std::string scene_text = "name: \"sphere\"\nphantom { voxel_mm: 2 }\n";
+  for (const char* d : {"allowed", "other"}) std::ofstream(root / d / "s.textproto") << scene_text;
+  fs::create_directory_symlink(root / "other", root / "allowed" / "out");
+  // the loader would make any scene; only the policy may refuse
+  const auto sphere = test::sphere_patient();
+  auto loader = [&](const Scene&) -> PatientPtr { return sphere; };
+
+  SECTION("without folders no path is read") {
+    net::Server server(default_scene(), test::slab_patient(), loader, test::loopback_options());
+    server.start();
+    Client c(server);
+    v1::ControlRequest q;
+    q.mutable_load_scene()->set_path((root / "allowed" / "s.textproto").string());
+    const auto r = c.call(q);
+    CHECK(r.error().code() == v1::ERROR_SCENE_LOAD_FAILED);
+    CHECK_THAT(r.error().message(), Catch::Contains("--scene-dir"));
+    // a text scene of the phantom names no file: still served
+    v1::ControlRequest t;
+    t.mutable_load_scene()->set_text(scene_text);
+    CHECK(c.call(t).error().code() == v1::ERROR_NONE);
+    server.stop();
+  }
+  SECTION("with a folder: inside it is read; outside, '..' and links out are refused, naming the path") {
+    net::ServerOptions o = test::loopback_options();
+    o.scene_dirs = {(root / "allowed").string()};
+    net::Server server(default_scene(), test::slab_patient(), loader, o);
+    server.start();
+    Client c(server);
+    auto load_path = [&](const fs::path& p) {
+      v1::ControlRequest q;
+      q.mutable_load_scene()->set_path(p.string());
+      return c.call(q);
+    };
+    CHECK(load_path(root / "allowed" / "s.textproto").error().code() == v1::ERROR_NONE);
+    for (const fs::path& bad : {root / "other" / "s.textproto", root / "allowed" / ".." / "other" / "s.textproto",
+                                root / "allowed" / "out" / "s.textproto", fs::path("/etc/passwd")}) {
+      INFO(bad);
+      const auto r = load_path(bad);
+      CHECK(r.error().code() == v1::ERROR_SCENE_LOAD_FAILED);
+      CHECK_THAT(r.error().message(), Catch::Contains("outside the folders"));
+      CHECK_THAT(r.error().message(), Catch::Contains(bad.string()));
+    }
+    // a text scene may not name a CT or a recording folder outside them either
+    for (const std::string& text : {std::string("name: \"ct\"\nct_path: \"") + (root / "other" / "ct.nrrd").string() + "\"\n",
+                                    scene_text + "render { record_dir: \"" + (root / "other" / "rec").string() + "\" }\n"}) {
+      INFO(text);
+      v1::ControlRequest q;
+      q.mutable_load_scene()->set_text(text);
+      const auto r = c.call(q);
+      CHECK(r.error().code() == v1::ERROR_SCENE_LOAD_FAILED);
+      CHECK_THAT(r.error().message(), Catch::Contains("outside the folders"));
+    }
+    CHECK_FALSE(fs::exists(root / "other" / "rec"));
+    // the server kept serving the scene it had
+    CHECK(c.send_pose(1, {32, 32, 50}, 0).error().code() == v1::ERROR_NONE);
+    server.stop();
+  }
+  SECTION("a folder that does not exist is refused at start, named") {
+    net::ServerOptions o = test::loopback_options();
+    o.scene_dirs = {(root / "missing").string()};
+    CHECK_THROWS_WITH(net::Server(default_scene(), test::slab_patient(), loader, o),
+                      Catch::Contains((root / "missing").string()));
+  }
+  fs::remove_all(root);
 }

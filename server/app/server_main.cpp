@@ -11,6 +11,7 @@
 #include <string>
 
 #include "core/error.h"
+#include "net/path_policy.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "prep/prepare.h"
@@ -89,6 +90,13 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "palpsim-server: %s\n%s", e.what(), kUsage);
       return 2;
     }
+  }
+
+  // folders that do not exist are refused before the patient is prepared
+  try {
+    palpsim::net::PathPolicy check(options.scene_dirs);
+  } catch (const std::exception& e) {
+    return fail(std::string("cannot start: ") + e.what());
   }
 
   // scene and patient: refuse to start on any error, naming it

@@ -10,6 +10,8 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <map>
+#include <string>
 #include <thread>
 #include <vector>
 #include <zmq.hpp>
@@ -547,5 +549,58 @@ TEST_CASE("LoadScene starts and stops the stream's threads as the new scene asks
   CHECK(st.server().stream().render_thread());
   CHECK(st.server().stream().egl_context());
   CHECK_FALSE(server.stream_endpoint().empty());
+  server.stop();
+}
+
+TEST_CASE("sessions due together are drawn in batches; every frame shows its own session", "[net][stream][batch]") {
+  // three watched sessions and batches of two: one pass draws two frames together and
+  // the third alone, so a mix-up of batch slots (J, view, marks, framebuffer, JPEG)
+  // would put one session's tip or size into another's frame
+  Scene scene = stream_scene(false);
+  scene.render.max_batch = 2;
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client a(server), b(server), c(server);
+  Client* clients[3] = {&a, &b, &c};
+  const double tip_x[3] = {20, 35, 50};  // mm: each session's tip, 2 mm above the skin
+  const int widths[3] = {192, 160, 128};  // each session's frame width (pixels)
+  test::StreamViewer v(server.stream_endpoint());
+  std::map<std::string, int> topic_of;
+  for (int n = 0; n < 3; ++n) {
+    v1::WatchSession w;
+    w.set_session_id(clients[n]->id);
+    w.set_frames(true);
+    w.mutable_view()->set_width(widths[n]);
+    w.mutable_view()->set_height(108);
+    const v1::ControlReply r = clients[n]->watch(w);
+    REQUIRE(r.error().code() == v1::ERROR_NONE);
+    v.subscribe(r.watch().frame_topic());
+    topic_of[r.watch().frame_topic()] = n;
+  }
+  // every session moves its own tip; frames of all three come, each with its own tip and size
+  int frames[3] = {0, 0, 0};
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWaitS);
+  int step = 0;
+  while ((frames[0] < 3 || frames[1] < 3 || frames[2] < 3) && std::chrono::steady_clock::now() < end) {
+    ++step;
+    for (int n = 0; n < 3; ++n) clients[n]->send_pose({tip_x[n], kPressY + 0.01 * step, test::kSlabSkinZ + 2});
+    v1::StreamMessage m;
+    std::string topic;
+    while (v.next(m, &topic, 20)) {
+      if (!m.has_frame() || !topic_of.count(topic)) continue;
+      const int n = topic_of[topic];
+      const v1::Frame& f = m.frame();
+      INFO("session " << n << ", frame " << f.frame_seq());
+      CHECK(f.session_id() == clients[n]->id);
+      CHECK(f.width() == unsigned(widths[n]));
+      CHECK(f.tip_mm().x() == tip_x[n]);
+      CHECK(decode(f).w == widths[n]);
+      ++frames[n];
+    }
+  }
+  CHECK(frames[0] >= 3);
+  CHECK(frames[1] >= 3);
+  CHECK(frames[2] >= 3);
+  CHECK(c.stats().server().stream().render_failures() == 0);
   server.stop();
 }

@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <array>
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
@@ -36,14 +37,6 @@ std::string hex_id(std::uint64_t id) {
   char b[32];
   std::snprintf(b, sizeof b, "%016" PRIx64, id);
   return b;
-}
-
-// splitmix64: a bijective mix, so ids look random and never repeat for distinct counters
-std::uint64_t mix64(std::uint64_t x) {
-  x += 0x9e3779b97f4a7c15ull;
-  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
-  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
-  return x ^ (x >> 31);
 }
 
 void fill_params(v1::HapticsParams* out, const HapticsSettings& s) {
@@ -209,7 +202,6 @@ class Server::Control {
         control_(ctx_, zmq::socket_type::router),
         pose_(ctx_, zmq::socket_type::router), in_(kMaxControlBytes + 1) {
     start_ = Clock::now();
-    seed_ = std::random_device{}() ^ (std::uint64_t(std::random_device{}()) << 32);
     sh_.max_pose_distance_mm = o.max_pose_distance_mm;
     current_ = make_world(scene, std::move(patient), 1);
     sh_.world.store(current_.get(), std::memory_order_release);
@@ -322,7 +314,9 @@ class Server::Control {
   zmq::socket_t control_, pose_;
   std::string control_endpoint_, pose_endpoint_;
   Clock::time_point start_;
-  std::uint64_t seed_ = 0, id_counter_ = 0, id_counter_opened_ = 0;
+  std::uint64_t id_counter_opened_ = 0;
+  std::random_device random_;                   // session ids (getrandom on Linux)
+  std::array<std::uint64_t, kMaxSlots> last_id_{};  // each slot's latest session id
   std::unique_ptr<World> current_;
   std::vector<std::unique_ptr<World>> retired_;  // old worlds the pose thread may still read
   std::vector<char> in_;
@@ -492,9 +486,14 @@ class Server::Control {
     if (!free_slot || open_count() >= limit)
       return refuse(v1::ERROR_TOO_MANY_SESSIONS, sh_.counters.too_many_sessions,
                     "OpenSession: all " + std::to_string(limit) + " sessions (scene server.max_sessions) are open");
-    // a fresh id: random-looking high bits, the slot index in the low bits
+    // a fresh id: high bits from the OS's random source, so that a client that knows
+    // its own ids learns nothing of anyone else's (a counter through a fixed mix could
+    // be inverted and stepped); the slot index in the low bits; never 0, and never the
+    // id this slot had last (a late message of that session cannot reach the new one)
     std::uint64_t id = 0;
-    while (id == 0) id = (mix64(seed_ + ++id_counter_) << kSlotBits) | std::uint64_t(index);
+    while (id == 0 || id == last_id_[std::size_t(index)])
+      id = (((std::uint64_t(random_()) << 32) | random_()) << kSlotBits) | std::uint64_t(index);
+    last_id_[std::size_t(index)] = id;
     SessionSlot& s = *free_slot;
     s.set_params(world().scene.haptics);
     s.poses = 0;

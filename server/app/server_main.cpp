@@ -21,6 +21,7 @@ namespace {
 const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
     "                      [--max-pose-distance-mm MM] [--background idle|nice] [--scene-dir DIR ...]\n"
+    "                      [--insecure]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
     "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
     "  --bind ADDR        control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
@@ -31,6 +32,8 @@ const char* kUsage =
     "                     any pose thread takes a core at once) or nice (nice 19 only)\n"
     "  --scene-dir DIR    a folder LoadScene requests may read scene files and CTs from and record\n"
     "                     frames into (repeatable; default: the folder of --scene, none without it)\n"
+    "  --insecure         allow addresses beyond loopback: poses, frames and control travel in plain\n"
+    "                     text, unauthenticated (a trusted network only)\n"
     "Prints 'ready on ADDR poses ADDR [stream ADDR]' when serving; stops cleanly on SIGINT or SIGTERM.\n";
 
 int fail(const std::string& what) {
@@ -66,6 +69,8 @@ int main(int argc, char** argv) {
         return 0;
       } else if (a == "--scene") {
         scene_file = value("--scene");
+      } else if (a == "--insecure") {
+        options.insecure = true;
       } else if (a == "--scene-dir") {
         options.scene_dirs.push_back(value("--scene-dir"));
       } else if (a == "--bind") {

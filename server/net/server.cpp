@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdio>
 #include <random>
+#include <utility>
 #include <zmq.hpp>
 
 #include "core/error.h"
@@ -194,6 +195,12 @@ std::string derive_endpoint(const std::string& control, int offset, const std::s
 std::string derive_pose_endpoint(const std::string& control) { return derive_endpoint(control, 1, "pose"); }
 std::string derive_stream_endpoint(const std::string& control) { return derive_endpoint(control, 2, "stream"); }
 
+bool is_loopback_endpoint(const std::string& e) {
+  auto starts = [&](const char* p) { return e.rfind(p, 0) == 0; };
+  return starts("ipc://") || starts("inproc://") || starts("tcp://127.") || starts("tcp://localhost:") ||
+         starts("tcp://[::1]:") || starts("tcp://lo:");
+}
+
 // the control thread: sockets, world ownership, control requests, housekeeping
 class Server::Control {
  public:
@@ -210,6 +217,18 @@ class Server::Control {
       s->set(zmq::sockopt::maxmsgsize, kMaxFrameBytes);
       s->set(zmq::sockopt::sndhwm, 10000);
       s->set(zmq::sockopt::rcvhwm, 10000);
+    }
+    // plain text beyond this machine only when the operator says so
+    if (!o.insecure) {
+      const std::pair<std::string, const char*> addrs[] = {
+          {o.control_bind, "--bind"},
+          {o.pose_bind.empty() ? derive_pose_endpoint(o.control_bind) : o.pose_bind, "--pose-bind"},
+          {o.stream_bind.empty() ? derive_stream_endpoint(o.control_bind) : o.stream_bind, "--stream-bind"}};
+      for (const auto& [addr, option] : addrs)
+        if (!is_loopback_endpoint(addr))
+          throw Error(std::string(option) + " " + addr +
+                      ": not a loopback address; this server speaks without encryption or authentication, so it "
+                      "binds beyond this machine only with --insecure (for a trusted network)");
     }
     control_endpoint_ = bind(control_, o.control_bind, "--bind");
     pose_endpoint_ = bind(pose_, o.pose_bind.empty() ? derive_pose_endpoint(o.control_bind) : o.pose_bind,

@@ -38,7 +38,13 @@ struct ServerOptions {
   std::string stream_bind;                              // the stream publisher's XPUB address; "" = derived (derive_stream_endpoint)
   std::vector<std::string> scene_dirs;                  // folders LoadScene may read (scene file, CT) and write
                                                         // (render.record_dir) in; none: LoadScene names no file
+  bool insecure = false;                                // allow addresses beyond loopback (plain text on the network)
 };
+
+/// True for addresses only this machine can reach: tcp on 127.x.x.x, localhost, [::1]
+/// or the lo interface, ipc:// and inproc://. The server binds anything else only with
+/// ServerOptions::insecure, since it speaks without encryption or authentication.
+bool is_loopback_endpoint(const std::string& endpoint);
 
 /// The default pose address for a control address: tcp port + 1 ("*" stays "*"),
 /// ipc://P -> ipc://P.pose, inproc://N -> inproc://N-pose.

@@ -2,7 +2,7 @@
 // is exactly the force model's answer, resets and parameter changes apply from the next
 // pose on, the contact hook sees the newest pose, and scene reloads swap the patient or
 // are refused with the old one kept, and read or write no file outside the operator's
-// folders.
+// folders; beyond loopback the server binds only when told it is insecure.
 #include <catch2/catch.hpp>
 
 #include <chrono>
@@ -299,4 +299,29 @@ TEST_CASE("LoadScene touches no file outside the operator's folders (--scene-dir
                       Catch::Contains((root / "missing").string()));
   }
   fs::remove_all(root);
+}
+
+TEST_CASE("beyond loopback the server binds only with --insecure, naming the address", "[net][security]") {
+  for (const char* e : {"tcp://127.0.0.1:7420", "tcp://127.0.0.1:*", "tcp://localhost:7", "tcp://[::1]:7", "tcp://lo:7",
+                        "ipc:///tmp/x", "inproc://x"})
+    CHECK(net::is_loopback_endpoint(e));
+  for (const char* e : {"tcp://0.0.0.0:7420", "tcp://*:7420", "tcp://192.168.1.5:7420", "tcp://eth0:7420",
+                        "tcp://127example.org:7", "tcp://localhost.evil.org:7"})
+    CHECK_FALSE(net::is_loopback_endpoint(e));
+  // the control address, or a pose or stream address given apart from it
+  for (int which = 0; which < 3; ++which) {
+    net::ServerOptions o = test::loopback_options();
+    std::string& addr = which == 0 ? o.control_bind : which == 1 ? o.pose_bind : o.stream_bind;
+    if (which == 0) o.pose_bind = o.stream_bind = "tcp://127.0.0.1:*";
+    addr = "tcp://0.0.0.0:*";
+    INFO("address " << which);
+    CHECK_THROWS_WITH(net::Server(default_scene(), test::slab_patient(), nullptr, o),
+                      Catch::Contains("tcp://0.0.0.0:*") && Catch::Contains("--insecure"));
+    o.insecure = true;
+    net::Server server(default_scene(), test::slab_patient(), nullptr, o);
+    server.start();
+    Client c(server);
+    CHECK(c.send_pose(1, {32, 32, 50}, 0).error().code() == v1::ERROR_NONE);
+    server.stop();
+  }
 }

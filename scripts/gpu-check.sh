@@ -8,6 +8,7 @@
 #          ../shared/tools/device-pack build-gpu/palpsim-gpu-tests build-gpu/palpsim-gpu-render-tests \
 #            build-gpu/palpsim-gpu-stability-tests \
 #            build-gpu/palpsim-bench build-gpu/palpsim-test-render build-gpu/palpsim-test-net-stream
+#          git describe --always --dirty > .device/commit   # what the bundle was built from
 #   there: bash scripts/gpu-check.sh "$OUT" [quick]
 set -uo pipefail
 out=${1:?usage: scripts/gpu-check.sh OUT_DIR [quick]}
@@ -15,7 +16,8 @@ quick=${2:-}
 mkdir -p "$out"
 tar xzf .device/bundle.tgz -C /tmp && . /tmp/bundle/env.sh || { echo "gpu-check: no bundle in .device/" >&2; exit 2; }
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
-commit=$(git rev-parse --short HEAD 2>/dev/null || echo unknown)
+# the commit the bundle was built from (the GPU machine's copy of .git may be stale)
+commit=$(cat .device/commit 2>/dev/null || echo "unknown (no .device/commit)")
 echo "commit $commit" | tee -a "$out/gpu.txt"
 
 step() {  # name, command...: runs it, keeps its output, prints one status line

@@ -33,6 +33,7 @@
 #include "deform/engine.h"
 #include "net/scene_io.h"
 #include "net/server.h"
+#include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
 #include "prep/prepare.h"
 #include "render/egl_context.h"
@@ -255,7 +256,7 @@ struct ServerRow {
   std::uint64_t frames = 0, deform_steps = 0;
   std::string backend, encoder, writer;
   // mean stage times (ms) of the frames the viewers got, under this load
-  double j_ms = 0, raycast_ms = 0, slices_ms = 0, composite_ms = 0, readback_ms = 0, encode_ms = 0, total_ms = 0;
+  render::FrameTimes load;
   double render_busy = 0;  // the render thread's share of the wall time spent on frames (total_ms summed / s)
 };
 
@@ -282,8 +283,8 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
                   std::vector<double>& rtts, std::vector<double>& fps, std::vector<double>& p2f,
                   ServerRow* times = nullptr, int o_viewers_nice = 19) {
   std::vector<std::vector<double>> per(n), lat(n);
-  std::vector<v1::FrameTimes> tsum(n);
-  std::vector<double> twall(n, 0);
+  std::vector<render::FrameTimes> tsum(n);  // per viewer: stage times summed over its frames
+  std::vector<double> twall(n, 0), got(n, 0);  // per viewer: seconds counted, frames got
   std::vector<double> frames(n, 0);
   std::atomic<bool> done{false};
   std::vector<std::thread> threads, watchers;
@@ -372,16 +373,9 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
           if (Clock::now() < start || !msg.ParseFromArray(b.data(), int(b.size())) || !msg.has_frame()) continue;
           ++counted;
           lat[c].push_back(msg.frame().pose_to_frame_ms());
-          const v1::FrameTimes& ft = msg.frame().times();
-          v1::FrameTimes& a = tsum[c];
-          a.set_j_to_texture_ms(a.j_to_texture_ms() + ft.j_to_texture_ms());
-          a.set_raycast_ms(a.raycast_ms() + ft.raycast_ms());
-          a.set_slices_ms(a.slices_ms() + ft.slices_ms());
-          a.set_composite_ms(a.composite_ms() + ft.composite_ms());
-          a.set_readback_ms(a.readback_ms() + ft.readback_ms());
-          a.set_encode_ms(a.encode_ms() + ft.encode_ms());
-          a.set_total_ms(a.total_ms() + ft.total_ms());
+          render::add_times(tsum[c], net::frame_times(msg.frame().times()));
         }
+        got[c] = counted;
         twall[c] = std::max(1e-9, std::chrono::duration<double>(Clock::now() - start).count());
         frames[c] = counted / twall[c];
       });
@@ -394,27 +388,14 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
   if (viewers) fps = frames;
   if (times) {
     double n_frames = 0, wall = 0;
-    v1::FrameTimes a;
+    render::FrameTimes sum;
     for (int c = 0; c < n; ++c) {
-      n_frames += frames[c] * twall[c];
+      n_frames += got[c];
       wall = std::max(wall, twall[c]);
-      a.set_j_to_texture_ms(a.j_to_texture_ms() + tsum[c].j_to_texture_ms());
-      a.set_raycast_ms(a.raycast_ms() + tsum[c].raycast_ms());
-      a.set_slices_ms(a.slices_ms() + tsum[c].slices_ms());
-      a.set_composite_ms(a.composite_ms() + tsum[c].composite_ms());
-      a.set_readback_ms(a.readback_ms() + tsum[c].readback_ms());
-      a.set_encode_ms(a.encode_ms() + tsum[c].encode_ms());
-      a.set_total_ms(a.total_ms() + tsum[c].total_ms());
+      render::add_times(sum, tsum[c]);
     }
-    const double k = n_frames > 0 ? 1.0 / n_frames : 0.0;
-    times->j_ms = a.j_to_texture_ms() * k;
-    times->raycast_ms = a.raycast_ms() * k;
-    times->slices_ms = a.slices_ms() * k;
-    times->composite_ms = a.composite_ms() * k;
-    times->readback_ms = a.readback_ms() * k;
-    times->encode_ms = a.encode_ms() * k;
-    times->total_ms = a.total_ms() * k;
-    times->render_busy = wall > 0 ? a.total_ms() * 1e-3 / wall : 0.0;
+    times->load = render::scaled(sum, n_frames > 0 ? 1.0 / n_frames : 0.0);
+    times->render_busy = wall > 0 ? sum.total_ms * 1e-3 / wall : 0.0;
   }
 }
 
@@ -499,7 +480,8 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
     std::printf(
         "        frames under this load (mean ms): J->tex %.3f raycast %.3f slices %.3f composite %.3f readback %.3f "
         "encode %.3f | total %.3f; render thread busy %.0f%% of the time\n",
-        row.j_ms, row.raycast_ms, row.slices_ms, row.composite_ms, row.readback_ms, row.encode_ms, row.total_ms,
+        row.load.j_to_texture_ms, row.load.raycast_ms, row.load.slices_ms, row.load.composite_ms,
+        row.load.readback_ms, row.load.encode_ms, row.load.total_ms,
         100 * row.render_busy);
     rows.push_back(row);
   }
@@ -638,10 +620,11 @@ int run(int argc, char** argv) {
           << ", \"round_trip_p99_ratio_median_of_rounds\": "
           << json_number(r.rtt_p99_ratio_median)
           << ", \"frames_published\": " << r.frames << ", \"deform_steps\": " << r.deform_steps
-          << ", \"frame_ms_under_load\": {\"j_to_texture\": " << json_number(r.j_ms)
-          << ", \"raycast\": " << json_number(r.raycast_ms) << ", \"slices\": " << json_number(r.slices_ms)
-          << ", \"composite\": " << json_number(r.composite_ms) << ", \"readback\": " << json_number(r.readback_ms)
-          << ", \"encode\": " << json_number(r.encode_ms) << ", \"total\": " << json_number(r.total_ms)
+          << ", \"frame_ms_under_load\": {\"j_to_texture\": " << json_number(r.load.j_to_texture_ms)
+          << ", \"raycast\": " << json_number(r.load.raycast_ms) << ", \"slices\": " << json_number(r.load.slices_ms)
+          << ", \"composite\": " << json_number(r.load.composite_ms)
+          << ", \"readback\": " << json_number(r.load.readback_ms) << ", \"encode\": " << json_number(r.load.encode_ms)
+          << ", \"total\": " << json_number(r.load.total_ms)
           << "}, \"render_thread_busy\": " << json_number(r.render_busy) << "}"
           << (i + 1 < servers.size() ? ",\n" : "\n");
     }

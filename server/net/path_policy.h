@@ -21,9 +21,6 @@ class PathPolicy {
   /// sentence naming `what`, the path and the folders allowed.
   std::string check(const std::string& path, const std::string& what) const;
 
-  /// The resolved folders.
-  const std::vector<std::string>& dirs() const { return dirs_; }
-
  private:
   std::vector<std::string> dirs_;
 };

@@ -39,16 +39,6 @@ std::string hex_id(std::uint64_t id) {
   return b;
 }
 
-void add_times(render::FrameTimes& a, const render::FrameTimes& b) {
-  a.j_to_texture_ms += b.j_to_texture_ms;
-  a.raycast_ms += b.raycast_ms;
-  a.slices_ms += b.slices_ms;
-  a.composite_ms += b.composite_ms;
-  a.readback_ms += b.readback_ms;
-  a.encode_ms += b.encode_ms;
-  a.total_ms += b.total_ms;
-}
-
 bool same_marks(const render::FrameMarks& a, const render::FrameMarks& b) {
   return a.has_tip == b.has_tip && a.tip_mm == b.tip_mm && a.proxy_mm == b.proxy_mm && a.contact == b.contact;
 }
@@ -222,7 +212,8 @@ void RenderWorker::set_up_world() {
   st_.info.jpeg_encoder = encoder_ ? encoder_->name() : "";
   st_.info.overlay_writer = writer_ ? writer_->name() : "";
   st_.info.render_note = note;
-  st_.info.render_bytes = renderer_ ? renderer_->bytes() : 0;
+  reported_bytes_ = renderer_ ? renderer_->bytes() : 0;
+  st_.info.render_bytes = reported_bytes_;
 }
 
 void RenderWorker::release_view(View& v) {
@@ -233,10 +224,18 @@ void RenderWorker::release_view(View& v) {
     } catch (const std::exception&) {
       // a failing GL delete leaves nothing to undo
     }
-    std::lock_guard<std::mutex> lock(st_.info_mu);
-    st_.info.render_bytes = renderer_->bytes();
+    report_bytes();
   }
   v = View{};
+}
+
+void RenderWorker::report_bytes() {
+  // the stats' figure changes only with an overlay or framebuffer made, resized or freed
+  const std::size_t b = renderer_ ? renderer_->bytes() : 0;
+  if (b == reported_bytes_) return;
+  reported_bytes_ = b;
+  std::lock_guard<std::mutex> lock(st_.info_mu);
+  st_.info.render_bytes = b;
 }
 
 bool RenderWorker::look(int index, double now) {
@@ -252,8 +251,7 @@ bool RenderWorker::look(int index, double now) {
   try {
     if (v.overlay < 0) {
       v.overlay = renderer_->add_overlay(max_voi_);
-      std::lock_guard<std::mutex> lock(st_.info_mu);
-      st_.info.render_bytes = renderer_->bytes();
+      report_bytes();
     }
     if (v.target < 0) v.target = renderer_->add_target();
     // a newer J waits (it is taken when the frame is drawn: only the newest is written)
@@ -392,19 +390,16 @@ void RenderWorker::draw_batch(const int* index, int n) {
       ++r.frames_rendered;
       if (replaced) ++r.frames_replaced;
       r.last = f.times;
-      add_times(r.sum, f.times);
+      render::add_times(r.sum, f.times);
       std::lock_guard<std::mutex> info_lock(st_.info_mu);
-      add_times(st_.frame_time_sum, f.times);
+      render::add_times(st_.frame_time_sum, f.times);
     }
   } catch (const std::exception& e) {
     // the whole batch failed: each of its sessions counts one failed frame
     const double now = now_s();
     for (int b = 0; b < n; ++b) fail_frame(index[b], now, e.what());
   }
-  {
-    std::lock_guard<std::mutex> lock(st_.info_mu);
-    st_.info.render_bytes = renderer_->bytes();
-  }
+  report_bytes();  // a framebuffer may have been made or resized
 }
 
 }  // namespace palpsim::net

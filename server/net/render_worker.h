@@ -65,6 +65,7 @@ class RenderWorker {
   void draw_batch(const int* index, int n);
   void fail_frame(int index, double now_s, const std::string& what);
   void release_view(View& v);
+  void report_bytes();
   double now_s() const;
 
   ServerShared& sh_;
@@ -91,6 +92,7 @@ class RenderWorker {
   std::vector<render::OverlayWrite> writes_;
   std::vector<int> written_;  // the slot of each write
   std::vector<render::EncodeJob> jobs_;
+  std::size_t reported_bytes_ = 0;  // the renderer's bytes as the stats have them
 
   // start() waits for the first set-up
   SetupGate setup_;

@@ -63,16 +63,6 @@ std::vector<std::string> stages_of(const Scene& s, const DeformServerReport* d, 
   return out;
 }
 
-void fill_frame_times(v1::FrameTimes* out, const render::FrameTimes& t, double scale) {
-  out->set_j_to_texture_ms(t.j_to_texture_ms * scale);
-  out->set_raycast_ms(t.raycast_ms * scale);
-  out->set_slices_ms(t.slices_ms * scale);
-  out->set_composite_ms(t.composite_ms * scale);
-  out->set_readback_ms(t.readback_ms * scale);
-  out->set_encode_ms(t.encode_ms * scale);
-  out->set_total_ms(t.total_ms * scale);
-}
-
 // applies the fields a WatchSession sets to `v`; "" or the first bad field and why
 std::string apply_view(const v1::ViewSettings& in, render::ViewSettings& v) {
   if (in.has_width()) v.width = int(std::min<std::uint32_t>(in.width(), 1u << 30));
@@ -866,8 +856,8 @@ class Server::Control {
       o->set_frames_replaced(r.frames_replaced);
       o->set_bricks_published(r.bricks_published);
       o->set_key_bricks_published(r.key_bricks_published);
-      fill_frame_times(o->mutable_last(), r.last, 1.0);
-      fill_frame_times(o->mutable_mean(), r.sum, n ? 1.0 / double(n) : 0.0);
+      fill_frame_times(o->mutable_last(), r.last);
+      fill_frame_times(o->mutable_mean(), render::scaled(r.sum, n ? 1.0 / double(n) : 0.0));
       o->set_pose_to_frame_p50_ms(r.pose_to_frame.quantile(0.5));
       o->set_pose_to_frame_p99_ms(r.pose_to_frame.quantile(0.99));
     }

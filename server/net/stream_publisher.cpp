@@ -364,14 +364,7 @@ struct StreamPublisher::Impl {
     o->set_height(f.view.height);
     o->set_jpeg(f.jpeg.data(), f.jpeg.size());
     o->set_encoder(f.encoder);
-    auto* t = o->mutable_times();
-    t->set_j_to_texture_ms(f.times.j_to_texture_ms);
-    t->set_raycast_ms(f.times.raycast_ms);
-    t->set_slices_ms(f.times.slices_ms);
-    t->set_composite_ms(f.times.composite_ms);
-    t->set_readback_ms(f.times.readback_ms);
-    t->set_encode_ms(f.times.encode_ms);
-    t->set_total_ms(f.times.total_ms);
+    fill_frame_times(o->mutable_times(), f.times);
     set_vec(o->mutable_tip_mm(), f.marks.tip_mm);
     set_vec(o->mutable_proxy_mm(), f.marks.proxy_mm);
     o->set_contact(f.marks.contact);

@@ -4,6 +4,7 @@
 
 #include "core/vec3.h"
 #include "palpsim/wire.pb.h"
+#include "render/frame_renderer.h"
 #include "render/view.h"
 
 namespace palpsim::net {
@@ -29,6 +30,30 @@ inline void fill_view(::palpsim::v1::ViewSettings* o, const render::ViewSettings
   o->set_show_tip(v.show_tip);
   o->set_show_proxy(v.show_proxy);
   o->set_slice_fov_mm(v.slice_fov_mm);
+}
+
+/// Stage times (ms) into a wire FrameTimes.
+inline void fill_frame_times(::palpsim::v1::FrameTimes* out, const render::FrameTimes& t) {
+  out->set_j_to_texture_ms(t.j_to_texture_ms);
+  out->set_raycast_ms(t.raycast_ms);
+  out->set_slices_ms(t.slices_ms);
+  out->set_composite_ms(t.composite_ms);
+  out->set_readback_ms(t.readback_ms);
+  out->set_encode_ms(t.encode_ms);
+  out->set_total_ms(t.total_ms);
+}
+
+/// A wire FrameTimes back into stage times (ms).
+inline render::FrameTimes frame_times(const ::palpsim::v1::FrameTimes& w) {
+  render::FrameTimes t;
+  t.j_to_texture_ms = w.j_to_texture_ms();
+  t.raycast_ms = w.raycast_ms();
+  t.slices_ms = w.slices_ms();
+  t.composite_ms = w.composite_ms();
+  t.readback_ms = w.readback_ms();
+  t.encode_ms = w.encode_ms();
+  t.total_ms = w.total_ms();
+  return t;
 }
 
 }  // namespace palpsim::net

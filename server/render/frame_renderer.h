@@ -12,6 +12,7 @@
 #pragma once
 
 #include <cstdint>
+#include <initializer_list>
 #include <memory>
 #include <vector>
 
@@ -43,6 +44,25 @@ struct FrameTimes {
   double encode_ms = 0;        // JPEG
   double total_ms = 0;         // all of the above
 };
+
+/// Adds every stage of `b` to `a` (sums over frames, for means).
+inline void add_times(FrameTimes& a, const FrameTimes& b) {
+  a.j_to_texture_ms += b.j_to_texture_ms;
+  a.raycast_ms += b.raycast_ms;
+  a.slices_ms += b.slices_ms;
+  a.composite_ms += b.composite_ms;
+  a.readback_ms += b.readback_ms;
+  a.encode_ms += b.encode_ms;
+  a.total_ms += b.total_ms;
+}
+
+/// Every stage of `t` times `k` (a sum over n frames times 1/n is their mean).
+inline FrameTimes scaled(FrameTimes t, double k) {
+  for (double* v : {&t.j_to_texture_ms, &t.raycast_ms, &t.slices_ms, &t.composite_ms, &t.readback_ms, &t.encode_ms,
+                    &t.total_ms})
+    *v *= k;
+  return t;
+}
 
 /// What a frame's 3D view trades between accuracy and time (the scene's render section).
 struct RenderQuality {

@@ -77,6 +77,15 @@ struct NetClient {
     return exchange<palpsim::v1::ControlReply>(ctl, q);
   }
 
+  /// The server's stats with this session's.
+  palpsim::v1::StatsReply stats() {
+    palpsim::v1::ControlRequest q;
+    q.mutable_stats()->set_session_id(id);
+    const auto r = call(q);
+    REQUIRE(r.has_stats());
+    return r.stats();
+  }
+
   /// One pose of this session and its reply, as it came (errors are the caller's to check).
   palpsim::v1::PoseReply send_pose(std::uint64_t seq, const Vec3& tip_mm, double client_time_s, bool reset = false) {
     return exchange<palpsim::v1::PoseReply>(pose, pose_request(id, seq, tip_mm, client_time_s, reset));

@@ -40,14 +40,6 @@ struct Client : test::NetClient {
   std::uint64_t seq = 0;
 
   explicit Client(const net::Server& s) : NetClient(s, "deform-unit") {}
-  // this session's stats
-  v1::StatsReply stats() {
-    v1::ControlRequest q;
-    q.mutable_stats()->set_session_id(id);
-    const auto r = call(q);
-    REQUIRE(r.has_stats());
-    return r.stats();
-  }
   // one pose and its reply (1 ms of client time per pose)
   v1::PoseReply send_pose(const Vec3& x, bool reset = false) {
     ++seq;

@@ -47,13 +47,6 @@ struct Client : test::NetClient {
     *q.mutable_watch() = w;
     return call(q);
   }
-  v1::StatsReply stats() {
-    v1::ControlRequest q;
-    q.mutable_stats()->set_session_id(id);
-    const auto r = call(q);
-    REQUIRE(r.has_stats());
-    return r.stats();
-  }
   v1::PoseReply send_pose(const Vec3& x) {
     ++seq;
     const v1::PoseReply r = NetClient::send_pose(seq, x, 1.0 + seq * 1e-3);

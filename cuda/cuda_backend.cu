@@ -64,8 +64,7 @@ CudaDeformBackend::~CudaDeformBackend() { release(); }
 
 void CudaDeformBackend::release() {
   // errors are ignored here: a destructor must not throw
-  cudaFree(const_cast<float*>(d_.intensity));
-  cudaFree(const_cast<std::uint8_t*>(d_.bone));
+  patient_copy_.reset();  // the shared patient copy: freed with its last holder
   for (auto& buf : d_.u)
     for (float*& c : buf) cudaFree(c);
   for (int*& s : d_.stamp) cudaFree(s);
@@ -95,15 +94,10 @@ void CudaDeformBackend::bind_impl() {
   const std::size_t n = std::size_t(capacity_);
   PALPSIM_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
   for (cudaEvent_t& e : ev_) PALPSIM_CUDA_CHECK(cudaEventCreate(&e));
-  // the patient, once per session
-  float* intensity = nullptr;
-  std::uint8_t* bone = nullptr;
-  PALPSIM_CUDA_CHECK(cudaMalloc(&intensity, nvol * sizeof(float)));
-  d_.intensity = intensity;
-  PALPSIM_CUDA_CHECK(cudaMalloc(&bone, nvol));
-  d_.bone = bone;
-  PALPSIM_CUDA_CHECK(cudaMemcpy(intensity, p.intensity.data.data(), nvol * sizeof(float), cudaMemcpyHostToDevice));
-  PALPSIM_CUDA_CHECK(cudaMemcpy(bone, p.bone.data.data(), nvol, cudaMemcpyHostToDevice));
+  // the patient: one device copy shared with every other session bound to it
+  patient_copy_ = DevicePatient::acquire(patient_);
+  d_.intensity = patient_copy_->intensity();
+  d_.bone = patient_copy_->bone();
   // VOI-sized state, undeformed
   for (auto& buf : d_.u)
     for (float*& c : buf) {
@@ -126,15 +120,16 @@ void CudaDeformBackend::bind_impl() {
 }
 
 DeformMemory CudaDeformBackend::memory_impl() const {
-  // what bind_impl allocated: the patient copy, both displacement fields and both sweep
-  // stamps serve ChainMail (relaxation ping-pongs between the same two fields); J and
-  // its pinned host copy serve the inversion, but are allocated whatever the scene asks
+  // what bind_impl allocated: both displacement fields and both sweep stamps serve
+  // ChainMail (relaxation ping-pongs between the same two fields); J and its pinned host
+  // copy serve the inversion, but are allocated whatever the scene asks. The patient
+  // copy is shared with the other sessions on it, so it is counted apart.
   const std::size_t n = std::size_t(capacity_);
-  const std::size_t nvol = patient_->grid.count();
   DeformMemory m;
-  m.chainmail_bytes = nvol * (sizeof(float) + sizeof(std::uint8_t)) + sizeof(d_.u) / sizeof(float*) * n * sizeof(float) +
+  m.chainmail_bytes = sizeof(d_.u) / sizeof(float*) * n * sizeof(float) +
                       sizeof(d_.stamp) / sizeof(int*) * n * sizeof(int) + 2 * sizeof(Counters);
   m.invert_bytes = 2 * n * sizeof(float);
+  m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
   return m;
 }
 

@@ -7,6 +7,7 @@
 #include <cstddef>
 
 #include "core/device_bytes.h"
+#include "cuda/device_patient.h"
 #include "cuda/kernels.h"
 #include "deform/backend.h"
 
@@ -31,8 +32,8 @@ class CudaDeviceBytes final : public DeviceBytes {
   std::size_t size_ = 0;
 };
 
-/// The CUDA backend. The patient's intensity and bone mask live on the device for
-/// the session; displacement, sweep stamps and J are VOI-sized device buffers. A
+/// The CUDA backend. The patient's intensity and bone mask live on the device once
+/// for all sessions bound to that patient (DevicePatient); displacement, sweep stamps and J are VOI-sized device buffers. A
 /// step is one stream of device work with one synchronisation at its end.
 class CudaDeformBackend final : public DeformBackend {
  public:
@@ -65,6 +66,7 @@ class CudaDeformBackend final : public DeformBackend {
   // wait for the stream and read the counters
   void finish(ChainMailStats* stats, InvertStats* inv);
 
+  std::shared_ptr<const DevicePatient> patient_copy_;  // I and the bone mask, shared
   DeviceBuffers d_;
   LaunchShape shape_;
   cudaStream_t stream_ = nullptr;

@@ -71,9 +71,13 @@ struct InvertStats {
 /// Memory a backend holds for its session (host and device bytes), by the stage that
 /// needs it, so the server can show that a stage the scene did not ask for costs nothing.
 struct DeformMemory {
-  std::size_t chainmail_bytes = 0;  // displacement field and sweep bookkeeping (cuda: also the patient's I and bone mask)
+  std::size_t chainmail_bytes = 0;  // displacement field and sweep bookkeeping
   std::size_t relax_bytes = 0;      // relaxation's own buffers (cuda: none, it reuses ChainMail's two fields)
   std::size_t invert_bytes = 0;     // J on the VOI (cuda: also its pinned host copy)
+  /// The patient's device copy (cuda: I and the bone mask), shared by every session on
+  /// that patient: not the session's own, so not in total(); a server counts it once.
+  std::size_t shared_patient_bytes = 0;
+  /// The session's own memory.
   std::size_t total() const { return chainmail_bytes + relax_bytes + invert_bytes; }
 };
 

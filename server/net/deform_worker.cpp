@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
@@ -55,6 +56,8 @@ void add_memory(DeformMemory& a, const DeformMemory& b) {
   a.chainmail_bytes += b.chainmail_bytes;
   a.relax_bytes += b.relax_bytes;
   a.invert_bytes += b.invert_bytes;
+  // every engine of a world shares the one device copy of its patient: count it once
+  a.shared_patient_bytes = std::max(a.shared_patient_bytes, b.shared_patient_bytes);
 }
 
 bool finite(const DeformStats& st) {
@@ -493,6 +496,8 @@ DeformServerReport DeformWorker::server_report() const {
       add_memory(r.memory, s.memory);
       ++r.engines;
     }
+  // server-wide, ChainMail's stage holds the patient's shared device copy too (once)
+  r.memory.chainmail_bytes += r.memory.shared_patient_bytes;
   return r;
 }
 

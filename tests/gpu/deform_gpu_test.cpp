@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <random>
 
+#include "cuda/device_patient.h"
 #include "deform/backend.h"
 #include "deform/engine.h"
 #include "support/deform_fixtures.h"
@@ -202,4 +203,56 @@ TEST_CASE("a whole gpu step equals the cpu step, and reset restores I") {
   g.reset();
   CHECK(g.deformed_volume().data == torso->intensity.data);
   for (const Vec3f& v : g.backend().displacement()) REQUIRE(v == Vec3f(0, 0, 0));
+}
+
+TEST_CASE("sessions on one patient share one device copy of it, and step as one alone does") {
+  if (!have_gpu()) return;
+  auto torso = make_torso_patient(96);
+  auto other = make_torso_patient(64);
+  const std::size_t patient_bytes = torso->grid.count() * (sizeof(float) + 1);  // I (float) and the bone mask (byte)
+  DeformConfig cfg = preset_config(2);
+  cfg.settings.voi_edge = 48;
+  const int before = cuda::DevicePatient::live_copies();
+  const DeformContact k = voxel_contact({48, 14, 48}, {1.0, 6.0, -1.0});
+  std::vector<Vec3f> alone;
+  {
+    auto solo = make_deform_backend("cuda");
+    solo->bind(torso, cfg);
+    solo->chainmail(k);
+    solo->relax();
+    alone = solo->displacement();
+  }
+  // the copy died with its only holder
+  CHECK(cuda::DevicePatient::live_copies() == before);
+  {
+    std::vector<std::unique_ptr<DeformBackend>> sessions;
+    for (int i = 0; i < 4; ++i) {
+      sessions.push_back(make_deform_backend("cuda"));
+      sessions.back()->bind(torso, cfg);
+    }
+    auto elsewhere = make_deform_backend("cuda");
+    elsewhere->bind(other, cfg);
+    // four sessions on the torso hold one copy, the other patient its own
+    CHECK(cuda::DevicePatient::live_copies() == before + 2);
+    for (const auto& b : sessions) {
+      const DeformMemory m = b->memory();
+      CHECK(m.shared_patient_bytes == patient_bytes);
+      // the session's own memory is its VOI state only: no volume-sized buffer in it
+      CHECK(m.total() < patient_bytes);
+    }
+    // a step of each session sees the same patient as a session alone
+    for (const auto& b : sessions) {
+      b->chainmail(k);
+      b->relax();
+      CHECK(b->displacement() == alone);
+    }
+    // closing sessions keeps the copy while one remains
+    sessions.resize(1);
+    CHECK(cuda::DevicePatient::live_copies() == before + 2);
+    sessions[0]->reset();
+    sessions[0]->chainmail(k);
+    sessions[0]->relax();
+    CHECK(sessions[0]->displacement() == alone);
+  }
+  CHECK(cuda::DevicePatient::live_copies() == before);
 }

@@ -1,0 +1,75 @@
+// One device copy per patient and device, found through a cache of weak references.
+#include "cuda/device_patient.h"
+
+#include <cuda_runtime.h>
+
+#include <map>
+#include <mutex>
+#include <utility>
+
+#include "cuda/check.h"
+
+namespace palpsim::cuda {
+
+namespace {
+
+// the copies that exist, by (device, patient); an entry whose copy died is expired
+std::mutex& cache_mu() {
+  static std::mutex mu;
+  return mu;
+}
+std::map<std::pair<int, const Patient*>, std::weak_ptr<const DevicePatient>>& cache() {
+  static std::map<std::pair<int, const Patient*>, std::weak_ptr<const DevicePatient>> c;
+  return c;
+}
+
+}  // namespace
+
+DevicePatient::DevicePatient(PatientPtr patient, int device) : patient_(std::move(patient)), device_(device) {
+  const Patient& p = *patient_;
+  const std::size_t nvol = p.grid.count();
+  // allocate both first: a failure frees what was made (the destructor does not run)
+  try {
+    PALPSIM_CUDA_CHECK(cudaMalloc(&intensity_, nvol * sizeof(float)));
+    PALPSIM_CUDA_CHECK(cudaMalloc(&bone_, nvol));
+    PALPSIM_CUDA_CHECK(cudaMemcpy(intensity_, p.intensity.data.data(), nvol * sizeof(float), cudaMemcpyHostToDevice));
+    PALPSIM_CUDA_CHECK(cudaMemcpy(bone_, p.bone.data.data(), nvol, cudaMemcpyHostToDevice));
+  } catch (...) {
+    cudaFree(intensity_);
+    cudaFree(bone_);
+    throw;
+  }
+  bytes_ = nvol * (sizeof(float) + sizeof(std::uint8_t));
+}
+
+DevicePatient::~DevicePatient() {
+  // errors are ignored here: a destructor must not throw
+  cudaFree(intensity_);
+  cudaFree(bone_);
+}
+
+std::shared_ptr<const DevicePatient> DevicePatient::acquire(const PatientPtr& patient) {
+  int device = 0;
+  PALPSIM_CUDA_CHECK(cudaGetDevice(&device));
+  std::lock_guard<std::mutex> lock(cache_mu());
+  auto& c = cache();
+  // drop the entries of copies that died
+  for (auto it = c.begin(); it != c.end();) it = it->second.expired() ? c.erase(it) : std::next(it);
+  const auto key = std::make_pair(device, patient.get());
+  if (auto it = c.find(key); it != c.end())
+    if (auto held = it->second.lock()) return held;
+  // the upload runs under the lock: a second session binding the same patient waits for
+  // this copy instead of making its own
+  std::shared_ptr<const DevicePatient> made(new DevicePatient(patient, device));
+  c[key] = made;
+  return made;
+}
+
+int DevicePatient::live_copies() {
+  std::lock_guard<std::mutex> lock(cache_mu());
+  int n = 0;
+  for (const auto& [key, weak] : cache()) n += weak.expired() ? 0 : 1;
+  return n;
+}
+
+}  // namespace palpsim::cuda

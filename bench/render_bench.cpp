@@ -26,6 +26,7 @@
 #include <vector>
 #include <zmq.hpp>
 
+#include "bench/press_load.h"
 #include "bench/registry.h"
 #include "bench/stats.h"
 #include "core/error.h"
@@ -46,7 +47,11 @@ using namespace palpsim;
 namespace v1 = palpsim::v1;
 using Clock = std::chrono::steady_clock;
 using bench::json_number;
+using bench::control;
 using bench::machine;
+using bench::PressResult;
+using bench::press_sessions;
+using bench::quantile;
 using bench::json_spread;
 using bench::spread;
 using bench::Spread;
@@ -260,83 +265,24 @@ struct ServerRow {
   double render_busy = 0;  // the render thread's share of the wall time spent on frames (total_ms summed / s)
 };
 
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  return v[std::min(v.size() - 1, std::size_t(q * double(v.size())))];
-}
-
-v1::ControlReply control(zmq::socket_t& s, v1::ControlRequest q) {
-  q.set_schema_version(1);
-  s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-  zmq::message_t m;
-  (void)s.recv(m);
-  v1::ControlReply r;
-  r.ParseFromArray(m.data(), int(m.size()));
-  return r;
-}
-
-// `n` sessions pressing at 1 kHz for `seconds` (a 1 Hz press 0..20 mm deep, sessions side
-// by side along the back); with `viewers`, each session's frames are read by its own
+// `n` sessions pressing at 1 kHz for `seconds` (bench::press_sessions); with `viewers`, each session's frames are read by its own
 // viewer thread; returns the round trips (us) and, with viewers, fills fps and latency
 void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double seconds, bool viewers,
                   std::vector<double>& rtts, std::vector<double>& fps, std::vector<double>& p2f,
                   ServerRow* times = nullptr, int o_viewers_nice = 19) {
-  std::vector<std::vector<double>> per(n), lat(n);
+  std::vector<std::vector<double>> lat(n);
   std::vector<render::FrameTimes> tsum(n);  // per viewer: stage times summed over its frames
   std::vector<double> twall(n, 0), got(n, 0);  // per viewer: seconds counted, frames got
   std::vector<double> frames(n, 0);
   std::atomic<bool> done{false};
-  std::vector<std::thread> threads, watchers;
+  std::vector<std::thread> watchers;
   std::vector<std::uint64_t> ids(n, 0);
   std::atomic<int> opened{0};
-  const double cx = 0.5 * (pi.body_min_mm().x() + pi.body_max_mm().x());
-  for (int c = 0; c < n; ++c)
-    threads.emplace_back([&, c] {
-      zmq::context_t ctx(1);
-      zmq::socket_t ctl(ctx, zmq::socket_type::req), pose(ctx, zmq::socket_type::dealer);
-      ctl.set(zmq::sockopt::linger, 0);
-      pose.set(zmq::sockopt::linger, 0);
-      ctl.connect(server.control_endpoint());
-      v1::ControlRequest q;
-      q.mutable_open()->set_client_name("render bench " + std::to_string(c));
-      const v1::ControlReply r = control(ctl, q);
-      ids[c] = r.open().session_id();
-      pose.connect(r.open().pose_endpoint());
-      ++opened;
-      while (opened < n) std::this_thread::sleep_for(std::chrono::milliseconds(1));
-      // the press point: along the back's midline, sessions 8 mm apart in z around L3
-      const double z = -5 + 8.0 * (c - n / 2);
-      const double top = pi.body_max_mm().y() + 5;
-      zmq::pollitem_t it[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
-      zmq::message_t m;
-      v1::PoseRequest pr;
-      pr.set_schema_version(1);
-      pr.set_session_id(ids[c]);
-      std::string bytes;
-      const auto t0 = Clock::now() + std::chrono::microseconds(1000 * c / std::max(1, n));
-      const long steps = long(seconds * 1000), warm = 200;
-      per[c].reserve(steps);
-      for (long s = 0; s < steps + warm; ++s) {
-        std::this_thread::sleep_until(t0 + std::chrono::microseconds(1000 * s));
-        const double depth = 30 * (0.5 - 0.5 * std::cos(2 * M_PI * s / 1000.0));
-        pr.set_seq(std::uint64_t(s + 1));
-        pr.set_client_time_s(s * 1e-3);
-        pr.mutable_tip_mm()->set_x(cx);
-        pr.mutable_tip_mm()->set_y(top - depth);
-        pr.mutable_tip_mm()->set_z(z);
-        pr.SerializeToString(&bytes);
-        const auto ts = Clock::now();
-        pose.send(zmq::buffer(bytes), zmq::send_flags::none);
-        zmq::poll(it, 1, std::chrono::milliseconds(1000));
-        if (!(it[0].revents & ZMQ_POLLIN)) continue;
-        (void)pose.recv(m);
-        if (s >= warm) per[c].push_back(std::chrono::duration<double, std::micro>(Clock::now() - ts).count());
-      }
-      v1::ControlRequest cl;
-      cl.mutable_close()->set_session_id(ids[c]);
-      control(ctl, cl);
-    });
+  PressResult pressed;
+  std::thread press([&] {
+    pressed = press_sessions(server.control_endpoint(), pi, n, seconds, &opened,
+                             [&](int c, std::uint64_t id) { ids[c] = id; });
+  });
   if (viewers) {
     while (opened < n) std::this_thread::sleep_for(std::chrono::milliseconds(1));
     for (int c = 0; c < n; ++c)
@@ -380,10 +326,10 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
         frames[c] = counted / twall[c];
       });
   }
-  for (auto& t : threads) t.join();
+  press.join();
   done = true;
   for (auto& t : watchers) t.join();
-  for (auto& v : per) rtts.insert(rtts.end(), v.begin(), v.end());
+  for (auto& v : pressed.rtt_us) rtts.insert(rtts.end(), v.begin(), v.end());
   for (auto& v : lat) p2f.insert(p2f.end(), v.begin(), v.end());
   if (viewers) fps = frames;
   if (times) {

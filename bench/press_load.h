@@ -47,7 +47,8 @@ struct PressResult {
 /// Opens `n` sessions on the server at `control_endpoint`, each pressed by its own
 /// client thread at 1 kHz for `seconds` after a 200 ms warm-up: a 1 Hz press 0..30 mm
 /// deep along the back's midline (x at the body's centre, from 5 mm above the body's
-/// top in y), sessions 8 mm apart in z around L3, clients spread over the millisecond.
+/// top in y), sessions 8 mm apart in z around L3 (closer when more than 20, so that all
+/// stay within 160 mm), clients spread over the millisecond.
 /// `on_open`, when given, gets each client's index and session id as it opens, before
 /// `opened`, when given, counts it (watchers wait for n). `before_close`,
 /// when given, runs on each client thread after its last pose and before it closes its
@@ -81,7 +82,9 @@ inline PressResult press_sessions(const std::string& control_endpoint, const v1:
       if (on_open) on_open(c, out.ids[c]);
       ++count;
       while (count < base + n) std::this_thread::sleep_for(std::chrono::milliseconds(1));
-      const double z = -5 + 8.0 * (c - n / 2);
+      // 8 mm apart, closer where that would leave the body (the phantom spans about
+      // 220 mm in z): all n within 160 mm around L3
+      const double z = -5 + std::min(8.0, 160.0 / std::max(1, n)) * (c - n / 2);
       const double top = pi.body_max_mm().y() + 5;
       zmq::pollitem_t it[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
       zmq::message_t m;

@@ -45,6 +45,7 @@ struct Options {
   int voi_edge = 64;           // deform.voi_edge (voxel)
   std::string backend;         // deform.backend ("" = the scene's)
   int nice = 19;               // the deformation worker's nice value
+  bool idle = true;            // and SCHED_IDLE for it (the server's --background idle)
 };
 
 // one session count: what each session got and what the server held
@@ -56,6 +57,7 @@ struct Row {
   std::vector<double> step_ms;         // per session: mean whole step (ms)
   std::vector<double> own_bytes;       // per session: its engine's own memory
   double server_bytes = 0;             // every deformation stage, server-wide, with all sessions open
+  double worker_step_share = 0, worker_sleep_share = 0;  // of the deformation thread's time, over the run
   std::vector<double> rtt_with, rtt_without;  // round trips (us), pooled over rounds
   std::vector<double> ratios;          // per round: p99 with / p99 without deformation
 };
@@ -75,6 +77,11 @@ int run(int argc, char** argv) {
     else if (a == "--voi") o.voi_edge = std::stoi(value());
     else if (a == "--backend") o.backend = value();
     else if (a == "--nice") o.nice = std::stoi(value());
+    else if (a == "--background") {
+      const std::string p = value();
+      if (p != "idle" && p != "nice") throw Error("palpsim-bench server: --background " + p + ": expected idle or nice");
+      o.idle = p == "idle";
+    }
     else if (a == "--sessions") {
       o.sessions.clear();
       std::stringstream ss(value());
@@ -83,6 +90,7 @@ int run(int argc, char** argv) {
       std::printf(
           "usage: palpsim-bench server [--sessions 1,4,16,64] [--seconds S per run (5)] [--rounds N (1)]\n"
           "                            [--voi EDGE (64)] [--backend auto|cpu|cuda] [--nice N (19)]\n"
+          "                            [--background idle|nice (idle, as palpsim-server)]\n"
           "                            [--scene FILE] [--json FILE]\n");
       return 0;
     } else {
@@ -111,6 +119,7 @@ int run(int argc, char** argv) {
   so.pose_bind = "tcp://127.0.0.1:*";
   so.stream_bind = "tcp://127.0.0.1:*";
   so.deform_nice = o.nice;
+  so.background_idle = o.idle;
   net::Server with(deform, patient, nullptr, so), without(plain, patient, nullptr, so);
   with.start();
   without.start();
@@ -126,6 +135,9 @@ int run(int argc, char** argv) {
     Row row;
     row.sessions = n;
     std::mutex mu;
+    v1::ControlRequest sq;
+    sq.mutable_stats();
+    const v1::ServerStats before = control(ctl, sq).stats().server();
     for (int round = 0; round < o.rounds; ++round) {
       // haptics only, then the same clients with deformation
       const bench::PressResult a = bench::press_sessions(without.control_endpoint(), pi, n, o.seconds);
@@ -161,16 +173,24 @@ int run(int argc, char** argv) {
       row.rtt_without.insert(row.rtt_without.end(), ra.begin(), ra.end());
       row.rtt_with.insert(row.rtt_with.end(), rb.begin(), rb.end());
     }
+    // the worker's time over this session count's runs
+    const v1::ServerStats after = control(ctl, sq).stats().server();
+    const double wall = after.deform_worker_wall_s() - before.deform_worker_wall_s();
+    if (wall > 0) {
+      row.worker_step_share = (after.deform_worker_step_s() - before.deform_worker_step_s()) / wall;
+      row.worker_sleep_share = (after.deform_worker_sleep_s() - before.deform_worker_sleep_s()) / wall;
+    }
     rows.push_back(row);
     const Row& r = rows.back();
     const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
     std::printf(
-        "%2d sessions (%s, VOI %d): steps/s per session min %.0f median %.0f; step %.3f ms; dropped %.0f%%; own "
+        "%2d sessions (%s, VOI %d, %s): steps/s per session min %.0f median %.0f; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
         "memory %.1f MB per session, deformation server-wide %.1f MB; round trip p50 %.0f / p99 %.0f us with "
         "deformation, p99 %.0f us without (ratio %.2f, median of %zu rounds)\n",
-        n, r.backend.c_str(), o.voi_edge,
+        n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice",
         r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()),
-        quantile(r.steps_per_s, 0.5), quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), own_mb,
+        quantile(r.steps_per_s, 0.5), quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
+        100 * r.worker_sleep_share, own_mb,
         r.server_bytes / (1 << 20), quantile(r.rtt_with, 0.5), quantile(r.rtt_with, 0.99),
         quantile(r.rtt_without, 0.99), quantile(r.ratios, 0.5), r.ratios.size());
     std::fflush(stdout);
@@ -193,7 +213,7 @@ int run(int argc, char** argv) {
     const std::time_t now = std::time(nullptr);
     std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
     out << "{\n  \"bench\": \"server\",\n  \"date\": \"" << date << "\",\n  \"machine\": \"" << machine()
-        << "\",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
+        << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
         << ",\n  \"rows\": [\n";
     for (std::size_t i = 0; i < rows.size(); ++i) {
       const Row& r = rows[i];
@@ -202,6 +222,8 @@ int run(int argc, char** argv) {
           << ", \"steps_per_s_median\": " << json_number(quantile(r.steps_per_s, 0.5))
           << ", \"step_ms_median\": " << json_number(quantile(r.step_ms, 0.5))
           << ", \"dropped_share_median\": " << json_number(quantile(r.dropped_share, 0.5))
+          << ", \"worker_step_share\": " << json_number(r.worker_step_share)
+          << ", \"worker_sleep_share\": " << json_number(r.worker_sleep_share)
           << ", \"own_bytes_median\": " << json_number(quantile(r.own_bytes, 0.5))
           << ", \"deform_bytes_server\": " << json_number(r.server_bytes)
           << ", \"rtt_p50_us_with\": " << json_number(quantile(r.rtt_with, 0.5))

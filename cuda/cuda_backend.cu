@@ -189,6 +189,10 @@ void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv) {
     std::memcpy(&r, &host_counters_->residual_bits, sizeof r);
     inv->max_residual_vox = r;
     inv->unresolved = (long long)host_counters_->unresolved;
+    float c;
+    std::memcpy(&c, &host_counters_->change_bits, sizeof c);
+    inv->max_change = c;
+    inv->nonfinite = (long long)host_counters_->nonfinite;
   }
 }
 
@@ -216,6 +220,8 @@ InvertStats CudaDeformBackend::invert_impl() {
   InvertStats r;
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->residual_bits, 0, sizeof(unsigned), stream_));
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->unresolved, 0, sizeof(unsigned long long), stream_));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->change_bits, 0, sizeof(unsigned), stream_));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->nonfinite, 0, sizeof(unsigned long long), stream_));
   enqueue_invert();
   finish(nullptr, &r);
   return r;
@@ -254,6 +260,8 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
+    out.invert_max_change = inv.max_change;
+    out.invert_nonfinite = inv.nonfinite;
   }
   // stage times from the events (ms)
   float ms[5];

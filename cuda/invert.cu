@@ -12,7 +12,8 @@ namespace {
 __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, DeviceBuffers b) {
   const deform::Voi& voi = geo.voi;
   const int e = int(blockIdx.x * blockDim.x + threadIdx.x);  // VOIs hold < 2^31 voxels (checked at bind)
-  float r = 0.0f;
+  float r = 0.0f, change = 0.0f;
+  bool broken = false;
   if (e < int(voi.count())) {
     const float* ux = b.u[src][0];
     const float* uy = b.u[src][1];
@@ -34,15 +35,26 @@ __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, 
     const int sxy = voi.size.x * voi.size.y;
     const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
     const Vec3f p = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
-    b.j[e] = deform::trilinear<float>(load_i, p);
+    const float jv = deform::trilinear<float>(load_i, p);
+    b.j[e] = jv;
+    // how far J moved from I here, and whether it is a number at all
+    broken = !isfinite(jv);
+    if (!broken) change = fabsf(jv - load_i(i, j, k));
   }
   // unresolved voxels of the warp, counted before r is reduced
   const unsigned bad = __popc(__ballot_sync(0xffffffffu, r > deform::kInvertResolvedVox));
+  const unsigned nonfinite = __popc(__ballot_sync(0xffffffffu, broken));
   // the largest residual: warp maximum, then one atomic per warp (float bits order as unsigned for r >= 0)
-  for (int o = 16; o > 0; o >>= 1) r = fmaxf(r, __shfl_down_sync(0xffffffffu, r, o));
+  // and the largest change of the image, likewise
+  for (int o = 16; o > 0; o >>= 1) {
+    r = fmaxf(r, __shfl_down_sync(0xffffffffu, r, o));
+    change = fmaxf(change, __shfl_down_sync(0xffffffffu, change, o));
+  }
   if ((threadIdx.x & 31) == 0) {
     atomicMax(&b.counters->residual_bits, __float_as_uint(r));
+    atomicMax(&b.counters->change_bits, __float_as_uint(change));
     if (bad) atomicAdd(&b.counters->unresolved, (unsigned long long)bad);
+    if (nonfinite) atomicAdd(&b.counters->nonfinite, (unsigned long long)nonfinite);
   }
 }
 

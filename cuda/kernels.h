@@ -19,6 +19,8 @@ struct Counters {
   unsigned long long moved_total;  // elements that moved at least once
   unsigned int residual_bits;      // max inversion residual (voxel) as float bits (>= 0)
   unsigned long long unresolved;   // voxels with a residual above deform::kInvertResolvedVox
+  unsigned int change_bits;        // max |J - I| over finite J as float bits (>= 0)
+  unsigned long long nonfinite;    // voxels whose J is NaN or Inf
 };
 
 /// Device pointers of one session's state.

@@ -66,6 +66,8 @@ struct DeformTimes {
 struct InvertStats {
   double max_residual_vox = 0;  // max |p + u(p) - y| over the VOI (voxel)
   long long unresolved = 0;     // VOI voxels with a residual above deform::kInvertResolvedVox
+  double max_change = 0;        // max |J - I| over the VOI's finite J (Patient::intensity units, HU)
+  long long nonfinite = 0;      // VOI voxels whose J is NaN or Inf (a broken step)
 };
 
 /// Memory a backend holds for its session (host and device bytes), by the stage that
@@ -87,6 +89,8 @@ struct DeformStats {
   int relax_iterations = 0;          // 0 when relaxation is off
   double invert_residual_vox = 0;    // max |p + u(p) - y| over the VOI (voxel); 0 without inversion
   long long invert_unresolved = 0;   // VOI voxels with a residual above deform::kInvertResolvedVox
+  double invert_max_change = 0;      // max |J - I| over the VOI (HU); 0 without inversion
+  long long invert_nonfinite = 0;    // VOI voxels whose J is NaN or Inf; 0 without inversion
   DeformTimes times;
 };
 

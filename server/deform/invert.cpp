@@ -1,5 +1,6 @@
 // Inversion on the CPU: the deformed image J on the VOI from the displacement field.
 #include <algorithm>
+#include <cmath>
 
 #include "deform/cpu_backend.h"
 
@@ -18,18 +19,24 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuStat
     const int gk = std::clamp(voi.lo.z + k, 0, grid.size.z - 1);
     return p.intensity.data[grid.index(gi, gj, gk)];
   };
-  float worst = 0;
-  long long unresolved = 0;
+  float worst = 0, change = 0;
+  long long unresolved = 0, nonfinite = 0;
   for (int k = 0; k < voi.size.z; ++k)
     for (int j = 0; j < voi.size.y; ++j)
       for (int i = 0; i < voi.size.x; ++i) {
         float r = 0;
         const Vec3f x0 = invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
-        s.j[voi.index(i, j, k)] = trilinear<float>(load_i, x0);
+        const float jv = trilinear<float>(load_i, x0);
+        s.j[voi.index(i, j, k)] = jv;
         worst = std::max(worst, r);
         unresolved += r > kInvertResolvedVox;
+        // how far J moved from I here, and whether it is a number at all
+        if (std::isfinite(jv))
+          change = std::max(change, std::fabs(jv - load_i(i, j, k)));
+        else
+          ++nonfinite;
       }
-  return {worst, unresolved};
+  return {worst, unresolved, change, nonfinite};
 }
 
 }  // namespace palpsim::deform

@@ -65,6 +65,12 @@ struct DeformServerReport {
   DeformTimes sum;              // summed stage times of those steps (ms)
   DeformMemory memory;          // every engine the worker holds (bytes)
   std::uint64_t engines = 0;    // engines held (sessions' and spares)
+  // where the worker thread's time went since the current scene was set up (s): in
+  // steps (the engine's step and the worker's checks of J), napping for want of new
+  // contacts, and everything else (passes, reports, exports to the stream)
+  double worker_wall_s = 0;
+  double worker_step_s = 0;
+  double worker_sleep_s = 0;
 };
 
 /// Runs deformation for every open session on one thread.
@@ -134,6 +140,8 @@ class DeformWorker {
   bool built_ = false;
   std::vector<Session> sessions_;                       // by slot index
   std::vector<std::unique_ptr<DeformEngine>> spares_;  // engines of closed sessions, reused
+  std::chrono::steady_clock::time_point world_start_;  // when the current scene was set up
+  double step_s_ = 0, sleep_s_ = 0;                    // the worker's time in steps and naps since then
 
   // (worker writes, others read under report_mu_) what stats show
   mutable std::mutex report_mu_;

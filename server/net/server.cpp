@@ -642,6 +642,9 @@ class Server::Control {
     s->set_deform_failures(d.failures);
     s->set_deform_non_converged(d.non_converged);
     s->set_deform_contacts_dropped(d.contacts_dropped);
+    s->set_deform_worker_wall_s(d.worker_wall_s);
+    s->set_deform_worker_step_s(d.worker_step_s);
+    s->set_deform_worker_sleep_s(d.worker_sleep_s);
     fill_info(st->mutable_info());
     const std::uint64_t id = req_.stats().session_id();
     if (id != 0) {

@@ -199,6 +199,13 @@ TEST_CASE("a whole gpu step equals the cpu step, and reset restores I") {
     // the relaxed fields differ by ~1e-6 voxel, so only voxels whose residual lies that
     // close to the 0.1 voxel threshold may fall either way: a few in 20000
     CHECK(std::llabs(a.invert_unresolved - b.invert_unresolved) <= 1 + b.chainmail.voi.count() / 20000);
+    // J's largest change from I, reduced on the GPU as J is written: no voxel is NaN, and
+    // the largest change (hundreds of HU at the skin) agrees within 5%: J agrees to a
+    // fraction of a HU where the inversion converges, more only in the few fold voxels
+    CHECK(a.invert_nonfinite == 0);
+    CHECK(b.invert_nonfinite == 0);
+    CHECK(b.invert_max_change > 100);
+    CHECK(std::fabs(a.invert_max_change - b.invert_max_change) <= 0.05 * a.invert_max_change);
   }
   g.reset();
   CHECK(g.deformed_volume().data == torso->intensity.data);
@@ -237,8 +244,8 @@ TEST_CASE("sessions on one patient share one device copy of it, and step as one 
     for (const auto& b : sessions) {
       const DeformMemory m = b->memory();
       CHECK(m.shared_patient_bytes == patient_bytes);
-      // the session's own memory is its VOI state only: no volume-sized buffer in it
-      CHECK(m.total() < patient_bytes);
+      // the session's own memory is its VOI state only: the same for a patient of another size
+      CHECK(m.total() == elsewhere->memory().total());
     }
     // a step of each session sees the same patient as a session alone
     for (const auto& b : sessions) {

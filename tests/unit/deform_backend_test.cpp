@@ -1,5 +1,9 @@
-// Backend choice by name and the validating wrapper's refusals.
+// Backend choice by name, the validating wrapper's refusals, and what a step reports
+// about J.
 #include <catch2/catch.hpp>
+
+#include <cmath>
+#include <limits>
 
 #include "core/error.h"
 #include "deform/cpu_backend.h"
@@ -76,4 +80,48 @@ TEST_CASE("DeformConfig::from_scene takes Deform{}, prep's bone threshold and th
   CHECK(DeformConfig::from_scene(s, &p).bone_threshold == 137);
   s.prep.bone_threshold_set = true;
   CHECK(DeformConfig::from_scene(s, &p).bone_threshold == 250);
+}
+
+TEST_CASE("a step reports J's largest change from I and its non-finite voxels, as J holds them") {
+  auto torso = make_torso_patient(64);
+  DeformConfig cfg = preset_config(1);
+  cfg.settings.voi_edge = 32;
+  CpuDeformBackend b;
+  b.bind(torso, cfg);
+  const DeformStats st = b.step(voxel_contact({32, 14, 32}, {0.5, 5.0, -1.0}));
+  // the same figures from J itself, on the host
+  const Voi& v = b.voi();
+  const float* j = b.deformed_brick();
+  double change = 0;
+  long long nonfinite = 0;
+  for (int k = 0; k < v.size.z; ++k)
+    for (int jj = 0; jj < v.size.y; ++jj)
+      for (int i = 0; i < v.size.x; ++i) {
+        const float x = j[v.index(i, jj, k)];
+        if (!std::isfinite(x)) {
+          ++nonfinite;
+          continue;
+        }
+        change = std::max(change, double(std::fabs(x - torso->intensity.at(v.lo.x + i, v.lo.y + jj, v.lo.z + k))));
+      }
+  CHECK(st.invert_nonfinite == 0);
+  CHECK(nonfinite == 0);
+  // the press moves the skin: J changes by hundreds of HU there; the step computes the
+  // same floats as this loop, so the two agree exactly
+  CHECK(change > 100);
+  CHECK(st.invert_max_change == change);
+
+  SECTION("NaN in the image makes J non-finite there, and the count says so") {
+    auto bad = std::make_shared<Patient>(*torso);
+    for (int k = 30; k < 34; ++k)
+      for (int jj = 20; jj < 24; ++jj)
+        for (int i = 30; i < 34; ++i) bad->intensity.at(i, jj, k) = std::numeric_limits<float>::quiet_NaN();
+    CpuDeformBackend nb;
+    nb.bind(bad, cfg);
+    const DeformStats ns = nb.step(voxel_contact({32, 14, 32}, {0.5, 5.0, -1.0}));
+    // at least the 64 NaN voxels themselves (J samples I there; the material function
+    // spreads NaN further through relaxation), and the largest change is over the rest
+    CHECK(ns.invert_nonfinite >= 64);
+    CHECK(std::isfinite(ns.invert_max_change));
+  }
 }

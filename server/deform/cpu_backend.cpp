@@ -39,7 +39,9 @@ DeformMemory CpuDeformBackend::memory_impl() const {
   DeformMemory m;
   m.chainmail_bytes = bytes(s_.u) + bytes(s_.moved_at) + bytes(s_.visited_at) + bytes(s_.movers) +
                       bytes(s_.candidates) + bytes(s_.changes);
-  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight);
+  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.mg_held) + bytes(s_.mg_r0) + bytes(s_.mg_z) +
+                  bytes(s_.mg_p) + bytes(s_.mg_q) + bytes(s_.mg_x) + bytes(s_.mg_f) +
+                  bytes(s_.mg_r) + bytes(s_.mg_held_coarse);
   m.invert_bytes = bytes(s_.j);
   return m;
 }
@@ -61,6 +63,11 @@ void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
 void CpuDeformBackend::relax_impl() {
   grow_relax_buffers();
   const DeformSettings& d = config_.settings;
+  if (d.relax_method == "multigrid") {
+    deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, float(config_.bone_threshold),
+                                float(d.material_width), s_);
+    return;
+  }
   deform::relax_cpu(*patient_, setup_, d.relax_iterations, float(d.relax_step), float(config_.bone_threshold),
                     float(d.material_width), s_);
 }
@@ -95,7 +102,7 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
   if (config_.relax) {
     t0 = clock::now();
     relax_impl();
-    out.relax_iterations = config_.settings.relax_iterations;
+    set_relax_counts(out);
     out.times.relax_ms = ms_since(t0);
   }
   // inversion and upload, when the scene asks for J

@@ -8,6 +8,7 @@
 
 #include "core/error.h"
 #include "deform/cpu_backend.h"
+#include "deform/relax_multigrid.h"
 
 #ifdef PALPSIM_HAVE_CUDA
 namespace palpsim::cuda {
@@ -86,7 +87,8 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
   if (s.relax_method != "explicit" && s.relax_method != "multigrid")
     throw Error(who + ": deform.relax_method = \"" + s.relax_method + "\" is unknown; use \"explicit\" or \"multigrid\"");
   if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
-  if (s.relax_cycles < 0 || s.relax_cycles > 100) bad("relax_cycles", s.relax_cycles, "must lie in [0, 100]");
+  if (s.relax_cycles < 0 || s.relax_cycles > deform::kMultigridMaxCycles)
+    bad("relax_cycles", s.relax_cycles, "must lie in [0, " + std::to_string(deform::kMultigridMaxCycles) + "]");
   if (!(s.relax_step >= 0)) bad("relax_step", s.relax_step, "must not be negative");
   if (s.relax_step > deform::kRelaxStableStep) {
     std::ostringstream m;

@@ -32,6 +32,8 @@ namespace palpsim::deform {
 
 /// The most levels a plan holds: 2^16 voxels along every axis would need 15.
 constexpr int kMultigridMaxLevels = 16;
+/// The most steps (deform.relax_cycles) a scene may ask for.
+constexpr int kMultigridMaxCycles = 100;
 /// Red-black Gauss-Seidel sweeps before and after each coarse-grid correction (one each
 /// reached 1% of the phantom press's steady state in 6 steps, two each in 5; one is cheaper).
 constexpr int kMultigridPreSweeps = 1;

@@ -71,7 +71,7 @@ void CudaDeformBackend::release() {
   for (int*& s : d_.stamp) cudaFree(s);
   cudaFree(d_.j);
   cudaFree(d_.counters);
-  for (void* q : {(void*)mg_.x, (void*)mg_.r, (void*)mg_.z, (void*)mg_.p, (void*)mg_.q, (void*)mg_.held, (void*)mg_.cx,
+  for (void* q : {(void*)mg_.x, (void*)mg_.r, (void*)mg_.z, (void*)mg_.p, (void*)mg_.p2, (void*)mg_.q, (void*)mg_.held, (void*)mg_.cx,
                   (void*)mg_.cf, (void*)mg_.cr, (void*)mg_.cheld, (void*)mg_.dots})
     cudaFree(q);
   mg_ = MultigridBuffers{};
@@ -138,7 +138,7 @@ void CudaDeformBackend::ensure_multigrid_buffers() {
     most[a] = config_.settings.whole_volume ? patient_->grid.size[a] : std::min(config_.settings.voi_edge, patient_->grid.size[a]);
   const long long nc = std::max(1LL, deform::multigrid_plan(most, Vec3i{0, 0, 0}).coarse_count);
   const std::size_t n = std::size_t(capacity_);
-  for (Vec3f** v : {&mg_.x, &mg_.r, &mg_.z, &mg_.p, &mg_.q}) PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(Vec3f)));
+  for (Vec3f** v : {&mg_.x, &mg_.r, &mg_.z, &mg_.p, &mg_.p2, &mg_.q}) PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(Vec3f)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.held, n));
   for (Vec3f** v : {&mg_.cx, &mg_.cf, &mg_.cr}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(Vec3f)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.cheld, std::size_t(nc)));
@@ -158,9 +158,9 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   m.chainmail_bytes = nvol * (sizeof(float) + sizeof(std::uint8_t)) + sizeof(d_.u) / sizeof(float*) * n * sizeof(float) +
                       sizeof(d_.stamp) / sizeof(int*) * n * sizeof(int) + 2 * sizeof(Counters);
   m.invert_bytes = 2 * n * sizeof(float);
-  // multigrid: five VOI fields and a mask, three coarse fields and a mask, the dot sums
+  // multigrid: six VOI fields and a mask, three coarse fields and a mask, the dot sums
   if (mg_.capacity > 0)
-    m.relax_bytes = std::size_t(mg_.capacity) * (5 * sizeof(Vec3f) + 1) +
+    m.relax_bytes = std::size_t(mg_.capacity) * (6 * sizeof(Vec3f) + 1) +
                     std::size_t(mg_.coarse_capacity) * (3 * sizeof(Vec3f) + 1) +
                     2 * deform::kMultigridMaxCycles * sizeof(double);
   return m;

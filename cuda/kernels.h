@@ -34,10 +34,10 @@ struct DeviceBuffers {
 
 /// Device buffers of the multigrid relaxation (relax_multigrid.cu), allocated only when
 /// the scene asks for it: the field X, CG's residual r, preconditioned residual z,
-/// direction p and A p (q) and the held mask on the VOI; the coarse levels' correction,
+/// direction p (two buffers, one written while the other is read) and A p (q) and the held mask on the VOI; the coarse levels' correction,
 /// right-hand side, residual and held mask (deform::MultigridPlan::offset); dot sums.
 struct MultigridBuffers {
-  Vec3f *x = nullptr, *r = nullptr, *z = nullptr, *p = nullptr, *q = nullptr;
+  Vec3f *x = nullptr, *r = nullptr, *z = nullptr, *p = nullptr, *p2 = nullptr, *q = nullptr;
   std::uint8_t* held = nullptr;
   Vec3f *cx = nullptr, *cf = nullptr, *cr = nullptr;
   std::uint8_t* cheld = nullptr;

@@ -7,6 +7,7 @@
 #include <cooperative_groups.h>
 
 #include <algorithm>
+#include <cstdlib>
 
 #include "cuda/check.h"
 #include "cuda/kernels.h"
@@ -19,8 +20,6 @@ namespace {
 
 using deform::MultigridPlan;
 
-// levels of at most this many nodes run in one block
-constexpr long long kBlockNodes = 4096;
 
 // one level: nodes, field x, right-hand side f (null: 0), residual r, held mask
 struct Level {
@@ -96,11 +95,14 @@ __device__ void correct(const Level& fine, const Level& coarse, const Vec3i& o, 
 
 // the V-cycle from level `from` down to the coarsest and back (level from's x starts at
 // 0), all passes by team `t`, `sync` between them
+// (level 0's first red half-sweep is left out when the caller did it: from z = 0 it is
+// z = r / 6 on red free nodes, which CG's update pass writes)
 template <typename Sync>
 __device__ void vcycle(const Level* lv, const MultigridPlan& plan, int from, int to, Team t, Sync sync) {
   for (int l = from; l < to; ++l) {
     for (int s = 0; s < deform::kMultigridPreSweeps; ++s)
       for (int c = 0; c < 2; ++c) {
+        if (l == 0 && s == 0 && c == 0) continue;
         smooth_colour(lv[l], c, t);
         sync();
       }
@@ -126,9 +128,9 @@ __device__ void vcycle_up(const Level* lv, const MultigridPlan& plan, int from, 
 
 // the coarsest level's symmetric sweeps
 template <typename Sync>
-__device__ void coarsest(const Level& L, Team t, Sync sync) {
+__device__ void coarsest(const Level& L, int sweeps, Team t, Sync sync) {
   for (int dir = 0; dir < 2; ++dir)
-    for (int s = 0; s < deform::kMultigridCoarsestSweeps; ++s)
+    for (int s = 0; s < sweeps; ++s)
       for (int c = 0; c < 2; ++c) {
         smooth_colour(L, dir == 0 ? c : 1 - c, t);
         sync();
@@ -158,6 +160,8 @@ struct MgArgs {
   int src;
   int cycles;
   float threshold, width;
+  long long block_nodes;  // levels of at most this many nodes run in block 0 alone
+  int coarsest_sweeps;
   DeviceBuffers b;
   MultigridBuffers m;
 };
@@ -184,7 +188,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   // the first level that block 0 handles alone
   int split = plan.levels;
   for (int l = 0; l < plan.levels; ++l)
-    if (deform::node_count(plan.size[l]) <= kBlockNodes) {
+    if (deform::node_count(plan.size[l]) <= a.block_nodes) {
       split = l;
       break;
     }
@@ -198,31 +202,42 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     field.coords(e, i, j, k);
     const long long gi = ((long long)(voi.lo.z + k) * a.geo.volume_size.y + (voi.lo.y + j)) * a.geo.volume_size.x +
                          (voi.lo.x + i);
-    m.x[e] = Vec3f{u[0][e], u[1][e], u[2][e]};
-    m.held[e] = e == g_idx || deform::material_weight(a.b.intensity[gi], a.b.bone[gi] != 0, a.threshold, a.width) == 0.0f;
-    m.z[e] = Vec3f{0, 0, 0};
+    const bool held =
+        e == g_idx || deform::material_weight(a.b.intensity[gi], a.b.bone[gi] != 0, a.threshold, a.width) == 0.0f;
+    // the start: u on held elements, 0 on free ones (as the CPU reference)
+    m.x[e] = held ? Vec3f{u[0][e], u[1][e], u[2][e]} : Vec3f{0, 0, 0};
+    m.held[e] = held;
     m.p[e] = Vec3f{0, 0, 0};
   }
   if (all.first < unsigned(2 * a.cycles)) m.dots[all.first] = 0.0;
   grid.sync();
-  // r = -(6 X - sum6) on free elements
-  residual(field, all);
+  // r = -(6 X - sum6) on free elements; z = r / 6 on red free elements (the V-cycle's
+  // first half-sweep from z = 0), 0 elsewhere
+  for (int e = int(all.first); e < n; e += int(all.stride)) {
+    int i, j, k;
+    field.coords(e, i, j, k);
+    const Vec3f r = m.held[e] ? Vec3f{0, 0, 0} : deform::multigrid_residual(m.x[e], field.sum6(m.x, i, j, k), Vec3f{0, 0, 0});
+    m.r[e] = r;
+    m.z[e] = deform::multigrid_colour(i, j, k) == 0 ? deform::multigrid_smooth(Vec3f{0, 0, 0}, r) : Vec3f{0, 0, 0};
+  }
   grid.sync();
 
+  Vec3f* p = m.p;
+  Vec3f* p_next = m.p2;
   double rho = 0;
   for (int c = 0; c < a.cycles; ++c) {
-    // z = one symmetric V-cycle applied to r (z = 0 on entry): the grid down to level
-    // `split`, block 0 below it, the grid back up
+    // z = one symmetric V-cycle applied to r: the grid down to level `split`, block 0
+    // below it, the grid back up
     vcycle(lv, plan, 0, grid_to, all, gsync);
     if (split <= last) {
       if (blockIdx.x == 0) {
         vcycle(lv, plan, split, last, block0, bsync);
-        coarsest(lv[last], block0, bsync);
+        coarsest(lv[last], a.coarsest_sweeps, block0, bsync);
         vcycle_up(lv, plan, split, last, block0, bsync);
       }
       grid.sync();
     } else {
-      coarsest(lv[last], all, gsync);  // a thin VOI whose coarsest level is too large for one block
+      coarsest(lv[last], a.coarsest_sweeps, all, gsync);  // a thin VOI whose coarsest level is too large for one block
     }
     vcycle_up(lv, plan, 0, grid_to, all, gsync);
     // rho = r . z
@@ -234,28 +249,42 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     if (!(rho_new > 0)) break;  // r = 0: converged
     const float beta = c == 0 ? 0.0f : float(rho_new / rho);
     rho = rho_new;
-    // p = z + beta p
-    for (int e = int(all.first); e < n; e += int(all.stride)) m.p[e] = m.z[e] + m.p[e] * beta;
-    grid.sync();
-    // q = A p on free elements, and p . q
+    // p' = z + beta p into the other buffer, q = A p' on free elements (p' of the
+    // neighbours from z and p), and p' . q
     part = 0;
     for (int e = int(all.first); e < n; e += int(all.stride)) {
       int i, j, k;
       field.coords(e, i, j, k);
-      const Vec3f q = m.held[e] ? Vec3f{0, 0, 0} : -deform::multigrid_residual(m.p[e], field.sum6(m.p, i, j, k), Vec3f{0, 0, 0});
+      const Vec3f pe = m.z[e] + p[e] * beta;
+      Vec3f sum6{0, 0, 0};
+      for (int nq = 0; nq < 6; ++nq) {
+        const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(nq);
+        if (!field.inside(nb.x, nb.y, nb.z)) continue;
+        const int ne = field.index(nb.x, nb.y, nb.z);
+        sum6 += m.z[ne] + p[ne] * beta;
+      }
+      const Vec3f q = m.held[e] ? Vec3f{0, 0, 0} : -deform::multigrid_residual(pe, sum6, Vec3f{0, 0, 0});
+      p_next[e] = pe;
       m.q[e] = q;
-      part += dot3(m.p[e], q);
+      part += dot3(pe, q);
     }
     block_sum_add(part, &m.dots[2 * c + 1]);
+    Vec3f* t = p;
+    p = p_next;
+    p_next = t;
     grid.sync();
     const double pq = m.dots[2 * c + 1];
     if (!(pq > 0)) break;
     const float alpha = float(rho / pq);
-    // X += alpha p, r -= alpha q, z = 0 for the next V-cycle
+    // X += alpha p, r -= alpha q, and z for the next V-cycle as at the start
     for (int e = int(all.first); e < n; e += int(all.stride)) {
-      m.x[e] += m.p[e] * alpha;
-      m.r[e] -= m.q[e] * alpha;
-      m.z[e] = Vec3f{0, 0, 0};
+      int i, j, k;
+      field.coords(e, i, j, k);
+      m.x[e] += p[e] * alpha;
+      const Vec3f r = m.r[e] - m.q[e] * alpha;
+      m.r[e] = r;
+      m.z[e] = deform::multigrid_colour(i, j, k) == 0 && !m.held[e] ? deform::multigrid_smooth(Vec3f{0, 0, 0}, r)
+                                                                   : Vec3f{0, 0, 0};
     }
     grid.sync();
   }
@@ -292,6 +321,8 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float th
     throw Error("deform backend \"cuda\": the multigrid buffers are smaller than this VOI needs");
   a.src = src;
   a.cycles = std::min(cycles, deform::kMultigridMaxCycles);
+  a.block_nodes = getenv("PALPSIM_MG_BLOCK_NODES") ? atoll(getenv("PALPSIM_MG_BLOCK_NODES")) : 4096;
+  a.coarsest_sweeps = getenv("PALPSIM_MG_COARSEST") ? atoi(getenv("PALPSIM_MG_COARSEST")) : deform::kMultigridCoarsestSweeps;
   a.threshold = threshold;
   a.width = width;
   a.b = b;

@@ -2,12 +2,11 @@
 // V-cycle preconditioner as server/deform/relax_multigrid.cpp, in one persistent
 // cooperative kernel. Levels with more than kBlockNodes nodes run on the whole grid
 // with grid.sync() between passes; the coarser ones run in block 0 alone with
-// __syncthreads() (a grid barrier costs ~1 us, a block barrier ~0.1 us, and a 16^3
-// level gives each of its 1024 threads four nodes).
+// __syncthreads(). Each grid-wide pass with its barrier costs ~4.8 us at VOI 64 on the
+// H100 whatever the level's size (a step has 24), so the step's cost is its barriers.
 #include <cooperative_groups.h>
 
 #include <algorithm>
-#include <cstdlib>
 
 #include "cuda/check.h"
 #include "cuda/kernels.h"
@@ -19,6 +18,11 @@ namespace palpsim::cuda {
 namespace {
 
 using deform::MultigridPlan;
+
+// levels of at most this many nodes (8^3) run in block 0 alone: measured at VOI 64 on
+// the H100, a step took 118 us with 512, 129 us with 4096 (16^3 in one block), 144 us
+// with none and 330 us with 32768
+constexpr long long kBlockNodes = 512;
 
 
 // one level: nodes, field x, right-hand side f (null: 0), residual r, held mask
@@ -129,6 +133,7 @@ __device__ void vcycle_up(const Level* lv, const MultigridPlan& plan, int from, 
 // the coarsest level's symmetric sweeps
 template <typename Sync>
 __device__ void coarsest(const Level& L, int sweeps, Team t, Sync sync) {
+  // forward then backward, so the V-cycle stays symmetric
   for (int dir = 0; dir < 2; ++dir)
     for (int s = 0; s < sweeps; ++s)
       for (int c = 0; c < 2; ++c) {
@@ -160,8 +165,6 @@ struct MgArgs {
   int src;
   int cycles;
   float threshold, width;
-  long long block_nodes;  // levels of at most this many nodes run in block 0 alone
-  int coarsest_sweeps;
   DeviceBuffers b;
   MultigridBuffers m;
 };
@@ -188,7 +191,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   // the first level that block 0 handles alone
   int split = plan.levels;
   for (int l = 0; l < plan.levels; ++l)
-    if (deform::node_count(plan.size[l]) <= a.block_nodes) {
+    if (deform::node_count(plan.size[l]) <= kBlockNodes) {
       split = l;
       break;
     }
@@ -232,12 +235,12 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     if (split <= last) {
       if (blockIdx.x == 0) {
         vcycle(lv, plan, split, last, block0, bsync);
-        coarsest(lv[last], a.coarsest_sweeps, block0, bsync);
+        coarsest(lv[last], deform::kMultigridCoarsestSweeps, block0, bsync);
         vcycle_up(lv, plan, split, last, block0, bsync);
       }
       grid.sync();
     } else {
-      coarsest(lv[last], a.coarsest_sweeps, all, gsync);  // a thin VOI whose coarsest level is too large for one block
+      coarsest(lv[last], deform::kMultigridCoarsestSweeps, all, gsync);  // a thin VOI whose coarsest level is too large for one block
     }
     vcycle_up(lv, plan, 0, grid_to, all, gsync);
     // rho = r . z
@@ -321,8 +324,6 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float th
     throw Error("deform backend \"cuda\": the multigrid buffers are smaller than this VOI needs");
   a.src = src;
   a.cycles = std::min(cycles, deform::kMultigridMaxCycles);
-  a.block_nodes = getenv("PALPSIM_MG_BLOCK_NODES") ? atoll(getenv("PALPSIM_MG_BLOCK_NODES")) : 4096;
-  a.coarsest_sweeps = getenv("PALPSIM_MG_COARSEST") ? atoi(getenv("PALPSIM_MG_COARSEST")) : deform::kMultigridCoarsestSweeps;
   a.threshold = threshold;
   a.width = width;
   a.b = b;

@@ -52,7 +52,7 @@ struct DeformSettings {
   std::string relax_method = "explicit";  // "explicit" (the paper's, relax_iterations) or "multigrid" (steady state)
   int relax_iterations = 20;    // explicit steps
   double relax_step = 0.15;     // explicit diffusion step, stable below 1/6
-  int relax_cycles = 6;         // multigrid steps (one V-cycle each)
+  int relax_cycles = 5;         // multigrid steps (one V-cycle each)
   double material_width = 50;   // HU, width of the material function's step at bone
   int invert_iterations = 8;
   std::string backend = "auto"; // "auto", "cpu" or "cuda"

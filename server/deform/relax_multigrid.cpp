@@ -106,8 +106,8 @@ void vcycle(Level* lv, const MultigridPlan& plan) {
     restrict_to(lv[l], lv[l + 1], plan.origin[l]);
   }
   // the coarsest level (the whole VOI when it is too thin to coarsen)
-  smooth(lv[last], kMultigridCoarsestSweeps, false);
-  smooth(lv[last], kMultigridCoarsestSweeps, true);
+  for (int s = 0; s < kMultigridCoarsestSweeps; ++s) smooth(lv[last], 1, false);
+  for (int s = 0; s < kMultigridCoarsestSweeps; ++s) smooth(lv[last], 1, true);
   for (int l = last - 1; l >= 0; --l) {
     correct(lv[l], lv[l + 1], plan.origin[l]);
     smooth(lv[l], kMultigridPostSweeps, true);

@@ -29,7 +29,7 @@ constexpr long long kBlockNodes = 512;
 struct Level {
   Vec3i n;
   Vec3f* x;
-  const Vec3f* f;
+  Vec3f* f;
   Vec3f* r;
   std::uint8_t* held;
 
@@ -78,11 +78,10 @@ __device__ void residual(const Level& L, Team t) {
 
 __device__ void restrict_to(const Level& fine, const Level& coarse, const Vec3i& o, Team t) {
   auto load_r = [&](int i, int j, int k) { return fine.inside(i, j, k) ? fine.r[fine.index(i, j, k)] : Vec3f{0, 0, 0}; };
-  Vec3f* f = const_cast<Vec3f*>(coarse.f);
   for (int e = int(t.first); e < coarse.count(); e += int(t.stride)) {
     int i, j, k;
     coarse.coords(e, i, j, k);
-    f[e] = deform::multigrid_restrict(load_r, o, i, j, k);
+    coarse.f[e] = deform::multigrid_restrict(load_r, o, i, j, k);
     coarse.held[e] = fine.held[fine.index(2 * i + o.x, 2 * j + o.y, 2 * k + o.z)];
     coarse.x[e] = Vec3f{0, 0, 0};
   }

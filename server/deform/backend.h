@@ -72,7 +72,7 @@ struct InvertStats {
 /// needs it, so the server can show that a stage the scene did not ask for costs nothing.
 struct DeformMemory {
   std::size_t chainmail_bytes = 0;  // displacement field and sweep bookkeeping (cuda: also the patient's I and bone mask)
-  std::size_t relax_bytes = 0;      // relaxation's own buffers (cuda: none, it reuses ChainMail's two fields)
+  std::size_t relax_bytes = 0;      // relaxation's own buffers (cuda explicit: none, it reuses ChainMail's two fields)
   std::size_t invert_bytes = 0;     // J on the VOI (cuda: also its pinned host copy)
   std::size_t total() const { return chainmail_bytes + relax_bytes + invert_bytes; }
 };

@@ -22,7 +22,10 @@ void CpuDeformBackend::bind_impl() {
   std::vector<Vec3f>().swap(s_.u_next);
   std::vector<float>().swap(s_.weight);
   std::vector<float>().swap(s_.j);
-  if (config_.relax) grow_relax_buffers();
+  for (auto* v : {&s_.mg_r0, &s_.mg_z, &s_.mg_p, &s_.mg_q, &s_.mg_x, &s_.mg_f, &s_.mg_r}) std::vector<Vec3f>().swap(*v);
+  std::vector<std::uint8_t>().swap(s_.mg_held);
+  std::vector<std::uint8_t>().swap(s_.mg_held_coarse);
+  if (config_.relax && config_.settings.relax_method == "explicit") grow_relax_buffers();
   if (config_.invert) s_.j.assign(n, 0.0f);
   dirty_ = Voi{};
 }
@@ -61,13 +64,14 @@ void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
 }
 
 void CpuDeformBackend::relax_impl() {
-  grow_relax_buffers();
   const DeformSettings& d = config_.settings;
   if (d.relax_method == "multigrid") {
+    // its buffers grow on first use
     deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, float(config_.bone_threshold),
                                 float(d.material_width), s_);
     return;
   }
+  grow_relax_buffers();
   deform::relax_cpu(*patient_, setup_, d.relax_iterations, float(d.relax_step), float(config_.bone_threshold),
                     float(d.material_width), s_);
 }

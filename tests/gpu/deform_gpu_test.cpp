@@ -212,13 +212,19 @@ TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and wit
   const Press press = spinous_press(ct.geometry);
   const PatientPtr phantom = patient_from_intensity(std::move(ct.hu), "phantom");
   const PatientPtr cube = make_cube_patient(64, 40, 3);
+  // a VOI too thin to coarsen (the whole grid sweeps its one level) and one whose
+  // levels all fit in block 0
+  const PatientPtr thin = make_patient({64, 64, 2}, [](int i, int, int) { return kSoftHu + 0.5f * i; });
+  const PatientPtr small = make_soft_patient(8);
   struct Case {
     const char* name;
     PatientPtr p;
     DeformContact c;
   };
   const Case cases[] = {{"phantom press", phantom, press.contact},
-                        {"cube in bone", cube, voxel_contact({32, 32, 13}, {1, 0, 5})}};
+                        {"cube in bone", cube, voxel_contact({32, 32, 13}, {1, 0, 5})},
+                        {"thin VOI", thin, voxel_contact({32, 32, 1}, {2, -1, 0.4})},
+                        {"8^3 VOI", small, voxel_contact({4, 4, 4}, {0, 1.5, 0})}};
   for (const Case& k : cases)
     for (int steps : {1, 6, 20}) {
       DeformConfig cfg = preset_config(1);

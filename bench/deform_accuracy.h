@@ -1,7 +1,7 @@
 // palpsim-bench deform --accuracy: what accuracy costs in time. For one realistic
 // press on the phantom (10 mm into the back over the L3 spinous process) every
 // backend this build and machine have is timed for each setting of one knob at a
-// time (relaxation iterations, inversion iterations, VOI edge; the others at the
+// time (relaxation iterations, multigrid steps, inversion iterations, VOI edge; the others at the
 // scene defaults) and the result is compared with a reference run with generous
 // settings of that knob. The implementation lives in deform_accuracy_bench.cpp so
 // that bench/CMakeLists.txt's *_bench.cpp glob links it; it registers no area of
@@ -21,6 +21,9 @@ struct AccuracyOptions {
   int ref_relax_iterations = 400;    // reference of the relaxation study
   int ref_invert_iterations = 64;    // reference of the inversion study
   int ref_voi_edge = 160;            // reference of the VOI study (voxel), above the largest setting
+  std::string study;                 // only this knob's study (relax_iterations, relax_cycles, invert_iterations, voi_edge); "" = all
+  std::string backend;               // only this backend ("cpu" or "cuda"); "" = every one available
+  int ref_multigrid_cycles = 40;     // reference of the multigrid study: converged to float rounding
 };
 
 /// Runs the study, prints one markdown table per backend and knob, writes the JSON

@@ -5,6 +5,9 @@
 // time and is compared with a reference that differs from the base in that knob only:
 //   relax_iterations {0..160} vs 400: RMS and max |u - u_ref| (voxel), RMS of the
 //     discrete Laplacian of u over soft voxels (voxel; lower is smoother);
+//   relax_cycles {1..8} (relax_method multigrid; 0: explicit 20) vs multigrid 40 steps,
+//     the converged steady state: RMS |u - u_ref| over RMS |u_ref|, max |u - u_ref|,
+//     the Laplacian's RMS, and isotropy at 6 voxels on a homogeneous block;
 //   invert_iterations {0..32} vs 64: max and mean inversion residual |p + u(p) - y|
 //     (voxel) and RMS |J - J_ref| (HU), over the VOI and over the voxels the reference
 //     resolved (residual <= 0.1 voxel; a fold's few unresolved voxels swing J by
@@ -14,6 +17,7 @@
 //     and RMS |u - u_ref| over the reference's VOI (u = 0 outside the setting's VOI).
 // Times: median (p10, p90) of whole steps and of the knob's stage, after warm-up.
 #include <algorithm>
+#include <iterator>
 #include <cmath>
 #include <cstdio>
 #include <ctime>
@@ -32,46 +36,20 @@
 #include "deform/deform_math.h"
 #include "prep/phantom.h"
 #include "tests/support/deform_fixtures.h"
+#include "tests/support/phantom_press.h"
 
 namespace palpsim::bench {
 namespace {
 
 using deform::Voi;
+using test::Press;
+using test::spinous_press;
+using test::laplacian_rms;
 
 // a JSON number (null for a non-finite value)
 std::string num(double v) { return json_number(v); }
 
 std::string json_vec(const Vec3& v) { return "[" + num(v.x) + ", " + num(v.y) + ", " + num(v.z) + "]"; }
-
-// the press over a spinous process, from the phantom's closed-form geometry
-struct Press {
-  std::string landmark = "spinous_tip_L3";
-  Vec3 landmark_mm;
-  DeformContact contact;
-  double press_mm = 10;      // |x - X|
-  double skin_depth_mm = 1;  // X below the skin
-  double bone_depth_mm = 0;  // spinous tip below X
-};
-
-Press spinous_press(const PhantomGeometry& geo) {
-  Press p;
-  const Vec3 tip = geo.landmark(p.landmark);
-  p.landmark_mm = tip;
-  // X: straight above the tip (+y, posterior) where the skin's signed distance is
-  // -skin_depth_mm; bisection between the tip (inside) and 80 mm above it (outside)
-  auto depth = [&](double y) { return geo.skin_signed_distance_mm({tip.x, y, tip.z}); };
-  double lo = tip.y, hi = tip.y + 80;
-  if (!(depth(lo) < -p.skin_depth_mm && depth(hi) > 0))
-    throw Error("deform accuracy: no skin between " + p.landmark + " and 80 mm above it");
-  for (int it = 0; it < 60; ++it) {
-    const double mid = 0.5 * (lo + hi);
-    (depth(mid) < -p.skin_depth_mm ? lo : hi) = mid;
-  }
-  const Vec3 X{tip.x, lo, tip.z};
-  p.contact = {X, X - Vec3{0, p.press_mm, 0}};
-  p.bone_depth_mm = X.y - tip.y;
-  return p;
-}
 
 // one setting run on one backend: times of whole steps and of one stage, and what the last step left
 enum class Stage { relax, invert, total };
@@ -139,27 +117,6 @@ Diff field_diff(const std::vector<Vec3f>& a, const std::vector<Vec3f>& b) {
   }
   d.rms = a.empty() ? 0 : std::sqrt(sum / double(a.size()));
   return d;
-}
-
-// RMS of |sum of six neighbours - 6 u| (voxel) over the soft VOI voxels except the
-// grabbed one, u = 0 outside the VOI as relaxation takes it: what relaxation reduces
-double laplacian_rms(const Patient& p, const Voi& voi, const Vec3i& grabbed, const std::vector<Vec3f>& u) {
-  const Vec3i g = grabbed - voi.lo;
-  double sum = 0;
-  long long n = 0;
-  for (int k = 0; k < voi.size.z; ++k)
-    for (int j = 0; j < voi.size.y; ++j)
-      for (int i = 0; i < voi.size.x; ++i) {
-        if (p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) || Vec3i{i, j, k} == g) continue;
-        Vec3f l = u[voi.index(i, j, k)] * -6.0f;
-        for (int q = 0; q < 6; ++q) {
-          const Vec3i m = Vec3i{i, j, k} + deform::neighbour_offset(q);
-          if (voi.contains(m.x, m.y, m.z)) l += u[voi.index(m.x, m.y, m.z)];
-        }
-        sum += double(l.x) * l.x + double(l.y) * l.y + double(l.z) * l.z;
-        ++n;
-      }
-  return n ? std::sqrt(sum / double(n)) : 0;
 }
 
 // the inversion residual |p + u(p) - y| of every VOI voxel after `iterations`
@@ -309,6 +266,13 @@ int run_deform_accuracy(const AccuracyOptions& o) {
   if (o.ref_voi_edge < 128 || o.ref_voi_edge > 1024)
     throw Error("deform accuracy: --ref-voi " + std::to_string(o.ref_voi_edge) +
                 " must lie in [128, 1024] voxel (at least the largest VOI setting, 128)");
+  const std::string studies[] = {"relax_iterations", "relax_cycles", "invert_iterations", "voi_edge"};
+  if (!o.study.empty() && std::find(std::begin(studies), std::end(studies), o.study) == std::end(studies))
+    throw Error("deform accuracy: --study " + o.study + " is unknown; use relax_iterations, relax_cycles, "
+                "invert_iterations or voi_edge");
+  if (!o.backend.empty() && o.backend != "cpu" && o.backend != "cuda")
+    throw Error("deform accuracy: --backend " + o.backend + " is unknown; use cpu or cuda");
+  auto wanted = [&](const std::string& knob) { return o.study.empty() || o.study == knob; };
   if (!o.json.empty()) {
     const std::string probe = o.json + ".tmp";
     const bool ok = bool(std::ofstream(probe));
@@ -345,6 +309,7 @@ int run_deform_accuracy(const AccuracyOptions& o) {
 
   std::vector<Row> rows;
   for (const std::string& be : backends) {
+    if (!o.backend.empty() && be != o.backend) continue;
     const bool gpu = be == "cuda";
     const int warmup = gpu ? 3 : 1;
     const int reps = gpu ? (o.quick ? 10 : 30) : (o.quick ? 2 : 10);
@@ -352,7 +317,7 @@ int run_deform_accuracy(const AccuracyOptions& o) {
     cfg.settings.backend = be;
 
     // relaxation iterations against relaxation to ref_relax_iterations on the same VOI
-    {
+    if (wanted("relax_iterations")) {
       DeformConfig c = cfg;
       c.settings.relax_iterations = o.ref_relax_iterations;
       const Run ref = run_setting(be, patient, c, press.contact, 0, 1, Stage::relax);
@@ -383,8 +348,49 @@ int run_deform_accuracy(const AccuracyOptions& o) {
                   "VOI 64, inversion 8; reference: relaxation " + std::to_string(o.ref_relax_iterations));
     }
 
+    // multigrid steps against the converged steady state (multigrid, ref_multigrid_cycles
+    // steps); setting 0 is the paper's explicit 20 steps on the same scale. Isotropy on
+    // a homogeneous block (VOI 64, centre grabbed and pushed 4 voxels) at 6 voxels.
+    if (wanted("relax_cycles")) {
+      DeformConfig c = cfg;
+      c.settings.relax_method = "multigrid";
+      c.settings.relax_cycles = o.ref_multigrid_cycles;
+      const Run ref = run_setting(be, patient, c, press.contact, 0, 1, Stage::relax);
+      const Voi& voi = ref.last.chainmail.voi;
+      const Vec3i grabbed = ref.last.chainmail.grabbed_vox;
+      const double ref_rms = field_diff(ref.u, std::vector<Vec3f>(ref.u.size(), Vec3f{0, 0, 0})).rms;
+      std::vector<DeformConfig> cs;
+      std::vector<int> settings{0};
+      cs.push_back(cfg);  // explicit, relax_iterations 20
+      for (int n = 1; n <= 8; ++n) {
+        cs.push_back(c);
+        cs.back().settings.relax_cycles = n;
+        settings.push_back(n);
+      }
+      cs.push_back(c);
+      settings.push_back(o.ref_multigrid_cycles);
+      const std::vector<Run> runs = run_settings(be, patient, cs, press.contact, warmup, reps, Stage::relax);
+      const PatientPtr block = test::make_soft_patient(72);
+      const DeformContact push = test::voxel_contact({36, 36, 36}, {0, 0, 4});
+      const std::vector<Run> on_block = run_settings(be, block, cs, push, 0, 1, Stage::relax);
+      for (std::size_t s = 0; s < cs.size(); ++s) {
+        const Run& r = runs[s];
+        if (!(r.last.chainmail.voi == voi)) throw Error("deform accuracy: the VOI changed between runs");
+        const Diff d = field_diff(r.u, ref.u);
+        const ChainMailStats& bs = on_block[s].last.chainmail;
+        Row row = make_row(be, "relax_cycles", settings[s], s + 1 == cs.size(), r);
+        row.metrics = {{"u_rms_diff_rel", d.rms / ref_rms}, {"u_max_diff_vox", d.max},
+                       {"laplacian_rms_vox", laplacian_rms(*patient, voi, grabbed, r.u)},
+                       {"isotropy6_block", test::isotropy(bs.voi, on_block[s].u, bs.grabbed_vox - bs.voi.lo, 6)}};
+        rows.push_back(row);
+      }
+      print_table(rows, be, "relax_cycles", "relax",
+                  "relax_method multigrid, VOI 64, inversion 8; 0: explicit 20 instead; reference: multigrid " +
+                      std::to_string(o.ref_multigrid_cycles) + "; u_rms_diff_rel over the reference's RMS");
+    }
+
     // inversion iterations against inversion with ref_invert_iterations on the same field
-    {
+    if (wanted("invert_iterations")) {
       DeformConfig c = cfg;
       c.settings.invert_iterations = o.ref_invert_iterations;
       const Run ref = run_setting(be, patient, c, press.contact, 0, 1, Stage::invert);
@@ -421,7 +427,7 @@ int run_deform_accuracy(const AccuracyOptions& o) {
     }
 
     // VOI edge against a VOI of ref_voi_edge (relaxation 20 as the base, and 400)
-    {
+    if (wanted("voi_edge")) {
       DeformConfig c = cfg;
       c.settings.voi_edge = o.ref_voi_edge;
       c.invert = false;  // the references need the field only
@@ -478,7 +484,8 @@ int run_deform_accuracy(const AccuracyOptions& o) {
         << ", \"relax_iterations\": " << base.settings.relax_iterations
         << ", \"invert_iterations\": " << base.settings.invert_iterations << "},\n"
         << "  \"reference\": {\"relax_iterations\": " << o.ref_relax_iterations
-        << ", \"invert_iterations\": " << o.ref_invert_iterations << ", \"voi_edge\": " << o.ref_voi_edge << "},\n"
+        << ", \"invert_iterations\": " << o.ref_invert_iterations << ", \"voi_edge\": " << o.ref_voi_edge
+        << ", \"multigrid_cycles\": " << o.ref_multigrid_cycles << "},\n"
         << "  \"rows\": [\n";
       for (std::size_t i = 0; i < rows.size(); ++i) {
         const Row& r = rows[i];

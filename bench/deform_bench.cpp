@@ -169,10 +169,12 @@ void table1(const std::string& name, const Options& o, const PatientPtr& patient
 }  // namespace
 
 PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [--json FILE] [--quick] [--commit C]; "
-                      "--accuracy [--ref-voi N]: accuracy vs time of relaxation, inversion and VOI (deform_accuracy.h)") {
+                      "--accuracy [--ref-voi N] [--study KNOB] [--backend B]: accuracy vs time of relaxation, multigrid, "
+                      "inversion and VOI (deform_accuracy.h)") {
   Options o;
   bool accuracy = false;  // the accuracy-vs-time study instead of Tables 1 and 2
   int ref_voi = bench::AccuracyOptions{}.ref_voi_edge;
+  std::string study, backend;  // accuracy: one knob's study and one backend only ("" = all)
   for (int a = 1; a < argc; ++a) {
     const std::string s = argv[a];
     if (s == "--json" && a + 1 < argc) o.json = argv[++a];
@@ -180,6 +182,8 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
     else if (s == "--quick") o.quick = true;
     else if (s == "--accuracy") accuracy = true;
     else if (s == "--ref-voi" && a + 1 < argc) ref_voi = std::atoi(argv[++a]);
+    else if (s == "--study" && a + 1 < argc) study = argv[++a];
+    else if (s == "--backend" && a + 1 < argc) backend = argv[++a];
     else {
       std::fprintf(stderr, "palpsim-bench deform: unknown argument '%s'\n", s.c_str());
       return 2;
@@ -194,6 +198,8 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
       ao.quick = o.quick;
       ao.voxel_mm = o.voxel_mm;
       ao.ref_voi_edge = ref_voi;
+      ao.study = study;
+      ao.backend = backend;
       return bench::run_deform_accuracy(ao);
     }
     // every backend this build and machine have

@@ -70,6 +70,10 @@ void CudaDeformBackend::release() {
   for (int*& s : d_.stamp) cudaFree(s);
   cudaFree(d_.j);
   cudaFree(d_.counters);
+  for (void* q : {(void*)mg_.x, (void*)mg_.r, (void*)mg_.z, (void*)mg_.p, (void*)mg_.p2, (void*)mg_.q, (void*)mg_.held, (void*)mg_.cx,
+                  (void*)mg_.cf, (void*)mg_.cr, (void*)mg_.cheld, (void*)mg_.dots})
+    cudaFree(q);
+  mg_ = MultigridBuffers{};
   cudaFreeHost(host_counters_);
   cudaFreeHost(host_j_);
   for (cudaEvent_t& e : ev_)
@@ -115,8 +119,27 @@ void CudaDeformBackend::bind_impl() {
   PALPSIM_CUDA_CHECK(cudaMallocHost(&host_j_, n * sizeof(float)));
   std::memset(host_counters_, 0, sizeof(Counters));
   shape_ = persistent_launch_shape();
+  if (config_.relax && config_.settings.relax_method == "multigrid") ensure_multigrid_buffers();
   dirty_ = Voi{};
   cur_ = 0;
+}
+
+void CudaDeformBackend::ensure_multigrid_buffers() {
+  if (mg_.capacity > 0) return;
+  // the largest coarse levels: the largest VOI with every level's origin at 0
+  Vec3i most;
+  for (int a = 0; a < 3; ++a)
+    most[a] = config_.settings.whole_volume ? patient_->grid.size[a] : std::min(config_.settings.voi_edge, patient_->grid.size[a]);
+  const long long nc = std::max(1LL, deform::multigrid_plan(most, Vec3i{0, 0, 0}).coarse_count);
+  const std::size_t n = std::size_t(capacity_);
+  for (Vec3f** v : {&mg_.x, &mg_.r, &mg_.z, &mg_.p, &mg_.p2, &mg_.q}) PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(Vec3f)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.held, n));
+  for (Vec3f** v : {&mg_.cx, &mg_.cf, &mg_.cr}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(Vec3f)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.cheld, std::size_t(nc)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.dots, 2 * deform::kMultigridMaxCycles * sizeof(double)));
+  mg_.capacity = capacity_;
+  mg_.coarse_capacity = nc;
+  mg_blocks_ = relax_multigrid_blocks();
 }
 
 DeformMemory CudaDeformBackend::memory_impl() const {
@@ -130,6 +153,11 @@ DeformMemory CudaDeformBackend::memory_impl() const {
                       sizeof(d_.stamp) / sizeof(int*) * n * sizeof(int) + 2 * sizeof(Counters);
   m.invert_bytes = 2 * n * sizeof(float);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
+  // multigrid: six VOI fields and a mask, three coarse fields and a mask, the dot sums
+  if (mg_.capacity > 0)
+    m.relax_bytes = std::size_t(mg_.capacity) * (6 * sizeof(Vec3f) + 1) +
+                    std::size_t(mg_.coarse_capacity) * (3 * sizeof(Vec3f) + 1) +
+                    2 * deform::kMultigridMaxCycles * sizeof(double);
   return m;
 }
 
@@ -162,6 +190,13 @@ void CudaDeformBackend::enqueue_chainmail() {
 
 void CudaDeformBackend::enqueue_relax() {
   const DeformSettings& s = config_.settings;
+  if (s.relax_method == "multigrid") {
+    // in place on the current buffer
+    ensure_multigrid_buffers();
+    launch_relax_multigrid(geometry(), cur_, s.relax_cycles, float(config_.bone_threshold), float(s.material_width),
+                           d_, mg_, mg_blocks_, stream_);
+    return;
+  }
   launch_relax(geometry(), cur_, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
                float(s.material_width), d_, shape_, stream_);
   cur_ = (cur_ + s.relax_iterations) & 1;
@@ -248,7 +283,7 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[2], stream_));
   if (config_.relax) {
     enqueue_relax();
-    out.relax_iterations = config_.settings.relax_iterations;
+    set_relax_counts(out);
   }
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[3], stream_));
   if (config_.invert) enqueue_invert();

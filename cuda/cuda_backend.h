@@ -56,6 +56,8 @@ class CudaDeformBackend final : public DeformBackend {
 
  private:
   void release();
+  // allocates the multigrid relaxation's buffers once (deform.relax_method "multigrid")
+  void ensure_multigrid_buffers();
   StepGeometry geometry() const;
   // enqueue one stage on the stream
   void enqueue_reset();
@@ -68,6 +70,8 @@ class CudaDeformBackend final : public DeformBackend {
 
   std::shared_ptr<const DevicePatient> patient_copy_;  // I and the bone mask, shared
   DeviceBuffers d_;
+  MultigridBuffers mg_;                // empty unless the scene relaxes by multigrid
+  int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel
   LaunchShape shape_;
   cudaStream_t stream_ = nullptr;
   cudaEvent_t ev_[6] = {};

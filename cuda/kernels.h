@@ -8,6 +8,7 @@
 #include <cstdint>
 
 #include "deform/deform_math.h"
+#include "deform/relax_multigrid.h"
 
 namespace palpsim::cuda {
 
@@ -31,6 +32,20 @@ struct DeviceBuffers {
   int* stamp[2] = {nullptr, nullptr};   // last sweep an element moved, by sweep parity; -1 never
   float* j = nullptr;                   // J on the VOI
   Counters* counters = nullptr;
+};
+
+/// Device buffers of the multigrid relaxation (relax_multigrid.cu), allocated only when
+/// the scene asks for it: the field X, CG's residual r, preconditioned residual z,
+/// direction p (two buffers, one written while the other is read) and A p (q) and the held mask on the VOI; the coarse levels' correction,
+/// right-hand side, residual and held mask (deform::MultigridPlan::offset); dot sums.
+struct MultigridBuffers {
+  Vec3f *x = nullptr, *r = nullptr, *z = nullptr, *p = nullptr, *p2 = nullptr, *q = nullptr;
+  std::uint8_t* held = nullptr;
+  Vec3f *cx = nullptr, *cf = nullptr, *cr = nullptr;
+  std::uint8_t* cheld = nullptr;
+  double* dots = nullptr;             // 2 per step: r . z and p . q
+  long long capacity = 0;             // VOI elements the VOI buffers hold
+  long long coarse_capacity = 0;      // nodes the coarse buffers hold
 };
 
 /// Where a step works: the VOI, the patient grid size and the grabbed element.
@@ -65,6 +80,14 @@ void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::Chai
 /// launch; the result is in buffer (src + iterations) & 1.
 void launch_relax(const StepGeometry& g, int src, int iterations, float step, float threshold, float width,
                   const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream);
+
+/// Blocks of the multigrid relaxation kernel that run at once on this device (one per SM).
+int relax_multigrid_blocks();
+
+/// `cycles` multigrid-preconditioned CG steps on displacement buffer `src`, in place, in
+/// one cooperative launch of at most `max_blocks` blocks; `m` must hold the VOI's plan.
+void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float threshold, float width,
+                            const DeviceBuffers& b, const MultigridBuffers& m, int max_blocks, cudaStream_t stream);
 
 /// J on the VOI from displacement buffer `src`; the max residual goes to counters.
 void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream);

@@ -49,8 +49,10 @@ struct DeformSettings {
   int voi_edge = 64;            // voxel
   bool whole_volume = false;
   int max_sweeps = 2048;
-  int relax_iterations = 20;
+  std::string relax_method = "explicit";  // "explicit" (the paper's, relax_iterations) or "multigrid" (steady state)
+  int relax_iterations = 20;    // explicit steps
   double relax_step = 0.15;     // explicit diffusion step, stable below 1/6
+  int relax_cycles = 5;         // multigrid steps (one V-cycle each)
   double material_width = 50;   // HU, width of the material function's step at bone
   int invert_iterations = 8;
   std::string backend = "auto"; // "auto", "cpu" or "cuda"

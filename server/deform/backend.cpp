@@ -8,6 +8,7 @@
 
 #include "core/error.h"
 #include "deform/cpu_backend.h"
+#include "deform/relax_multigrid.h"
 
 #ifdef PALPSIM_HAVE_CUDA
 namespace palpsim::cuda {
@@ -83,7 +84,11 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
   if (!s.whole_volume && !(s.voi_edge >= 3 && s.voi_edge <= 1024))
     bad("voi_edge", s.voi_edge, "must lie in [3, 1024] voxel");
   if (s.max_sweeps < 1) bad("max_sweeps", s.max_sweeps, "must be at least 1");
+  if (s.relax_method != "explicit" && s.relax_method != "multigrid")
+    throw Error(who + ": deform.relax_method = \"" + s.relax_method + "\" is unknown; use \"explicit\" or \"multigrid\"");
   if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
+  if (s.relax_cycles < 0 || s.relax_cycles > deform::kMultigridMaxCycles)
+    bad("relax_cycles", s.relax_cycles, "must lie in [0, " + std::to_string(deform::kMultigridMaxCycles) + "]");
   if (!(s.relax_step >= 0)) bad("relax_step", s.relax_step, "must not be negative");
   if (s.relax_step > deform::kRelaxStableStep) {
     std::ostringstream m;
@@ -99,6 +104,12 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
 
 void DeformBackend::require(bool ok, const char* what) const {
   if (!ok) throw Error("deform backend \"" + name_ + "\": " + what);
+}
+
+void DeformBackend::set_relax_counts(DeformStats& out) const {
+  const bool mg = config_.settings.relax_method == "multigrid";
+  out.relax_iterations = mg ? 0 : config_.settings.relax_iterations;
+  out.relax_cycles = mg ? config_.settings.relax_cycles : 0;
 }
 
 long long DeformBackend::max_voi_count() const {

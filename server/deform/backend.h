@@ -74,7 +74,7 @@ struct InvertStats {
 /// needs it, so the server can show that a stage the scene did not ask for costs nothing.
 struct DeformMemory {
   std::size_t chainmail_bytes = 0;  // displacement field and sweep bookkeeping
-  std::size_t relax_bytes = 0;      // relaxation's own buffers (cuda: none, it reuses ChainMail's two fields)
+  std::size_t relax_bytes = 0;      // relaxation's own buffers (cuda explicit: none, it reuses ChainMail's two fields)
   std::size_t invert_bytes = 0;     // J on the VOI (cuda: also its pinned host copy)
   /// The patient's device copy (cuda: I and the bone mask), shared by every session on
   /// that patient: not the session's own, so not in total(); a server counts it once.
@@ -86,7 +86,8 @@ struct DeformMemory {
 /// What one whole step did and cost.
 struct DeformStats {
   ChainMailStats chainmail;
-  int relax_iterations = 0;          // 0 when relaxation is off
+  int relax_iterations = 0;          // explicit steps run; 0 when relaxation is off or multigrid
+  int relax_cycles = 0;              // multigrid V-cycles run; 0 when relaxation is off or explicit
   double invert_residual_vox = 0;    // max |p + u(p) - y| over the VOI (voxel); 0 without inversion
   long long invert_unresolved = 0;   // VOI voxels with a residual above deform::kInvertResolvedVox
   double invert_max_change = 0;      // max |J - I| over the VOI (HU); 0 without inversion
@@ -113,7 +114,8 @@ class DeformBackend {
   /// Returns the previous step's state to undeformed, then runs ChainMail from the
   /// contact: the element nearest X goes to x and the others follow.
   ChainMailStats chainmail(const DeformContact& contact);
-  /// Relaxes the displacement field (deform.relax_iterations iterations).
+  /// Relaxes the displacement field: deform.relax_iterations explicit steps, or
+  /// deform.relax_cycles multigrid V-cycles towards their steady state (deform.relax_method).
   void relax();
   /// Computes the deformed image J on the VOI; returns the inversion's residuals.
   InvertStats invert();
@@ -166,6 +168,9 @@ class DeformBackend {
   virtual const float* deformed_brick_impl() const = 0;
   virtual bool copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>&) const { return false; }
   virtual DeformMemory memory_impl() const = 0;
+
+  /// Writes the relaxation's counts (iterations or cycles, by deform.relax_method) into `out`.
+  void set_relax_counts(DeformStats& out) const;
 
   /// Largest VOI the state holds (voxels): deform.voi_edge^3, or the whole volume.
   long long max_voi_count() const;

@@ -22,7 +22,10 @@ void CpuDeformBackend::bind_impl() {
   std::vector<Vec3f>().swap(s_.u_next);
   std::vector<float>().swap(s_.weight);
   std::vector<float>().swap(s_.j);
-  if (config_.relax) grow_relax_buffers();
+  for (auto* v : {&s_.mg_r0, &s_.mg_z, &s_.mg_p, &s_.mg_q, &s_.mg_x, &s_.mg_f, &s_.mg_r}) std::vector<Vec3f>().swap(*v);
+  std::vector<std::uint8_t>().swap(s_.mg_held);
+  std::vector<std::uint8_t>().swap(s_.mg_held_coarse);
+  if (config_.relax && config_.settings.relax_method == "explicit") grow_relax_buffers();
   if (config_.invert) s_.j.assign(n, 0.0f);
   dirty_ = Voi{};
 }
@@ -39,7 +42,9 @@ DeformMemory CpuDeformBackend::memory_impl() const {
   DeformMemory m;
   m.chainmail_bytes = bytes(s_.u) + bytes(s_.moved_at) + bytes(s_.visited_at) + bytes(s_.movers) +
                       bytes(s_.candidates) + bytes(s_.changes);
-  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight);
+  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.mg_held) + bytes(s_.mg_r0) + bytes(s_.mg_z) +
+                  bytes(s_.mg_p) + bytes(s_.mg_q) + bytes(s_.mg_x) + bytes(s_.mg_f) +
+                  bytes(s_.mg_r) + bytes(s_.mg_held_coarse);
   m.invert_bytes = bytes(s_.j);
   return m;
 }
@@ -59,8 +64,14 @@ void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
 }
 
 void CpuDeformBackend::relax_impl() {
-  grow_relax_buffers();
   const DeformSettings& d = config_.settings;
+  if (d.relax_method == "multigrid") {
+    // its buffers grow on first use
+    deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, float(config_.bone_threshold),
+                                float(d.material_width), s_);
+    return;
+  }
+  grow_relax_buffers();
   deform::relax_cpu(*patient_, setup_, d.relax_iterations, float(d.relax_step), float(config_.bone_threshold),
                     float(d.material_width), s_);
 }
@@ -95,7 +106,7 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
   if (config_.relax) {
     t0 = clock::now();
     relax_impl();
-    out.relax_iterations = config_.settings.relax_iterations;
+    set_relax_counts(out);
     out.times.relax_ms = ms_since(t0);
   }
   // inversion and upload, when the scene asks for J

@@ -3,6 +3,7 @@
 // functions in chainmail.cpp, relax.cpp and invert.cpp.
 #pragma once
 
+#include <cstdint>
 #include <vector>
 
 #include "deform/backend.h"
@@ -23,6 +24,13 @@ struct CpuState {
   std::vector<Vec3i> movers;     // elements that moved in the previous sweep (local index)
   std::vector<Vec3i> candidates; // their neighbours, examined in this sweep
   std::vector<std::pair<long long, Vec3f>> changes;  // this sweep's new positions, applied after it
+  // multigrid relaxation (relax_multigrid.cpp): held mask and CG's residual, preconditioned
+  // residual, direction and A times direction on the VOI, and the coarse levels'
+  // correction, right-hand side, residual and held mask (MultigridPlan::offset)
+  std::vector<std::uint8_t> mg_held;
+  std::vector<Vec3f> mg_r0, mg_z, mg_p, mg_q;
+  std::vector<Vec3f> mg_x, mg_f, mg_r;
+  std::vector<std::uint8_t> mg_held_coarse;
 };
 
 /// ChainMail by plain Jacobi sweeps (paper sec. 2.2): in sweep s every element next
@@ -39,6 +47,13 @@ void chainmail_cpu(const Patient& p, const ChainMailLimits& limits, int max_swee
 /// the grabbed element keeps its displacement and bone has weight 0.
 void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float step, float threshold,
                float width, CpuState& s);
+
+/// Multigrid relaxation of the VOI's displacement (deform.relax_method "multigrid"):
+/// `cycles` V-cycles towards the explicit scheme's steady state (relax_multigrid.h),
+/// the grabbed element and elements of material weight 0 (bone) held, u = 0 outside
+/// the VOI; the residual of the steady state falls by about 10x per cycle.
+void relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, float threshold, float width,
+                         CpuState& s);
 
 /// J on the VOI by inverting the displacement (Newton steps, deform_math.h; trilinear
 /// sampling of u and I); returns the largest residual |p + u(p) - y| (voxel) and

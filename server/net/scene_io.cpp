@@ -189,6 +189,10 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.max_sweeps = d.max_sweeps();
   out.deform.relax_iterations = d.relax_iterations();
   out.deform.relax_step = d.relax_step();
+  out.deform.relax_method = d.relax_method();
+  if (out.deform.relax_method != "explicit" && out.deform.relax_method != "multigrid")
+    throw Error(origin + ": deform.relax_method = \"" + out.deform.relax_method + "\"; allowed: \"explicit\", \"multigrid\"");
+  out.deform.relax_cycles = d.relax_cycles();
   out.deform.material_width = d.material_width();
   out.deform.invert_iterations = d.invert_iterations();
   out.deform.backend = d.backend();

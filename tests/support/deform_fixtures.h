@@ -163,4 +163,57 @@ inline double roughness(const Voi& voi, const std::vector<Vec3f>& u) {
   return e;
 }
 
+/// RMS of |sum of six neighbours - 6 u| (voxel) over the VOI's soft elements other than
+/// the grabbed one (patient index `grabbed`), u = 0 outside the VOI: the residual of
+/// relaxation's steady state, which relaxation reduces and multigrid drives to rounding.
+inline double laplacian_rms(const Patient& p, const Voi& voi, const Vec3i& grabbed, const std::vector<Vec3f>& u) {
+  const Vec3i g = grabbed - voi.lo;
+  double sum = 0;
+  long long n = 0;
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        if (p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) || Vec3i{i, j, k} == g) continue;
+        Vec3f l = u[voi.index(i, j, k)] * -6.0f;
+        for (int q = 0; q < 6; ++q) {
+          const Vec3i m = Vec3i{i, j, k} + deform::neighbour_offset(q);
+          if (voi.contains(m.x, m.y, m.z)) l += u[voi.index(m.x, m.y, m.z)];
+        }
+        sum += double(l.x) * l.x + double(l.y) * l.y + double(l.z) * l.z;
+        ++n;
+      }
+  return n ? std::sqrt(sum / double(n)) : 0;
+}
+
+/// RMS of |a - b| over two fields on the same VOI (voxel).
+inline double rms_distance(const std::vector<Vec3f>& a, const std::vector<Vec3f>& b) {
+  double sum = 0;
+  for (std::size_t e = 0; e < a.size(); ++e) {
+    const Vec3f v = a[e] - b[e];
+    sum += double(v.x) * v.x + double(v.y) * v.y + double(v.z) * v.z;
+  }
+  return a.empty() ? 0 : std::sqrt(sum / double(a.size()));
+}
+
+/// Isotropy of a displacement field around the grabbed element (VOI-local `g`): the mean
+/// |u| at distance `d` voxel along the six axes against the mean along the eight body
+/// diagonals (trilinear, u = 0 outside the VOI), the smaller over the larger; 1 is
+/// isotropic, and ChainMail's diamond (|u| falls with the L1 distance) gives less.
+inline double isotropy(const Voi& voi, const std::vector<Vec3f>& u, const Vec3i& g, double d) {
+  auto load = [&](int i, int j, int k) { return voi.contains(i, j, k) ? u[voi.index(i, j, k)] : Vec3f{0, 0, 0}; };
+  auto mag = [&](double x, double y, double z) {
+    const Vec3f v = deform::trilinear<Vec3f>(load, Vec3f(float(g.x + x), float(g.y + y), float(g.z + z)));
+    return std::sqrt(double(v.x) * v.x + double(v.y) * v.y + double(v.z) * v.z);
+  };
+  double axis = 0, diag = 0;
+  for (int a = 0; a < 3; ++a)
+    for (int s = -1; s <= 1; s += 2) axis += mag(a == 0 ? s * d : 0, a == 1 ? s * d : 0, a == 2 ? s * d : 0) / 6;
+  const double c = d / std::sqrt(3.0);
+  for (int sx = -1; sx <= 1; sx += 2)
+    for (int sy = -1; sy <= 1; sy += 2)
+      for (int sz = -1; sz <= 1; sz += 2) diag += mag(sx * c, sy * c, sz * c) / 8;
+  const double hi = std::max(axis, diag);
+  return hi > 0 ? std::min(axis, diag) / hi : 1;
+}
+
 }  // namespace palpsim::test

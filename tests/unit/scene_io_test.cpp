@@ -110,3 +110,14 @@ TEST_CASE("data: paths resolve under PALPSIM_DATA, and stay unresolved without a
           "data:ct/a.nii.gz");
   if (!saved.empty()) setenv("PALPSIM_DATA", saved.c_str(), 1);
 }
+
+TEST_CASE("deform.relax_method and relax_cycles are read, checked and default as DeformSettings does") {
+  const Scene d = parse_scene_text("phantom {}", "x.textproto");
+  CHECK(d.deform.relax_method == DeformSettings{}.relax_method);
+  CHECK(d.deform.relax_cycles == DeformSettings{}.relax_cycles);
+  const Scene s = parse_scene_text("phantom {} deform { relax_method: \"multigrid\" relax_cycles: 7 }", "x.textproto");
+  CHECK(s.deform.relax_method == "multigrid");
+  CHECK(s.deform.relax_cycles == 7);
+  CHECK(error_of("phantom {} deform { relax_method: \"sor\" }").find("deform.relax_method") != std::string::npos);
+  CHECK(error_of("phantom {} deform { relax_cycles: 101 }").find("deform.relax_cycles") != std::string::npos);
+}

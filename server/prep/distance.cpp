@@ -33,7 +33,6 @@ namespace {
 
 constexpr float kInf = std::numeric_limits<float>::infinity();
 
-
 // the lower envelope of parabolas (Felzenszwalb & Huttenlocher 2012) over one line
 // with sample positions q*h: d(q) = min_p (h(q-p))^2 + f(p); infinite f(p) are no
 // sites. The boundaries between parabolas are kept as fractions num/den (den > 0;

@@ -203,14 +203,15 @@ std::string case_json(const Case& c) {
 
 }  // namespace
 
-PALPSIM_BENCH(prep, "prep stages on the phantom (1 mm, 0.5 mm) and the real CT; EDT vs scipy [--json FILE] [--quick] [--repeats N]") {
-  std::string json_path;
+PALPSIM_BENCH(prep, "prep stages on the phantom (1 mm, 0.5 mm) and the real CT; EDT vs scipy [--json FILE] [--quick] [--repeats N] [--commit C]") {
+  std::string json_path, commit = "unknown";
   bool quick = false;
   int repeats = 1;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--json") && i + 1 < argc) json_path = argv[++i];
     else if (!std::strcmp(argv[i], "--quick")) quick = true;  // skip the 0.5 mm phantom
     else if (!std::strcmp(argv[i], "--repeats") && i + 1 < argc) repeats = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--commit") && i + 1 < argc) commit = argv[++i];  // of the build, into the JSON
     else {
       std::fprintf(stderr, "palpsim-bench prep: unknown argument '%s'\n", argv[i]);
       return 2;
@@ -253,7 +254,8 @@ PALPSIM_BENCH(prep, "prep stages on the phantom (1 mm, 0.5 mm) and the real CT; 
     char date[64];
     std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
     std::ofstream o(json_path);
-    o << "{\"bench\": \"prep\", \"date\": \"" << date << "\", \"machine\": " << machine_json() << ", \"cases\": [\n";
+    o << "{\"bench\": \"prep\", \"date\": \"" << date << "\", \"commit\": \"" << commit << "\", \"repeats\": " << repeats
+      << ", \"machine\": " << machine_json() << ", \"cases\": [\n";
     for (std::size_t i = 0; i < cases.size(); ++i) o << "  " << case_json(cases[i]) << (i + 1 < cases.size() ? ",\n" : "\n");
     o << "]}\n";
     std::printf("\nwrote %s\n", json_path.c_str());

@@ -70,7 +70,8 @@ struct Case {
   Grid grid;
   std::vector<Stage> stages;
   double total_s = 0, patient_mb = 0, peak_rss_mb = 0, body_ml = 0, bone_ml = 0;
-  double our_edt_s = 0, scipy_edt_s = -1, max_diff_mm = -1;
+  double our_edt_s = 0, our_edt_1t_s = -1, scipy_edt_s = -1, max_diff_mm = -1;
+  int edt_threads = 1;
   std::string scipy_note;
 };
 
@@ -149,12 +150,20 @@ Case run_case(const std::string& name, Volume<float> image, double in_s, const c
                         p.dist_skin_mm.bytes() + p.force.bytes() + p.grad_force.bytes()) / (1024.0 * 1024.0);
   c.peak_rss_mb = peak_rss_mb();
   // the same EDT in scipy: depth under the skin (inside C to its outside); scipy's time is
-  // the best of `repeats` runs, so ours for the ratio is too (the stage above is one run)
+  // the best of `repeats` runs, so ours for the ratio is too (the stage above is one
+  // run), on all cores and on one (scipy runs on one)
+  c.edt_threads = worker_threads(0);
   if (repeats > 0) {
     for (int r = 1; r < repeats; ++r) {
       t = Clock::now();
       const Volume<float> again = distance_to_background_mm(p.body);
       c.our_edt_s = std::min(c.our_edt_s, since(t));
+    }
+    for (int r = 0; r < repeats; ++r) {
+      t = Clock::now();
+      const Volume<float> again = distance_to_background_mm(p.body, 1);
+      const double s = since(t);
+      c.our_edt_1t_s = r == 0 ? s : std::min(c.our_edt_1t_s, s);
     }
     compare_scipy(c, p.body, p.dist_skin_mm, repeats);
   }
@@ -169,8 +178,10 @@ void print_case(const Case& c) {
   std::printf("  %-10s %8.3f s   patient %.0f MiB, process peak RSS %.0f MiB\n", "total", c.total_s, c.patient_mb,
               c.peak_rss_mb);
   if (c.scipy_edt_s > 0)
-    std::printf("  EDT depth under the skin: ours %.3f s, scipy %.3f s, scipy/ours = %.2fx, max |diff| %.2g mm\n",
-                c.our_edt_s, c.scipy_edt_s, c.scipy_edt_s / c.our_edt_s, c.max_diff_mm);
+    std::printf("  EDT depth under the skin: ours %.3f s on %d threads, %.3f s on 1; scipy (1 thread) %.3f s;"
+                " scipy/ours = %.2fx (%.2fx thread for thread), max |diff| %.2g mm\n",
+                c.our_edt_s, c.edt_threads, c.our_edt_1t_s, c.scipy_edt_s, c.scipy_edt_s / c.our_edt_s,
+                c.scipy_edt_s / c.our_edt_1t_s, c.max_diff_mm);
   else if (!c.scipy_note.empty())
     std::printf("  %s\n", c.scipy_note.c_str());
 }
@@ -182,22 +193,25 @@ std::string case_json(const Case& c) {
     << "], \"spacing_mm\": " << c.grid.spacing_mm.x << ", \"voxels\": " << c.grid.count() << ", \"stages_s\": {";
   for (std::size_t i = 0; i < c.stages.size(); ++i) s << (i ? ", " : "") << "\"" << c.stages[i].name << "\": " << c.stages[i].s;
   s << "}, \"total_s\": " << c.total_s << ", \"patient_mb\": " << c.patient_mb << ", \"peak_rss_mb\": " << c.peak_rss_mb
-    << ", \"body_ml\": " << c.body_ml << ", \"bone_ml\": " << c.bone_ml << ", \"edt\": {\"ours_s\": " << c.our_edt_s
-    << ", \"scipy_s\": " << c.scipy_edt_s << ", \"scipy_over_ours\": "
-    << (c.scipy_edt_s > 0 ? c.scipy_edt_s / c.our_edt_s : -1) << ", \"max_abs_diff_mm\": " << c.max_diff_mm << "}}";
+    << ", \"body_ml\": " << c.body_ml << ", \"bone_ml\": " << c.bone_ml << ", \"edt\": {\"threads\": " << c.edt_threads
+    << ", \"ours_s\": " << c.our_edt_s << ", \"ours_1thread_s\": " << c.our_edt_1t_s << ", \"scipy_s\": " << c.scipy_edt_s
+    << ", \"scipy_over_ours\": " << (c.scipy_edt_s > 0 ? c.scipy_edt_s / c.our_edt_s : -1)
+    << ", \"scipy_over_ours_1thread\": " << (c.scipy_edt_s > 0 ? c.scipy_edt_s / c.our_edt_1t_s : -1)
+    << ", \"max_abs_diff_mm\": " << c.max_diff_mm << "}}";
   return s.str();
 }
 
 }  // namespace
 
-PALPSIM_BENCH(prep, "prep stages on the phantom (1 mm, 0.5 mm) and the real CT; EDT vs scipy [--json FILE] [--quick]") {
-  std::string json_path;
+PALPSIM_BENCH(prep, "prep stages on the phantom (1 mm, 0.5 mm) and the real CT; EDT vs scipy [--json FILE] [--quick] [--repeats N] [--commit C]") {
+  std::string json_path, commit = "unknown";
   bool quick = false;
   int repeats = 1;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--json") && i + 1 < argc) json_path = argv[++i];
     else if (!std::strcmp(argv[i], "--quick")) quick = true;  // skip the 0.5 mm phantom
     else if (!std::strcmp(argv[i], "--repeats") && i + 1 < argc) repeats = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--commit") && i + 1 < argc) commit = argv[++i];  // of the build, into the JSON
     else {
       std::fprintf(stderr, "palpsim-bench prep: unknown argument '%s'\n", argv[i]);
       return 2;
@@ -240,7 +254,8 @@ PALPSIM_BENCH(prep, "prep stages on the phantom (1 mm, 0.5 mm) and the real CT; 
     char date[64];
     std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
     std::ofstream o(json_path);
-    o << "{\"bench\": \"prep\", \"date\": \"" << date << "\", \"machine\": " << machine_json() << ", \"cases\": [\n";
+    o << "{\"bench\": \"prep\", \"date\": \"" << date << "\", \"commit\": \"" << commit << "\", \"repeats\": " << repeats
+      << ", \"machine\": " << machine_json() << ", \"cases\": [\n";
     for (std::size_t i = 0; i < cases.size(); ++i) o << "  " << case_json(cases[i]) << (i + 1 < cases.size() ? ",\n" : "\n");
     o << "]}\n";
     std::printf("\nwrote %s\n", json_path.c_str());

@@ -13,7 +13,7 @@ namespace palpsim {
 /// Distance (mm) from every voxel centre to the nearest voxel centre where
 /// `mask` is non-zero, with the grid's spacing per axis (exact Euclidean, not a
 /// chamfer). Feature voxels get 0; with no feature voxel at all every voxel gets
-/// +infinity. `threads` = 0 uses the hardware's cores.
+/// +infinity. Runs on worker_threads(threads) threads, with identical results.
 Volume<float> distance_to_mask_mm(const Volume<std::uint8_t>& mask, int threads = 0);
 
 /// Same as distance_to_mask_mm but to the voxels where `mask` is zero (the
@@ -24,8 +24,12 @@ Volume<float> distance_to_background_mm(const Volume<std::uint8_t>& mask, int th
 /// the building block of both functions above.
 Volume<float> squared_distance_mm2(const Volume<std::uint8_t>& mask, bool to_nonzero, int threads = 0);
 
-/// Runs fn(begin, end) over [0, n) split into contiguous chunks on `threads`
-/// threads (0 = hardware cores); used by the prep stages for their voxel loops.
+/// The number of threads a request for `requested` runs on: the hardware's cores
+/// for 0 or less, never more than them (more would only take turns on a core).
+int worker_threads(int requested);
+
+/// Runs fn(begin, end) over [0, n) split into contiguous chunks on
+/// worker_threads(threads) threads; used by the prep stages for their voxel loops.
 void parallel_for(std::size_t n, int threads, const std::function<void(std::size_t, std::size_t)>& fn);
 
 }  // namespace palpsim

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <limits>
 #include <random>
+#include <thread>
 
 #include "prep/distance.h"
 
@@ -42,6 +43,18 @@ Volume<std::uint8_t> random_mask(std::mt19937& rng, Vec3i size, Vec3 spacing, do
   return m;
 }
 
+// checks every voxel of `fast` against `slow`, the brute force; float storage of
+// squared mm: relative error below 1e-6 (tolerance 1e-4 mm + 1e-6 relative)
+void check_against_brute_force(const Volume<float>& fast, const Volume<float>& slow) {
+  for (std::size_t i = 0; i < slow.data.size(); ++i) {
+    if (std::isinf(slow.data[i])) {
+      CHECK(std::isinf(fast.data[i]));
+    } else {
+      CHECK(fast.data[i] == Approx(slow.data[i]).margin(1e-4).epsilon(1e-6));
+    }
+  }
+}
+
 }  // namespace
 
 TEST_CASE("EDT equals brute force on random masks with anisotropic spacing") {
@@ -57,24 +70,9 @@ TEST_CASE("EDT equals brute force on random masks with anisotropic spacing") {
     for (double fill : fills)
       for (int threads : {1, 3}) {
         const auto m = random_mask(rng, sizes[s], spacings[s], fill);
-        const auto fast = distance_to_mask_mm(m, threads);
-        const auto slow = brute_force(m, true);
-        const auto fast_bg = distance_to_background_mm(m, threads);
-        const auto slow_bg = brute_force(m, false);
-        for (std::size_t i = 0; i < m.data.size(); ++i) {
-          // float storage of squared mm: relative error below 1e-6 (tolerance 1e-4 mm + 1e-6 relative)
-          if (std::isinf(slow.data[i])) {
-            CHECK(std::isinf(fast.data[i]));
-          } else {
-            CHECK(fast.data[i] == Approx(slow.data[i]).margin(1e-4).epsilon(1e-6));
-          }
-          if (std::isinf(slow_bg.data[i])) {
-            CHECK(std::isinf(fast_bg.data[i]));
-          } else {
-            CHECK(fast_bg.data[i] == Approx(slow_bg.data[i]).margin(1e-4).epsilon(1e-6));
-          }
-          ++checked;
-        }
+        check_against_brute_force(distance_to_mask_mm(m, threads), brute_force(m, true));
+        check_against_brute_force(distance_to_background_mm(m, threads), brute_force(m, false));
+        checked += int(m.data.size());
       }
   CHECK(checked > 10000);
 }
@@ -102,4 +100,42 @@ TEST_CASE("EDT of a single voxel is the exact physical distance") {
         CHECK(d.at(i, j, k) == Approx(std::sqrt(std::pow((i - 3) * 0.5, 2) + std::pow((j - 17) * 1.25, 2) +
                                                 std::pow((k - 9) * 2.0, 2)))
                                    .epsilon(1e-6));
+}
+
+TEST_CASE("EDT equals brute force along long lines of every axis") {
+  // lines of hundreds of samples build envelopes of many parabolas, most of them
+  // popped again, which the small volumes above rarely do; with sparse sites (gaps of
+  // infinite samples between them) and dense ones, on each axis's own pass
+  std::mt19937 rng(99);
+  const Vec3i sizes[] = {{500, 1, 1}, {1, 400, 1}, {1, 1, 300}, {60, 50, 1}};
+  const Vec3 spacing{0.9, 1.7, 2.3};
+  int checked = 0;
+  for (const Vec3i& size : sizes)
+    for (double fill : {0.01, 0.3, 0.9}) {
+      const auto m = random_mask(rng, size, spacing, fill);
+      check_against_brute_force(distance_to_mask_mm(m, 1), brute_force(m, true));
+      checked += int(m.data.size());
+    }
+  CHECK(checked > 10000);
+}
+
+TEST_CASE("EDT on one thread and on several gives the same maps bit for bit") {
+  // the threads split slices and column chunks but each line is transformed by the
+  // same code in the same order, so no tolerance: every float must be equal (on a
+  // machine of one core both run on one thread)
+  std::mt19937 rng(7);
+  const auto m = random_mask(rng, {70, 45, 33}, {0.8, 1.1, 2.5}, 0.1);
+  const int several = std::max(2, worker_threads(0));
+  const auto one = distance_to_mask_mm(m, 1), many = distance_to_mask_mm(m, several);
+  const auto one_bg = distance_to_background_mm(m, 1), many_bg = distance_to_background_mm(m, several);
+  CHECK(one.data == many.data);
+  CHECK(one_bg.data == many_bg.data);
+}
+
+TEST_CASE("worker_threads uses the cores and never more") {
+  const int cores = int(std::max(1u, std::thread::hardware_concurrency()));
+  CHECK(worker_threads(0) == cores);
+  CHECK(worker_threads(-3) == cores);
+  CHECK(worker_threads(1) == 1);
+  CHECK(worker_threads(cores + 5) == cores);
 }

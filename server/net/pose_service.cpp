@@ -3,7 +3,9 @@
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 
+#include "net/curve_keys.h"
 #include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
 
@@ -44,6 +46,9 @@ class PoseService {
   v1::PoseReply rep_;
   char id_[256];
   std::size_t id_len_ = 0;
+  zmq::message_t id_msg_;                    // the routing id frame (small: ZeroMQ keeps it inline)
+  char user_[kZ85KeyLength];                 // with CURVE: the sender's key (the ZAP user id)
+  bool has_user_ = false;
   char frame_[2][kMaxPoseBytes + 1];
   std::size_t frame_len_[2] = {0, 0};        // bytes kept (at most kMaxPoseBytes + 1)
   std::size_t frame_full_len_[2] = {0, 0};   // bytes sent by the client
@@ -61,11 +66,15 @@ class PoseService {
   // answers every message waiting on the socket
   void drain() {
     for (;;) {
-      const auto r = sock_.recv(zmq::mutable_buffer(id_, sizeof id_), zmq::recv_flags::dontwait);
-      if (!r) return;
+      if (!sock_.recv(id_msg_, zmq::recv_flags::dontwait)) return;
       const std::int64_t t_recv = ns_since(start_);
       pick_up_world();
-      id_len_ = std::min(r->size, sizeof id_);
+      id_len_ = std::min(id_msg_.size(), sizeof id_);
+      std::memcpy(id_, id_msg_.data(), id_len_);
+      // who sent it: with CURVE the ZAP handler named the connection by its key
+      const char* user = sh_.curve ? zmq_msg_gets(id_msg_.handle(), "User-Id") : nullptr;
+      has_user_ = user && std::strlen(user) == kZ85KeyLength;
+      if (has_user_) std::memcpy(user_, user, kZ85KeyLength);
       // the frames after the routing id: [payload] (DEALER) or [empty, payload] (REQ)
       int frames = 0;
       while (sock_.get(zmq::sockopt::rcvmore)) {
@@ -138,6 +147,12 @@ class PoseService {
                     "PoseRequest.session_id: %016" PRIx64 " is not an open session (never opened, closed, or timed out)",
                     id);
       refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session, msg, nullptr);
+      return send(req_envelope);
+    }
+    // with CURVE only the key that opened the session may pose for it
+    if (!slot->key_may_act(has_user_ ? user_ : nullptr)) {
+      std::snprintf(msg, sizeof msg, "PoseRequest.session_id: %016" PRIx64 " belongs to another client's key", id);
+      refuse(v1::ERROR_NOT_OWNER, sh_.counters.not_owner, msg, nullptr);
       return send(req_envelope);
     }
     slot->last_seen_ns.store(t_recv, std::memory_order_relaxed);

@@ -136,4 +136,10 @@ std::vector<std::string> write_key_pair(const CurveKeyPair& pair, const std::str
   return {pub, sec};
 }
 
+void make_curve_client(zmq::socket_t& s, const std::string& server_public, const CurveKeyPair& client) {
+  s.set(zmq::sockopt::curve_serverkey, server_public);
+  s.set(zmq::sockopt::curve_publickey, client.public_key);
+  s.set(zmq::sockopt::curve_secretkey, client.secret_key);
+}
+
 }  // namespace palpsim::net

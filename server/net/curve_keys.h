@@ -6,6 +6,7 @@
 
 #include <string>
 #include <vector>
+#include <zmq.hpp>
 
 namespace palpsim::net {
 
@@ -49,5 +50,17 @@ std::vector<std::string> read_allow_list(const std::string& path);
 /// either file unless `force`; throws palpsim::Error naming the file. Returns the paths.
 std::vector<std::string> write_key_pair(const CurveKeyPair& pair, const std::string& dir, const std::string& name,
                                         bool force);
+
+/// Makes `socket` a CURVE client of the server whose z85 public key is `server_public`,
+/// speaking as `client`; before connect.
+void make_curve_client(zmq::socket_t& socket, const std::string& server_public, const CurveKeyPair& client);
+
+/// What a client adds when a server does not answer, by whether the client speaks CURVE:
+/// the likely causes, since a refused handshake is silent on the client's side.
+constexpr const char* kCurveSilenceHint =
+    " (with CURVE a server also stays silent when --server-key is not its public key, when this client's key is "
+    "not on its allow-list, or when it runs without keys)";
+constexpr const char* kPlainSilenceHint =
+    " (a server with keys also stays silent to a client without them: give --server-key and --client-key)";
 
 }  // namespace palpsim::net

@@ -46,7 +46,7 @@ class PoseService {
   v1::PoseReply rep_;
   char id_[256];
   std::size_t id_len_ = 0;
-  zmq::message_t id_msg_;                    // the routing id frame (small: ZeroMQ keeps it inline)
+  zmq::message_t msg_;                       // with CURVE: a payload frame with its properties
   char user_[kZ85KeyLength];                 // with CURVE: the sender's key (the ZAP user id)
   bool has_user_ = false;
   char frame_[2][kMaxPoseBytes + 1];
@@ -66,19 +66,18 @@ class PoseService {
   // answers every message waiting on the socket
   void drain() {
     for (;;) {
-      if (!sock_.recv(id_msg_, zmq::recv_flags::dontwait)) return;
+      const auto r = sock_.recv(zmq::mutable_buffer(id_, sizeof id_), zmq::recv_flags::dontwait);
+      if (!r) return;
       const std::int64_t t_recv = ns_since(start_);
       pick_up_world();
-      id_len_ = std::min(id_msg_.size(), sizeof id_);
-      std::memcpy(id_, id_msg_.data(), id_len_);
-      // who sent it: with CURVE the ZAP handler named the connection by its key
-      const char* user = sh_.curve ? zmq_msg_gets(id_msg_.handle(), "User-Id") : nullptr;
-      has_user_ = user && std::strlen(user) == kZ85KeyLength;
-      if (has_user_) std::memcpy(user_, user, kZ85KeyLength);
+      id_len_ = std::min(r->size, sizeof id_);
+      has_user_ = false;
       // the frames after the routing id: [payload] (DEALER) or [empty, payload] (REQ)
       int frames = 0;
       while (sock_.get(zmq::sockopt::rcvmore)) {
-        if (frames < 2) {
+        if (frames < 2 && sh_.curve) {
+          recv_named(frames);
+        } else if (frames < 2) {
           const auto f = sock_.recv(zmq::mutable_buffer(frame_[frames], sizeof frame_[frames]));
           frame_len_[frames] = f ? std::min(f->size, sizeof frame_[frames]) : 0;
           frame_full_len_[frames] = f ? f->untruncated_size : 0;
@@ -99,6 +98,20 @@ class PoseService {
         send(req_envelope);
       }
     }
+  }
+
+  // with CURVE: receives frame `i` as a message, whose "User-Id" property is the key the
+  // ZAP handler admitted the connection with (libzmq attaches it to payload frames, not
+  // to the ROUTER's routing id frame), and copies it into frame_[i]. The message is
+  // reused; decrypting has already made its bytes, so this adds a copy, no allocation.
+  void recv_named(int i) {
+    (void)sock_.recv(msg_);
+    frame_full_len_[i] = msg_.size();
+    frame_len_[i] = std::min(msg_.size(), sizeof frame_[i]);
+    std::memcpy(frame_[i], msg_.data(), frame_len_[i]);
+    const char* user = zmq_msg_gets(msg_.handle(), "User-Id");
+    has_user_ = user && std::strlen(user) == kZ85KeyLength;
+    if (has_user_) std::memcpy(user_, user, kZ85KeyLength);
   }
 
   // fills rep_ with an error and counts it (and against the session when known)

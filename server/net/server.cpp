@@ -390,10 +390,15 @@ class Server::Control {
       // frames after the routing id: [payload] (DEALER) or [empty, payload] (REQ)
       std::vector<std::size_t> sizes;
       std::size_t kept = 0;
+      std::string user;  // with CURVE: the sender's key, a property of its payload frames
       while (control_.get(zmq::sockopt::rcvmore)) {
-        const auto r = control_.recv(zmq::mutable_buffer(in_.data(), in_.size()));
-        sizes.push_back(r ? r->untruncated_size : 0);
-        kept = r ? std::min(r->size, in_.size()) : 0;
+        zmq::message_t part;
+        (void)control_.recv(part);
+        sizes.push_back(part.size());
+        kept = std::min(part.size(), in_.size());
+        std::memcpy(in_.data(), part.data(), kept);
+        const char* u = sh_.curve ? zmq_msg_gets(part.handle(), "User-Id") : nullptr;
+        if (u) user = u;
       }
       const bool req_envelope = sizes.size() >= 1 && sizes[0] == 0;
       rep_.Clear();
@@ -409,8 +414,12 @@ class Server::Control {
       } else if (!req_.ParseFromArray(in_.data(), int(kept))) {
         refuse(v1::ERROR_MALFORMED, sh_.counters.malformed,
                "ControlRequest: " + std::to_string(kept) + " bytes do not parse (truncated, or not a ControlRequest)");
+      } else if (sh_.curve && user.size() != kZ85KeyLength) {
+        // cannot happen with the ZAP handler in place; refused rather than served as nobody
+        refuse(v1::ERROR_INTERNAL, sh_.counters.internal_errors,
+               "ControlRequest: a CURVE connection without the key its ZAP handler names");
       } else {
-        requester_ = identity(id);
+        requester_ = identity(id, user);
         handle();
       }
       rep_.SerializeToString(&out_);
@@ -426,11 +435,10 @@ class Server::Control {
 
   // who sent the request being handled: its CURVE key (the ZAP handler's user id), else
   // its client token, else its control connection (the ROUTER's routing id)
-  std::string identity(const zmq::message_t& routing_id) {
+  std::string identity(const zmq::message_t& routing_id, const std::string& user) {
     requester_key_.clear();
     if (sh_.curve) {
-      const char* user = zmq_msg_gets(routing_id.handle(), "User-Id");
-      if (user && std::strlen(user) == kZ85KeyLength) requester_key_ = user;
+      requester_key_ = user;
       return "key " + requester_key_;
     }
     if (!req_.client_token().empty()) return "token " + req_.client_token();

@@ -42,13 +42,14 @@ std::string temp_dir(const std::string& stem) {
   return d;
 }
 
-// runs palpsim-keys with `args`; returns its exit status (output in `out`)
-int run_keys(const std::vector<std::string>& args, std::string* err = nullptr) {
+// runs palpsim-keys with `args`; returns its exit status (stderr in `err`, stdout in `out`)
+int run_keys(const std::vector<std::string>& args, std::string* err = nullptr, std::string* out = nullptr) {
   std::vector<std::string> a{test::build_exe("palpsim-keys")};
   a.insert(a.end(), args.begin(), args.end());
   test::Child c(a);
   const int rc = c.wait(30);
   if (err) *err = c.err();
+  if (out) *out = c.out();
   return rc;
 }
 
@@ -182,8 +183,11 @@ TEST_CASE("palpsim-keys writes a pair, the secret key 0600, and replaces files o
   REQUIRE(::stat((dir + "/station.key_secret").c_str(), &sec_st) == 0);
   CHECK((sec_st.st_mode & 0777) == 0600);
   CHECK((pub_st.st_mode & 0777) == 0644);
-  // the public file holds the public half of the secret file
+  // the public file holds the public half of the secret file, which --public prints
   CHECK(net::read_key_file(dir + "/station.key") == pair.public_key);
+  std::string printed;
+  CHECK(run_keys({"--public", dir + "/station.key_secret"}, nullptr, &printed) == 0);
+  CHECK(printed == pair.public_key + "\n");
   // a second run refuses, naming the file, and leaves both files as they were
   const std::string before = slurp(dir + "/station.key_secret");
   std::string err;

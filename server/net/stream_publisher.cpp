@@ -100,8 +100,8 @@ struct StreamPublisher::Impl {
   zmq::socket_t xpub{ctx, zmq::socket_type::xpub};
   // CURVE only (manual mode): per topic, the subscriptions admitted and refused that are
   // still held; ZeroMQ reports each one's end, but a departing pipe's end carries no key,
-  // so an end is taken from the refused first (a topic may be thought watched a little
-  // longer, never one of someone else's sessions delivered)
+  // so such an end is taken from the refused first (a topic may be thought watched a
+  // little longer, never one of someone else's sessions delivered)
   bool manual = false;
   std::unordered_map<std::string, std::pair<int, int>> held;
   std::atomic<bool> stop{false};
@@ -179,8 +179,11 @@ struct StreamPublisher::Impl {
   // the count; false when the subscription is refused or an end leaves the topic watched
   bool admit(const zmq::message_t& m, bool on, const std::string& topic, std::uint64_t id, bool prefix) {
     auto& [admitted, refused] = held[topic];
+    const char* key = zmq_msg_gets(m.handle(), "User-Id");
+    const bool foreign = id != 0 && open(id) && !sh.slots[id & (kMaxSlots - 1)].key_may_act(key);
     if (!on) {
-      const bool was_refused = refused > 0;
+      // an unsubscribe with a key says whose it is; a departing pipe's has none
+      const bool was_refused = refused > 0 && (!key || foreign || prefix);
       if (was_refused) --refused;
       else if (admitted > 0) --admitted;
       if (!was_refused) xpub.set(zmq::sockopt::unsubscribe, topic);
@@ -188,8 +191,6 @@ struct StreamPublisher::Impl {
       if (admitted == 0 && refused == 0) held.erase(topic);
       return last && !was_refused;
     }
-    const char* key = zmq_msg_gets(m.handle(), "User-Id");
-    const bool foreign = id != 0 && open(id) && !sh.slots[id & (kMaxSlots - 1)].key_may_act(key);
     if (foreign || prefix) {
       ++refused;
       (foreign ? sh.counters.not_owner : st.bad_subscriptions).fetch_add(1, std::memory_order_relaxed);

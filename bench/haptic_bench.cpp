@@ -1,8 +1,9 @@
 // palpsim-bench haptic: the force model's cost per pose on the phantom, and the
 // loopback round trip of palpsim-server's pose path paced at 1 kHz for 1, 4 and 16
 // clients (p50, p99, p99.9), next to a bare ZeroMQ DEALER/ROUTER ping-pong with the
-// same message sizes, pacing and client counts, in the same run. Goal: palpsim's round
-// trip at most 1.3 times the bare one at p50 and p99.
+// same message sizes, pacing and client counts, and next to the same server with CURVE
+// on every socket (README, "Security"), in the same run. Goal: palpsim's round trip at
+// most 1.3 times the bare one at p50 and p99.
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -11,6 +12,7 @@
 #include <cstring>
 #include <ctime>
 #include <fstream>
+#include <functional>
 #include <random>
 #include <sstream>
 #include <string>
@@ -24,6 +26,7 @@
 #include "bench/stats.h"
 #include "core/error.h"
 #include "haptics/force_model.h"
+#include "net/curve_keys.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
@@ -157,10 +160,15 @@ class EchoServer {
   }
 };
 
+// a socket's set-up before it connects: CURVE keys, or nothing
+using Setup = std::function<void(zmq::socket_t&)>;
+
 // `clients` threads, each paced at rate_hz for `seconds`: send one message, wait for its
-// reply, record the round trip (us). `make_request(client, seq)` gives the bytes to send.
+// reply, record the round trip (us). `make_request(client, seq)` gives the bytes to send;
+// `setup` prepares each client's socket before `open` names the endpoint.
 template <class Open, class Request>
-std::vector<double> paced_round_trips(int clients, double rate_hz, double seconds, Open open, Request make_request) {
+std::vector<double> paced_round_trips(int clients, double rate_hz, double seconds, Open open, Request make_request,
+                                      const Setup& setup = {}) {
   std::vector<std::vector<double>> per(clients);
   std::vector<std::thread> threads;
   std::atomic<int> failures{0};
@@ -171,6 +179,7 @@ std::vector<double> paced_round_trips(int clients, double rate_hz, double second
       zmq::context_t ctx(1);
       zmq::socket_t s(ctx, zmq::socket_type::dealer);
       s.set(zmq::sockopt::linger, 0);
+      if (setup) setup(s);
       const std::string endpoint = open(ctx, c);
       s.connect(endpoint);
       zmq::pollitem_t items[] = {{s.handle(), 0, ZMQ_POLLIN, 0}};
@@ -203,8 +212,42 @@ std::vector<double> paced_round_trips(int clients, double rate_hz, double second
 
 struct RoundTripRow {
   int clients = 0;
-  Quantiles palpsim, bare;
+  Quantiles palpsim, bare, curve;  // curve: the same server with CURVE on every socket
 };
+
+// one control request on a fresh REQ socket (set up by `setup`) and its reply; every
+// request carries one client token, so that without CURVE the sessions one call opens
+// are another call's to close (with CURVE the key is the identity and the token is ignored)
+v1::ControlReply control_call(const std::string& endpoint, v1::ControlRequest q, const Setup& setup) {
+  zmq::context_t ctx(1);
+  zmq::socket_t s(ctx, zmq::socket_type::req);
+  s.set(zmq::sockopt::linger, 0);
+  if (setup) setup(s);
+  s.connect(endpoint);
+  q.set_schema_version(1);
+  q.set_client_token("palpsim-bench");
+  s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+  zmq::message_t m;
+  (void)s.recv(m);
+  v1::ControlReply r;
+  r.ParseFromArray(m.data(), int(m.size()));
+  if (r.error().code() != v1::ERROR_NONE) throw Error("palpsim-bench haptic: " + r.error().message());
+  return r;
+}
+
+// the server's own receive-to-send time over every pose it answered
+Quantiles service_time(const net::Server& server, const Setup& setup) {
+  v1::ControlRequest q;
+  q.mutable_stats();
+  const auto& l = control_call(server.control_endpoint(), q, setup).stats().server().pose_service();
+  Quantiles service;
+  service.n = l.count();
+  service.p50 = l.p50_us();
+  service.p99 = l.p99_us();
+  service.p999 = l.p999_us();
+  service.max = l.max_us();
+  return service;
+}
 
 int run(int argc, char** argv) {
   Options o;
@@ -256,6 +299,14 @@ int run(int argc, char** argv) {
   served.server.max_sessions = 64;
   net::Server server(served, patient, [](const Scene& s) { return prepare_patient(s); }, so);
   server.start();
+  // and beside it the same server with CURVE, admitting one client key
+  const net::CurveKeyPair server_keys = net::make_curve_keypair(), client_keys = net::make_curve_keypair();
+  net::ServerOptions co = so;
+  co.curve_secret_key = server_keys.secret_key;
+  co.curve_allowed_keys = {client_keys.public_key};
+  net::Server curve_server(served, patient, [](const Scene& s) { return prepare_patient(s); }, co);
+  curve_server.start();
+  const Setup curve_setup = [&](zmq::socket_t& s) { net::make_curve_client(s, server_keys.public_key, client_keys); };
 
   // message sizes: a pose in contact and its reply
   v1::PoseRequest sample_req;
@@ -307,22 +358,25 @@ int run(int argc, char** argv) {
 
   std::vector<RoundTripRow> rows;
   // the palpsim pose for client c at step seq: in and out of the back, 20 mm deep, once a
-  // second; clients side by side
+  // second; clients side by side. Each client opens its session with its own socket's
+  // set-up (with CURVE a session belongs to the key that opened it)
   std::vector<std::uint64_t> ids(64, 0);
-  auto open_session = [&](zmq::context_t& ctx, int c) {
-    zmq::socket_t s(ctx, zmq::socket_type::req);
-    s.set(zmq::sockopt::linger, 0);
-    s.connect(server.control_endpoint());
-    v1::ControlRequest q;
-    q.set_schema_version(1);
-    q.mutable_open()->set_client_name("bench " + std::to_string(c));
-    s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-    zmq::message_t m;
-    (void)s.recv(m);
-    v1::ControlReply r;
-    r.ParseFromArray(m.data(), int(m.size()));
-    ids[c] = r.open().session_id();
-    return r.open().pose_endpoint();
+  auto opener = [&](const net::Server& srv, const Setup& setup) {
+    return [&srv, &ids, setup](zmq::context_t&, int c) {
+      v1::ControlRequest q;
+      q.mutable_open()->set_client_name("bench " + std::to_string(c));
+      const v1::ControlReply r = control_call(srv.control_endpoint(), q, setup);
+      ids[c] = r.open().session_id();
+      return r.open().pose_endpoint();
+    };
+  };
+  // closes a block's sessions so that they do not linger until their timeout
+  auto close_sessions = [&](const net::Server& srv, int n, const Setup& setup) {
+    for (int c = 0; c < n; ++c) {
+      v1::ControlRequest q;
+      q.mutable_close()->set_session_id(ids[c]);
+      control_call(srv.control_endpoint(), q, setup);
+    }
   };
   auto pose_bytes = [&](int c, std::uint64_t seq) {
     const double t = double(seq) / o.rate_hz;
@@ -339,9 +393,9 @@ int run(int argc, char** argv) {
   for (int n : o.clients) {
     RoundTripRow row;
     row.clients = n;
-    // bare ZeroMQ and palpsim alternate in 1 s blocks, so that both see the same
-    // background load on a shared machine; same pacing, sizes and client count
-    std::vector<double> bare, pal;
+    // bare ZeroMQ, palpsim and palpsim with CURVE alternate in 1 s blocks, so that all
+    // see the same background load on a shared machine; same pacing, sizes and client count
+    std::vector<double> bare, pal, cur;
     const int blocks = std::max(1, int(std::lround(o.seconds)));
     for (int b = 0; b < blocks; ++b) {
       const double block_s = o.seconds / blocks;
@@ -349,57 +403,35 @@ int run(int argc, char** argv) {
           n, o.rate_hz, block_s, [&](zmq::context_t&, int) { return echo.endpoint(); },
           [&](int, std::uint64_t) { return bare_req; });
       bare.insert(bare.end(), x.begin(), x.end());
-      auto y = paced_round_trips(n, o.rate_hz, block_s, open_session, pose_bytes);
+      auto y = paced_round_trips(n, o.rate_hz, block_s, opener(server, {}), pose_bytes);
       pal.insert(pal.end(), y.begin(), y.end());
-      // close this block's sessions so that they do not linger until their timeout
-      zmq::context_t ctx(1);
-      zmq::socket_t s(ctx, zmq::socket_type::req);
-      s.set(zmq::sockopt::linger, 0);
-      s.connect(server.control_endpoint());
-      for (int c = 0; c < n; ++c) {
-        v1::ControlRequest q;
-        q.set_schema_version(1);
-        q.mutable_close()->set_session_id(ids[c]);
-        s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-        zmq::message_t m;
-        (void)s.recv(m);
-      }
+      close_sessions(server, n, {});
+      auto z = paced_round_trips(n, o.rate_hz, block_s, opener(curve_server, curve_setup), pose_bytes, curve_setup);
+      cur.insert(cur.end(), z.begin(), z.end());
+      close_sessions(curve_server, n, curve_setup);
     }
     row.bare = quantiles(bare);
     row.palpsim = quantiles(pal);
+    row.curve = quantiles(cur);
     std::printf(
         "%2d client%s at %.0f Hz: palpsim p50 %.1f us, p99 %.1f us, p99.9 %.1f us | bare ZeroMQ p50 %.1f us, p99 %.1f "
-        "us, p99.9 %.1f us | ratio p50 %.2f, p99 %.2f (goal <= 1.3)\n",
+        "us, p99.9 %.1f us | ratio p50 %.2f, p99 %.2f (goal <= 1.3)\n"
+        "             with CURVE: p50 %.1f us, p99 %.1f us, p99.9 %.1f us | CURVE / plain p50 %.2f, p99 %.2f\n",
         n, n == 1 ? " " : "s", o.rate_hz, row.palpsim.p50, row.palpsim.p99, row.palpsim.p999, row.bare.p50,
-        row.bare.p99, row.bare.p999, row.palpsim.p50 / row.bare.p50, row.palpsim.p99 / row.bare.p99);
+        row.bare.p99, row.bare.p999, row.palpsim.p50 / row.bare.p50, row.palpsim.p99 / row.bare.p99, row.curve.p50,
+        row.curve.p99, row.curve.p999, row.curve.p50 / row.palpsim.p50, row.curve.p99 / row.palpsim.p99);
     std::fflush(stdout);
     rows.push_back(row);
   }
-  // the server's own receive-to-send time over every pose of the runs
-  Quantiles service;
-  {
-    zmq::context_t ctx(1);
-    zmq::socket_t s(ctx, zmq::socket_type::req);
-    s.set(zmq::sockopt::linger, 0);
-    s.connect(server.control_endpoint());
-    v1::ControlRequest q;
-    q.set_schema_version(1);
-    q.mutable_stats();
-    s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-    zmq::message_t m;
-    (void)s.recv(m);
-    v1::ControlReply r;
-    r.ParseFromArray(m.data(), int(m.size()));
-    const auto& l = r.stats().server().pose_service();
-    service.n = l.count();
-    service.p50 = l.p50_us();
-    service.p99 = l.p99_us();
-    service.p999 = l.p999_us();
-    service.max = l.max_us();
-    std::printf("server-side service time (receive to send, 9 %% bins): p50 %.2f us, p99 %.2f us, p99.9 %.2f us, max %.0f us over %zu poses\n",
-                service.p50, service.p99, service.p999, service.max, service.n);
-  }
+  // the servers' own receive-to-send times over every pose of the runs (decryption and
+  // encryption happen in ZeroMQ's I/O thread, outside this time)
+  const Quantiles service = service_time(server, {}), curve_service = service_time(curve_server, curve_setup);
+  for (const auto& [name, q] : {std::make_pair("", service), std::make_pair(" with CURVE", curve_service)})
+    std::printf("server-side service time%s (receive to send, 9 %% bins): p50 %.2f us, p99 %.2f us, p99.9 %.2f us, "
+                "max %.0f us over %zu poses\n",
+                name, q.p50, q.p99, q.p999, q.max, q.n);
   server.stop();
+  curve_server.stop();
 
   if (!o.json.empty()) {
     std::ofstream f(o.json);
@@ -415,12 +447,17 @@ int run(int argc, char** argv) {
       << ", \"reply_bytes\": " << reply_bytes << "},\n  \"rate_hz\": " << o.rate_hz << ",\n  \"seconds_per_run\": "
       << o.seconds << ",\n  \"server_service\": {\"n\": " << service.n << ", \"p50_us\": " << service.p50
       << ", \"p99_us\": " << service.p99 << ", \"p999_us\": " << service.p999 << ", \"max_us\": " << service.max
-      << "},\n  \"round_trip\": [\n";
+      << "},\n  \"server_service_curve\": {\"n\": " << curve_service.n << ", \"p50_us\": " << curve_service.p50
+      << ", \"p99_us\": " << curve_service.p99 << ", \"p999_us\": " << curve_service.p999
+      << ", \"max_us\": " << curve_service.max << "},\n  \"round_trip\": [\n";
     for (std::size_t i = 0; i < rows.size(); ++i) {
       const auto& r = rows[i];
       const double r50 = r.palpsim.p50 / r.bare.p50, r99 = r.palpsim.p99 / r.bare.p99;
       f << "    {\"clients\": " << r.clients << ", \"palpsim\": " << json_q(r.palpsim, "us")
-        << ", \"bare_zmq\": " << json_q(r.bare, "us") << ", \"ratio_p50\": " << r50 << ", \"ratio_p99\": " << r99
+        << ", \"bare_zmq\": " << json_q(r.bare, "us") << ", \"palpsim_curve\": " << json_q(r.curve, "us")
+        << ", \"curve_over_plain_p50\": " << r.curve.p50 / r.palpsim.p50
+        << ", \"curve_over_plain_p99\": " << r.curve.p99 / r.palpsim.p99 << ", \"ratio_p50\": " << r50
+        << ", \"ratio_p99\": " << r99
         << ", \"goal_met\": " << ((r50 <= 1.3 && r99 <= 1.3) ? "true" : "false") << "}"
         << (i + 1 < rows.size() ? "," : "") << "\n";
     }
@@ -432,7 +469,8 @@ int run(int argc, char** argv) {
 
 }  // namespace
 
-PALPSIM_BENCH(haptic, "force model cost per pose; pose round trip at 1 kHz for 1/4/16 clients vs bare ZeroMQ") {
+PALPSIM_BENCH(haptic,
+              "force model cost per pose; pose round trip at 1 kHz for 1/4/16 clients vs bare ZeroMQ and with CURVE") {
   try {
     return run(argc, argv);
   } catch (const std::exception& e) {

@@ -20,6 +20,7 @@
 #include <zmq.hpp>
 
 #include "device.h"
+#include "net/curve_keys.h"
 #include "palpsim/wire.pb.h"
 
 namespace v1 = palpsim::v1;
@@ -30,12 +31,17 @@ namespace {
 
 const char* kUsage =
     "usage: palpsim-haptic --connect ADDR [--device press|press:X,Y,Z|csv:FILE|replay:FILE] [--rate HZ]\n"
-    "                      [--seconds S] [--log FILE] [--name NAME]\n"
+    "                      [--seconds S] [--log FILE] [--name NAME] [--server-key FILE --client-key FILE]\n"
+    "                      [--client-token TEXT]\n"
     "  --connect ADDR  the server's control address (its 'ready on ADDR' line)\n"
     "  --device SPEC   the built-in press path (default), a CSV of t,x,y,z (s, mm), or a palpsim-haptic log to replay\n"
     "  --rate HZ       loop rate, 100 to 4000 (default 1000)\n"
     "  --seconds S     stop after S seconds (default: when the device's path ends)\n"
-    "  --log FILE      CSV of every step (time, pose, force, round trip)\n";
+    "  --log FILE      CSV of every step (time, pose, force, round trip)\n"
+    "  --server-key FILE  the server's public key (its NAME.key from palpsim-keys): speak CURVE\n"
+    "  --client-key FILE  this client's secret key (NAME.key_secret), whose public key the server allows\n"
+    "  --client-token TEXT without CURVE: the session belongs to this token (palpsim-view --client-token\n"
+    "                  TEXT may then watch it); else to this client's control connection alone\n";
 
 // the watchdog: full force while replies are younger than this, then a linear ramp to zero
 constexpr double kWatchdogGraceS = 0.002;
@@ -54,14 +60,16 @@ double percentile(std::vector<double> v, double q) {
 }
 
 // one control request on a REQ socket, with a timeout; throws std::runtime_error naming what failed
-v1::ControlReply control(zmq::socket_t& s, const v1::ControlRequest& req, const std::string& addr, int timeout_ms) {
+v1::ControlReply control(zmq::socket_t& s, const v1::ControlRequest& req, const std::string& addr, int timeout_ms,
+                         bool curve) {
   std::string out;
   req.SerializeToString(&out);
   s.send(zmq::buffer(out), zmq::send_flags::none);
   zmq::pollitem_t items[] = {{s.handle(), 0, ZMQ_POLLIN, 0}};
   zmq::poll(items, 1, std::chrono::milliseconds(timeout_ms));
   if (!(items[0].revents & ZMQ_POLLIN))
-    throw std::runtime_error("no reply from a palpsim-server at " + addr + " within " + std::to_string(timeout_ms) + " ms");
+    throw std::runtime_error("no reply from a palpsim-server at " + addr + " within " + std::to_string(timeout_ms) +
+                             " ms" + (curve ? palpsim::net::kCurveSilenceHint : palpsim::net::kPlainSilenceHint));
   zmq::message_t m;
   (void)s.recv(m);
   v1::ControlReply rep;
@@ -74,7 +82,8 @@ v1::ControlReply control(zmq::socket_t& s, const v1::ControlRequest& req, const 
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string addr, device_spec = "press", log_path, name = "palpsim-haptic";
+  std::string addr, device_spec = "press", log_path, name = "palpsim-haptic", server_key_file, client_key_file,
+              client_token;
   double rate_hz = 1000, max_seconds = 0;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -95,6 +104,9 @@ int main(int argc, char** argv) {
       else if (a == "--seconds") max_seconds = std::stod(value());
       else if (a == "--log") log_path = value();
       else if (a == "--name") name = value();
+      else if (a == "--server-key") server_key_file = value();
+      else if (a == "--client-key") client_key_file = value();
+      else if (a == "--client-token") client_token = value();
       else {
         std::fprintf(stderr, "palpsim-haptic: unknown argument '%s'\n%s", a.c_str(), kUsage);
         return 2;
@@ -106,6 +118,10 @@ int main(int argc, char** argv) {
   }
   if (addr.empty()) {
     std::fprintf(stderr, "palpsim-haptic: --connect ADDR is required\n%s", kUsage);
+    return 2;
+  }
+  if (server_key_file.empty() != client_key_file.empty()) {
+    std::fprintf(stderr, "palpsim-haptic: --server-key and --client-key go together (CURVE needs both)\n");
     return 2;
   }
   if (!(rate_hz >= 100 && rate_hz <= 4000)) {
@@ -128,14 +144,22 @@ int main(int argc, char** argv) {
   std::uint64_t session = 0;
   std::unique_ptr<palpsim::haptic::Device> device;
   std::FILE* log = nullptr;
+  const bool curve = !server_key_file.empty();
   try {
+    // CURVE on both sockets when keys are given (the files are checked before anything is sent)
+    if (curve) {
+      const std::string server_key = palpsim::net::read_key_file(server_key_file);
+      const auto client_key = palpsim::net::read_secret_key_file(client_key_file);
+      for (zmq::socket_t* s : {&ctl, &pose}) palpsim::net::make_curve_client(*s, server_key, client_key);
+    }
     // open the session; the reply names the pose address and the patient's bounds
     ctl.connect(addr);
     v1::ControlRequest open;
     open.set_schema_version(v1::VERSION_CURRENT);
     open.set_request_id(1);
+    open.set_client_token(client_token);
     open.mutable_open()->set_client_name(name);
-    const v1::ControlReply opened = control(ctl, open, addr, 5000);
+    const v1::ControlReply opened = control(ctl, open, addr, 5000, curve);
     session = opened.open().session_id();
     const auto& pi = opened.open().server().patient();
     palpsim::haptic::PatientBox box;
@@ -296,8 +320,9 @@ int main(int argc, char** argv) {
     v1::ControlRequest close;
     close.set_schema_version(v1::VERSION_CURRENT);
     close.set_request_id(2);
+    close.set_client_token(client_token);
     close.mutable_close()->set_session_id(session);
-    control(ctl, close, addr, 2000);
+    control(ctl, close, addr, 2000, curve);
   } catch (const std::exception& e) {
     spdlog::warn("closing the session: {}", e.what());
   }

@@ -1,5 +1,6 @@
-// palpsim-server: loads a scene, prepares its patient and serves haptics sessions on
-// loopback (proto/PROTOCOL.md) until SIGINT or SIGTERM.
+// palpsim-server: loads a scene, prepares its patient and serves haptics sessions
+// (proto/PROTOCOL.md) until SIGINT or SIGTERM: on loopback in plain text, or anywhere with
+// CURVE keys (--curve-secret, --allow) or --insecure.
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
@@ -11,6 +12,7 @@
 #include <string>
 
 #include "core/error.h"
+#include "net/curve_keys.h"
 #include "net/path_policy.h"
 #include "net/scene_io.h"
 #include "net/server.h"
@@ -21,7 +23,7 @@ namespace {
 const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
     "                      [--max-pose-distance-mm MM] [--background idle|nice] [--scene-dir DIR ...]\n"
-    "                      [--insecure]\n"
+    "                      [--curve-secret FILE --allow FILE] [--insecure]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
     "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
     "  --bind ADDR        control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
@@ -32,8 +34,12 @@ const char* kUsage =
     "                     any pose thread takes a core at once) or nice (nice 19 only)\n"
     "  --scene-dir DIR    a folder LoadScene requests may read scene files and CTs from and record\n"
     "                     frames into (repeatable; default: the folder of --scene, none without it)\n"
-    "  --insecure         allow addresses beyond loopback: poses, frames and control travel in plain\n"
-    "                     text, unauthenticated (a trusted network only)\n"
+    "  --curve-secret FILE the server's secret key (palpsim-keys NAME makes NAME.key_secret): every\n"
+    "                     endpoint is CURVE-encrypted, and addresses beyond loopback are allowed\n"
+    "  --allow FILE       the client public keys admitted with --curve-secret, one z85 key per line\n"
+    "                     ('# ' comments; cat alice.key bob.key > FILE makes one)\n"
+    "  --insecure         allow addresses beyond loopback without keys: poses, frames and control\n"
+    "                     travel in plain text, unauthenticated (a trusted network only)\n"
     "Prints 'ready on ADDR poses ADDR [stream ADDR]' when serving; stops cleanly on SIGINT or SIGTERM.\n";
 
 int fail(const std::string& what) {
@@ -55,7 +61,7 @@ int main(int argc, char** argv) {
   spdlog::set_default_logger(spdlog::stderr_color_mt("palpsim-server"));
 
   // command line
-  std::string scene_file;
+  std::string scene_file, curve_secret_file, allow_file;
   palpsim::net::ServerOptions options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -69,6 +75,10 @@ int main(int argc, char** argv) {
         return 0;
       } else if (a == "--scene") {
         scene_file = value("--scene");
+      } else if (a == "--curve-secret") {
+        curve_secret_file = value("--curve-secret");
+      } else if (a == "--allow") {
+        allow_file = value("--allow");
       } else if (a == "--insecure") {
         options.insecure = true;
       } else if (a == "--scene-dir") {
@@ -97,9 +107,21 @@ int main(int argc, char** argv) {
     }
   }
 
-  // folders that do not exist are refused before the patient is prepared
+  // folders that do not exist and bad key files are refused before the patient is prepared
   try {
     palpsim::net::PathPolicy check(options.scene_dirs);
+    if (curve_secret_file.empty() != allow_file.empty())
+      throw palpsim::Error(curve_secret_file.empty() ? "--allow needs --curve-secret (the server's secret key)"
+                                                     : "--curve-secret needs --allow (the client keys admitted)");
+    if (!curve_secret_file.empty()) {
+      if (!palpsim::net::curve_available())
+        throw palpsim::Error("--curve-secret: this libzmq has no CURVE (zmq_has(\"curve\") is false)");
+      const auto pair = palpsim::net::read_secret_key_file(curve_secret_file);
+      options.curve_secret_key = pair.secret_key;
+      options.curve_allowed_keys = palpsim::net::read_allow_list(allow_file);
+      spdlog::info("CURVE on every endpoint: server public key {}, {} client key(s) allowed from {}", pair.public_key,
+                   options.curve_allowed_keys.size(), allow_file);
+    }
   } catch (const std::exception& e) {
     return fail(std::string("cannot start: ") + e.what());
   }

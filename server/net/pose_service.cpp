@@ -3,7 +3,9 @@
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 
+#include "net/curve_keys.h"
 #include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
 
@@ -44,6 +46,9 @@ class PoseService {
   v1::PoseReply rep_;
   char id_[256];
   std::size_t id_len_ = 0;
+  zmq::message_t msg_;                       // with CURVE: a payload frame with its properties
+  char user_[kZ85KeyLength];                 // with CURVE: the sender's key (the ZAP user id)
+  bool has_user_ = false;
   char frame_[2][kMaxPoseBytes + 1];
   std::size_t frame_len_[2] = {0, 0};        // bytes kept (at most kMaxPoseBytes + 1)
   std::size_t frame_full_len_[2] = {0, 0};   // bytes sent by the client
@@ -66,10 +71,13 @@ class PoseService {
       const std::int64_t t_recv = ns_since(start_);
       pick_up_world();
       id_len_ = std::min(r->size, sizeof id_);
+      has_user_ = false;
       // the frames after the routing id: [payload] (DEALER) or [empty, payload] (REQ)
       int frames = 0;
       while (sock_.get(zmq::sockopt::rcvmore)) {
-        if (frames < 2) {
+        if (frames < 2 && sh_.curve) {
+          recv_named(frames);
+        } else if (frames < 2) {
           const auto f = sock_.recv(zmq::mutable_buffer(frame_[frames], sizeof frame_[frames]));
           frame_len_[frames] = f ? std::min(f->size, sizeof frame_[frames]) : 0;
           frame_full_len_[frames] = f ? f->untruncated_size : 0;
@@ -90,6 +98,20 @@ class PoseService {
         send(req_envelope);
       }
     }
+  }
+
+  // with CURVE: receives frame `i` as a message, whose "User-Id" property is the key the
+  // ZAP handler admitted the connection with (libzmq attaches it to payload frames, not
+  // to the ROUTER's routing id frame), and copies it into frame_[i]. The message is
+  // reused; decrypting has already made its bytes, so this adds a copy, no allocation.
+  void recv_named(int i) {
+    (void)sock_.recv(msg_);
+    frame_full_len_[i] = msg_.size();
+    frame_len_[i] = std::min(msg_.size(), sizeof frame_[i]);
+    std::memcpy(frame_[i], msg_.data(), frame_len_[i]);
+    const char* user = zmq_msg_gets(msg_.handle(), "User-Id");
+    has_user_ = user && std::strlen(user) == kZ85KeyLength;
+    if (has_user_) std::memcpy(user_, user, kZ85KeyLength);
   }
 
   // fills rep_ with an error and counts it (and against the session when known)
@@ -138,6 +160,12 @@ class PoseService {
                     "PoseRequest.session_id: %016" PRIx64 " is not an open session (never opened, closed, or timed out)",
                     id);
       refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session, msg, nullptr);
+      return send(req_envelope);
+    }
+    // with CURVE only the key that opened the session may pose for it
+    if (!slot->key_may_act(has_user_ ? user_ : nullptr)) {
+      std::snprintf(msg, sizeof msg, "PoseRequest.session_id: %016" PRIx64 " belongs to another client's key", id);
+      refuse(v1::ERROR_NOT_OWNER, sh_.counters.not_owner, msg, nullptr);
       return send(req_envelope);
     }
     slot->last_seen_ns.store(t_recv, std::memory_order_relaxed);

@@ -7,6 +7,7 @@
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <random>
 #include <utility>
 #include <zmq.hpp>
@@ -14,6 +15,7 @@
 #include "core/error.h"
 #include "core/thread.h"
 #include "deform/backend.h"
+#include "net/curve_keys.h"
 #include "net/deform_worker.h"
 #include "net/path_policy.h"
 #include "net/pose_service.h"
@@ -23,6 +25,7 @@
 #include "net/stream_publisher.h"
 #include "net/stream_state.h"
 #include "net/wire_convert.h"
+#include "net/zap_handler.h"
 #include "render/view.h"
 #include "palpsim/options.pb.h"
 #include "palpsim/scene.pb.h"
@@ -200,6 +203,18 @@ class Server::Control {
         pose_(ctx_, zmq::socket_type::router), in_(kMaxControlBytes + 1) {
     start_ = Clock::now();
     sh_.max_pose_distance_mm = o.max_pose_distance_mm;
+    // CURVE: the ZAP handler binds first, so no connection is ever admitted without it
+    if (!o.curve_secret_key.empty()) {
+      if (o.curve_allowed_keys.empty())
+        throw Error("--allow: no client keys; with --curve-secret the server admits only the keys it lists");
+      curve_.secret_key = o.curve_secret_key;
+      curve_.allowed = std::make_shared<const AllowList>(o.curve_allowed_keys.begin(), o.curve_allowed_keys.end());
+      zap_ = std::make_unique<ZapHandler>(ctx_, curve_.allowed, sh_.counters.curve_refused, sh_.counters.curve_admitted);
+      for (zmq::socket_t* s : {&control_, &pose_}) make_curve_server(*s, o.curve_secret_key);
+      sh_.curve = true;
+    } else if (!o.curve_allowed_keys.empty()) {
+      throw Error("--allow needs --curve-secret: without a server key nothing is encrypted or checked");
+    }
     current_ = make_world(scene, std::move(patient), 1);
     sh_.world.store(current_.get(), std::memory_order_release);
     for (zmq::socket_t* s : {&control_, &pose_}) {
@@ -209,7 +224,7 @@ class Server::Control {
       s->set(zmq::sockopt::rcvhwm, 10000);
     }
     // plain text beyond this machine only when the operator says so
-    if (!o.insecure) {
+    if (!o.insecure && !sh_.curve) {
       const std::pair<std::string, const char*> addrs[] = {
           {o.control_bind, "--bind"},
           {o.pose_bind.empty() ? derive_pose_endpoint(o.control_bind) : o.pose_bind, "--pose-bind"},
@@ -217,8 +232,9 @@ class Server::Control {
       for (const auto& [addr, option] : addrs)
         if (!is_loopback_endpoint(addr))
           throw Error(std::string(option) + " " + addr +
-                      ": not a loopback address; this server speaks without encryption or authentication, so it "
-                      "binds beyond this machine only with --insecure (for a trusted network)");
+                      ": not a loopback address; without keys this server speaks without encryption or "
+                      "authentication, so it binds beyond this machine only with --curve-secret and --allow "
+                      "(README, \"Security\") or with --insecure (for a trusted network)");
     }
     control_endpoint_ = bind(control_, o.control_bind, "--bind");
     pose_endpoint_ = bind(pose_, o.pose_bind.empty() ? derive_pose_endpoint(o.control_bind) : o.pose_bind,
@@ -261,7 +277,8 @@ class Server::Control {
     }
     if (!publisher_) {
       auto p = std::make_unique<StreamPublisher>(
-          sh_, *stream_, opt_.stream_bind.empty() ? derive_stream_endpoint(opt_.control_bind) : opt_.stream_bind, start_);
+          sh_, *stream_, opt_.stream_bind.empty() ? derive_stream_endpoint(opt_.control_bind) : opt_.stream_bind, start_,
+          curve_);
       p->start();
       publisher_ = std::move(p);
       std::lock_guard<std::mutex> lock(stream_endpoint_mu_);
@@ -321,6 +338,10 @@ class Server::Control {
   PathPolicy paths_;  // the folders LoadScene may touch
   zmq::context_t ctx_;
   zmq::socket_t control_, pose_;
+  CurveServer curve_;                 // the server key and the allow-list ("" key: plain text)
+  std::unique_ptr<ZapHandler> zap_;   // admits connections to ctx_'s sockets (CURVE only)
+  std::string requester_;             // who sent the control request being handled (see identity())
+  std::string requester_key_;         // its z85 CURVE key ("" without CURVE)
   std::string control_endpoint_, pose_endpoint_;
   Clock::time_point start_;
   std::uint64_t id_counter_opened_ = 0;
@@ -369,10 +390,15 @@ class Server::Control {
       // frames after the routing id: [payload] (DEALER) or [empty, payload] (REQ)
       std::vector<std::size_t> sizes;
       std::size_t kept = 0;
+      std::string user;  // with CURVE: the sender's key, a property of its payload frames
       while (control_.get(zmq::sockopt::rcvmore)) {
-        const auto r = control_.recv(zmq::mutable_buffer(in_.data(), in_.size()));
-        sizes.push_back(r ? r->untruncated_size : 0);
-        kept = r ? std::min(r->size, in_.size()) : 0;
+        zmq::message_t part;
+        (void)control_.recv(part);
+        sizes.push_back(part.size());
+        kept = std::min(part.size(), in_.size());
+        std::memcpy(in_.data(), part.data(), kept);
+        const char* u = sh_.curve ? zmq_msg_gets(part.handle(), "User-Id") : nullptr;
+        if (u) user = u;
       }
       const bool req_envelope = sizes.size() >= 1 && sizes[0] == 0;
       rep_.Clear();
@@ -388,7 +414,12 @@ class Server::Control {
       } else if (!req_.ParseFromArray(in_.data(), int(kept))) {
         refuse(v1::ERROR_MALFORMED, sh_.counters.malformed,
                "ControlRequest: " + std::to_string(kept) + " bytes do not parse (truncated, or not a ControlRequest)");
+      } else if (sh_.curve && user.size() != kZ85KeyLength) {
+        // cannot happen with the ZAP handler in place; refused rather than served as nobody
+        refuse(v1::ERROR_INTERNAL, sh_.counters.internal_errors,
+               "ControlRequest: a CURVE connection without the key its ZAP handler names");
       } else {
+        requester_ = identity(id, user);
         handle();
       }
       rep_.SerializeToString(&out_);
@@ -400,6 +431,28 @@ class Server::Control {
         // the client is gone
       }
     }
+  }
+
+  // who sent the request being handled: its CURVE key (the ZAP handler's user id), else
+  // its client token, else its control connection (the ROUTER's routing id)
+  std::string identity(const zmq::message_t& routing_id, const std::string& user) {
+    requester_key_.clear();
+    if (sh_.curve) {
+      requester_key_ = user;
+      return "key " + requester_key_;
+    }
+    if (!req_.client_token().empty()) return "token " + req_.client_token();
+    return "connection " + routing_id.to_string();
+  }
+
+  // true when the requester opened session `s`; else refuses with ERROR_NOT_OWNER
+  bool owned(const SessionSlot& s, std::uint64_t id, const std::string& field) {
+    if (s.owner == requester_) return true;
+    refuse(v1::ERROR_NOT_OWNER, sh_.counters.not_owner,
+           field + ": " + hex_id(id) + " belongs to another client; only " +
+               (sh_.curve ? "the key that opened it" : "the client token or control connection that opened it") +
+               " may act on it or watch it");
+    return false;
   }
 
   void refuse(v1::ErrorCode code, std::atomic<std::uint64_t>& counter, const std::string& message) {
@@ -416,6 +469,10 @@ class Server::Control {
       return refuse(v1::ERROR_WRONG_SCHEMA_VERSION, sh_.counters.wrong_schema_version,
                     "ControlRequest.schema_version: got " + std::to_string(req_.schema_version()) +
                         ", this server speaks " + std::to_string(int(v1::VERSION_CURRENT)));
+    if (req_.client_token().size() > kMaxClientTokenBytes)
+      return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter,
+                    "ControlRequest.client_token: " + std::to_string(req_.client_token().size()) +
+                        " bytes, at most " + std::to_string(kMaxClientTokenBytes));
     try {
       switch (req_.body_case()) {
         case v1::ControlRequest::kOpen: return open();
@@ -435,13 +492,17 @@ class Server::Control {
     }
   }
 
+  // the slot of an open session the requester owns (its last message time updated), or
+  // nullptr after refusing
   SessionSlot* session_or_refuse(std::uint64_t id, const char* field) {
     SessionSlot* s = find(id);
-    if (!s)
+    if (!s) {
       refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session,
              std::string(field) + ": " + hex_id(id) + " is not an open session (never opened, closed, or timed out)");
-    else
-      s->last_seen_ns.store(ns_since(start_));
+      return nullptr;
+    }
+    if (!owned(*s, id, field)) return nullptr;
+    s->last_seen_ns.store(ns_since(start_));
     return s;
   }
 
@@ -475,6 +536,7 @@ class Server::Control {
     for (const auto& s : stages_of(w.scene, deform_ ? &d : nullptr, frames_served(), bricks_served()))
       info->add_stages(s);
     info->set_stream_endpoint(publisher_ ? publisher_->endpoint() : "");
+    info->set_curve(sh_.curve);
   }
 
   int open_count() const {
@@ -512,6 +574,8 @@ class Server::Control {
     s.contact = false;
     s.depth_mm = 0;
     s.client_name = req_.open().client_name();
+    s.owner = requester_;
+    s.set_owner_key(requester_key_.empty() ? nullptr : requester_key_.c_str());
     s.last_seen_ns.store(ns_since(start_));
     opened_order_[index] = ++id_counter_opened_;
     if (index >= sh_.slots_used.load(std::memory_order_relaxed))
@@ -622,6 +686,9 @@ class Server::Control {
     s->set_internal_errors(c.internal_errors);
     s->set_bad_view(c.bad_view);
     s->set_not_built(c.not_built);
+    s->set_not_owner(c.not_owner);
+    s->set_curve_refused(c.curve_refused);
+    s->set_curve_admitted(c.curve_admitted);
     auto* l = s->mutable_pose_service();
     l->set_count(sh_.pose_service.count());
     l->set_p50_us(sh_.pose_service.quantile(0.5));
@@ -727,26 +794,29 @@ class Server::Control {
       std::snprintf(b, sizeof b, "WatchSession.hold_s: %g is outside [0, 3600] s", r.hold_s());
       return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, b);
     }
-    // the session: the one named, or the newest open one
+    // the session: the one named, or the requester's newest open one
     std::uint64_t id = r.session_id();
     if (id == 0) {
       std::uint64_t newest = 0;
       for (int i = 0; i < sh_.slots_used.load(std::memory_order_acquire); ++i) {
         const std::uint64_t sid = sh_.slots[i].id.load(std::memory_order_acquire);
-        if (sid != 0 && opened_order_[i] > newest) {
+        if (sid != 0 && opened_order_[i] > newest && sh_.slots[i].owner == requester_) {
           newest = opened_order_[i];
           id = sid;
         }
       }
       if (id == 0)
         return refuse(v1::ERROR_NO_SESSION_OPEN, sh_.counters.unknown_session,
-                      "WatchSession.session_id: 0 (any session) but no session is open");
+                      "WatchSession.session_id: 0 (any session of this client) but none of this client's "
+                      "sessions is open");
     }
     // watching does not keep a session alive: only its own client's messages do
-    if (!find(id))
+    const SessionSlot* watched = find(id);
+    if (!watched)
       return refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session,
                     "WatchSession.session_id: " + hex_id(id) +
                         " is not an open session (never opened, closed, or timed out)");
+    if (!owned(*watched, id, "WatchSession.session_id")) return;
     // the view: the session's current one with the fields this request sets
     StreamSlot& ss = stream_->slot(id);
     std::lock_guard<std::mutex> lock(ss.mu);
@@ -955,13 +1025,13 @@ class Server::Control {
       last_log_ = Clock::now();
       const auto& c = sh_.counters;
       const std::uint64_t bad = c.malformed + c.wrong_schema_version + c.unknown_session + c.bad_pose + c.absurd_pose +
-                                c.oversized;
+                                c.oversized + c.not_owner + c.curve_refused;
       if (bad != logged_bad_) {
         spdlog::warn(
             "bad input so far: {} malformed, {} wrong schema version, {} unknown session, {} NaN/Inf poses, {} absurd "
-            "poses, {} oversized ({} new)",
+            "poses, {} oversized, {} for another client's session, {} connections refused by key ({} new)",
             c.malformed.load(), c.wrong_schema_version.load(), c.unknown_session.load(), c.bad_pose.load(),
-            c.absurd_pose.load(), c.oversized.load(), bad - logged_bad_);
+            c.absurd_pose.load(), c.oversized.load(), c.not_owner.load(), c.curve_refused.load(), bad - logged_bad_);
         logged_bad_ = bad;
       }
     }

@@ -39,11 +39,14 @@ struct ServerOptions {
   std::vector<std::string> scene_dirs;                  // folders LoadScene may read (scene file, CT) and write
                                                         // (render.record_dir) in; none: LoadScene names no file
   bool insecure = false;                                // allow addresses beyond loopback (plain text on the network)
+  std::string curve_secret_key;                         // z85 server secret key: every socket is a CURVE server
+                                                        // ("" = plain text, loopback unless insecure)
+  std::vector<std::string> curve_allowed_keys;          // z85 client public keys admitted with CURVE (at least one)
 };
 
 /// True for addresses only this machine can reach: tcp on 127.x.x.x, localhost, [::1]
 /// or the lo interface, ipc:// and inproc://. The server binds anything else only with
-/// ServerOptions::insecure, since it speaks without encryption or authentication.
+/// CURVE keys (ServerOptions::curve_secret_key) or ServerOptions::insecure.
 bool is_loopback_endpoint(const std::string& endpoint);
 
 /// The default pose address for a control address: tcp port + 1 ("*" stays "*"),

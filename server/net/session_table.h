@@ -7,6 +7,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <string>
 
@@ -63,6 +64,32 @@ struct SessionSlot {
   double last_server_time_s = 0;       // of the previous pose
   // (control) name shown in stats
   std::string client_name;
+  // who opened the session: (control) the identity its control requests must carry, and
+  // with CURVE (control writes before publishing `id`, pose reads) the opener's z85 key
+  // as 5 words, all 0 without CURVE: a pose is checked with five loads and compares
+  std::string owner;
+  std::array<std::atomic<std::uint64_t>, 5> owner_key{};
+
+  /// Sets owner_key from a z85 key of 40 characters, or clears it for nullptr (control thread).
+  void set_owner_key(const char* z85) {
+    for (std::size_t i = 0; i < owner_key.size(); ++i) {
+      std::uint64_t w = 0;
+      if (z85) std::memcpy(&w, z85 + 8 * i, 8);
+      owner_key[i].store(w, std::memory_order_relaxed);
+    }
+  }
+  /// True when owner_key is unset (no CURVE) or equals the z85 key of 40 characters `z85`
+  /// (nullptr: the sender has no key). No allocation: the pose thread calls it per pose.
+  bool key_may_act(const char* z85) const {
+    if (owner_key[0].load(std::memory_order_relaxed) == 0) return true;
+    if (!z85) return false;
+    for (std::size_t i = 0; i < owner_key.size(); ++i) {
+      std::uint64_t w;
+      std::memcpy(&w, z85 + 8 * i, 8);
+      if (owner_key[i].load(std::memory_order_relaxed) != w) return false;
+    }
+    return true;
+  }
 
   /// The parameters as HapticsSettings (pose thread, per pose).
   HapticsSettings params() const {
@@ -89,7 +116,7 @@ struct Counters {
   std::atomic<std::uint64_t> sessions_opened{0}, sessions_closed{0}, sessions_timed_out{0}, poses{0}, malformed{0},
       wrong_schema_version{0}, unknown_session{0}, bad_pose{0}, absurd_pose{0}, oversized{0}, too_many_sessions{0},
       bad_parameter{0}, scene_loads{0}, scene_load_failures{0}, control_requests{0}, empty_request{0},
-      internal_errors{0}, bad_view{0}, not_built{0};
+      internal_errors{0}, bad_view{0}, not_built{0}, not_owner{0}, curve_refused{0}, curve_admitted{0};
 };
 
 /// A log-binned histogram of service times that one thread fills (relaxed atomics, no
@@ -147,6 +174,7 @@ struct ServerShared {
   LatencyHistogram pose_service;                     // (pose) receive-to-send times of answered poses
   std::atomic<bool> stop{false};
   double max_pose_distance_mm = 1000;                // poses farther than this from the grid are absurd
+  bool curve = false;                                // every socket is a CURVE server (set before the threads start)
   std::atomic<StreamState*> stream{nullptr};         // (control) frames and bricks, once a scene asked for them
   std::atomic<int> slots_used{0};                    // (control) one past the highest slot index ever opened:
                                                      // the workers' passes over the sessions stop there
@@ -155,6 +183,8 @@ struct ServerShared {
 /// Limits of the two paths (PROTOCOL.md).
 constexpr std::size_t kMaxPoseBytes = 1024;
 constexpr std::size_t kMaxControlBytes = 1 << 20;
+/// Longest ControlRequest.client_token (bytes).
+constexpr std::size_t kMaxClientTokenBytes = 64;
 /// ZeroMQ drops connections that send frames larger than this (memory guard).
 constexpr std::int64_t kMaxFrameBytes = 16 << 20;
 

@@ -10,6 +10,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <unordered_map>
 #include <unordered_set>
 #include <vector>
 #include <zmq.hpp>
@@ -95,7 +96,14 @@ struct StreamPublisher::Impl {
   StreamState& st;
   Clock::time_point start;
   zmq::context_t ctx{1};
+  std::unique_ptr<ZapHandler> zap;  // CURVE only: admits connections to ctx's socket
   zmq::socket_t xpub{ctx, zmq::socket_type::xpub};
+  // CURVE only (manual mode): per topic, the subscriptions admitted and refused that are
+  // still held; ZeroMQ reports each one's end, but a departing pipe's end carries no key,
+  // so such an end is taken from the refused first (a topic may be thought watched a
+  // little longer, never one of someone else's sessions delivered)
+  bool manual = false;
+  std::unordered_map<std::string, std::pair<int, int>> held;
   std::atomic<bool> stop{false};
 
   // subscriptions: full topics, and shorter prefixes (a prefix of "frame." watches every session)
@@ -166,6 +174,36 @@ struct StreamPublisher::Impl {
     return id != 0 && sh.slots[id & (kMaxSlots - 1)].id.load(std::memory_order_acquire) == id;
   }
 
+  // manual mode (CURVE): admits or refuses one subscription (the sender's key against the
+  // session's opener, no prefixes: they would cover other clients' sessions) and keeps
+  // the count; false when the subscription is refused or an end leaves the topic watched
+  bool admit(const zmq::message_t& m, bool on, const std::string& topic, std::uint64_t id, bool prefix) {
+    auto& [admitted, refused] = held[topic];
+    const char* key = zmq_msg_gets(m.handle(), "User-Id");
+    const bool foreign = id != 0 && open(id) && !sh.slots[id & (kMaxSlots - 1)].key_may_act(key);
+    if (!on) {
+      // an unsubscribe with a key says whose it is; a departing pipe's has none
+      const bool was_refused = refused > 0 && (!key || foreign || prefix);
+      if (was_refused) --refused;
+      else if (admitted > 0) --admitted;
+      if (!was_refused) xpub.set(zmq::sockopt::unsubscribe, topic);
+      const bool last = admitted == 0;
+      if (admitted == 0 && refused == 0) held.erase(topic);
+      return last && !was_refused;
+    }
+    if (foreign || prefix) {
+      ++refused;
+      (foreign ? sh.counters.not_owner : st.bad_subscriptions).fetch_add(1, std::memory_order_relaxed);
+      spdlog::warn("stream: subscription '{}' refused: {}", topic,
+                   foreign ? "the session belongs to another client's key"
+                           : "with CURVE a subscription names one session's full topic");
+      return false;
+    }
+    ++admitted;
+    xpub.set(zmq::sockopt::subscribe, topic);
+    return true;
+  }
+
   // one subscription message: 1 or 0, then the topic
   void subscription(const zmq::message_t& m) {
     if (m.size() == 0) return;
@@ -179,12 +217,13 @@ struct StreamPublisher::Impl {
       return topic.compare(0, n, k, 0, n) == 0;
     };
     const bool prefix = topic.size() < kTopicLength && (begins("frame.") || begins("brick."));
+    const std::uint64_t id = (is_frame || is_brick) ? topic_session(topic) : 0;
+    if (manual && !admit(m, on, topic, id, prefix)) return;
     if (!on) {
       exact.erase(topic);
       prefixes.erase(std::remove(prefixes.begin(), prefixes.end(), topic), prefixes.end());
       return;
     }
-    const std::uint64_t id = (is_frame || is_brick) ? topic_session(topic) : 0;
     if (id != 0) {
       if (!open(id)) {
         st.bad_subscriptions.fetch_add(1, std::memory_order_relaxed);
@@ -532,13 +571,22 @@ struct StreamPublisher::Impl {
 };
 
 StreamPublisher::StreamPublisher(ServerShared& shared, StreamState& stream, const std::string& bind,
-                                 std::chrono::steady_clock::time_point start)
+                                 std::chrono::steady_clock::time_point start, const CurveServer& curve)
     : impl_(std::make_unique<Impl>(shared, stream, start)) {
   zmq::socket_t& s = impl_->xpub;
   s.set(zmq::sockopt::linger, 0);
   s.set(zmq::sockopt::sndhwm, kSendHwm);
   s.set(zmq::sockopt::maxmsgsize, kMaxSubscriptionBytes);
   s.set(zmq::sockopt::xpub_verbose, 1);  // every subscribe (a key per brick subscriber); an unsubscribe when the last leaves
+  // CURVE: this context's own ZAP handler first; subscriptions are then admitted one by
+  // one (manual mode), each checked against the key that opened its session
+  if (!curve.secret_key.empty()) {
+    impl_->zap = std::make_unique<ZapHandler>(impl_->ctx, curve.allowed, shared.counters.curve_refused,
+                                              shared.counters.curve_admitted);
+    make_curve_server(s, curve.secret_key);
+    s.set(zmq::sockopt::xpub_manual, 1);
+    impl_->manual = true;
+  }
   try {
     s.bind(bind);
   } catch (const zmq::error_t& e) {

@@ -13,6 +13,7 @@
 
 #include "net/session_table.h"
 #include "net/stream_state.h"
+#include "net/zap_handler.h"
 
 namespace palpsim::net {
 
@@ -20,9 +21,11 @@ namespace palpsim::net {
 class StreamPublisher {
  public:
   /// Binds the XPUB socket at `bind` (throws palpsim::Error naming the address when it
-  /// cannot); `start` is the server clock's zero.
+  /// cannot); `start` is the server clock's zero. With a CURVE key in `curve` the socket
+  /// is a CURVE server with a ZAP handler of its own (its context is its own) and admits
+  /// a subscription to a session's topics only from the key that opened the session.
   StreamPublisher(ServerShared& shared, StreamState& stream, const std::string& bind,
-                  std::chrono::steady_clock::time_point start);
+                  std::chrono::steady_clock::time_point start, const CurveServer& curve = {});
   ~StreamPublisher();
   StreamPublisher(const StreamPublisher&) = delete;
   StreamPublisher& operator=(const StreamPublisher&) = delete;

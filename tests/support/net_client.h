@@ -7,6 +7,7 @@
 
 #include <cstdint>
 #include <string>
+#include <utility>
 #include <zmq.hpp>
 
 #include "core/vec3.h"
@@ -52,14 +53,18 @@ inline const palpsim::v1::StageInfo* stage(const google::protobuf::RepeatedPtrFi
 }
 
 /// One session on a running server: a REQ for control requests and a DEALER for poses,
-/// opened under `client_name` on construction (the session id is in `id`).
+/// opened under `client_name` on construction (the session id is in `id`). Every control
+/// request carries `client_token`: clients with the same token act on each other's
+/// sessions; with none, a session is its own REQ's alone (PROTOCOL.md, "Who may connect").
 struct NetClient {
   zmq::context_t ctx{1};
   zmq::socket_t ctl{ctx, zmq::socket_type::req};
   zmq::socket_t pose{ctx, zmq::socket_type::dealer};
   std::uint64_t id = 0;
+  std::string client_token;
 
-  NetClient(const net::Server& s, const char* client_name) {
+  NetClient(const net::Server& s, const char* client_name, std::string token = "")
+      : client_token(std::move(token)) {
     ctl.set(zmq::sockopt::linger, 0);
     pose.set(zmq::sockopt::linger, 0);
     ctl.connect(s.control_endpoint());
@@ -74,6 +79,7 @@ struct NetClient {
   /// One control request (schema version 1 filled in) and its reply.
   palpsim::v1::ControlReply call(palpsim::v1::ControlRequest q) {
     q.set_schema_version(1);
+    q.set_client_token(client_token);
     return exchange<palpsim::v1::ControlReply>(ctl, q);
   }
 

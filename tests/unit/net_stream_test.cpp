@@ -40,7 +40,7 @@ constexpr double kPressX = 45, kPressY = 45;
 // a session as "stream-unit", with watch requests and numbered poses
 struct Client : test::NetClient {
   std::uint64_t seq = 0;
-  explicit Client(const net::Server& s) : NetClient(s, "stream-unit") {}
+  explicit Client(const net::Server& s, std::string token = "") : NetClient(s, "stream-unit", std::move(token)) {}
 
   v1::ControlReply watch(const v1::WatchSession& w) {
     v1::ControlRequest q;
@@ -246,15 +246,16 @@ TEST_CASE("a session is rendered while a subscriber holds its frame topic, and o
   server.stop();
 }
 
-TEST_CASE("a hold on the control socket renders without a subscriber; any session picks the newest",
+TEST_CASE("a hold on the control socket renders without a subscriber; any session picks the client's newest",
           "[net][stream]") {
   net::Server server(stream_scene(false), test::slab_patient(), nullptr, loopback());
   server.start();
-  Client a(server), b(server);
+  // a and b are one client (one token); a session of another client is opened last
+  Client a(server, "station"), b(server, "station"), other(server);
   v1::WatchSession w;
   w.set_frames(true);
   w.set_hold_s(30);
-  const v1::ControlReply r = a.watch(w);  // session 0: the newest open one, b
+  const v1::ControlReply r = a.watch(w);  // session 0: the client's newest open one, b
   REQUIRE(r.has_watch());
   CHECK(r.watch().session_id() == b.id);
   const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWaitS);

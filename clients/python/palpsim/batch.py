@@ -24,7 +24,9 @@ from typing import Callable, Sequence
 import numpy as np
 import pandas as pd
 
+from . import keys
 from .client import Client, PalpsimError
+from .keys import CurveKeys
 from .plan import Plan, PlanError, PressPath, PressTask, expand, load_plan
 from .results import (TableError, finish_table, format_summary, summarize, write_json,
                       write_table)
@@ -80,10 +82,11 @@ def run_press(session, plan: Plan, task: PressTask, worker: int) -> dict[str, np
 
 def run_plan(plan: Plan, address: str, sessions: int = 1, timeout_s: float = 10.0,
              progress: bool = True,
-             on_press: Callable[[PressTask], None] | None = None) -> RunResult:
+             on_press: Callable[[PressTask], None] | None = None,
+             curve: CurveKeys | None = None) -> RunResult:
     """Runs every press of the plan over `sessions` parallel sessions (one thread and one
-    connection each) and returns the canonical table. Raises the first error a session
-    met (ServerError, ServerTimeout) after stopping the others."""
+    connection each, CURVE with `curve`) and returns the canonical table. Raises the first
+    error a session met (ServerError, ServerTimeout) after stopping the others."""
     if sessions < 1:
         raise ValueError(f"sessions must be at least 1, got {sessions}")
     tasks = expand(plan)
@@ -104,7 +107,8 @@ def run_plan(plan: Plan, address: str, sessions: int = 1, timeout_s: float = 10.
 
     def worker(w: int) -> None:
         try:
-            with Client(address, timeout_s=timeout_s, name=f"palpsim-batch/{w}") as client:
+            with Client(address, timeout_s=timeout_s, name=f"palpsim-batch/{w}",
+                        curve=curve) as client:
                 session = client.open_session()
                 if w == 0:
                     info = session.server_info
@@ -210,6 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for a reply")
+    keys.add_arguments(p, token=False)
     return p
 
 
@@ -230,7 +235,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         ext = Path(args.table).suffix.lower()
         if ext not in (".csv", ".parquet"):
             raise PlanError(f"--table: {args.table}: use a .csv or .parquet name")
-    except PlanError as e:
+        curve = keys.from_arguments(args)
+    except (PlanError, keys.KeyFileError, RuntimeError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     out_dir = Path(args.out) if args.out else Path("out/batch") / _slug(plan.name)
@@ -241,7 +247,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.start_server:
                 print(f"{prog}: started {args.start_server} on {address}", file=sys.stderr)
             result = run_plan(plan, address, sessions=args.sessions, timeout_s=args.timeout,
-                              progress=not args.no_progress)
+                              progress=not args.no_progress, curve=curve)
             summary = write_outputs(plan, result, out_dir, args.table, plots=not args.no_plots)
     except (PalpsimError, TableError, OSError, RuntimeError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)

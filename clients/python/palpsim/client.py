@@ -10,6 +10,10 @@ Session owns a pose socket (a DEALER to the session's pose endpoint). ZeroMQ soc
 are not thread-safe: use one Client per thread. Refused requests raise ServerError
 with the server's code and sentence; a server that does not answer within the
 timeout raises ServerTimeout. Units: mm, N, s; points in the CT's physical space (LPS).
+
+A server with keys (README, "Security") needs `curve=CurveKeys.from_files(server_key,
+client_key)`. A session belongs to the client that opened it: its CURVE key, else its
+`client_token`, else its control connection (PROTOCOL.md, "Who may connect").
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 import zmq
 
+from .keys import CurveKeys, silence_hint
 from .proto import SCHEMA_VERSION, wire
 
 
@@ -124,31 +129,46 @@ class Client:
     """A connection to one palpsim-server's control path."""
 
     def __init__(self, address: str, timeout_s: float = 5.0, name: str = "palpsim-python",
-                 context: zmq.Context | None = None):
+                 context: zmq.Context | None = None, curve: CurveKeys | None = None,
+                 client_token: str | bytes = b""):
         self.address = address
         self.timeout_s = timeout_s
         self.name = name
+        self.curve = curve
+        self.client_token = client_token.encode() if isinstance(client_token, str) else bytes(client_token)
         self._ctx = context or zmq.Context.instance()
-        self._sock = self._ctx.socket(zmq.DEALER)
-        self._sock.setsockopt(zmq.LINGER, 0)
+        self._sock = self.socket(zmq.DEALER)
         self._sock.connect(address)
         self._ids = itertools.count(1)
         self._sessions: list[Session] = []
+
+    def socket(self, kind: int) -> zmq.Socket:
+        """A socket of this client's context (linger 0), a CURVE client when `curve` is set."""
+        sock = self._ctx.socket(kind)
+        sock.setsockopt(zmq.LINGER, 0)
+        if self.curve is not None:
+            self.curve.apply(sock)
+        return sock
+
+    def silence(self, what: str) -> str:
+        """A sentence for a server that did not answer `what` in time."""
+        return (f"no reply to {what} from {self.address} within {self.timeout_s:g} s (is "
+                f"palpsim-server running there?){silence_hint(self.curve)}")
 
     # -- control requests -------------------------------------------------------------
 
     def _request(self, field: str, body: Any) -> Any:
         """Sends one ControlRequest with `body` in `field` and returns the reply's body."""
         rid = next(self._ids)
-        req = wire.ControlRequest(schema_version=SCHEMA_VERSION, request_id=rid)
+        req = wire.ControlRequest(schema_version=SCHEMA_VERSION, request_id=rid,
+                                  client_token=self.client_token)
         getattr(req, field).CopyFrom(body)
         self._sock.send(req.SerializeToString())
         deadline = time.monotonic() + self.timeout_s
         while True:
             left_ms = int(max(0.0, deadline - time.monotonic()) * 1000)
             if not self._sock.poll(left_ms, zmq.POLLIN):
-                raise ServerTimeout(f"no reply to {field} from {self.address} within "
-                                    f"{self.timeout_s:g} s (is palpsim-server running there?)")
+                raise ServerTimeout(self.silence(field))
             reply = wire.ControlReply()
             try:
                 reply.ParseFromString(self._sock.recv())
@@ -194,7 +214,7 @@ class Client:
         `hold_s` keeps the session rendered (frames) or published (bricks) for that long
         from now without a subscriber (0 ends an earlier hold; None leaves any hold as it is).
         `brick_encoding` is "int16" (HU) or "float32"; `compression` "none" or "zstd".
-        Refusals raise ServerError (ERROR_UNKNOWN_SESSION, ERROR_NO_SESSION_OPEN,
+        Refusals raise ServerError (ERROR_UNKNOWN_SESSION, ERROR_NOT_OWNER, ERROR_NO_SESSION_OPEN,
         ERROR_NOT_BUILT, ERROR_BAD_VIEW, ERROR_BAD_PARAMETER) with the server's sentence."""
         body = wire.WatchSession(session_id=int(session_id), frames=bool(frames),
                                  bricks=bool(bricks),
@@ -240,8 +260,7 @@ class Session:
         self.pose_endpoint: str = reply.pose_endpoint
         self.params: "wire.HapticsParams" = reply.params
         self.server_info: "wire.ServerInfo" = reply.server
-        self._sock = client._ctx.socket(zmq.DEALER)
-        self._sock.setsockopt(zmq.LINGER, 0)
+        self._sock = client.socket(zmq.DEALER)
         self._sock.connect(self.pose_endpoint)
         self._seq = 0
         self._sent: dict[int, float] = {}  # seq -> perf_counter at send, for round trips
@@ -270,7 +289,8 @@ class Session:
         """Receives the next pose reply; raises ServerError if that pose was refused."""
         timeout_s = self.client.timeout_s if timeout_s is None else timeout_s
         if not self._sock.poll(int(timeout_s * 1000), zmq.POLLIN):
-            raise ServerTimeout(f"no pose reply from {self.pose_endpoint} within {timeout_s:g} s")
+            raise ServerTimeout(f"no pose reply from {self.pose_endpoint} within {timeout_s:g} s"
+                                f"{silence_hint(self.client.curve)}")
         data = self._sock.recv()
         now = time.perf_counter()
         r = wire.PoseReply()

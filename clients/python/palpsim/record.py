@@ -270,7 +270,7 @@ def record_press(client: Client, top_mm: Sequence[float], direction: Sequence[fl
             view["center_mm"] = tuple(top + (skin + look_at_depth_mm) * d)
         reply = client.watch(session_id=session.id, frames=True, view=view)
         frames: list[RecordedFrame] = []
-        with StreamClient.from_watch(reply, client.address) as stream:
+        with StreamClient.from_watch(reply, client.address, curve=client.curve) as stream:
             for i, depth in enumerate(depths):
                 frames.append(_step(i, depth, pacer, stream, top, d, skin, travel, step_mm,
                                     deforms, step_timeout_s))

@@ -35,6 +35,7 @@ import numpy as np
 import zmq
 
 from .client import PalpsimError
+from .keys import CurveKeys
 from .proto import SCHEMA_VERSION, wire
 
 FRAME_TOPIC_PREFIX = b"frame."
@@ -551,11 +552,14 @@ class StreamClient:
 
     A "closed" notice raises SessionClosed and an "unknown_session" notice raises
     UnknownSession, after the messages that arrived before the notice were handed over
-    (the next receive() raises). Malformed messages raise MalformedMessage."""
+    (the next receive() raises). Malformed messages raise MalformedMessage. With `curve`
+    the sockets speak CURVE (the server admits the subscription only from the key that
+    opened the session; another key's subscription stays silent)."""
 
     def __init__(self, endpoint: str, frame_topic: bytes = b"", brick_topic: bytes = b"",
                  session_id: int | None = None, context: zmq.Context | None = None,
-                 frame_rcvhwm: int = FRAME_RCVHWM, brick_rcvhwm: int = BRICK_RCVHWM):
+                 frame_rcvhwm: int = FRAME_RCVHWM, brick_rcvhwm: int = BRICK_RCVHWM,
+                 curve: CurveKeys | None = None):
         if not endpoint:
             raise StreamError("StreamClient: no stream endpoint (the scene asks for neither "
                               "frames nor bricks?)")
@@ -574,6 +578,8 @@ class StreamClient:
                 continue
             s = self._ctx.socket(zmq.SUB)
             s.setsockopt(zmq.LINGER, 0)
+            if curve is not None:
+                curve.apply(s)
             s.setsockopt(zmq.RCVHWM, hwm)
             s.connect(endpoint)
             s.setsockopt(zmq.SUBSCRIBE, topic)

@@ -38,6 +38,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from . import keys
 from .client import Client, PalpsimError, ServerError, ServerTimeout
 from .proto import wire
 from .stream import (DeformedVolume, MalformedMessage, SessionClosed, Slices, StreamClient,
@@ -161,7 +162,9 @@ def build_parser() -> argparse.ArgumentParser:
     which.add_argument("--session", metavar="ID", type=_session,
                        help="session id (decimal, 0x hex, or the 16 hex digits of its topic)")
     which.add_argument("--any", action="store_true",
-                       help="the newest open session (the default)")
+                       help="the newest open session of this client (its key or --client-token; "
+                            "the default)")
+    keys.add_arguments(p)
     out = p.add_argument_group("output")
     out.add_argument("--out", metavar="DIR", type=Path,
                      help="write PNG files here: frame_000001.png ... (bricks_000001.png ... "
@@ -506,7 +509,7 @@ class Viewer:
         self.client = client
         self.reply = reply
         self.bricks = bool(args.bricks)
-        self.stream = StreamClient.from_watch(reply, args.connect)
+        self.stream = StreamClient.from_watch(reply, args.connect, curve=client.curve)
         self.volume = DeformedVolume() if self.bricks else None
         self.shown = 0                      # frames (or VOI bricks) written / shown
         self.png: PngSink | None = None
@@ -670,7 +673,13 @@ def _watch(args: argparse.Namespace) -> int:
         _say(f"no display: writing PNG files into {args.out} (give --out or --mp4)")
     view = view_changes(args)
     control_timeout_s = args.timeout or DEFAULT_CONTROL_TIMEOUT_S
-    with Client(args.connect, timeout_s=control_timeout_s, name=PROG) as client:
+    try:
+        curve = keys.from_arguments(args)
+    except (keys.KeyFileError, RuntimeError) as e:
+        _say(str(e))
+        return EXIT_USAGE
+    with Client(args.connect, timeout_s=control_timeout_s, name=PROG, curve=curve,
+                client_token=args.client_token) as client:
         try:
             reply = client.watch(session_id=session_id, frames=not args.bricks, bricks=args.bricks,
                                  view=(view or None) if not args.bricks else None,

@@ -550,9 +550,11 @@ def _view_cmd(address: str, *args: str) -> list[str]:
 
 def test_end_to_end_frames(stream_server, tmp_path):
     out_dir = tmp_path / "frames"
-    with Client(stream_server.address) as c, c.open_session("view-e2e") as s:
+    # the viewer acts as this client through its token (the session is the token's)
+    with Client(stream_server.address, client_token="e2e") as c, c.open_session("view-e2e") as s:
         s.pose((0.0, 130.0, -38.0))                      # a first pose, out of contact
         proc = subprocess.Popen(_view_cmd(stream_server.address, "--session", f"{s.id:016x}",
+                                          "--client-token", "e2e",
                                           "--frames", "3", "--out", str(out_dir),
                                           "--timeout", "60"),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -573,10 +575,11 @@ def test_end_to_end_frames(stream_server, tmp_path):
 
 def test_end_to_end_bricks(bricks_server, tmp_path):
     out_dir = tmp_path / "bricks"
-    with Client(bricks_server.address) as c, c.open_session("view-e2e-bricks") as s:
+    with Client(bricks_server.address, client_token="e2e-bricks") as c, \
+            c.open_session("view-e2e-bricks") as s:
         s.pose((0.0, 130.0, -38.0))
         proc = subprocess.Popen(_view_cmd(bricks_server.address, "--session", f"{s.id:016x}",
-                                          "--bricks", "--zstd", "--frames", "2", "--out",
+                                          "--client-token", "e2e-bricks", "--bricks", "--zstd", "--frames", "2", "--out",
                                           str(out_dir), "--timeout", "60"),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         _press_while(proc, s)

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <vector>
 
@@ -119,6 +120,37 @@ inline double max_restriction_violation(const Patient& p, const Voi& voi, const 
           worst = std::max({worst, s.min_dist - dist, dist - s.max_dist});
           for (int b = 0; b < 3; ++b)
             if (b != a) worst = std::max(worst, std::fabs(double(un[b]) - double(ue[b])) - s.max_sheer);
+        }
+      }
+  return worst;
+}
+
+/// The smallest determinant of I + grad u, the trilinear displacement field's Jacobian
+/// (positive where the deformation keeps orientation: no fold), at the eight corners
+/// and the centre of every cell of the VOI whose eight voxels are soft tissue (bone
+/// enforces no restriction, so soft tissue may pass it). At a corner the gradient is
+/// taken 1e-3 voxel inside the cell, so it is the cell's own.
+inline double min_jacobian_det(const Patient& p, const Voi& voi, const std::vector<Vec3f>& u) {
+  auto load_u = [&](int i, int j, int k) { return voi.contains(i, j, k) ? u[voi.index(i, j, k)] : Vec3f{0, 0, 0}; };
+  auto soft = [&](int i, int j, int k) { return p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) == 0; };
+  double worst = std::numeric_limits<double>::infinity();
+  for (int k = 0; k + 1 < voi.size.z; ++k)
+    for (int j = 0; j + 1 < voi.size.y; ++j)
+      for (int i = 0; i + 1 < voi.size.x; ++i) {
+        bool all_soft = true;
+        for (int c = 0; c < 8; ++c) all_soft = all_soft && soft(i + (c & 1), j + ((c >> 1) & 1), k + (c >> 2));
+        if (!all_soft) continue;
+        for (int c = 0; c <= 8; ++c) {
+          // corner c (bit 0: +i, bit 1: +j, bit 2: +k), then the centre
+          auto at = [&](int bit) { return c == 8 ? 0.5f : (((c >> bit) & 1) ? 0.999f : 0.001f); };
+          Vec3f g[3];
+          deform::trilinear_with_gradient(load_u, Vec3f(float(i) + at(0), float(j) + at(1), float(k) + at(2)), g);
+          // the columns of I + grad u: g[a] is du/d(axis a)
+          const Vec3f a = g[0] + Vec3f(1, 0, 0), b = g[1] + Vec3f(0, 1, 0), e = g[2] + Vec3f(0, 0, 1);
+          const double det = double(a.x) * (double(b.y) * e.z - double(b.z) * e.y) -
+                             double(b.x) * (double(a.y) * e.z - double(a.z) * e.y) +
+                             double(e.x) * (double(a.y) * b.z - double(a.z) * b.y);
+          worst = std::min(worst, det);
         }
       }
   return worst;

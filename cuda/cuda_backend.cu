@@ -70,6 +70,9 @@ void CudaDeformBackend::release() {
     for (float*& c : buf) cudaFree(c);
   for (int*& s : d_.stamp) cudaFree(s);
   cudaFree(d_.j);
+  cudaFree(d_.cell_folded);
+  cudaFree(d_.untangle_flags);
+  for (float*& c : d_.untangle_new) cudaFree(c);
   cudaFree(d_.counters);
   cudaFreeHost(host_counters_);
   cudaFreeHost(host_j_);
@@ -115,6 +118,9 @@ void CudaDeformBackend::bind_impl() {
     PALPSIM_CUDA_CHECK(cudaMemset(s, 0xff, n * sizeof(int)));  // -1: never moved
   }
   PALPSIM_CUDA_CHECK(cudaMalloc(&d_.j, n * sizeof(float)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&d_.cell_folded, n));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&d_.untangle_flags, n));
+  for (float*& c : d_.untangle_new) PALPSIM_CUDA_CHECK(cudaMalloc(&c, n * sizeof(float)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&d_.counters, sizeof(Counters)));
   PALPSIM_CUDA_CHECK(cudaMemset(d_.counters, 0, sizeof(Counters)));
   PALPSIM_CUDA_CHECK(cudaMallocHost(&host_counters_, sizeof(Counters)));
@@ -134,6 +140,7 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   DeformMemory m;
   m.chainmail_bytes = nvol * (sizeof(float) + sizeof(std::uint8_t)) + sizeof(d_.u) / sizeof(float*) * n * sizeof(float) +
                       sizeof(d_.stamp) / sizeof(int*) * n * sizeof(int) + 2 * sizeof(Counters);
+  m.relax_bytes = 2 * n + sizeof(d_.untangle_new) / sizeof(float*) * n * sizeof(float);  // untangling's flags and sweep buffer
   m.invert_bytes = 2 * n * sizeof(float);
   return m;
 }
@@ -172,6 +179,10 @@ void CudaDeformBackend::enqueue_relax() {
   cur_ = (cur_ + s.relax_iterations) & 1;
 }
 
+void CudaDeformBackend::enqueue_untangle() {
+  if (!setup_.grabbed_in_bone) launch_untangle(geometry(), cur_, d_, shape_, stream_);
+}
+
 void CudaDeformBackend::enqueue_invert() {
   launch_invert(geometry(), cur_, config_.settings.invert_iterations, d_, stream_);
 }
@@ -181,7 +192,7 @@ void CudaDeformBackend::enqueue_upload() {
                                      cudaMemcpyDeviceToHost, stream_));
 }
 
-void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv) {
+void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt) {
   PALPSIM_CUDA_CHECK(cudaMemcpyAsync(host_counters_, d_.counters, sizeof(Counters), cudaMemcpyDeviceToHost, stream_));
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
   if (stats && !stats->grabbed_in_bone) {
@@ -194,6 +205,12 @@ void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv) {
     std::memcpy(&r, &host_counters_->residual_bits, sizeof r);
     inv->max_residual_vox = r;
     inv->unresolved = (long long)host_counters_->unresolved;
+  }
+  if (unt && !setup_.grabbed_in_bone) {
+    const Counters& c = *host_counters_;
+    const bool reverted = c.untangle_reverted != 0;
+    *unt = UntangleStats{c.untangle_folded[0], c.untangle_folded[reverted ? 0 : c.untangle_rounds], c.untangle_rounds,
+                         c.untangle_sweeps, (long long)c.untangle_moved, reverted};
   }
 }
 
@@ -215,6 +232,13 @@ void CudaDeformBackend::chainmail_impl(ChainMailStats& st) {
 void CudaDeformBackend::relax_impl() {
   enqueue_relax();
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+}
+
+UntangleStats CudaDeformBackend::untangle_impl() {
+  UntangleStats r;
+  enqueue_untangle();
+  finish(nullptr, nullptr, &r);
+  return r;
 }
 
 InvertStats CudaDeformBackend::invert_impl() {
@@ -250,24 +274,28 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
     out.relax_iterations = config_.settings.relax_iterations;
   }
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[3], stream_));
-  if (config_.invert) enqueue_invert();
+  const bool untangle = config_.relax && config_.untangle;
+  if (untangle) enqueue_untangle();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[4], stream_));
-  if (config_.invert) enqueue_upload();
+  if (config_.invert) enqueue_invert();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[5], stream_));
+  if (config_.invert) enqueue_upload();
+  PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[6], stream_));
   InvertStats inv;
-  finish(&out.chainmail, &inv);
+  finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
   }
   // stage times from the events (ms)
-  float ms[5];
-  for (int s = 0; s < 5; ++s) PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms[s], ev_[s], ev_[s + 1]));
+  float ms[6];
+  for (int s = 0; s < 6; ++s) PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms[s], ev_[s], ev_[s + 1]));
   out.times.reset_ms = ms[0];
   out.times.chainmail_ms = ms[1];
   out.times.relax_ms = ms[2];
-  out.times.invert_ms = ms[3];
-  out.times.upload_ms = ms[4];
+  out.times.untangle_ms = ms[3];
+  out.times.invert_ms = ms[4];
+  out.times.upload_ms = ms[5];
   out.times.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return out;
 }

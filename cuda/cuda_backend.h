@@ -43,6 +43,7 @@ class CudaDeformBackend final : public DeformBackend {
   void bind_impl() override;
   void chainmail_impl(ChainMailStats& stats) override;
   void relax_impl() override;
+  UntangleStats untangle_impl() override;
   InvertStats invert_impl() override;
   void upload_impl() override;
   void reset_impl() override;
@@ -60,15 +61,16 @@ class CudaDeformBackend final : public DeformBackend {
   void enqueue_reset();
   void enqueue_chainmail();
   void enqueue_relax();
+  void enqueue_untangle();
   void enqueue_invert();
   void enqueue_upload();
   // wait for the stream and read the counters
-  void finish(ChainMailStats* stats, InvertStats* inv);
+  void finish(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt = nullptr);
 
   DeviceBuffers d_;
   LaunchShape shape_;
   cudaStream_t stream_ = nullptr;
-  cudaEvent_t ev_[6] = {};
+  cudaEvent_t ev_[7] = {};
   Counters* host_counters_ = nullptr;  // pinned
   float* host_j_ = nullptr;            // pinned, J's VOI after upload
   long long capacity_ = 0;             // elements per VOI buffer

@@ -1,4 +1,4 @@
-// The CUDA kernels' arguments and launchers (chainmail.cu, relax.cu, invert.cu).
+// The CUDA kernels' arguments and launchers (chainmail.cu, relax.cu, untangle.cu, invert.cu).
 // Buffers are VOI-local structure-of-arrays: u[b][c] is component c (x, y, z) of
 // displacement buffer b, local index i fastest; the patient volumes are whole.
 #pragma once
@@ -19,6 +19,13 @@ struct Counters {
   unsigned long long moved_total;  // elements that moved at least once
   unsigned int residual_bits;      // max inversion residual (voxel) as float bits (>= 0)
   unsigned long long unresolved;   // voxels with a residual above deform::kInvertResolvedVox
+  int untangle_folded[deform::kUntangleMaxRounds + 1];  // folded cells found by each round
+  int untangle_rounds;             // rounds of sweeps run
+  int untangle_sweeps;             // sweeps run over all rounds
+  unsigned long long untangle_moved;  // elements untangling moved
+  int untangle_changed[3];         // elements changed per sweep, by sweep % 3
+  int untangle_box[6];             // lo and hi (VOI-local) of the elements untangling may move
+  int untangle_reverted;           // 1: it ended with more folds and restored the relaxed field
 };
 
 /// Device pointers of one session's state.
@@ -28,6 +35,9 @@ struct DeviceBuffers {
   float* u[2][3] = {{nullptr, nullptr, nullptr}, {nullptr, nullptr, nullptr}};
   int* stamp[2] = {nullptr, nullptr};   // last sweep an element moved, by sweep parity; -1 never
   float* j = nullptr;                   // J on the VOI
+  std::uint8_t* cell_folded = nullptr;  // untangling: 1 where the cell with this lowest corner folds
+  std::uint8_t* untangle_flags = nullptr;  // untangling: seed, moved and changes bits per element
+  float* untangle_new[3] = {nullptr, nullptr, nullptr};  // untangling: a sweep's new displacements
   Counters* counters = nullptr;
 };
 
@@ -63,6 +73,12 @@ void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::Chai
 /// launch; the result is in buffer (src + iterations) & 1.
 void launch_relax(const StepGeometry& g, int src, int iterations, float step, float threshold, float width,
                   const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream);
+
+/// Untangles displacement buffer `cur` in place (server/deform/untangle.cpp's rounds and
+/// sweeps; the other buffer keeps the relaxed field), in one cooperative launch; counts
+/// in counters.
+void launch_untangle(const StepGeometry& g, int cur, const DeviceBuffers& b, const LaunchShape& shape,
+                     cudaStream_t stream);
 
 /// J on the VOI from displacement buffer `src`; the max residual goes to counters.
 void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream);

@@ -178,6 +178,13 @@ void DeformBackend::relax() {
   stage_ = 2;
 }
 
+UntangleStats DeformBackend::untangle() {
+  require(stage_ >= 1, "untangle() before chainmail()");
+  const UntangleStats r = untangle_impl();
+  stage_ = 2;
+  return r;
+}
+
 InvertStats DeformBackend::invert() {
   require(stage_ >= 1, "invert() before chainmail()");
   const InvertStats r = invert_impl();

@@ -32,6 +32,7 @@ struct DeformConfig {
   double bone_threshold = 200; // the material function's step, in Patient::intensity units (HU)
   bool relax = true;           // run the relaxation stage (scene effect "relaxation")
   bool invert = true;          // produce the deformed image J (scene effect "inversion")
+  bool untangle = true;        // untangle the folds relaxation leaves, after it (runs only with relaxation)
 
   /// The configuration a scene asks for: Deform{}, prep's bone threshold and the effects.
   /// The scene's settings; the material function's bone threshold is the scene's
@@ -57,6 +58,7 @@ struct DeformTimes {
   double reset_ms = 0;
   double chainmail_ms = 0;
   double relax_ms = 0;
+  double untangle_ms = 0;  // 0 without untangling
   double invert_ms = 0;
   double upload_ms = 0;
   double total_ms = 0;
@@ -68,11 +70,22 @@ struct InvertStats {
   long long unresolved = 0;     // VOI voxels with a residual above deform::kInvertResolvedVox
 };
 
+/// What untangling did: the folded cells (cell_min_det() <= deform::kUntangleFoldDet,
+/// eight soft corners) before and after, and its work.
+struct UntangleStats {
+  long long folded_before = 0;  // folded cells of the relaxed field
+  long long folded_after = 0;   // folded cells left (0: det(I + grad u) > kUntangleFoldDet in every cell)
+  int rounds = 0;               // rounds of sweeps run (0: nothing was folded)
+  int sweeps = 0;               // Jacobi sweeps over all rounds, each round's quiet one included
+  long long moved = 0;          // elements it moved
+  bool reverted = false;        // it ended with more folds than it found and restored the relaxed field
+};
+
 /// Memory a backend holds for its session (host and device bytes), by the stage that
 /// needs it, so the server can show that a stage the scene did not ask for costs nothing.
 struct DeformMemory {
   std::size_t chainmail_bytes = 0;  // displacement field and sweep bookkeeping (cuda: also the patient's I and bone mask)
-  std::size_t relax_bytes = 0;      // relaxation's own buffers (cuda: none, it reuses ChainMail's two fields)
+  std::size_t relax_bytes = 0;      // relaxation's and untangling's own buffers (cuda: untangling's flags; relaxation reuses ChainMail's two fields)
   std::size_t invert_bytes = 0;     // J on the VOI (cuda: also its pinned host copy)
   std::size_t total() const { return chainmail_bytes + relax_bytes + invert_bytes; }
 };
@@ -83,6 +96,7 @@ struct DeformStats {
   int relax_iterations = 0;          // 0 when relaxation is off
   double invert_residual_vox = 0;    // max |p + u(p) - y| over the VOI (voxel); 0 without inversion
   long long invert_unresolved = 0;   // VOI voxels with a residual above deform::kInvertResolvedVox
+  UntangleStats untangle;            // all 0 when untangling is off
   DeformTimes times;
 };
 
@@ -107,6 +121,10 @@ class DeformBackend {
   ChainMailStats chainmail(const DeformContact& contact);
   /// Relaxes the displacement field (deform.relax_iterations iterations).
   void relax();
+  /// Untangles the folds of the displacement field (deform_math.h, untangle_pull): the
+  /// corners of folded cells, and the elements behind them that it moves, keep a spacing
+  /// beyond their neighbour towards the grabbed element; bone and the grabbed element stay.
+  UntangleStats untangle();
   /// Computes the deformed image J on the VOI; returns the inversion's residuals.
   InvertStats invert();
   /// Makes J's VOI readable through deformed_brick() (a device-to-host copy on "cuda").
@@ -114,7 +132,8 @@ class DeformBackend {
   /// Returns displacements to zero and J to I: the undeformed state.
   void reset();
 
-  /// All stages in order, timed: reset, ChainMail, relax and invert as configured, upload.
+  /// All stages in order, timed: reset, ChainMail, relax, untangle and invert as
+  /// configured, upload.
   DeformStats step(const DeformContact& contact);
 
   /// The VOI of the latest ChainMail (empty before the first one).
@@ -149,6 +168,7 @@ class DeformBackend {
   virtual void bind_impl() = 0;
   virtual void chainmail_impl(ChainMailStats& stats) = 0;  // stats has voi and grabbed set
   virtual void relax_impl() = 0;
+  virtual UntangleStats untangle_impl() = 0;
   virtual InvertStats invert_impl() = 0;
   virtual void upload_impl() = 0;
   virtual void reset_impl() = 0;

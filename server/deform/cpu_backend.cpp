@@ -22,7 +22,10 @@ void CpuDeformBackend::bind_impl() {
   std::vector<Vec3f>().swap(s_.u_next);
   std::vector<float>().swap(s_.weight);
   std::vector<float>().swap(s_.j);
+  std::vector<std::uint8_t>().swap(s_.cell_folded);
+  std::vector<std::uint8_t>().swap(s_.untangle_flags);
   if (config_.relax) grow_relax_buffers();
+  if (config_.relax && config_.untangle) grow_untangle_buffers();
   if (config_.invert) s_.j.assign(n, 0.0f);
   dirty_ = Voi{};
 }
@@ -33,13 +36,19 @@ void CpuDeformBackend::grow_relax_buffers() {
   if (s_.weight.size() < n) s_.weight.assign(n, 0.0f);
 }
 
+void CpuDeformBackend::grow_untangle_buffers() {
+  const std::size_t n = std::size_t(max_voi_count());
+  if (s_.cell_folded.size() < n) s_.cell_folded.assign(n, 0);
+  if (s_.untangle_flags.size() < n) s_.untangle_flags.assign(n, 0);
+}
+
 DeformMemory CpuDeformBackend::memory_impl() const {
   // capacities, not sizes: what the vectors hold on the heap
   auto bytes = [](const auto& v) { return v.capacity() * sizeof(v[0]); };
   DeformMemory m;
   m.chainmail_bytes = bytes(s_.u) + bytes(s_.moved_at) + bytes(s_.visited_at) + bytes(s_.movers) +
                       bytes(s_.candidates) + bytes(s_.changes);
-  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight);
+  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.cell_folded) + bytes(s_.untangle_flags);
   m.invert_bytes = bytes(s_.j);
   return m;
 }
@@ -63,6 +72,12 @@ void CpuDeformBackend::relax_impl() {
   const DeformSettings& d = config_.settings;
   deform::relax_cpu(*patient_, setup_, d.relax_iterations, float(d.relax_step), float(config_.bone_threshold),
                     float(d.material_width), s_);
+}
+
+UntangleStats CpuDeformBackend::untangle_impl() {
+  grow_relax_buffers();  // u_next keeps the relaxed field
+  grow_untangle_buffers();
+  return deform::untangle_cpu(*patient_, setup_, s_);
 }
 
 InvertStats CpuDeformBackend::invert_impl() {
@@ -97,6 +112,12 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
     relax_impl();
     out.relax_iterations = config_.settings.relax_iterations;
     out.times.relax_ms = ms_since(t0);
+    // untangling, with relaxation when the configuration asks for it
+    if (config_.untangle) {
+      t0 = clock::now();
+      out.untangle = untangle_impl();
+      out.times.untangle_ms = ms_since(t0);
+    }
   }
   // inversion and upload, when the scene asks for J
   if (config_.invert) {

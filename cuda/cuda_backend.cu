@@ -274,7 +274,7 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
     out.relax_iterations = config_.settings.relax_iterations;
   }
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[3], stream_));
-  const bool untangle = config_.relax && config_.untangle;
+  const bool untangle = config_.relax && config_.settings.untangle;
   if (untangle) enqueue_untangle();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[4], stream_));
   if (config_.invert) enqueue_invert();

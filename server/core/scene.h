@@ -53,6 +53,7 @@ struct DeformSettings {
   double relax_step = 0.15;     // explicit diffusion step, stable below 1/6
   double material_width = 50;   // HU, width of the material function's step at bone
   int invert_iterations = 8;
+  bool untangle = false;        // untangle relaxation's folds before the inversion (server/deform/README.md)
   std::string backend = "auto"; // "auto", "cpu" or "cuda"
 };
 

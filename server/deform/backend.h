@@ -32,7 +32,6 @@ struct DeformConfig {
   double bone_threshold = 200; // the material function's step, in Patient::intensity units (HU)
   bool relax = true;           // run the relaxation stage (scene effect "relaxation")
   bool invert = true;          // produce the deformed image J (scene effect "inversion")
-  bool untangle = true;        // untangle the folds relaxation leaves, after it (runs only with relaxation)
 
   /// The configuration a scene asks for: Deform{}, prep's bone threshold and the effects.
   /// The scene's settings; the material function's bone threshold is the scene's
@@ -132,8 +131,8 @@ class DeformBackend {
   /// Returns displacements to zero and J to I: the undeformed state.
   void reset();
 
-  /// All stages in order, timed: reset, ChainMail, relax, untangle and invert as
-  /// configured, upload.
+  /// All stages in order, timed: reset, ChainMail, relax, untangle (deform.untangle, with
+  /// relaxation) and invert as configured, upload.
   DeformStats step(const DeformContact& contact);
 
   /// The VOI of the latest ChainMail (empty before the first one).

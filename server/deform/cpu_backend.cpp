@@ -25,7 +25,7 @@ void CpuDeformBackend::bind_impl() {
   std::vector<std::uint8_t>().swap(s_.cell_folded);
   std::vector<std::uint8_t>().swap(s_.untangle_flags);
   if (config_.relax) grow_relax_buffers();
-  if (config_.relax && config_.untangle) grow_untangle_buffers();
+  if (config_.relax && config_.settings.untangle) grow_untangle_buffers();
   if (config_.invert) s_.j.assign(n, 0.0f);
   dirty_ = Voi{};
 }
@@ -113,7 +113,7 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
     out.relax_iterations = config_.settings.relax_iterations;
     out.times.relax_ms = ms_since(t0);
     // untangling, with relaxation when the configuration asks for it
-    if (config_.untangle) {
+    if (config_.settings.untangle) {
       t0 = clock::now();
       out.untangle = untangle_impl();
       out.times.untangle_ms = ms_since(t0);

@@ -201,6 +201,7 @@ TEST_CASE("gpu steps untangle like the cpu: the Table 1 configuration leaves no 
   auto torso = make_torso_patient(96);
   DeformConfig cfg = preset_config(1);
   cfg.settings.voi_edge = 64;
+  cfg.settings.untangle = true;
   Pair b(torso, cfg);
   for (int s = 0; s < 3; ++s) {
     const DeformContact k = voxel_contact({48 + 3 * s, 14, 48}, {1.0, 6.0 + s, -1.0});

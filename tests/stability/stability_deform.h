@@ -84,6 +84,7 @@ inline DeformConfig config(int preset, int voi_edge, int relax_iterations = 20) 
   c.settings.relax_iterations = relax_iterations;
   c.relax = relax_iterations > 0;
   c.invert = true;
+  c.settings.untangle = true;  // off in scenes by default; the catalogue runs it
   return c;
 }
 
@@ -95,7 +96,7 @@ class DeformRun {
       : case_(c), p_(std::move(p)), cfg_(cfg), compare_every_(compare_every) {
     // PALPSIM_FOLD_REPORT=off: relaxation alone, for the fold report's "before" figures
     const char* report = std::getenv("PALPSIM_FOLD_REPORT");
-    if (report && std::string(report) == "off") cfg_.untangle = false;
+    if (report && std::string(report) == "off") cfg_.settings.untangle = false;
     b_ = make_deform_backend(c.backend);
     b_->bind(p_, cfg_);
     if (c.backend != "cpu") {
@@ -170,7 +171,7 @@ class DeformRun {
     }
     // relaxation, then untangling
     if (cfg_.relax) relax_and_check(u, cm, compare);
-    if (cfg_.relax && cfg_.untangle) o.untangle = untangle_and_check(u, cm, compare);
+    if (cfg_.relax && cfg_.settings.untangle) o.untangle = untangle_and_check(u, cm, compare);
     o.u = std::move(u);
     // inversion
     if (cfg_.invert) {
@@ -234,7 +235,7 @@ class DeformRun {
     REQUIRE(cm.moved == o.chainmail.moved);
     REQUIRE(cm.sweeps == o.chainmail.sweeps);
     if (cfg_.relax) fresh->relax();
-    if (cfg_.relax && cfg_.untangle) fresh->untangle();
+    if (cfg_.relax && cfg_.settings.untangle) fresh->untangle();
     const auto u = fresh->displacement();
     long long du = 0;
     for (std::size_t n = 0; n < u.size(); ++n) du += u[n] != o.u[n];

@@ -28,7 +28,7 @@ struct Result {
 };
 
 Result run(const PatientPtr& p, DeformConfig cfg, const DeformContact& c, bool untangle, int invert_iterations) {
-  cfg.untangle = untangle;
+  cfg.settings.untangle = untangle;
   cfg.settings.invert_iterations = invert_iterations;
   CpuDeformBackend b;
   b.bind(p, cfg);

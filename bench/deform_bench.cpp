@@ -1,5 +1,5 @@
 // palpsim-bench deform: the paper's Table 2 (ChainMail time and moved elements for
-// d = 3 ... 30, p1 and p2) and Table 1 (time per stage: reset, ChainMail, relax,
+// d = 3 ... 30, p1 and p2) and Table 1 (time per stage: reset, ChainMail, relax, untangle,
 // invert, upload, total) for VOI 32, 64, 96, 128 and the whole phantom volume, on
 // every backend this build and machine have, in one run. GPU figures are printed
 // next to the floor from ../shared/docs/DEVICE.md that bounds them.
@@ -36,28 +36,9 @@ struct Options {
   std::string commit = "unknown";
   bool quick = false;    // fewer repetitions and no d = 30 / whole volume on the cpu
   double voxel_mm = 340.0 / 255.0;  // the phantom at ~256 voxels across
+  std::string only;      // --backend: run this backend alone (empty: every one there is)
+  bool untangle = false; // --untangle: Table 1 with deform.untangle on (off in scenes by default)
 };
-
-// a press near the middle of the volume, 10 mm along -j (anterior), so that every VOI
-// size up to 128 fits unclipped and stage times compare across sizes; X is the first
-// voxel from the centre towards -j with soft tissue (no bone, no gas) 3 voxels around
-DeformContact central_press(const Patient& p) {
-  const Grid& g = p.grid;
-  const int i = g.size.x / 2, k = g.size.z / 2;
-  int j = g.size.y / 2;
-  auto soft_around = [&](int jj) {
-    for (int c = -3; c <= 3; ++c)
-      for (int b = -3; b <= 3; ++b)
-        for (int a = -3; a <= 3; ++a) {
-          const float v = p.intensity.at(i + a, jj + b, k + c);
-          if (p.bone.at(i + a, jj + b, k + c) || v < -200.0f) return false;
-        }
-    return true;
-  };
-  while (j > g.size.y / 2 - 40 && !soft_around(j)) --j;
-  const Vec3 X = g.to_physical({double(i), double(j), double(k)});
-  return {X, X - g.axes_to_physical({0, 10.0, 0})};
-}
 
 struct Table2Row {
   std::string backend;
@@ -74,7 +55,8 @@ struct Table1Row {
   long long moved;
   double residual;
   long long unresolved;
-  Spread reset, chainmail, relax, invert, upload, total;
+  long long folded_before, folded_after;  // untangling's folded cells
+  Spread reset, chainmail, relax, untangle, invert, upload, total;
 };
 
 // one backend's Table 2: whole-volume soft domain big enough for the whole deformation
@@ -126,37 +108,41 @@ std::string relax_floor(int edge) {
 // one backend's Table 1 on the phantom
 void table1(const std::string& name, const Options& o, const PatientPtr& patient, std::vector<Table1Row>& rows) {
   const bool gpu = name == "cuda";
-  const DeformContact contact = central_press(*patient);
+  const DeformContact contact = test::table1_press(*patient);
   for (int edge : {32, 64, 96, 128, 0}) {
     if (!gpu && o.quick && edge == 0) continue;
     DeformConfig cfg = test::preset_config(1);
     cfg.settings.relax_iterations = 20;
     cfg.settings.invert_iterations = 8;
+    cfg.settings.untangle = o.untangle;
     cfg.settings.voi_edge = edge ? edge : 64;
     cfg.settings.whole_volume = edge == 0;
     auto b = make_deform_backend(name);
     b->bind(patient, cfg);
     const int reps = gpu ? (o.quick ? 10 : 50) : (edge == 0 ? 1 : (edge <= 64 ? 10 : 3));
-    std::vector<double> t[6];
+    std::vector<double> t[7];
     DeformStats st;
     for (int r = -2; r < reps; ++r) {
       st = b->step(contact);
       if (r < 0) continue;
       const DeformTimes& x = st.times;
-      const double v[6] = {x.reset_ms, x.chainmail_ms, x.relax_ms, x.invert_ms, x.upload_ms, x.total_ms};
-      for (int s = 0; s < 6; ++s) t[s].push_back(v[s]);
+      const double v[7] = {x.reset_ms, x.chainmail_ms, x.relax_ms, x.untangle_ms, x.invert_ms, x.upload_ms, x.total_ms};
+      for (int s = 0; s < 7; ++s) t[s].push_back(v[s]);
     }
     Table1Row row{name, edge ? std::to_string(edge) : "whole", st.chainmail.voi.count(), st.chainmail.moved,
-                  st.invert_residual_vox, st.invert_unresolved, spread(t[0]), spread(t[1]), spread(t[2]), spread(t[3]), spread(t[4]),
-                  spread(t[5])};
+                  st.invert_residual_vox, st.invert_unresolved, st.untangle.folded_before, st.untangle.folded_after,
+                  spread(t[0]), spread(t[1]), spread(t[2]), spread(t[3]), spread(t[4]), spread(t[5]), spread(t[6])};
     rows.push_back(row);
-    std::printf("table1 %-4s VOI %-5s (%lld voxels, moved %lld, residual %.3f vox, %lld unresolved) median ms: reset "
-                "%.3f  chainmail %.3f  relax %.3f  invert %.3f  upload %.3f  total %.3f (p90 %.3f)\n",
-                name.c_str(), row.voi.c_str(), row.voxels, row.moved, row.residual, row.unresolved, row.reset.median,
-                row.chainmail.median, row.relax.median, row.invert.median, row.upload.median, row.total.median,
-                row.total.p90);
+    std::printf("table1 %-4s VOI %-5s (%lld voxels, moved %lld, folded %lld -> %lld, residual %.3f vox, %lld unresolved) "
+                "median ms: reset %.3f  chainmail %.3f  relax %.3f  untangle %.3f  invert %.3f  upload %.3f  total %.3f "
+                "(p90 %.3f)\n",
+                name.c_str(), row.voi.c_str(), row.voxels, row.moved, row.folded_before, row.folded_after, row.residual,
+                row.unresolved, row.reset.median, row.chainmail.median, row.relax.median, row.untangle.median,
+                row.invert.median, row.upload.median, row.total.median, row.total.p90);
     if (gpu) {
       std::printf("       relax %.3f ms  [%s]\n", row.relax.median, relax_floor(edge).c_str());
+      if (edge == 64 && o.untangle)
+        std::printf("       untangle %.3f ms  [goal: well under relax's 0.087 ms]\n", row.untangle.median);
       std::printf("       upload %.3f ms of %.2f MB  [floor: pinned copy 1 MB 26 us]\n", row.upload.median,
                   row.voxels * 4.0 / 1048576.0);
       if (edge == 64) std::printf("       total %.3f ms  [goal 0.5 ms]\n", row.total.median);
@@ -168,7 +154,8 @@ void table1(const std::string& name, const Options& o, const PatientPtr& patient
 
 }  // namespace
 
-PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [--json FILE] [--quick] [--commit C]; "
+PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [--json FILE] [--quick] [--commit C] "
+                      "[--backend cpu|cuda] [--untangle]; "
                       "--accuracy [--ref-voi N] [--study KNOB] [--backend B]: accuracy vs time of relaxation, multigrid, "
                       "inversion and VOI (deform_accuracy.h)") {
   Options o;
@@ -180,10 +167,11 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
     if (s == "--json" && a + 1 < argc) o.json = argv[++a];
     else if (s == "--commit" && a + 1 < argc) o.commit = argv[++a];
     else if (s == "--quick") o.quick = true;
+    else if (s == "--backend" && a + 1 < argc) o.only = backend = argv[++a];
+    else if (s == "--untangle") o.untangle = true;
     else if (s == "--accuracy") accuracy = true;
     else if (s == "--ref-voi" && a + 1 < argc) ref_voi = std::atoi(argv[++a]);
     else if (s == "--study" && a + 1 < argc) study = argv[++a];
-    else if (s == "--backend" && a + 1 < argc) backend = argv[++a];
     else {
       std::fprintf(stderr, "palpsim-bench deform: unknown argument '%s'\n", s.c_str());
       return 2;
@@ -210,6 +198,11 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
       device = why;
     }
     std::printf("deform bench: backends cpu%s (%s)\n", backends.size() > 1 ? ", cuda" : "", why.c_str());
+    if (!o.only.empty()) {
+      if (std::find(backends.begin(), backends.end(), o.only) == backends.end())
+        throw Error("palpsim-bench deform: --backend " + o.only + " is not available here (" + why + ")");
+      backends.assign(1, o.only);
+    }
 
     std::vector<Table2Row> t2;
     for (const auto& b : backends) table2(b, o, t2);
@@ -245,7 +238,9 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
         f << "    {\"backend\": \"" << r.backend << "\", \"voi\": \"" << r.voi << "\", \"voxels\": " << r.voxels
           << ", \"moved\": " << r.moved << ", \"invert_residual_vox\": " << r.residual << ", \"invert_unresolved\": " << r.unresolved
           << ", \"reset\": " << json_spread(r.reset) << ", \"chainmail\": " << json_spread(r.chainmail)
-          << ", \"relax\": " << json_spread(r.relax) << ", \"invert\": " << json_spread(r.invert)
+          << ", \"folded_before\": " << r.folded_before << ", \"folded_after\": " << r.folded_after
+          << ", \"relax\": " << json_spread(r.relax) << ", \"untangle\": " << json_spread(r.untangle)
+          << ", \"invert\": " << json_spread(r.invert)
           << ", \"upload\": " << json_spread(r.upload) << ", \"total\": " << json_spread(r.total) << "}"
           << (i + 1 < t1.size() ? "," : "") << "\n";
       }

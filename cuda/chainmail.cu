@@ -42,6 +42,9 @@ __device__ int2 block_sum2(int a, int b, int2* scratch) {
   return s;
 }
 
+// a stamp with this bit set records an element's first move (stamps stay below it)
+constexpr int kFirstMove = 1 << 30;
+
 __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeometry geo, Vec3f u0,
                                                                        deform::ChainMailLimits lim, int max_sweeps,
                                                                        DeviceBuffers b) {
@@ -96,18 +99,26 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
       unsigned mask = 0;
 #pragma unroll
       for (int q = 0; q < 6; ++q)
-        if (n_ok[q] && sa[e + step[q]] == s - 1) mask |= 1u << q;
-      const bool self_prev = sa[e] == s - 1;
+        if (n_ok[q] && (sa[e + step[q]] & ~kFirstMove) == s - 1) mask |= 1u << q;
+      const bool self_prev = (sa[e] & ~kFirstMove) == s - 1;
       if (!mask && !self_prev) continue;
       const long long gi = ((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x +
                            (voi.lo.x + i);
       if (b.bone[gi]) continue;
-      // clamp into the box of every neighbour that moved in the previous sweep, in the fixed order
+      // clamp into the box of every neighbour that moved in an earlier sweep, in the fixed
+      // order (chainmail.cpp). sb is being written in this sweep: a neighbour reads as
+      // having moved before when its stamp of this parity is an earlier sweep, or this
+      // one without kFirstMove (it had moved before), whichever value the race shows
       const Vec3f old{ax[e], ay[e], az[e]};
       Vec3f v = old;
+      unsigned held = 0;
 #pragma unroll
       for (int q = 0; q < 6; ++q)
-        if (mask & (1u << q)) {
+        if (n_ok[q] && (sa[e + step[q]] >= 0 || (sb[e + step[q]] >= 0 && sb[e + step[q]] != (s | kFirstMove))))
+          held |= 1u << q;
+#pragma unroll
+      for (int q = 0; q < 6; ++q)
+        if (held & (1u << q)) {
           const int ni = e + step[q];
           deform::chainmail_clamp(v, Vec3f{ax[ni], ay[ni], az[ni]}, deform::neighbour_axis(q),
                                   deform::neighbour_below(q), lim);
@@ -118,8 +129,9 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
       b.u[pb][2][e] = v.z;
       if (mask && v != old) {
         ++moved_here;
-        if (sa[e] < 0 && sb[e] < 0) ++fresh_here;
-        sb[e] = s;
+        const bool first = sa[e] < 0 && sb[e] < 0;
+        fresh_here += first;
+        sb[e] = first ? (s | kFirstMove) : s;
       }
     }
     // one atomic per block for the sweep's counts

@@ -69,6 +69,9 @@ void CudaDeformBackend::release() {
     for (float*& c : buf) cudaFree(c);
   for (int*& s : d_.stamp) cudaFree(s);
   cudaFree(d_.j);
+  cudaFree(d_.cell_folded);
+  cudaFree(d_.untangle_flags);
+  for (float*& c : d_.untangle_new) cudaFree(c);
   cudaFree(d_.counters);
   for (void* q : {(void*)mg_.x, (void*)mg_.r, (void*)mg_.z, (void*)mg_.p, (void*)mg_.p2, (void*)mg_.q, (void*)mg_.held, (void*)mg_.cx,
                   (void*)mg_.cf, (void*)mg_.cr, (void*)mg_.cheld, (void*)mg_.dots})
@@ -120,8 +123,18 @@ void CudaDeformBackend::bind_impl() {
   std::memset(host_counters_, 0, sizeof(Counters));
   shape_ = persistent_launch_shape();
   if (config_.relax && config_.settings.relax_method == "multigrid") ensure_multigrid_buffers();
+  if (config_.relax && config_.settings.untangle) ensure_untangle_buffers();
   dirty_ = Voi{};
   cur_ = 0;
+}
+
+void CudaDeformBackend::ensure_untangle_buffers() {
+  // only for scenes (or callers of untangle()) that ask for it: a stage not asked for holds nothing
+  if (d_.untangle_flags) return;
+  const std::size_t n = std::size_t(capacity_);
+  PALPSIM_CUDA_CHECK(cudaMalloc(&d_.cell_folded, n));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&d_.untangle_flags, n));
+  for (float*& c : d_.untangle_new) PALPSIM_CUDA_CHECK(cudaMalloc(&c, n * sizeof(float)));
 }
 
 void CudaDeformBackend::ensure_multigrid_buffers() {
@@ -151,11 +164,13 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   DeformMemory m;
   m.chainmail_bytes = sizeof(d_.u) / sizeof(float*) * n * sizeof(float) +
                       sizeof(d_.stamp) / sizeof(int*) * n * sizeof(int) + 2 * sizeof(Counters);
+  // untangling's flags and sweep buffer, when it was asked for
+  if (d_.untangle_flags) m.relax_bytes = 2 * n + sizeof(d_.untangle_new) / sizeof(float*) * n * sizeof(float);
   m.invert_bytes = 2 * n * sizeof(float);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
   // multigrid: six VOI fields and a mask, three coarse fields and a mask, the dot sums
   if (mg_.capacity > 0)
-    m.relax_bytes = std::size_t(mg_.capacity) * (6 * sizeof(Vec3f) + 1) +
+    m.relax_bytes += std::size_t(mg_.capacity) * (6 * sizeof(Vec3f) + 1) +
                     std::size_t(mg_.coarse_capacity) * (3 * sizeof(Vec3f) + 1) +
                     2 * deform::kMultigridMaxCycles * sizeof(double);
   return m;
@@ -202,6 +217,11 @@ void CudaDeformBackend::enqueue_relax() {
   cur_ = (cur_ + s.relax_iterations) & 1;
 }
 
+void CudaDeformBackend::enqueue_untangle() {
+  ensure_untangle_buffers();
+  if (!setup_.grabbed_in_bone) launch_untangle(geometry(), cur_, d_, shape_, stream_);
+}
+
 void CudaDeformBackend::enqueue_invert() {
   launch_invert(geometry(), cur_, config_.settings.invert_iterations, d_, stream_);
 }
@@ -211,7 +231,7 @@ void CudaDeformBackend::enqueue_upload() {
                                      cudaMemcpyDeviceToHost, stream_));
 }
 
-void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv) {
+void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt) {
   PALPSIM_CUDA_CHECK(cudaMemcpyAsync(host_counters_, d_.counters, sizeof(Counters), cudaMemcpyDeviceToHost, stream_));
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
   if (stats && !stats->grabbed_in_bone) {
@@ -228,6 +248,12 @@ void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv) {
     std::memcpy(&c, &host_counters_->change_bits, sizeof c);
     inv->max_change = c;
     inv->nonfinite = (long long)host_counters_->nonfinite;
+  }
+  if (unt && !setup_.grabbed_in_bone) {
+    const Counters& c = *host_counters_;
+    const bool reverted = c.untangle_reverted != 0;
+    *unt = UntangleStats{c.untangle_folded[0], c.untangle_folded[reverted ? 0 : c.untangle_rounds], c.untangle_rounds,
+                         c.untangle_sweeps, (long long)c.untangle_moved, reverted};
   }
 }
 
@@ -249,6 +275,13 @@ void CudaDeformBackend::chainmail_impl(ChainMailStats& st) {
 void CudaDeformBackend::relax_impl() {
   enqueue_relax();
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+}
+
+UntangleStats CudaDeformBackend::untangle_impl() {
+  UntangleStats r;
+  enqueue_untangle();
+  finish(nullptr, nullptr, &r);
+  return r;
 }
 
 InvertStats CudaDeformBackend::invert_impl() {
@@ -286,12 +319,15 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
     set_relax_counts(out);
   }
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[3], stream_));
-  if (config_.invert) enqueue_invert();
+  const bool untangle = config_.relax && config_.settings.untangle;
+  if (untangle) enqueue_untangle();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[4], stream_));
-  if (config_.invert) enqueue_upload();
+  if (config_.invert) enqueue_invert();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[5], stream_));
+  if (config_.invert) enqueue_upload();
+  PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[6], stream_));
   InvertStats inv;
-  finish(&out.chainmail, &inv);
+  finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
@@ -299,13 +335,14 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
     out.invert_nonfinite = inv.nonfinite;
   }
   // stage times from the events (ms)
-  float ms[5];
-  for (int s = 0; s < 5; ++s) PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms[s], ev_[s], ev_[s + 1]));
+  float ms[6];
+  for (int s = 0; s < 6; ++s) PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms[s], ev_[s], ev_[s + 1]));
   out.times.reset_ms = ms[0];
   out.times.chainmail_ms = ms[1];
   out.times.relax_ms = ms[2];
-  out.times.invert_ms = ms[3];
-  out.times.upload_ms = ms[4];
+  out.times.untangle_ms = ms[3];
+  out.times.invert_ms = ms[4];
+  out.times.upload_ms = ms[5];
   out.times.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return out;
 }

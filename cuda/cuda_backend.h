@@ -44,6 +44,7 @@ class CudaDeformBackend final : public DeformBackend {
   void bind_impl() override;
   void chainmail_impl(ChainMailStats& stats) override;
   void relax_impl() override;
+  UntangleStats untangle_impl() override;
   InvertStats invert_impl() override;
   void upload_impl() override;
   void reset_impl() override;
@@ -58,15 +59,18 @@ class CudaDeformBackend final : public DeformBackend {
   void release();
   // allocates the multigrid relaxation's buffers once (deform.relax_method "multigrid")
   void ensure_multigrid_buffers();
+  // allocates untangling's buffers once (deform.untangle, or a call of untangle())
+  void ensure_untangle_buffers();
   StepGeometry geometry() const;
   // enqueue one stage on the stream
   void enqueue_reset();
   void enqueue_chainmail();
   void enqueue_relax();
+  void enqueue_untangle();
   void enqueue_invert();
   void enqueue_upload();
   // wait for the stream and read the counters
-  void finish(ChainMailStats* stats, InvertStats* inv);
+  void finish(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt = nullptr);
 
   std::shared_ptr<const DevicePatient> patient_copy_;  // I and the bone mask, shared
   DeviceBuffers d_;
@@ -74,7 +78,7 @@ class CudaDeformBackend final : public DeformBackend {
   int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel
   LaunchShape shape_;
   cudaStream_t stream_ = nullptr;
-  cudaEvent_t ev_[6] = {};
+  cudaEvent_t ev_[7] = {};
   Counters* host_counters_ = nullptr;  // pinned
   float* host_j_ = nullptr;            // pinned, J's VOI after upload
   long long capacity_ = 0;             // elements per VOI buffer

@@ -1,4 +1,4 @@
-// The CUDA kernels' arguments and launchers (chainmail.cu, relax.cu, invert.cu).
+// The CUDA kernels' arguments and launchers (chainmail.cu, relax.cu, untangle.cu, invert.cu).
 // Buffers are VOI-local structure-of-arrays: u[b][c] is component c (x, y, z) of
 // displacement buffer b, local index i fastest; the patient volumes are whole.
 #pragma once
@@ -22,6 +22,13 @@ struct Counters {
   unsigned long long unresolved;   // voxels with a residual above deform::kInvertResolvedVox
   unsigned int change_bits;        // max |J - I| over finite J as float bits (>= 0)
   unsigned long long nonfinite;    // voxels whose J is NaN or Inf
+  int untangle_folded[deform::kUntangleMaxRounds + 1];  // folded cells found by each round
+  int untangle_rounds;             // rounds of sweeps run
+  int untangle_sweeps;             // sweeps run over all rounds
+  unsigned long long untangle_moved;  // elements untangling moved
+  int untangle_changed[3];         // elements changed per sweep, by sweep % 3
+  int untangle_box[6];             // lo and hi (VOI-local) of the elements untangling may move
+  int untangle_reverted;           // 1: it ended with more folds and restored the relaxed field
 };
 
 /// Device pointers of one session's state.
@@ -31,6 +38,9 @@ struct DeviceBuffers {
   float* u[2][3] = {{nullptr, nullptr, nullptr}, {nullptr, nullptr, nullptr}};
   int* stamp[2] = {nullptr, nullptr};   // last sweep an element moved, by sweep parity; -1 never
   float* j = nullptr;                   // J on the VOI
+  std::uint8_t* cell_folded = nullptr;  // untangling: 1 where the cell with this lowest corner folds
+  std::uint8_t* untangle_flags = nullptr;  // untangling: seed, moved and changes bits per element
+  float* untangle_new[3] = {nullptr, nullptr, nullptr};  // untangling: a sweep's new displacements
   Counters* counters = nullptr;
 };
 
@@ -88,6 +98,11 @@ int relax_multigrid_blocks();
 /// one cooperative launch of at most `max_blocks` blocks; `m` must hold the VOI's plan.
 void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float threshold, float width,
                             const DeviceBuffers& b, const MultigridBuffers& m, int max_blocks, cudaStream_t stream);
+/// Untangles displacement buffer `cur` in place (server/deform/untangle.cpp's rounds and
+/// sweeps; the other buffer keeps the relaxed field), in one cooperative launch; counts
+/// in counters.
+void launch_untangle(const StepGeometry& g, int cur, const DeviceBuffers& b, const LaunchShape& shape,
+                     cudaStream_t stream);
 
 /// J on the VOI from displacement buffer `src`; the max residual goes to counters.
 void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream);

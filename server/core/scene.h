@@ -55,6 +55,7 @@ struct DeformSettings {
   int relax_cycles = 5;         // multigrid steps (one V-cycle each)
   double material_width = 50;   // HU, width of the material function's step at bone
   int invert_iterations = 8;
+  bool untangle = false;        // untangle relaxation's folds before the inversion (server/deform/README.md)
   std::string backend = "auto"; // "auto", "cpu" or "cuda"
 };
 

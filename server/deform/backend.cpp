@@ -83,7 +83,8 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
   if (!(s.max_sheer >= 0 && s.max_sheer <= 4)) bad("max_sheer", s.max_sheer, "must lie in [0, 4] voxel");
   if (!s.whole_volume && !(s.voi_edge >= 3 && s.voi_edge <= 1024))
     bad("voi_edge", s.voi_edge, "must lie in [3, 1024] voxel");
-  if (s.max_sweeps < 1) bad("max_sweeps", s.max_sweeps, "must be at least 1");
+  // the CUDA sweeps keep a flag above the sweep number in their stamps (bit 30)
+  if (!(s.max_sweeps >= 1 && s.max_sweeps <= (1 << 24))) bad("max_sweeps", s.max_sweeps, "must lie in [1, 16777216]");
   if (s.relax_method != "explicit" && s.relax_method != "multigrid")
     throw Error(who + ": deform.relax_method = \"" + s.relax_method + "\" is unknown; use \"explicit\" or \"multigrid\"");
   if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
@@ -186,6 +187,13 @@ void DeformBackend::relax() {
   require(stage_ >= 1, "relax() before chainmail()");
   relax_impl();
   stage_ = 2;
+}
+
+UntangleStats DeformBackend::untangle() {
+  require(stage_ >= 1, "untangle() before chainmail()");
+  const UntangleStats r = untangle_impl();
+  stage_ = 2;
+  return r;
 }
 
 InvertStats DeformBackend::invert() {

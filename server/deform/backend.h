@@ -57,6 +57,7 @@ struct DeformTimes {
   double reset_ms = 0;
   double chainmail_ms = 0;
   double relax_ms = 0;
+  double untangle_ms = 0;  // 0 without untangling
   double invert_ms = 0;
   double upload_ms = 0;
   double total_ms = 0;
@@ -70,11 +71,22 @@ struct InvertStats {
   long long nonfinite = 0;      // VOI voxels whose J is NaN or Inf (a broken step)
 };
 
+/// What untangling did: the folded cells (cell_min_det() <= deform::kUntangleFoldDet,
+/// eight soft corners) before and after, and its work.
+struct UntangleStats {
+  long long folded_before = 0;  // folded cells of the relaxed field
+  long long folded_after = 0;   // folded cells left (0: det(I + grad u) > kUntangleFoldDet in every cell)
+  int rounds = 0;               // rounds of sweeps run (0: nothing was folded)
+  int sweeps = 0;               // Jacobi sweeps over all rounds, each round's quiet one included
+  long long moved = 0;          // elements it moved
+  bool reverted = false;        // it ended with more folds than it found and restored the relaxed field
+};
+
 /// Memory a backend holds for its session (host and device bytes), by the stage that
 /// needs it, so the server can show that a stage the scene did not ask for costs nothing.
 struct DeformMemory {
   std::size_t chainmail_bytes = 0;  // displacement field and sweep bookkeeping
-  std::size_t relax_bytes = 0;      // relaxation's own buffers (cuda explicit: none, it reuses ChainMail's two fields)
+  std::size_t relax_bytes = 0;      // relaxation's and untangling's own buffers (cuda explicit relaxation: none, it reuses ChainMail's two fields)
   std::size_t invert_bytes = 0;     // J on the VOI (cuda: also its pinned host copy)
   /// The patient's device copy (cuda: I and the bone mask), shared by every session on
   /// that patient: not the session's own, so not in total(); a server counts it once.
@@ -92,6 +104,7 @@ struct DeformStats {
   long long invert_unresolved = 0;   // VOI voxels with a residual above deform::kInvertResolvedVox
   double invert_max_change = 0;      // max |J - I| over the VOI (HU); 0 without inversion
   long long invert_nonfinite = 0;    // VOI voxels whose J is NaN or Inf; 0 without inversion
+  UntangleStats untangle;            // all 0 when untangling is off
   DeformTimes times;
 };
 
@@ -117,6 +130,10 @@ class DeformBackend {
   /// Relaxes the displacement field: deform.relax_iterations explicit steps, or
   /// deform.relax_cycles multigrid V-cycles towards their steady state (deform.relax_method).
   void relax();
+  /// Untangles the folds of the displacement field (deform_math.h, untangle_pull): the
+  /// corners of folded cells, and the elements behind them that it moves, keep a spacing
+  /// beyond their neighbour towards the grabbed element; bone and the grabbed element stay.
+  UntangleStats untangle();
   /// Computes the deformed image J on the VOI; returns the inversion's residuals.
   InvertStats invert();
   /// Makes J's VOI readable through deformed_brick() (a device-to-host copy on "cuda").
@@ -124,7 +141,8 @@ class DeformBackend {
   /// Returns displacements to zero and J to I: the undeformed state.
   void reset();
 
-  /// All stages in order, timed: reset, ChainMail, relax and invert as configured, upload.
+  /// All stages in order, timed: reset, ChainMail, relax, untangle (deform.untangle, with
+  /// relaxation) and invert as configured, upload.
   DeformStats step(const DeformContact& contact);
 
   /// The VOI of the latest ChainMail (empty before the first one).
@@ -159,6 +177,7 @@ class DeformBackend {
   virtual void bind_impl() = 0;
   virtual void chainmail_impl(ChainMailStats& stats) = 0;  // stats has voi and grabbed set
   virtual void relax_impl() = 0;
+  virtual UntangleStats untangle_impl() = 0;
   virtual InvertStats invert_impl() = 0;
   virtual void upload_impl() = 0;
   virtual void reset_impl() = 0;

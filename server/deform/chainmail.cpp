@@ -34,7 +34,10 @@ void chainmail_cpu(const Patient& p, const ChainMailLimits& limits, int max_swee
         s.visited_at[ni] = sweep;
         s.candidates.push_back(n);
       }
-    // each clamps itself into the box of every neighbour that moved in the previous sweep
+    // each clamps itself into the box of every neighbour that has moved in an earlier sweep
+    // (the grabbed element included), not only of those that moved in the previous one:
+    // the grabbed element and elements that have settled keep their hold on it (else a
+    // later clamp can take it out of their box and a quiet sweep ends the run)
     s.changes.clear();
     for (const Vec3i& c : s.candidates) {
       const long long ci = voi.index(c.x, c.y, c.z);
@@ -43,7 +46,7 @@ void chainmail_cpu(const Patient& p, const ChainMailLimits& limits, int max_swee
         const Vec3i n = c + neighbour_offset(q);
         if (!voi.contains(n.x, n.y, n.z)) continue;
         const long long ni = voi.index(n.x, n.y, n.z);
-        if (s.moved_at[ni] == sweep - 1) chainmail_clamp(v, s.u[ni], neighbour_axis(q), neighbour_below(q), limits);
+        if (s.moved_at[ni] >= 0) chainmail_clamp(v, s.u[ni], neighbour_axis(q), neighbour_below(q), limits);
       }
       if (v != s.u[ci]) s.changes.emplace_back(ci, v);
     }

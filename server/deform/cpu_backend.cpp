@@ -25,7 +25,11 @@ void CpuDeformBackend::bind_impl() {
   for (auto* v : {&s_.mg_r0, &s_.mg_z, &s_.mg_p, &s_.mg_q, &s_.mg_x, &s_.mg_f, &s_.mg_r}) std::vector<Vec3f>().swap(*v);
   std::vector<std::uint8_t>().swap(s_.mg_held);
   std::vector<std::uint8_t>().swap(s_.mg_held_coarse);
-  if (config_.relax && config_.settings.relax_method == "explicit") grow_relax_buffers();
+  std::vector<std::uint8_t>().swap(s_.cell_folded);
+  std::vector<std::uint8_t>().swap(s_.untangle_flags);
+  // explicit relaxation's buffers (untangling keeps the relaxed field in u_next too)
+  if (config_.relax && (config_.settings.relax_method == "explicit" || config_.settings.untangle)) grow_relax_buffers();
+  if (config_.relax && config_.settings.untangle) grow_untangle_buffers();
   if (config_.invert) s_.j.assign(n, 0.0f);
   dirty_ = Voi{};
 }
@@ -36,6 +40,12 @@ void CpuDeformBackend::grow_relax_buffers() {
   if (s_.weight.size() < n) s_.weight.assign(n, 0.0f);
 }
 
+void CpuDeformBackend::grow_untangle_buffers() {
+  const std::size_t n = std::size_t(max_voi_count());
+  if (s_.cell_folded.size() < n) s_.cell_folded.assign(n, 0);
+  if (s_.untangle_flags.size() < n) s_.untangle_flags.assign(n, 0);
+}
+
 DeformMemory CpuDeformBackend::memory_impl() const {
   // capacities, not sizes: what the vectors hold on the heap
   auto bytes = [](const auto& v) { return v.capacity() * sizeof(v[0]); };
@@ -44,7 +54,7 @@ DeformMemory CpuDeformBackend::memory_impl() const {
                       bytes(s_.candidates) + bytes(s_.changes);
   m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.mg_held) + bytes(s_.mg_r0) + bytes(s_.mg_z) +
                   bytes(s_.mg_p) + bytes(s_.mg_q) + bytes(s_.mg_x) + bytes(s_.mg_f) +
-                  bytes(s_.mg_r) + bytes(s_.mg_held_coarse);
+                  bytes(s_.mg_r) + bytes(s_.mg_held_coarse) + bytes(s_.cell_folded) + bytes(s_.untangle_flags);
   m.invert_bytes = bytes(s_.j);
   return m;
 }
@@ -74,6 +84,12 @@ void CpuDeformBackend::relax_impl() {
   grow_relax_buffers();
   deform::relax_cpu(*patient_, setup_, d.relax_iterations, float(d.relax_step), float(config_.bone_threshold),
                     float(d.material_width), s_);
+}
+
+UntangleStats CpuDeformBackend::untangle_impl() {
+  grow_relax_buffers();  // u_next keeps the relaxed field
+  grow_untangle_buffers();
+  return deform::untangle_cpu(*patient_, setup_, s_);
 }
 
 InvertStats CpuDeformBackend::invert_impl() {
@@ -108,6 +124,12 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
     relax_impl();
     set_relax_counts(out);
     out.times.relax_ms = ms_since(t0);
+    // untangling, with relaxation when the configuration asks for it
+    if (config_.settings.untangle) {
+      t0 = clock::now();
+      out.untangle = untangle_impl();
+      out.times.untangle_ms = ms_since(t0);
+    }
   }
   // inversion and upload, when the scene asks for J
   if (config_.invert) {

@@ -31,6 +31,8 @@ struct CpuState {
   std::vector<Vec3f> mg_r0, mg_z, mg_p, mg_q;
   std::vector<Vec3f> mg_x, mg_f, mg_r;
   std::vector<std::uint8_t> mg_held_coarse;
+  std::vector<std::uint8_t> cell_folded;     // untangling: 1 where the cell with this lowest corner folds
+  std::vector<std::uint8_t> untangle_flags;  // untangling: seed and moved bits per element
 };
 
 /// ChainMail by plain Jacobi sweeps (paper sec. 2.2): in sweep s every element next
@@ -55,6 +57,13 @@ void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float
 void relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, float threshold, float width,
                          CpuState& s);
 
+/// Untangling of the VOI's displacement (DeformBackend::untangle): up to
+/// kUntangleMaxRounds rounds of finding the folded cells and Jacobi sweeps from their
+/// corners of untangle_pull() towards the neighbours towards the grabbed element, until
+/// a quiet sweep or kUntangleMaxSweeps; bone and the grabbed element never move. Ending
+/// with more folded cells than it found, it returns the field it got (kept in u_next).
+UntangleStats untangle_cpu(const Patient& p, const ChainMailStats& st, CpuState& s);
+
 /// J on the VOI by inverting the displacement (Newton steps, deform_math.h; trilinear
 /// sampling of u and I); returns the largest residual |p + u(p) - y| (voxel) and
 /// the count of voxels left unresolved.
@@ -71,6 +80,7 @@ class CpuDeformBackend final : public DeformBackend {
   void bind_impl() override;
   void chainmail_impl(ChainMailStats& stats) override;
   void relax_impl() override;
+  UntangleStats untangle_impl() override;
   InvertStats invert_impl() override;
   void upload_impl() override {}  // J is computed in host memory already
   void reset_impl() override;
@@ -83,6 +93,8 @@ class CpuDeformBackend final : public DeformBackend {
  private:
   // sizes u_next and weight for the largest VOI (bind() skips them without relaxation)
   void grow_relax_buffers();
+  // sizes untangling's flags for the largest VOI (bind() skips them without untangling)
+  void grow_untangle_buffers();
 
   deform::CpuState s_;
   Voi dirty_;  // the VOI whose buffers hold a deformation

@@ -149,6 +149,94 @@ PALPSIM_HD Vec3f trilinear_with_gradient(const LoadU& load_u, const Vec3f& p, Ve
   return c0 * gz + c1 * fz;
 }
 
+/// The smallest determinant of I + grad u (the trilinear displacement field's Jacobian;
+/// positive where the deformation keeps orientation, no fold) in the cell whose lowest
+/// corner is local voxel (i, j, k), at its eight corners and its centre. At a corner the
+/// gradient is taken 1e-3 voxel inside the cell, so it is the cell's own.
+template <typename LoadU>
+PALPSIM_HD float cell_min_det(const LoadU& load_u, int i, int j, int k) {
+  float worst = 3.4e38f;
+  for (int c = 0; c <= 8; ++c) {
+    // corner c (bit 0: +i, bit 1: +j, bit 2: +k), then the centre
+    const float fi = c == 8 ? 0.5f : ((c & 1) ? 0.999f : 0.001f);
+    const float fj = c == 8 ? 0.5f : ((c & 2) ? 0.999f : 0.001f);
+    const float fk = c == 8 ? 0.5f : ((c & 4) ? 0.999f : 0.001f);
+    Vec3f g[3];
+    trilinear_with_gradient(load_u, Vec3f(float(i) + fi, float(j) + fj, float(k) + fk), g);
+    // the columns of I + grad u: g[a] is du/d(axis a); det = a . (b x e)
+    const Vec3f a = g[0] + Vec3f(1, 0, 0), b = g[1] + Vec3f(0, 1, 0), e = g[2] + Vec3f(0, 0, 1);
+    const float det = a.x * (b.y * e.z - b.z * e.y) - b.x * (a.y * e.z - a.z * e.y) + e.x * (a.y * b.z - a.z * b.y);
+    worst = det < worst ? det : worst;
+  }
+  return worst;
+}
+
+/// Untangling (issue 8, section 4): a cell counts as folded, and its eight elements start
+/// the untangling, when its cell_min_det() is at most this: a margin above 0, so that a
+/// cell that untangling leaves alone keeps its inside one to one with room for float
+/// rounding and for the nine sample points missing a det dip between them.
+constexpr float kUntangleFoldDet = 0.05f;
+
+/// Untangling's smallest spacing (voxel) of two face neighbours along their axis: an
+/// element farther from the grabbed one keeps at least this distance beyond the nearer
+/// one, so no element passes its neighbour on the way to the grabbed element. Above 2/3:
+/// where the three edges of a corner are compressed along one push direction (a rank-one
+/// change, I + d c^T), det = 1 - the sum of the three compressions, which stays positive
+/// only while each is below 1/3 (measured: 0.5 and 0.6 left folds in 39 and 29 of the 40
+/// random pushes of tests/unit/deform_untangle_test.cpp, 0.7 in none).
+constexpr float kUntangleMinSpacing = 0.7f;
+
+/// How far beyond the smallest spacing (voxel) untangle_pull() puts an element it moves,
+/// so that float rounding and the pulls of its other neighbours do not bring it back
+/// under the limit by a hair, sweep after sweep (a round would then never go quiet).
+constexpr float kUntangleMargin = 0.05f;
+
+/// Untangling's cap on sweeps per round (each moves the front one element further from
+/// the grabbed one, so a press of d voxels needs about d / (1 - kUntangleMinSpacing -
+/// kUntangleMargin) + 1: the Table 1 press, 7.5 voxel, took 30).
+constexpr int kUntangleMaxSweeps = 128;
+
+/// Untangling's cap on rounds (each finds the folded cells again and sweeps from their
+/// corners); a round after the first sees only folds that the previous one made.
+constexpr int kUntangleMaxRounds = 4;
+
+/// True when the eight corners of the cell whose lowest corner is local voxel (i, j, k)
+/// are soft tissue (`soft(i, j, k)`); cells touching bone are not untangled (bone
+/// enforces nothing, so soft tissue may pass it).
+template <typename Soft>
+PALPSIM_HD bool untangle_cell_soft(const Soft& soft, int i, int j, int k) {
+  for (int c = 0; c < 8; ++c)
+    if (!soft(i + (c & 1), j + ((c >> 1) & 1), k + (c >> 2))) return false;
+  return true;
+}
+
+/// True when local voxel (i, j, k) is a corner of a folded cell: `folded(a, b, c)` tells
+/// whether the cell with lowest corner (a, b, c) is folded (cells lie in the VOI, their
+/// lowest corner at most size - 2).
+template <typename Folded>
+PALPSIM_HD bool untangle_is_seed(const Folded& folded, const Voi& voi, int i, int j, int k) {
+  for (int c = 0; c < 8; ++c) {
+    const int a = i - (c & 1), b = j - ((c >> 1) & 1), d = k - (c >> 2);
+    if (a >= 0 && b >= 0 && d >= 0 && a + 1 < voi.size.x && b + 1 < voi.size.y && d + 1 < voi.size.z && folded(a, b, d))
+      return true;
+  }
+  return false;
+}
+
+/// Pulls the displacement `u` of an element towards that of its neighbour `un` along
+/// `axis` (the neighbour lies between the element and the grabbed one, below the element
+/// when `below`) when the two are closer than kUntangleMinSpacing along the axis
+/// (x_e - x_n for a neighbour below, x_n - x_e for one above), to kUntangleMinSpacing +
+/// kUntangleMargin; the whole difference u - un is scaled, so the pair's shear shrinks
+/// with it. Nothing changes when the spacing is kept already.
+PALPSIM_HD void untangle_pull(Vec3f& u, const Vec3f& un, int axis, bool below) {
+  // the pair's spacing beyond 1 voxel, signed towards the element: spacing - 1
+  const float diff = below ? u[axis] - un[axis] : un[axis] - u[axis];
+  if (!(diff < kUntangleMinSpacing - 1.0f)) return;
+  const float s = (kUntangleMinSpacing + kUntangleMargin - 1.0f) / diff;  // in (0, 1): diff < spacing - 1 < 0
+  u = Vec3f{un.x + s * (u.x - un.x), un.y + s * (u.y - un.y), un.z + s * (u.z - un.z)};
+}
+
 /// The backtracking halvings of one inversion step before it gives up on the step.
 constexpr int kInvertHalvings = 6;
 

@@ -47,6 +47,7 @@ void add_times(DeformTimes& a, const DeformTimes& b) {
   a.reset_ms += b.reset_ms;
   a.chainmail_ms += b.chainmail_ms;
   a.relax_ms += b.relax_ms;
+  a.untangle_ms += b.untangle_ms;
   a.invert_ms += b.invert_ms;
   a.upload_ms += b.upload_ms;
   a.total_ms += b.total_ms;

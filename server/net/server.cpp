@@ -90,6 +90,7 @@ std::string apply_view(const v1::ViewSettings& in, render::ViewSettings& v) {
 void fill_times(v1::DeformTimes* out, const DeformTimes& t, double scale) {
   out->set_chainmail_ms(t.chainmail_ms * scale);
   out->set_relax_ms(t.relax_ms * scale);
+  out->set_untangle_ms(t.untangle_ms * scale);
   out->set_invert_ms(t.invert_ms * scale);
   out->set_upload_ms(t.upload_ms * scale);
   out->set_reset_ms(t.reset_ms * scale);

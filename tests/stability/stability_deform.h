@@ -3,7 +3,7 @@
 // (CTest label stability), "cuda" by palpsim-gpu-stability-tests (label gpu).
 //
 // DeformRun::contact() runs one contact stage by stage (ChainMail, relaxation,
-// inversion, upload) and checks the deformation's invariants after each stage:
+// untangling, inversion, upload) and checks the deformation's invariants after each stage:
 // - every value finite (displacements, residuals, J);
 // - the VOI lies in the grid and holds the grabbed voxel;
 // - bone never moves: bone displacements exactly 0 after ChainMail and relaxation, and
@@ -13,6 +13,8 @@
 // - relaxation keeps the maximum principle: with step * material <= 1/6 each update is
 //   a convex combination, so no displacement component grows beyond the largest one
 //   ChainMail left (this is what an unstable step breaks first);
+// - untangling leaves no more folded soft cells than relaxation left, and as many as
+//   its CPU reference;
 // - J stays within the intensity range of the patient (trilinear blends of I);
 // - on a backend other than "cpu", ChainMail equals the CPU reference exactly and the
 //   relaxed field agrees within float rounding (the tolerances of deform_gpu_test.cpp).
@@ -24,6 +26,8 @@
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <limits>
 #include <memory>
 #include <string>
@@ -47,9 +51,10 @@ struct Expect {
 /// The state one contact left: ChainMail's stats, the final displacement field and J.
 struct Outcome {
   ChainMailStats chainmail;
-  std::vector<Vec3f> u;      // after relaxation (after ChainMail when relaxation is off)
+  std::vector<Vec3f> u;      // after relaxation and untangling (after ChainMail when relaxation is off)
   std::vector<float> j;      // J on the VOI (empty without inversion)
   InvertStats invert;
+  UntangleStats untangle;    // all 0 without relaxation or untangling
 };
 
 inline float max_abs_component(const std::vector<Vec3f>& u) {
@@ -79,6 +84,7 @@ inline DeformConfig config(int preset, int voi_edge, int relax_iterations = 20) 
   c.settings.relax_iterations = relax_iterations;
   c.relax = relax_iterations > 0;
   c.invert = true;
+  c.settings.untangle = true;  // off in scenes by default; the catalogue runs it
   return c;
 }
 
@@ -88,6 +94,9 @@ class DeformRun {
  public:
   DeformRun(Case& c, PatientPtr p, const DeformConfig& cfg, int compare_every = 1)
       : case_(c), p_(std::move(p)), cfg_(cfg), compare_every_(compare_every) {
+    // PALPSIM_FOLD_REPORT=off: relaxation alone, for the fold report's "before" figures
+    const char* report = std::getenv("PALPSIM_FOLD_REPORT");
+    if (report && std::string(report) == "off") cfg_.settings.untangle = false;
     b_ = make_deform_backend(c.backend);
     b_->bind(p_, cfg_);
     if (c.backend != "cpu") {
@@ -160,8 +169,9 @@ class DeformRun {
       for (std::size_t n = 0; n < u.size(); ++n) differ += ur[n] != u[n];
       REQUIRE(differ == 0);
     }
-    // relaxation
+    // relaxation, then untangling
     if (cfg_.relax) relax_and_check(u, cm, compare);
+    if (cfg_.relax && cfg_.settings.untangle) o.untangle = untangle_and_check(u, cm, compare);
     o.u = std::move(u);
     // inversion
     if (cfg_.invert) {
@@ -179,6 +189,12 @@ class DeformRun {
         ref_->invert();
         ref_->upload();
       }
+      // PALPSIM_FOLD_REPORT=1 (=off: without untangling): one line per contact, for the
+      // figures of issue 8, section 4
+      if (std::getenv("PALPSIM_FOLD_REPORT"))
+        std::printf("fold report %s contact %lld: folded %lld -> %lld, unresolved %lld, residual %.4f voxel\n",
+                    case_.describe().c_str(), contacts_ - 1, o.untangle.folded_before, o.untangle.folded_after,
+                    o.invert.unresolved, o.invert.max_residual_vox);
     }
     return o;
   }
@@ -219,6 +235,7 @@ class DeformRun {
     REQUIRE(cm.moved == o.chainmail.moved);
     REQUIRE(cm.sweeps == o.chainmail.sweeps);
     if (cfg_.relax) fresh->relax();
+    if (cfg_.relax && cfg_.settings.untangle) fresh->untangle();
     const auto u = fresh->displacement();
     long long du = 0;
     for (std::size_t n = 0; n < u.size(); ++n) du += u[n] != o.u[n];
@@ -269,6 +286,34 @@ class DeformRun {
       REQUIRE(worst <= tol);
     }
     u = std::move(r);
+  }
+
+  // untangles, checks what relaxation's checks check (finite, bone still, the grabbed
+  // element at x) and that no soft cell is left folded, on the backend and its reference
+  UntangleStats untangle_and_check(std::vector<Vec3f>& u, const ChainMailStats& cm, bool compare) {
+    const Voi& voi = cm.voi;
+    const UntangleStats st = b_->untangle();
+    std::vector<Vec3f> r = b_->displacement();
+    INFO("untangling: folded " << st.folded_before << " -> " << st.folded_after << " in " << st.rounds << " rounds, "
+                               << st.sweeps << " sweeps, " << st.moved << " elements moved");
+    REQUIRE(non_finite_count(r) == 0);
+    REQUIRE(moved_bone_count(*p_, voi, r) == 0);
+    const Vec3i gl = cm.grabbed_vox - voi.lo;
+    const long long gi = voi.index(gl.x, gl.y, gl.z);
+    REQUIRE(r[gi] == u[gi]);
+    // it never adds folds (ending with more, it returns the relaxed field exactly); it
+    // removes them all except where the grabbed element's pull runs through bone or past
+    // the VOI's faces (measured in server/deform/README.md)
+    REQUIRE(st.folded_after <= st.folded_before);
+    if (st.reverted) REQUIRE(r == u);
+    if (compare) {
+      // the relaxed fields differ by rounding only (~1e-6 voxel); on the same field the
+      // backends agree exactly (tests/gpu): the same folds are left
+      const UntangleStats rs = ref_->untangle();
+      REQUIRE(rs.folded_after == st.folded_after);
+    }
+    u = std::move(r);
+    return st;
   }
 
   void check_j(const Voi& voi, const std::vector<Vec3f>& u, const std::vector<float>& j) {

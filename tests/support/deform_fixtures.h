@@ -5,7 +5,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <vector>
 
@@ -94,6 +96,62 @@ inline DeformContact voxel_contact(const Vec3i& g, const Vec3& d) {
   return {Vec3(g.x, g.y, g.z), Vec3(g.x + d.x, g.y + d.y, g.z + d.z)};
 }
 
+/// The Table 1 press of `palpsim-bench deform`: near the middle of the volume, 10 mm
+/// along -j (anterior), so that every VOI size up to 128 fits unclipped; X is the first
+/// voxel from the centre towards -j with soft tissue (no bone, no gas) 3 voxels around.
+inline DeformContact table1_press(const Patient& p) {
+  const Grid& g = p.grid;
+  const int i = g.size.x / 2, k = g.size.z / 2;
+  int j = g.size.y / 2;
+  auto soft_around = [&](int jj) {
+    for (int c = -3; c <= 3; ++c)
+      for (int b = -3; b <= 3; ++b)
+        for (int a = -3; a <= 3; ++a) {
+          const float v = p.intensity.at(i + a, jj + b, k + c);
+          if (p.bone.at(i + a, jj + b, k + c) || v < -200.0f) return false;
+        }
+    return true;
+  };
+  while (j > g.size.y / 2 - 40 && !soft_around(j)) --j;
+  const Vec3 X = g.to_physical({double(i), double(j), double(k)});
+  return {X, X - g.axes_to_physical({0, 10.0, 0})};
+}
+
+/// One of the random pushes of issue 8, section 4 on make_torso_patient(48): a soft
+/// grabbed voxel inside the body, moved 2-11 voxels in a random direction, with preset
+/// p1 or p2 and a VOI edge of 16, 32 or 48 (relaxation 20, inversion 8).
+struct RandomPush {
+  DeformContact contact;
+  DeformConfig config;
+};
+
+/// `count` random pushes on `torso` (make_torso_patient(48)), the same for a given seed.
+inline std::vector<RandomPush> random_pushes(const Patient& torso, int count, unsigned seed) {
+  std::uint64_t state = seed * 6364136223846793005ull + 1442695040888963407ull;
+  auto uniform = [&](double lo, double hi) {
+    // a 64-bit LCG: the pushes must not depend on the standard library's distributions
+    state = state * 6364136223846793005ull + 1442695040888963407ull;
+    return lo + (hi - lo) * double(state >> 11) * (1.0 / 9007199254740992.0);
+  };
+  const Vec3i n = torso.grid.size;
+  std::vector<RandomPush> out;
+  while (int(out.size()) < count) {
+    const Vec3i g{int(uniform(4, n.x - 4)), int(uniform(4, n.y - 4)), int(uniform(4, n.z - 4))};
+    if (torso.bone.at(g.x, g.y, g.z) || torso.intensity.at(g.x, g.y, g.z) <= kAirHu) continue;
+    Vec3 d{uniform(-1, 1), uniform(-1, 1), uniform(-1, 1)};
+    const double len = std::sqrt(d.x * d.x + d.y * d.y + d.z * d.z);
+    if (len < 0.2 || len > 1) continue;
+    d = d * (uniform(2, 11) / len);
+    const int i = int(out.size());
+    DeformConfig cfg = preset_config(1 + i % 2);
+    cfg.settings.voi_edge = 16 * (1 + (i / 2) % 3);
+    cfg.settings.relax_iterations = 20;
+    cfg.settings.invert_iterations = 8;
+    out.push_back({voxel_contact(g, d), cfg});
+  }
+  return out;
+}
+
 }  // namespace palpsim::test
 
 namespace palpsim::test {
@@ -121,6 +179,21 @@ inline double max_restriction_violation(const Patient& p, const Voi& voi, const 
             if (b != a) worst = std::max(worst, std::fabs(double(un[b]) - double(ue[b])) - s.max_sheer);
         }
       }
+  return worst;
+}
+
+/// The smallest determinant of I + grad u, the trilinear displacement field's Jacobian
+/// (positive where the deformation keeps orientation: no fold), over every cell of the
+/// VOI whose eight voxels are soft tissue (bone enforces no restriction, so soft tissue
+/// may pass it): deform::cell_min_det, the corners and centre of each cell.
+inline double min_jacobian_det(const Patient& p, const Voi& voi, const std::vector<Vec3f>& u) {
+  auto load_u = [&](int i, int j, int k) { return voi.contains(i, j, k) ? u[voi.index(i, j, k)] : Vec3f{0, 0, 0}; };
+  auto soft = [&](int i, int j, int k) { return p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) == 0; };
+  double worst = std::numeric_limits<double>::infinity();
+  for (int k = 0; k + 1 < voi.size.z; ++k)
+    for (int j = 0; j + 1 < voi.size.y; ++j)
+      for (int i = 0; i + 1 < voi.size.x; ++i)
+        if (deform::untangle_cell_soft(soft, i, j, k)) worst = std::min(worst, double(deform::cell_min_det(load_u, i, j, k)));
   return worst;
 }
 

@@ -28,3 +28,24 @@ struct AccuracyOptions {
 int run_deform_accuracy(const AccuracyOptions& options);
 
 }  // namespace palpsim::bench
+
+namespace palpsim::bench {
+
+/// What `palpsim-bench accuracy` runs and where it writes (accuracy_bench.cpp parses
+/// the flags): one study of every knob against references (a)-(d), then the report.
+struct ReportOptions {
+  std::string json_only;          // write the study's JSON here and stop (the GPU machine, no Python)
+  std::string gpu_json;           // a GPU machine's --json-only output to merge into the report
+  std::string out_dir;            // report folder: accuracy.md, its PNGs and accuracy-cpu.json
+  std::string python;             // interpreter with numpy, scikit-fem, pyamg, matplotlib (empty: not needed)
+  std::string commit = "unknown"; // commit of the build, copied into the JSON
+  bool quick = false;             // fewer timed repetitions and force samples (a smoke run)
+  double voxel_mm = 340.0 / 255.0;  // phantom voxel size (mm) of the deformation press
+};
+
+/// Runs the study (every backend this build and machine have), computes reference (c)
+/// through bench/accuracy_fem.py when `python` is set, writes the JSON and, unless
+/// json_only, bench/accuracy_report.py's report; returns the process exit code.
+int run_accuracy_report(const ReportOptions& options);
+
+}  // namespace palpsim::bench

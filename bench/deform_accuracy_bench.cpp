@@ -521,7 +521,8 @@ int run_deform_accuracy(const AccuracyOptions& o) {
 }  // namespace palpsim::bench
 
 // ---- palpsim-bench accuracy: every knob against references (a)-(d) --------------------
-// (a) the model's own converged solution (preset p1, VOI ref, relaxation 400, inversion 64);
+// (a) the model's own converged solution: the base with the row's knob at its converged
+//     value (relaxation 400, inversion 64, VOI 160), as `deform --accuracy` does;
 // (b) Boussinesq's half-space field and the field's isotropy, on a homogeneous block;
 // (c) linear-elastic FEM of the phantom press on the base VOI (bench/accuracy_fem.py);
 // (d) the force model against eq. 1-2 in double on the phantom's closed-form geometry.
@@ -545,6 +546,8 @@ void apply_relax_method(DeformConfig& cfg, const std::string& method, int n) {
   cfg.settings.relax_iterations = n;
 }
 
+// reference (a): the converged value of each knob (the other knobs at the base)
+constexpr int kRefRelaxIterations = 400, kRefInvertIterations = 64, kRefVoiEdge = 160;
 // Poisson's ratio of references (b) and (c): nearly incompressible soft tissue
 constexpr double kNu = 0.45;
 // Young's modulus of reference (c) (kPa): scales only the reaction force of a displacement-driven press
@@ -560,6 +563,14 @@ struct Setting {
   Stage stage;
 };
 
+// one knob's settings, timed round-robin, and its reference (a): the base with the knob
+// at its converged value (none for the ChainMail preset: another preset is another model)
+struct Group {
+  std::vector<Setting> settings;
+  bool has_ref = false;
+  DeformConfig ref;
+};
+
 // the errors of one row against the references (NaN where not computed)
 struct Errors {
   double a_u_pct = NAN, a_u_rms_vox = NAN, a_J_pct = NAN, a_J_rms_hu = NAN;
@@ -567,7 +578,7 @@ struct Errors {
   double c_u_pct = NAN, c_corr = NAN;
 };
 
-// reference (a) of one backend and what the errors are relative to
+// reference (a) of one knob on one backend and what the errors are relative to
 struct RefA {
   Voi voi;
   std::vector<Vec3f> u;
@@ -828,14 +839,26 @@ std::vector<ForceRow> force_study(const Patient& p, const Scene& scene, bool qui
     const std::string sampling = m == 0 ? "trilinear" : "nearest";
     std::vector<Vec3> f(tips.size());
     std::vector<bool> contact(tips.size());
-    // time: every tip once per pass, several passes, median pass
+    // errors: the model as it runs (compute_force) and the nearest-voxel variant
+    for (std::size_t t = 0; t < tips.size(); ++t) {
+      bool c = false;
+      f[t] = m == 0 ? trilinear(tips[t], c) : nearest(tips[t], c);
+      contact[t] = c;
+    }
+    // time of the sampling alone (F, grad F and the spring), without the skin-point search
+    // that both samplings need: every tip once per pass, several passes, median pass
     std::vector<double> pass_ns;
+    volatile double sink = 0;
     for (int rep = 0; rep < (quick ? 3 : 9); ++rep) {
       const auto t0 = std::chrono::steady_clock::now();
-      for (std::size_t t = 0; t < tips.size(); ++t) {
+      for (const Vec3& x : tips) {
         bool c = false;
-        f[t] = m == 0 ? trilinear(tips[t], c) : nearest(tips[t], c);
-        contact[t] = c;
+        if (m == 0) {
+          const PatientSample s = sample_patient(p, x);
+          sink = sink + spring_force(k, s.force_mm, s.grad_force).x;
+        } else {
+          sink = sink + nearest(x, c).x;
+        }
       }
       pass_ns.push_back(std::chrono::duration<double, std::nano>(std::chrono::steady_clock::now() - t0).count() /
                         double(tips.size()));
@@ -907,34 +930,53 @@ int run_accuracy_report(const ReportOptions& o) {
   base.settings.voi_edge = 64;
   base.settings.relax_iterations = 20;
   base.settings.invert_iterations = 8;
-  std::vector<std::vector<Setting>> groups;  // timed round-robin within a group
+  std::vector<Group> groups;
   for (const RelaxMethod& m : kRelaxMethods) {
-    groups.emplace_back();
+    Group g;
+    g.has_ref = true;
+    g.ref = base;
+    apply_relax_method(g.ref, kRelaxMethods.front().name, kRefRelaxIterations);
     for (int n : m.iterations) {
       DeformConfig cfg = base;
       apply_relax_method(cfg, m.name, n);
-      groups.back().push_back({"relaxation " + m.name, std::to_string(n), cfg, Stage::relax});
+      g.settings.push_back({"relaxation " + m.name, std::to_string(n), cfg, Stage::relax});
     }
+    groups.push_back(g);
   }
-  groups.emplace_back();
-  for (int n : {0, 1, 2, 4, 8, 16, 32}) {
-    DeformConfig cfg = base;
-    cfg.settings.invert_iterations = n;
-    groups.back().push_back({"inversion iterations", std::to_string(n), cfg, Stage::invert});
+  {
+    Group g;
+    g.has_ref = true;
+    g.ref = base;
+    g.ref.settings.invert_iterations = kRefInvertIterations;
+    for (int n : {0, 1, 2, 4, 8, 16, 32}) {
+      DeformConfig cfg = base;
+      cfg.settings.invert_iterations = n;
+      g.settings.push_back({"inversion iterations", std::to_string(n), cfg, Stage::invert});
+    }
+    groups.push_back(g);
   }
-  groups.emplace_back();
-  for (int n : {32, 48, 64, 96, 128}) {
-    DeformConfig cfg = base;
-    cfg.settings.voi_edge = n;
-    groups.back().push_back({"VOI edge", std::to_string(n), cfg, Stage::total});
+  {
+    Group g;
+    g.has_ref = true;
+    g.ref = base;
+    g.ref.settings.voi_edge = kRefVoiEdge;
+    for (int n : {32, 48, 64, 96, 128}) {
+      DeformConfig cfg = base;
+      cfg.settings.voi_edge = n;
+      g.settings.push_back({"VOI edge", std::to_string(n), cfg, Stage::total});
+    }
+    groups.push_back(g);
   }
-  groups.emplace_back();
-  for (int n : {1, 2}) {
-    DeformConfig cfg = test::preset_config(n);
-    cfg.settings.voi_edge = 64;
-    cfg.settings.relax_iterations = 20;
-    cfg.settings.invert_iterations = 8;
-    groups.back().push_back({"ChainMail preset", "p" + std::to_string(n), cfg, Stage::total});
+  {
+    Group g;
+    for (int n : {1, 2}) {
+      DeformConfig cfg = test::preset_config(n);
+      cfg.settings.voi_edge = base.settings.voi_edge;
+      cfg.settings.relax_iterations = base.settings.relax_iterations;
+      cfg.settings.invert_iterations = base.settings.invert_iterations;
+      g.settings.push_back({"ChainMail preset", "p" + std::to_string(n), cfg, Stage::total});
+    }
+    groups.push_back(g);
   }
 
   // reference (c) once, from the base press on the cpu backend
@@ -956,23 +998,21 @@ int run_accuracy_report(const ReportOptions& o) {
     const bool gpu = be == "cuda";
     const int warmup = gpu ? 3 : 1;
     const int reps = gpu ? (o.quick ? 10 : 30) : (o.quick ? 2 : 8);
-    // reference (a) on this backend
-    DeformConfig rc = base;
-    rc.settings.backend = be;
-    rc.settings.voi_edge = 160;
-    rc.settings.relax_iterations = 400;
-    rc.settings.invert_iterations = 64;
-    const Run ra = run_setting(be, patient, rc, press.contact, 0, 1, Stage::total);
-    RefA ref;
-    ref.voi = ra.last.chainmail.voi;
-    ref.u = ra.u;
-    ref.J = ra.J;
-    ref.I = J_on(*patient, ref.voi, Voi{}, {});
-    ref.u_rms = field_diff(ref.u, std::vector<Vec3f>(ref.u.size(), Vec3f{0, 0, 0})).rms;
-    ref.change_rms_hu = rms_diff(ref.J, ref.I);
-    std::printf("%s reference (a): VOI %d^3, RMS |u| %.4f voxel, RMS |J - I| %.3f HU\n", be.c_str(), ref.voi.size.x,
-                ref.u_rms, ref.change_rms_hu);
-    for (const std::vector<Setting>& group : groups) {
+    for (const Group& grp : groups) {
+      const std::vector<Setting>& group = grp.settings;
+      // reference (a) of this knob on this backend
+      RefA ref;
+      if (grp.has_ref) {
+        DeformConfig rc = grp.ref;
+        rc.settings.backend = be;
+        const Run ra = run_setting(be, patient, rc, press.contact, 0, 1, Stage::total);
+        ref.voi = ra.last.chainmail.voi;
+        ref.u = ra.u;
+        ref.J = ra.J;
+        ref.I = J_on(*patient, ref.voi, Voi{}, {});
+        ref.u_rms = field_diff(ref.u, std::vector<Vec3f>(ref.u.size(), Vec3f{0, 0, 0})).rms;
+        ref.change_rms_hu = rms_diff(ref.J, ref.I);
+      }
       std::vector<DeformConfig> cfgs;
       for (const Setting& s : group) {
         cfgs.push_back(s.cfg);
@@ -991,10 +1031,12 @@ int run_accuracy_report(const ReportOptions& o) {
         row.moved = r.last.chainmail.moved;
         // (a): the field and J on the reference VOI
         const Voi& v = r.last.chainmail.voi;
-        row.err.a_u_rms_vox = diff_on_reference(ref.voi, ref.u, v, r.u).rms;
+        if (grp.has_ref) {
+          row.err.a_u_rms_vox = diff_on_reference(ref.voi, ref.u, v, r.u).rms;
         row.err.a_u_pct = 100 * row.err.a_u_rms_vox / ref.u_rms;
         row.err.a_J_rms_hu = rms_diff(J_on(*patient, ref.voi, v, r.J), ref.J);
         row.err.a_J_pct = 100 * row.err.a_J_rms_hu / ref.change_rms_hu;
+        }
         // (b): the same setting on the block
         const Run rb = run_setting(be, block, cfgs[s], block_press, 0, 1, Stage::total);
         block_errors(rb.last.chainmail.voi, rb.u, row.err);
@@ -1030,7 +1072,8 @@ int run_accuracy_report(const ReportOptions& o) {
       << ", \"bone_depth_mm\": " << num(press.bone_depth_mm) << "},\n"
       << "  \"base\": {\"preset\": \"p1\", \"voi_edge\": 64, \"relax_method\": \"diffusion\", \"relax_iterations\": 20, "
          "\"invert_iterations\": 8},\n"
-      << "  \"reference_a\": {\"preset\": \"p1\", \"voi_edge\": 160, \"relax_iterations\": 400, \"invert_iterations\": 64},\n"
+      << "  \"reference_a\": {\"relax_iterations\": " << kRefRelaxIterations << ", \"invert_iterations\": "
+      << kRefInvertIterations << ", \"voi_edge\": " << kRefVoiEdge << "},\n"
       << "  \"reference_b\": {\"block_voxels\": " << kBlockN << ", \"press_vox\": " << num(kBlockPressVox)
       << ", \"nu\": " << num(kNu) << ", \"r_min_vox\": " << num(kNearFieldVox) << ", \"r_max_vox\": 12},\n"
       << "  \"reference_c\": {\"nu\": " << num(kNu) << ", \"E_kpa\": " << num(kEKpa) << ", \"voi\": [" << fem.voi.size.x

@@ -37,16 +37,22 @@ def _finite(v):
     return isinstance(v, (int, float)) and math.isfinite(v)
 
 
-def load(path, what):
-    """The JSON of one `palpsim-bench accuracy` run; exits naming the file when it is not one."""
+def load_json(path, area, producer):
+    """The JSON of one bench run of `area`; exits naming the file when it cannot be read or is not
+    one (`producer` names the command that writes it)."""
     try:
         with open(path) as f:
             d = json.load(f)
     except (OSError, ValueError) as e:
-        sys.exit(f"accuracy_report: cannot read {what} {path}: {e}")
-    if d.get("area") != "accuracy" or "rows" not in d:
-        sys.exit(f"accuracy_report: {path} is not the JSON of `palpsim-bench accuracy`")
+        sys.exit(f"{os.path.basename(sys.argv[0])}: cannot read {path}: {e}")
+    if d.get("area") != area or "rows" not in d:
+        sys.exit(f"{os.path.basename(sys.argv[0])}: {path} is not the JSON of `{producer}`")
     return d
+
+
+def load(path):
+    """The JSON of one `palpsim-bench accuracy` run."""
+    return load_json(path, "accuracy", "palpsim-bench accuracy")
 
 
 def merged_rows(cpu, gpu=None):
@@ -81,6 +87,15 @@ def fastest_within(rows, error_of, threshold, time_key):
     """The fastest row whose error (%) is at most `threshold`, or None."""
     ok = [r for r in rows if _finite(error_of(r)) and error_of(r) <= threshold and _finite(r.get(time_key))]
     return min(ok, key=lambda r: r[time_key]) if ok else None
+
+
+def selection_groups(key, rows, error_of):
+    """The row sets that one "fastest within" selection runs over: for reference (a) each knob
+    that has one (its own converged value), labelled ": knob"; for the others all rows."""
+    if key != "a":
+        return [("", rows)]
+    knobs = dict.fromkeys(r["knob"] for r in rows if _finite(error_of(r)))
+    return [(f": {k}", [r for r in rows if r["knob"] == k]) for k in knobs]
 
 
 def _fmt(v, digits=3):
@@ -184,18 +199,20 @@ def markdown(cpu, gpu, rows, plots):
     for key, title, err in REFERENCES:
         def error_of(r, err=err):
             return err(r["errors"])
-        front = pareto([(r["cpu_ms"], error_of(r)) for r in rows])
-        front_txt = ", ".join(_name(rows[i]) for i in front) or "-"
-        for n, th in enumerate(THRESHOLDS):
-            cells = []
-            for tk in ("cpu_ms", "gpu_ms"):
-                best = fastest_within(rows, error_of, th, tk)
-                if tk == "gpu_ms" and not gpu:
-                    cells.append("not measured")
-                else:
-                    cells.append(f"{_name(best)} ({best[tk]:.3f}, {_fmt(error_of(best))})" if best else "none")
-            L.append(f"| {title if n == 0 else ''} | {th:g} % | {cells[0]} | {cells[1]} | "
-                     f"{front_txt if n == 0 else ''} |")
+        # (a) differs per knob (each knob's own converged value): one selection per knob
+        for label, sel in selection_groups(key, rows, error_of):
+            front = pareto([(r["cpu_ms"], error_of(r)) for r in sel])
+            front_txt = ", ".join(_name(sel[i]) for i in front) or "-"
+            for n, th in enumerate(THRESHOLDS):
+                cells = []
+                for tk in ("cpu_ms", "gpu_ms"):
+                    best = fastest_within(sel, error_of, th, tk)
+                    if tk == "gpu_ms" and not gpu:
+                        cells.append("not measured")
+                    else:
+                        cells.append(f"{_name(best)} ({best[tk]:.3f}, {_fmt(error_of(best))})" if best else "none")
+                L.append(f"| {title + label if n == 0 else ''} | {th:g} % | {cells[0]} | {cells[1]} | "
+                         f"{front_txt if n == 0 else ''} |")
     L.append("")
     L.append("## Force model against reference (d)")
     L.append("")
@@ -237,8 +254,8 @@ def plot(rows, time_key, machine, out_png, force=None):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    panels = len(REFERENCES) + (1 if force else 0)
-    fig, axes = plt.subplots(1, panels, figsize=(6 * panels, 5.2))
+    fig, grid = plt.subplots(2, 2, figsize=(14, 11))
+    axes = list(grid.ravel())
     for ax, (key, title, err) in zip(axes, REFERENCES):
         pts = [(r[time_key], err(r["errors"])) for r in rows]
         for knob in dict.fromkeys(r["knob"] for r in rows):
@@ -249,12 +266,17 @@ def plot(rows, time_key, machine, out_png, force=None):
             for r, p in sel:
                 ax.annotate(r["setting"], (p[0], max(p[1], 1e-3)), textcoords="offset points", xytext=(4, 3),
                             fontsize=7, color=colour)
-        front = pareto(pts)
-        if front:
-            ax.step([pts[i][0] for i in front], [max(pts[i][1], 1e-3) for i in front], where="post", c="k", lw=1,
-                    alpha=0.7, label="Pareto front")
-            ax.scatter([pts[i][0] for i in front], [max(pts[i][1], 1e-3) for i in front], s=110, facecolors="none",
-                       edgecolors="k", lw=1)
+        # the Pareto front: per knob for (a) (each knob has its own reference), else over all rows
+        for label, sel in selection_groups(key, rows, lambda r, err=err: err(r["errors"])):
+            sp = [(r[time_key], err(r["errors"])) for r in sel]
+            front = pareto(sp)
+            if not front:
+                continue
+            colour = KNOB_STYLE.get(sel[0]["knob"], ("tab:blue", "o"))[0] if label else "k"
+            ax.step([sp[i][0] for i in front], [max(sp[i][1], 1e-3) for i in front], where="post", c=colour, lw=1,
+                    alpha=0.7, label="Pareto front" + label)
+            ax.scatter([sp[i][0] for i in front], [max(sp[i][1], 1e-3) for i in front], s=110, facecolors="none",
+                       edgecolors=colour, lw=1)
         for th in THRESHOLDS:
             ax.axhline(th, c="grey", ls=":", lw=0.8)
         ax.set_xscale("log")
@@ -264,7 +286,9 @@ def plot(rows, time_key, machine, out_png, force=None):
         ax.set_title(f"{title}\n(dotted: 1, 5, 10 %; errors below 1e-3 % drawn at 1e-3)", fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    if force:
+    if not force:
+        axes[-1].set_visible(False)
+    else:
         ax = axes[-1]
         for f in force:
             if f["where"] == "all in body":
@@ -289,8 +313,8 @@ def main():
     ap.add_argument("--gpu", help="JSON of `palpsim-bench accuracy --json-only` on the GPU machine")
     ap.add_argument("--out-dir", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
     a = ap.parse_args()
-    cpu = load(a.cpu, "--cpu")
-    gpu = load(a.gpu, "--gpu") if a.gpu else None
+    cpu = load(a.cpu)
+    gpu = load(a.gpu) if a.gpu else None
     rows = merged_rows(cpu, gpu)
     plots = [("error against CPU step time", os.path.join(a.out_dir, "accuracy-cpu.png"))]
     plot(rows, "cpu_ms", "CPU", plots[0][1], cpu.get("force"))

@@ -9,6 +9,7 @@
 #pragma once
 
 #include <string>
+#include <vector>
 
 namespace palpsim::bench {
 
@@ -22,6 +23,15 @@ struct AccuracyOptions {
   int ref_invert_iterations = 64;    // reference of the inversion study
   int ref_voi_edge = 160;            // reference of the VOI study (voxel), above the largest setting
 };
+
+/// The deformation backends this build and machine have ("cpu", and "cuda" where it
+/// runs); `device` names the GPU (or "cpu only"). A non-empty `who` prints
+/// "<who>: backends ... (why cuda is or is not there)".
+std::vector<std::string> deform_backends(std::string& device, const std::string& who);
+
+/// Throws palpsim::Error ("<what> cannot write <path> ...") before minutes of work when
+/// `path` cannot be created (its folder missing or read-only).
+void check_writable(const std::string& path, const std::string& what);
 
 /// Runs the study, prints one markdown table per backend and knob, writes the JSON
 /// when asked; returns the process exit code (throws palpsim::Error on bad input).

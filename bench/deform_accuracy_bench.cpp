@@ -83,6 +83,13 @@ Press spinous_press(const PhantomGeometry& geo) {
   return p;
 }
 
+// the phantom at voxel_mm (deformation reads intensity and bone only) and the press on it
+std::pair<PatientPtr, Press> phantom_press(double voxel_mm) {
+  PhantomCt ct = make_phantom(voxel_mm);
+  const Press press = spinous_press(ct.geometry);
+  return {test::patient_from_intensity(std::move(ct.hu), "phantom"), press};
+}
+
 // one setting run on one backend: times of whole steps and of one stage, and what the last step left
 enum class Stage { relax, invert, total };
 
@@ -323,29 +330,34 @@ std::string json_str(const std::string& s) {
 
 }  // namespace
 
+std::vector<std::string> deform_backends(std::string& device, const std::string& who) {
+  std::vector<std::string> backends{"cpu"};
+  std::string why;
+  device = "cpu only";
+  if (cuda_deform_available(&why)) {
+    backends.push_back("cuda");
+    device = why;
+  }
+  if (!who.empty()) std::printf("%s: backends cpu%s (%s)\n", who.c_str(), backends.size() > 1 ? ", cuda" : "", why.c_str());
+  return backends;
+}
+
+void check_writable(const std::string& path, const std::string& what) {
+  const std::string probe = path + ".tmp";
+  const bool ok = bool(std::ofstream(probe));
+  std::remove(probe.c_str());
+  if (!ok) throw Error(what + " cannot write " + path + " (its folder is missing or read-only)");
+}
+
 int run_deform_accuracy(const AccuracyOptions& o) {
   // bad options fail before minutes of work: the reference VOI and the JSON's folder
   if (o.ref_voi_edge < 128 || o.ref_voi_edge > 1024)
     throw Error("deform accuracy: --ref-voi " + std::to_string(o.ref_voi_edge) +
                 " must lie in [128, 1024] voxel (at least the largest VOI setting, 128)");
-  if (!o.json.empty()) {
-    const std::string probe = o.json + ".tmp";
-    const bool ok = bool(std::ofstream(probe));
-    std::remove(probe.c_str());
-    if (!ok) throw Error("deform accuracy: cannot write --json " + o.json + " (its folder is missing or read-only)");
-  }
-  // every backend this build and machine have
-  std::vector<std::string> backends{"cpu"};
-  std::string why, device = "cpu only";
-  if (cuda_deform_available(&why)) {
-    backends.push_back("cuda");
-    device = why;
-  }
-  std::printf("deform accuracy: backends cpu%s (%s)\n", backends.size() > 1 ? ", cuda" : "", why.c_str());
-
-  PhantomCt ct = make_phantom(o.voxel_mm);
-  const Press press = spinous_press(ct.geometry);
-  const PatientPtr patient = test::patient_from_intensity(std::move(ct.hu), "phantom");
+  if (!o.json.empty()) check_writable(o.json, "deform accuracy: --json");
+  std::string device;
+  const std::vector<std::string> backends = deform_backends(device, "deform accuracy");
+  const auto [patient, press] = phantom_press(o.voxel_mm);
   const Grid& grid = patient->grid;
   const Vec3 X = press.contact.skin_point_mm, x = press.contact.tip_mm;
   std::printf("phantom %d x %d x %d at %.3f mm; press %.0f mm along -y (anterior) at X = (%.1f, %.1f, %.1f) mm, "
@@ -804,7 +816,7 @@ std::vector<ForceRow> force_study(const Patient& p, const Scene& scene, bool qui
     }
   // the reference at every tip
   std::vector<Vec3> f_ref(tips.size());
-  std::vector<int> cls(tips.size());  // 0 outside, 1 near skin, 2 near bone, 3 interior
+  std::vector<int> cls(tips.size());  // 0 outside, 1 near skin, 2 near bone, 3 interior, 4 in bone
   for (std::size_t t = 0; t < tips.size(); ++t) {
     const Vec3& x = tips[t];
     const double F = force_ref(geo, scene.force_image, h, x), d = h / 8;
@@ -816,7 +828,7 @@ std::vector<ForceRow> force_study(const Patient& p, const Scene& scene, bool qui
     }
     const double skin = geo.skin_signed_distance_mm(x), bone = geo.bone_signed_distance_mm(x);
     f_ref[t] = skin < 0 ? spring_force(k, F, grad) : Vec3{0, 0, 0};
-    cls[t] = skin >= 0 ? 0 : (std::fabs(bone) < 3 ? 2 : (-skin < 3 ? 1 : 3));
+    cls[t] = skin >= 0 ? 0 : (bone < 0 ? 4 : (bone < 3 ? 2 : (-skin < 3 ? 1 : 3)));
   }
   // the model: trilinear (compute_force) and nearest voxel (the same float volumes)
   auto trilinear = [&](const Vec3& x, bool& contact) {
@@ -834,7 +846,8 @@ std::vector<ForceRow> force_study(const Patient& p, const Scene& scene, bool qui
     return spring_force(k, p.force.at(i, j, kk), Vec3{g.x, g.y, g.z});
   };
   std::vector<ForceRow> rows;
-  const char* names[] = {"all in body", "near skin (< 3 mm deep)", "near bone (< 3 mm from its surface)", "interior"};
+  const char* names[] = {"all in body", "near skin (< 3 mm deep)", "near bone (outside it, < 3 mm)", "interior",
+                         "in bone (the tip inside a bone)"};
   for (int m = 0; m < 2; ++m) {
     const std::string sampling = m == 0 ? "trilinear" : "nearest";
     std::vector<Vec3> f(tips.size());
@@ -864,7 +877,7 @@ std::vector<ForceRow> force_study(const Patient& p, const Scene& scene, bool qui
                         double(tips.size()));
     }
     const double ns = spread(pass_ns).median;
-    for (int w = 0; w < 4; ++w) {
+    for (int w = 0; w < 5; ++w) {
       ForceRow r;
       r.sampling = sampling;
       r.where = names[w];
@@ -904,23 +917,11 @@ std::vector<ForceRow> force_study(const Patient& p, const Scene& scene, bool qui
 int run_accuracy_report(const ReportOptions& o) {
   const bool report = o.json_only.empty();
   const std::string json_path = report ? o.out_dir + "/accuracy-cpu.json" : o.json_only;
-  {
-    const bool ok = bool(std::ofstream(json_path + ".tmp"));
-    std::remove((json_path + ".tmp").c_str());
-    if (!ok) throw Error("accuracy: cannot write " + json_path + " (its folder is missing or read-only)");
-  }
-  std::vector<std::string> backends{"cpu"};
-  std::string why, device = "cpu only";
-  if (cuda_deform_available(&why)) {
-    backends.push_back("cuda");
-    device = why;
-  }
-  std::printf("accuracy: backends cpu%s (%s)\n", backends.size() > 1 ? ", cuda" : "", why.c_str());
-
+  check_writable(json_path, "accuracy:");
+  std::string device;
+  const std::vector<std::string> backends = deform_backends(device, "accuracy");
   // the phantom press of the deform accuracy study
-  PhantomCt ct = make_phantom(o.voxel_mm);
-  const Press press = spinous_press(ct.geometry);
-  const PatientPtr patient = test::patient_from_intensity(std::move(ct.hu), "phantom");
+  const auto [patient, press] = phantom_press(o.voxel_mm);
   const PatientPtr block = test::make_patient({kBlockN, kBlockN, kBlockN}, [](int, int, int) { return test::kSoftHu; });
   const double c = kBlockN / 2;
   const DeformContact block_press{{c, kBlockN - 1.0, c}, {c, kBlockN - 1.0 - kBlockPressVox, c}};

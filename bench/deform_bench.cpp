@@ -197,13 +197,8 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
       return bench::run_deform_accuracy(ao);
     }
     // every backend this build and machine have
-    std::vector<std::string> backends{"cpu"};
-    std::string why, device = "cpu only";
-    if (cuda_deform_available(&why)) {
-      backends.push_back("cuda");
-      device = why;
-    }
-    std::printf("deform bench: backends cpu%s (%s)\n", backends.size() > 1 ? ", cuda" : "", why.c_str());
+    std::string device;
+    const std::vector<std::string> backends = bench::deform_backends(device, "deform bench");
 
     std::vector<Table2Row> t2;
     for (const auto& b : backends) table2(b, o, t2);

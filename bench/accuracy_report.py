@@ -230,11 +230,11 @@ def markdown(cpu, gpu, rows, plots):
         L.append(f"| {f['sampling']} | {f['where']} | {f['n']} | {_fmt(f['rms_n'])} | {_fmt(f['max_n'])} | "
                  f"{_fmt(f['rel_rms_pct'])} | {_fmt(f['ref_rms_n'])} | {f['contact_disagree']} | "
                  f"{f['ns_per_pose']:.0f} | {'not measured' if g is None else f'{g:.0f}'} |")
-    all_tips = [f for f in cpu.get("force", []) if f["where"] == "all in body"]
+    all_tips = [f for f in cpu.get("force", []) if f["where"] == "all in soft tissue"]
     for th in THRESHOLDS:
         best = fastest_within(all_tips, lambda f: f["rel_rms_pct"], th, "ns_per_pose")
         L.append("")
-        L.append(f"Fastest force sampling within {th:g} % of (d) (all tips in the body): "
+        L.append(f"Fastest force sampling within {th:g} % of (d) (all tips in soft tissue): "
                  f"{best['sampling'] + ' (' + _fmt(best['rel_rms_pct']) + ' %)' if best else 'none'}.")
     L.append("")
     L.append("## Plots")
@@ -291,7 +291,7 @@ def plot(rows, time_key, machine, out_png, force=None):
     else:
         ax = axes[-1]
         for f in force:
-            if f["where"] == "all in body":
+            if f["where"] == "all in soft tissue":
                 continue
             ax.scatter(f["ns_per_pose"], max(f["rel_rms_pct"], 1e-3), marker="o" if f["sampling"] == "trilinear" else "x",
                        s=40, label=f"{f['sampling']}: {f['where']}")

@@ -846,7 +846,7 @@ std::vector<ForceRow> force_study(const Patient& p, const Scene& scene, bool qui
     return spring_force(k, p.force.at(i, j, kk), Vec3{g.x, g.y, g.z});
   };
   std::vector<ForceRow> rows;
-  const char* names[] = {"all in body", "near skin (< 3 mm deep)", "near bone (outside it, < 3 mm)", "interior",
+  const char* names[] = {"all in soft tissue", "near skin (< 3 mm deep)", "near bone (outside it, < 3 mm)", "interior",
                          "in bone (the tip inside a bone)"};
   for (int m = 0; m < 2; ++m) {
     const std::string sampling = m == 0 ? "trilinear" : "nearest";
@@ -884,7 +884,8 @@ std::vector<ForceRow> force_study(const Patient& p, const Scene& scene, bool qui
       r.ns_per_pose = ns;
       double e2 = 0, r2 = 0;
       for (std::size_t t = 0; t < tips.size(); ++t) {
-        if (cls[t] == 0 || (w > 0 && cls[t] != w)) continue;
+        // w = 0: every tip in soft tissue (the proxy's domain; a tip inside bone is a class of its own)
+        if (cls[t] == 0 || (w == 0 && cls[t] == 4) || (w > 0 && cls[t] != w)) continue;
         if (!contact[t]) {
           ++r.contact_disagree;
           continue;

@@ -28,9 +28,9 @@ def _doc(rows, device="cpu only"):
             "reference_b": {"block_voxels": 64, "press_vox": 6, "nu": 0.45, "r_min_vox": 3, "r_max_vox": 12},
             "reference_c": {"nu": 0.45, "E_kpa": 10, "voi": [64, 52, 64], "computed": True, "solve": None},
             "rows": rows,
-            "force": [{"sampling": "trilinear", "where": "all in body", "n": 10, "contact_disagree": 0, "rms_n": 0.01,
+            "force": [{"sampling": "trilinear", "where": "all in soft tissue", "n": 10, "contact_disagree": 0, "rms_n": 0.01,
                        "max_n": 0.05, "rel_rms_pct": 2.0, "ref_rms_n": 0.5, "ns_per_pose": 300},
-                      {"sampling": "nearest", "where": "all in body", "n": 10, "contact_disagree": 1, "rms_n": 0.03,
+                      {"sampling": "nearest", "where": "all in soft tissue", "n": 10, "contact_disagree": 1, "rms_n": 0.03,
                        "max_n": 0.2, "rel_rms_pct": 6.0, "ref_rms_n": 0.5, "ns_per_pose": 50}]}
 
 
@@ -86,8 +86,8 @@ def test_report_lists_every_row_and_the_fastest_settings(tmp_path):
     # (b): every shape error is above 10 %
     assert "| (b) Boussinesq half-space (shape) | 1 % | none |" in md
     # the force rows and the fastest force sampling within 10 %: nearest (6 %) is faster than trilinear
-    assert "Fastest force sampling within 10 % of (d) (all tips in the body): nearest (6 %)." in md
-    assert "Fastest force sampling within 5 % of (d) (all tips in the body): trilinear (2 %)." in md
+    assert "Fastest force sampling within 10 % of (d) (all tips in soft tissue): nearest (6 %)." in md
+    assert "Fastest force sampling within 5 % of (d) (all tips in soft tissue): trilinear (2 %)." in md
     assert (tmp_path / "accuracy-cpu.png").stat().st_size > 0
 
 

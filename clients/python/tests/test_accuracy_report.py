@@ -61,6 +61,14 @@ def test_fastest_within_each_threshold_of_reference_a():
     assert rep.fastest_within(rows, lambda r: err(r["errors"]), 0.1, "cpu_ms") is None
 
 
+def test_times_within_the_tie_factor_pick_the_first_listed_row():
+    rows = [{"t": 10.2, "e": 0.0, "name": "16"}, {"t": 10.0, "e": 0.0, "name": "32"}, {"t": 9.0, "e": 50.0, "name": "0"}]
+    # 10.2 ms is within 3 % of 10.0 ms: the first listed (16 iterations) is named; 0 is too wrong
+    assert rep.fastest_within(rows, lambda r: r["e"], 1.0, "t")["name"] == "16"
+    rows[0]["t"] = 10.5  # 5 % slower: no longer a tie
+    assert rep.fastest_within(rows, lambda r: r["e"], 1.0, "t")["name"] == "32"
+
+
 def test_gpu_times_merge_by_knob_and_setting():
     gpu = _doc([_row("cpu", "relaxation diffusion", "0", 5.0, 20, 15, 40, 50),
                 _row("cuda", "relaxation diffusion", "0", 0.2, 20, 15, 40, 50)], device="NVIDIA H100")

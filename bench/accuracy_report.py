@@ -164,7 +164,7 @@ def markdown(cpu, gpu, rows, plots):
              "relative to the image change RMS |J_ref - I|. The row's (a) error is the larger of the two. None for "
              "the ChainMail preset: another preset is another model, not an approximation of this one.")
     L.append(f"- **(b) physics on a homogeneous block**: {rb['block_voxels']}^3 voxels of soft tissue (1 mm), its "
-             f"+y face pressed at the centre by {rb['press_vox']:g} voxels. Boussinesq's point load on an elastic "
+             f"+y face pressed at the centre by {rb['press_vox']:g} voxels, with each row's settings. Boussinesq's point load on an elastic "
              f"half-space, nu = {rb['nu']:g} (E does not matter: the shape of the normalised field depends on nu "
              f"only), load at the grabbed voxel's centre; compared on voxels {rb['r_min_vox']:g} to "
              f"{rb['r_max_vox']:g} voxels from it after the least-squares scale (shape error; the model's "
@@ -190,7 +190,9 @@ def markdown(cpu, gpu, rows, plots):
              "with nearest-voxel sampling, against eq. 1-2 in double on the phantom's closed-form skin and bone "
              "(A = distance to bone, B = depth + h/2 as prep defines it), grad F by central differences of h/8; "
              "spring force f = -k F grad F / |grad F| of a fresh proxy without friction or clamps (the 3.3 N clamp "
-             "would hide errors). Tips: a lattice over back and sides, 1 mm outside to 40 mm under the skin.")
+             "would hide errors). Patient: the default scene's 1 mm phantom through prep. Tips: a lattice of 7.3 mm "
+             "over back and sides (not on voxel centres), 1 mm outside to 40 mm under the skin; classes by the "
+             "closed form (near skin: under 3 mm deep; near bone: outside it, within 3 mm).")
     L.append("")
     L.append("## Every row")
     L.append("")
@@ -265,6 +267,7 @@ def plot(rows, time_key, machine, out_png, force=None):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401 (the time axis's locator and formatters)
     fig, grid = plt.subplots(2, 2, figsize=(14, 11))
     axes = list(grid.ravel())
     for ax, (key, title, err) in zip(axes, REFERENCES):
@@ -292,6 +295,10 @@ def plot(rows, time_key, machine, out_png, force=None):
             ax.axhline(th, c="grey", ls=":", lw=0.8)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        # ticks at 1, 2, 5 per decade as plain numbers (the default labels every minor tick, overlapping)
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel(f"step time on {machine}, median (ms)")
         ax.set_ylabel("relative RMS error (%)")
         ax.set_title(f"{title}\n(dotted: 1, 5, 10 %; errors below 1e-3 % drawn at 1e-3)", fontsize=9)

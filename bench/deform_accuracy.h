@@ -9,6 +9,7 @@
 #pragma once
 
 #include <string>
+#include <vector>
 
 namespace palpsim::bench {
 
@@ -26,8 +27,38 @@ struct AccuracyOptions {
   int ref_multigrid_cycles = 40;     // reference of the multigrid study: converged to float rounding
 };
 
+/// The deformation backends this build and machine have ("cpu", and "cuda" where it
+/// runs); `device` names the GPU (or "cpu only"). A non-empty `who` prints
+/// "<who>: backends ... (why cuda is or is not there)".
+std::vector<std::string> deform_backends(std::string& device, const std::string& who);
+
+/// Throws palpsim::Error ("<what> cannot write <path> ...") before minutes of work when
+/// `path` cannot be created (its folder missing or read-only).
+void check_writable(const std::string& path, const std::string& what);
+
 /// Runs the study, prints one markdown table per backend and knob, writes the JSON
 /// when asked; returns the process exit code (throws palpsim::Error on bad input).
 int run_deform_accuracy(const AccuracyOptions& options);
+
+}  // namespace palpsim::bench
+
+namespace palpsim::bench {
+
+/// What `palpsim-bench accuracy` runs and where it writes (accuracy_bench.cpp parses
+/// the flags): one study of every knob against references (a)-(d), then the report.
+struct ReportOptions {
+  std::string json_only;          // write the study's JSON here and stop (the GPU machine, no Python)
+  std::string gpu_json;           // a GPU machine's --json-only output to merge into the report
+  std::string out_dir;            // report folder: accuracy.md, its PNGs and accuracy-cpu.json
+  std::string python;             // interpreter with numpy, scikit-fem, pyamg, matplotlib (empty: not needed)
+  std::string commit = "unknown"; // commit of the build, copied into the JSON
+  bool quick = false;             // fewer timed repetitions and force samples (a smoke run)
+  double voxel_mm = 340.0 / 255.0;  // phantom voxel size (mm) of the deformation press
+};
+
+/// Runs the study (every backend this build and machine have), computes reference (c)
+/// through bench/accuracy_fem.py when `python` is set, writes the JSON and, unless
+/// json_only, bench/accuracy_report.py's report; returns the process exit code.
+int run_accuracy_report(const ReportOptions& options);
 
 }  // namespace palpsim::bench

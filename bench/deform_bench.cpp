@@ -191,16 +191,11 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
       return bench::run_deform_accuracy(ao);
     }
     // every backend this build and machine have
-    std::vector<std::string> backends{"cpu"};
-    std::string why, device = "cpu only";
-    if (cuda_deform_available(&why)) {
-      backends.push_back("cuda");
-      device = why;
-    }
-    std::printf("deform bench: backends cpu%s (%s)\n", backends.size() > 1 ? ", cuda" : "", why.c_str());
+    std::string device;
+    std::vector<std::string> backends = bench::deform_backends(device, "deform bench");
     if (!o.only.empty()) {
       if (std::find(backends.begin(), backends.end(), o.only) == backends.end())
-        throw Error("palpsim-bench deform: --backend " + o.only + " is not available here (" + why + ")");
+        throw Error("palpsim-bench deform: --backend " + o.only + " is not available here (" + device + ")");
       backends.assign(1, o.only);
     }
 

@@ -21,6 +21,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from accuracy_report import load_json  # noqa: E402
+
 # values at or below this are drawn on the floor of a log axis (energy fractions reach exactly 0)
 FLOOR = 1e-9
 
@@ -44,14 +47,7 @@ PANELS = [
 
 def load(path):
     """The JSON of one accuracy run; exits with a message naming the file when it is not one."""
-    try:
-        with open(path) as f:
-            d = json.load(f)
-    except (OSError, ValueError) as e:
-        sys.exit(f"plot_accuracy: cannot read {path}: {e}")
-    if d.get("area") != "deform-accuracy" or "rows" not in d:
-        sys.exit(f"plot_accuracy: {path} is not the JSON of `palpsim-bench deform --accuracy`")
-    return d
+    return load_json(path, "deform-accuracy", "palpsim-bench deform --accuracy")
 
 
 def panel(ax, d, knob, title, figures, ylabel):

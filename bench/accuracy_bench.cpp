@@ -1,0 +1,65 @@
+// palpsim-bench accuracy: one command, one report (issue 8 sections 1-2). Runs every
+// knob of the deformation (relaxation method and iterations, inversion iterations, VOI
+// edge, ChainMail preset) and the force model's sampling against references (a)-(d)
+// (deform_accuracy.h, deform_accuracy_bench.cpp), then writes bench/results/accuracy.md
+// and its plots through bench/accuracy_report.py, merging a GPU machine's JSON.
+#include <unistd.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <string>
+
+#include "bench/deform_accuracy.h"
+#include "bench/registry.h"
+#include "core/error.h"
+
+namespace {
+
+// the Python that runs the FEM and the report: PALPSIM_PYTHON, else the repository's .venv
+std::string find_python() {
+  if (const char* p = std::getenv("PALPSIM_PYTHON"); p && *p) return p;
+  return std::string(PALPSIM_SOURCE_DIR) + "/.venv/bin/python";
+}
+
+}  // namespace
+
+PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)-(d) -> bench/results/accuracy.md "
+                        "[--gpu-json H100.json] [--out-dir DIR] [--quick] [--commit C]; on a GPU machine: "
+                        "--json-only FILE") {
+  palpsim::bench::ReportOptions o;
+  o.out_dir = std::string(PALPSIM_SOURCE_DIR) + "/bench/results";
+  for (int a = 1; a < argc; ++a) {
+    const std::string s = argv[a];
+    if (s == "--json-only" && a + 1 < argc) o.json_only = argv[++a];
+    else if (s == "--gpu-json" && a + 1 < argc) o.gpu_json = argv[++a];
+    else if (s == "--out-dir" && a + 1 < argc) o.out_dir = argv[++a];
+    else if (s == "--commit" && a + 1 < argc) o.commit = argv[++a];
+    else if (s == "--quick") o.quick = true;
+    else {
+      std::fprintf(stderr,
+                   "palpsim-bench accuracy: unknown argument '%s'\nusage: palpsim-bench accuracy [--gpu-json FILE] "
+                   "[--out-dir DIR] [--quick] [--commit C]\n       palpsim-bench accuracy --json-only FILE [--quick] "
+                   "[--commit C]   (GPU machine: the study's JSON only, no Python)\n",
+                   s.c_str());
+      return 2;
+    }
+  }
+  // the report needs Python with the FEM and plotting packages: checked before minutes of work
+  if (o.json_only.empty()) {
+    o.python = find_python();
+    const std::string probe = "'" + o.python + "' -c 'import numpy, scipy, skfem, pyamg, matplotlib' 2>/dev/null";
+    if (access(o.python.c_str(), X_OK) != 0 || std::system(probe.c_str()) != 0) {
+      std::fprintf(stderr,
+                   "palpsim-bench accuracy: no usable Python at %s (needs numpy, scipy, scikit-fem, pyamg, matplotlib: "
+                   "scripts/setup.sh installs them into .venv); set PALPSIM_PYTHON, or use --json-only FILE\n",
+                   o.python.c_str());
+      return 2;
+    }
+  }
+  try {
+    return palpsim::bench::run_accuracy_report(o);
+  } catch (const palpsim::Error& e) {
+    std::fprintf(stderr, "palpsim-bench accuracy: %s\n", e.what());
+    return 1;
+  }
+}

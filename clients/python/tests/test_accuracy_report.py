@@ -24,7 +24,7 @@ def _doc(rows, device="cpu only"):
             "press": {"landmark": "spinous_tip_L3", "press_mm": 10, "bone_depth_mm": 23.0},
             "base": {"preset": "p1", "voi_edge": 64, "relax_method": "diffusion", "relax_iterations": 20,
                      "invert_iterations": 8},
-            "reference_a": {"relax_iterations": 400, "invert_iterations": 64, "voi_edge": 160},
+            "reference_a": {"relax_steady_state_multigrid_steps": 20, "invert_iterations": 64, "voi_edge": 160},
             "reference_b": {"block_voxels": 64, "press_vox": 6, "nu": 0.45, "r_min_vox": 3, "r_max_vox": 12},
             "reference_c": {"nu": 0.45, "E_kpa": 10, "voi": [64, 52, 64], "computed": True, "solve": None},
             "rows": rows,

@@ -35,11 +35,12 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
     else if (s == "--out-dir" && a + 1 < argc) o.out_dir = argv[++a];
     else if (s == "--commit" && a + 1 < argc) o.commit = argv[++a];
     else if (s == "--quick") o.quick = true;
+    else if (s == "--backend" && a + 1 < argc) o.backend = argv[++a];
     else {
       std::fprintf(stderr,
                    "palpsim-bench accuracy: unknown argument '%s'\nusage: palpsim-bench accuracy [--gpu-json FILE] "
-                   "[--out-dir DIR] [--quick] [--commit C]\n       palpsim-bench accuracy --json-only FILE [--quick] "
-                   "[--commit C]   (GPU machine: the study's JSON only, no Python)\n",
+                   "[--out-dir DIR] [--quick] [--commit C] [--backend cpu|cuda]\n       palpsim-bench accuracy --json-only FILE "
+                   "[--quick] [--commit C] [--backend cuda]   (GPU machine: the study's JSON only, no Python)\n",
                    s.c_str());
       return 2;
     }

@@ -53,6 +53,7 @@ struct ReportOptions {
   std::string python;             // interpreter with numpy, scikit-fem, pyamg, matplotlib (empty: not needed)
   std::string commit = "unknown"; // commit of the build, copied into the JSON
   bool quick = false;             // fewer timed repetitions and force samples (a smoke run)
+  std::string backend;            // only this deformation backend ("" = every one this build and machine have)
   double voxel_mm = 340.0 / 255.0;  // phantom voxel size (mm) of the deformation press
 };
 

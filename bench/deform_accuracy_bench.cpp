@@ -940,7 +940,13 @@ int run_accuracy_report(const ReportOptions& o) {
   const std::string json_path = report ? o.out_dir + "/accuracy-cpu.json" : o.json_only;
   check_writable(json_path, "accuracy:");
   std::string device;
-  const std::vector<std::string> backends = deform_backends(device, "accuracy");
+  std::vector<std::string> backends = deform_backends(device, "accuracy");
+  if (!o.backend.empty()) {
+    // one backend: on the GPU machine only cuda's times are wanted (the errors come from the CPU run)
+    if (std::find(backends.begin(), backends.end(), o.backend) == backends.end())
+      throw Error("accuracy: --backend " + o.backend + " is not available here (" + device + ")");
+    backends.assign(1, o.backend);
+  }
   // the phantom press of the deform accuracy study
   const auto [patient, press] = phantom_press(o.voxel_mm);
   const PatientPtr block = test::make_patient({kBlockN, kBlockN, kBlockN}, [](int, int, int) { return test::kSoftHu; });

@@ -147,8 +147,9 @@ def markdown(cpu, gpu, rows, plots):
     L.append(f"- Base: preset {b['preset']}, VOI {b['voi_edge']}, relaxation {b['relax_method']} "
              f"{b['relax_iterations']}, inversion {b['invert_iterations']}; each row changes one knob.")
     L.append(f"- Storage precision: {cpu.get('storage', 'fp32')} only: no backend stores fields in fp16, so there is "
-             "no fp16 row. No faster approximation (e.g. multigrid relaxation) is in this build; a relaxation method "
-             "is one line in kRelaxMethods (bench/deform_accuracy_bench.cpp).")
+             "no fp16 row. Relaxation methods: the paper's explicit diffusion (iterations) and the multigrid "
+             "steady-state solver (deform.relax_method \"multigrid\", steps); another is one entry in kRelaxMethods "
+             "(bench/deform_accuracy_bench.cpp).")
     L.append("")
     L.append("## References and error metrics")
     L.append("")
@@ -259,7 +260,8 @@ def markdown(cpu, gpu, rows, plots):
     return "\n".join(L) + "\n"
 
 
-KNOB_STYLE = {"inversion iterations": ("tab:orange", "s"), "VOI edge": ("tab:green", "^"),
+KNOB_STYLE = {"relaxation diffusion": ("tab:blue", "o"), "relaxation multigrid": ("tab:red", "P"),
+              "inversion iterations": ("tab:orange", "s"), "VOI edge": ("tab:green", "^"),
               "ChainMail preset": ("tab:purple", "D")}
 
 

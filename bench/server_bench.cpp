@@ -46,6 +46,7 @@ struct Options {
   std::string backend;         // deform.backend ("" = the scene's)
   int nice = 19;               // the deformation worker's nice value
   bool idle = true;            // and SCHED_IDLE for it (the server's --background idle)
+  int concurrency = net::ServerOptions{}.deform_concurrency;  // steps in flight at once
 };
 
 // one session count: what each session got and what the server held
@@ -77,6 +78,7 @@ int run(int argc, char** argv) {
     else if (a == "--voi") o.voi_edge = std::stoi(value());
     else if (a == "--backend") o.backend = value();
     else if (a == "--nice") o.nice = std::stoi(value());
+    else if (a == "--concurrency") o.concurrency = std::max(1, std::stoi(value()));
     else if (a == "--background") {
       const std::string p = value();
       if (p != "idle" && p != "nice") throw Error("palpsim-bench server: --background " + p + ": expected idle or nice");
@@ -90,7 +92,7 @@ int run(int argc, char** argv) {
       std::printf(
           "usage: palpsim-bench server [--sessions 1,4,16,64] [--seconds S per run (5)] [--rounds N (1)]\n"
           "                            [--voi EDGE (64)] [--backend auto|cpu|cuda] [--nice N (19)]\n"
-          "                            [--background idle|nice (idle, as palpsim-server)]\n"
+          "                            [--background idle|nice (idle, as palpsim-server)] [--concurrency K]\n"
           "                            [--scene FILE] [--json FILE]\n");
       return 0;
     } else {
@@ -120,6 +122,7 @@ int run(int argc, char** argv) {
   so.stream_bind = "tcp://127.0.0.1:*";
   so.deform_nice = o.nice;
   so.background_idle = o.idle;
+  so.deform_concurrency = o.concurrency;
   net::Server with(deform, patient, nullptr, so), without(plain, patient, nullptr, so);
   with.start();
   without.start();
@@ -184,10 +187,10 @@ int run(int argc, char** argv) {
     const Row& r = rows.back();
     const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
     std::printf(
-        "%2d sessions (%s, VOI %d, %s): steps/s per session min %.0f median %.0f; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
+        "%2d sessions (%s, VOI %d, %s, %d in flight): steps/s per session min %.0f median %.0f; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
         "memory %.1f MB per session, deformation server-wide %.1f MB; round trip p50 %.0f / p99 %.0f us with "
         "deformation, p99 %.0f us without (ratio %.2f, median of %zu rounds)\n",
-        n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice",
+        n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice", o.concurrency,
         r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()),
         quantile(r.steps_per_s, 0.5), quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
         100 * r.worker_sleep_share, own_mb,
@@ -213,7 +216,7 @@ int run(int argc, char** argv) {
     const std::time_t now = std::time(nullptr);
     std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
     out << "{\n  \"bench\": \"server\",\n  \"date\": \"" << date << "\",\n  \"machine\": \"" << machine()
-        << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
+        << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"concurrency\": " << o.concurrency << ",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
         << ",\n  \"rows\": [\n";
     for (std::size_t i = 0; i < rows.size(); ++i) {
       const Row& r = rows[i];

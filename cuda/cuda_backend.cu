@@ -121,7 +121,7 @@ void CudaDeformBackend::bind_impl() {
   PALPSIM_CUDA_CHECK(cudaMallocHost(&host_counters_, sizeof(Counters)));
   PALPSIM_CUDA_CHECK(cudaMallocHost(&host_j_, n * sizeof(float)));
   std::memset(host_counters_, 0, sizeof(Counters));
-  shape_ = persistent_launch_shape();
+  full_shape_ = shape_ = persistent_launch_shape();
   if (config_.relax && config_.settings.relax_method == "multigrid") ensure_multigrid_buffers();
   if (config_.relax && config_.settings.untangle) ensure_untangle_buffers();
   dirty_ = Voi{};
@@ -152,7 +152,7 @@ void CudaDeformBackend::ensure_multigrid_buffers() {
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.dots, 2 * deform::kMultigridMaxCycles * sizeof(double)));
   mg_.capacity = capacity_;
   mg_.coarse_capacity = nc;
-  mg_blocks_ = relax_multigrid_blocks();
+  full_mg_blocks_ = mg_blocks_ = relax_multigrid_blocks();
 }
 
 DeformMemory CudaDeformBackend::memory_impl() const {
@@ -301,10 +301,17 @@ void CudaDeformBackend::upload_impl() {
 }
 
 DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
-  // every stage is enqueued on one stream with an event between stages; the host
-  // waits once, at the end, then reads the stage times from the events
-  const auto t0 = std::chrono::steady_clock::now();
-  DeformStats out;
+  begin_step_impl(setup);
+  return end_step_impl();
+}
+
+void CudaDeformBackend::begin_step_impl(const ChainMailStats& setup) {
+  // every stage is enqueued on one stream with an event between stages; end_step_impl()
+  // waits once, then reads the stage times from the events
+  step_start_ = std::chrono::steady_clock::now();
+  launch_shape_for_share();
+  DeformStats& out = step_out_;
+  out = DeformStats{};
   out.chainmail = setup;
   out.chainmail.sweeps = 0;
   out.chainmail.moved = 0;
@@ -319,13 +326,17 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
     set_relax_counts(out);
   }
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[3], stream_));
-  const bool untangle = config_.relax && config_.settings.untangle;
-  if (untangle) enqueue_untangle();
+  if (config_.relax && config_.settings.untangle) enqueue_untangle();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[4], stream_));
   if (config_.invert) enqueue_invert();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[5], stream_));
   if (config_.invert) enqueue_upload();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[6], stream_));
+}
+
+DeformStats CudaDeformBackend::end_step_impl() {
+  DeformStats out = step_out_;
+  const bool untangle = config_.relax && config_.settings.untangle;
   InvertStats inv;
   finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
   if (config_.invert) {
@@ -343,8 +354,17 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
   out.times.untangle_ms = ms[3];
   out.times.invert_ms = ms[4];
   out.times.upload_ms = ms[5];
-  out.times.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  out.times.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - step_start_).count();
   return out;
+}
+
+void CudaDeformBackend::launch_shape_for_share() {
+  // each persistent kernel takes 1/gpu_share_ of what fits on the device (at least one
+  // block), so that that many sessions' cooperative grids are resident together
+  shape_ = full_shape_;
+  shape_.chainmail_blocks = std::max(1, full_shape_.chainmail_blocks / gpu_share_);
+  shape_.relax_blocks = std::max(1, full_shape_.relax_blocks / gpu_share_);
+  mg_blocks_ = std::max(1, full_mg_blocks_ / gpu_share_);
 }
 
 bool CudaDeformBackend::copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>& dst) const {

@@ -4,6 +4,7 @@
 
 #include <cuda_runtime.h>
 
+#include <chrono>
 #include <cstddef>
 
 #include "core/device_bytes.h"
@@ -49,6 +50,8 @@ class CudaDeformBackend final : public DeformBackend {
   void upload_impl() override;
   void reset_impl() override;
   DeformStats step_impl(const ChainMailStats& setup) override;
+  void begin_step_impl(const ChainMailStats& setup) override;
+  DeformStats end_step_impl() override;
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
   const float* deformed_brick_impl() const override { return host_j_; }
@@ -57,6 +60,8 @@ class CudaDeformBackend final : public DeformBackend {
 
  private:
   void release();
+  // the launch shapes of this step from the device's and set_gpu_share()
+  void launch_shape_for_share();
   // allocates the multigrid relaxation's buffers once (deform.relax_method "multigrid")
   void ensure_multigrid_buffers();
   // allocates untangling's buffers once (deform.untangle, or a call of untangle())
@@ -75,8 +80,12 @@ class CudaDeformBackend final : public DeformBackend {
   std::shared_ptr<const DevicePatient> patient_copy_;  // I and the bone mask, shared
   DeviceBuffers d_;
   MultigridBuffers mg_;                // empty unless the scene relaxes by multigrid
-  int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel
-  LaunchShape shape_;
+  int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel, this step
+  int full_mg_blocks_ = 0;             // ... that fit on the device
+  LaunchShape shape_;                  // persistent kernels' blocks, this step (launch_shape_for_share)
+  LaunchShape full_shape_;             // ... that fit on the device
+  DeformStats step_out_;               // begin_step_impl()'s part of the step's stats
+  std::chrono::steady_clock::time_point step_start_;
   cudaStream_t stream_ = nullptr;
   cudaEvent_t ev_[7] = {};
   Counters* host_counters_ = nullptr;  // pinned

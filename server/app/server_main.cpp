@@ -9,6 +9,7 @@
 #include <cstring>
 #include <filesystem>
 #include <pthread.h>
+#include <cstdlib>
 #include <string>
 
 #include "core/error.h"
@@ -22,7 +23,8 @@ namespace {
 
 const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
-    "                      [--max-pose-distance-mm MM] [--background idle|nice] [--scene-dir DIR ...]\n"
+    "                      [--max-pose-distance-mm MM] [--background idle|nice] [--deform-concurrency K]\n"
+    "                      [--scene-dir DIR ...]\n"
     "                      [--curve-secret FILE --allow FILE] [--insecure]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
     "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
@@ -32,6 +34,8 @@ const char* kUsage =
     "                     (default: the control port + 2; * stays *)\n"
     "  --background P     the deformation and render threads: idle (default: SCHED_IDLE and nice 19,\n"
     "                     any pose thread takes a core at once) or nice (nice 19 only)\n"
+    "  --deform-concurrency K  sessions' deformation steps on the GPU at once, each with 1/K of it\n"
+    "                     (default 4; 1: one step at a time)\n"
     "  --scene-dir DIR    a folder LoadScene requests may read scene files and CTs from and record\n"
     "                     frames into (repeatable; default: the folder of --scene, none without it)\n"
     "  --curve-secret FILE the server's secret key (palpsim-keys NAME makes NAME.key_secret): every\n"
@@ -93,6 +97,13 @@ int main(int argc, char** argv) {
         const std::string p = value("--background");
         if (p != "idle" && p != "nice") throw palpsim::Error("--background " + p + ": expected idle or nice");
         options.background_idle = p == "idle";
+      } else if (a == "--deform-concurrency") {
+        const std::string v = value("--deform-concurrency");
+        char* end = nullptr;
+        const long k = std::strtol(v.c_str(), &end, 10);
+        if (end == v.c_str() || *end != '\0' || k < 1 || k > 64)
+          throw palpsim::Error("--deform-concurrency " + v + ": expected a whole number from 1 to 64");
+        options.deform_concurrency = int(k);
       } else if (a == "--max-pose-distance-mm") {
         options.max_pose_distance_mm = std::stod(value("--max-pose-distance-mm"));
       } else if (a == "--log-level") {

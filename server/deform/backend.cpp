@@ -225,6 +225,33 @@ DeformStats DeformBackend::step(const DeformContact& contact) {
   return out;
 }
 
+void DeformBackend::begin_step(const DeformContact& contact) {
+  require(!in_step_, "begin_step() twice without end_step()");
+  ChainMailStats st = setup_step(contact);
+  voi_ = st.voi;
+  setup_ = st;
+  in_step_ = true;
+  try {
+    begin_step_impl(st);
+  } catch (...) {
+    in_step_ = false;
+    throw;
+  }
+}
+
+DeformStats DeformBackend::end_step() {
+  require(in_step_, "end_step() without begin_step()");
+  in_step_ = false;
+  DeformStats out = end_step_impl();
+  stage_ = config_.invert ? 4 : (config_.relax ? 2 : 1);
+  return out;
+}
+
+void DeformBackend::set_gpu_share(int k) {
+  require(!in_step_, "set_gpu_share() between begin_step() and end_step()");
+  gpu_share_ = std::max(1, k);
+}
+
 std::vector<Vec3f> DeformBackend::displacement() const {
   require(voi_.count() > 0, "displacement() before chainmail()");
   return displacement_impl();

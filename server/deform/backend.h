@@ -144,6 +144,17 @@ class DeformBackend {
   /// All stages in order, timed: reset, ChainMail, relax, untangle (deform.untangle, with
   /// relaxation) and invert as configured, upload.
   DeformStats step(const DeformContact& contact);
+  /// step() in two halves, so that one thread can overlap the steps of several sessions
+  /// on one GPU: begin_step() enqueues the stages without waiting where the backend can
+  /// (cuda: on the session's own stream; cpu: runs the whole step), end_step() waits and
+  /// returns what step() would. Nothing else may be called on the backend in between.
+  void begin_step(const DeformContact& contact);
+  DeformStats end_step();
+  /// Lets each persistent kernel of this backend take 1/k of the device's co-resident
+  /// blocks (cuda; cpu ignores it), so that k sessions' steps fit on the GPU side by
+  /// side: a cooperative launch needs all its blocks resident, and k grids of 1/k always
+  /// fit together. 1 (the default): every kernel may fill the device.
+  void set_gpu_share(int k);
 
   /// The VOI of the latest ChainMail (empty before the first one).
   const Voi& voi() const { return voi_; }
@@ -182,6 +193,9 @@ class DeformBackend {
   virtual void upload_impl() = 0;
   virtual void reset_impl() = 0;
   virtual DeformStats step_impl(const ChainMailStats& setup) = 0;  // resets first
+  // the halves of step_impl; by default the whole step runs in the first
+  virtual void begin_step_impl(const ChainMailStats& setup) { pending_ = step_impl(setup); }
+  virtual DeformStats end_step_impl() { return pending_; }
   virtual std::vector<Vec3f> displacement_impl() const = 0;
   virtual void set_displacement_impl(const std::vector<Vec3f>& u) = 0;
   virtual const float* deformed_brick_impl() const = 0;
@@ -199,6 +213,8 @@ class DeformBackend {
   Voi voi_;                   // VOI of the latest ChainMail
   ChainMailStats setup_;      // grabbed element and VOI of the latest ChainMail
   deform::ChainMailLimits limits_;
+  int gpu_share_ = 1;         // set_gpu_share(): the 1/k of the device each persistent kernel may take
+  DeformStats pending_;       // the default begin_step_impl()'s result, returned by end_step_impl()
 
  private:
   ChainMailStats setup_step(const DeformContact& contact);
@@ -206,6 +222,7 @@ class DeformBackend {
 
   std::string name_;
   bool bound_ = false;
+  bool in_step_ = false;      // between begin_step() and end_step()
   int stage_ = 0;             // 0 undeformed, 1 chainmail, 2 relaxed, 3 inverted, 4 uploaded
 };
 

@@ -15,6 +15,17 @@ DeformStats DeformEngine::step(const DeformContact& contact) {
   return st;
 }
 
+void DeformEngine::begin_step(const DeformContact& contact) {
+  has_brick_ = false;
+  backend_->begin_step(contact);
+}
+
+DeformStats DeformEngine::end_step() {
+  DeformStats st = backend_->end_step();
+  has_brick_ = backend_->config().invert;
+  return st;
+}
+
 void DeformEngine::reset() {
   has_brick_ = false;
   backend_->reset();

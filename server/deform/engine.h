@@ -23,6 +23,10 @@ class DeformEngine {
   /// as configured, and the upload of J's VOI; returns counts and stage times.
   /// Throws palpsim::Error for a non-finite contact or X outside the patient grid.
   DeformStats step(const DeformContact& contact);
+  /// step() in two halves (DeformBackend::begin_step, end_step): the worker overlaps
+  /// several sessions' steps on one GPU.
+  void begin_step(const DeformContact& contact);
+  DeformStats end_step();
 
   /// Returns everything to undeformed (J = I).
   void reset();

@@ -98,8 +98,9 @@ struct DeformWorker::Request {
   bool found = false;
 };
 
-DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle)
-    : sh_(shared), start_(start), nice_(nice), idle_(idle) {}
+DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle,
+                           int concurrency)
+    : sh_(shared), start_(start), nice_(nice), idle_(idle), max_inflight_(std::max(1, concurrency)) {}
 
 DeformWorker::~DeformWorker() { stop(); }
 
@@ -148,14 +149,23 @@ void DeformWorker::run() {
       std::this_thread::sleep_for(std::chrono::duration<double>(kDisabledSleepS));
       continue;
     }
-    // one pass over the sessions: at most one step each, on its newest contact
+    // one pass over the sessions: at most one step each, on its newest contact; up to
+    // max_inflight_ steps are enqueued before the worker waits for them, each on its
+    // session's stream with 1/k of the GPU, so that they run side by side
     bool worked = false, any_open = false;
     const int used = sh_.slots_used.load(std::memory_order_acquire);
+    int open = 0;
+    for (int i = 0; i < used; ++i) open += sh_.slots[i].id.load(std::memory_order_relaxed) != 0;
+    gpu_share_ = std::max(1, std::min(max_inflight_, open));
     for (int i = 0; i < used && !stop_.load(std::memory_order_relaxed); ++i) {
       worked = serve(i) || worked;
       any_open = any_open || sessions_[i].id != 0;
-      if (request_pending_.load(std::memory_order_acquire)) answer_request();
+      if (request_pending_.load(std::memory_order_acquire)) {
+        complete_inflight();
+        answer_request();
+      }
     }
+    complete_inflight();
     // nothing new: a short nap while sessions are open, a longer one while none is
     if (!worked) {
       const auto t0 = std::chrono::steady_clock::now();
@@ -244,8 +254,12 @@ void DeformWorker::give_back(std::unique_ptr<DeformEngine> engine) {
 }
 
 bool DeformWorker::serve(int index) {
+  const std::size_t before = inflight_.size();
   const bool worked = serve_deformation(index);
-  export_watched(index);
+  // a session whose step is in flight exports when it completes (complete_inflight)
+  if (inflight_.size() == before) export_watched(index);
+  // at most gpu_share_ steps in flight: their grids are sized to fit together
+  if (inflight_.size() >= std::size_t(gpu_share_)) complete_inflight();
   return worked;
 }
 
@@ -346,7 +360,37 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
   try {
     if (!s.engine) s.engine = take_engine();
     r.backend = s.engine->backend_name();
-    const DeformStats st = s.engine->step(DeformContact{c.skin_point_mm, c.tip_mm});
+    // enqueued now, finished in complete() after the pass's other sessions are enqueued
+    s.engine->backend().set_gpu_share(gpu_share_);
+    s.engine->begin_step(DeformContact{c.skin_point_mm, c.tip_mm});
+    inflight_.push_back({index, c});
+  } catch (const std::exception& e) {
+    fail(s, c, e);
+    publish(s, index);
+  }
+  // enqueueing (cuda) or the whole step (cpu); complete_inflight() adds the wait
+  step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void DeformWorker::complete_inflight() {
+  // in the order they were begun: the first enqueued is the first to finish
+  for (const Inflight& f : inflight_) {
+    Session& s = sessions_[f.index];
+    const auto t0 = std::chrono::steady_clock::now();
+    complete(s, f.contact);
+    // the wait for this step (the others' steps overlap it on the GPU, so the worker's
+    // step time counts waits, not the sum of the steps)
+    step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    publish(s, f.index);
+    export_watched(f.index);
+  }
+  inflight_.clear();
+}
+
+void DeformWorker::complete(Session& s, const Contact& c) {
+  DeformSessionReport& r = s.report;
+  try {
+    const DeformStats st = s.engine->end_step();
     // J must be finite, and how far it moved from I says how much the image changed: the
     // inversion counts both as it writes J (on the GPU for cuda), so the worker does not
     // read J again (that scan cost 0.2-0.7 ms a step on the H100's host, more than the
@@ -390,22 +434,25 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
     add_times(server_.sum, st.times);
     if (!st.chainmail.converged) ++server_.non_converged;
   } catch (const std::exception& e) {
-    // a failed step poisons nothing: the session's deformation starts again from undeformed
-    ++r.failures;
-    r.last_error = "contact seq " + std::to_string(c.seq) + ": " + e.what() + "; the session's deformation was reset";
-    if (r.failures == 1) spdlog::warn("session {}: deformation step failed: {} (counted in stats)", hex_id(s.id), r.last_error);
-    try {
-      if (s.engine) s.engine->reset();
-    } catch (const std::exception&) {
-      s.engine.reset();
-    }
-    r.deformed = false;
-    r.max_change_hu = 0;
-    std::lock_guard<std::mutex> lock(report_mu_);
-    ++server_.failures;
+    fail(s, c, e);
   }
-  step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  publish(s, index);
+}
+
+void DeformWorker::fail(Session& s, const Contact& c, const std::exception& e) {
+  // a failed step poisons nothing: the session's deformation starts again from undeformed
+  DeformSessionReport& r = s.report;
+  ++r.failures;
+  r.last_error = "contact seq " + std::to_string(c.seq) + ": " + e.what() + "; the session's deformation was reset";
+  if (r.failures == 1) spdlog::warn("session {}: deformation step failed: {} (counted in stats)", hex_id(s.id), r.last_error);
+  try {
+    if (s.engine) s.engine->reset();
+  } catch (const std::exception&) {
+    s.engine.reset();
+  }
+  r.deformed = false;
+  r.max_change_hu = 0;
+  std::lock_guard<std::mutex> lock(report_mu_);
+  ++server_.failures;
 }
 
 void DeformWorker::export_watched(int index) {

@@ -86,7 +86,10 @@ class DeformWorker {
  public:
   /// `nice`, `idle`: the thread's nice value and SCHED_IDLE (Linux; core/thread.h says why
   /// the server uses 19 and SCHED_IDLE).
-  DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle);
+  /// `concurrency`: how many sessions' steps the worker enqueues before it waits for
+  /// them (each with 1/concurrency of the GPU; 1: one step at a time, as before).
+  DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle,
+               int concurrency = 1);
   ~DeformWorker();
   DeformWorker(const DeformWorker&) = delete;
   DeformWorker& operator=(const DeformWorker&) = delete;
@@ -118,7 +121,10 @@ class DeformWorker {
   bool serve_deformation(int index);
   void export_watched(int index);
   void fill_snapshot(JSnapshot& out, Session& s, bool device);
-  void step(Session& s, int index, const Contact& c);
+  void step(Session& s, int index, const Contact& c);   // begins the step (in flight)
+  void complete_inflight();                               // finishes every step in flight, in order
+  void complete(Session& s, const Contact& c);            // finishes one: checks, counts, reports
+  void fail(Session& s, const Contact& c, const std::exception& e);  // a step that threw: reset, counted
   void reset(Session& s, int index);
   std::unique_ptr<DeformEngine> take_engine();
   void give_back(std::unique_ptr<DeformEngine> engine);
@@ -140,6 +146,14 @@ class DeformWorker {
   bool built_ = false;
   std::vector<Session> sessions_;                       // by slot index
   std::vector<std::unique_ptr<DeformEngine>> spares_;  // engines of closed sessions, reused
+  // steps begun and not yet finished: the slot and its contact
+  struct Inflight {
+    int index;
+    Contact contact;
+  };
+  std::vector<Inflight> inflight_;
+  int max_inflight_ = 1;  // steps in flight at most (ServerOptions::deform_concurrency)
+  int gpu_share_ = 1;     // this pass: min(max_inflight_, open sessions)
   std::chrono::steady_clock::time_point world_start_;  // when the current scene was set up
   double step_s_ = 0, sleep_s_ = 0;                    // the worker's time in steps and naps since then
 

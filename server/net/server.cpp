@@ -248,7 +248,8 @@ class Server::Control {
   // (throws the worker's set-up error); with none asked for, nothing is built
   void start_deform() {
     if (current_->scene.effects.chainmail && !deform_) {
-      auto w = std::make_unique<DeformWorker>(sh_, start_, opt_.deform_nice, opt_.background_idle);
+      auto w = std::make_unique<DeformWorker>(sh_, start_, opt_.deform_nice, opt_.background_idle,
+                                              opt_.deform_concurrency);
       w->start();
       deform_ = std::move(w);
       deform_ptr_.store(deform_.get(), std::memory_order_release);

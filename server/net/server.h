@@ -35,6 +35,7 @@ struct ServerOptions {
   double bad_input_log_period_s = 5;                    // log a summary of new bad input at most this often
   int deform_nice = 19;                                 // the deformation and render threads' nice value (Linux; 0..19)
   bool background_idle = true;                          // and SCHED_IDLE for them (Linux; core/thread.h says why)
+  int deform_concurrency = 4;                           // sessions' deformation steps in flight on the GPU at once
   std::string stream_bind;                              // the stream publisher's XPUB address; "" = derived (derive_stream_endpoint)
   std::vector<std::string> scene_dirs;                  // folders LoadScene may read (scene file, CT) and write
                                                         // (render.record_dir) in; none: LoadScene names no file

@@ -125,3 +125,23 @@ TEST_CASE("a step reports J's largest change from I and its non-finite voxels, a
     CHECK(std::isfinite(ns.invert_max_change));
   }
 }
+
+TEST_CASE("a step in two halves equals a whole step, and the halves keep their order") {
+  auto torso = make_torso_patient(64);
+  DeformConfig cfg = preset_config(1);
+  cfg.settings.voi_edge = 32;
+  CpuDeformBackend whole, halves;
+  whole.bind(torso, cfg);
+  halves.bind(torso, cfg);
+  const DeformContact k = voxel_contact({32, 14, 32}, {0.5, 5.0, -1.0});
+  const DeformStats a = whole.step(k);
+  halves.set_gpu_share(4);  // no GPU here: the cpu backend ignores it
+  halves.begin_step(k);
+  CHECK_THROWS_WITH(halves.begin_step(k), Catch::Contains("begin_step() twice"));
+  const DeformStats b = halves.end_step();
+  CHECK(b.chainmail.moved == a.chainmail.moved);
+  CHECK(b.invert_max_change == a.invert_max_change);
+  CHECK(std::vector<float>(halves.deformed_brick(), halves.deformed_brick() + halves.voi().count()) ==
+        std::vector<float>(whole.deformed_brick(), whole.deformed_brick() + whole.voi().count()));
+  CHECK_THROWS_WITH(halves.end_step(), Catch::Contains("end_step() without begin_step()"));
+}

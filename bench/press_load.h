@@ -19,9 +19,16 @@
 
 namespace palpsim::bench {
 
+/// The client token every request of the bench's clients carries.
+inline constexpr const char* kBenchClientToken = "palpsim-bench";
+
 /// Sends one control request (schema version set) and returns the reply.
 inline v1::ControlReply control(zmq::socket_t& s, v1::ControlRequest q) {
   q.set_schema_version(1);
+  // every bench client acts as one client (PROTOCOL.md, "Who may connect"): a viewer
+  // thread may watch, and the bench read the stats of, the sessions its press threads
+  // opened on other connections
+  q.set_client_token(kBenchClientToken);
   s.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
   zmq::message_t m;
   (void)s.recv(m);

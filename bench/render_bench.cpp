@@ -21,6 +21,7 @@
 #include <memory>
 #include <sstream>
 #include <string>
+#include <mutex>
 #include <thread>
 #include <unistd.h>
 #include <vector>
@@ -279,6 +280,8 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
   std::vector<std::uint64_t> ids(n, 0);
   std::atomic<int> opened{0};
   PressResult pressed;
+  std::mutex refusal_mu;
+  std::string refusal;  // a viewer's refused WatchSession: the figures would be meaningless
   std::thread press([&] {
     pressed = press_sessions(server.control_endpoint(), pi, n, seconds, &opened,
                              [&](int c, std::uint64_t id) { ids[c] = id; });
@@ -301,7 +304,8 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
         q.mutable_watch()->set_frames(true);
         const v1::ControlReply r = control(ctl, q);
         if (!r.has_watch()) {
-          std::fprintf(stderr, "render bench: watch refused: %s\n", r.error().message().c_str());
+          std::lock_guard<std::mutex> lock(refusal_mu);
+          refusal = r.error().message();
           return;
         }
         sub.connect(r.watch().stream_endpoint());
@@ -329,6 +333,7 @@ void run_sessions(net::Server& server, const v1::PatientInfo& pi, int n, double 
   press.join();
   done = true;
   for (auto& t : watchers) t.join();
+  if (!refusal.empty()) throw Error("palpsim-bench render: a viewer's WatchSession was refused: " + refusal);
   for (auto& v : pressed.rtt_us) rtts.insert(rtts.end(), v.begin(), v.end());
   for (auto& v : lat) p2f.insert(p2f.end(), v.begin(), v.end());
   if (viewers) fps = frames;

@@ -154,6 +154,7 @@ class DeformWorker {
   std::vector<Inflight> inflight_;
   int max_inflight_ = 1;  // steps in flight at most (ServerOptions::deform_concurrency)
   int gpu_share_ = 1;     // this pass: min(max_inflight_, open sessions)
+  double min_watched_step_s_ = 0;  // least time between steps of a session whose frames are watched (s)
   std::chrono::steady_clock::time_point world_start_;  // when the current scene was set up
   double step_s_ = 0, sleep_s_ = 0;                    // the worker's time in steps and naps since then
 

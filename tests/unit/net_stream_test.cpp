@@ -598,3 +598,37 @@ TEST_CASE("sessions due together are drawn in batches; every frame shows its own
   CHECK(c.stats().server().stream().render_failures() == 0);
   server.stop();
 }
+
+TEST_CASE("a session whose frames are watched is stepped at most once a frame; an unwatched one as often as it can",
+          "[net][stream]") {
+  Scene scene = stream_scene(true);
+  scene.deform.voi_edge = 8;  // cpu steps of about a millisecond: the pacing, not the step, limits
+  scene.render.max_fps = 10;  // one step per 100 ms at most for the watched session
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client watched(server, "station"), free_running(server);
+  v1::WatchSession w;
+  w.set_frames(true);
+  w.set_hold_s(30);
+  w.set_session_id(watched.id);
+  REQUIRE(watched.watch(w).has_watch());
+  // both press for a second with a new contact every 2 ms
+  const auto t0 = std::chrono::steady_clock::now();
+  for (int n = 0; std::chrono::steady_clock::now() - t0 < std::chrono::seconds(1); ++n) {
+    const double z = test::kSlabSkinZ - 3 - 0.001 * (n % 1000);
+    watched.send_pose({kPressX, kPressY, z});
+    free_running.send_pose({kPressX + 10, kPressY, z});
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const std::uint64_t a = watched.stats().session().deform().steps();
+  const std::uint64_t b = free_running.stats().session().deform().steps();
+  INFO("watched " << a << " steps, unwatched " << b << " steps in " << seconds << " s");
+  // at most one step per 100 ms frame interval, plus the first (the interval starts at it)
+  CHECK(a >= 1);
+  CHECK(double(a) <= seconds * scene.render.max_fps + 1);
+  // the unwatched session is not held back: several times as many (its 1 ms steps allow
+  // hundreds; the 2-core CI machine shares its cores with the render thread and the client)
+  CHECK(b >= 3 * a);
+  server.stop();
+}

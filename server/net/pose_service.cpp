@@ -4,7 +4,9 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <vector>
 
+#include "haptics/patch_cut.h"
 #include "net/curve_keys.h"
 #include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
@@ -26,7 +28,16 @@ double box_distance_mm(const Vec3& p, const Vec3& lo, const Vec3& hi) {
 class PoseService {
  public:
   PoseService(zmq::socket_t& s, ServerShared& sh, std::chrono::steady_clock::time_point start)
-      : sock_(s), sh_(sh), start_(start) {}
+      : sock_(s), sh_(sh), start_(start), out_(kMaxPoseReplyBytes) {
+    // the largest patch's buffers, once; every patch overwrites them
+    const std::size_t n = std::size_t(kMaxPatchEdge) * kMaxPatchEdge * kMaxPatchEdge;
+    patch_.mutable_body()->reserve(n);
+    patch_.mutable_force()->reserve(n * sizeof(float));
+    patch_.mutable_grad_force()->reserve(n * sizeof(Vec3f));
+    patch_.mutable_direction()->Reserve(9);
+    (void)patch_.mutable_origin_mm();
+    (void)patch_.mutable_center_mm();
+  }
 
   void run(int idle_poll_ms) {
     zmq::pollitem_t items[] = {{sock_.handle(), 0, ZMQ_POLLIN, 0}};
@@ -44,6 +55,10 @@ class PoseService {
   const World* world_ = nullptr;
   v1::PoseRequest req_;
   v1::PoseReply rep_;
+  // the patch buffer: lent to rep_ for one reply and taken back before rep_ is cleared
+  // (PoseReply::Clear deletes a message field it owns, and with it these 68 KiB)
+  v1::LocalForceModel patch_;
+  bool patch_lent_ = false;
   char id_[256];
   std::size_t id_len_ = 0;
   zmq::message_t msg_;                       // with CURVE: a payload frame with its properties
@@ -53,7 +68,7 @@ class PoseService {
   std::size_t frame_len_[2] = {0, 0};        // bytes kept (at most kMaxPoseBytes + 1)
   std::size_t frame_full_len_[2] = {0, 0};   // bytes sent by the client
   char scrap_[64];
-  char out_[kMaxPoseBytes * 2];
+  std::vector<char> out_;                    // a serialized reply (room for the largest patch)
 
   // picks up the current world (one atomic load and store): a scene loaded before a pose
   // arrived serves that pose. Once its generation is published the control thread may
@@ -184,11 +199,30 @@ class PoseService {
       refuse(v1::ERROR_ABSURD_POSE, sh_.counters.absurd_pose, msg, slot);
       return send(req_envelope);
     }
+    // a request for patches names a size and a period within their ranges
+    const std::uint32_t edge = req_.local_model_edge();
+    const double period = req_.local_model_period_s();
+    if (edge != 0 && (edge < kMinPatchEdge || edge > kMaxPatchEdge)) {
+      std::snprintf(msg, sizeof msg, "PoseRequest.local_model_edge: %u voxels, outside %d..%d (0: no patches)", edge,
+                    kMinPatchEdge, kMaxPatchEdge);
+      refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, msg, slot);
+      return send(req_envelope);
+    }
+    if (edge != 0 && !(period >= kMinPatchPeriodS && period <= kMaxPatchPeriodS)) {
+      std::snprintf(msg, sizeof msg, "PoseRequest.local_model_period_s: %g s, outside %g..%g s", period,
+                    kMinPatchPeriodS, kMaxPatchPeriodS);
+      refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, msg, slot);
+      return send(req_envelope);
+    }
     // a new session in this slot, a reset, or a new world: a fresh proxy state
     const std::uint32_t resets = slot->reset_requests.load(std::memory_order_acquire);
     if (slot->state_id != id || slot->resets_seen != resets || slot->state_generation != world_->generation ||
         req_.reset_proxy()) {
-      if (slot->state_id != id) slot->latest.clear();
+      if (slot->state_id != id) {
+        slot->latest.clear();
+        slot->patch_version = 0;
+      }
+      slot->patch_sent_s = -1;  // a fresh state gets a fresh patch with its next pose
       slot->state_id = id;
       slot->resets_seen = resets;
       slot->state_generation = world_->generation;
@@ -209,7 +243,11 @@ class PoseService {
     slot->last_client_time_s = tc;
     slot->last_server_time_s = now_s;
 
-    const ForceSample f = compute_force(*world_->patient, slot->params(), tip, dt, slot->proxy);
+    const HapticsSettings params = slot->params();
+    const ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
+    if (edge != 0 && patch_due(*slot, tip, now_s, period)) add_patch(*slot, params, tip, edge, now_s);
+    slot->renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);
+    if (req_.renders_locally()) slot->local_poses.fetch_add(1, std::memory_order_relaxed);
 
     // the reply
     rep_.set_schema_version(v1::VERSION_CURRENT);
@@ -244,14 +282,81 @@ class PoseService {
     send(req_envelope);
   }
 
+  // a patch is due once per period, and sooner (a quarter period) when the tip comes within
+  // kPatchMarginVox voxels of the last box's inner faces, where the client would soon miss
+  bool patch_due(const SessionSlot& slot, const Vec3& tip, double now_s, double period_s) const {
+    if (slot.patch_sent_s < 0 || now_s - slot.patch_sent_s >= period_s) return true;
+    if (now_s - slot.patch_sent_s < 0.25 * period_s) return false;
+    const Grid& g = world_->patient->grid;
+    const Vec3 ijk = g.to_index(tip);
+    for (int a = 0; a < 3; ++a) {
+      const double lo = slot.patch_lo[a], hi = slot.patch_lo[a] + slot.patch_size[a] - 1;
+      if ((ijk[a] < lo + kPatchMarginVox && lo > 0) || (ijk[a] > hi - kPatchMarginVox && hi < g.size[a] - 1))
+        return true;
+    }
+    return false;
+  }
+
+  // cuts a patch of `edge` voxels around the tip into rep_.local_model (into buffers
+  // reserved at start: no allocation; about 1 us for 12^3 voxels, PROTOCOL.md)
+  void add_patch(SessionSlot& slot, const HapticsSettings& params, const Vec3& tip, std::uint32_t edge, double now_s) {
+    const Patient& p = *world_->patient;
+    Vec3i size;
+    const Vec3i lo = patch_box(p.grid, tip, int(edge), size);
+    const std::size_t n = std::size_t(size.x) * size.y * size.z;
+    v1::LocalForceModel* lm = &patch_;
+    std::string* body = lm->mutable_body();
+    std::string* force = lm->mutable_force();
+    std::string* grad = lm->mutable_grad_force();
+    body->resize(n);
+    force->resize(n * sizeof(float));
+    grad->resize(n * sizeof(Vec3f));
+    // the wire is little-endian, as the hosts palpsim builds for are (PROTOCOL.md)
+    gather_patch(p, lo, size, reinterpret_cast<std::uint8_t*>(body->data()), reinterpret_cast<float*>(force->data()),
+                 reinterpret_cast<Vec3f*>(grad->data()));
+    set_vec(lm->mutable_origin_mm(), p.grid.to_physical(Vec3(lo)));
+    lm->set_spacing_mm(p.grid.spacing_mm.x);
+    lm->set_stiffness_n_per_mm(params.stiffness_n_per_mm);
+    lm->set_friction(params.friction);
+    lm->set_max_force_n(params.max_force_n);
+    lm->set_max_force_rate_n_per_s(params.max_force_rate_n_per_s);
+    lm->set_min_gradient_norm(params.min_gradient_norm);
+    lm->set_version(++slot.patch_version);
+    lm->set_scene_generation(world_->generation);
+    lm->set_lo_i(lo.x);
+    lm->set_lo_j(lo.y);
+    lm->set_lo_k(lo.z);
+    lm->set_size_i(size.x);
+    lm->set_size_j(size.y);
+    lm->set_size_k(size.z);
+    lm->set_grid_size_i(p.grid.size.x);
+    lm->set_grid_size_j(p.grid.size.y);
+    lm->set_grid_size_k(p.grid.size.z);
+    lm->mutable_direction()->Clear();
+    for (double d : p.grid.direction) lm->add_direction(d);
+    set_vec(lm->mutable_center_mm(), tip);
+    lm->set_server_time_s(now_s);
+    slot.patch_sent_s = now_s;
+    slot.patch_lo = lo;
+    slot.patch_size = size;
+    slot.local_models_sent.fetch_add(1, std::memory_order_relaxed);
+    rep_.set_allocated_local_model(&patch_);
+    patch_lent_ = true;
+  }
+
   // sends rep_ to the current routing id; never blocks (a vanished or slow client's reply is dropped)
   void send(bool req_envelope) {
     const std::size_t n = rep_.ByteSizeLong();
-    if (n > sizeof out_ || !rep_.SerializeToArray(out_, int(n))) return;
+    const bool ok = n <= out_.size() && rep_.SerializeToArray(out_.data(), int(n));
+    if (patch_lent_) {
+      (void)rep_.release_local_model();
+      patch_lent_ = false;
+    }
+    if (!ok) return;
     try {
       if (!sock_.send(zmq::const_buffer(id_, id_len_), zmq::send_flags::sndmore | zmq::send_flags::dontwait)) return;
       if (req_envelope) sock_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::sndmore | zmq::send_flags::dontwait);
-      sock_.send(zmq::const_buffer(out_, n), zmq::send_flags::dontwait);
+      sock_.send(zmq::const_buffer(out_.data(), n), zmq::send_flags::dontwait);
     } catch (const zmq::error_t&) {
       // EHOSTUNREACH and the like: the client is gone; nothing to do
     }
@@ -262,7 +367,7 @@ class PoseService {
 
 void run_pose_service(zmq::socket_t& socket, ServerShared& shared, std::chrono::steady_clock::time_point start,
                       int idle_poll_ms) {
-  // the service object holds ~4 KiB of buffers: on the heap, once
+  // the service object holds ~4 KiB of buffers and the largest patch's: on the heap, once
   auto service = std::make_unique<PoseService>(socket, shared, start);
   service->run(idle_poll_ms);
 }

@@ -571,6 +571,9 @@ class Server::Control {
     s.errors = 0;
     s.last_seq = 0;
     s.clamps = 0;
+    s.local_models_sent = 0;
+    s.local_poses = 0;
+    s.renders_locally = false;
     s.contact = false;
     s.depth_mm = 0;
     s.client_name = req_.open().client_name();
@@ -728,6 +731,9 @@ class Server::Control {
       ss->set_idle_s((ns_since(start_) - slot->last_seen_ns.load()) * 1e-9);
       fill_params(ss->mutable_params(), slot->params());
       ss->set_force_clamps(slot->clamps);
+      ss->set_local_models_sent(slot->local_models_sent);
+      ss->set_local_poses(slot->local_poses);
+      ss->set_renders_locally(slot->renders_locally);
       // the session's stages: haptics holds its slot; its pose times are kept server-wide only
       add_stage(ss->mutable_stages(), "haptics", w.scene.effects.haptics, sizeof(SessionSlot), 0, slot->poses);
       DeformSessionReport r;

@@ -33,9 +33,11 @@ class ModeSelector {
   bool add_round_trip(double rtt_s, double t_s);
   /// The current mode (remote until round trips say otherwise; never local without a patch).
   RenderMode mode() const { return mode_; }
-  /// True when patches should be asked for: local mode, or a round trip above kRemoteBelowS
-  /// (so that a patch is there when local mode starts).
-  bool wants_patches() const { return mode_ == RenderMode::kLocal || rtt_s_ > kRemoteBelowS; }
+  /// True when patches should be asked for: local mode, or (not held in remote mode) a round
+  /// trip above kRemoteBelowS, so that a patch is there when local mode starts.
+  bool wants_patches() const {
+    return mode_ == RenderMode::kLocal || (!forced_ && rtt_s_ > kRemoteBelowS);
+  }
   /// The smoothed round trip (s); 0 before the first.
   double round_trip_s() const { return rtt_s_; }
   /// Forces a mode (--mode local|remote); auto selection stops.

@@ -7,7 +7,13 @@ namespace palpsim::haptic {
 
 bool ModeSelector::add_round_trip(double rtt_s, double t_s) {
   if (!(rtt_s >= 0) || !std::isfinite(rtt_s)) return false;
-  rtt_s_ = rtt_s_ == 0 ? rtt_s : rtt_s_ + kSmoothing * (rtt_s - rtt_s_);
+  // the median of the window (a fixed array: no allocation; about a microsecond)
+  window_[count_ % kWindow] = rtt_s;
+  ++count_;
+  const int n = std::min(count_, kWindow);
+  std::copy(window_, window_ + n, scratch_);
+  std::nth_element(scratch_, scratch_ + n / 2, scratch_ + n);
+  rtt_s_ = scratch_[n / 2];
   if (forced_ || t_s - switched_at_s_ < kMinDwellS) return false;
   // hysteresis: local above the upper threshold (with a patch to render from), remote below the lower
   RenderMode want = mode_;

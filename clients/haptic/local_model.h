@@ -16,7 +16,9 @@ namespace palpsim::haptic {
 /// Where the rendered force comes from.
 enum class RenderMode { kRemote = 0, kLocal = 1 };
 
-/// Picks local or remote mode from the round trip, with hysteresis and a minimum dwell.
+/// Picks local or remote mode from the round trip (the median of the last kWindow replies,
+/// so that a burst of late replies after a stall of under kWindow / 2 ms on a loaded
+/// machine does not count as a slow link), with hysteresis and a minimum dwell.
 /// Local above kLocalAboveS: at 8 ms the remote force lags eight 1 kHz steps, which at a
 /// palpation speed of 20 mm/s and 0.25 N/mm is 0.04 N behind (over 1% of the 3.3 N peak)
 /// and grows with the lag, while a patch renders the same force as the server with no lag.
@@ -27,7 +29,7 @@ class ModeSelector {
   static constexpr double kLocalAboveS = 0.008;   // smoothed round trip (s) above which local mode is chosen
   static constexpr double kRemoteBelowS = 0.004;  // smoothed round trip (s) below which remote mode is chosen
   static constexpr double kMinDwellS = 0.5;       // time (s) in a mode before the next switch
-  static constexpr double kSmoothing = 0.02;      // weight of a new round trip in the moving average (~50 replies)
+  static constexpr int kWindow = 128;             // round trips the median is taken over (0.128 s at 1 kHz)
 
   /// Adds a measured round trip (s) at loop time t_s; returns true when the mode changed.
   bool add_round_trip(double rtt_s, double t_s);
@@ -38,7 +40,7 @@ class ModeSelector {
   bool wants_patches() const {
     return mode_ == RenderMode::kLocal || (!forced_ && rtt_s_ > kRemoteBelowS);
   }
-  /// The smoothed round trip (s); 0 before the first.
+  /// The median round trip (s) of the window; 0 before the first.
   double round_trip_s() const { return rtt_s_; }
   /// Forces a mode (--mode local|remote); auto selection stops.
   void force(RenderMode m) {
@@ -51,6 +53,9 @@ class ModeSelector {
  private:
   RenderMode mode_ = RenderMode::kRemote;
   double rtt_s_ = 0;
+  double window_[kWindow] = {};   // the last round trips (s), a ring
+  double scratch_[kWindow] = {};  // the window's copy that the median is found in
+  int count_ = 0;                 // round trips seen (the window is full from kWindow on)
   double switched_at_s_ = -1e9;
   bool forced_ = false;
   bool patch_available_ = false;

@@ -477,7 +477,7 @@ int main(int argc, char** argv) {
   const auto& re = renderer.energy();
   const double rms = compared ? std::sqrt(err_sq / double(compared)) : 0.0;
   std::printf(
-      "palpsim-haptic: mode %s at exit, local for %llu of %llu steps, %llu switches, smoothed round trip %.1f ms; "
+      "palpsim-haptic: mode %s at exit, local for %llu of %llu steps, %llu switches, median round trip %.1f ms; "
       "patches %llu (bad %llu), patch misses %llu, rate-limited steps %llu, passivity steps %llu\n"
       "palpsim-haptic: rendered vs server force over %llu poses: rms %.4f N, max %.4f N, server peak %.3f N "
       "(rms %.2f %% of peak)\n"

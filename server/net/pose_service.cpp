@@ -28,16 +28,7 @@ double box_distance_mm(const Vec3& p, const Vec3& lo, const Vec3& hi) {
 class PoseService {
  public:
   PoseService(zmq::socket_t& s, ServerShared& sh, std::chrono::steady_clock::time_point start)
-      : sock_(s), sh_(sh), start_(start), out_(kMaxPoseReplyBytes) {
-    // the largest patch's buffers, once; every patch overwrites them
-    const std::size_t n = std::size_t(kMaxPatchEdge) * kMaxPatchEdge * kMaxPatchEdge;
-    patch_.mutable_body()->reserve(n);
-    patch_.mutable_force()->reserve(n * sizeof(float));
-    patch_.mutable_grad_force()->reserve(n * sizeof(Vec3f));
-    patch_.mutable_direction()->Reserve(9);
-    (void)patch_.mutable_origin_mm();
-    (void)patch_.mutable_center_mm();
-  }
+      : sock_(s), sh_(sh), start_(start), out_(kMaxPoseReplyBytes) {}
 
   void run(int idle_poll_ms) {
     zmq::pollitem_t items[] = {{sock_.handle(), 0, ZMQ_POLLIN, 0}};
@@ -55,10 +46,7 @@ class PoseService {
   const World* world_ = nullptr;
   v1::PoseRequest req_;
   v1::PoseReply rep_;
-  // the patch buffer: lent to rep_ for one reply and taken back before rep_ is cleared
-  // (PoseReply::Clear deletes a message field it owns, and with it these 68 KiB)
-  v1::LocalForceModel patch_;
-  bool patch_lent_ = false;
+  const std::string* patch_ = nullptr;       // a serialized LocalForceModel to append to rep_, or none
   char id_[256];
   std::size_t id_len_ = 0;
   zmq::message_t msg_;                       // with CURVE: a payload frame with its properties
@@ -141,6 +129,7 @@ class PoseService {
 
   void handle(const char* data, std::size_t len, std::size_t full_len, std::int64_t t_recv, bool req_envelope) {
     rep_.Clear();
+    patch_ = nullptr;
     char msg[256];
     // size, parse, version
     if (full_len > kMaxPoseBytes) {
@@ -245,7 +234,7 @@ class PoseService {
 
     const HapticsSettings params = slot->params();
     const ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
-    if (edge != 0 && patch_due(*slot, tip, now_s, period)) add_patch(*slot, params, tip, edge, now_s);
+    if (edge != 0) serve_patches(*slot, params, tip, edge, period, now_s);
     slot->renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);
     if (req_.renders_locally()) slot->local_poses.fetch_add(1, std::memory_order_relaxed);
 
@@ -297,62 +286,64 @@ class PoseService {
     return false;
   }
 
-  // cuts a patch of `edge` voxels around the tip into rep_.local_model (into buffers
-  // reserved at start: no allocation; about 1 us for 12^3 voxels, PROTOCOL.md)
-  void add_patch(SessionSlot& slot, const HapticsSettings& params, const Vec3& tip, std::uint32_t edge, double now_s) {
-    const Patient& p = *world_->patient;
-    Vec3i size;
-    const Vec3i lo = patch_box(p.grid, tip, int(edge), size);
-    const std::size_t n = std::size_t(size.x) * size.y * size.z;
-    v1::LocalForceModel* lm = &patch_;
-    std::string* body = lm->mutable_body();
-    std::string* force = lm->mutable_force();
-    std::string* grad = lm->mutable_grad_force();
-    body->resize(n);
-    force->resize(n * sizeof(float));
-    grad->resize(n * sizeof(Vec3f));
-    // the wire is little-endian, as the hosts palpsim builds for are (PROTOCOL.md)
-    gather_patch(p, lo, size, reinterpret_cast<std::uint8_t*>(body->data()), reinterpret_cast<float*>(force->data()),
-                 reinterpret_cast<Vec3f*>(grad->data()));
-    set_vec(lm->mutable_origin_mm(), p.grid.to_physical(Vec3(lo)));
-    lm->set_spacing_mm(p.grid.spacing_mm.x);
-    lm->set_stiffness_n_per_mm(params.stiffness_n_per_mm);
-    lm->set_friction(params.friction);
-    lm->set_max_force_n(params.max_force_n);
-    lm->set_max_force_rate_n_per_s(params.max_force_rate_n_per_s);
-    lm->set_min_gradient_norm(params.min_gradient_norm);
-    lm->set_version(++slot.patch_version);
-    lm->set_scene_generation(world_->generation);
-    lm->set_lo_i(lo.x);
-    lm->set_lo_j(lo.y);
-    lm->set_lo_k(lo.z);
-    lm->set_size_i(size.x);
-    lm->set_size_j(size.y);
-    lm->set_size_k(size.z);
-    lm->set_grid_size_i(p.grid.size.x);
-    lm->set_grid_size_j(p.grid.size.y);
-    lm->set_grid_size_k(p.grid.size.z);
-    lm->mutable_direction()->Clear();
-    for (double d : p.grid.direction) lm->add_direction(d);
-    set_vec(lm->mutable_center_mm(), tip);
-    lm->set_server_time_s(now_s);
-    slot.patch_sent_s = now_s;
-    slot.patch_lo = lo;
-    slot.patch_size = size;
-    slot.local_models_sent.fetch_add(1, std::memory_order_relaxed);
-    rep_.set_allocated_local_model(&patch_);
-    patch_lent_ = true;
+  // a session that asks for patches: the first time, the patch worker is told to make the
+  // slot's channel; then a request when a patch is due, and the newest patch the worker
+  // has cut for this session and world goes with this reply (patch_worker.h)
+  void serve_patches(SessionSlot& slot, const HapticsSettings& params, const Vec3& tip, std::uint32_t edge,
+                     double period_s, double now_s) {
+    if (!slot.patch_asked.load(std::memory_order_relaxed)) {
+      slot.patch_asked.store(true, std::memory_order_release);
+      sh_.patches_asked.store(true, std::memory_order_release);
+    }
+    PatchChannel* ch = slot.patch_channel.load(std::memory_order_acquire);
+    if (!ch) return;
+    if (patch_due(slot, tip, now_s, period_s)) {
+      PatchRequest& q = ch->request.back();
+      q.session_id = slot.state_id;
+      q.generation = world_->generation;
+      q.version = ++slot.patch_version;
+      q.tip_mm = tip;
+      q.edge = int(edge);
+      q.params = params;
+      q.server_time_s = now_s;
+      ch->request.publish();
+      slot.patch_sent_s = now_s;
+      slot.patch_lo = patch_box(world_->patient->grid, tip, int(edge), slot.patch_size);
+    }
+    if (ch->patch.take()) {
+      const PatchBytes& b = ch->patch.front();
+      if (b.session_id == slot.state_id && b.generation == world_->generation) {
+        patch_ = &b.bytes;
+        slot.local_models_sent.fetch_add(1, std::memory_order_relaxed);
+      }
+    }
+  }
+
+  // appends field 13 (tag, length, bytes) holding *patch_ to the n bytes in out_; the new
+  // length, or 0 when it does not fit
+  std::size_t append_patch(std::size_t n) {
+    const std::size_t len = patch_->size();
+    if (n + 1 + 10 + len > out_.size()) return 0;
+    out_[n++] = char((13 << 3) | 2);  // field 13, length-delimited
+    for (std::size_t v = len;; v >>= 7) {
+      out_[n++] = char(v < 0x80 ? v : (v & 0x7f) | 0x80);
+      if (v < 0x80) break;
+    }
+    std::memcpy(out_.data() + n, patch_->data(), len);
+    return n + len;
   }
 
   // sends rep_ to the current routing id; never blocks (a vanished or slow client's reply is dropped)
   void send(bool req_envelope) {
-    const std::size_t n = rep_.ByteSizeLong();
-    const bool ok = n <= out_.size() && rep_.SerializeToArray(out_.data(), int(n));
-    if (patch_lent_) {
-      (void)rep_.release_local_model();
-      patch_lent_ = false;
+    std::size_t n = rep_.ByteSizeLong();
+    if (n > out_.size() || !rep_.SerializeToArray(out_.data(), int(n))) return;
+    // a patch goes after the reply's other fields as field 13 (PoseReply.local_model):
+    // protobuf parses fields in any order, so these bytes are a PoseReply with local_model set
+    if (patch_) {
+      n = append_patch(n);
+      patch_ = nullptr;
+      if (n == 0) return;
     }
-    if (!ok) return;
     try {
       if (!sock_.send(zmq::const_buffer(id_, id_len_), zmq::send_flags::sndmore | zmq::send_flags::dontwait)) return;
       if (req_envelope) sock_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::sndmore | zmq::send_flags::dontwait);

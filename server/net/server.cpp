@@ -1022,7 +1022,8 @@ class Server::Control {
     const std::uint64_t seen = std::min({sh_.seen_generation.load(std::memory_order_acquire),
                                          sh_.deform_seen_generation.load(std::memory_order_acquire),
                                          sh_.render_seen_generation.load(std::memory_order_acquire),
-                                         sh_.publish_seen_generation.load(std::memory_order_acquire)});
+                                         sh_.publish_seen_generation.load(std::memory_order_acquire),
+                                         sh_.patch_seen_generation.load(std::memory_order_acquire)});
     retired_.erase(std::remove_if(retired_.begin(), retired_.end(),
                                   [seen](const std::unique_ptr<World>& w) { return w->generation < seen; }),
                    retired_.end());
@@ -1073,12 +1074,18 @@ void Server::start() {
     name_this_thread("palpsim-control");
     control_->run();
   });
+  // local force model patches, cut off the pose thread (it naps while no session asks)
+  patch_thread_ = std::thread([this] {
+    name_this_thread("palpsim-patch");
+    run_patch_worker(*shared_);
+  });
 }
 
 void Server::stop() {
   shared_->stop.store(true);
   if (pose_thread_.joinable()) pose_thread_.join();
   if (control_thread_.joinable()) control_thread_.join();
+  if (patch_thread_.joinable()) patch_thread_.join();
   if (control_) {
     control_->stop_stream();
     control_->stop_deform();

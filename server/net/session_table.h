@@ -15,6 +15,7 @@
 #include "core/scene.h"
 #include "haptics/contact_slot.h"
 #include "haptics/force_model.h"
+#include "net/patch_worker.h"
 
 namespace palpsim::net {
 
@@ -65,10 +66,15 @@ struct SessionSlot {
   double last_client_time_s = 0;       // of the previous pose
   double last_server_time_s = 0;       // of the previous pose
   // (pose) the session's local force model patches (PROTOCOL.md, "Local force model")
-  std::uint64_t patch_version = 0;     // of the last patch sent (0: none since the state was fresh)
-  double patch_sent_s = 0;             // server clock when it was sent
+  std::uint64_t patch_version = 0;     // of the last patch asked for (0: none since the session opened)
+  double patch_sent_s = 0;             // server clock when it was asked for (< 0: due now)
   Vec3i patch_lo{0, 0, 0};             // its box on the patient grid
   Vec3i patch_size{0, 0, 0};
+  // the slot's hand-over to the patch worker: the pose thread says that patches were asked
+  // for, the worker makes the channel (kept for the slot's later sessions) and publishes it
+  std::atomic<bool> patch_asked{false};
+  std::unique_ptr<PatchChannel> patch_storage;     // (patch worker) owns the channel
+  std::atomic<PatchChannel*> patch_channel{nullptr};
   // (control) name shown in stats
   std::string client_name;
   // who opened the session: (control) the identity its control requests must carry, and
@@ -177,6 +183,8 @@ struct ServerShared {
   std::atomic<std::uint64_t> deform_seen_generation{~std::uint64_t(0)};  // (deformation worker) the same; max: no worker
   std::atomic<std::uint64_t> render_seen_generation{~std::uint64_t(0)};   // (render thread) the same; max: none
   std::atomic<std::uint64_t> publish_seen_generation{~std::uint64_t(0)};  // (stream publisher) the same; max: none
+  std::atomic<std::uint64_t> patch_seen_generation{~std::uint64_t(0)};   // (patch worker) the same; max: none
+  std::atomic<bool> patches_asked{false};            // (pose) some session's poses asked for patches
   Counters counters;
   LatencyHistogram pose_service;                     // (pose) receive-to-send times of answered poses
   std::atomic<bool> stop{false};

@@ -39,7 +39,7 @@ void fill_patch(ForcePatch& p, double a, double b, std::uint64_t version) {
 TEST_CASE("the mode follows the round trip with hysteresis and a dwell", "[haptic][local]") {
   ModeSelector m;
   double t = 0;
-  // round trips are fed at 1 kHz; the smoothed value follows within ~50 replies
+  // round trips are fed at 1 kHz; the window's median follows within kWindow / 2 replies
   auto feed = [&](double rtt_s, double seconds) {
     bool changed = false;
     for (int i = 0; i < int(seconds * 1000); ++i) changed = m.add_round_trip(rtt_s, t += 1e-3) || changed;
@@ -65,6 +65,15 @@ TEST_CASE("the mode follows the round trip with hysteresis and a dwell", "[hapti
   feed(0.006, 1.0);
   CHECK(m.mode() == RenderMode::kRemote);
   (void)switched;
+  // a stall: 40 replies come back late at once (40..1 ms) in a stream of 0.2 ms ones;
+  // the median does not move, so the mode does not
+  feed(0.0002, 1.0);
+  REQUIRE(m.mode() == RenderMode::kRemote);
+  bool stalled_switch = false;
+  for (int i = 40; i >= 1; --i) stalled_switch = m.add_round_trip(i * 1e-3, t += 1e-6) || stalled_switch;
+  stalled_switch = feed(0.0002, 0.2) || stalled_switch;
+  CHECK_FALSE(stalled_switch);
+  CHECK_FALSE(m.wants_patches());
   // a link flapping between 1 and 50 ms every 100 ms switches at most once per dwell
   int switches = 0;
   for (int r = 0; r < 20; ++r) switches += int(feed(r % 2 ? 0.001 : 0.050, 0.1));

@@ -136,10 +136,12 @@ RenderStep LocalRenderer::step(double t_s, double dt_s, const Vec3& tip_mm, cons
   return r;
 }
 
-double watchdog_grace_s(RenderMode mode) { return mode == RenderMode::kLocal ? 0.050 : 0.002; }
+double watchdog_grace_s(RenderMode mode, double rtt_s) {
+  return mode == RenderMode::kLocal ? 0.100 + 2 * std::max(rtt_s, 0.0) : 0.002;
+}
 
-double watchdog_scale(double age_s, RenderMode mode) {
-  const double grace = watchdog_grace_s(mode), ramp = mode == RenderMode::kLocal ? 0.050 : 0.008;
+double watchdog_scale(double age_s, RenderMode mode, double rtt_s) {
+  const double grace = watchdog_grace_s(mode, rtt_s), ramp = mode == RenderMode::kLocal ? 0.100 : 0.008;
   if (!(age_s > grace)) return 1.0;
   return std::max(0.0, 1.0 - (age_s - grace) / ramp);
 }

@@ -161,11 +161,12 @@ class LocalRenderer {
 /// The watchdog's scale of the force (0..1) when the newest message from the server is
 /// `age_s` old: 1 up to the grace, then linearly to 0 over the ramp. Remote mode: 2 ms
 /// grace, 8 ms ramp (the force is the server's, and a 2 ms gap at 1 kHz already means
-/// lost replies). Local mode: 50 ms grace, 50 ms ramp (the force comes from the patch, and
-/// replies only prove that the link lives; a 200 ms link with jitter still delivers one
-/// about every millisecond, so 50 ms of silence means the link is down).
-double watchdog_scale(double age_s, RenderMode mode);
+/// lost replies). Local mode: 100 ms plus two round trips (`rtt_s`, the median) of grace,
+/// then 100 ms of ramp: the force comes from the patch, and replies only prove that the
+/// link lives; one lost TCP segment stalls the stream for about a round trip until it is
+/// sent again, which must not cut the force, while a link silent for longer is down.
+double watchdog_scale(double age_s, RenderMode mode, double rtt_s);
 /// The watchdog's grace (s) in a mode: the age above which it trips.
-double watchdog_grace_s(RenderMode mode);
+double watchdog_grace_s(RenderMode mode, double rtt_s);
 
 }  // namespace palpsim::haptic

@@ -395,8 +395,8 @@ int main(int argc, char** argv) {
 
     // watchdog: without replies the force ramps to zero (local_model.h says how fast per mode)
     const double age = t - (newest_seq ? last_reply_t : 0);
-    const double scale = newest_seq == 0 ? 0.0 : palpsim::haptic::watchdog_scale(age, mode);
-    const double grace = palpsim::haptic::watchdog_grace_s(mode);
+    const double scale = newest_seq == 0 ? 0.0 : palpsim::haptic::watchdog_scale(age, mode, selector.round_trip_s());
+    const double grace = palpsim::haptic::watchdog_grace_s(mode, selector.round_trip_s());
     if (newest_seq && age > grace && !watchdog_on) {
       // says so at most once a second (every trip is counted and reported at exit)
       watchdog_on = true;

@@ -189,12 +189,15 @@ TEST_CASE("the passivity controller keeps a delayed spring from generating energ
   CHECK(r.energy().cycles() >= 4);
 }
 
-TEST_CASE("the watchdog ramps to zero, slower in local mode", "[haptic][local]") {
-  CHECK(watchdog_scale(0.001, RenderMode::kRemote) == 1.0);
-  CHECK(watchdog_scale(0.006, RenderMode::kRemote) == Approx(0.5));
-  CHECK(watchdog_scale(0.010, RenderMode::kRemote) == 0.0);
-  CHECK(watchdog_scale(0.040, RenderMode::kLocal) == 1.0);
-  CHECK(watchdog_scale(0.075, RenderMode::kLocal) == Approx(0.5));
-  CHECK(watchdog_scale(0.100, RenderMode::kLocal) == 0.0);
-  CHECK(watchdog_scale(5.0, RenderMode::kLocal) == 0.0);
+TEST_CASE("the watchdog ramps to zero, slower in local mode and on slower links", "[haptic][local]") {
+  CHECK(watchdog_scale(0.001, RenderMode::kRemote, 0.1) == 1.0);
+  CHECK(watchdog_scale(0.006, RenderMode::kRemote, 0.1) == Approx(0.5));
+  CHECK(watchdog_scale(0.010, RenderMode::kRemote, 0.1) == 0.0);
+  // local, 100 ms round trip: 300 ms of grace, then 100 ms of ramp
+  CHECK(watchdog_scale(0.290, RenderMode::kLocal, 0.1) == 1.0);
+  CHECK(watchdog_scale(0.350, RenderMode::kLocal, 0.1) == Approx(0.5));
+  CHECK(watchdog_scale(0.410, RenderMode::kLocal, 0.1) == 0.0);  // past the ramp's end: exactly 0
+  // local, 20 ms: 140 ms of grace
+  CHECK(watchdog_scale(0.190, RenderMode::kLocal, 0.02) == Approx(0.5));
+  CHECK(watchdog_scale(5.0, RenderMode::kLocal, 0.02) == 0.0);
 }

@@ -6,6 +6,7 @@
 // for patches. And the wire: patches on request, bad requests refused by name.
 #include <catch2/catch.hpp>
 
+#include <csignal>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -222,6 +223,75 @@ TEST_CASE("patches are served on request, bad requests are refused by name, and 
   const v1::ControlReply stats = call(st);
   CHECK(stats.stats().session().local_models_sent() == 1);
   CHECK(stats.stats().server().bad_parameter() == 2);
+  CHECK(server.stop() == 0);
+  std::remove(scene.c_str());
+}
+
+TEST_CASE("in local mode the watchdog still takes the force to zero when the server goes silent",
+          "[integration][local]") {
+  const std::string scene = test::temp_file("scene", test::fast_scene_text("local-model-watchdog", 30.0));
+  ServerProcess server(scene);
+  REQUIRE(server.wait_ready(300));
+  const std::string log = test::temp_file("local-watchdog-log", "");
+  test::DelayLine line(server.pose(), 0.050);
+  test::Child client({test::build_exe("palpsim-haptic"), "--connect", server.control(), "--pose-via",
+                      line.endpoint(), "--seconds", "3.5", "--log", log});
+  // in contact from 0.5 s, local from ~0.2 s; the server stops from 1.5 s to 2.5 s
+  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  server.child().signal(SIGSTOP);
+  std::this_thread::sleep_for(std::chrono::milliseconds(1000));
+  server.child().signal(SIGCONT);
+  const int rc = client.wait(30);
+  INFO("palpsim-haptic:\n" << client.out() << client.err());
+  CHECK((rc == 0 || rc == 3));
+  // rows: time_s (1), force (5..7), reply_seq (9), watchdog_scale (12), mode (13)
+  struct Row {
+    double t, f, scale;
+    unsigned long long reply_seq;
+    int mode;
+  };
+  std::vector<Row> rows;
+  std::ifstream in(log);
+  std::string line_text;
+  std::getline(in, line_text);
+  while (std::getline(in, line_text)) {
+    std::vector<std::string> c;
+    std::stringstream ss(line_text);
+    std::string cell;
+    while (std::getline(ss, cell, ',')) c.push_back(cell);
+    if (c.size() < 17) continue;
+    const double fx = std::stod(c[5]), fy = std::stod(c[6]), fz = std::stod(c[7]);
+    rows.push_back({std::stod(c[1]), std::sqrt(fx * fx + fy * fy + fz * fz), std::stod(c[12]), std::stoull(c[9]),
+                    std::stoi(c[13])});
+  }
+  REQUIRE(rows.size() > 2000);
+  // the longest stretch without a new reply: the stop (the delay line empties in 50 ms)
+  std::size_t first = 0, best_first = 0, best_len = 0;
+  for (std::size_t i = 1; i < rows.size(); ++i) {
+    if (rows[i].reply_seq != rows[first].reply_seq) first = i;
+    if (i - first > best_len) {
+      best_len = i - first;
+      best_first = first;
+    }
+  }
+  const double t_reply = rows[best_first].t;
+  REQUIRE(rows[best_first + best_len].t - t_reply > 0.6);
+  CHECK(rows[best_first].mode == 1);  // local when the server stopped
+  CHECK(rows[best_first].f > 0.1);    // and pressing, so there was a force to take away
+  for (std::size_t i = best_first; i <= best_first + best_len; ++i) {
+    const double age = rows[i].t - t_reply;
+    INFO("t " << rows[i].t << " s, " << age * 1e3 << " ms after the last reply");
+    // local mode: full force for 100 ms plus two median round trips (the patch still
+    // holds), then down over 100 ms. The line's round trip measures 100 to 110 ms on a
+    // loaded machine, so the grace is 0.30 to 0.32 s and the ramp ends by 0.42 s; 10 ms
+    // of slack for the loop's steps around the last reply
+    if (age < 0.29) CHECK(rows[i].scale == 1.0);
+    if (age > 0.43) {
+      CHECK(rows[i].scale == 0.0);
+      CHECK(rows[i].f == 0.0);
+    }
+  }
+  std::remove(log.c_str());
   CHECK(server.stop() == 0);
   std::remove(scene.c_str());
 }

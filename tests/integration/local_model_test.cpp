@@ -166,7 +166,7 @@ TEST_CASE("patches are served on request, bad requests are refused by name, and 
   const double x = 0.5 * (pi.body_min_mm().x() + pi.body_max_mm().x()), y = pi.body_max_mm().y() - 10,
                z = 0.5 * (pi.body_min_mm().z() + pi.body_max_mm().z());
   std::uint64_t seq = 0;
-  auto pose_call = [&](std::uint32_t edge, double period) {
+  auto pose_call = [&](std::uint32_t edge, double period, bool local = false) {
     v1::PoseRequest q;
     q.set_schema_version(v1::VERSION_CURRENT);
     q.set_session_id(id);
@@ -176,6 +176,7 @@ TEST_CASE("patches are served on request, bad requests are refused by name, and 
     q.mutable_tip_mm()->set_z(z);
     q.set_local_model_edge(edge);
     q.set_local_model_period_s(period);
+    q.set_renders_locally(local);
     pose.send(zmq::buffer(q.SerializeAsString()));
     zmq::pollitem_t it[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
     zmq::poll(it, 1, std::chrono::milliseconds(5000));
@@ -218,10 +219,14 @@ TEST_CASE("patches are served on request, bad requests are refused by name, and 
   int more = 0;
   for (int i = 0; i < 50; ++i) more += int(pose_call(8, 0.5).has_local_model());
   CHECK(more == 0);  // 50 quick poses of a still tip lie within one 0.5 s period
+  // the client says it renders locally: the session's stats say so
+  (void)pose_call(8, 0.5, true);
   v1::ControlRequest st;
   st.mutable_stats()->set_session_id(id);
   const v1::ControlReply stats = call(st);
   CHECK(stats.stats().session().local_models_sent() == 1);
+  CHECK(stats.stats().session().renders_locally());
+  CHECK(stats.stats().session().local_poses() == 1);
   CHECK(stats.stats().server().bad_parameter() == 2);
   CHECK(server.stop() == 0);
   std::remove(scene.c_str());

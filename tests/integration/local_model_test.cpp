@@ -10,14 +10,13 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <fstream>
 #include <regex>
-#include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
 #include <zmq.hpp>
 
+#include "integration/haptic_log.h"
 #include "integration/server_process.h"
 #include "palpsim/wire.pb.h"
 #include "support/delay_line.h"
@@ -66,14 +65,23 @@ Summary parse(const std::string& out) {
   return s;
 }
 
+// a server on the fast test scene; its scene file is removed at the end
+struct SceneServer {
+  std::string scene;
+  ServerProcess server;
+  explicit SceneServer(const std::string& name)
+      : scene(test::temp_file("scene", test::fast_scene_text(name, 30.0))), server(scene) {}
+  ~SceneServer() { std::remove(scene.c_str()); }
+};
+
 // one press cycle: 10 mm to the skin, 30 mm in at 20 mm/s, hold 0.5 s, out; off the skin at 4.0 s
 constexpr const char* kOneCycleS = "4.8";
 
 }  // namespace
 
 TEST_CASE("a far client renders the server's force locally, and a near one asks for nothing", "[integration][local]") {
-  const std::string scene = test::temp_file("scene", test::fast_scene_text("local-model", 30.0));
-  ServerProcess server(scene);
+  SceneServer run("local-model");
+  ServerProcess& server = run.server;
   REQUIRE(server.wait_ready(300));
 
   // 50 ms each way (100 ms round trip): one client in auto mode, one held in remote mode,
@@ -133,13 +141,12 @@ TEST_CASE("a far client renders the server's force locally, and a near one asks 
   CHECK(n.mode_at_exit == "remote");
   CHECK(n.local_steps <= n.steps / 5);
   CHECK(server.stop() == 0);
-  std::remove(scene.c_str());
 }
 
 TEST_CASE("patches are served on request, bad requests are refused by name, and stats count them",
           "[integration][local]") {
-  const std::string scene = test::temp_file("scene", test::fast_scene_text("local-model-wire", 30.0));
-  ServerProcess server(scene);
+  SceneServer run("local-model-wire");
+  ServerProcess& server = run.server;
   REQUIRE(server.wait_ready(300));
   zmq::context_t ctx(1);
   zmq::socket_t ctl(ctx, zmq::socket_type::req), pose(ctx, zmq::socket_type::dealer);
@@ -229,13 +236,12 @@ TEST_CASE("patches are served on request, bad requests are refused by name, and 
   CHECK(stats.stats().session().local_poses() == 1);
   CHECK(stats.stats().server().bad_parameter() == 2);
   CHECK(server.stop() == 0);
-  std::remove(scene.c_str());
 }
 
 TEST_CASE("in local mode the watchdog still takes the force to zero when the server goes silent",
           "[integration][local]") {
-  const std::string scene = test::temp_file("scene", test::fast_scene_text("local-model-watchdog", 30.0));
-  ServerProcess server(scene);
+  SceneServer run("local-model-watchdog");
+  ServerProcess& server = run.server;
   REQUIRE(server.wait_ready(300));
   const std::string log = test::temp_file("local-watchdog-log", "");
   test::DelayLine line(server.pose(), 0.050);
@@ -249,40 +255,15 @@ TEST_CASE("in local mode the watchdog still takes the force to zero when the ser
   const int rc = client.wait(30);
   INFO("palpsim-haptic:\n" << client.out() << client.err());
   CHECK((rc == 0 || rc == 3));
-  // rows: time_s (1), force (5..7), reply_seq (9), watchdog_scale (12), mode (13)
-  struct Row {
-    double t, f, scale;
-    unsigned long long reply_seq;
-    int mode;
-  };
-  std::vector<Row> rows;
-  std::ifstream in(log);
-  std::string line_text;
-  std::getline(in, line_text);
-  while (std::getline(in, line_text)) {
-    std::vector<std::string> c;
-    std::stringstream ss(line_text);
-    std::string cell;
-    while (std::getline(ss, cell, ',')) c.push_back(cell);
-    if (c.size() < 17) continue;
-    const double fx = std::stod(c[5]), fy = std::stod(c[6]), fz = std::stod(c[7]);
-    rows.push_back({std::stod(c[1]), std::sqrt(fx * fx + fy * fy + fz * fz), std::stod(c[12]), std::stoull(c[9]),
-                    std::stoi(c[13])});
-  }
+  const std::vector<test::HapticLogRow> rows = test::read_haptic_log(log);
   REQUIRE(rows.size() > 2000);
   // the longest stretch without a new reply: the stop (the delay line empties in 50 ms)
-  std::size_t first = 0, best_first = 0, best_len = 0;
-  for (std::size_t i = 1; i < rows.size(); ++i) {
-    if (rows[i].reply_seq != rows[first].reply_seq) first = i;
-    if (i - first > best_len) {
-      best_len = i - first;
-      best_first = first;
-    }
-  }
+  std::size_t best_first = 0, best_len = 0;
+  test::longest_reply_gap(rows, best_first, best_len);
   const double t_reply = rows[best_first].t;
   REQUIRE(rows[best_first + best_len].t - t_reply > 0.6);
   CHECK(rows[best_first].mode == 1);  // local when the server stopped
-  CHECK(rows[best_first].f > 0.1);    // and pressing, so there was a force to take away
+  CHECK(rows[best_first].force() > 0.1);  // and pressing, so there was a force to take away
   for (std::size_t i = best_first; i <= best_first + best_len; ++i) {
     const double age = rows[i].t - t_reply;
     INFO("t " << rows[i].t << " s, " << age * 1e3 << " ms after the last reply");
@@ -293,12 +274,11 @@ TEST_CASE("in local mode the watchdog still takes the force to zero when the ser
     if (age < 0.29) CHECK(rows[i].scale == 1.0);
     if (age > 0.43) {
       CHECK(rows[i].scale == 0.0);
-      CHECK(rows[i].f == 0.0);
+      CHECK(rows[i].force() == 0.0);
     }
   }
   std::remove(log.c_str());
   CHECK(server.stop() == 0);
-  std::remove(scene.c_str());
 }
 
 namespace {
@@ -308,19 +288,10 @@ namespace {
 // step of a 2000 N/s rate bound is 2 N, the noise of a blend a few mN). A clean press
 // cycle has one (up to the plateau, then down from it); ringing has many.
 int force_reversals(const std::string& log_path) {
-  std::ifstream in(log_path);
-  std::string line;
-  std::getline(in, line);
   int reversals = 0, dir = 1;  // from no force, the magnitude can only rise
   double extreme = 0;
-  while (std::getline(in, line)) {
-    std::vector<std::string> c;
-    std::stringstream ss(line);
-    std::string cell;
-    while (std::getline(ss, cell, ',')) c.push_back(cell);
-    if (c.size() < 8) continue;
-    const double f = std::sqrt(std::stod(c[5]) * std::stod(c[5]) + std::stod(c[6]) * std::stod(c[6]) +
-                               std::stod(c[7]) * std::stod(c[7]));
+  for (const test::HapticLogRow& row : test::read_haptic_log(log_path)) {
+    const double f = row.force();
     if (dir > 0 && f > extreme) extreme = f;
     if (dir < 0 && f < extreme) extreme = f;
     if (dir > 0 && f < extreme - 0.05) {
@@ -342,8 +313,8 @@ int force_reversals(const std::string& log_path) {
 // line (delay, jitter and TCP-like loss in user space) for machines without tc netem.
 // Hidden ("[.matrix]": about 45 s); run: palpsim-test-local-model "[.matrix]".
 TEST_CASE("impaired links: the rendered force against the server's, per case", "[.matrix]") {
-  const std::string scene = test::temp_file("scene", test::fast_scene_text("local-model-matrix", 30.0));
-  ServerProcess server(scene);
+  SceneServer run("local-model-matrix");
+  ServerProcess& server = run.server;
   REQUIRE(server.wait_ready(300));
   struct Case {
     const char* name;
@@ -372,5 +343,4 @@ TEST_CASE("impaired links: the rendered force against the server's, per case", "
     std::remove(log.c_str());
   }
   CHECK(server.stop() == 0);
-  std::remove(scene.c_str());
 }

@@ -1,8 +1,10 @@
 // palpsim-haptic: the thin haptic client. Opens a session on a palpsim-server, runs a
 // fixed-rate loop (1 kHz, up to 4 kHz) that reads the device, sends the newest pose,
 // applies the newest force that has come back, and never waits on the network; a
-// watchdog ramps the force to zero when replies stop. Logs every step to CSV and prints
-// round-trip percentiles and missed deadlines at exit. Protocol: proto/PROTOCOL.md.
+// watchdog ramps the force to zero when replies stop. Far from the server (a round trip
+// over 8 ms) it renders eq. 2 itself from patches of F the server sends (local_model.h).
+// Logs every step to CSV and prints round-trip percentiles, missed deadlines and the
+// rendered force against the server's at exit. Protocol: proto/PROTOCOL.md.
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
@@ -13,6 +15,7 @@
 #include <csignal>
 #include <poll.h>
 #include <cstdio>
+#include <cstring>
 #include <memory>
 #include <string>
 #include <thread>
@@ -20,10 +23,13 @@
 #include <zmq.hpp>
 
 #include "device.h"
+#include "local_model.h"
 #include "net/curve_keys.h"
 #include "palpsim/wire.pb.h"
 
 namespace v1 = palpsim::v1;
+using palpsim::Vec3;
+using palpsim::haptic::RenderMode;
 using palpsim::haptic::V3;
 using Clock = std::chrono::steady_clock;
 
@@ -32,7 +38,8 @@ namespace {
 const char* kUsage =
     "usage: palpsim-haptic --connect ADDR [--device press|press:X,Y,Z|csv:FILE|replay:FILE] [--rate HZ]\n"
     "                      [--seconds S] [--log FILE] [--name NAME] [--server-key FILE --client-key FILE]\n"
-    "                      [--client-token TEXT]\n"
+    "                      [--client-token TEXT] [--mode auto|local|remote] [--patch-edge N] [--patch-period S]\n"
+    "                      [--pose-via ADDR]\n"
     "  --connect ADDR  the server's control address (its 'ready on ADDR' line)\n"
     "  --device SPEC   the built-in press path (default), a CSV of t,x,y,z (s, mm), or a palpsim-haptic log to replay\n"
     "  --rate HZ       loop rate, 100 to 4000 (default 1000)\n"
@@ -41,11 +48,14 @@ const char* kUsage =
     "  --server-key FILE  the server's public key (its NAME.key from palpsim-keys): speak CURVE\n"
     "  --client-key FILE  this client's secret key (NAME.key_secret), whose public key the server allows\n"
     "  --client-token TEXT without CURVE: the session belongs to this token (palpsim-view --client-token\n"
-    "                  TEXT may then watch it); else to this client's control connection alone\n";
+    "                  TEXT may then watch it); else to this client's control connection alone\n"
+    "  --mode M        auto (default: local when the round trip is over 8 ms, remote under 4 ms), local or remote\n"
+    "  --patch-edge N  voxels per axis of the patches of F asked for in local mode, 4..16 (default 12)\n"
+    "  --patch-period S  at most one patch per S seconds, 0.01..1 (default 0.05)\n"
+    "  --pose-via ADDR send poses to ADDR instead of the server's pose endpoint (a tunnel or relay to it)\n";
 
-// the watchdog: full force while replies are younger than this, then a linear ramp to zero
-constexpr double kWatchdogGraceS = 0.002;
-constexpr double kWatchdogRampS = 0.008;  // grace + ramp = 10 ms from the last reply to zero force
+// the largest patch the client asks for (PoseRequest.local_model_edge's range is 4..16)
+constexpr int kMaxPatchEdge = 16;
 
 std::atomic<bool> g_stop{false};
 void on_signal(int) { g_stop = true; }
@@ -79,12 +89,54 @@ v1::ControlReply control(zmq::socket_t& s, const v1::ControlRequest& req, const 
   return rep;
 }
 
+// decodes a LocalForceModel into `out` (vectors resized within their reserved room);
+// false with `why` set for a patch that does not hold together
+bool decode_patch(const v1::LocalForceModel& m, palpsim::ForcePatch& out, const char*& why) {
+  const palpsim::Vec3i size{int(m.size_i()), int(m.size_j()), int(m.size_k())};
+  const std::size_t n = std::size_t(m.size_i()) * m.size_j() * m.size_k();
+  why = nullptr;
+  if (m.size_i() == 0 || m.size_i() > kMaxPatchEdge || m.size_j() == 0 || m.size_j() > kMaxPatchEdge ||
+      m.size_k() == 0 || m.size_k() > kMaxPatchEdge)
+    why = "LocalForceModel.size_*: outside 1..16";
+  else if (m.body().size() != n || m.force().size() != n * sizeof(float) || m.grad_force().size() != n * 3 * sizeof(float))
+    why = "LocalForceModel.body/force/grad_force: lengths do not match size_i*size_j*size_k";
+  else if (m.direction_size() != 9 || !(m.spacing_mm() > 0) || m.version() == 0)
+    why = "LocalForceModel.direction/spacing_mm/version: missing or not positive";
+  if (why) return false;
+  palpsim::Grid& g = out.grid;
+  g.size = size;
+  g.spacing_mm = {m.spacing_mm(), m.spacing_mm(), m.spacing_mm()};
+  g.origin_mm = {m.origin_mm().x(), m.origin_mm().y(), m.origin_mm().z()};
+  for (int i = 0; i < 9; ++i) g.direction[std::size_t(i)] = m.direction(i);
+  out.lo = {int(m.lo_i()), int(m.lo_j()), int(m.lo_k())};
+  out.patient_size = {int(m.grid_size_i()), int(m.grid_size_j()), int(m.grid_size_k())};
+  // little-endian float32 on the wire, as on the hosts palpsim builds for
+  out.body.resize(n);
+  out.force_mm.resize(n);
+  out.grad_force.resize(n);
+  std::memcpy(out.body.data(), m.body().data(), n);
+  std::memcpy(out.force_mm.data(), m.force().data(), n * sizeof(float));
+  std::memcpy(out.grad_force.data(), m.grad_force().data(), n * sizeof(palpsim::Vec3f));
+  out.params.stiffness_n_per_mm = m.stiffness_n_per_mm();
+  out.params.friction = m.friction();
+  out.params.max_force_n = m.max_force_n();
+  out.params.max_force_rate_n_per_s = m.max_force_rate_n_per_s();
+  out.params.min_gradient_norm = m.min_gradient_norm();
+  out.version = m.version();
+  out.generation = m.scene_generation();
+  out.center_mm = {m.center_mm().x(), m.center_mm().y(), m.center_mm().z()};
+  return true;
+}
+
+Vec3 to_vec(const V3& v) { return {v.x, v.y, v.z}; }
+
 }  // namespace
 
 int main(int argc, char** argv) {
   std::string addr, device_spec = "press", log_path, name = "palpsim-haptic", server_key_file, client_key_file,
-              client_token;
-  double rate_hz = 1000, max_seconds = 0;
+              client_token, mode_name = "auto", pose_via;
+  double rate_hz = 1000, max_seconds = 0, patch_period_s = 0.05;
+  int patch_edge = 12;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&]() -> std::string {
@@ -107,6 +159,10 @@ int main(int argc, char** argv) {
       else if (a == "--server-key") server_key_file = value();
       else if (a == "--client-key") client_key_file = value();
       else if (a == "--client-token") client_token = value();
+      else if (a == "--mode") mode_name = value();
+      else if (a == "--patch-edge") patch_edge = std::stoi(value());
+      else if (a == "--patch-period") patch_period_s = std::stod(value());
+      else if (a == "--pose-via") pose_via = value();
       else {
         std::fprintf(stderr, "palpsim-haptic: unknown argument '%s'\n%s", a.c_str(), kUsage);
         return 2;
@@ -128,6 +184,18 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "palpsim-haptic: --rate %g: must be within 100..4000 Hz\n", rate_hz);
     return 2;
   }
+  if (mode_name != "auto" && mode_name != "local" && mode_name != "remote") {
+    std::fprintf(stderr, "palpsim-haptic: --mode %s: expected auto, local or remote\n", mode_name.c_str());
+    return 2;
+  }
+  if (patch_edge < 4 || patch_edge > kMaxPatchEdge) {
+    std::fprintf(stderr, "palpsim-haptic: --patch-edge %d: must be within 4..16 voxels\n", patch_edge);
+    return 2;
+  }
+  if (!(patch_period_s >= 0.01 && patch_period_s <= 1)) {
+    std::fprintf(stderr, "palpsim-haptic: --patch-period %g: must be within 0.01..1 s\n", patch_period_s);
+    return 2;
+  }
   if (!(max_seconds >= 0)) {
     std::fprintf(stderr, "palpsim-haptic: --seconds %g: must be >= 0\n", max_seconds);
     return 2;
@@ -144,6 +212,7 @@ int main(int argc, char** argv) {
   std::uint64_t session = 0;
   std::unique_ptr<palpsim::haptic::Device> device;
   std::FILE* log = nullptr;
+  palpsim::HapticsSettings params;
   const bool curve = !server_key_file.empty();
   try {
     // CURVE on both sockets when keys are given (the files are checked before anything is sent)
@@ -166,7 +235,13 @@ int main(int argc, char** argv) {
     box.body_min_mm = {pi.body_min_mm().x(), pi.body_min_mm().y(), pi.body_min_mm().z()};
     box.body_max_mm = {pi.body_max_mm().x(), pi.body_max_mm().y(), pi.body_max_mm().z()};
     device = palpsim::haptic::make_device(device_spec, box);
-    pose.connect(opened.open().pose_endpoint());
+    const auto& op = opened.open().params();
+    params.stiffness_n_per_mm = op.stiffness_n_per_mm();
+    params.friction = op.friction();
+    params.max_force_n = op.max_force_n();
+    params.max_force_rate_n_per_s = op.max_force_rate_n_per_s();
+    params.min_gradient_norm = op.min_gradient_norm();
+    pose.connect(pose_via.empty() ? opened.open().pose_endpoint() : pose_via);
     spdlog::info("session {:016x} on {} (poses {}), device: {}, {} Hz", session, addr, opened.open().pose_endpoint(),
                  device->describe(), rate_hz);
     if (!log_path.empty()) {
@@ -175,16 +250,19 @@ int main(int argc, char** argv) {
       std::setvbuf(log, nullptr, _IOFBF, 1 << 20);
       std::fprintf(log,
                    "step,time_s,tip_x_mm,tip_y_mm,tip_z_mm,force_x_n,force_y_n,force_z_n,rtt_us,reply_seq,contact,"
-                   "depth_mm,watchdog_scale\n");
+                   "depth_mm,watchdog_scale,mode,local_weight,patch_version,energy_mj\n");
     }
   } catch (const std::exception& e) {
     std::fprintf(stderr, "palpsim-haptic: error: %s\n", e.what());
     return 1;
   }
 
-  // ring of send times by sequence number (replies older than the ring are counted late)
+  // rings by sequence number (replies older than the ring are counted late): send times,
+  // tips sent and forces rendered, and the server's force for each pose
   const std::size_t ring = 1 << 14;
   std::vector<double> sent_at(ring, -1.0);
+  std::vector<Vec3> tip_at(ring), rendered_at(ring), server_at(ring);
+  std::vector<std::uint64_t> server_seq(ring, 0);  // the seq server_at holds (0: none)
   std::vector<double> rtts_us;
   rtts_us.reserve(std::size_t(rate_hz * (max_seconds > 0 ? max_seconds : 60)) + 1024);
   v1::PoseRequest req;
@@ -194,9 +272,21 @@ int main(int argc, char** argv) {
   std::string out;
   zmq::message_t in;
 
+  // local rendering: the renderer and the mode selector (local_model.h)
+  palpsim::haptic::LocalRenderer renderer(params, kMaxPatchEdge);
+  palpsim::haptic::ModeSelector selector;
+  if (mode_name != "auto") selector.force(mode_name == "local" ? RenderMode::kLocal : RenderMode::kRemote);
+  std::uint64_t patches = 0, bad_patches = 0, patch_misses = 0, mode_switches = 0, local_steps = 0,
+                rate_limited = 0;
+  std::string first_bad_patch;
+  // the rendered force against the server's for the same pose, and the server's energy
+  double err_sq = 0, err_max = 0, server_peak = 0;
+  std::uint64_t compared = 0, energy_cursor = 0;
+  palpsim::haptic::EnergyMeter server_energy;
+
   const double period_s = 1.0 / rate_hz;
   const Clock::time_point t0 = Clock::now();
-  V3 force{0, 0, 0};               // the newest force from the server
+  Vec3 force{0, 0, 0};             // the newest force from the server
   std::uint64_t newest_seq = 0;    // the seq that force belongs to
   double last_reply_t = 0;         // loop time of the newest reply
   bool watchdog_on = false, contact = false;
@@ -206,9 +296,10 @@ int main(int argc, char** argv) {
 
   double rtt_step = std::nan("");  // the newest round trip measured since the previous step
   std::uint64_t n = 0;              // the step being run (its pose's seq)
-  double last_watchdog_log_t = -1;
+  double last_watchdog_log_t = -1, prev_t = 0;
 
-  // takes every reply that has come back, timestamped on arrival: round trips and the newest force
+  // takes every reply that has come back, timestamped on arrival: round trips, the newest
+  // force, patches, and the server's force to compare with what was rendered for that pose
   auto take_replies = [&]() {
     while (pose.recv(in, zmq::recv_flags::dontwait)) {
       const double now = seconds(Clock::now() - t0);
@@ -223,19 +314,55 @@ int main(int argc, char** argv) {
       }
       ++replies;
       const std::uint64_t s = rep.seq();
-      if (s + ring > n && sent_at[s % ring] >= 0) {
+      const Vec3 fs{rep.force_n().x(), rep.force_n().y(), rep.force_n().z()};
+      if (s + ring > n && s <= n && sent_at[s % ring] >= 0) {
         rtt_step = (now - sent_at[s % ring]) * 1e6;
         rtts_us.push_back(rtt_step);
+        if (selector.add_round_trip(rtt_step * 1e-6, now)) {
+          ++mode_switches;
+          std::printf("palpsim-haptic: mode %s at t = %.3f s (round trip %.1f ms)\n",
+                      selector.mode() == RenderMode::kLocal ? "local" : "remote", now, selector.round_trip_s() * 1e3);
+        }
+        // what was rendered at step s against the server's force for pose s
+        const Vec3 d = rendered_at[s % ring] - fs;
+        err_sq += palpsim::dot(d, d);
+        err_max = std::max(err_max, palpsim::norm(d));
+        server_peak = std::max(server_peak, palpsim::norm(fs));
+        ++compared;
+        server_at[s % ring] = fs;
+        server_seq[s % ring] = s;
       } else {
         ++late;
       }
+      if (rep.has_local_model()) {
+        const char* why = nullptr;
+        if (decode_patch(rep.local_model(), renderer.incoming(), why)) {
+          if (renderer.accept_incoming(now)) ++patches;
+          selector.set_patch_available(true);
+        } else {
+          if (first_bad_patch.empty()) first_bad_patch = why;
+          ++bad_patches;
+        }
+      }
       if (s > newest_seq) {
         newest_seq = s;
-        force = {rep.force_n().x(), rep.force_n().y(), rep.force_n().z()};
+        force = fs;
         contact = rep.contact();
         depth = rep.depth_mm();
         last_reply_t = now;
       }
+    }
+  };
+  // the server's forces along the path, pose by pose in order (a pose whose reply is lost
+  // keeps the force before it; one older than a second is taken as lost)
+  auto advance_server_energy = [&](std::uint64_t upto, bool final) {
+    while (energy_cursor + 1 < upto) {
+      const std::uint64_t s = energy_cursor + 1;
+      const bool have = server_seq[s % ring] == s;
+      if (!have && !final && s + std::uint64_t(rate_hz) > upto) break;
+      if (s > 1) server_energy.move(tip_at[s % ring] - tip_at[(s - 1) % ring]);
+      if (have) server_energy.set_force(server_at[s % ring], server_at[s % ring] != Vec3{0, 0, 0});
+      energy_cursor = s;
     }
   };
   const int pose_fd = pose.get(zmq::sockopt::fd);
@@ -247,42 +374,60 @@ int main(int argc, char** argv) {
     V3 tip;
     if (!device->read_tip(t, tip)) break;
     take_replies();
+    const RenderMode mode = selector.mode();
 
-    // send the newest pose; a full queue drops it rather than waiting
+    // send the newest pose; a full queue drops it rather than waiting. Patches are asked
+    // for only while the round trip says they may be needed (else the fields stay unset)
     req.set_seq(n);
     req.set_client_time_s(t);
     auto* tm = req.mutable_tip_mm();
     tm->set_x(tip.x);
     tm->set_y(tip.y);
     tm->set_z(tip.z);
+    const bool want = selector.wants_patches();
+    req.set_local_model_edge(want ? std::uint32_t(patch_edge) : 0);
+    req.set_local_model_period_s(want ? patch_period_s : 0);
+    req.set_renders_locally(mode == RenderMode::kLocal);
     req.SerializeToString(&out);
     sent_at[n % ring] = seconds(Clock::now() - t0);
+    tip_at[n % ring] = to_vec(tip);
     (void)pose.send(zmq::buffer(out), zmq::send_flags::dontwait);
 
-    // watchdog: without replies the force ramps to zero within 10 ms of the last one
+    // watchdog: without replies the force ramps to zero (local_model.h says how fast per mode)
     const double age = t - (newest_seq ? last_reply_t : 0);
-    double scale = 1.0;
-    if (newest_seq == 0 || age > kWatchdogGraceS) scale = newest_seq == 0 ? 0.0 : std::max(0.0, 1.0 - (age - kWatchdogGraceS) / kWatchdogRampS);
-    if (newest_seq && age > kWatchdogGraceS && !watchdog_on) {
+    const double scale = newest_seq == 0 ? 0.0 : palpsim::haptic::watchdog_scale(age, mode, selector.round_trip_s());
+    const double grace = palpsim::haptic::watchdog_grace_s(mode, selector.round_trip_s());
+    if (newest_seq && age > grace && !watchdog_on) {
       // says so at most once a second (every trip is counted and reported at exit)
       watchdog_on = true;
       ++watchdog_trips;
       if (last_watchdog_log_t < 0 || t - last_watchdog_log_t >= 1.0) {
-        spdlog::warn("watchdog: no reply for {:.1f} ms at t = {:.3f} s; ramping the force to zero within {:.0f} ms "
+        spdlog::warn("watchdog: no reply for {:.1f} ms at t = {:.3f} s ({} mode); ramping the force to zero "
                      "({} trips so far)",
-                     age * 1e3, t, (kWatchdogGraceS + kWatchdogRampS) * 1e3, watchdog_trips);
+                     age * 1e3, t, mode == RenderMode::kLocal ? "local" : "remote", watchdog_trips);
         last_watchdog_log_t = t;
       }
-    } else if (watchdog_on && age <= kWatchdogGraceS) {
+    } else if (watchdog_on && age <= grace) {
       watchdog_on = false;
     }
-    const V3 applied{force.x * scale, force.y * scale, force.z * scale};
+
+    // the force: the server's, or eq. 2 on the newest patch, blended, bounded and passive
+    const auto r = renderer.step(t, n == 1 ? 0.0 : t - prev_t, to_vec(tip), force, mode, scale);
+    prev_t = t;
+    if (r.patch_miss) ++patch_misses;
+    if (r.rate_limited) ++rate_limited;
+    if (mode == RenderMode::kLocal) ++local_steps;
+    rendered_at[n % ring] = r.force_n;
+    const V3 applied{r.force_n.x, r.force_n.y, r.force_n.z};
     device->apply_force(applied);
+    advance_server_energy(n, false);
 
     if (log)
-      std::fprintf(log, "%llu,%.6f,%.4f,%.4f,%.4f,%.6f,%.6f,%.6f,%.1f,%llu,%d,%.4f,%.3f\n", (unsigned long long)n, t,
-                   tip.x, tip.y, tip.z, applied.x, applied.y, applied.z, rtt_step, (unsigned long long)newest_seq,
-                   int(contact), depth, scale);
+      std::fprintf(log, "%llu,%.6f,%.4f,%.4f,%.4f,%.6f,%.6f,%.6f,%.1f,%llu,%d,%.4f,%.3f,%d,%.3f,%llu,%.4f\n",
+                   (unsigned long long)n, t, tip.x, tip.y, tip.z, applied.x, applied.y, applied.z, rtt_step,
+                   (unsigned long long)newest_seq, int(contact), depth, scale, int(mode), r.local_weight,
+                   (unsigned long long)(renderer.has_patch() ? renderer.current().version : 0),
+                   renderer.energy().energy_mj());
     rtt_step = std::nan("");
     ++steps;
     // a step whose work ended after its deadline missed it
@@ -305,16 +450,9 @@ int main(int argc, char** argv) {
   zmq::pollitem_t items[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
   while (replies + errors < steps && Clock::now() < drain_end) {
     zmq::poll(items, 1, std::chrono::milliseconds(10));
-    while (pose.recv(in, zmq::recv_flags::dontwait)) {
-      const double now = seconds(Clock::now() - t0);
-      if (!rep.ParseFromArray(in.data(), int(in.size())) || (rep.has_error() && rep.error().code() != v1::ERROR_NONE)) {
-        ++errors;
-        continue;
-      }
-      ++replies;
-      if (sent_at[rep.seq() % ring] >= 0) rtts_us.push_back((now - sent_at[rep.seq() % ring]) * 1e6);
-    }
+    take_replies();
   }
+  advance_server_energy(steps + 1, true);
   if (log) std::fclose(log);
   try {
     v1::ControlRequest close;
@@ -335,5 +473,23 @@ int main(int argc, char** argv) {
       (unsigned long long)lost, (unsigned long long)watchdog_trips, percentile(rtts_us, 0.5), percentile(rtts_us, 0.99),
       percentile(rtts_us, 0.999), (unsigned long long)missed, (unsigned long long)steps);
   if (!first_error.empty()) std::printf("palpsim-haptic: first error reply: %s\n", first_error.c_str());
+  // local rendering, the rendered force against the server's for the same poses, energies
+  const auto& re = renderer.energy();
+  const double rms = compared ? std::sqrt(err_sq / double(compared)) : 0.0;
+  std::printf(
+      "palpsim-haptic: mode %s at exit, local for %llu of %llu steps, %llu switches, median round trip %.1f ms; "
+      "patches %llu (bad %llu), patch misses %llu, rate-limited steps %llu, passivity steps %llu\n"
+      "palpsim-haptic: rendered vs server force over %llu poses: rms %.4f N, max %.4f N, server peak %.3f N "
+      "(rms %.2f %% of peak)\n"
+      "palpsim-haptic: energy per press cycle (mJ): rendered last %.3f, min %.3f over %llu cycles, min running %.3f; "
+      "server last %.3f, min %.3f over %llu cycles, min running %.3f\n",
+      selector.mode() == RenderMode::kLocal ? "local" : "remote", (unsigned long long)local_steps,
+      (unsigned long long)steps, (unsigned long long)mode_switches, selector.round_trip_s() * 1e3,
+      (unsigned long long)patches, (unsigned long long)bad_patches, (unsigned long long)patch_misses,
+      (unsigned long long)rate_limited, (unsigned long long)renderer.passivity_steps(), (unsigned long long)compared,
+      rms, err_max, server_peak, server_peak > 0 ? 100.0 * rms / server_peak : 0.0, re.last_cycle_mj(),
+      re.min_cycle_mj(), (unsigned long long)re.cycles(), re.min_running_mj(), server_energy.last_cycle_mj(),
+      server_energy.min_cycle_mj(), (unsigned long long)server_energy.cycles(), server_energy.min_running_mj());
+  if (!first_bad_patch.empty()) std::printf("palpsim-haptic: first bad patch: %s\n", first_bad_patch.c_str());
   return errors == 0 && lost == 0 ? 0 : 3;
 }

@@ -11,32 +11,10 @@ double voxel_mm(const Patient& p) {
   return std::min(p.grid.spacing_mm.x, std::min(p.grid.spacing_mm.y, p.grid.spacing_mm.z));
 }
 
-bool inside(const PatientSample& s) { return s.in_grid && s.body >= 0.5; }
-
-// the patient's volumes at p_mm, trilinearly with one set of weights; kForce = false
-// reads C and B only, what the skin search needs (a third of the reads, decided at
-// compile time so the haptic path pays nothing for the choice)
-template <bool kForce>
-PatientSample sample_volumes(const Patient& patient, const Vec3& p_mm) {
-  PatientSample s;
-  const Vec3 ijk = patient.grid.to_index(p_mm);
-  // outside the grid (or not finite): outside the body
-  if (!within_grid(patient.grid, ijk)) return s;
-  s.in_grid = true;
-  for_each_trilinear_corner(patient.grid, ijk, [&](std::size_t n, double w) {
-    s.body += w * patient.body.data[n];
-    s.dist_skin_mm += w * patient.dist_skin_mm.data[n];
-    if constexpr (kForce) {
-      s.force_mm += w * patient.force.data[n];
-      const Vec3f& gf = patient.grad_force.data[n];
-      s.grad_force += Vec3{gf.x * w, gf.y * w, gf.z * w};
-    }
-  });
-  return s;
-}
-
 // C and B only: what the skin search needs
-PatientSample sample_skin(const Patient& patient, const Vec3& p_mm) { return sample_volumes<false>(patient, p_mm); }
+PatientSample sample_skin(const Patient& patient, const Vec3& p_mm) {
+  return sample_field<false>(patient_view(patient), patient.grid.to_index(p_mm));
+}
 
 // the skin crossing of the ray tip + t * out (0 <= t <= max_len_mm), found by stepping
 // at most the depth under the skin (a distance to the skin, so no crossing is stepped
@@ -121,7 +99,14 @@ Vec3 nearest_skin_point(const Patient& patient, const Vec3& tip_mm, double depth
 
 }  // namespace
 
-PatientSample sample_patient(const Patient& patient, const Vec3& p_mm) { return sample_volumes<true>(patient, p_mm); }
+FieldView patient_view(const Patient& patient) {
+  return FieldView{&patient.grid, patient.body.data.data(), patient.dist_skin_mm.data.data(), patient.force.data.data(),
+                   patient.grad_force.data.data()};
+}
+
+PatientSample sample_patient(const Patient& patient, const Vec3& p_mm) {
+  return sample_field<true>(patient_view(patient), patient.grid.to_index(p_mm));
+}
 
 double depth_from_sample(const Patient& patient, const PatientSample& s) {
   return std::max(0.0, s.dist_skin_mm - 0.5 * voxel_mm(patient));
@@ -132,59 +117,25 @@ ForceSample compute_force(const Patient& patient, const HapticsSettings& params,
   ForceSample out;
   out.proxy_mm = tip_mm;
   out.skin_point_mm = tip_mm;
-  const bool first = !state.has_previous;
-  state.has_previous = true;
 
-  // outside the body: exactly zero force, the proxy follows the tip
+  // eq. 2 with friction, spring and clamps (force_field.h, the code the haptic client runs too)
   const PatientSample s = sample_patient(patient, tip_mm);
-  if (!inside(s)) {
-    state.in_contact = false;
-    state.force_n = Vec3{0, 0, 0};
+  const ProxyStep step = proxy_step(s, params, tip_mm, dt_s, state);
+  if (step.reset) {
+    out.reset = true;
     return out;
   }
+  if (!step.contact) return out;
   out.contact = true;
+  out.clamped = step.clamped;
   out.depth_mm = depth_from_sample(patient, s);
-
-  // direction of eq. 2: the normalised gradient, or the last good one where it is too small
-  const double gn = norm(s.grad_force);
-  Vec3 dir{0, 0, 0};
-  bool have_dir = false;
-  if (gn >= params.min_gradient_norm && std::isfinite(gn)) {
-    dir = s.grad_force * (1.0 / gn);
-    state.direction = dir;
-    state.has_direction = true;
-    have_dir = true;
-  } else if (state.has_direction) {
-    dir = state.direction;
-    have_dir = true;
-  }
-
-  // eq. 2 proxy, then friction: interpolate with the previous proxy while in contact
-  Vec3 proxy = have_dir ? tip_mm + dir * std::max(s.force_mm, 0.0) : tip_mm;
-  if (state.in_contact) proxy = proxy * (1.0 - params.friction) + state.proxy_mm * params.friction;
-
-  // spring, then the magnitude clamp, then the rate clamp (a blend of two forces within
-  // the magnitude limit stays within it)
-  Vec3 f = (tip_mm - proxy) * params.stiffness_n_per_mm;
-  const double fn = norm(f);
-  if (fn > params.max_force_n) {
-    f *= params.max_force_n / fn;
-    out.clamped = true;
-  }
-  const double dt = (first || !(dt_s > 0)) ? kNominalHapticPeriodS : dt_s;
-  const double max_step_n = params.max_force_rate_n_per_s * dt;
-  const Vec3 df = f - state.force_n;
-  const double dfn = norm(df);
-  if (dfn > max_step_n) {
-    f = state.force_n + df * (max_step_n / dfn);
-    out.clamped = true;
-  }
+  const Vec3& proxy = step.proxy_mm;
 
   // skin point X: along the line through x and p, on the side of x away from p
   Vec3 away = tip_mm - proxy;
   double an = norm(away);
-  if (!(an > 1e-9) && have_dir) {
-    away = -dir;
+  if (!(an > 1e-9) && step.has_direction) {
+    away = -step.direction;
     an = 1;
   }
   // where that line runs nearly along the skin it meets the skin far from the tip, or
@@ -195,7 +146,7 @@ ForceSample compute_force(const Patient& patient, const HapticsSettings& params,
     out.skin_point_mm = nearest_skin_point(patient, tip_mm, out.depth_mm);
 
   // a non-finite value (a corrupt patient) resets the session instead of poisoning it
-  if (!is_finite(f) || !is_finite(proxy) || !is_finite(out.skin_point_mm) || !std::isfinite(out.depth_mm)) {
+  if (!is_finite(out.skin_point_mm) || !std::isfinite(out.depth_mm)) {
     state = ProxyState{};
     ForceSample zero;
     zero.proxy_mm = tip_mm;
@@ -203,10 +154,7 @@ ForceSample compute_force(const Patient& patient, const HapticsSettings& params,
     zero.reset = true;
     return zero;
   }
-  state.in_contact = true;
-  state.proxy_mm = proxy;
-  state.force_n = f;
-  out.force_n = f;
+  out.force_n = step.force_n;
   out.proxy_mm = proxy;
   return out;
 }

@@ -1,6 +1,7 @@
 // The force model of the paper's section 2.1: a proxy from the force image F and
 // its gradient (eq. 2), friction, a spring to the device tip, clamps, and the skin
 // point X. Reads only the immutable Patient; each session owns a small ProxyState.
+// The per-pose math of eq. 2 is in force_field.h, shared with the haptic client.
 // No allocation, no locks, no logging: this runs once per pose at haptic rate.
 #pragma once
 
@@ -9,19 +10,9 @@
 #include "core/patient.h"
 #include "core/scene.h"
 #include "core/vec3.h"
+#include "haptics/force_field.h"
 
 namespace palpsim {
-
-/// A session's proxy state between poses (a few dozen bytes, trivially copyable).
-/// Value-initialise it (`ProxyState{}`) for a fresh session or a reset.
-struct ProxyState {
-  Vec3 proxy_mm{0, 0, 0};      // proxy of the previous pose (valid when in_contact)
-  Vec3 direction{0, 0, 0};     // last good unit gradient direction of F (valid when has_direction)
-  Vec3 force_n{0, 0, 0};       // force sent for the previous pose (for the rate clamp)
-  bool in_contact = false;     // the previous pose was inside the body
-  bool has_direction = false;  // direction holds a usable unit vector
-  bool has_previous = false;   // a previous pose exists (else dt is taken as one haptic period)
-};
 
 /// What the model says for one pose.
 struct ForceSample {
@@ -35,9 +26,6 @@ struct ForceSample {
   bool reset = false;           // a non-finite intermediate value reset the state (corrupt input)
 };
 
-/// The haptic period assumed when no previous pose gives dt (s): 1 kHz.
-constexpr double kNominalHapticPeriodS = 1e-3;
-
 /// Computes force, proxy, skin point and depth for device tip `tip_mm` and advances
 /// `state`. `dt_s` is the time since the session's previous pose (<= 0 or no previous
 /// pose: kNominalHapticPeriodS); it scales the force-rate clamp. `tip_mm` must be
@@ -46,14 +34,8 @@ constexpr double kNominalHapticPeriodS = 1e-3;
 ForceSample compute_force(const Patient& patient, const HapticsSettings& params, const Vec3& tip_mm,
                           double dt_s, ProxyState& state);
 
-/// Trilinear samples of the patient volumes that the force model reads, at one point.
-struct PatientSample {
-  double body = 0;          // C, in [0, 1]; >= 0.5 counts as inside
-  double dist_skin_mm = 0;  // B
-  double force_mm = 0;      // F
-  Vec3 grad_force{0, 0, 0}; // grad F (mm/mm, physical axes)
-  bool in_grid = false;     // the point lies within half a voxel of the grid
-};
+/// The patient's volumes as a FieldView on its grid.
+FieldView patient_view(const Patient& patient);
 
 /// Samples C, B, F and grad F trilinearly at a physical point (mm) with one set of
 /// weights; outside the grid (beyond half a voxel) everything is zero.

@@ -4,7 +4,9 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <vector>
 
+#include "haptics/patch_cut.h"
 #include "net/curve_keys.h"
 #include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
@@ -26,7 +28,7 @@ double box_distance_mm(const Vec3& p, const Vec3& lo, const Vec3& hi) {
 class PoseService {
  public:
   PoseService(zmq::socket_t& s, ServerShared& sh, std::chrono::steady_clock::time_point start)
-      : sock_(s), sh_(sh), start_(start) {}
+      : sock_(s), sh_(sh), start_(start), out_(kMaxPoseReplyBytes) {}
 
   void run(int idle_poll_ms) {
     zmq::pollitem_t items[] = {{sock_.handle(), 0, ZMQ_POLLIN, 0}};
@@ -44,6 +46,7 @@ class PoseService {
   const World* world_ = nullptr;
   v1::PoseRequest req_;
   v1::PoseReply rep_;
+  const std::string* patch_ = nullptr;       // a serialized LocalForceModel to append to rep_, or none
   char id_[256];
   std::size_t id_len_ = 0;
   zmq::message_t msg_;                       // with CURVE: a payload frame with its properties
@@ -53,7 +56,7 @@ class PoseService {
   std::size_t frame_len_[2] = {0, 0};        // bytes kept (at most kMaxPoseBytes + 1)
   std::size_t frame_full_len_[2] = {0, 0};   // bytes sent by the client
   char scrap_[64];
-  char out_[kMaxPoseBytes * 2];
+  std::vector<char> out_;                    // a serialized reply (room for the largest patch)
 
   // picks up the current world (one atomic load and store): a scene loaded before a pose
   // arrived serves that pose. Once its generation is published the control thread may
@@ -126,6 +129,7 @@ class PoseService {
 
   void handle(const char* data, std::size_t len, std::size_t full_len, std::int64_t t_recv, bool req_envelope) {
     rep_.Clear();
+    patch_ = nullptr;
     char msg[256];
     // size, parse, version
     if (full_len > kMaxPoseBytes) {
@@ -184,11 +188,30 @@ class PoseService {
       refuse(v1::ERROR_ABSURD_POSE, sh_.counters.absurd_pose, msg, slot);
       return send(req_envelope);
     }
+    // a request for patches names a size and a period within their ranges
+    const std::uint32_t edge = req_.local_model_edge();
+    const double period = req_.local_model_period_s();
+    if (edge != 0 && (edge < kMinPatchEdge || edge > kMaxPatchEdge)) {
+      std::snprintf(msg, sizeof msg, "PoseRequest.local_model_edge: %u voxels, outside %d..%d (0: no patches)", edge,
+                    kMinPatchEdge, kMaxPatchEdge);
+      refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, msg, slot);
+      return send(req_envelope);
+    }
+    if (edge != 0 && !(period >= kMinPatchPeriodS && period <= kMaxPatchPeriodS)) {
+      std::snprintf(msg, sizeof msg, "PoseRequest.local_model_period_s: %g s, outside %g..%g s", period,
+                    kMinPatchPeriodS, kMaxPatchPeriodS);
+      refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, msg, slot);
+      return send(req_envelope);
+    }
     // a new session in this slot, a reset, or a new world: a fresh proxy state
     const std::uint32_t resets = slot->reset_requests.load(std::memory_order_acquire);
     if (slot->state_id != id || slot->resets_seen != resets || slot->state_generation != world_->generation ||
         req_.reset_proxy()) {
-      if (slot->state_id != id) slot->latest.clear();
+      if (slot->state_id != id) {
+        slot->latest.clear();
+        slot->patch_version = 0;
+      }
+      slot->patch_sent_s = -1;  // a fresh state gets a fresh patch with its next pose
       slot->state_id = id;
       slot->resets_seen = resets;
       slot->state_generation = world_->generation;
@@ -209,7 +232,11 @@ class PoseService {
     slot->last_client_time_s = tc;
     slot->last_server_time_s = now_s;
 
-    const ForceSample f = compute_force(*world_->patient, slot->params(), tip, dt, slot->proxy);
+    const HapticsSettings params = slot->params();
+    const ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
+    if (edge != 0) serve_patches(*slot, params, tip, edge, period, now_s);
+    slot->renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);
+    if (req_.renders_locally()) slot->local_poses.fetch_add(1, std::memory_order_relaxed);
 
     // the reply
     rep_.set_schema_version(v1::VERSION_CURRENT);
@@ -244,14 +271,83 @@ class PoseService {
     send(req_envelope);
   }
 
+  // a patch is due once per period, and sooner (a quarter period) when the tip comes within
+  // kPatchMarginVox voxels of the last box's inner faces, where the client would soon miss
+  bool patch_due(const SessionSlot& slot, const Vec3& tip, double now_s, double period_s) const {
+    if (slot.patch_sent_s < 0 || now_s - slot.patch_sent_s >= period_s) return true;
+    if (now_s - slot.patch_sent_s < 0.25 * period_s) return false;
+    const Grid& g = world_->patient->grid;
+    const Vec3 ijk = g.to_index(tip);
+    for (int a = 0; a < 3; ++a) {
+      const double lo = slot.patch_lo[a], hi = slot.patch_lo[a] + slot.patch_size[a] - 1;
+      if ((ijk[a] < lo + kPatchMarginVox && lo > 0) || (ijk[a] > hi - kPatchMarginVox && hi < g.size[a] - 1))
+        return true;
+    }
+    return false;
+  }
+
+  // a session that asks for patches: the first time, the patch worker is told to make the
+  // slot's channel; then a request when a patch is due, and the newest patch the worker
+  // has cut for this session and world goes with this reply (patch_worker.h)
+  void serve_patches(SessionSlot& slot, const HapticsSettings& params, const Vec3& tip, std::uint32_t edge,
+                     double period_s, double now_s) {
+    if (!slot.patch_asked.load(std::memory_order_relaxed)) {
+      slot.patch_asked.store(true, std::memory_order_release);
+      sh_.patches_asked.store(true, std::memory_order_release);
+    }
+    PatchChannel* ch = slot.patch_channel.load(std::memory_order_acquire);
+    if (!ch) return;
+    if (patch_due(slot, tip, now_s, period_s)) {
+      PatchRequest& q = ch->request.back();
+      q.session_id = slot.state_id;
+      q.generation = world_->generation;
+      q.version = ++slot.patch_version;
+      q.tip_mm = tip;
+      q.edge = int(edge);
+      q.params = params;
+      q.server_time_s = now_s;
+      ch->request.publish();
+      slot.patch_sent_s = now_s;
+      slot.patch_lo = patch_box(world_->patient->grid, tip, int(edge), slot.patch_size);
+    }
+    if (ch->patch.take()) {
+      const PatchBytes& b = ch->patch.front();
+      if (b.session_id == slot.state_id && b.generation == world_->generation) {
+        patch_ = &b.bytes;
+        slot.local_models_sent.fetch_add(1, std::memory_order_relaxed);
+      }
+    }
+  }
+
+  // appends field 13 (tag, length, bytes) holding *patch_ to the n bytes in out_; the new
+  // length, or 0 when it does not fit
+  std::size_t append_patch(std::size_t n) {
+    const std::size_t len = patch_->size();
+    if (n + 1 + 10 + len > out_.size()) return 0;
+    out_[n++] = char((13 << 3) | 2);  // field 13, length-delimited
+    for (std::size_t v = len;; v >>= 7) {
+      out_[n++] = char(v < 0x80 ? v : (v & 0x7f) | 0x80);
+      if (v < 0x80) break;
+    }
+    std::memcpy(out_.data() + n, patch_->data(), len);
+    return n + len;
+  }
+
   // sends rep_ to the current routing id; never blocks (a vanished or slow client's reply is dropped)
   void send(bool req_envelope) {
-    const std::size_t n = rep_.ByteSizeLong();
-    if (n > sizeof out_ || !rep_.SerializeToArray(out_, int(n))) return;
+    std::size_t n = rep_.ByteSizeLong();
+    if (n > out_.size() || !rep_.SerializeToArray(out_.data(), int(n))) return;
+    // a patch goes after the reply's other fields as field 13 (PoseReply.local_model):
+    // protobuf parses fields in any order, so these bytes are a PoseReply with local_model set
+    if (patch_) {
+      n = append_patch(n);
+      patch_ = nullptr;
+      if (n == 0) return;
+    }
     try {
       if (!sock_.send(zmq::const_buffer(id_, id_len_), zmq::send_flags::sndmore | zmq::send_flags::dontwait)) return;
       if (req_envelope) sock_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::sndmore | zmq::send_flags::dontwait);
-      sock_.send(zmq::const_buffer(out_, n), zmq::send_flags::dontwait);
+      sock_.send(zmq::const_buffer(out_.data(), n), zmq::send_flags::dontwait);
     } catch (const zmq::error_t&) {
       // EHOSTUNREACH and the like: the client is gone; nothing to do
     }
@@ -262,7 +358,7 @@ class PoseService {
 
 void run_pose_service(zmq::socket_t& socket, ServerShared& shared, std::chrono::steady_clock::time_point start,
                       int idle_poll_ms) {
-  // the service object holds ~4 KiB of buffers: on the heap, once
+  // the service object holds ~4 KiB of buffers and the largest patch's: on the heap, once
   auto service = std::make_unique<PoseService>(socket, shared, start);
   service->run(idle_poll_ms);
 }

@@ -573,6 +573,9 @@ class Server::Control {
     s.errors = 0;
     s.last_seq = 0;
     s.clamps = 0;
+    s.local_models_sent = 0;
+    s.local_poses = 0;
+    s.renders_locally = false;
     s.contact = false;
     s.depth_mm = 0;
     s.client_name = req_.open().client_name();
@@ -730,6 +733,9 @@ class Server::Control {
       ss->set_idle_s((ns_since(start_) - slot->last_seen_ns.load()) * 1e-9);
       fill_params(ss->mutable_params(), slot->params());
       ss->set_force_clamps(slot->clamps);
+      ss->set_local_models_sent(slot->local_models_sent);
+      ss->set_local_poses(slot->local_poses);
+      ss->set_renders_locally(slot->renders_locally);
       // the session's stages: haptics holds its slot; its pose times are kept server-wide only
       add_stage(ss->mutable_stages(), "haptics", w.scene.effects.haptics, sizeof(SessionSlot), 0, slot->poses);
       DeformSessionReport r;
@@ -1018,7 +1024,8 @@ class Server::Control {
     const std::uint64_t seen = std::min({sh_.seen_generation.load(std::memory_order_acquire),
                                          sh_.deform_seen_generation.load(std::memory_order_acquire),
                                          sh_.render_seen_generation.load(std::memory_order_acquire),
-                                         sh_.publish_seen_generation.load(std::memory_order_acquire)});
+                                         sh_.publish_seen_generation.load(std::memory_order_acquire),
+                                         sh_.patch_seen_generation.load(std::memory_order_acquire)});
     retired_.erase(std::remove_if(retired_.begin(), retired_.end(),
                                   [seen](const std::unique_ptr<World>& w) { return w->generation < seen; }),
                    retired_.end());
@@ -1069,12 +1076,18 @@ void Server::start() {
     name_this_thread("palpsim-control");
     control_->run();
   });
+  // local force model patches, cut off the pose thread (it naps while no session asks)
+  patch_thread_ = std::thread([this] {
+    name_this_thread("palpsim-patch");
+    run_patch_worker(*shared_);
+  });
 }
 
 void Server::stop() {
   shared_->stop.store(true);
   if (pose_thread_.joinable()) pose_thread_.join();
   if (control_thread_.joinable()) control_thread_.join();
+  if (patch_thread_.joinable()) patch_thread_.join();
   if (control_) {
     control_->stop_stream();
     control_->stop_deform();

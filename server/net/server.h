@@ -105,7 +105,7 @@ class Server {
   std::unique_ptr<ServerShared> shared_;
   std::unique_ptr<Control> control_;
   std::string control_endpoint_, pose_endpoint_;
-  std::thread pose_thread_, control_thread_;
+  std::thread pose_thread_, control_thread_, patch_thread_;
   bool started_ = false;
 };
 

@@ -15,6 +15,7 @@
 #include "core/scene.h"
 #include "haptics/contact_slot.h"
 #include "haptics/force_model.h"
+#include "net/patch_worker.h"
 
 namespace palpsim::net {
 
@@ -53,6 +54,8 @@ struct SessionSlot {
   std::atomic<std::uint64_t> poses{0}, errors{0}, last_seq{0}, clamps{0};
   std::atomic<bool> contact{false};
   std::atomic<double> depth_mm{0};
+  std::atomic<std::uint64_t> local_models_sent{0}, local_poses{0};  // patches sent; poses rendered locally
+  std::atomic<bool> renders_locally{false};                          // the last pose said so
   // the newest contact, for the deformation path (pose writes, anyone reads)
   ContactSlot latest;
   // (pose) the proxy state and what it belongs to
@@ -62,6 +65,16 @@ struct SessionSlot {
   ProxyState proxy{};
   double last_client_time_s = 0;       // of the previous pose
   double last_server_time_s = 0;       // of the previous pose
+  // (pose) the session's local force model patches (PROTOCOL.md, "Local force model")
+  std::uint64_t patch_version = 0;     // of the last patch asked for (0: none since the session opened)
+  double patch_sent_s = 0;             // server clock when it was asked for (< 0: due now)
+  Vec3i patch_lo{0, 0, 0};             // its box on the patient grid
+  Vec3i patch_size{0, 0, 0};
+  // the slot's hand-over to the patch worker: the pose thread says that patches were asked
+  // for, the worker makes the channel (kept for the slot's later sessions) and publishes it
+  std::atomic<bool> patch_asked{false};
+  std::unique_ptr<PatchChannel> patch_storage;     // (patch worker) owns the channel
+  std::atomic<PatchChannel*> patch_channel{nullptr};
   // (control) name shown in stats
   std::string client_name;
   // who opened the session: (control) the identity its control requests must carry, and
@@ -170,6 +183,8 @@ struct ServerShared {
   std::atomic<std::uint64_t> deform_seen_generation{~std::uint64_t(0)};  // (deformation worker) the same; max: no worker
   std::atomic<std::uint64_t> render_seen_generation{~std::uint64_t(0)};   // (render thread) the same; max: none
   std::atomic<std::uint64_t> publish_seen_generation{~std::uint64_t(0)};  // (stream publisher) the same; max: none
+  std::atomic<std::uint64_t> patch_seen_generation{~std::uint64_t(0)};   // (patch worker) the same; max: none
+  std::atomic<bool> patches_asked{false};            // (pose) some session's poses asked for patches
   Counters counters;
   LatencyHistogram pose_service;                     // (pose) receive-to-send times of answered poses
   std::atomic<bool> stop{false};
@@ -183,6 +198,14 @@ struct ServerShared {
 /// Limits of the two paths (PROTOCOL.md).
 constexpr std::size_t kMaxPoseBytes = 1024;
 constexpr std::size_t kMaxControlBytes = 1 << 20;
+/// Local force model patches (PoseRequest.local_model_edge, local_model_period_s): voxels
+/// per axis and the period between patches (s). 16^3 voxels are 68 KiB on the wire.
+constexpr int kMinPatchEdge = 4, kMaxPatchEdge = 16;
+constexpr double kMinPatchPeriodS = 0.01, kMaxPatchPeriodS = 1.0;
+/// A patch is sent early when the tip comes within this many voxels of the last box's faces.
+constexpr double kPatchMarginVox = 2.0;
+/// The largest PoseReply: a small reply and the largest patch (C 1, F 4, grad F 12 bytes a voxel).
+constexpr std::size_t kMaxPoseReplyBytes = 4096 + std::size_t(kMaxPatchEdge) * kMaxPatchEdge * kMaxPatchEdge * 17;
 /// Longest ControlRequest.client_token (bytes).
 constexpr std::size_t kMaxClientTokenBytes = 64;
 /// ZeroMQ drops connections that send frames larger than this (memory guard).

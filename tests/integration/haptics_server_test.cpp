@@ -12,6 +12,7 @@
 #include <thread>
 #include <zmq.hpp>
 
+#include "integration/haptic_log.h"
 #include "integration/server_process.h"
 #include "palpsim/wire.pb.h"
 
@@ -462,40 +463,17 @@ TEST_CASE("the haptic client's watchdog takes the force to zero within 10 ms whe
   CHECK((rc == 0 || rc == 3));  // 3: some replies came back too late to be counted
   CHECK(client.err().find("watchdog") != std::string::npos);
 
-  // rows: time_s (1), force (5..7), reply_seq (9), watchdog_scale (12)
-  std::ifstream in(log);
-  std::string line;
-  std::getline(in, line);
-  struct Row {
-    double t, fx, fy, fz, scale;
-    unsigned long long reply_seq;
-  };
-  std::vector<Row> rows;
-  while (std::getline(in, line)) {
-    std::vector<std::string> c;
-    std::stringstream ss(line);
-    std::string cell;
-    while (std::getline(ss, cell, ',')) c.push_back(cell);
-    if (c.size() < 13) continue;
-    rows.push_back({std::stod(c[1]), std::stod(c[5]), std::stod(c[6]), std::stod(c[7]), std::stod(c[12]),
-                    std::stoull(c[9])});
-  }
+  const std::vector<test::HapticLogRow> rows = test::read_haptic_log(log);
   REQUIRE(rows.size() > 3000);
   // the longest stretch in which no new reply arrived
   std::size_t best_first = 0, best_len = 0;
-  for (std::size_t i = 1, first = 0; i < rows.size(); ++i) {
-    if (rows[i].reply_seq != rows[first].reply_seq) first = i;
-    if (i - first > best_len) {
-      best_len = i - first;
-      best_first = first;
-    }
-  }
+  test::longest_reply_gap(rows, best_first, best_len);
   // the stall covers most of the 0.5 s stop
   const double t_reply = rows[best_first].t;  // the newest reply arrived at or before this step
   CHECK(rows[best_first + best_len].t - t_reply > 0.3);
   bool force_before = false;
   for (std::size_t i = best_first; i <= best_first + best_len; ++i) {
-    const double f = std::sqrt(rows[i].fx * rows[i].fx + rows[i].fy * rows[i].fy + rows[i].fz * rows[i].fz);
+    const double f = rows[i].force();
     if (rows[i].t - t_reply < 0.001 && f > 0) force_before = true;
     // 10 ms after the newest reply the force is exactly zero
     if (rows[i].t - t_reply >= 0.010) {

@@ -219,6 +219,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # a study file (plans x patients x grid) has its own options (palpsim.study)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    first = next((a for a in argv if not a.startswith("-")), None)
+    if first is not None:
+        from .study import is_study_file
+        if is_study_file(first):
+            from .study import main as study_main
+            return study_main(argv)
     parser = build_parser()
     args = parser.parse_args(argv)
     prog = "palpsim-batch"

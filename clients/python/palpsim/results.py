@@ -79,17 +79,23 @@ def finish_table(df: pd.DataFrame) -> pd.DataFrame:
 def result_digest(df: pd.DataFrame) -> str:
     """SHA-256 over every result column (not TIMING_COLUMNS), in canonical order: two runs
     of the same plan on the same scene give the same digest."""
+    return digest_columns(df, [c for c in COLUMNS if c not in TIMING_COLUMNS])
+
+
+def digest_columns(df: pd.DataFrame, columns: list[str]) -> str:
+    """SHA-256 over the named columns in that order: each column's name, then its values
+    (categories as their codes, strings as UTF-8 each ended by a NUL, numbers as bytes)."""
     h = hashlib.sha256()
-    for c in COLUMNS:
-        if c in TIMING_COLUMNS:
-            continue
+    for c in columns:
         col = df[c]
         if isinstance(col.dtype, pd.CategoricalDtype):
-            data = np.asarray(col.cat.codes, dtype=np.int16)
+            data = np.asarray(col.cat.codes, dtype=np.int16).tobytes()
+        elif col.dtype.kind in "OSUT":
+            data = b"".join(str(v).encode() + b"\0" for v in col.to_numpy())
         else:
-            data = np.ascontiguousarray(col.to_numpy())
+            data = np.ascontiguousarray(col.to_numpy()).tobytes()
         h.update(c.encode())
-        h.update(data.tobytes())
+        h.update(data)
     return h.hexdigest()
 
 

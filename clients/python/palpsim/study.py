@@ -66,6 +66,8 @@ PARAM_PREFIX = "param_"
 WORKER_DEPTH = 2
 # a worker whose calls failed this many times in a row is given up
 WORKER_MAX_FAILURES = 3
+# how long to wait for a restarted worker when no task is running anywhere (s)
+WORKER_WAIT_S = 300.0
 
 _TOP_KEYS = {"name", "plans", "patients", "grid"}
 _PATIENT_KEYS = {"name", "scene", "plans"}
@@ -590,6 +592,8 @@ class _RayWorker:
         """Runs one task; the table comes back to the driver, which writes it."""
         df, meta = run_task(self.servers, task, self.sessions, self.timeout_s)
         meta["node"] = self.where()["node"]
+        if meta["prep"]:
+            meta["prep"]["node"] = meta["node"]
         return df, meta
 
 
@@ -652,14 +656,27 @@ def _run_ray(todo: list[Task], address: str, binary: Path, sessions: int, timeou
 
         pending = collections.deque(todo)
         inflight: dict[Any, tuple[int, Task]] = {}
+        probes: dict[Any, int] = {}  # where() calls to workers that lost a task
         load = [0] * len(actors)
         patient: list[str | None] = [None] * len(actors)
         failures = [0] * len(actors)
         alive = set(range(len(actors)))
         avoid: dict[int, int] = {}
+
+        def lose(a: int) -> None:
+            """A call to worker a failed: probe it before it gets work again (Ray restarts
+            it, on its node or elsewhere), or give it up after WORKER_MAX_FAILURES."""
+            failures[a] += 1
+            patient[a] = None
+            if failures[a] >= WORKER_MAX_FAILURES:
+                alive.discard(a)
+            elif a not in probes.values():
+                probes[actors[a].where.remote()] = a
+
         while pending or inflight:
-            # hand out work: each live worker up to WORKER_DEPTH tasks, its patient first
-            for a in sorted(alive):
+            # hand out work: each live, answering worker up to WORKER_DEPTH tasks, its
+            # current patient first
+            for a in sorted(alive - set(probes.values())):
                 while load[a] < WORKER_DEPTH:
                     # a task lost with a worker goes elsewhere while another worker lives
                     fits = [t for t in pending if avoid.get(t.index) != a or len(alive) == 1]
@@ -670,25 +687,35 @@ def _run_ray(todo: list[Task], address: str, binary: Path, sessions: int, timeou
                     inflight[actors[a].run.remote(task)] = (a, task)
                     load[a] += 1
                     patient[a] = task.patient.name
-            if not inflight:
+            if not inflight and not probes:
                 raise StudyError(f"every Ray worker died; {len(pending)} tasks left unfinished "
                                  "(finished ones are kept: start the study again)")
-            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=None)
+            # with only probes out, a worker that is never placed again must not hang the run
+            ready, _ = ray.wait(list(inflight) + list(probes), num_returns=1,
+                                timeout=None if inflight else WORKER_WAIT_S)
+            if not ready:
+                raise StudyError(f"no Ray worker came back within {WORKER_WAIT_S:g} s; "
+                                 f"{len(pending)} tasks left unfinished (finished ones are kept)")
             for ref in ready:
+                if ref in probes:
+                    a = probes.pop(ref)
+                    try:
+                        ray.get(ref)
+                        failures[a] = 0
+                    except lost:
+                        lose(a)
+                    continue
                 a, task = inflight.pop(ref)
                 load[a] -= 1
                 try:
                     df, meta = ray.get(ref)
                 except lost as e:
-                    # the worker (or its node) died: the task goes back for any worker
-                    failures[a] += 1
+                    # the worker (or its node) died: the task goes back for another worker
                     info["retried"] = info.get("retried", 0) + 1
                     info["lost"].append({"task": task.key, "error": type(e).__name__})
                     pending.appendleft(task)
                     avoid[task.index] = a
-                    patient[a] = None
-                    if failures[a] >= WORKER_MAX_FAILURES:
-                        alive.discard(a)
+                    lose(a)
                     continue
                 except RayTaskError as e:
                     raise StudyError(f"task {task.key} failed: {e.cause if e.cause else e}") from None

@@ -629,6 +629,7 @@ def _run_ray(todo: list[Task], address: str, binary: Path, sessions: int, timeou
     except ImportError:
         raise StudyError("--ray needs the ray package (pip install 'ray==2.60.0')") from None
     lost = (RayActorError, ObjectLostError, WorkerCrashedError)
+    t0 = time.perf_counter()
     started = not ray.is_initialized()
     if started:
         # workers import this very palpsim (a node without it on this path uses its own)
@@ -652,7 +653,8 @@ def _run_ray(todo: list[Task], address: str, binary: Path, sessions: int, timeou
                   .remote(str(binary), sessions, timeout_s) for node, opts in slots]
         where = ray.get([a.where.remote() for a in actors], timeout=300)
         info = {"mode": "ray", "address": address, "workers": len(actors),
-                "nodes": len({w["node"] for w in where}), "lost": []}
+                "nodes": len({w["node"] for w in where}), "lost": [],
+                "startup_s": time.perf_counter() - t0}
 
         pending = collections.deque(todo)
         inflight: dict[Any, tuple[int, Task]] = {}

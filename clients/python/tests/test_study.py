@@ -225,19 +225,26 @@ def cluster(tmp_path_factory):
     c.stop()
 
 
-def _prepared_once_per_node(run) -> None:
+def _prepared_once_per_node(summary: dict) -> None:
     """Each patient was prepared (not read from the cache) at most once on each node."""
-    events = [(e["node"], e["patient"]) for e in run.summary["run"]["prep"] if e["prep"] == "prepared"]
-    assert len(events) == len(set(events)), run.summary["run"]["prep"]
+    prep = summary["run"]["prep"]
+    events = [(e["node"], e["patient"]) for e in prep if e["prep"] == "prepared"]
+    assert len(events) == len(set(events)), prep
 
 
-def test_ray_run_gives_the_local_digest(local, cluster, binary, study_file, tmp_path):
-    run = run_study(load_study(study_file), tmp_path / "ray", binary=binary,
-                    ray_address=cluster.address, progress=False)
-    r = run.summary["run"]
-    assert run.digest == local.digest
+def test_ray_run_gives_the_local_digest(local, cluster, binary, study_file, tmp_path, capsys):
+    # the command line, as a person runs it
+    out = tmp_path / "ray"
+    rc = batch_main([str(study_file), "--ray", cluster.address, "--server", str(binary),
+                     "--out", str(out), "--no-progress"])
+    printed = capsys.readouterr().out
+    assert rc == 0, printed
+    summary = json.loads((out / "study.json").read_text())
+    r = summary["run"]
+    assert summary["digest"] == local.digest and local.digest[:16] in printed
+    assert study_digest(load_study(study_file), pd.read_parquet(out / "study.parquet")) == local.digest
     assert r["mode"] == "ray" and r["nodes"] == 2 and r["workers"] == 2 and r["retried"] == 0
-    _prepared_once_per_node(run)
+    _prepared_once_per_node(summary)
     # both workers did work
     assert len({e["node"] for e in r["prep"]}) == 2
 
@@ -257,7 +264,7 @@ def test_ray_worker_killed_mid_study(local, cluster, binary, study_file, tmp_pat
     r = run.summary["run"]
     assert run.digest == local.digest
     assert r["retried"] >= 1 and r["ran"] == len(study.tasks), r
-    _prepared_once_per_node(run)
+    _prepared_once_per_node(run.summary)
 
 
 def test_ray_node_killed_mid_study(local, cluster, binary, study_file, tmp_path):

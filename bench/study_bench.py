@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Study throughput: the same study run locally, on a Ray cluster of 1 node and of 2 nodes
 on this machine (palpsim.raycluster), in tasks per second, and the scaling efficiency
-tasks/s(2 nodes) / (2 x tasks/s(1 node)).
+tasks/s(2 nodes) / (2 x tasks/s(1 node)), from the medians of `--rounds` alternating runs.
 
     .venv/bin/python bench/study_bench.py --json bench/results/study-DATE-MACHINE.json
 
@@ -19,6 +19,7 @@ import datetime
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -60,6 +61,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--points", type=int, default=6, help="press points per plan (default 6)")
     ap.add_argument("--cpus-per-node", type=int, default=1, help="CPUs (workers) per node")
+    ap.add_argument("--rounds", type=int, default=3, help="runs of each cluster (default 3)")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
 
@@ -74,10 +76,15 @@ def main() -> int:
                      "tasks": r["ran"], "wall_s": r["wall_s"], "tasks_per_s": r["tasks_per_s"],
                      "startup_s": r.get("startup_s", 0.0),
                      "tasks_per_s_after_startup": r["ran"] / (r["wall_s"] - r.get("startup_s", 0.0)),
-                     "poses_per_s": len(run.table) / r["wall_s"], "digest": run.digest})
+                     "poses_per_s": len(run.table) / r["wall_s"],
+                     "task_s_mean": sum(r["task_s"].values()) / len(r["task_s"]),
+                     "prep_and_server_start_s": sum(e["start_s"] for e in r["prep"]),
+                     "digest": run.digest})
         print(f"{name:>14}: {r['ran']} tasks in {r['wall_s']:.2f} s, {r['tasks_per_s']:.2f} tasks/s, "
               f"{len(run.table) / r['wall_s']:.0f} poses/s (Ray start-up {r.get('startup_s', 0.0):.1f} s, "
-              f"{rows[-1]['tasks_per_s_after_startup']:.2f} tasks/s after it), "
+              f"{rows[-1]['tasks_per_s_after_startup']:.2f} tasks/s after it), a task "
+              f"{rows[-1]['task_s_mean']:.2f} s on its worker, server starts "
+              f"{rows[-1]['prep_and_server_start_s']:.1f} s in all, "
               f"digest {run.digest[:16]}", flush=True)
 
     # warm both nodes' prep caches, then the local baseline (one server, tasks in order)
@@ -87,20 +94,26 @@ def main() -> int:
     os.environ["PALPSIM_CACHE"] = str(caches[0])
     record("local", run_study(study, tmp / "local", progress=False), 1)
 
-    # the same study on 1 and on 2 nodes
-    for nodes in (1, 2):
-        env = [{"PALPSIM_CACHE": str(c)} for c in caches[:nodes]]
-        with LocalRayCluster(nodes=nodes, cpus_per_node=args.cpus_per_node, node_env=env) as cl:
-            record(f"ray {nodes} node{'s' if nodes > 1 else ''}",
-                   run_study(study, tmp / f"ray{nodes}", ray_address=cl.address,
-                             progress=False), nodes)
+    # the same study on 1 and on 2 nodes, alternating, `--rounds` times (the VM is shared)
+    for _ in range(args.rounds):
+        for nodes in (1, 2):
+            env = [{"PALPSIM_CACHE": str(c)} for c in caches[:nodes]]
+            with LocalRayCluster(nodes=nodes, cpus_per_node=args.cpus_per_node,
+                                 node_env=env) as cl:
+                record(f"ray {nodes} node{'s' if nodes > 1 else ''}",
+                       run_study(study, tmp / f"ray{nodes}-{len(rows)}", ray_address=cl.address,
+                                 progress=False), nodes)
 
-    one, two = rows[1]["tasks_per_s"], rows[2]["tasks_per_s"]
+    def median(nodes: int, key: str) -> float:
+        return statistics.median(r[key] for r in rows if r["config"] != "local"
+                                 and r["nodes"] == nodes)
+
+    one, two = median(1, "tasks_per_s"), median(2, "tasks_per_s")
     efficiency = two / (2 * one)
-    work = rows[2]["tasks_per_s_after_startup"] / (2 * rows[1]["tasks_per_s_after_startup"])
+    work = median(2, "tasks_per_s_after_startup") / (2 * median(1, "tasks_per_s_after_startup"))
     same = len({r["digest"] for r in rows}) == 1
-    print(f"scaling 1 -> 2 nodes: {two / one:.2f}x, efficiency {efficiency:.0%} "
-          f"({work:.0%} after the start-up); "
+    print(f"medians: 1 node {one:.2f} tasks/s, 2 nodes {two:.2f} tasks/s; scaling {two / one:.2f}x, "
+          f"efficiency {efficiency:.0%} ({work:.0%} after the start-up); "
           f"digests {'all equal' if same else 'DIFFER'}")
     if args.json:
         commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
@@ -109,7 +122,8 @@ def main() -> int:
                "commit": commit, "machine": f"{platform.node()} {os.cpu_count()} cores",
                "load_avg_at_end": os.getloadavg(), "study": {"tasks": len(study.tasks),
                                                              "points_per_plan": args.points},
-               "cpus_per_node": args.cpus_per_node, "runs": rows,
+               "cpus_per_node": args.cpus_per_node, "rounds": args.rounds, "runs": rows,
+               "median_tasks_per_s": {"1 node": one, "2 nodes": two},
                "speedup_2_nodes": two / one, "scaling_efficiency": efficiency,
                "scaling_efficiency_after_startup": work,
                "digests_equal": same}

@@ -517,12 +517,14 @@ def run_study(study: Study, out_dir: str | Path, binary: str | Path | None = Non
         print(f"palpsim-batch: {line}", file=sys.stderr)
     todo = [t for t in study.tasks if t.index not in done]
     bar = _Progress(study, len(done), progress)
-    stats: dict[str, Any] = {"kept": len(done), "ran": 0, "retried": 0, "prep": []}
+    # task_s: each task's palpation time on its worker (s), server start not included
+    stats: dict[str, Any] = {"kept": len(done), "ran": 0, "retried": 0, "prep": [], "task_s": {}}
 
     def finish(task: Task, df: pd.DataFrame, meta: dict[str, Any]) -> None:
         write_task(study, task, df, out_dir, {"host": meta.get("host"), "pid": meta.get("pid")})
         done[task.index] = df
         stats["ran"] += 1
+        stats["task_s"][task.key] = meta.get("wall_s")
         if meta.get("prep"):
             stats["prep"].append(meta["prep"])
         bar.update(task)

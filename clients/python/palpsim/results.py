@@ -28,7 +28,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -111,14 +111,20 @@ def write_table(df: pd.DataFrame, path: str | Path) -> Path:
     ext = path.suffix.lower()
     if ext not in (".csv", ".parquet"):
         raise TableError(f"{path}: unknown table format {ext!r} (use .csv or .parquet)")
+    if ext == ".csv":
+        # repr-exact floats, so a CSV reads back to the same numbers
+        return write_atomically(path, lambda tmp: df.to_csv(tmp, index=False, float_format="%.17g"))
+    return write_atomically(path, lambda tmp: df.to_parquet(tmp, index=False))
+
+
+def write_atomically(path: str | Path, write: Callable[[str], Any]) -> Path:
+    """Calls write(tmp) for a temporary file beside `path`, then renames it over `path`: the
+    file is there whole or not at all (the temporary file is removed when write fails)."""
+    path = Path(path)
     fd, tmp = _atomic_path(path)
     os.close(fd)
     try:
-        if ext == ".csv":
-            # repr-exact floats, so a CSV reads back to the same numbers
-            df.to_csv(tmp, index=False, float_format="%.17g")
-        else:
-            df.to_parquet(tmp, index=False)
+        write(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

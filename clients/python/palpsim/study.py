@@ -58,7 +58,8 @@ import pandas as pd
 
 from .client import PalpsimError
 from .plan import Plan, PlanError, load_plan
-from .results import COLUMNS, TIMING_COLUMNS, TableError, digest_columns, finish_table
+from .results import (COLUMNS, TIMING_COLUMNS, TableError, digest_columns, finish_table,
+                      write_atomically)
 
 # the grid's parameter columns are named PARAM_PREFIX + name
 PARAM_PREFIX = "param_"
@@ -347,7 +348,6 @@ def write_task(study: Study, task: Task, df: pd.DataFrame, out_dir: Path,
     in the Parquet metadata; returns the digest."""
     import pyarrow as pa
     import pyarrow.parquet as pq
-    from .results import _atomic_path
 
     digest = study_digest(study, df)
     table = pa.Table.from_pandas(df, preserve_index=False)
@@ -355,15 +355,7 @@ def write_task(study: Study, task: Task, df: pd.DataFrame, out_dir: Path,
     md = dict(table.schema.metadata or {})
     md[b"palpsim.task"] = json.dumps(info).encode()
     table = table.replace_schema_metadata(md)
-    path = _task_path(out_dir, task)
-    fd, tmp = _atomic_path(path)
-    os.close(fd)
-    try:
-        pq.write_table(table, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomically(_task_path(out_dir, task), lambda tmp: pq.write_table(table, tmp))
     return digest
 
 
@@ -508,7 +500,7 @@ def run_study(study: Study, out_dir: str | Path, binary: str | Path | None = Non
     from .server import find_server
     out_dir = Path(out_dir)
     binary = Path(binary) if binary else find_server()
-    if binary is None:
+    if binary is None and not ray_address:
         raise StudyError("no palpsim-server found (build it, set PALPSIM_BUILD_DIR or give --server)")
     if sessions < 1:
         raise StudyError(f"--sessions: must be at least 1, got {sessions}")
@@ -533,9 +525,12 @@ def run_study(study: Study, out_dir: str | Path, binary: str | Path | None = Non
 
     t0 = time.perf_counter()
     try:
-        if ray_address:
-            stats.update(_run_ray(todo, ray_address, binary, sessions, timeout_s, workers,
-                                  cpus_per_worker, finish))
+        if not todo:
+            stats.update(mode="none: every task was finished", workers=0, nodes=0)
+        elif ray_address:
+            # without a server here, each worker looks for its node's own
+            stats.update(_run_ray(todo, ray_address, str(binary or ""), sessions, timeout_s,
+                                  workers, cpus_per_worker, finish))
         else:
             servers = PatientServer(binary, log_dir=out_dir / "logs")
             try:
@@ -578,10 +573,10 @@ class _RayWorker:
 
     def __init__(self, binary: str, sessions: int, timeout_s: float):
         from .server import find_server
-        path = Path(binary)
-        if not (path.is_file() and os.access(path, os.X_OK)):
-            path = find_server() or path  # this node's own build or PATH
-        self.servers = PatientServer(path, die_with_parent=True)
+        path: Path | None = Path(binary) if binary else None
+        if path is None or not (path.is_file() and os.access(path, os.X_OK)):
+            path = find_server()  # this node's own build or PATH
+        self.servers = PatientServer(path, die_with_parent=True) if path else None
         self.sessions, self.timeout_s = sessions, timeout_s
 
     def where(self) -> dict[str, Any]:
@@ -592,6 +587,9 @@ class _RayWorker:
 
     def run(self, task: Task) -> tuple[pd.DataFrame, dict[str, Any]]:
         """Runs one task; the table comes back to the driver, which writes it."""
+        if self.servers is None:
+            raise StudyError(f"{socket.gethostname()}: no palpsim-server on this node (not at "
+                             "--server's path, nor in $PALPSIM_BUILD_DIR, build/ or PATH)")
         df, meta = run_task(self.servers, task, self.sessions, self.timeout_s)
         meta["node"] = self.where()["node"]
         if meta["prep"]:
@@ -618,12 +616,25 @@ def _ray_slots(nodes: list[dict[str, Any]], cpus_per_worker: float) -> list[tupl
     return [s for group in itertools.zip_longest(*by_node.values()) for s in group if s]
 
 
-def _run_ray(todo: list[Task], address: str, binary: Path, sessions: int, timeout_s: float,
+def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
+    """Refuses a HOST:PORT where nothing answers (ray.init would retry it for minutes)."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise StudyError(f"--ray {address}: give auto or the head's HOST:PORT")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        raise StudyError(f"--ray {address}: no Ray cluster answers there ({e.strerror or e})") from None
+
+
+def _run_ray(todo: list[Task], address: str, binary: str, sessions: int, timeout_s: float,
              workers: int | None, cpus_per_worker: float,
              finish: Callable[[Task, pd.DataFrame, dict[str, Any]], None]) -> dict[str, Any]:
     """Runs the tasks on Ray workers with a scheduler loop: each worker holds up to
     WORKER_DEPTH tasks, preferring its current patient; a task whose worker died goes
     back to the queue for any worker; results come back to the driver, which writes them."""
+    if address != "auto":
+        _check_reachable(address)
     try:
         import ray
         from ray.exceptions import ObjectLostError, RayActorError, RayTaskError, WorkerCrashedError
@@ -652,7 +663,7 @@ def _run_ray(todo: list[Task], address: str, binary: Path, sessions: int, timeou
         cls = ray.remote(_RayWorker)
         actors = [cls.options(max_restarts=2, max_task_retries=0, scheduling_strategy=
                               NodeAffinitySchedulingStrategy(node, soft=True), **opts)
-                  .remote(str(binary), sessions, timeout_s) for node, opts in slots]
+                  .remote(binary, sessions, timeout_s) for node, opts in slots]
         where = ray.get([a.where.remote() for a in actors], timeout=300)
         info = {"mode": "ray", "address": address, "workers": len(actors),
                 "nodes": len({w["node"] for w in where}), "lost": [],

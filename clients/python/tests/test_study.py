@@ -105,10 +105,38 @@ def test_bad_patients_and_plans_are_named(tmp_path):
         assert str(e.value).startswith(f"{src}: ") and message in str(e.value), (change, str(e.value))
 
 
+def test_unreachable_ray_cluster_is_a_clear_error(tmp_path, capsys):
+    import socket
+    with socket.socket() as s:  # a loopback port where nothing listens
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    path = _write_study(tmp_path, with_ct=False)
+    rc = batch_main([str(path), "--ray", f"127.0.0.1:{port}", "--out", str(tmp_path / "out"),
+                     "--no-progress"])
+    assert rc == 1 and f"--ray 127.0.0.1:{port}: no Ray cluster answers there" in capsys.readouterr().err
+    assert not (tmp_path / "out" / "study.parquet").exists()
+
+
 def test_bad_study_on_the_command_line_exits_2(tmp_path, capsys):
     path = _write_study(tmp_path, with_ct=False, extra="[grid]\nfriction = [2.0]\n")
     assert batch_main([str(path), "--no-progress"]) == 2
     assert "grid.friction" in capsys.readouterr().err
+
+
+def test_workers_are_one_per_gpu_else_per_cpu_slot():
+    from palpsim.study import _ray_slots
+    cpu_nodes = [{"NodeID": "a", "Resources": {"CPU": 4.0}}, {"NodeID": "b", "Resources": {"CPU": 2.0}}]
+    slots = _ray_slots(cpu_nodes, cpus_per_worker=2)
+    # 4 // 2 + 2 // 2 workers, alternating between the nodes so that a cap still spreads them
+    assert [n for n, _ in slots] == ["a", "b", "a"]
+    assert all(opts == {"num_cpus": 2} for _, opts in slots)
+    gpu_nodes = [{"NodeID": "head", "Resources": {"CPU": 8.0}},
+                 {"NodeID": "g1", "Resources": {"CPU": 16.0, "GPU": 4.0}},
+                 {"NodeID": "g2", "Resources": {"CPU": 16.0, "GPU": 2.0}}]
+    slots = _ray_slots(gpu_nodes, cpus_per_worker=1)
+    # with GPUs in the cluster: one worker per GPU and none on the CPU-only head
+    assert sorted(n for n, _ in slots) == ["g1"] * 4 + ["g2"] * 2
+    assert all(opts == {"num_gpus": 1, "num_cpus": 0} for _, opts in slots)
 
 
 # -- local runs ------------------------------------------------------------------------------

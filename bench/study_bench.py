@@ -3,7 +3,7 @@
 on this machine (palpsim.raycluster), in tasks per second, and the scaling efficiency
 tasks/s(2 nodes) / (2 x tasks/s(1 node)), from the medians of `--rounds` alternating runs.
 
-    .venv/bin/python bench/study_bench.py --json bench/results/study-DATE-MACHINE.json
+    .venv/bin/python bench/study_bench.py --json bench/results/study-DATE-MACHINE.json   # about 3 minutes here
 
 The study: the example's two phantom variants and the shared CT (left out where
 ../shared/data is absent), each pressed at `--points` points along its back, at a 2 x 3
@@ -19,6 +19,7 @@ import datetime
 import json
 import os
 import platform
+import shutil
 import statistics
 import subprocess
 import sys
@@ -59,13 +60,21 @@ def write_study(folder: Path, points: int) -> Path:
 def main() -> int:
     """Runs the three configurations and prints and saves the figures."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--points", type=int, default=6, help="press points per plan (default 6)")
+    ap.add_argument("--points", type=int, default=16, help="press points per plan (default 16)")
     ap.add_argument("--cpus-per-node", type=int, default=1, help="CPUs (workers) per node")
     ap.add_argument("--rounds", type=int, default=3, help="runs of each cluster (default 3)")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
 
     tmp = Path(tempfile.mkdtemp(prefix="study-bench-"))
+    try:
+        return _bench(args, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _bench(args: argparse.Namespace, tmp: Path) -> int:
+    """The bench proper, its study, caches and outputs in `tmp`."""
     study = load_study(write_study(tmp, args.points))
     caches = [tmp / f"cache{i}" for i in range(2)]
     rows = []

@@ -198,7 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="palpsim-batch",
         description="Run a palpation plan against palpsim-server; write a tidy table of every "
-                    "pose, a summary and plots.")
+                    "pose, a summary and plots. Given a study file (a .toml with [[patients]]) "
+                    "it runs the study instead, locally or with --ray (palpsim-batch STUDY --help).")
     p.add_argument("plan", nargs="?", help="plan file (.toml or .json; --plan-help for the fields)")
     p.add_argument("--plan-help", action="store_true", help="print the plan's fields and exit")
     src = p.add_mutually_exclusive_group()
@@ -219,6 +220,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # a study file (plans x patients x grid) has its own options (palpsim.study)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    from .study import is_study_file
+    if any(is_study_file(a) for a in argv if not a.startswith("-")):
+        from .study import main as study_main
+        return study_main(argv)
     parser = build_parser()
     args = parser.parse_args(argv)
     prog = "palpsim-batch"

@@ -28,7 +28,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -79,17 +79,23 @@ def finish_table(df: pd.DataFrame) -> pd.DataFrame:
 def result_digest(df: pd.DataFrame) -> str:
     """SHA-256 over every result column (not TIMING_COLUMNS), in canonical order: two runs
     of the same plan on the same scene give the same digest."""
+    return digest_columns(df, [c for c in COLUMNS if c not in TIMING_COLUMNS])
+
+
+def digest_columns(df: pd.DataFrame, columns: list[str]) -> str:
+    """SHA-256 over the named columns in that order: each column's name, then its values
+    (categories as their codes, strings as UTF-8 each ended by a NUL, numbers as bytes)."""
     h = hashlib.sha256()
-    for c in COLUMNS:
-        if c in TIMING_COLUMNS:
-            continue
+    for c in columns:
         col = df[c]
         if isinstance(col.dtype, pd.CategoricalDtype):
-            data = np.asarray(col.cat.codes, dtype=np.int16)
+            data = np.asarray(col.cat.codes, dtype=np.int16).tobytes()
+        elif col.dtype.kind in "OSUT":
+            data = b"".join(str(v).encode() + b"\0" for v in col.to_numpy())
         else:
-            data = np.ascontiguousarray(col.to_numpy())
+            data = np.ascontiguousarray(col.to_numpy()).tobytes()
         h.update(c.encode())
-        h.update(data.tobytes())
+        h.update(data)
     return h.hexdigest()
 
 
@@ -105,14 +111,20 @@ def write_table(df: pd.DataFrame, path: str | Path) -> Path:
     ext = path.suffix.lower()
     if ext not in (".csv", ".parquet"):
         raise TableError(f"{path}: unknown table format {ext!r} (use .csv or .parquet)")
+    if ext == ".csv":
+        # repr-exact floats, so a CSV reads back to the same numbers
+        return write_atomically(path, lambda tmp: df.to_csv(tmp, index=False, float_format="%.17g"))
+    return write_atomically(path, lambda tmp: df.to_parquet(tmp, index=False))
+
+
+def write_atomically(path: str | Path, write: Callable[[str], Any]) -> Path:
+    """Calls write(tmp) for a temporary file beside `path`, then renames it over `path`: the
+    file is there whole or not at all (the temporary file is removed when write fails)."""
+    path = Path(path)
     fd, tmp = _atomic_path(path)
     os.close(fd)
     try:
-        if ext == ".csv":
-            # repr-exact floats, so a CSV reads back to the same numbers
-            df.to_csv(tmp, index=False, float_format="%.17g")
-        else:
-            df.to_parquet(tmp, index=False)
+        write(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -17,6 +17,7 @@ import re
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -50,13 +51,16 @@ class LocalServer:
 
     def __init__(self, binary: str | Path, scene: str | Path | None = None,
                  bind: str = "tcp://127.0.0.1:*", extra_args: Sequence[str] = (),
-                 startup_timeout_s: float = 300.0, log_path: str | Path | None = None):
+                 startup_timeout_s: float = 300.0, log_path: str | Path | None = None,
+                 die_with_parent: bool = False):
         self.binary = Path(binary)
         self.scene = scene
         self.bind = bind
         self.extra_args = list(extra_args)
         self.startup_timeout_s = startup_timeout_s
         self.log_path = Path(log_path) if log_path else None
+        # a server started by a worker that may be killed (a Ray actor) must not outlive it
+        self.die_with_parent = die_with_parent
         self.address: str | None = None
         self.proc: subprocess.Popen[str] | None = None
         self._tail: collections.deque[str] = collections.deque(maxlen=40)
@@ -80,7 +84,8 @@ class LocalServer:
             self.log_path.parent.mkdir(parents=True, exist_ok=True)
             self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen(self.command(), stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, text=True, bufsize=1)
+                                     stderr=subprocess.STDOUT, text=True, bufsize=1,
+                                     preexec_fn=_term_with_parent if self.die_with_parent else None)
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
         deadline = time.monotonic() + self.startup_timeout_s
@@ -138,6 +143,16 @@ class LocalServer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def _term_with_parent() -> None:
+    """In the child before exec: Linux sends it SIGTERM (a clean stop) when the thread that
+    started it exits, so a killed worker leaves no server behind (elsewhere: nothing)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
 
 
 @contextlib.contextmanager

@@ -38,6 +38,7 @@ namespace {
 
 struct Options {
   std::string json;
+  std::string commit = "unknown";  // the build's commit, copied into the JSON
   std::string scene = std::string(PALPSIM_SOURCE_DIR) + "/config/scenes/lumbar_phantom.textproto";
   std::vector<int> sessions{1, 4, 16, 64};
   double seconds = 5;          // pressing per run, after the 0.2 s warm-up
@@ -72,6 +73,7 @@ int run(int argc, char** argv) {
       return argv[++i];
     };
     if (a == "--json") o.json = value();
+    else if (a == "--commit") o.commit = value();
     else if (a == "--scene") o.scene = value();
     else if (a == "--seconds") o.seconds = std::stod(value());
     else if (a == "--rounds") o.rounds = std::max(1, std::stoi(value()));
@@ -93,7 +95,7 @@ int run(int argc, char** argv) {
           "usage: palpsim-bench server [--sessions 1,4,16,64] [--seconds S per run (5)] [--rounds N (1)]\n"
           "                            [--voi EDGE (64)] [--backend auto|cpu|cuda] [--nice N (19)]\n"
           "                            [--background idle|nice (idle, as palpsim-server)] [--concurrency K]\n"
-          "                            [--scene FILE] [--json FILE]\n");
+          "                            [--scene FILE] [--json FILE] [--commit C]\n");
       return 0;
     } else {
       throw Error("palpsim-bench server: unknown argument '" + a + "'");
@@ -215,7 +217,8 @@ int run(int argc, char** argv) {
     char date[32];
     const std::time_t now = std::time(nullptr);
     std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
-    out << "{\n  \"bench\": \"server\",\n  \"date\": \"" << date << "\",\n  \"machine\": \"" << machine()
+    out << "{\n  \"bench\": \"server\",\n  \"commit\": \"" << o.commit << "\",\n  \"date\": \"" << date
+        << "\",\n  \"machine\": \"" << machine()
         << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"concurrency\": " << o.concurrency << ",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
         << ",\n  \"rows\": [\n";
     for (std::size_t i = 0; i < rows.size(); ++i) {

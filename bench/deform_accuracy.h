@@ -28,9 +28,11 @@ struct AccuracyOptions {
 };
 
 /// The deformation backends this build and machine have ("cpu", and "cuda" where it
-/// runs); `device` names the GPU (or "cpu only"). A non-empty `who` prints
+/// runs), or only `only` when it is not empty (a --backend option): an unknown name or
+/// one this machine lacks throws palpsim::Error starting with `who` and saying why.
+/// `device` names the GPU (or "cpu only"). A non-empty `who` prints
 /// "<who>: backends ... (why cuda is or is not there)".
-std::vector<std::string> deform_backends(std::string& device, const std::string& who);
+std::vector<std::string> deform_backends(std::string& device, const std::string& who, const std::string& only = "");
 
 /// Throws palpsim::Error ("<what> cannot write <path> ...") before minutes of work when
 /// `path` cannot be created (its folder missing or read-only).

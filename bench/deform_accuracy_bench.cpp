@@ -287,7 +287,9 @@ std::string json_str(const std::string& s) {
 
 }  // namespace
 
-std::vector<std::string> deform_backends(std::string& device, const std::string& who) {
+std::vector<std::string> deform_backends(std::string& device, const std::string& who, const std::string& only) {
+  if (!only.empty() && only != "cpu" && only != "cuda")
+    throw Error(who + ": --backend " + only + " is unknown; use cpu or cuda");
   std::vector<std::string> backends{"cpu"};
   std::string why;
   device = "cpu only";
@@ -296,6 +298,11 @@ std::vector<std::string> deform_backends(std::string& device, const std::string&
     device = why;
   }
   if (!who.empty()) std::printf("%s: backends cpu%s (%s)\n", who.c_str(), backends.size() > 1 ? ", cuda" : "", why.c_str());
+  if (!only.empty()) {
+    if (std::find(backends.begin(), backends.end(), only) == backends.end())
+      throw Error(who + ": --backend " + only + " is not available here (" + device + ": " + why + ")");
+    backends.assign(1, only);
+  }
   return backends;
 }
 
@@ -315,12 +322,10 @@ int run_deform_accuracy(const AccuracyOptions& o) {
   if (!o.study.empty() && std::find(std::begin(studies), std::end(studies), o.study) == std::end(studies))
     throw Error("deform accuracy: --study " + o.study + " is unknown; use relax_iterations, relax_cycles, "
                 "invert_iterations or voi_edge");
-  if (!o.backend.empty() && o.backend != "cpu" && o.backend != "cuda")
-    throw Error("deform accuracy: --backend " + o.backend + " is unknown; use cpu or cuda");
   auto wanted = [&](const std::string& knob) { return o.study.empty() || o.study == knob; };
   if (!o.json.empty()) check_writable(o.json, "deform accuracy: --json");
   std::string device;
-  const std::vector<std::string> backends = deform_backends(device, "deform accuracy");
+  const std::vector<std::string> backends = deform_backends(device, "deform accuracy", o.backend);
   const auto [patient, press] = phantom_press(o.voxel_mm);
   const Grid& grid = patient->grid;
   const Vec3 X = press.contact.skin_point_mm, x = press.contact.tip_mm;
@@ -340,7 +345,6 @@ int run_deform_accuracy(const AccuracyOptions& o) {
 
   std::vector<Row> rows;
   for (const std::string& be : backends) {
-    if (!o.backend.empty() && be != o.backend) continue;
     const bool gpu = be == "cuda";
     const int warmup = gpu ? 3 : 1;
     const int reps = gpu ? (o.quick ? 10 : 30) : (o.quick ? 2 : 10);
@@ -940,13 +944,8 @@ int run_accuracy_report(const ReportOptions& o) {
   const std::string json_path = report ? o.out_dir + "/accuracy-cpu.json" : o.json_only;
   check_writable(json_path, "accuracy:");
   std::string device;
-  std::vector<std::string> backends = deform_backends(device, "accuracy");
-  if (!o.backend.empty()) {
-    // one backend: on the GPU machine only cuda's times are wanted (the errors come from the CPU run)
-    if (std::find(backends.begin(), backends.end(), o.backend) == backends.end())
-      throw Error("accuracy: --backend " + o.backend + " is not available here (" + device + ")");
-    backends.assign(1, o.backend);
-  }
+  // one backend when asked: on the GPU machine only cuda's times are wanted (the errors come from the CPU run)
+  const std::vector<std::string> backends = deform_backends(device, "accuracy", o.backend);
   // the phantom press of the deform accuracy study
   const auto [patient, press] = phantom_press(o.voxel_mm);
   const PatientPtr block = test::make_patient({kBlockN, kBlockN, kBlockN}, [](int, int, int) { return test::kSoftHu; });

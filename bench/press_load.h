@@ -37,13 +37,6 @@ inline v1::ControlReply control(zmq::socket_t& s, v1::ControlRequest q) {
   return r;
 }
 
-/// The q-quantile (0..1) of `v` by rank; 0 for no samples.
-inline double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  return v[std::min(v.size() - 1, std::size_t(q * double(v.size())))];
-}
-
 /// What press_sessions() did: each client's round trips (us, after the warm-up) and
 /// session id.
 struct PressResult {

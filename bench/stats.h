@@ -31,6 +31,13 @@ inline Spread spread(std::vector<double> v) {
   return s;
 }
 
+/// The q-quantile (0..1) of `v` by rank (the sample at floor(q n)); 0 for no samples.
+inline double quantile(std::vector<double> v, double q) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  return v[std::min(v.size() - 1, std::size_t(q * double(v.size())))];
+}
+
 /// A JSON number (null for a non-finite value, which JSON cannot hold).
 inline std::string json_number(double v) {
   if (!std::isfinite(v)) return "null";

@@ -339,10 +339,11 @@ class PoseService {
     if (n > out_.size() || !rep_.SerializeToArray(out_.data(), int(n))) return;
     // a patch goes after the reply's other fields as field 13 (PoseReply.local_model):
     // protobuf parses fields in any order, so these bytes are a PoseReply with local_model set
+    // (kMaxPoseReplyBytes leaves room for the largest patch; should one not fit, the
+    // force still goes out, without it)
     if (patch_) {
-      n = append_patch(n);
+      if (const std::size_t with_patch = append_patch(n)) n = with_patch;
       patch_ = nullptr;
-      if (n == 0) return;
     }
     try {
       if (!sock_.send(zmq::const_buffer(id_, id_len_), zmq::send_flags::sndmore | zmq::send_flags::dontwait)) return;

@@ -250,7 +250,8 @@ int main(int argc, char** argv) {
       std::setvbuf(log, nullptr, _IOFBF, 1 << 20);
       std::fprintf(log,
                    "step,time_s,tip_x_mm,tip_y_mm,tip_z_mm,force_x_n,force_y_n,force_z_n,rtt_us,reply_seq,contact,"
-                   "depth_mm,watchdog_scale,mode,local_weight,patch_version,energy_mj\n");
+                   "depth_mm,watchdog_scale,mode,local_weight,patch_version,energy_mj,server_force_x_n,server_force_y_n,"
+                   "server_force_z_n\n");
     }
   } catch (const std::exception& e) {
     std::fprintf(stderr, "palpsim-haptic: error: %s\n", e.what());
@@ -422,12 +423,15 @@ int main(int argc, char** argv) {
     device->apply_force(applied);
     advance_server_energy(n, false);
 
-    if (log)
-      std::fprintf(log, "%llu,%.6f,%.4f,%.4f,%.4f,%.6f,%.6f,%.6f,%.1f,%llu,%d,%.4f,%.3f,%d,%.3f,%llu,%.4f\n",
+    // server_force_*: the server's force for pose reply_seq (compare with force_* of step reply_seq)
+    if (log) {
+      const Vec3 fs = newest_seq && server_seq[newest_seq % ring] == newest_seq ? server_at[newest_seq % ring] : Vec3{};
+      std::fprintf(log, "%llu,%.6f,%.4f,%.4f,%.4f,%.6f,%.6f,%.6f,%.1f,%llu,%d,%.4f,%.3f,%d,%.3f,%llu,%.4f,%.6f,%.6f,%.6f\n",
                    (unsigned long long)n, t, tip.x, tip.y, tip.z, applied.x, applied.y, applied.z, rtt_step,
                    (unsigned long long)newest_seq, int(contact), depth, scale, int(mode), r.local_weight,
                    (unsigned long long)(renderer.has_patch() ? renderer.current().version : 0),
-                   renderer.energy().energy_mj());
+                   renderer.energy().energy_mj(), fs.x, fs.y, fs.z);
+    }
     rtt_step = std::nan("");
     ++steps;
     // a step whose work ended after its deadline missed it

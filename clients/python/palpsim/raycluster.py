@@ -43,9 +43,16 @@ class LocalRayCluster:
     """Ray nodes on this machine, each a separate `ray start`; a context manager."""
 
     def __init__(self, nodes: int = 2, cpus_per_node: int = 1,
-                 node_env: list[Mapping[str, str]] | None = None, object_store_mb: int = 100):
+                 node_env: list[Mapping[str, str]] | None = None, object_store_mb: int = 100,
+                 gpus_per_node: int = 0, first_ip: int = 2):
+        """gpus_per_node: GPUs each node declares to Ray (a machine without GPUs can
+        declare some to exercise one-worker-per-GPU scheduling: Ray then gives each
+        worker its CUDA_VISIBLE_DEVICES, and the servers fall back to the CPU);
+        first_ip: node n listens on 127.0.0.(first_ip + n), so two clusters can coexist."""
         self.nodes = nodes
         self.cpus_per_node = cpus_per_node
+        self.gpus_per_node = gpus_per_node
+        self.first_ip = first_ip
         self.node_env = list(node_env or [])
         self.object_store_mb = object_store_mb
         # Ray's socket paths must stay short: a folder directly under /tmp
@@ -60,8 +67,8 @@ class LocalRayCluster:
             raise RayClusterError("the `ray` command is missing (pip install 'ray==2.60.0')")
         env = dict(os.environ)
         env.update(self.node_env[index] if index < len(self.node_env) else {})
-        cmd = [ray, "start", "--node-ip-address", f"127.0.0.{2 + index}",
-               "--num-cpus", str(self.cpus_per_node), "--num-gpus", "0",
+        cmd = [ray, "start", "--node-ip-address", f"127.0.0.{self.first_ip + index}",
+               "--num-cpus", str(self.cpus_per_node), "--num-gpus", str(self.gpus_per_node),
                "--object-store-memory", str(self.object_store_mb * 1024 * 1024),
                "--disable-usage-stats"] + args
         p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
@@ -95,7 +102,7 @@ class LocalRayCluster:
         ours = {pid for pid, (_, args) in procs.items()
                 if self.temp_dir in args and pid != os.getpid()}
         if node is not None:
-            ip = f"--node_ip_address=127.0.0.{2 + node}"
+            ip = f"--node_ip_address=127.0.0.{self.first_ip + node}"
             ours = {pid for pid in ours if ip in procs[pid][1] and "raylet" in procs[pid][1]}
         # their children, grandchildren (workers, agents, palpsim-servers)
         grown = True

@@ -580,10 +580,11 @@ class _RayWorker:
         self.sessions, self.timeout_s = sessions, timeout_s
 
     def where(self) -> dict[str, Any]:
-        """The node, host and process this worker runs in."""
+        """The node, host and process this worker runs in, and the GPUs Ray gave it (its
+        CUDA_VISIBLE_DEVICES, which its palpsim-server inherits; None without a GPU)."""
         import ray
         return {"node": ray.get_runtime_context().get_node_id(), "host": socket.gethostname(),
-                "pid": os.getpid()}
+                "pid": os.getpid(), "gpus": os.environ.get("CUDA_VISIBLE_DEVICES") or None}
 
     def run(self, task: Task) -> tuple[pd.DataFrame, dict[str, Any]]:
         """Runs one task; the table comes back to the driver, which writes it."""
@@ -666,7 +667,7 @@ def _run_ray(todo: list[Task], address: str, binary: str, sessions: int, timeout
                   .remote(binary, sessions, timeout_s) for node, opts in slots]
         where = ray.get([a.where.remote() for a in actors], timeout=300)
         info = {"mode": "ray", "address": address, "workers": len(actors),
-                "nodes": len({w["node"] for w in where}), "lost": [],
+                "nodes": len({w["node"] for w in where}), "gpus": [w["gpus"] for w in where], "lost": [],
                 "startup_s": time.perf_counter() - t0}
 
         pending = collections.deque(todo)

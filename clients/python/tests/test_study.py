@@ -277,6 +277,34 @@ def test_ray_run_gives_the_local_digest(local, cluster, binary, study_file, tmp_
     assert len({e["node"] for e in r["prep"]}) == 2
 
 
+def test_ray_gives_each_gpu_one_worker(local, binary, study_file, tmp_path):
+    """One node declaring two GPUs (this machine has none; Ray schedules by the count):
+    two workers, each with its own CUDA_VISIBLE_DEVICES for its palpsim-server (which
+    falls back to the CPU here), and the study's digest stays the local one."""
+    try:
+        import ray  # noqa: F401
+        from palpsim.raycluster import LocalRayCluster, RayClusterError
+    except ImportError as e:
+        pytest.skip(f"SKIPPED: ray is not installed ({e})")
+    # on 127.0.0.10: apart from the module's two-node cluster on .2 and .3
+    c = LocalRayCluster(nodes=1, cpus_per_node=1, gpus_per_node=2, first_ip=10,
+                        node_env=[{"PALPSIM_CACHE": str(tmp_path / "cache")}])
+    try:
+        c.start()
+    except RayClusterError as e:
+        c.stop()
+        pytest.skip(f"SKIPPED: a local Ray cluster does not start here: {e}")
+    try:
+        run = run_study(load_study(study_file), tmp_path / "ray-gpu", binary=binary, ray_address=c.address,
+                        progress=False)
+    finally:
+        c.stop()
+    r = run.summary["run"]
+    assert run.digest == local.digest
+    assert r["workers"] == 2 and r["nodes"] == 1, r
+    assert sorted(r["gpus"]) == ["0", "1"], r
+
+
 def test_ray_worker_killed_mid_study(local, cluster, binary, study_file, tmp_path):
     killed = []
 

@@ -48,6 +48,7 @@ struct Options {
   int nice = 19;               // the deformation worker's nice value
   bool idle = true;            // and SCHED_IDLE for it (the server's --background idle)
   int concurrency = net::ServerOptions{}.deform_concurrency;  // steps in flight at once
+  int batch = net::ServerOptions{}.deform_batch;              // sessions sharing one launch per stage, at most
 };
 
 // one session count: what each session got and what the server held
@@ -60,6 +61,7 @@ struct Row {
   std::vector<double> own_bytes;       // per session: its engine's own memory
   double server_bytes = 0;             // every deformation stage, server-wide, with all sessions open
   double worker_step_share = 0, worker_sleep_share = 0;  // of the deformation thread's time, over the run
+  double batched_share = 0, mean_batch = 0;  // steps run in batches, of all; their mean batch size
   std::vector<double> rtt_with, rtt_without;  // round trips (us), pooled over rounds
   std::vector<double> ratios;          // per round: p99 with / p99 without deformation
 };
@@ -81,6 +83,7 @@ int run(int argc, char** argv) {
     else if (a == "--backend") o.backend = value();
     else if (a == "--nice") o.nice = std::stoi(value());
     else if (a == "--concurrency") o.concurrency = std::max(1, std::stoi(value()));
+    else if (a == "--batch") o.batch = std::min(64, std::max(1, std::stoi(value())));
     else if (a == "--background") {
       const std::string p = value();
       if (p != "idle" && p != "nice") throw Error("palpsim-bench server: --background " + p + ": expected idle or nice");
@@ -94,7 +97,7 @@ int run(int argc, char** argv) {
       std::printf(
           "usage: palpsim-bench server [--sessions 1,4,16,64] [--seconds S per run (5)] [--rounds N (1)]\n"
           "                            [--voi EDGE (64)] [--backend auto|cpu|cuda] [--nice N (19)]\n"
-          "                            [--background idle|nice (idle, as palpsim-server)] [--concurrency K]\n"
+          "                            [--background idle|nice (idle, as palpsim-server)] [--concurrency K] [--batch N (64)]\n"
           "                            [--scene FILE] [--json FILE] [--commit C]\n");
       return 0;
     } else {
@@ -125,6 +128,7 @@ int run(int argc, char** argv) {
   so.deform_nice = o.nice;
   so.background_idle = o.idle;
   so.deform_concurrency = o.concurrency;
+  so.deform_batch = o.batch;
   net::Server with(deform, patient, nullptr, so), without(plain, patient, nullptr, so);
   with.start();
   without.start();
@@ -185,16 +189,22 @@ int run(int argc, char** argv) {
       row.worker_step_share = (after.deform_worker_step_s() - before.deform_worker_step_s()) / wall;
       row.worker_sleep_share = (after.deform_worker_sleep_s() - before.deform_worker_sleep_s()) / wall;
     }
+    const double steps = double(after.deform_steps() - before.deform_steps());
+    const double batched = double(after.deform_batched_steps() - before.deform_batched_steps());
+    const double batches = double(after.deform_batches() - before.deform_batches());
+    row.batched_share = steps > 0 ? batched / steps : 0.0;
+    row.mean_batch = batches > 0 ? batched / batches : 1.0;
     rows.push_back(row);
     const Row& r = rows.back();
     const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
     std::printf(
-        "%2d sessions (%s, VOI %d, %s, %d in flight): steps/s per session min %.0f median %.0f; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
+        "%2d sessions (%s, VOI %d, %s, %d in flight, batches of up to %d): steps/s per session min %.0f median %.0f; "
+        "%.0f%% of steps batched, %.1f sessions a batch; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
         "memory %.1f MB per session, deformation server-wide %.1f MB; round trip p50 %.0f / p99 %.0f us with "
         "deformation, p99 %.0f us without (ratio %.2f, median of %zu rounds)\n",
-        n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice", o.concurrency,
+        n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice", o.concurrency, o.batch,
         r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()),
-        quantile(r.steps_per_s, 0.5), quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
+        quantile(r.steps_per_s, 0.5), 100 * r.batched_share, r.mean_batch, quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
         100 * r.worker_sleep_share, own_mb,
         r.server_bytes / (1 << 20), quantile(r.rtt_with, 0.5), quantile(r.rtt_with, 0.99),
         quantile(r.rtt_without, 0.99), quantile(r.ratios, 0.5), r.ratios.size());
@@ -230,6 +240,7 @@ int run(int argc, char** argv) {
           << ", \"dropped_share_median\": " << json_number(quantile(r.dropped_share, 0.5))
           << ", \"worker_step_share\": " << json_number(r.worker_step_share)
           << ", \"worker_sleep_share\": " << json_number(r.worker_sleep_share)
+          << ", \"batched_share\": " << json_number(r.batched_share) << ", \"mean_batch\": " << json_number(r.mean_batch)
           << ", \"own_bytes_median\": " << json_number(quantile(r.own_bytes, 0.5))
           << ", \"deform_bytes_server\": " << json_number(r.server_bytes)
           << ", \"rtt_p50_us_with\": " << json_number(quantile(r.rtt_with, 0.5))

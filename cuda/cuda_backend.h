@@ -8,6 +8,7 @@
 #include <cstddef>
 
 #include "core/device_bytes.h"
+#include "cuda/batch.h"
 #include "cuda/device_patient.h"
 #include "cuda/kernels.h"
 #include "deform/backend.h"
@@ -52,6 +53,7 @@ class CudaDeformBackend final : public DeformBackend {
   DeformStats step_impl(const ChainMailStats& setup) override;
   void begin_step_impl(const ChainMailStats& setup) override;
   DeformStats end_step_impl() override;
+  bool begin_batch_impl(const std::vector<DeformBackend*>& group) override;
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
   const float* deformed_brick_impl() const override { return host_j_; }
@@ -76,6 +78,15 @@ class CudaDeformBackend final : public DeformBackend {
   void enqueue_upload();
   // wait for the stream and read the counters
   void finish(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt = nullptr);
+  // read the counters the device wrote into host_counters_
+  void read_counters(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt);
+  // whether this backend's steps can share launches with `o`'s (same settings, explicit
+  // relaxation, no untangling)
+  bool batchable_with(const CudaDeformBackend& o) const;
+  // begin_step_impl()'s part of the stats, before any stage
+  void prepare_stats(const ChainMailStats& setup);
+  // end_step_impl() of a step begun in a batch
+  DeformStats end_batched_step();
 
   std::shared_ptr<const DevicePatient> patient_copy_;  // I and the bone mask, shared
   DeviceBuffers d_;
@@ -93,6 +104,8 @@ class CudaDeformBackend final : public DeformBackend {
   long long capacity_ = 0;             // elements per VOI buffer
   Voi dirty_;                          // VOI whose buffers hold a deformation
   int cur_ = 0;                        // displacement buffer holding the current field
+  std::shared_ptr<CudaBatch> batch_;     // the launches' resources when this backend leads a batch, kept for the next
+  std::shared_ptr<CudaBatch> in_batch_;  // the batch this backend's step is in, until end_step()
 };
 
 }  // namespace palpsim::cuda

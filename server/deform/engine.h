@@ -4,8 +4,10 @@
 // stage times; the deformed VOI brick stays readable until the next step or reset.
 #pragma once
 
+#include <exception>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "deform/backend.h"
 
@@ -27,6 +29,11 @@ class DeformEngine {
   /// several sessions' steps on one GPU.
   void begin_step(const DeformContact& contact);
   DeformStats end_step();
+  /// begin_step() of several engines at once, batched where their backend can
+  /// (DeformBackend::begin_steps); the error of an engine whose step was not begun is at
+  /// its index (nullptr: begun, end it with end_step()).
+  static std::vector<std::exception_ptr> begin_steps(const std::vector<DeformEngine*>& engines,
+                                                     const std::vector<DeformContact>& contacts);
 
   /// Returns everything to undeformed (J = I).
   void reset();

@@ -40,6 +40,9 @@ struct ServerOptions {
   // sessions then get 26.7 instead of 30 frames/s (bench/results/render-2026-11-23-h100-
   // deform-concurrency4.json); a server without viewers (batch studies) may raise it
   int deform_concurrency = 1;
+  // sessions stepped together by one batched launch per stage at most (DeformWorker; cuda
+  // with the same settings: cuda/batch.cu); 1 steps one session at a time, as before
+  int deform_batch = 64;
   std::string stream_bind;                              // the stream publisher's XPUB address; "" = derived (derive_stream_endpoint)
   std::vector<std::string> scene_dirs;                  // folders LoadScene may read (scene file, CT) and write
                                                         // (render.record_dir) in; none: LoadScene names no file

@@ -56,6 +56,7 @@ struct Row {
   int sessions = 0;
   std::string backend;
   std::vector<double> steps_per_s;     // per session, over its pressing time
+  std::vector<double> stage_ms[5];     // per session, mean per step: reset, ChainMail, relax, invert, upload (a batch's share)
   std::vector<double> dropped_share;   // per session: contacts dropped / (steps + dropped)
   std::vector<double> step_ms;         // per session: mean whole step (ms)
   std::vector<double> own_bytes;       // per session: its engine's own memory
@@ -163,6 +164,9 @@ int run(int argc, char** argv) {
             const double offered = double(d.steps() + d.contacts_dropped());
             row.dropped_share.push_back(offered > 0 ? double(d.contacts_dropped()) / offered : 0.0);
             row.step_ms.push_back(d.mean().total_ms());
+            const v1::DeformTimes& m = d.mean();
+            const double stage[5] = {m.reset_ms(), m.chainmail_ms(), m.relax_ms(), m.invert_ms(), m.upload_ms()};
+            for (int k = 0; k < 5; ++k) row.stage_ms[k].push_back(stage[k]);
             row.own_bytes.push_back(double(d.bytes_allocated()));
             // the server's memory once, while every session is still open
             if (c == 0 && round == 0) {
@@ -196,6 +200,10 @@ int run(int argc, char** argv) {
     row.mean_batch = batches > 0 ? batched / batches : 1.0;
     rows.push_back(row);
     const Row& r = rows.back();
+    std::printf("%2d sessions: mean stage times per step (ms, a batch's share), medians over sessions: reset %.4f "
+                "ChainMail %.4f relax %.4f invert %.4f upload %.4f\n",
+                n, quantile(r.stage_ms[0], 0.5), quantile(r.stage_ms[1], 0.5), quantile(r.stage_ms[2], 0.5),
+                quantile(r.stage_ms[3], 0.5), quantile(r.stage_ms[4], 0.5));
     const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
     std::printf(
         "%2d sessions (%s, VOI %d, %s, %d in flight, batches of up to %d): steps/s per session min %.0f median %.0f; "

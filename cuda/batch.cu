@@ -3,14 +3,27 @@
 //
 // Why batched launches and not streams per session. One session's step at VOI 64 is
 // latency-bound: cooperative launches, a grid barrier per ChainMail sweep and per
-// relaxation iteration, small kernels; the GPU is mostly idle during it (0.25 ms of
-// GPU time, 722 steps/s for one session in palpsim-bench server on the H100). With one
-// stream per session and 1/K of the device each (--deform-concurrency K, e785eaa), K
-// steps overlap, but each still pays its own barriers and launches: 16 sessions got
-// 119 steps/s each one at a time and 223 with K = 4, 64 sessions 28 and 54, and frames
-// suffered (26.7 frames/s for 16 watched sessions with K = 4). A batch pays one launch
-// and one barrier per sweep or iteration for all its sessions and fills the device with
-// their elements: the measurements are in README.md ("Deformation") and bench/results.
+// relaxation iteration, small kernels; the GPU is mostly idle during it (722 steps/s
+// for one session in palpsim-bench server on the H100). With one stream per session
+// and 1/K of the device each (--deform-concurrency K, e785eaa) K steps overlap, but each
+// still pays its own barriers and launches: 16 sessions got 119 steps/s each one at a
+// time and 223 with K = 4, 64 sessions 28 and 54, and 16 watched sessions 26.7 frames/s
+// with K = 4. A batch pays one launch and one barrier per sweep or iteration for all of
+// its sessions and fills the device with their elements: 16 sessions 238 and 64
+// sessions 63 steps/s each (c85ba1b, J copied to the host in every step), 268 and 69
+// with J's host copy made only when read (below); 16 watched sessions kept 29.9 frames/s.
+//
+// Where a batch's time goes then (H100, 16 sessions, per step): reset 0.004 ms,
+// ChainMail 0.046, relaxation 0.073, inversion 0.039: the GPU is busy, no longer waiting.
+// The explicit relaxation streams each session's two fields, I and the bone mask 20
+// times (29 bytes an element and iteration: about 2 TB/s at 16 sessions, near the
+// device's bandwidth); relaxing 4 sessions at a time, so that their fields stay in the
+// L2 cache, gave 0.0705 ms instead of 0.073 and was not kept. The press clients are out
+// of the body about a quarter of the time, so steps/s per session is about three
+// quarters of the in-contact rate. Copying J to the host in every step cost 16 MB per
+// batch of 16 over PCIe (a seventh of the batch); the server reads the host copy only
+// for brick viewers (frames take the device copy), so a batched step leaves it on the
+// device and deformed_brick() copies it when asked.
 //
 // Each session's results equal its own step's to the bit: every element runs the same
 // device function as the single kernels (chainmail_element, relax_element,

@@ -26,12 +26,12 @@ class CudaBatch {
   void wait();
 
   cudaStream_t stream = nullptr;
-  cudaEvent_t ev[6] = {};                // before reset, after reset, ChainMail, relax, invert, upload
+  cudaEvent_t ev[6] = {};                // before reset, after reset, ChainMail, relax, invert, counters copied
   BatchItem* host_items = nullptr;       // pinned, kMaxBatch
   BatchItem* dev_items = nullptr;        // device, kMaxBatch
   int n = 0;                             // sessions in the batch now
   bool done = true;                      // wait() has run since the last launch
-  float stage_ms[5] = {};                // reset, ChainMail, relax, invert, upload: the whole batch's (ms)
+  float stage_ms[5] = {};                // reset, ChainMail, relax, invert, counters: the whole batch's (ms)
   std::chrono::steady_clock::time_point start;  // when the batch was begun
   double wall_ms = 0;                    // from begin to the end of the first wait() (ms)
 };

@@ -301,7 +301,19 @@ InvertStats CudaDeformBackend::invert_impl() {
   return r;
 }
 
+const float* CudaDeformBackend::deformed_brick_impl() const {
+  // a batched step's J reaches the host only when read (batch.cu says why)
+  if (host_j_stale_) {
+    PALPSIM_CUDA_CHECK(cudaMemcpyAsync(host_j_, d_.j, std::size_t(voi_.count()) * sizeof(float), cudaMemcpyDeviceToHost,
+                                       stream_));
+    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+    host_j_stale_ = false;
+  }
+  return host_j_;
+}
+
 void CudaDeformBackend::upload_impl() {
+  host_j_stale_ = false;
   enqueue_upload();
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
 }
@@ -325,6 +337,7 @@ void CudaDeformBackend::begin_step_impl(const ChainMailStats& setup) {
   // every stage is enqueued on one stream with an event between stages; end_step_impl()
   // waits once, then reads the stage times from the events
   in_batch_.reset();
+  host_j_stale_ = false;  // the upload below copies J
   step_start_ = std::chrono::steady_clock::now();
   launch_shape_for_share();
   prepare_stats(setup);
@@ -441,14 +454,14 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[3], st));
   if (config_.invert) launch_invert_batch(bt.dev_items, n, max_voi, s.invert_iterations, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[4], st));
-  // J to each session's pinned host copy by the copy engine, the counters by one launch
-  if (config_.invert)
-    for (CudaDeformBackend* c : m)
-      PALPSIM_CUDA_CHECK(cudaMemcpyAsync(c->host_j_, c->d_.j, std::size_t(c->voi_.count()) * sizeof(float),
-                                         cudaMemcpyDeviceToHost, st));
+  // the counters to each session's pinned host copy in one launch; J stays on the device
+  // until deformed_brick() asks for it (batch.cu says why)
   launch_gather_batch(bt.dev_items, n, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[5], st));
-  for (CudaDeformBackend* c : m) c->in_batch_ = batch_;
+  for (CudaDeformBackend* c : m) {
+    c->in_batch_ = batch_;
+    c->host_j_stale_ = config_.invert;
+  }
   return true;
 }
 

@@ -56,7 +56,7 @@ class CudaDeformBackend final : public DeformBackend {
   bool begin_batch_impl(const std::vector<DeformBackend*>& group) override;
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
-  const float* deformed_brick_impl() const override { return host_j_; }
+  const float* deformed_brick_impl() const override;
   bool copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>& dst) const override;
   DeformMemory memory_impl() const override;
 
@@ -101,6 +101,7 @@ class CudaDeformBackend final : public DeformBackend {
   cudaEvent_t ev_[7] = {};
   Counters* host_counters_ = nullptr;  // pinned
   float* host_j_ = nullptr;            // pinned, J's VOI after upload
+  mutable bool host_j_stale_ = false;  // a batched step left J on the device only: deformed_brick() copies it
   long long capacity_ = 0;             // elements per VOI buffer
   Voi dirty_;                          // VOI whose buffers hold a deformation
   int cur_ = 0;                        // displacement buffer holding the current field

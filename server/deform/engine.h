@@ -42,6 +42,9 @@ class DeformEngine {
   /// nullptr when no J exists (before a step, after reset, without inversion).
   const Voi& voi() const { return backend_->voi(); }
   const float* deformed_brick() const { return has_brick_ ? backend_->deformed_brick() : nullptr; }
+  /// Whether a J exists (deformed_brick() would not be nullptr), without reading it: the
+  /// cuda backend copies a batched step's J to the host only when it is first read.
+  bool has_deformed_brick() const { return has_brick_; }
   /// Copies J's VOI into device memory for the renderer (DeformBackend::copy_brick_to_device);
   /// false when there is no J or the backend keeps none on a GPU.
   bool copy_brick_to_device(std::unique_ptr<DeviceBytes>& dst) const {

@@ -473,7 +473,7 @@ void DeformWorker::complete(Session& s, const Contact& c) {
     // step's own GPU work)
     double change = 0;
     bool ok = finite(st);
-    if (s.engine->deformed_brick()) {
+    if (s.engine->has_deformed_brick()) {
       ok = ok && st.invert_nonfinite == 0 && std::isfinite(st.invert_max_change);
       change = st.invert_max_change;
     } else {
@@ -564,12 +564,12 @@ void DeformWorker::fill_snapshot(JSnapshot& o, Session& s, bool device) {
   o.tip_mm = s.last_tip_mm;
   o.proxy_mm = s.last_proxy_mm;
   // J exists after a step of a scene with inversion; otherwise the image is undeformed
-  const float* j = s.report.deformed && s.engine ? s.engine->deformed_brick() : nullptr;
-  o.deformed = j != nullptr;
-  o.voi = j ? s.engine->voi() : Voi{};
+  const bool has_j = s.report.deformed && s.engine && s.engine->has_deformed_brick();
+  o.deformed = has_j;
+  o.voi = has_j ? s.engine->voi() : Voi{};
   o.host_valid = false;
   o.device_valid = false;
-  if (!j) return;
+  if (!has_j) return;
   // the render thread's cuda-gl writer takes a device copy; everyone else the host brick
   if (device) {
     try {
@@ -580,6 +580,7 @@ void DeformWorker::fill_snapshot(JSnapshot& o, Session& s, bool device) {
     }
   }
   if (!o.device_valid) {
+    const float* j = s.engine->deformed_brick();  // cuda: copied to the host now, after a batched step
     o.host_j.assign(j, j + o.voi.count());
     o.host_valid = true;
   }

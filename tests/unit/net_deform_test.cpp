@@ -19,6 +19,7 @@
 
 #include "core/error.h"
 #include "deform/backend.h"
+#include "deform/engine.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
@@ -549,7 +550,7 @@ TEST_CASE("with backend auto the worker prefers cuda where a GPU exists and says
   server.stop();
 }
 
-TEST_CASE("sessions ready together are begun in batches of the cap; each gets its own contact's J, none starves",
+TEST_CASE("sessions ready together are begun together (a cap of 4): each gets its own contact's J, none starves",
           "[net][deform]") {
   // six sessions pressing at six points in turn, one pose each per round, against a
   // worker that begins at most 4 ready sessions together: a pass with all six ready runs

@@ -237,7 +237,7 @@ int run(int argc, char** argv) {
     std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
     out << "{\n  \"bench\": \"server\",\n  \"commit\": \"" << o.commit << "\",\n  \"date\": \"" << date
         << "\",\n  \"machine\": \"" << machine()
-        << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"concurrency\": " << o.concurrency << ",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
+        << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"concurrency\": " << o.concurrency << ",\n  \"batch\": " << o.batch << ",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
         << ",\n  \"rows\": [\n";
     for (std::size_t i = 0; i < rows.size(); ++i) {
       const Row& r = rows[i];

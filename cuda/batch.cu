@@ -42,17 +42,7 @@ namespace {
 // reset_kernel of cuda_backend.cu for every session: blockIdx.y is the session
 __global__ void reset_batch_kernel(const BatchItem* __restrict__ items) {
   const BatchItem& item = items[blockIdx.y];
-  const DeviceBuffers& b = item.b;
-  const unsigned t0 = blockIdx.x * blockDim.x + threadIdx.x, stride = gridDim.x * blockDim.x;
-  for (unsigned e = t0; e < item.reset_count; e += stride) {
-    for (int p = 0; p < 2; ++p) {
-      b.u[p][0][e] = 0.0f;
-      b.u[p][1][e] = 0.0f;
-      b.u[p][2][e] = 0.0f;
-      b.stamp[p][e] = -1;
-    }
-  }
-  if (t0 == 0) *b.counters = Counters{};
+  reset_elements(item.reset_count, item.b, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
 }
 
 // every session's counters into its pinned host copy (mapped: cudaMallocHost memory is

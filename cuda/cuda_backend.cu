@@ -15,16 +15,7 @@ namespace {
 // in one launch: nine cudaMemsetAsync calls cost ~45 us at any VOI size (one launch
 // each, DEVICE.md's 3.3 us floor plus their gaps), this costs one launch
 __global__ void reset_kernel(unsigned n, DeviceBuffers b) {
-  const unsigned t0 = blockIdx.x * blockDim.x + threadIdx.x, stride = gridDim.x * blockDim.x;
-  for (unsigned e = t0; e < n; e += stride) {
-    for (int p = 0; p < 2; ++p) {
-      b.u[p][0][e] = 0.0f;
-      b.u[p][1][e] = 0.0f;
-      b.u[p][2][e] = 0.0f;
-      b.stamp[p][e] = -1;
-    }
-  }
-  if (t0 == 0) *b.counters = Counters{};
+  reset_elements(n, b, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
 }
 
 }  // namespace

@@ -82,6 +82,23 @@ struct BatchItem {
   Counters* host_counters = nullptr;  // pinned host memory, written by launch_gather_batch
 };
 
+#ifdef __CUDACC__
+/// The undeformed state on the first n elements of one session's buffers (both
+/// displacement fields zero, sweep stamps -1: never moved), element t0 and every
+/// `stride`-th after it; the thread with t0 == 0 zeroes the counters too.
+__device__ inline void reset_elements(unsigned n, const DeviceBuffers& b, unsigned t0, unsigned stride) {
+  for (unsigned e = t0; e < n; e += stride) {
+    for (int p = 0; p < 2; ++p) {
+      b.u[p][0][e] = 0.0f;
+      b.u[p][1][e] = 0.0f;
+      b.u[p][2][e] = 0.0f;
+      b.stamp[p][e] = -1;
+    }
+  }
+  if (t0 == 0) *b.counters = Counters{};
+}
+#endif
+
 /// Threads per block and blocks per multiprocessor of the persistent kernels.
 constexpr int kPersistentThreads = 1024;
 constexpr int kPersistentBlocksPerSm = 1;

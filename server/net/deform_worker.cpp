@@ -393,12 +393,12 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
   try {
     if (!s.engine) s.engine = take_engine();
     r.backend = s.engine->backend_name();
-    s.engine->backend().set_gpu_share(gpu_share_);
     if (max_batch_ > 1) {
       // begun with the pass's other ready sessions (begin_ready)
       ready_.push_back({index, c});
     } else {
       // enqueued now, finished in complete() after the pass's other sessions are enqueued
+      s.engine->backend().set_gpu_share(gpu_share_);
       s.engine->begin_step(DeformContact{c.skin_point_mm, c.tip_mm});
       inflight_.push_back({index, c});
     }
@@ -417,8 +417,13 @@ void DeformWorker::begin_ready() {
   // backend can (cuda with one configuration: one launch per stage for all of them)
   std::vector<DeformEngine*> engines;
   std::vector<DeformContact> contacts;
+  // a batch fills the device whatever the share; steps its backend begins alone (scenes
+  // the batched kernels do not cover) are all in flight at once, so each takes 1/n of
+  // the device: a cooperative grid needs all its blocks resident, and n grids of 1/n fit
+  const int share = std::max(gpu_share_, int(ready_.size()));
   for (const Inflight& f : ready_) {
     engines.push_back(sessions_[f.index].engine.get());
+    engines.back()->backend().set_gpu_share(share);
     contacts.push_back(DeformContact{f.contact.skin_point_mm, f.contact.tip_mm});
   }
   const std::vector<std::exception_ptr> errors = DeformEngine::begin_steps(engines, contacts);
@@ -497,7 +502,6 @@ void DeformWorker::complete(Session& s, const Contact& c) {
     r.deformed = true;
     r.last_contact_seq = c.seq;
     r.voi = st.chainmail.voi;
-    r.batch = st.batch;
     r.last_step_server_time_s = now_s();
     if (!st.chainmail.converged) {
       ++r.non_converged;

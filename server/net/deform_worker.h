@@ -44,7 +44,6 @@ struct DeformSessionReport {
   long long invert_unresolved = 0;     // latest step: voxels with a residual above 0.1 voxel
   double max_change_hu = 0;            // latest step: max |J - I| over the VOI (0 without inversion)
   bool deformed = false;               // a deformation is in place now
-  int batch = 1;                       // latest step: sessions stepped by the same launches (1: alone)
   std::uint64_t last_contact_seq = 0;  // pose seq of the newest contact the deformation reflects (one equal to
                                        // the latest step's contact, a held tip, is not stepped again)
   double last_step_server_time_s = 0;  // server clock when the latest step ended

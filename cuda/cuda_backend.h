@@ -36,7 +36,9 @@ class CudaDeviceBytes final : public DeviceBytes {
 
 /// The CUDA backend. The patient's intensity and bone mask live on the device once
 /// for all sessions bound to that patient (DevicePatient); displacement, sweep stamps and J are VOI-sized device buffers. A
-/// step is one stream of device work with one synchronisation at its end.
+/// step is one stream of device work with one synchronisation at its end; the steps of
+/// several sessions with the same settings may share one launch per stage instead
+/// (DeformBackend::begin_steps, batch.cu).
 class CudaDeformBackend final : public DeformBackend {
  public:
   CudaDeformBackend();

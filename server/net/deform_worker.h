@@ -83,7 +83,8 @@ struct DeformServerReport {
 /// (one step per session per pass, newest contact only) uses at most one core, shares
 /// it fairly, and runs at the lowest priority (nice 19), below the haptic thread. With
 /// the cuda backend it also keeps every CUDA call (engine creation, steps, destruction)
-/// on one thread.
+/// on one thread, and the sessions a pass finds ready are stepped together by one launch
+/// per stage (cuda/batch.cu says why).
 class DeformWorker {
  public:
   /// `nice`, `idle`: the thread's nice value and SCHED_IDLE (Linux; core/thread.h says why

@@ -74,6 +74,7 @@ struct Options {
   std::string writer, encoder;           // the server's render.overlay_writer / jpeg_encoder ("" = the scene's)
   int rounds = 3;                        // server part: rounds of (without, with viewers) per row
   int viewers_nice = 19;                 // server part: the viewer threads' nice value (0: as the server's)
+  int deform_batch = net::ServerOptions{}.deform_batch;  // server part: sessions whose steps share launches (1: none)
   bool deform = true;                    // server part: the scene's deformation on (off: frames of the
                                          // undeformed CT, to tell GPU sharing from the render's own cost)
 };
@@ -366,6 +367,7 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
   so.pose_bind = "tcp://127.0.0.1:*";
   so.stream_bind = "tcp://127.0.0.1:*";
   so.deform_nice = o.nice;
+  so.deform_batch = o.deform_batch;
   net::Server server(scene, patient, nullptr, so);
   server.start();
   zmq::context_t ctx(1);
@@ -470,6 +472,9 @@ int run(int argc, char** argv) {
       if (o.rounds < 1 || o.rounds > 100) throw Error("palpsim-bench render: --rounds is 1..100");
     } else if (a == "--no-deform") {
       o.deform = false;
+    } else if (a == "--deform-batch") {
+      o.deform_batch = std::stoi(value());
+      if (o.deform_batch < 1 || o.deform_batch > 64) throw Error("palpsim-bench render: --deform-batch is 1..64");
     } else if (a == "--no-server") {
       o.server = false;
     } else if (a == "--sweep" || a == "--no-sweep") {
@@ -504,6 +509,7 @@ int run(int argc, char** argv) {
           "                            [--nice N (the server's deformation and render threads, 19)]\n"
           "                            [--overlay-writer auto|upload|cuda-gl] [--jpeg-encoder auto|cpu|nvjpeg] (server)\n"
           "                            [--no-deform (server part: frames of the undeformed CT)]\n"
+          "                            [--deform-batch N (server part: sessions whose steps share launches, 64)]\n"
           "                            [--batch 1,4,16 (server part: render.max_batch; the scene's)]\n"
           "                            [--rounds N (server part: rounds of without/with viewers, 3)]\n"
           "                            [--viewers-nice N (server part: the viewer threads', 19)]\n"

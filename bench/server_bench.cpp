@@ -48,6 +48,7 @@ struct Options {
   int nice = 19;               // the deformation worker's nice value
   bool idle = true;            // and SCHED_IDLE for it (the server's --background idle)
   int concurrency = net::ServerOptions{}.deform_concurrency;  // steps in flight at once
+  int batch = net::ServerOptions{}.deform_batch;              // sessions sharing one launch per stage, at most
 };
 
 // one session count: what each session got and what the server held
@@ -55,11 +56,13 @@ struct Row {
   int sessions = 0;
   std::string backend;
   std::vector<double> steps_per_s;     // per session, over its pressing time
+  std::vector<double> stage_ms[5];     // per session, mean per step: reset, ChainMail, relax, invert, upload (a batch's share)
   std::vector<double> dropped_share;   // per session: contacts dropped / (steps + dropped)
   std::vector<double> step_ms;         // per session: mean whole step (ms)
   std::vector<double> own_bytes;       // per session: its engine's own memory
   double server_bytes = 0;             // every deformation stage, server-wide, with all sessions open
   double worker_step_share = 0, worker_sleep_share = 0;  // of the deformation thread's time, over the run
+  double batched_share = 0, mean_batch = 0;  // steps run in batches, of all; their mean batch size
   std::vector<double> rtt_with, rtt_without;  // round trips (us), pooled over rounds
   std::vector<double> ratios;          // per round: p99 with / p99 without deformation
 };
@@ -81,6 +84,7 @@ int run(int argc, char** argv) {
     else if (a == "--backend") o.backend = value();
     else if (a == "--nice") o.nice = std::stoi(value());
     else if (a == "--concurrency") o.concurrency = std::max(1, std::stoi(value()));
+    else if (a == "--batch") o.batch = std::min(64, std::max(1, std::stoi(value())));
     else if (a == "--background") {
       const std::string p = value();
       if (p != "idle" && p != "nice") throw Error("palpsim-bench server: --background " + p + ": expected idle or nice");
@@ -94,7 +98,7 @@ int run(int argc, char** argv) {
       std::printf(
           "usage: palpsim-bench server [--sessions 1,4,16,64] [--seconds S per run (5)] [--rounds N (1)]\n"
           "                            [--voi EDGE (64)] [--backend auto|cpu|cuda] [--nice N (19)]\n"
-          "                            [--background idle|nice (idle, as palpsim-server)] [--concurrency K]\n"
+          "                            [--background idle|nice (idle, as palpsim-server)] [--concurrency K] [--batch N (64)]\n"
           "                            [--scene FILE] [--json FILE] [--commit C]\n");
       return 0;
     } else {
@@ -125,6 +129,7 @@ int run(int argc, char** argv) {
   so.deform_nice = o.nice;
   so.background_idle = o.idle;
   so.deform_concurrency = o.concurrency;
+  so.deform_batch = o.batch;
   net::Server with(deform, patient, nullptr, so), without(plain, patient, nullptr, so);
   with.start();
   without.start();
@@ -159,6 +164,9 @@ int run(int argc, char** argv) {
             const double offered = double(d.steps() + d.contacts_dropped());
             row.dropped_share.push_back(offered > 0 ? double(d.contacts_dropped()) / offered : 0.0);
             row.step_ms.push_back(d.mean().total_ms());
+            const v1::DeformTimes& m = d.mean();
+            const double stage[5] = {m.reset_ms(), m.chainmail_ms(), m.relax_ms(), m.invert_ms(), m.upload_ms()};
+            for (int k = 0; k < 5; ++k) row.stage_ms[k].push_back(stage[k]);
             row.own_bytes.push_back(double(d.bytes_allocated()));
             // the server's memory once, while every session is still open
             if (c == 0 && round == 0) {
@@ -185,16 +193,26 @@ int run(int argc, char** argv) {
       row.worker_step_share = (after.deform_worker_step_s() - before.deform_worker_step_s()) / wall;
       row.worker_sleep_share = (after.deform_worker_sleep_s() - before.deform_worker_sleep_s()) / wall;
     }
+    const double steps = double(after.deform_steps() - before.deform_steps());
+    const double batched = double(after.deform_batched_steps() - before.deform_batched_steps());
+    const double batches = double(after.deform_batches() - before.deform_batches());
+    row.batched_share = steps > 0 ? batched / steps : 0.0;
+    row.mean_batch = batches > 0 ? batched / batches : 1.0;
     rows.push_back(row);
     const Row& r = rows.back();
+    std::printf("%2d sessions: mean stage times per step (ms, a batch's share), medians over sessions: reset %.4f "
+                "ChainMail %.4f relax %.4f invert %.4f upload %.4f\n",
+                n, quantile(r.stage_ms[0], 0.5), quantile(r.stage_ms[1], 0.5), quantile(r.stage_ms[2], 0.5),
+                quantile(r.stage_ms[3], 0.5), quantile(r.stage_ms[4], 0.5));
     const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
     std::printf(
-        "%2d sessions (%s, VOI %d, %s, %d in flight): steps/s per session min %.0f median %.0f; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
+        "%2d sessions (%s, VOI %d, %s, %d in flight, batches of up to %d): steps/s per session min %.0f median %.0f; "
+        "%.0f%% of steps batched, %.1f sessions a batch; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
         "memory %.1f MB per session, deformation server-wide %.1f MB; round trip p50 %.0f / p99 %.0f us with "
         "deformation, p99 %.0f us without (ratio %.2f, median of %zu rounds)\n",
-        n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice", o.concurrency,
+        n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice", o.concurrency, o.batch,
         r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()),
-        quantile(r.steps_per_s, 0.5), quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
+        quantile(r.steps_per_s, 0.5), 100 * r.batched_share, r.mean_batch, quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
         100 * r.worker_sleep_share, own_mb,
         r.server_bytes / (1 << 20), quantile(r.rtt_with, 0.5), quantile(r.rtt_with, 0.99),
         quantile(r.rtt_without, 0.99), quantile(r.ratios, 0.5), r.ratios.size());
@@ -219,7 +237,7 @@ int run(int argc, char** argv) {
     std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
     out << "{\n  \"bench\": \"server\",\n  \"commit\": \"" << o.commit << "\",\n  \"date\": \"" << date
         << "\",\n  \"machine\": \"" << machine()
-        << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"concurrency\": " << o.concurrency << ",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
+        << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"concurrency\": " << o.concurrency << ",\n  \"batch\": " << o.batch << ",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
         << ",\n  \"rows\": [\n";
     for (std::size_t i = 0; i < rows.size(); ++i) {
       const Row& r = rows[i];
@@ -230,6 +248,7 @@ int run(int argc, char** argv) {
           << ", \"dropped_share_median\": " << json_number(quantile(r.dropped_share, 0.5))
           << ", \"worker_step_share\": " << json_number(r.worker_step_share)
           << ", \"worker_sleep_share\": " << json_number(r.worker_sleep_share)
+          << ", \"batched_share\": " << json_number(r.batched_share) << ", \"mean_batch\": " << json_number(r.mean_batch)
           << ", \"own_bytes_median\": " << json_number(quantile(r.own_bytes, 0.5))
           << ", \"deform_bytes_server\": " << json_number(r.server_bytes)
           << ", \"rtt_p50_us_with\": " << json_number(quantile(r.rtt_with, 0.5))

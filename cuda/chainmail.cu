@@ -45,94 +45,123 @@ __device__ int2 block_sum2(int a, int b, int2* scratch) {
 // a stamp with this bit set records an element's first move (stamps stay below it)
 constexpr int kFirstMove = 1 << 30;
 
+// the first element goes to x in both buffers; it moved in sweep 0 (one thread)
+__device__ __forceinline__ void chainmail_start(const StepGeometry& geo, const Vec3f& u0, const DeviceBuffers& b) {
+  const deform::Voi& voi = geo.voi;
+  const Vec3i g = geo.grabbed;
+  const int g_idx = g.z * voi.size.x * voi.size.y + g.y * voi.size.x + g.x;
+  Counters* c = b.counters;
+  for (int p = 0; p < 2; ++p) {
+    b.u[p][0][g_idx] = u0.x;
+    b.u[p][1][g_idx] = u0.y;
+    b.u[p][2][g_idx] = u0.z;
+  }
+  b.stamp[0][g_idx] = 0;
+  c->sweep_moved[0] = c->sweep_moved[1] = c->sweep_moved[2] = 0;
+  c->moved_total = 0;
+  c->sweeps = 0;
+  c->converged = 0;
+}
+
+// the wave moves one voxel per sweep: only the box g +- s can hold candidates; its
+// corner and extent (VOI-local), and its element count
+__device__ __forceinline__ unsigned sweep_box(const StepGeometry& geo, int s, int lo[3], int ext[3]) {
+  const Vec3i g = geo.grabbed;
+#pragma unroll
+  for (int a = 0; a < 3; ++a) {
+    lo[a] = max(g[a] - s, 0);
+    ext[a] = min(g[a] + s, geo.voi.size[a] - 1) - lo[a] + 1;
+  }
+  return unsigned(ext[0] * ext[1]) * unsigned(ext[2]);
+}
+
+// element t of the sweep's box as a VOI-local voxel; 32-bit index arithmetic: 64-bit
+// division costs tens of instructions on the GPU
+__device__ __forceinline__ void box_voxel(unsigned t, const int lo[3], const int ext[3], int& i, int& j, int& k) {
+  const unsigned ex = unsigned(ext[0]), exy = unsigned(ext[0] * ext[1]);
+  const unsigned kk = t / exy, r = t - kk * exy, jj = r / ex;
+  i = lo[0] + int(r - jj * ex);
+  j = lo[1] + int(jj);
+  k = lo[2] + int(kk);
+}
+
+// sweep s of one element, VOI-local voxel (i, j, k) of one session: chainmail.cpp's
+// rule; adds 1 to moved_here when it moved, and to fresh_here when for the first time
+__device__ __forceinline__ void chainmail_element(const StepGeometry& geo, const DeviceBuffers& b,
+                                                  const deform::ChainMailLimits& lim, int s, int i, int j, int k,
+                                                  int& moved_here, int& fresh_here) {
+  const deform::Voi& voi = geo.voi;
+  const Vec3i g = geo.grabbed;
+  const int sx = voi.size.x, sxy = voi.size.x * voi.size.y;  // VOIs hold < 2^31 voxels (checked at bind)
+  const int g_idx = g.z * sxy + g.y * sx + g.x;
+  const int step[6] = {-1, 1, -sx, sx, -sxy, sxy};  // linear offsets in the fixed neighbour order
+  const int pa = (s - 1) & 1, pb = s & 1;
+  const float* ax = b.u[pa][0];
+  const float* ay = b.u[pa][1];
+  const float* az = b.u[pa][2];
+  const int* sa = b.stamp[pa];
+  int* sb = b.stamp[pb];
+  const int e = k * sxy + j * sx + i;
+  if (e == g_idx) return;
+  // which neighbours moved in the previous sweep (stamps only: most elements stop here)
+  const int n_ok[6] = {i > 0, i + 1 < voi.size.x, j > 0, j + 1 < voi.size.y, k > 0, k + 1 < voi.size.z};
+  unsigned mask = 0;
+#pragma unroll
+  for (int q = 0; q < 6; ++q)
+    if (n_ok[q] && (sa[e + step[q]] & ~kFirstMove) == s - 1) mask |= 1u << q;
+  const bool self_prev = (sa[e] & ~kFirstMove) == s - 1;
+  if (!mask && !self_prev) return;
+  const long long gi = ((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x +
+                       (voi.lo.x + i);
+  if (b.bone[gi]) return;
+  // clamp into the box of every neighbour that moved in an earlier sweep, in the fixed
+  // order (chainmail.cpp). sb is being written in this sweep: a neighbour reads as
+  // having moved before when its stamp of this parity is an earlier sweep, or this
+  // one without kFirstMove (it had moved before), whichever value the race shows
+  const Vec3f old{ax[e], ay[e], az[e]};
+  Vec3f v = old;
+  unsigned held = 0;
+#pragma unroll
+  for (int q = 0; q < 6; ++q)
+    if (n_ok[q] && (sa[e + step[q]] >= 0 || (sb[e + step[q]] >= 0 && sb[e + step[q]] != (s | kFirstMove))))
+      held |= 1u << q;
+#pragma unroll
+  for (int q = 0; q < 6; ++q)
+    if (held & (1u << q)) {
+      const int ni = e + step[q];
+      deform::chainmail_clamp(v, Vec3f{ax[ni], ay[ni], az[ni]}, deform::neighbour_axis(q), deform::neighbour_below(q),
+                              lim);
+    }
+  // buffer pb holds sweep s-2: rewrite it where this sweep or the last one changed anything
+  b.u[pb][0][e] = v.x;
+  b.u[pb][1][e] = v.y;
+  b.u[pb][2][e] = v.z;
+  if (mask && v != old) {
+    ++moved_here;
+    const bool first = sa[e] < 0 && sb[e] < 0;
+    fresh_here += first;
+    sb[e] = first ? (s | kFirstMove) : s;
+  }
+}
+
 __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeometry geo, Vec3f u0,
                                                                        deform::ChainMailLimits lim, int max_sweeps,
                                                                        DeviceBuffers b) {
   __shared__ int2 scratch[32];
   cg::grid_group grid = cg::this_grid();
-  const deform::Voi& voi = geo.voi;
-  const Vec3i g = geo.grabbed;
-  const int sx = voi.size.x, sxy = voi.size.x * voi.size.y;  // VOIs hold < 2^31 voxels (checked at bind)
-  const int g_idx = g.z * sxy + g.y * sx + g.x;
   Counters* c = b.counters;
-  // the first element goes to x in both buffers; it moved in sweep 0
-  if (grid.thread_rank() == 0) {
-    for (int p = 0; p < 2; ++p) {
-      b.u[p][0][g_idx] = u0.x;
-      b.u[p][1][g_idx] = u0.y;
-      b.u[p][2][g_idx] = u0.z;
-    }
-    b.stamp[0][g_idx] = 0;
-    c->sweep_moved[0] = c->sweep_moved[1] = c->sweep_moved[2] = 0;
-    c->moved_total = 0;
-    c->sweeps = 0;
-    c->converged = 0;
-  }
+  if (grid.thread_rank() == 0) chainmail_start(geo, u0, b);
   grid.sync();
 
   const unsigned nthreads = gridDim.x * blockDim.x;
-  const int step[6] = {-1, 1, -sx, sx, -sxy, sxy};  // linear offsets in the fixed neighbour order
   for (int s = 1; s <= max_sweeps; ++s) {
-    const int pa = (s - 1) & 1, pb = s & 1;
-    const float* ax = b.u[pa][0];
-    const float* ay = b.u[pa][1];
-    const float* az = b.u[pa][2];
-    const int* sa = b.stamp[pa];
-    int* sb = b.stamp[pb];
-    // the wave moves one voxel per sweep: only the box g +- s can hold candidates
     int lo[3], ext[3];
-#pragma unroll
-    for (int a = 0; a < 3; ++a) {
-      lo[a] = max(g[a] - s, 0);
-      ext[a] = min(g[a] + s, voi.size[a] - 1) - lo[a] + 1;
-    }
-    const unsigned ex = unsigned(ext[0]), exy = unsigned(ext[0] * ext[1]), box = exy * unsigned(ext[2]);
+    const unsigned box = sweep_box(geo, s, lo, ext);
     int moved_here = 0, fresh_here = 0;
     for (unsigned t = blockIdx.x * blockDim.x + threadIdx.x; t < box; t += nthreads) {
-      // 32-bit index arithmetic: 64-bit division costs tens of instructions on the GPU
-      const unsigned kk = t / exy, r = t - kk * exy, jj = r / ex;
-      const int i = lo[0] + int(r - jj * ex), j = lo[1] + int(jj), k = lo[2] + int(kk);
-      const int e = k * sxy + j * sx + i;
-      if (e == g_idx) continue;
-      // which neighbours moved in the previous sweep (stamps only: most elements stop here)
-      const int n_ok[6] = {i > 0, i + 1 < voi.size.x, j > 0, j + 1 < voi.size.y, k > 0, k + 1 < voi.size.z};
-      unsigned mask = 0;
-#pragma unroll
-      for (int q = 0; q < 6; ++q)
-        if (n_ok[q] && (sa[e + step[q]] & ~kFirstMove) == s - 1) mask |= 1u << q;
-      const bool self_prev = (sa[e] & ~kFirstMove) == s - 1;
-      if (!mask && !self_prev) continue;
-      const long long gi = ((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x +
-                           (voi.lo.x + i);
-      if (b.bone[gi]) continue;
-      // clamp into the box of every neighbour that moved in an earlier sweep, in the fixed
-      // order (chainmail.cpp). sb is being written in this sweep: a neighbour reads as
-      // having moved before when its stamp of this parity is an earlier sweep, or this
-      // one without kFirstMove (it had moved before), whichever value the race shows
-      const Vec3f old{ax[e], ay[e], az[e]};
-      Vec3f v = old;
-      unsigned held = 0;
-#pragma unroll
-      for (int q = 0; q < 6; ++q)
-        if (n_ok[q] && (sa[e + step[q]] >= 0 || (sb[e + step[q]] >= 0 && sb[e + step[q]] != (s | kFirstMove))))
-          held |= 1u << q;
-#pragma unroll
-      for (int q = 0; q < 6; ++q)
-        if (held & (1u << q)) {
-          const int ni = e + step[q];
-          deform::chainmail_clamp(v, Vec3f{ax[ni], ay[ni], az[ni]}, deform::neighbour_axis(q),
-                                  deform::neighbour_below(q), lim);
-        }
-      // buffer pb holds sweep s-2: rewrite it where this sweep or the last one changed anything
-      b.u[pb][0][e] = v.x;
-      b.u[pb][1][e] = v.y;
-      b.u[pb][2][e] = v.z;
-      if (mask && v != old) {
-        ++moved_here;
-        const bool first = sa[e] < 0 && sb[e] < 0;
-        fresh_here += first;
-        sb[e] = first ? (s | kFirstMove) : s;
-      }
+      int i, j, k;
+      box_voxel(t, lo, ext, i, j, k);
+      chainmail_element(geo, b, lim, s, i, j, k, moved_here, fresh_here);
     }
     // one atomic per block for the sweep's counts
     const int2 sums = block_sum2(moved_here, fresh_here, scratch);
@@ -154,6 +183,108 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
   if (grid.thread_rank() == 0) c->sweeps = max_sweeps;
 }
 
+// ChainMail of several sessions in one cooperative grid (batch.cu says why): every
+// sweep's boxes of the sessions still sweeping are laid end to end and the grid strides
+// over all of them, so the work spreads over the device whatever each box holds; each
+// element runs chainmail_element as in the kernel above, and a session leaves the sweeps
+// after its own quiet sweep, so its sweeps, counts and fields are those of its step
+// alone. The grid leaves when every session has converged or at the sweep cap.
+__global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(const BatchItem* __restrict__ items, int n,
+                                                                             deform::ChainMailLimits lim, int max_sweeps) {
+  __shared__ unsigned box_end[kMaxBatch];     // sweeping sessions' boxes end to end: where each ends
+  __shared__ int which[kMaxBatch];            // the session of each of them
+  __shared__ int active_n;                    // sessions still sweeping
+  __shared__ unsigned char active[kMaxBatch]; // 1: the session still sweeps
+  __shared__ int moved_s[kMaxBatch], fresh_s[kMaxBatch];  // this block's counts per session, this sweep
+  cg::grid_group grid = cg::this_grid();
+  for (int q = int(grid.thread_rank()); q < n; q += int(grid.size()))
+    if (items[q].chainmail) chainmail_start(items[q].geo, items[q].u0, items[q].b);
+  for (int q = threadIdx.x; q < n; q += blockDim.x) active[q] = items[q].chainmail != 0;
+  grid.sync();
+
+  const unsigned nthreads = gridDim.x * blockDim.x;
+  const int lane = threadIdx.x & 31;
+  for (int s = 1; s <= max_sweeps; ++s) {
+    // the sweeping sessions' boxes end to end: a scan over the sessions in the first warp
+    if (threadIdx.x < 32) {
+      unsigned carry = 0;
+      int m = 0;
+      for (int base = 0; base < n; base += 32) {
+        const int q = base + lane;
+        const bool on = q < n && active[q];
+        int lo[3], ext[3];
+        unsigned box = on ? sweep_box(items[q].geo, s, lo, ext) : 0u;
+        for (int o = 1; o < 32; o <<= 1) {
+          const unsigned up = __shfl_up_sync(0xffffffffu, box, o);
+          if (lane >= o) box += up;
+        }
+        const unsigned ballot = __ballot_sync(0xffffffffu, on);
+        const int pos = m + __popc(ballot & ((1u << lane) - 1u));
+        if (on) {
+          box_end[pos] = carry + box;
+          which[pos] = q;
+        }
+        carry += __shfl_sync(0xffffffffu, box, 31);
+        m += __popc(ballot);
+      }
+      if (lane == 0) active_n = m;
+    }
+    for (int q = threadIdx.x; q < n; q += blockDim.x) moved_s[q] = fresh_s[q] = 0;
+    __syncthreads();
+    const int m_on = active_n;
+    if (m_on == 0) return;  // no session sweeps at all (every grabbed element in bone)
+    const unsigned total = box_end[m_on - 1];
+    for (unsigned t = blockIdx.x * blockDim.x + threadIdx.x; t < total; t += nthreads) {
+      // the session whose box holds t
+      int a = 0, z = m_on - 1;
+      while (a < z) {
+        const int mid = (a + z) >> 1;
+        if (t < box_end[mid]) z = mid; else a = mid + 1;
+      }
+      const int q = which[a];
+      const StepGeometry& geo = items[q].geo;
+      int lo[3], ext[3], i, j, k;
+      sweep_box(geo, s, lo, ext);
+      box_voxel(t - (a ? box_end[a - 1] : 0u), lo, ext, i, j, k);
+      int moved_here = 0, fresh_here = 0;
+      chainmail_element(geo, items[q].b, lim, s, i, j, k, moved_here, fresh_here);
+      if (moved_here) atomicAdd(&moved_s[q], moved_here);
+      if (fresh_here) atomicAdd(&fresh_s[q], fresh_here);
+    }
+    __syncthreads();
+    // one atomic per block and session for the sweep's counts
+    for (int q = threadIdx.x; q < n; q += blockDim.x) {
+      Counters* c = items[q].b.counters;
+      if (moved_s[q]) atomicAdd(&c->sweep_moved[s % 3], moved_s[q]);
+      if (fresh_s[q]) atomicAdd(&c->moved_total, (unsigned long long)fresh_s[q]);
+      // slot (s+1) % 3 was last read before the previous barrier
+      if (blockIdx.x == 0 && active[q]) c->sweep_moved[(s + 1) % 3] = 0;
+    }
+    grid.sync();
+    // every block reads the same counts: a session whose sweep was quiet has converged
+    for (int q = threadIdx.x; q < n; q += blockDim.x)
+      if (active[q]) {
+        Counters* c = items[q].b.counters;
+        if (*(volatile int*)&c->sweep_moved[s % 3] == 0) {
+          active[q] = 0;
+          if (blockIdx.x == 0) {
+            c->sweeps = s;
+            c->converged = 1;
+          }
+        }
+      }
+    __syncthreads();
+    // all leave together once none sweeps (the count is the same in every block)
+    int left = 0;
+    for (int q = 0; q < n; ++q) left += active[q];
+    if (left == 0) return;
+    __syncthreads();  // active[] is read above before the next sweep's scan
+  }
+  // the sweep cap: the sessions still sweeping did not converge
+  for (int q = int(grid.thread_rank()); q < n; q += int(grid.size()))
+    if (active[q]) items[q].b.counters->sweeps = max_sweeps;
+}
+
 }  // namespace
 
 void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::ChainMailLimits& limits,
@@ -170,6 +301,18 @@ void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::Chai
                                                  args, 0, stream));
 }
 
+void launch_chainmail_batch(const BatchItem* items, int n, const deform::ChainMailLimits& limits, int max_sweeps,
+                            const LaunchShape& shape, cudaStream_t stream) {
+  if (n < 1 || n > kMaxBatch) throw Error("launch_chainmail_batch: " + std::to_string(n) + " sessions (1 to " +
+                                          std::to_string(kMaxBatch) + ")");
+  // the grid of the single kernel: one 1024-thread block per multiprocessor, the whole device
+  const BatchItem* it = items;
+  deform::ChainMailLimits lim = limits;
+  void* args[] = {&it, &n, &lim, &max_sweeps};
+  PALPSIM_CUDA_CHECK(cudaLaunchCooperativeKernel((const void*)chainmail_batch_kernel, dim3(shape.chainmail_blocks),
+                                                 dim3(shape.threads), args, 0, stream));
+}
+
 LaunchShape persistent_launch_shape() {
   LaunchShape s;
   int dev = 0, sms = 0, coop = 0, per_sm_cm = 0;
@@ -178,6 +321,9 @@ LaunchShape persistent_launch_shape() {
   PALPSIM_CUDA_CHECK(cudaDeviceGetAttribute(&coop, cudaDevAttrCooperativeLaunch, dev));
   if (!coop) throw Error("CUDA device " + std::to_string(dev) + " cannot launch cooperative kernels");
   PALPSIM_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm_cm, chainmail_kernel, s.threads, 0));
+  int per_sm_batch = 0;  // the batched ChainMail runs on the same grid
+  PALPSIM_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm_batch, chainmail_batch_kernel, s.threads, 0));
+  per_sm_cm = std::min(per_sm_cm, per_sm_batch);
   // few, large blocks: a grid barrier costs about one atomic per block, and one
   // 1024-thread block per SM covers a 64^3 VOI in two passes
   s.chainmail_blocks = sms * std::min(per_sm_cm, kPersistentBlocksPerSm);

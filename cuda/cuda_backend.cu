@@ -15,16 +15,7 @@ namespace {
 // in one launch: nine cudaMemsetAsync calls cost ~45 us at any VOI size (one launch
 // each, DEVICE.md's 3.3 us floor plus their gaps), this costs one launch
 __global__ void reset_kernel(unsigned n, DeviceBuffers b) {
-  const unsigned t0 = blockIdx.x * blockDim.x + threadIdx.x, stride = gridDim.x * blockDim.x;
-  for (unsigned e = t0; e < n; e += stride) {
-    for (int p = 0; p < 2; ++p) {
-      b.u[p][0][e] = 0.0f;
-      b.u[p][1][e] = 0.0f;
-      b.u[p][2][e] = 0.0f;
-      b.stamp[p][e] = -1;
-    }
-  }
-  if (t0 == 0) *b.counters = Counters{};
+  reset_elements(n, b, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
 }
 
 }  // namespace
@@ -64,6 +55,8 @@ CudaDeformBackend::~CudaDeformBackend() { release(); }
 
 void CudaDeformBackend::release() {
   // errors are ignored here: a destructor must not throw
+  in_batch_.reset();      // a batch still in flight is waited for by its last holder
+  batch_.reset();
   patient_copy_.reset();  // the shared patient copy: freed with its last holder
   for (auto& buf : d_.u)
     for (float*& c : buf) cudaFree(c);
@@ -234,6 +227,10 @@ void CudaDeformBackend::enqueue_upload() {
 void CudaDeformBackend::finish(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt) {
   PALPSIM_CUDA_CHECK(cudaMemcpyAsync(host_counters_, d_.counters, sizeof(Counters), cudaMemcpyDeviceToHost, stream_));
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+  read_counters(stats, inv, unt);
+}
+
+void CudaDeformBackend::read_counters(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt) {
   if (stats && !stats->grabbed_in_bone) {
     stats->sweeps = host_counters_->sweeps;
     stats->moved = (long long)host_counters_->moved_total;
@@ -295,7 +292,19 @@ InvertStats CudaDeformBackend::invert_impl() {
   return r;
 }
 
+const float* CudaDeformBackend::deformed_brick_impl() const {
+  // a batched step's J reaches the host only when read (batch.cu says why)
+  if (host_j_stale_) {
+    PALPSIM_CUDA_CHECK(cudaMemcpyAsync(host_j_, d_.j, std::size_t(voi_.count()) * sizeof(float), cudaMemcpyDeviceToHost,
+                                       stream_));
+    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+    host_j_stale_ = false;
+  }
+  return host_j_;
+}
+
 void CudaDeformBackend::upload_impl() {
+  host_j_stale_ = false;
   enqueue_upload();
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
 }
@@ -305,26 +314,30 @@ DeformStats CudaDeformBackend::step_impl(const ChainMailStats& setup) {
   return end_step_impl();
 }
 
-void CudaDeformBackend::begin_step_impl(const ChainMailStats& setup) {
-  // every stage is enqueued on one stream with an event between stages; end_step_impl()
-  // waits once, then reads the stage times from the events
-  step_start_ = std::chrono::steady_clock::now();
-  launch_shape_for_share();
+void CudaDeformBackend::prepare_stats(const ChainMailStats& setup) {
   DeformStats& out = step_out_;
   out = DeformStats{};
   out.chainmail = setup;
   out.chainmail.sweeps = 0;
   out.chainmail.moved = 0;
   out.chainmail.converged = true;
+  if (config_.relax) set_relax_counts(out);
+}
+
+void CudaDeformBackend::begin_step_impl(const ChainMailStats& setup) {
+  // every stage is enqueued on one stream with an event between stages; end_step_impl()
+  // waits once, then reads the stage times from the events
+  in_batch_.reset();
+  host_j_stale_ = false;  // the upload below copies J
+  step_start_ = std::chrono::steady_clock::now();
+  launch_shape_for_share();
+  prepare_stats(setup);
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[0], stream_));
   enqueue_reset();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[1], stream_));
   enqueue_chainmail();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[2], stream_));
-  if (config_.relax) {
-    enqueue_relax();
-    set_relax_counts(out);
-  }
+  if (config_.relax) enqueue_relax();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[3], stream_));
   if (config_.relax && config_.settings.untangle) enqueue_untangle();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[4], stream_));
@@ -335,6 +348,7 @@ void CudaDeformBackend::begin_step_impl(const ChainMailStats& setup) {
 }
 
 DeformStats CudaDeformBackend::end_step_impl() {
+  if (in_batch_) return end_batched_step();
   DeformStats out = step_out_;
   const bool untangle = config_.relax && config_.settings.untangle;
   InvertStats inv;
@@ -355,6 +369,114 @@ DeformStats CudaDeformBackend::end_step_impl() {
   out.times.invert_ms = ms[4];
   out.times.upload_ms = ms[5];
   out.times.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - step_start_).count();
+  return out;
+}
+
+bool CudaDeformBackend::batchable_with(const CudaDeformBackend& o) const {
+  // the batched kernels take the settings once for all sessions; multigrid relaxation
+  // and untangling have no batched kernels (each session steps alone)
+  const DeformSettings &a = config_.settings, &b = o.config_.settings;
+  return config_.relax == o.config_.relax && config_.invert == o.config_.invert &&
+         config_.bone_threshold == o.config_.bone_threshold && a.relax_method == "explicit" &&
+         b.relax_method == "explicit" && !(config_.relax && a.untangle) && !(o.config_.relax && b.untangle) &&
+         a.max_sweeps == b.max_sweeps && a.relax_iterations == b.relax_iterations && a.relax_step == b.relax_step &&
+         a.material_width == b.material_width && a.invert_iterations == b.invert_iterations &&
+         limits_.axial_lo == o.limits_.axial_lo && limits_.axial_hi == o.limits_.axial_hi &&
+         limits_.sheer == o.limits_.sheer;
+}
+
+bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& group) {
+  const int n = int(group.size());
+  if (n < 2 || n > kMaxBatch) return false;
+  std::vector<CudaDeformBackend*> m;
+  unsigned long long max_count = 0;
+  for (DeformBackend* b : group) {
+    auto* c = dynamic_cast<CudaDeformBackend*>(b);
+    if (!c || !batchable_with(*c)) return false;
+    m.push_back(c);
+    max_count = std::max<unsigned long long>(max_count, (unsigned long long)c->capacity_);
+  }
+  // the relaxation indexes the VOIs end to end with 32 bits
+  if ((unsigned long long)n * max_count >= (1ULL << 32)) return false;
+  // this backend's batch resources, unless a member of their last batch has not ended yet
+  if (!batch_ || batch_.use_count() > 1) batch_ = std::make_shared<CudaBatch>();
+  CudaBatch& bt = *batch_;
+  bt.wait();  // the last use of the items is over
+  const DeformSettings& s = config_.settings;
+  unsigned max_reset = 0, max_voi = 0;
+  bool any_chainmail = false;
+  // each session's item: its state and where each stage reads, as its own step would
+  for (int i = 0; i < n; ++i) {
+    CudaDeformBackend& c = *m[i];
+    BatchItem& it = bt.host_items[i];
+    it = BatchItem{};
+    it.geo = c.geometry();
+    it.u0 = c.setup_.grabbed_u_vox;
+    it.chainmail = c.setup_.grabbed_in_bone ? 0 : 1;
+    it.reset_count = unsigned(c.dirty_.count());
+    it.b = c.d_;
+    it.host_counters = c.host_counters_;
+    // reset leaves buffer 0; converged ChainMail leaves its result in both buffers, capped in the last sweep's
+    int cur = it.chainmail ? (s.max_sweeps & 1) : 0;
+    it.relax_src = cur;
+    if (config_.relax) cur = (cur + s.relax_iterations) & 1;
+    it.invert_src = cur;
+    c.cur_ = cur;
+    c.dirty_ = c.voi_;
+    c.prepare_stats(c.setup_);
+    max_reset = std::max(max_reset, it.reset_count);
+    max_voi = std::max(max_voi, unsigned(c.voi_.count()));
+    any_chainmail = any_chainmail || it.chainmail;
+  }
+  // the stages, one launch each for all sessions, with an event between stages
+  bt.n = n;
+  bt.done = false;
+  bt.start = std::chrono::steady_clock::now();
+  cudaStream_t st = bt.stream;
+  PALPSIM_CUDA_CHECK(cudaMemcpyAsync(bt.dev_items, bt.host_items, n * sizeof(BatchItem), cudaMemcpyHostToDevice, st));
+  PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[0], st));
+  launch_reset_batch(bt.dev_items, n, max_reset, st);
+  PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[1], st));
+  if (any_chainmail) launch_chainmail_batch(bt.dev_items, n, limits_, s.max_sweeps, full_shape_, st);
+  PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[2], st));
+  if (config_.relax)
+    launch_relax_batch(bt.dev_items, n, max_voi, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
+                       float(s.material_width), full_shape_, st);
+  PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[3], st));
+  if (config_.invert) launch_invert_batch(bt.dev_items, n, max_voi, s.invert_iterations, st);
+  PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[4], st));
+  // the counters to each session's pinned host copy in one launch; J stays on the device
+  // until deformed_brick() asks for it (batch.cu says why)
+  launch_gather_batch(bt.dev_items, n, st);
+  PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[5], st));
+  for (CudaDeformBackend* c : m) {
+    c->in_batch_ = batch_;
+    c->host_j_stale_ = config_.invert;
+  }
+  return true;
+}
+
+DeformStats CudaDeformBackend::end_batched_step() {
+  const std::shared_ptr<CudaBatch> bt = std::move(in_batch_);
+  bt->wait();
+  DeformStats out = step_out_;
+  InvertStats inv;
+  read_counters(&out.chainmail, &inv, nullptr);
+  if (config_.invert) {
+    out.invert_residual_vox = inv.max_residual_vox;
+    out.invert_unresolved = inv.unresolved;
+    out.invert_max_change = inv.max_change;
+    out.invert_nonfinite = inv.nonfinite;
+  }
+  // this step's share of the batch's stage times (ms)
+  const double share = 1.0 / bt->n;
+  out.batch = bt->n;
+  out.times.reset_ms = bt->stage_ms[0] * share;
+  out.times.chainmail_ms = bt->stage_ms[1] * share;
+  out.times.relax_ms = bt->stage_ms[2] * share;
+  out.times.invert_ms = bt->stage_ms[3] * share;
+  out.times.upload_ms = bt->stage_ms[4] * share;
+  out.times.total_ms = bt->wall_ms * share;
   return out;
 }
 

@@ -8,6 +8,7 @@
 #include <cstddef>
 
 #include "core/device_bytes.h"
+#include "cuda/batch.h"
 #include "cuda/device_patient.h"
 #include "cuda/kernels.h"
 #include "deform/backend.h"
@@ -35,7 +36,9 @@ class CudaDeviceBytes final : public DeviceBytes {
 
 /// The CUDA backend. The patient's intensity and bone mask live on the device once
 /// for all sessions bound to that patient (DevicePatient); displacement, sweep stamps and J are VOI-sized device buffers. A
-/// step is one stream of device work with one synchronisation at its end.
+/// step is one stream of device work with one synchronisation at its end; the steps of
+/// several sessions with the same settings may share one launch per stage instead
+/// (DeformBackend::begin_steps, batch.cu).
 class CudaDeformBackend final : public DeformBackend {
  public:
   CudaDeformBackend();
@@ -52,9 +55,10 @@ class CudaDeformBackend final : public DeformBackend {
   DeformStats step_impl(const ChainMailStats& setup) override;
   void begin_step_impl(const ChainMailStats& setup) override;
   DeformStats end_step_impl() override;
+  bool begin_batch_impl(const std::vector<DeformBackend*>& group) override;
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
-  const float* deformed_brick_impl() const override { return host_j_; }
+  const float* deformed_brick_impl() const override;
   bool copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>& dst) const override;
   DeformMemory memory_impl() const override;
 
@@ -76,6 +80,15 @@ class CudaDeformBackend final : public DeformBackend {
   void enqueue_upload();
   // wait for the stream and read the counters
   void finish(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt = nullptr);
+  // read the counters the device wrote into host_counters_
+  void read_counters(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt);
+  // whether this backend's steps can share launches with `o`'s (same settings, explicit
+  // relaxation, no untangling)
+  bool batchable_with(const CudaDeformBackend& o) const;
+  // begin_step_impl()'s part of the stats, before any stage
+  void prepare_stats(const ChainMailStats& setup);
+  // end_step_impl() of a step begun in a batch
+  DeformStats end_batched_step();
 
   std::shared_ptr<const DevicePatient> patient_copy_;  // I and the bone mask, shared
   DeviceBuffers d_;
@@ -90,9 +103,12 @@ class CudaDeformBackend final : public DeformBackend {
   cudaEvent_t ev_[7] = {};
   Counters* host_counters_ = nullptr;  // pinned
   float* host_j_ = nullptr;            // pinned, J's VOI after upload
+  mutable bool host_j_stale_ = false;  // a batched step left J on the device only: deformed_brick() copies it
   long long capacity_ = 0;             // elements per VOI buffer
   Voi dirty_;                          // VOI whose buffers hold a deformation
   int cur_ = 0;                        // displacement buffer holding the current field
+  std::shared_ptr<CudaBatch> batch_;     // the launches' resources when this backend leads a batch, kept for the next
+  std::shared_ptr<CudaBatch> in_batch_;  // the batch this backend's step is in, until end_step()
 };
 
 }  // namespace palpsim::cuda

@@ -9,38 +9,42 @@ namespace palpsim::cuda {
 
 namespace {
 
-__global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, DeviceBuffers b) {
+// J at VOI-local element e of one session from displacement buffer src (e past the VOI:
+// nothing); its residual r, |J - I| and whether J is not a number go to the reduction
+__device__ __forceinline__ void invert_element(const StepGeometry& geo, int src, int iterations, const DeviceBuffers& b,
+                                               int e, float& r, float& change, bool& broken) {
   const deform::Voi& voi = geo.voi;
-  const int e = int(blockIdx.x * blockDim.x + threadIdx.x);  // VOIs hold < 2^31 voxels (checked at bind)
-  float r = 0.0f, change = 0.0f;
-  bool broken = false;
-  if (e < int(voi.count())) {
-    const float* ux = b.u[src][0];
-    const float* uy = b.u[src][1];
-    const float* uz = b.u[src][2];
-    const Vec3i size = geo.volume_size;
-    // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
-    auto load_u = [&](int i, int j, int k) {
-      if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
-      const int n = (k * voi.size.y + j) * voi.size.x + i;
-      return Vec3f{ux[n], uy[n], uz[n]};
-    };
-    // intensity at a VOI-local voxel, clamped at the volume border
-    auto load_i = [&](int i, int j, int k) {
-      const int gi = min(max(voi.lo.x + i, 0), size.x - 1);
-      const int gj = min(max(voi.lo.y + j, 0), size.y - 1);
-      const int gk = min(max(voi.lo.z + k, 0), size.z - 1);
-      return b.intensity[((long long)gk * size.y + gj) * size.x + gi];
-    };
-    const int sxy = voi.size.x * voi.size.y;
-    const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
-    const Vec3f p = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
-    const float jv = deform::trilinear<float>(load_i, p);
-    b.j[e] = jv;
-    // how far J moved from I here, and whether it is a number at all
-    broken = !isfinite(jv);
-    if (!broken) change = fabsf(jv - load_i(i, j, k));
-  }
+  if (e >= int(voi.count())) return;
+  const float* ux = b.u[src][0];
+  const float* uy = b.u[src][1];
+  const float* uz = b.u[src][2];
+  const Vec3i size = geo.volume_size;
+  // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
+  auto load_u = [&](int i, int j, int k) {
+    if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
+    const int n = (k * voi.size.y + j) * voi.size.x + i;
+    return Vec3f{ux[n], uy[n], uz[n]};
+  };
+  // intensity at a VOI-local voxel, clamped at the volume border
+  auto load_i = [&](int i, int j, int k) {
+    const int gi = min(max(voi.lo.x + i, 0), size.x - 1);
+    const int gj = min(max(voi.lo.y + j, 0), size.y - 1);
+    const int gk = min(max(voi.lo.z + k, 0), size.z - 1);
+    return b.intensity[((long long)gk * size.y + gj) * size.x + gi];
+  };
+  const int sxy = voi.size.x * voi.size.y;
+  const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
+  const Vec3f p = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
+  const float jv = deform::trilinear<float>(load_i, p);
+  b.j[e] = jv;
+  // how far J moved from I here, and whether it is a number at all
+  broken = !isfinite(jv);
+  if (!broken) change = fabsf(jv - load_i(i, j, k));
+}
+
+// the warp's unresolved and non-finite voxels, largest residual and largest change of
+// the image into the session's counters: one atomic per warp and counter
+__device__ __forceinline__ void invert_reduce(const DeviceBuffers& b, float r, float change, bool broken) {
   // unresolved voxels of the warp, counted before r is reduced
   const unsigned bad = __popc(__ballot_sync(0xffffffffu, r > deform::kInvertResolvedVox));
   const unsigned nonfinite = __popc(__ballot_sync(0xffffffffu, broken));
@@ -58,12 +62,38 @@ __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, 
   }
 }
 
+__global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, DeviceBuffers b) {
+  const int e = int(blockIdx.x * blockDim.x + threadIdx.x);  // VOIs hold < 2^31 voxels (checked at bind)
+  float r = 0.0f, change = 0.0f;
+  bool broken = false;
+  invert_element(geo, src, iterations, b, e, r, change, broken);
+  invert_reduce(b, r, change, broken);
+}
+
+// the inversion of several sessions in one launch (batch.cu says why): blockIdx.y is
+// the session, each of its elements as in the kernel above
+__global__ void __launch_bounds__(256) invert_batch_kernel(const BatchItem* __restrict__ items, int iterations) {
+  const BatchItem& item = items[blockIdx.y];
+  const int e = int(blockIdx.x * blockDim.x + threadIdx.x);
+  float r = 0.0f, change = 0.0f;
+  bool broken = false;
+  invert_element(item.geo, item.invert_src, iterations, item.b, e, r, change, broken);
+  invert_reduce(item.b, r, change, broken);
+}
+
 }  // namespace
 
 void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream) {
   const long long n = g.voi.count();
   const int threads = 256;
   invert_kernel<<<unsigned((n + threads - 1) / threads), threads, 0, stream>>>(g, src, iterations, b);
+  PALPSIM_CUDA_CHECK(cudaGetLastError());
+}
+
+void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, cudaStream_t stream) {
+  if (n < 1) return;
+  const unsigned threads = 256;
+  invert_batch_kernel<<<dim3((max_count + threads - 1) / threads, unsigned(n)), threads, 0, stream>>>(items, iterations);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
 }
 

@@ -65,6 +65,40 @@ struct StepGeometry {
   Vec3i grabbed{0, 0, 0};  // VOI-local
 };
 
+/// Sessions one batched launch steps at most (batch.cu): the batched ChainMail keeps a
+/// few bytes per session in each block's shared memory and scans them in one warp.
+constexpr int kMaxBatch = 64;
+
+/// One session of a batched step (batch.cu): where it works, its buffers, where each
+/// stage reads, and the pinned host copy of its counters that the batch fills.
+struct BatchItem {
+  StepGeometry geo;
+  Vec3f u0{0, 0, 0};               // the grabbed element's displacement (voxel)
+  int chainmail = 0;               // 1: ChainMail runs; 0: the grabbed element is in bone, nothing moves
+  int relax_src = 0;               // displacement buffer the relaxation starts from
+  int invert_src = 0;              // displacement buffer the inversion reads
+  unsigned reset_count = 0;        // elements the previous step left deformed (the reset zeroes them)
+  DeviceBuffers b;
+  Counters* host_counters = nullptr;  // pinned host memory, written by launch_gather_batch
+};
+
+#ifdef __CUDACC__
+/// The undeformed state on the first n elements of one session's buffers (both
+/// displacement fields zero, sweep stamps -1: never moved), element t0 and every
+/// `stride`-th after it; the thread with t0 == 0 zeroes the counters too.
+__device__ inline void reset_elements(unsigned n, const DeviceBuffers& b, unsigned t0, unsigned stride) {
+  for (unsigned e = t0; e < n; e += stride) {
+    for (int p = 0; p < 2; ++p) {
+      b.u[p][0][e] = 0.0f;
+      b.u[p][1][e] = 0.0f;
+      b.u[p][2][e] = 0.0f;
+      b.stamp[p][e] = -1;
+    }
+  }
+  if (t0 == 0) *b.counters = Counters{};
+}
+#endif
+
 /// Threads per block and blocks per multiprocessor of the persistent kernels.
 constexpr int kPersistentThreads = 1024;
 constexpr int kPersistentBlocksPerSm = 1;
@@ -106,5 +140,23 @@ void launch_untangle(const StepGeometry& g, int cur, const DeviceBuffers& b, con
 
 /// J on the VOI from displacement buffer `src`; the max residual goes to counters.
 void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream);
+
+// ---- batched stages (batch.cu): `items` is a device array of n <= kMaxBatch sessions
+// with the same settings; each session's results equal its own launches' to the bit.
+
+/// The undeformed state on each session's reset_count elements, and zero counters.
+void launch_reset_batch(const BatchItem* items, int n, unsigned max_reset, cudaStream_t stream);
+/// ChainMail of every session with `chainmail` set, in one cooperative launch that
+/// sweeps until each has converged or `max_sweeps`.
+void launch_chainmail_batch(const BatchItem* items, int n, const deform::ChainMailLimits& limits, int max_sweeps,
+                            const LaunchShape& shape, cudaStream_t stream);
+/// `iterations` relaxation steps of every session from its relax_src, in one cooperative
+/// launch; `max_count` is the largest VOI's element count.
+void launch_relax_batch(const BatchItem* items, int n, unsigned max_count, int iterations, float step, float threshold,
+                        float width, const LaunchShape& shape, cudaStream_t stream);
+/// J of every session from its invert_src, in one launch.
+void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, cudaStream_t stream);
+/// Copies every session's counters to its host_counters, in one launch.
+void launch_gather_batch(const BatchItem* items, int n, cudaStream_t stream);
 
 }  // namespace palpsim::cuda

@@ -24,6 +24,7 @@ namespace {
 const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
     "                      [--max-pose-distance-mm MM] [--background idle|nice] [--deform-concurrency K]\n"
+    "                      [--deform-batch N]\n"
     "                      [--scene-dir DIR ...]\n"
     "                      [--curve-secret FILE --allow FILE] [--insecure]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
@@ -37,6 +38,8 @@ const char* kUsage =
     "  --deform-concurrency K  sessions' deformation steps on the GPU at once, each with 1/K of it\n"
     "                     (default 1: one at a time; 4 doubles the steps of 16 sessions but costs\n"
     "                     watched sessions frames: for servers without viewers)\n"
+    "  --deform-batch N   sessions whose steps share one launch per stage, at most (default 64;\n"
+    "                     1: each session steps alone, with --deform-concurrency)\n"
     "  --scene-dir DIR    a folder LoadScene requests may read scene files and CTs from and record\n"
     "                     frames into (repeatable; default: the folder of --scene, none without it)\n"
     "  --curve-secret FILE the server's secret key (palpsim-keys NAME makes NAME.key_secret): every\n"
@@ -105,6 +108,13 @@ int main(int argc, char** argv) {
         if (end == v.c_str() || *end != '\0' || k < 1 || k > 64)
           throw palpsim::Error("--deform-concurrency " + v + ": expected a whole number from 1 to 64");
         options.deform_concurrency = int(k);
+      } else if (a == "--deform-batch") {
+        const std::string v = value("--deform-batch");
+        char* end = nullptr;
+        const long k = std::strtol(v.c_str(), &end, 10);
+        if (end == v.c_str() || *end != '\0' || k < 1 || k > 64)
+          throw palpsim::Error("--deform-batch " + v + ": expected a whole number from 1 to 64");
+        options.deform_batch = int(k);
       } else if (a == "--max-pose-distance-mm") {
         options.max_pose_distance_mm = std::stod(value("--max-pose-distance-mm"));
       } else if (a == "--log-level") {

@@ -247,6 +247,54 @@ DeformStats DeformBackend::end_step() {
   return out;
 }
 
+std::vector<std::exception_ptr> DeformBackend::begin_steps(const std::vector<DeformBackend*>& backends,
+                                                          const std::vector<DeformContact>& contacts) {
+  if (backends.size() != contacts.size())
+    throw Error("deform: begin_steps() got " + std::to_string(backends.size()) + " backends and " +
+                std::to_string(contacts.size()) + " contacts");
+  std::vector<std::exception_ptr> errors(backends.size());
+  // each contact checked alone: a refused one leaves its backend out
+  std::vector<DeformBackend*> group;
+  std::vector<std::size_t> at;
+  for (std::size_t i = 0; i < backends.size(); ++i) {
+    DeformBackend& b = *backends[i];
+    try {
+      b.require(!b.in_step_, "begin_step() twice without end_step()");
+      ChainMailStats st = b.setup_step(contacts[i]);
+      b.voi_ = st.voi;
+      b.setup_ = st;
+      b.in_step_ = true;
+      group.push_back(&b);
+      at.push_back(i);
+    } catch (...) {
+      errors[i] = std::current_exception();
+    }
+  }
+  if (group.empty()) return errors;
+  // one batch when the backend can; a failed batch fails all of its steps
+  if (group.size() > 1) {
+    try {
+      if (group[0]->begin_batch_impl(group)) return errors;
+    } catch (...) {
+      for (std::size_t g = 0; g < group.size(); ++g) {
+        group[g]->in_step_ = false;
+        errors[at[g]] = std::current_exception();
+      }
+      return errors;
+    }
+  }
+  // otherwise each alone, as begin_step()
+  for (std::size_t g = 0; g < group.size(); ++g) {
+    try {
+      group[g]->begin_step_impl(group[g]->setup_);
+    } catch (...) {
+      group[g]->in_step_ = false;
+      errors[at[g]] = std::current_exception();
+    }
+  }
+  return errors;
+}
+
 void DeformBackend::set_gpu_share(int k) {
   require(!in_step_, "set_gpu_share() between begin_step() and end_step()");
   gpu_share_ = std::max(1, k);

@@ -5,6 +5,7 @@
 // virtual *_impl of the backend (tiny-cuda-nn's object.h pattern).
 #pragma once
 
+#include <exception>
 #include <memory>
 #include <string>
 #include <vector>
@@ -52,7 +53,9 @@ struct ChainMailStats {
 };
 
 /// Wall time of each stage of one step (ms). upload: making J's VOI readable on the
-/// host; reset: returning the previous step's state to undeformed.
+/// host; reset: returning the previous step's state to undeformed. A step of a batch
+/// (DeformBackend::begin_steps) gets the batch's times divided by its sessions: its
+/// share, so that the times of a server's steps add up to the GPU's.
 struct DeformTimes {
   double reset_ms = 0;
   double chainmail_ms = 0;
@@ -106,6 +109,7 @@ struct DeformStats {
   long long invert_nonfinite = 0;    // VOI voxels whose J is NaN or Inf; 0 without inversion
   UntangleStats untangle;            // all 0 when untangling is off
   DeformTimes times;
+  int batch = 1;                     // sessions stepped by the same launches (DeformBackend::begin_steps); 1: alone
 };
 
 /// One session's deformation state on one backend. bind() once, then step() per
@@ -150,6 +154,14 @@ class DeformBackend {
   /// returns what step() would. Nothing else may be called on the backend in between.
   void begin_step(const DeformContact& contact);
   DeformStats end_step();
+  /// begin_step() of several sessions at once, batched where their backend can: cuda
+  /// steps them all with one launch per stage (cuda/batch.cu says why) when they share
+  /// the settings; otherwise, and on cpu, each begins alone. Each backend's end_step()
+  /// then returns what its own step() would, to the bit. A backend whose contact is
+  /// refused, or whose step could not be begun, is not in a step: its error is at its
+  /// index in the result (nullptr: begun), and the others go on.
+  static std::vector<std::exception_ptr> begin_steps(const std::vector<DeformBackend*>& backends,
+                                                     const std::vector<DeformContact>& contacts);
   /// Lets each persistent kernel of this backend take 1/k of the device's co-resident
   /// blocks (cuda; cpu ignores it), so that k sessions' steps fit on the GPU side by
   /// side: a cooperative launch needs all its blocks resident, and k grids of 1/k always
@@ -196,6 +208,9 @@ class DeformBackend {
   // the halves of step_impl; by default the whole step runs in the first
   virtual void begin_step_impl(const ChainMailStats& setup) { pending_ = step_impl(setup); }
   virtual DeformStats end_step_impl() { return pending_; }
+  // begins the steps of `group` (this one first; each has voi_ and setup_ set) with
+  // batched launches and returns true, or returns false having begun nothing
+  virtual bool begin_batch_impl(const std::vector<DeformBackend*>& /*group*/) { return false; }
   virtual std::vector<Vec3f> displacement_impl() const = 0;
   virtual void set_displacement_impl(const std::vector<Vec3f>& u) = 0;
   virtual const float* deformed_brick_impl() const = 0;

@@ -20,6 +20,16 @@ void DeformEngine::begin_step(const DeformContact& contact) {
   backend_->begin_step(contact);
 }
 
+std::vector<std::exception_ptr> DeformEngine::begin_steps(const std::vector<DeformEngine*>& engines,
+                                                         const std::vector<DeformContact>& contacts) {
+  std::vector<DeformBackend*> backends;
+  for (DeformEngine* e : engines) {
+    e->has_brick_ = false;
+    backends.push_back(e->backend_.get());
+  }
+  return DeformBackend::begin_steps(backends, contacts);
+}
+
 DeformStats DeformEngine::end_step() {
   DeformStats st = backend_->end_step();
   has_brick_ = backend_->config().invert;

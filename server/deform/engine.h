@@ -4,8 +4,10 @@
 // stage times; the deformed VOI brick stays readable until the next step or reset.
 #pragma once
 
+#include <exception>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "deform/backend.h"
 
@@ -27,6 +29,11 @@ class DeformEngine {
   /// several sessions' steps on one GPU.
   void begin_step(const DeformContact& contact);
   DeformStats end_step();
+  /// begin_step() of several engines at once, batched where their backend can
+  /// (DeformBackend::begin_steps); the error of an engine whose step was not begun is at
+  /// its index (nullptr: begun, end it with end_step()).
+  static std::vector<std::exception_ptr> begin_steps(const std::vector<DeformEngine*>& engines,
+                                                     const std::vector<DeformContact>& contacts);
 
   /// Returns everything to undeformed (J = I).
   void reset();
@@ -35,6 +42,9 @@ class DeformEngine {
   /// nullptr when no J exists (before a step, after reset, without inversion).
   const Voi& voi() const { return backend_->voi(); }
   const float* deformed_brick() const { return has_brick_ ? backend_->deformed_brick() : nullptr; }
+  /// Whether a J exists (deformed_brick() would not be nullptr), without reading it: the
+  /// cuda backend copies a batched step's J to the host only when it is first read.
+  bool has_deformed_brick() const { return has_brick_; }
   /// Copies J's VOI into device memory for the renderer (DeformBackend::copy_brick_to_device);
   /// false when there is no J or the backend keeps none on a GPU.
   bool copy_brick_to_device(std::unique_ptr<DeviceBytes>& dst) const {

@@ -100,8 +100,13 @@ struct DeformWorker::Request {
 };
 
 DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle,
-                           int concurrency)
-    : sh_(shared), start_(start), nice_(nice), idle_(idle), max_inflight_(std::max(1, concurrency)) {}
+                           int concurrency, int batch)
+    : sh_(shared),
+      start_(start),
+      nice_(nice),
+      idle_(idle),
+      max_inflight_(std::max(1, concurrency)),
+      max_batch_(std::max(1, batch)) {}
 
 DeformWorker::~DeformWorker() { stop(); }
 
@@ -162,10 +167,12 @@ void DeformWorker::run() {
       worked = serve(i) || worked;
       any_open = any_open || sessions_[i].id != 0;
       if (request_pending_.load(std::memory_order_acquire)) {
+        begin_ready();
         complete_inflight();
         answer_request();
       }
     }
+    begin_ready();
     complete_inflight();
     // nothing new: a short nap while sessions are open, a longer one while none is
     if (!worked) {
@@ -191,6 +198,8 @@ void DeformWorker::set_up_world() {
   min_watched_step_s_ = scene.effects.frames && scene.render.max_fps > 0 ? 1.0 / scene.render.max_fps : 0.0;
   world_start_ = std::chrono::steady_clock::now();
   step_s_ = sleep_s_ = 0;
+  batch_share_ = 0;
+  batched_steps_ = 0;
   // engines of the previous world are bound to its patient and settings
   std::vector<Session>().swap(sessions_);
   spares_.clear();
@@ -206,11 +215,13 @@ void DeformWorker::set_up_world() {
       rep.backend_note = engine->backend_note();
       rep.relax = config_.relax;
       rep.invert = config_.invert;
-      spdlog::info("deformation for scene '{}': {}; ChainMail{}{}, VOI {}, one worker thread for all sessions",
+      spdlog::info("deformation for scene '{}': {}; ChainMail{}{}, VOI {}, one worker thread for all sessions, "
+                   "batches of up to {}",
                    scene.name, engine->backend_note(), config_.relax ? " + relaxation" : "",
                    config_.invert ? " + inversion" : "",
                    config_.settings.whole_volume ? std::string("whole volume")
-                                                 : "edge " + std::to_string(config_.settings.voi_edge));
+                                                 : "edge " + std::to_string(config_.settings.voi_edge),
+                   max_batch_);
       spares_.push_back(std::move(engine));
     } catch (const std::exception& e) {
       built_ = false;
@@ -256,12 +267,17 @@ void DeformWorker::give_back(std::unique_ptr<DeformEngine> engine) {
 }
 
 bool DeformWorker::serve(int index) {
-  const std::size_t before = inflight_.size();
+  const std::size_t before = inflight_.size() + ready_.size();
   const bool worked = serve_deformation(index);
-  // a session whose step is in flight exports when it completes (complete_inflight)
-  if (inflight_.size() == before) export_watched(index);
+  // a session whose step is readied or in flight exports when it completes (complete_inflight)
+  if (inflight_.size() + ready_.size() == before) export_watched(index);
   // at most gpu_share_ steps in flight: their grids are sized to fit together
   if (inflight_.size() >= std::size_t(gpu_share_)) complete_inflight();
+  // a full batch is begun and finished at once; a smaller one at the end of the pass
+  if (ready_.size() >= std::size_t(max_batch_)) {
+    begin_ready();
+    complete_inflight();
+  }
   return worked;
 }
 
@@ -377,15 +393,58 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
   try {
     if (!s.engine) s.engine = take_engine();
     r.backend = s.engine->backend_name();
-    // enqueued now, finished in complete() after the pass's other sessions are enqueued
-    s.engine->backend().set_gpu_share(gpu_share_);
-    s.engine->begin_step(DeformContact{c.skin_point_mm, c.tip_mm});
-    inflight_.push_back({index, c});
+    if (max_batch_ > 1) {
+      // begun with the pass's other ready sessions (begin_ready)
+      ready_.push_back({index, c});
+    } else {
+      // enqueued now, finished in complete() after the pass's other sessions are enqueued
+      s.engine->backend().set_gpu_share(gpu_share_);
+      s.engine->begin_step(DeformContact{c.skin_point_mm, c.tip_mm});
+      inflight_.push_back({index, c});
+    }
   } catch (const std::exception& e) {
     fail(s, c, e);
     publish(s, index);
   }
   // enqueueing (cuda) or the whole step (cpu); complete_inflight() adds the wait
+  step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void DeformWorker::begin_ready() {
+  if (ready_.empty()) return;
+  const auto t0 = std::chrono::steady_clock::now();
+  // the sessions ready in this pass, in slot order, stepped by shared launches where the
+  // backend can (cuda with one configuration: one launch per stage for all of them)
+  std::vector<DeformEngine*> engines;
+  std::vector<DeformContact> contacts;
+  // a batch fills the device whatever the share; steps its backend begins alone (scenes
+  // the batched kernels do not cover) are all in flight at once, so each takes 1/n of
+  // the device: a cooperative grid needs all its blocks resident, and n grids of 1/n fit
+  const int share = std::max(gpu_share_, int(ready_.size()));
+  for (const Inflight& f : ready_) {
+    engines.push_back(sessions_[f.index].engine.get());
+    engines.back()->backend().set_gpu_share(share);
+    contacts.push_back(DeformContact{f.contact.skin_point_mm, f.contact.tip_mm});
+  }
+  const std::vector<std::exception_ptr> errors = DeformEngine::begin_steps(engines, contacts);
+  for (std::size_t i = 0; i < ready_.size(); ++i) {
+    const Inflight& f = ready_[i];
+    if (!errors[i]) {
+      inflight_.push_back(f);
+      continue;
+    }
+    // a step that could not be begun: counted and reset, as a step that threw
+    Session& s = sessions_[f.index];
+    try {
+      std::rethrow_exception(errors[i]);
+    } catch (const std::exception& e) {
+      fail(s, f.contact, e);
+    } catch (...) {
+      fail(s, f.contact, Error("unknown error"));
+    }
+    publish(s, f.index);
+  }
+  ready_.clear();
   step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
@@ -408,13 +467,18 @@ void DeformWorker::complete(Session& s, const Contact& c) {
   DeformSessionReport& r = s.report;
   try {
     const DeformStats st = s.engine->end_step();
+    // each of a batch's steps counts 1/batch of it
+    if (st.batch > 1) {
+      ++batched_steps_;
+      batch_share_ += 1.0 / st.batch;
+    }
     // J must be finite, and how far it moved from I says how much the image changed: the
     // inversion counts both as it writes J (on the GPU for cuda), so the worker does not
     // read J again (that scan cost 0.2-0.7 ms a step on the H100's host, more than the
     // step's own GPU work)
     double change = 0;
     bool ok = finite(st);
-    if (s.engine->deformed_brick()) {
+    if (s.engine->has_deformed_brick()) {
       ok = ok && st.invert_nonfinite == 0 && std::isfinite(st.invert_max_change);
       change = st.invert_max_change;
     } else {
@@ -504,12 +568,12 @@ void DeformWorker::fill_snapshot(JSnapshot& o, Session& s, bool device) {
   o.tip_mm = s.last_tip_mm;
   o.proxy_mm = s.last_proxy_mm;
   // J exists after a step of a scene with inversion; otherwise the image is undeformed
-  const float* j = s.report.deformed && s.engine ? s.engine->deformed_brick() : nullptr;
-  o.deformed = j != nullptr;
-  o.voi = j ? s.engine->voi() : Voi{};
+  const bool has_j = s.report.deformed && s.engine && s.engine->has_deformed_brick();
+  o.deformed = has_j;
+  o.voi = has_j ? s.engine->voi() : Voi{};
   o.host_valid = false;
   o.device_valid = false;
-  if (!j) return;
+  if (!has_j) return;
   // the render thread's cuda-gl writer takes a device copy; everyone else the host brick
   if (device) {
     try {
@@ -520,6 +584,7 @@ void DeformWorker::fill_snapshot(JSnapshot& o, Session& s, bool device) {
     }
   }
   if (!o.device_valid) {
+    const float* j = s.engine->deformed_brick();  // cuda: copied to the host now, after a batched step
     o.host_j.assign(j, j + o.voi.count());
     o.host_valid = true;
   }
@@ -534,6 +599,8 @@ void DeformWorker::publish(const Session& s, int index) {
   server_.worker_wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - world_start_).count();
   server_.worker_step_s = step_s_;
   server_.worker_sleep_s = sleep_s_;
+  server_.batches = std::uint64_t(std::llround(batch_share_));
+  server_.batched_steps = batched_steps_;
   server_.memory = DeformMemory{};
   server_.engines = 0;
   for (const auto& e : spares_) {

@@ -71,6 +71,8 @@ struct DeformServerReport {
   double worker_wall_s = 0;
   double worker_step_s = 0;
   double worker_sleep_s = 0;
+  std::uint64_t batches = 0;        // batched launches (steps of two sessions or more sharing them)
+  std::uint64_t batched_steps = 0;  // steps run in them
 };
 
 /// Runs deformation for every open session on one thread.
@@ -81,15 +83,18 @@ struct DeformServerReport {
 /// (one step per session per pass, newest contact only) uses at most one core, shares
 /// it fairly, and runs at the lowest priority (nice 19), below the haptic thread. With
 /// the cuda backend it also keeps every CUDA call (engine creation, steps, destruction)
-/// on one thread.
+/// on one thread, and the sessions a pass finds ready are stepped together by one launch
+/// per stage (cuda/batch.cu says why).
 class DeformWorker {
  public:
   /// `nice`, `idle`: the thread's nice value and SCHED_IDLE (Linux; core/thread.h says why
   /// the server uses 19 and SCHED_IDLE).
   /// `concurrency`: how many sessions' steps the worker enqueues before it waits for
   /// them (each with 1/concurrency of the GPU; 1: one step at a time, as before).
+  /// `batch`: how many sessions ready in one pass are stepped together at most, with one
+  /// launch per stage where the backend can (DeformEngine::begin_steps); 1: none is.
   DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle,
-               int concurrency = 1);
+               int concurrency = 1, int batch = 1);
   ~DeformWorker();
   DeformWorker(const DeformWorker&) = delete;
   DeformWorker& operator=(const DeformWorker&) = delete;
@@ -121,7 +126,8 @@ class DeformWorker {
   bool serve_deformation(int index);
   void export_watched(int index);
   void fill_snapshot(JSnapshot& out, Session& s, bool device);
-  void step(Session& s, int index, const Contact& c);   // begins the step (in flight)
+  void step(Session& s, int index, const Contact& c);   // begins the step (in flight) or readies it for a batch
+  void begin_ready();                                     // begins the readied steps, batched
   void complete_inflight();                               // finishes every step in flight, in order
   void complete(Session& s, const Contact& c);            // finishes one: checks, counts, reports
   void fail(Session& s, const Contact& c, const std::exception& e);  // a step that threw: reset, counted
@@ -152,11 +158,15 @@ class DeformWorker {
     Contact contact;
   };
   std::vector<Inflight> inflight_;
+  std::vector<Inflight> ready_;  // steps readied in this pass, begun together by begin_ready()
   int max_inflight_ = 1;  // steps in flight at most (ServerOptions::deform_concurrency)
+  int max_batch_ = 1;     // sessions begun together at most (ServerOptions::deform_batch)
   int gpu_share_ = 1;     // this pass: min(max_inflight_, open sessions)
   double min_watched_step_s_ = 0;  // least time between steps of a session whose frames are watched (s)
   std::chrono::steady_clock::time_point world_start_;  // when the current scene was set up
   double step_s_ = 0, sleep_s_ = 0;                    // the worker's time in steps and naps since then
+  double batch_share_ = 0;                             // batched steps since then, each 1/batch of a batch
+  std::uint64_t batched_steps_ = 0;                    // ... counted
 
   // (worker writes, others read under report_mu_) what stats show
   mutable std::mutex report_mu_;

@@ -249,7 +249,7 @@ class Server::Control {
   void start_deform() {
     if (current_->scene.effects.chainmail && !deform_) {
       auto w = std::make_unique<DeformWorker>(sh_, start_, opt_.deform_nice, opt_.background_idle,
-                                              opt_.deform_concurrency);
+                                              opt_.deform_concurrency, opt_.deform_batch);
       w->start();
       deform_ = std::move(w);
       deform_ptr_.store(deform_.get(), std::memory_order_release);
@@ -717,6 +717,8 @@ class Server::Control {
     s->set_deform_worker_wall_s(d.worker_wall_s);
     s->set_deform_worker_step_s(d.worker_step_s);
     s->set_deform_worker_sleep_s(d.worker_sleep_s);
+    s->set_deform_batched_steps(d.batched_steps);
+    s->set_deform_batches(d.batches);
     fill_info(st->mutable_info());
     const std::uint64_t id = req_.stats().session_id();
     if (id != 0) {

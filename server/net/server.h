@@ -35,11 +35,16 @@ struct ServerOptions {
   double bad_input_log_period_s = 5;                    // log a summary of new bad input at most this often
   int deform_nice = 19;                                 // the deformation and render threads' nice value (Linux; 0..19)
   bool background_idle = true;                          // and SCHED_IDLE for them (Linux; core/thread.h says why)
-  // sessions' deformation steps in flight on the GPU at once. 1 by default: with 4, 16
+  // sessions' deformation steps in flight on the GPU at once, for steps that are not
+  // batched (deform_batch 1, or scenes with multigrid relaxation or untangling). 1 by
+  // default: with 4, 16
   // sessions step twice as often (223 against 119 steps/s each on the H100) but 16 watched
   // sessions then get 26.7 instead of 30 frames/s (bench/results/render-2026-11-23-h100-
   // deform-concurrency4.json); a server without viewers (batch studies) may raise it
   int deform_concurrency = 1;
+  // sessions stepped together by one batched launch per stage at most (DeformWorker; cuda
+  // with the same settings: cuda/batch.cu); 1 steps one session at a time, as before
+  int deform_batch = 64;
   std::string stream_bind;                              // the stream publisher's XPUB address; "" = derived (derive_stream_endpoint)
   std::vector<std::string> scene_dirs;                  // folders LoadScene may read (scene file, CT) and write
                                                         // (render.record_dir) in; none: LoadScene names no file

@@ -405,3 +405,86 @@ TEST_CASE("steps of several sessions in flight at once, each with a share of the
   CHECK_THROWS_WITH(sessions[0]->begin_step(k[0]), Catch::Contains("begin_step() twice"));
   sessions[0]->end_step();
 }
+
+TEST_CASE("a batch of sessions stepped by shared launches equals each session stepping alone, bit for bit") {
+  if (!have_gpu()) return;
+  auto torso = make_torso_patient(96);
+  // 40 pushes (more than one warp of sessions: the batched ChainMail scans them 32 at a
+  // time), among them a grabbed element in the spine's bone (nothing moves) and one at
+  // the volume's border (a clipped VOI); a second round on other pushes resets the first's
+  std::vector<DeformContact> pushes;
+  for (const RandomPush& p : random_pushes(*torso, 2 * 40, 11)) pushes.push_back(p.contact);
+  REQUIRE(torso->bone.at(47, 67, 40));
+  pushes[3] = voxel_contact({47, 67, 40}, {0.0, -4.0, 0.0});
+  pushes[45] = voxel_contact({6, 48, 48}, {5.0, 1.0, 0.0});
+  const int n = 40;
+  // the default sweep cap, and one that stops most of them early (capped, not converged)
+  for (int max_sweeps : {DeformSettings{}.max_sweeps, 7}) {
+    DeformConfig cfg = preset_config(2);
+    cfg.settings.voi_edge = 48;
+    cfg.settings.backend = "cuda";
+    cfg.settings.max_sweeps = max_sweeps;
+    DeformEngine alone(torso, cfg);
+    std::vector<std::unique_ptr<DeformEngine>> sessions;
+    std::vector<DeformBackend*> backends;
+    for (int s = 0; s < n; ++s) {
+      sessions.push_back(std::make_unique<DeformEngine>(torso, cfg));
+      backends.push_back(&sessions.back()->backend());
+    }
+    int capped = 0, in_bone = 0, clipped = 0;
+    for (int round = 0; round < 2; ++round) {
+      std::vector<DeformContact> k(pushes.begin() + round * n, pushes.begin() + round * n + n);
+      const std::vector<std::exception_ptr> errors = DeformBackend::begin_steps(backends, k);
+      std::vector<DeformStats> st(n);
+      for (int s = 0; s < n; ++s) {
+        REQUIRE(!errors[s]);
+        st[s] = sessions[s]->end_step();
+      }
+      for (int s = 0; s < n; ++s) {
+        INFO("max_sweeps " << max_sweeps << ", round " << round << ", session " << s);
+        const DeformStats a = alone.step(k[s]);
+        const DeformStats& b = st[s];
+        CHECK(b.batch == n);
+        CHECK(b.chainmail.voi == a.chainmail.voi);
+        CHECK(b.chainmail.grabbed_in_bone == a.chainmail.grabbed_in_bone);
+        CHECK(b.chainmail.moved == a.chainmail.moved);
+        CHECK(b.chainmail.sweeps == a.chainmail.sweeps);
+        CHECK(b.chainmail.converged == a.chainmail.converged);
+        CHECK(b.invert_unresolved == a.invert_unresolved);
+        CHECK(b.invert_residual_vox == a.invert_residual_vox);
+        CHECK(b.invert_max_change == a.invert_max_change);
+        CHECK(b.invert_nonfinite == a.invert_nonfinite);
+        // every element runs the single kernels' device functions on its own session's
+        // buffers: the fields and J are the same bits
+        CHECK(sessions[s]->backend().displacement() == alone.backend().displacement());
+        const float* jb = sessions[s]->deformed_brick();
+        REQUIRE(jb);
+        CHECK(std::vector<float>(jb, jb + b.chainmail.voi.count()) ==
+              std::vector<float>(alone.deformed_brick(), alone.deformed_brick() + a.chainmail.voi.count()));
+        capped += !a.chainmail.converged;
+        in_bone += a.chainmail.grabbed_in_bone;
+        clipped += a.chainmail.voi.count() < 48LL * 48 * 48;
+      }
+    }
+    // the cases the batch must handle were there
+    CHECK(in_bone >= 1);
+    CHECK(clipped >= 1);
+    if (max_sweeps == 7) CHECK(capped >= 10);
+    // a refused contact leaves its session out; the others are stepped
+    std::vector<DeformContact> k(pushes.begin(), pushes.begin() + 4);
+    k[2].skin_point_mm = Vec3(-50.0, 0.0, 0.0);
+    std::vector<DeformBackend*> four(backends.begin(), backends.begin() + 4);
+    const std::vector<std::exception_ptr> errors = DeformBackend::begin_steps(four, k);
+    CHECK(!errors[0]);
+    REQUIRE(errors[2]);
+    CHECK_THROWS_WITH(std::rethrow_exception(errors[2]), Catch::Contains("outside the patient grid"));
+    CHECK_THROWS_WITH(four[2]->end_step(), Catch::Contains("end_step() without begin_step()"));
+    for (int s : {0, 1, 3}) {
+      const DeformStats b = four[s]->end_step();
+      CHECK(b.batch == 3);
+      const DeformStats a = alone.step(k[s]);
+      CHECK(b.chainmail.moved == a.chainmail.moved);
+      CHECK(four[s]->displacement() == alone.backend().displacement());
+    }
+  }
+}

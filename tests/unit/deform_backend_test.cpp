@@ -145,3 +145,45 @@ TEST_CASE("a step in two halves equals a whole step, and the halves keep their o
         std::vector<float>(whole.deformed_brick(), whole.deformed_brick() + whole.voi().count()));
   CHECK_THROWS_WITH(halves.end_step(), Catch::Contains("end_step() without begin_step()"));
 }
+
+TEST_CASE("begin_steps begins every backend whose contact is good; each end_step equals its step") {
+  // the cpu backend has no batched launches: begin_steps begins each alone, and a refused
+  // contact or a backend already in a step fails only its own index
+  auto torso = make_torso_patient(64);
+  DeformConfig cfg = preset_config(2);
+  cfg.settings.voi_edge = 24;
+  CpuDeformBackend alone;
+  alone.bind(torso, cfg);
+  std::vector<std::unique_ptr<CpuDeformBackend>> owned;
+  std::vector<DeformBackend*> backends;
+  for (int s = 0; s < 4; ++s) {
+    owned.push_back(std::make_unique<CpuDeformBackend>());
+    owned.back()->bind(torso, cfg);
+    backends.push_back(owned.back().get());
+  }
+  std::vector<DeformContact> k = {voxel_contact({30, 14, 30}, {0.5, 4.0, -1.0}), voxel_contact({34, 14, 30}, {0.0, 3.0, 0.5}),
+                                  voxel_contact({30, 14, 34}, {-1.0, 5.0, 0.0}), voxel_contact({34, 14, 34}, {0.5, 2.0, 1.0})};
+  k[1].tip_mm = Vec3(std::numeric_limits<double>::quiet_NaN(), 0.0, 0.0);
+  backends[3]->begin_step(k[3]);  // already in a step: begin_steps must not begin it again
+  const std::vector<std::exception_ptr> errors = DeformBackend::begin_steps(backends, k);
+  REQUIRE(errors.size() == 4);
+  CHECK(!errors[0]);
+  CHECK(!errors[2]);
+  REQUIRE(errors[1]);
+  CHECK_THROWS_WITH(std::rethrow_exception(errors[1]), Catch::Contains("tip_mm (x) is not finite"));
+  REQUIRE(errors[3]);
+  CHECK_THROWS_WITH(std::rethrow_exception(errors[3]), Catch::Contains("begin_step() twice"));
+  CHECK_THROWS_WITH(backends[1]->end_step(), Catch::Contains("end_step() without begin_step()"));
+  for (int s : {0, 2, 3}) {
+    INFO("session " << s);
+    const DeformStats b = backends[s]->end_step();
+    const DeformStats a = alone.step(k[s]);
+    CHECK(b.batch == 1);
+    CHECK(b.chainmail.moved == a.chainmail.moved);
+    CHECK(b.chainmail.sweeps == a.chainmail.sweeps);
+    CHECK(std::vector<float>(backends[s]->deformed_brick(), backends[s]->deformed_brick() + backends[s]->voi().count()) ==
+          std::vector<float>(alone.deformed_brick(), alone.deformed_brick() + alone.voi().count()));
+  }
+  // a mismatch of backends and contacts is the caller's error
+  CHECK_THROWS_WITH(DeformBackend::begin_steps(backends, {k[0]}), Catch::Contains("4 backends and 1 contacts"));
+}

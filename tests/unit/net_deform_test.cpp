@@ -19,6 +19,7 @@
 
 #include "core/error.h"
 #include "deform/backend.h"
+#include "deform/engine.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
@@ -547,4 +548,55 @@ TEST_CASE("with backend auto the worker prefers cuda where a GPU exists and says
   CHECK(df.inside > 0);
   CHECK(df.outside == 0);
   server.stop();
+}
+
+TEST_CASE("sessions ready together are begun together (caps of 4 and 1): each gets its own contact's J, none starves",
+          "[net][deform]") {
+  // six sessions pressing at six points in turn, one pose each per round, against a
+  // worker that begins at most 4 ready sessions together (a pass with all six ready runs
+  // a batch of 4 and one of 2; the cpu backend begins each alone inside a batch, so this
+  // checks the worker's grouping, pairing of engines and contacts, and completion), and
+  // one that begins each alone (--deform-batch 1)
+  const auto patient = test::slab_patient();
+  const Scene scene = deform_scene();
+  for (int cap : {4, 1}) {
+    INFO("batch cap " << cap);
+    net::ServerOptions opt = loopback();
+    opt.deform_batch = cap;
+    net::Server server(scene, patient, nullptr, opt);
+    server.start();
+    std::vector<std::unique_ptr<Client>> clients;
+    for (int s = 0; s < 6; ++s) clients.push_back(std::make_unique<Client>(server));
+    // six points on the slab's soft tissue, away from its bone block (x, y in 24.5..35.5 mm)
+    auto point = [](int s) { return Vec3{s % 3 == 0 ? 8.0 : (s % 3 == 1 ? 45.0 : 52.0), s < 3 ? 12.0 : 48.0, 0.0}; };
+    std::vector<v1::PoseReply> last(6);
+    std::vector<Vec3> tip(6);
+    const int poses = 40;
+    for (int n = 0; n <= poses; ++n)
+      for (int s = 0; s < 6; ++s) {
+        const Vec3 p = point(s);
+        tip[s] = {p.x, p.y, test::kSlabSkinZ + 2 - (2.0 + 3.0 + s) * n / poses};
+        last[s] = clients[s]->send_pose(tip[s]);
+      }
+    DeformEngine alone(patient, DeformConfig::from_scene(scene, patient.get()));
+    for (int s = 0; s < 6; ++s) {
+      INFO("session " << s);
+      // every session gets to its newest contact (none starves behind the others)
+      v1::DeformSessionStats d;
+      REQUIRE(clients[s]->wait_deform(
+          [&](const v1::DeformSessionStats& st) { return st.last_contact_seq() == clients[s]->seq; }, &d));
+      CHECK(d.failures() == 0);
+      CHECK(d.deformed());
+      // J is that of its own newest contact, bit for bit
+      REQUIRE(last[s].contact());
+      const Vec3 X{last[s].skin_point_mm().x(), last[s].skin_point_mm().y(), last[s].skin_point_mm().z()};
+      alone.step(DeformContact{X, tip[s]});
+      Volume<float> j;
+      REQUIRE(server.deformed_volume(clients[s]->id, j));
+      CHECK(j.data == alone.deformed_volume().data);
+    }
+    // the cpu backend never shares launches
+    CHECK(clients[0]->stats().server().deform_batched_steps() == 0);
+    server.stop();
+  }
 }

@@ -80,6 +80,18 @@ inline PatientPtr make_torso_patient(int n) {
   });
 }
 
+/// A copy of `p` whose voxels `hot` hold `hu` outside the bone mask: far above the bone
+/// threshold the material function is exactly 0 (relaxation holds them) while ChainMail,
+/// which knows only the mask, moves them (what contrast or metal outside bone would do).
+inline PatientPtr with_hot_voxels(const PatientPtr& p, const std::vector<Vec3i>& hot, float hu) {
+  auto q = std::make_shared<Patient>(*p);
+  for (const Vec3i& v : hot) {
+    q->intensity.at(v.x, v.y, v.z) = hu;
+    q->bone.data[q->grid.index(v.x, v.y, v.z)] = 0;
+  }
+  return q;
+}
+
 /// The paper's ChainMail presets (voxel edge lengths).
 inline DeformConfig preset_config(int preset) {
   DeformConfig c;

@@ -74,7 +74,7 @@ void CudaDeformBackend::release() {
   for (float*& c : d_.untangle_new) cudaFree(c);
   cudaFree(d_.counters);
   for (void* q : {(void*)mg_.g, (void*)mg_.r[0], (void*)mg_.r[1], (void*)mg_.z, (void*)mg_.p[0], (void*)mg_.p[1],
-                  (void*)mg_.q, (void*)mg_.held, (void*)mg_.cx, (void*)mg_.cf, (void*)mg_.cheld, (void*)mg_.dots,
+                  (void*)mg_.q, (void*)mg_.res, (void*)mg_.held, (void*)mg_.cx, (void*)mg_.cf, (void*)mg_.cres, (void*)mg_.cheld, (void*)mg_.dots,
                   (void*)mg_.flags})
     cudaFree(q);
   mg_ = MultigridBuffers{};
@@ -146,10 +146,10 @@ void CudaDeformBackend::ensure_multigrid_buffers() {
     most[a] = config_.settings.whole_volume ? patient_->grid.size[a] : std::min(config_.settings.voi_edge, patient_->grid.size[a]);
   const long long nc = std::max(1LL, deform::multigrid_plan(most, Vec3i{0, 0, 0}).coarse_count);
   const std::size_t n = std::size_t(capacity_);
-  for (float** v : {&mg_.g, &mg_.r[0], &mg_.r[1], &mg_.z, &mg_.p[0], &mg_.p[1], &mg_.q})
+  for (float** v : {&mg_.g, &mg_.r[0], &mg_.r[1], &mg_.z, &mg_.p[0], &mg_.p[1], &mg_.q, &mg_.res})
     PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(float)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.held, n));
-  for (float** v : {&mg_.cx, &mg_.cf}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(float)));
+  for (float** v : {&mg_.cx, &mg_.cf, &mg_.cres}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(float)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.cheld, std::size_t(nc)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.dots, 6 * deform::kMultigridMaxCycles * sizeof(double)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.flags, 3 * sizeof(int)));
@@ -172,11 +172,11 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   if (d_.untangle_flags) m.relax_bytes = 2 * n + sizeof(d_.untangle_new) / sizeof(float*) * n * sizeof(float);
   m.invert_bytes = 2 * n * sizeof(float);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
-  // multigrid: seven scalar VOI fields and a mask, two coarse fields and a mask, the dot
+  // multigrid: eight scalar VOI fields and a mask, three coarse fields and a mask, the dot
   // sums and flags
   if (mg_.capacity > 0)
-    m.relax_bytes += std::size_t(mg_.capacity) * (7 * sizeof(float) + 1) +
-                    std::size_t(mg_.coarse_capacity) * (2 * sizeof(float) + 1) +
+    m.relax_bytes += std::size_t(mg_.capacity) * (8 * sizeof(float) + 1) +
+                    std::size_t(mg_.coarse_capacity) * (3 * sizeof(float) + 1) +
                     6 * deform::kMultigridMaxCycles * sizeof(double) + 3 * sizeof(int);
   return m;
 }

@@ -48,13 +48,15 @@ struct DeviceBuffers {
 /// Device buffers of the multigrid relaxation (relax_multigrid.cu), allocated only when
 /// the scene asks for it, scalar fields on the VOI: the solved field X (the unit response G
 /// after a clean step), CG's residual r (two buffers, one written while the other is read),
-/// preconditioned residual z, direction p (two buffers) and A p (q), and the held mask; the
-/// coarse levels' correction, right-hand side and held mask (deform::MultigridPlan::offset);
+/// preconditioned residual z, direction p (two buffers), A p (q), the V-cycle's residual and
+/// the held mask; the coarse levels' correction, right-hand side, residual and held mask
+/// (deform::MultigridPlan::offset);
 /// the dot sums; and what G was solved for.
 struct MultigridBuffers {
   float *g = nullptr, *r[2] = {nullptr, nullptr}, *z = nullptr, *p[2] = {nullptr, nullptr}, *q = nullptr;
   std::uint8_t* held = nullptr;
-  float *cx = nullptr, *cf = nullptr;
+  float* res = nullptr;                // the V-cycle's residual on level 0
+  float *cx = nullptr, *cf = nullptr, *cres = nullptr;
   std::uint8_t* cheld = nullptr;
   double* dots = nullptr;             // 2 per step and solve (3 solves at most): r . z and p . q
   int* flags = nullptr;               // [0], [1]: a held element other than the grabbed one moved (by launch parity); [2]: g holds G

@@ -8,6 +8,7 @@
 #include <cooperative_groups.h>
 
 #include <algorithm>
+#include <cstdio>
 #include <cstdlib>
 
 #include "cuda/check.h"
@@ -30,8 +31,9 @@ struct Team {
   int first, stride;
 };
 
-// one half-sweep of `colour` over level L
-__device__ void sweep(const MultigridLevel& L, int colour, Team t) {
+// one half-sweep of `colour` over level L (levels by value: in registers, where stores
+// through their fields cannot alias them)
+__device__ void sweep(const MultigridLevel L, int colour, Team t) {
   for (int e = t.first; e < L.count(); e += t.stride) {
     int i, j, k;
     L.coords(e, i, j, k);
@@ -40,7 +42,7 @@ __device__ void sweep(const MultigridLevel& L, int colour, Team t) {
 }
 
 // the coarse level from the fine one's residual, one thread per coarse node (block 0)
-__device__ void restrict_block(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o, Team t) {
+__device__ void restrict_block(const MultigridLevel fine, const MultigridLevel coarse, const Vec3i o, Team t) {
   for (int e = t.first; e < coarse.count(); e += t.stride) {
     int I, J, K;
     coarse.coords(e, I, J, K);
@@ -54,7 +56,7 @@ __device__ void restrict_block(const MultigridLevel& fine, const MultigridLevel&
 // the same on the whole grid, four lanes per coarse node: lanes 0-2 sum one plane each
 // (dk = -1, 0, 1), lane 3 adds 0, and two shuffles add (p0 + p1) + (p2 + 0), the order of
 // multigrid_restrict_sum; whole warps run each round so the shuffles see every lane
-__device__ void restrict_grid(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o) {
+__device__ void restrict_grid(const MultigridLevel fine, const MultigridLevel coarse, const Vec3i o) {
   const int lane = threadIdx.x & 31;
   const int stride = gridDim.x * blockDim.x;
   const int tasks = 4 * coarse.count();
@@ -70,12 +72,71 @@ __device__ void restrict_grid(const MultigridLevel& fine, const MultigridLevel& 
   }
 }
 
-// the corrected black half-sweep of level l from level l+1
-__device__ void correct_black(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o, Team t) {
+// the coarse correction of level l's red free nodes from level l+1
+__device__ void correct_red(const MultigridLevel fine, const MultigridLevel coarse, const Vec3i o, Team t) {
   for (int e = t.first; e < fine.count(); e += t.stride) {
     int i, j, k;
     fine.coords(e, i, j, k);
-    deform::multigrid_correct_black(fine, coarse, o, i, j, k);
+    deform::multigrid_correct_red(fine, coarse, o, i, j, k);
+  }
+}
+
+// the residual of level L after its black half-sweep (red free nodes; 0 elsewhere)
+__device__ void residual(const MultigridLevel L, Team t) {
+  for (int e = t.first; e < L.count(); e += t.stride) {
+    int i, j, k;
+    L.coords(e, i, j, k);
+    deform::multigrid_residual_node(L, i, j, k);
+  }
+}
+
+// the V-cycle's levels from..to-1 going down (level from's black half-sweep done when
+// from is 0), each pass by team t with `sync` after it
+template <typename Sync>
+__device__ void down(const MultigridLevel* lv, const Vec3i* origin, int from, int to, Team t, bool grid_wide,
+                     Sync sync) {
+  for (int l = from; l < to; ++l) {
+    if (l > 0) {
+      sweep(lv[l], 1, t);
+      sync();
+    }
+    residual(lv[l], t);
+    sync();
+    if (grid_wide)
+      restrict_grid(lv[l], lv[l + 1], origin[l]);
+    else
+      restrict_block(lv[l], lv[l + 1], origin[l], t);
+    sync();
+  }
+}
+
+// ... and back up from level to-1 to from: red correction, black, red (the last red
+// half-sweep of level `skip_red`'s is left to the caller)
+template <typename Sync>
+__device__ void up(const MultigridLevel* lv, const Vec3i* origin, int from, int to, Team t, int skip_red,
+                   Sync sync) {
+  for (int l = to - 1; l >= from; --l) {
+    correct_red(lv[l], lv[l + 1], origin[l], t);
+    sync();
+    sweep(lv[l], 1, t);
+    sync();
+    if (l == skip_red) continue;
+    sweep(lv[l], 0, t);
+    sync();
+  }
+}
+
+// the coarsest level's half-sweeps after its first red one (its black one unless level
+// 0's came with CG's update)
+template <typename Sync>
+__device__ void coarsest(const MultigridLevel& L, bool black_first, Team t, Sync sync) {
+  if (black_first) {
+    sweep(L, 1, t);
+    sync();
+  }
+  for (int h = 0; h < deform::kMultigridCoarsestHalfSweeps; ++h) {
+    sweep(L, h % 2, t);
+    sync();
   }
 }
 
@@ -103,6 +164,7 @@ struct MgArgs {
   int hit;     // the host's cache key matches: G may be reused if the device says it holds it
   int parity;  // which of the two dirty flags this launch uses (the other is zeroed for the next)
   int block_nodes;
+  unsigned long long* prof;
   DeviceBuffers b;
   MultigridBuffers m;
 };
@@ -112,18 +174,35 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
   const Team block0{int(threadIdx.x), int(blockDim.x)};
   const bool first_thread = blockIdx.x == 0 && threadIdx.x == 0;
+  int prof_n = 0;
+#define MARK(tag) \
+  if (a.prof && first_thread && prof_n < 255) a.prof[1 + prof_n++] = (unsigned long long)clock64() | ((unsigned long long)(tag) << 56)
+  MARK(0);
   const MultigridPlan& plan = a.plan;
   const MultigridBuffers& m = a.m;
   const deform::Voi& voi = a.geo.voi;
   float* u[3] = {a.b.u[a.src][0], a.b.u[a.src][1], a.b.u[a.src][2]};
   // the levels: 0 solves for z with right-hand side r (one of two buffers), the field is X = G
-  MultigridLevel lv[deform::kMultigridMaxLevels];
-  lv[0] = MultigridLevel{voi.size, m.z, m.r[0], m.held};
-  for (int l = 1; l < plan.levels; ++l) {
-    const long long o = plan.offset[l];
-    lv[l] = MultigridLevel{plan.size[l], m.cx + o, m.cf + o, m.cheld + o};
+  // (in shared memory, one copy per block: per-thread arrays indexed by level would live
+  // in local memory); lvs[b] has r[b] as level 0's right-hand side
+  // (raw storage: the types' default member initialisers are not allowed on __shared__)
+  constexpr int kL = deform::kMultigridMaxLevels;
+  __shared__ alignas(16) unsigned char level_bytes[3 * kL * sizeof(MultigridLevel) + kL * sizeof(Vec3i)];
+  auto* lvs = reinterpret_cast<MultigridLevel(*)[kL]>(level_bytes);
+  MultigridLevel* sl = reinterpret_cast<MultigridLevel*>(level_bytes + 2 * kL * sizeof(MultigridLevel));
+  Vec3i* origin = reinterpret_cast<Vec3i*>(level_bytes + 3 * kL * sizeof(MultigridLevel));
+  if (threadIdx.x == 0) {
+    for (int b = 0; b < 2; ++b) {
+      lvs[b][0] = MultigridLevel{voi.size, m.z, m.r[b], m.held, m.res};
+      for (int l = 1; l < plan.levels; ++l) {
+        const long long o = plan.offset[l];
+        lvs[b][l] = MultigridLevel{plan.size[l], m.cx + o, m.cf + o, m.cheld + o, m.cres + o};
+      }
+    }
+    for (int l = 0; l + 1 < plan.levels; ++l) origin[l] = plan.origin[l];
   }
-  const MultigridLevel L0 = lv[0];
+  const MultigridLevel* lv = lvs[0];
+  const MultigridLevel L0{voi.size, m.z, m.r[0], m.held, m.res};  // level 0 (its f aside)
   const int n = L0.count();
   float* X = m.g;
   // the first level that block 0 handles alone
@@ -135,6 +214,21 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     }
   const int last = plan.levels - 1;
   const int grid_to = split < last ? split : last;
+  // levels split..last (the end of the coarse buffers) in block 0's shared memory
+  extern __shared__ float mg_smem[];
+  if (threadIdx.x == 0 && split > 0 && split <= last) {
+    const long long base = plan.offset[split];
+    const int nb = int(plan.coarse_count - base);
+    float* sx = mg_smem;
+    float* sf = sx + nb;
+    float* sr = sf + nb;
+    std::uint8_t* sh = reinterpret_cast<std::uint8_t*>(sr + nb);
+    for (int l = split; l <= last; ++l) {
+      const int o = int(plan.offset[l] - base);
+      sl[l] = MultigridLevel{plan.size[l], sx + o, sf + o, sh + o, sr + o};
+    }
+  }
+  __syncthreads();
   const int g_idx = L0.index(a.geo.grabbed.x, a.geo.grabbed.y, a.geo.grabbed.z);
   const Vec3f d{u[0][g_idx], u[1][g_idx], u[2][g_idx]};
   int* dirty = m.flags + a.parity;
@@ -163,7 +257,9 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     }
   }
   if (moved_held) *(volatile int*)dirty = 1;
+  MARK(14);
   grid.sync();
+  MARK(1);
   const bool clean = *(volatile int*)dirty == 0;
   // one scalar solve per component with its own held data, or one for G when clean
   const int solves = hit && clean ? 0 : (clean ? 1 : 3);
@@ -196,84 +292,70 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       m.z[e] = !held && deform::multigrid_colour(i, j, k) == 0 ? deform::multigrid_smooth(0.0f, re) : 0.0f;
     }
     grid.sync();
-    lv[0].f = m.r[0];
+    MARK(2);
+    lv = lvs[0];
     sweep(lv[0], 1, all);
     grid.sync();
+    MARK(3);
 
     int cur = 0, pc = 0;
     double rho = 0;
     float alpha = 0;
     bool stepped = false;  // the last step's X += alpha p is left to the output pass
     for (int c = 0; c < a.cycles; ++c) {
-      lv[0].f = m.r[cur];
-      // z = M r: the grid down to level split, block 0 below it, the grid back up
-      for (int l = 0; l < grid_to; ++l) {
-        if (l > 0) {
-          sweep(lv[l], 1, all);
-          grid.sync();
-        }
-        restrict_grid(lv[l], lv[l + 1], plan.origin[l]);
+      lv = lvs[cur];
+      // z = M r: the grid down to level split, block 0 below it (in shared memory when
+      // split > 0), the grid back up; level 0's last red half-sweep comes with rho below
+      auto gsync = [&] {
         grid.sync();
-      }
+        MARK(20);
+      };
+      auto bsync = [] { __syncthreads(); };
+      down(lv, origin, 0, grid_to, all, true, gsync);
       if (split <= last) {
         if (blockIdx.x == 0) {
-          for (int l = split; l < last; ++l) {
-            if (l > 0) {
-              sweep(lv[l], 1, block0);
-              __syncthreads();
+          const MultigridLevel* bl = split > 0 ? sl : lv;
+          if (split > 0) {
+            // level split's f, held mask and first red half-sweep into shared memory
+            const MultigridLevel g = lv[split], sg = bl[split];
+            for (int e = block0.first; e < g.count(); e += block0.stride) {
+              sg.x[e] = g.x[e];
+              sg.f[e] = g.f[e];
+              sg.held[e] = g.held[e];
             }
-            restrict_block(lv[l], lv[l + 1], plan.origin[l], block0);
             __syncthreads();
           }
-          if (last > 0 && last >= split) {
-            sweep(lv[last], 1, block0);
-            __syncthreads();
-          }
-          for (int h = 0; h < deform::kMultigridCoarsestHalfSweeps; ++h) {
-            sweep(lv[last], h % 2, block0);
-            __syncthreads();
-          }
-          for (int l = last - 1; l >= split; --l) {
-            correct_black(lv[l], lv[l + 1], plan.origin[l], block0);
-            __syncthreads();
-            sweep(lv[l], 0, block0);
-            __syncthreads();
+          down(bl, origin, split, last, block0, false, bsync);
+          coarsest(bl[last], last > 0, block0, bsync);
+          up(bl, origin, split, last, block0, -1, bsync);
+          if (split > 0) {
+            const MultigridLevel g = lv[split], sg = bl[split];
+            for (int e = block0.first; e < g.count(); e += block0.stride) g.x[e] = sg.x[e];
           }
         }
         grid.sync();
+        MARK(6);
       } else {
         // the coarsest level too large for one block (a thin VOI: level 0 itself)
-        if (last > 0) {
-          sweep(lv[last], 1, all);
-          grid.sync();
-        }
-        for (int h = 0; h < deform::kMultigridCoarsestHalfSweeps; ++h) {
-          sweep(lv[last], h % 2, all);
-          grid.sync();
-        }
+        coarsest(lv[last], last > 0, all, gsync);
       }
-      for (int l = grid_to - 1; l >= 0; --l) {
-        correct_black(lv[l], lv[l + 1], plan.origin[l], all);
-        grid.sync();
-        if (l > 0) {
-          sweep(lv[l], 0, all);
-          grid.sync();
-        }
-      }
+      up(lv, origin, 0, grid_to, all, 0, gsync);
       // level 0's red half-sweep, when the grid runs it, with rho = r . z; else rho alone
       const float* r = m.r[cur];
       double part = 0;
       const bool red_on_grid = grid_to > 0;
+      const MultigridLevel l0 = lv[0];
       for (int e = all.first; e < n; e += all.stride) {
         if (red_on_grid) {
           int i, j, k;
           L0.coords(e, i, j, k);
-          deform::multigrid_sweep_node(lv[0], 0, i, j, k);
+          deform::multigrid_sweep_node(l0, 0, i, j, k);
         }
         part += double(r[e]) * m.z[e];
       }
       block_sum_add(part, &dots[2 * c]);
       grid.sync();
+      MARK(10);
       const double rho_new = dots[2 * c];
       if (!(rho_new > 0)) break;  // r = 0: converged
       const float beta = c == 0 ? 0.0f : float(rho_new / rho);
@@ -302,6 +384,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       block_sum_add(part, &dots[2 * c + 1]);
       pc ^= 1;
       grid.sync();
+      MARK(11);
       const double pq = dots[2 * c + 1];
       if (!(pq > 0)) break;
       alpha = float(rho / pq);
@@ -338,6 +421,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       }
       cur ^= 1;
       grid.sync();
+      MARK(12);
     }
     // the last X += alpha p, and u from X on free elements: d X (X = G) or this component
     const float* pn = m.p[pc];
@@ -356,6 +440,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     if (comp + 1 < solves) grid.sync();
   }
   if (clean && first_thread) m.flags[2] = 1;  // X holds G
+  if (a.prof && first_thread) a.prof[0] = prof_n;
 }
 
 }  // namespace
@@ -393,12 +478,48 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float th
   a.parity = int(m.launches++ & 1);
   a.block_nodes = kBlockNodes;
   if (const char* v = std::getenv("PALPSIM_MG_BLOCK_NODES")) a.block_nodes = std::atoi(v);
+  // block 0's shared memory: levels split..last (x, f, residual, held mask)
+  int split = a.plan.levels;
+  for (int l = 0; l < a.plan.levels; ++l)
+    if (deform::node_count(a.plan.size[l]) <= a.block_nodes) {
+      split = l;
+      break;
+    }
+  std::size_t smem = 0;
+  if (split > 0 && split < a.plan.levels)
+    smem = std::size_t(a.plan.coarse_count - a.plan.offset[split]) * (3 * sizeof(float) + 1);
+  static std::size_t smem_set = 0;
+  if (smem > smem_set) {
+    PALPSIM_CUDA_CHECK(cudaFuncSetAttribute((const void*)relax_multigrid_kernel,
+                                            cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem)));
+    smem_set = smem;
+  }
+  static unsigned long long* prof = nullptr;
+  const bool profile = std::getenv("PALPSIM_MG_PROFILE") != nullptr && !a.hit;
+  if (profile && !prof) PALPSIM_CUDA_CHECK(cudaMalloc(&prof, 256 * sizeof(unsigned long long)));
+  a.prof = profile ? prof : nullptr;
   a.b = b;
   a.m = m;
   const int blocks = int(std::min<long long>(max_blocks, (n + kPersistentThreads - 1) / kPersistentThreads));
   void* args[] = {&a};
   PALPSIM_CUDA_CHECK(cudaLaunchCooperativeKernel((const void*)relax_multigrid_kernel, dim3(std::max(blocks, 1)),
-                                                 dim3(kPersistentThreads), args, 0, stream));
+                                                 dim3(kPersistentThreads), args, smem, stream));
+  static int printed = 0;
+  if (profile && printed < 3 && n >= 200000) {
+    ++printed;
+    unsigned long long h[256];
+    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream));
+    PALPSIM_CUDA_CHECK(cudaMemcpy(h, prof, sizeof h, cudaMemcpyDeviceToHost));
+    int khz = 0, dev = 0;
+    cudaGetDevice(&dev);
+    cudaDeviceGetAttribute(&khz, cudaDevAttrClockRate, dev);
+    std::fprintf(stderr, "mg profile (block_nodes %d, %d marks, clock %d kHz):", a.block_nodes,
+                 int(h[0]), khz);
+    const unsigned long long mask = (1ull << 56) - 1;
+    for (int q = 1; q < int(h[0]); ++q)
+      std::fprintf(stderr, " %d:%.2f", int(h[q + 1] >> 56), double((h[q + 1] & mask) - (h[q] & mask)) / (khz * 1e-3));
+    std::fprintf(stderr, " total %.1f us\n", double((h[int(h[0])] & mask) - (h[1] & mask)) / (khz * 1e-3));
+  }
 }
 
 }  // namespace palpsim::cuda

@@ -27,11 +27,11 @@ struct CpuState {
   std::vector<std::pair<long long, Vec3f>> changes;  // this sweep's new positions, applied after it
   // multigrid relaxation (relax_multigrid.cpp), scalar fields on the VOI: held mask, the
   // solved field (the unit response G when mg_cache says so), CG's residual,
-  // preconditioned residual, direction and A times direction; the coarse levels'
-  // correction, right-hand side and held mask (MultigridPlan::offset)
+  // preconditioned residual, direction, A times direction and the V-cycle's residual; the
+  // coarse levels' correction, right-hand side, residual and held mask (MultigridPlan::offset)
   std::vector<std::uint8_t> mg_held;
-  std::vector<float> mg_g, mg_r, mg_z, mg_p, mg_q;
-  std::vector<float> mg_cx, mg_cf;
+  std::vector<float> mg_g, mg_r, mg_z, mg_p, mg_q, mg_res;
+  std::vector<float> mg_cx, mg_cf, mg_cres;
   std::vector<std::uint8_t> mg_held_coarse;
   MultigridCache mg_cache;  // what mg_g holds
   std::vector<std::uint8_t> cell_folded;     // untangling: 1 where the cell with this lowest corner folds

@@ -27,6 +27,7 @@ void vcycle(const MultigridLevel* lv, const MultigridPlan& plan) {
   for (int l = 0; l < last; ++l) {
     // black half-sweep (level 0's came with CG's update), then the coarse level from the residual
     if (l > 0) each_node(lv[l].n, [&](int i, int j, int k) { multigrid_sweep_node(lv[l], 1, i, j, k); });
+    each_node(lv[l].n, [&](int i, int j, int k) { multigrid_residual_node(lv[l], i, j, k); });
     const Vec3i o = plan.origin[l];
     each_node(lv[l + 1].n, [&](int I, int J, int K) {
       const float f = multigrid_restrict_sum(multigrid_restrict_plane(lv[l], o, I, J, K, -1),
@@ -40,10 +41,11 @@ void vcycle(const MultigridLevel* lv, const MultigridPlan& plan) {
   if (last > 0) each_node(lv[last].n, [&](int i, int j, int k) { multigrid_sweep_node(lv[last], 1, i, j, k); });
   for (int h = 0; h < kMultigridCoarsestHalfSweeps; ++h)
     each_node(lv[last].n, [&](int i, int j, int k) { multigrid_sweep_node(lv[last], h % 2, i, j, k); });
-  // back up: the corrected black half-sweep, then red
+  // back up: the correction of red nodes, the black half-sweep, then red
   for (int l = last - 1; l >= 0; --l) {
     const Vec3i o = plan.origin[l];
-    each_node(lv[l].n, [&](int i, int j, int k) { multigrid_correct_black(lv[l], lv[l + 1], o, i, j, k); });
+    each_node(lv[l].n, [&](int i, int j, int k) { multigrid_correct_red(lv[l], lv[l + 1], o, i, j, k); });
+    each_node(lv[l].n, [&](int i, int j, int k) { multigrid_sweep_node(lv[l], 1, i, j, k); });
     each_node(lv[l].n, [&](int i, int j, int k) { multigrid_sweep_node(lv[l], 0, i, j, k); });
   }
 }
@@ -109,12 +111,13 @@ int relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, 
   const MultigridPlan plan = multigrid_plan(voi.size, g);
   const std::size_t n = std::size_t(voi.count());
   const std::size_t nc = std::size_t(plan.coarse_count);
-  for (auto* v : {&s.mg_g, &s.mg_r, &s.mg_z, &s.mg_p, &s.mg_q})
+  for (auto* v : {&s.mg_g, &s.mg_r, &s.mg_z, &s.mg_p, &s.mg_q, &s.mg_res})
     if (v->size() < n) v->resize(n);
   if (s.mg_held.size() < n) s.mg_held.resize(n);
   if (s.mg_cx.size() < nc) {
     s.mg_cx.resize(nc);
     s.mg_cf.resize(nc);
+    s.mg_cres.resize(nc);
     s.mg_held_coarse.resize(nc);
   }
   // level 0 holds the grabbed element and every element of material weight 0 (bone);
@@ -136,10 +139,11 @@ int relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, 
   const bool reused = clean && reuse && s.mg_cache == key;
   // the levels: 0 solves for z with right-hand side r, the others live in the coarse buffers
   MultigridLevel lv[kMultigridMaxLevels];
-  lv[0] = MultigridLevel{voi.size, s.mg_z.data(), s.mg_r.data(), s.mg_held.data()};
+  lv[0] = MultigridLevel{voi.size, s.mg_z.data(), s.mg_r.data(), s.mg_held.data(), s.mg_res.data()};
   for (int l = 1; l < plan.levels; ++l) {
     const long long o = plan.offset[l];
-    lv[l] = MultigridLevel{plan.size[l], s.mg_cx.data() + o, s.mg_cf.data() + o, s.mg_held_coarse.data() + o};
+    lv[l] = MultigridLevel{plan.size[l], s.mg_cx.data() + o, s.mg_cf.data() + o, s.mg_held_coarse.data() + o,
+                           s.mg_cres.data() + o};
   }
   float* X = s.mg_g.data();
   if (clean) {

@@ -39,11 +39,12 @@
 // - going down, each level starts from x = 0, so its first red half-sweep is x = f / 6,
 //   written by the pass that makes f (the restriction, or CG's update on level 0);
 // - after the black half-sweep the residual is 0 at black nodes (Gauss-Seidel zeroes it
-//   where it just updated), so the restriction computes the red nodes' residuals itself
-//   (no residual pass), summing each plane of its 27 weights apart;
-// - going up, the correction of a red node is read only by its black neighbours' sweep,
-//   which is overwritten by its own red sweep next, so the black sweep adds the
-//   prolonged correction of its red neighbours as it reads them (no correction pass).
+//   where it just updated), so only red nodes compute one; the restriction sums each
+//   plane of its 27 weights apart (a GPU warp sums the three planes in three lanes);
+// - going up, only red nodes take the coarse correction: the black half-sweep that
+//   follows overwrites the black ones;
+// - CG's update pass makes the next V-cycle's first red-black sweep on level 0 (z = r / 6
+//   at red nodes, the black sweep from those computed on the fly).
 #pragma once
 
 #include <cstdint>
@@ -120,13 +121,15 @@ struct MultigridCache {
 /// The red-black colour of node (i, j, k): 0 red, 1 black.
 PALPSIM_HD int multigrid_colour(int i, int j, int k) { return (i + j + k) & 1; }
 
-/// One level of the scalar problem: its nodes, field x, right-hand side f and held mask
-/// (local index i fastest; VOIs hold < 2^31 voxels, checked at bind).
+/// One level of the scalar problem: its nodes, field x, right-hand side f, held mask and
+/// the residual after the way down's black half-sweep (local index i fastest; VOIs hold
+/// < 2^31 voxels, checked at bind).
 struct MultigridLevel {
   Vec3i n;
   float* x;
   float* f;
   std::uint8_t* held;
+  float* res;
 
   PALPSIM_HD int count() const { return n.x * n.y * n.z; }
   PALPSIM_HD bool inside(int i, int j, int k) const { return i >= 0 && j >= 0 && k >= 0 && i < n.x && j < n.y && k < n.z; }
@@ -159,25 +162,26 @@ PALPSIM_HD void multigrid_sweep_node(const MultigridLevel& L, int colour, int i,
   L.x[e] = multigrid_smooth(L.sum6(L.x, i, j, k), L.f[e]);
 }
 
-/// The residual f - (6 x - sum6) at a red free node of level L after its black
-/// half-sweep; 0 at black nodes (the sweep zeroed it), held nodes and outside the level.
-PALPSIM_HD float multigrid_red_residual(const MultigridLevel& L, int i, int j, int k) {
-  if (!L.inside(i, j, k) || multigrid_colour(i, j, k) != 0) return 0.0f;
+/// The residual f - (6 x - sum6) at node (i, j, k) of level L after its black half-sweep,
+/// into L.res: 0 at black nodes (the sweep zeroed it) and held nodes.
+PALPSIM_HD void multigrid_residual_node(const MultigridLevel& L, int i, int j, int k) {
   const int e = L.index(i, j, k);
-  if (L.held[e]) return 0.0f;
-  return L.f[e] + L.sum6(L.x, i, j, k) - 6.0f * L.x[e];
+  L.res[e] = multigrid_colour(i, j, k) != 0 || L.held[e] ? 0.0f : L.f[e] + L.sum6(L.x, i, j, k) - 6.0f * L.x[e];
 }
 
-/// One plane (dk) of the full weighting at coarse node (I, J, K): the fine residuals of
-/// the 9 nodes around 2I+o at fine offset dk along k, each times its tensor weight (1/2
-/// at the centre, 1/4 beside it, per axis) times 4 (the coarse operator's spacing is 2
-/// fine spacings), summed j then i. multigrid_restrict() adds the three planes.
+/// One plane (dk) of the full weighting at coarse node (I, J, K): the fine residuals
+/// (multigrid_residual_node; zero outside the fine level) of the 9 nodes around 2I+o at
+/// fine offset dk along k, each times its tensor weight (1/2 at the centre, 1/4 beside it,
+/// per axis) times 4 (the coarse operator's spacing is 2 fine spacings), summed j then i.
+/// multigrid_restrict_sum() adds the three planes.
 PALPSIM_HD float multigrid_restrict_plane(const MultigridLevel& fine, const Vec3i& o, int I, int J, int K, int dk) {
   float sum = 0;
+  const int k = 2 * K + o.z + dk;
   for (int dj = -1; dj <= 1; ++dj)
     for (int di = -1; di <= 1; ++di) {
+      const int i = 2 * I + o.x + di, j = 2 * J + o.y + dj;
       const float w = 4.0f * (di ? 0.25f : 0.5f) * (dj ? 0.25f : 0.5f) * (dk ? 0.25f : 0.5f);
-      sum += multigrid_red_residual(fine, 2 * I + o.x + di, 2 * J + o.y + dj, 2 * K + o.z + dk) * w;
+      sum += (fine.inside(i, j, k) ? fine.res[fine.index(i, j, k)] : 0.0f) * w;
     }
   return sum;
 }
@@ -198,28 +202,20 @@ PALPSIM_HD void multigrid_coarse_node(const MultigridLevel& fine, const Multigri
   coarse.x[e] = !held && multigrid_colour(I, J, K) == 0 ? multigrid_smooth(0.0f, f) : 0.0f;
 }
 
-/// The black half-sweep coming up at fine node (i, j, k), with the coarse correction
-/// (trilinear in coarse coordinates ((i-o)/2, ...), zero outside the coarse level) added
-/// to each free red neighbour as it is read (multigrid_correct_black below).
+/// The coarse correction at fine node (i, j, k): trilinear interpolation of the coarse
+/// level's x (zero outside it) at coarse coordinate ((i-o)/2, (j-o)/2, (k-o)/2).
 PALPSIM_HD float multigrid_prolong(const MultigridLevel& coarse, const Vec3i& o, int i, int j, int k) {
   auto load = [&](int a, int b, int c) { return coarse.inside(a, b, c) ? coarse.x[coarse.index(a, b, c)] : 0.0f; };
   return trilinear<float>(load, Vec3f{0.5f * float(i - o.x), 0.5f * float(j - o.y), 0.5f * float(k - o.z)});
 }
 
-/// The corrected black half-sweep at fine node (i, j, k): a black free node takes
-/// (f + the sum over its free neighbours of x + prolonged correction) / 6.
-PALPSIM_HD void multigrid_correct_black(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o, int i,
-                                        int j, int k) {
+/// The coarse correction of red free node (i, j, k): x += prolonged correction (black
+/// nodes are overwritten by the black half-sweep that follows, so they need none).
+PALPSIM_HD void multigrid_correct_red(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o, int i,
+                                      int j, int k) {
   const int e = fine.index(i, j, k);
-  if (multigrid_colour(i, j, k) != 1 || fine.held[e]) return;
-  float s = 0;
-  for (int q = 0; q < 6; ++q) {
-    const Vec3i m = Vec3i{i, j, k} + neighbour_offset(q);
-    if (!fine.inside(m.x, m.y, m.z)) continue;
-    const int ne = fine.index(m.x, m.y, m.z);
-    if (!fine.held[ne]) s += fine.x[ne] + multigrid_prolong(coarse, o, m.x, m.y, m.z);
-  }
-  fine.x[e] = multigrid_smooth(s, fine.f[e]);
+  if (multigrid_colour(i, j, k) != 0 || fine.held[e]) return;
+  fine.x[e] = fine.x[e] + multigrid_prolong(coarse, o, i, j, k);
 }
 
 /// CG's new residual at a node, r - alpha q (alpha: the step length).

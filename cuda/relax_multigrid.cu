@@ -2,14 +2,14 @@
 // V-cycle preconditioner as server/deform/relax_multigrid.cpp, the same passes in the
 // same order (relax_multigrid.h), in one persistent cooperative kernel. Levels with more
 // than kBlockNodes nodes run on the whole grid with grid.sync() between passes; the
-// coarser ones run in block 0 alone with __syncthreads(). A grid-wide pass costs a few
-// microseconds at VOI 64 on the H100 whatever its level's size, so the passes are fused
-// to as few as the math allows: ten per CG step with two grid levels.
+// coarser ones run in block 0 alone, in its shared memory, with __syncthreads(). A
+// grid-wide pass costs 2.2-2.5 us at VOI 64 on the H100 whatever its level's size (level
+// 0's heavier ones 3.5-9 us), and a step has 20 of them (three grid levels) and block 0's
+// part (~13 us): ~70 us per step. A step whose VOI and grabbed element equal the last
+// solved one's reuses the unit response G: one pass, u = d G.
 #include <cooperative_groups.h>
 
 #include <algorithm>
-#include <cstdio>
-#include <cstdlib>
 
 #include "cuda/check.h"
 #include "cuda/kernels.h"
@@ -23,22 +23,41 @@ namespace {
 using deform::MultigridLevel;
 using deform::MultigridPlan;
 
-// levels of at most this many nodes (16^3) run in block 0 alone
-constexpr int kBlockNodes = 4096;
+// levels of at most this many nodes (8^3) run in block 0 alone, in its shared memory:
+// measured at VOI 64 on the H100 (5 steps), 0.369 ms with 512, 0.364 ms with 4096 (16^3;
+// 61 KB of shared memory), 0.425 ms with 64; one block's pass over 16^3 costs about as
+// much as a grid-wide pass (~2.3 us), so moving levels into the block gains little
+constexpr int kBlockNodes = 512;
+
+// the first level that block 0 handles alone (plan.levels: none)
+__host__ __device__ int block_split(const MultigridPlan& plan) {
+  for (int l = 0; l < plan.levels; ++l)
+    if (deform::node_count(plan.size[l]) <= kBlockNodes) return l;
+  return plan.levels;
+}
 
 // the threads that share a pass: the whole grid, or block 0 alone
 struct Team {
   int first, stride;
 };
 
+// calls fn(i, j, k) for the nodes of `colour` of a level of `n` nodes, split over team t:
+// task q is row q / half of the level, its (q % half)-th node of that colour
+template <typename Fn>
+__device__ void each_of_colour(const Vec3i n, int colour, Team t, Fn fn) {
+  const int half = (n.x + 1) / 2, rows = n.y * n.z;
+  for (int q = t.first; q < rows * half; q += t.stride) {
+    const int row = q / half;
+    const int k = row / n.y, j = row - k * n.y;
+    const int i = 2 * (q - row * half) + ((colour + j + k) & 1);
+    if (i < n.x) fn(i, j, k);
+  }
+}
+
 // one half-sweep of `colour` over level L (levels by value: in registers, where stores
 // through their fields cannot alias them)
 __device__ void sweep(const MultigridLevel L, int colour, Team t) {
-  for (int e = t.first; e < L.count(); e += t.stride) {
-    int i, j, k;
-    L.coords(e, i, j, k);
-    deform::multigrid_sweep_node(L, colour, i, j, k);
-  }
+  each_of_colour(L.n, colour, t, [&](int i, int j, int k) { deform::multigrid_sweep_node(L, colour, i, j, k); });
 }
 
 // the coarse level from the fine one's residual, one thread per coarse node (block 0)
@@ -74,11 +93,7 @@ __device__ void restrict_grid(const MultigridLevel fine, const MultigridLevel co
 
 // the coarse correction of level l's red free nodes from level l+1
 __device__ void correct_red(const MultigridLevel fine, const MultigridLevel coarse, const Vec3i o, Team t) {
-  for (int e = t.first; e < fine.count(); e += t.stride) {
-    int i, j, k;
-    fine.coords(e, i, j, k);
-    deform::multigrid_correct_red(fine, coarse, o, i, j, k);
-  }
+  each_of_colour(fine.n, 0, t, [&](int i, int j, int k) { deform::multigrid_correct_red(fine, coarse, o, i, j, k); });
 }
 
 // the residual of level L after its black half-sweep (red free nodes; 0 elsewhere)
@@ -163,8 +178,6 @@ struct MgArgs {
   float threshold, width;
   int hit;     // the host's cache key matches: G may be reused if the device says it holds it
   int parity;  // which of the two dirty flags this launch uses (the other is zeroed for the next)
-  int block_nodes;
-  unsigned long long* prof;
   DeviceBuffers b;
   MultigridBuffers m;
 };
@@ -174,10 +187,6 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
   const Team block0{int(threadIdx.x), int(blockDim.x)};
   const bool first_thread = blockIdx.x == 0 && threadIdx.x == 0;
-  int prof_n = 0;
-#define MARK(tag) \
-  if (a.prof && first_thread && prof_n < 255) a.prof[1 + prof_n++] = (unsigned long long)clock64() | ((unsigned long long)(tag) << 56)
-  MARK(0);
   const MultigridPlan& plan = a.plan;
   const MultigridBuffers& m = a.m;
   const deform::Voi& voi = a.geo.voi;
@@ -205,13 +214,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const MultigridLevel L0{voi.size, m.z, m.r[0], m.held, m.res};  // level 0 (its f aside)
   const int n = L0.count();
   float* X = m.g;
-  // the first level that block 0 handles alone
-  int split = plan.levels;
-  for (int l = 0; l < plan.levels; ++l)
-    if (deform::node_count(plan.size[l]) <= a.block_nodes) {
-      split = l;
-      break;
-    }
+  const int split = block_split(plan);
   const int last = plan.levels - 1;
   const int grid_to = split < last ? split : last;
   // levels split..last (the end of the coarse buffers) in block 0's shared memory
@@ -257,9 +260,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     }
   }
   if (moved_held) *(volatile int*)dirty = 1;
-  MARK(14);
   grid.sync();
-  MARK(1);
   const bool clean = *(volatile int*)dirty == 0;
   // one scalar solve per component with its own held data, or one for G when clean
   const int solves = hit && clean ? 0 : (clean ? 1 : 3);
@@ -292,11 +293,9 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       m.z[e] = !held && deform::multigrid_colour(i, j, k) == 0 ? deform::multigrid_smooth(0.0f, re) : 0.0f;
     }
     grid.sync();
-    MARK(2);
     lv = lvs[0];
     sweep(lv[0], 1, all);
     grid.sync();
-    MARK(3);
 
     int cur = 0, pc = 0;
     double rho = 0;
@@ -306,10 +305,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       lv = lvs[cur];
       // z = M r: the grid down to level split, block 0 below it (in shared memory when
       // split > 0), the grid back up; level 0's last red half-sweep comes with rho below
-      auto gsync = [&] {
-        grid.sync();
-        MARK(20);
-      };
+      auto gsync = [&] { grid.sync(); };
       auto bsync = [] { __syncthreads(); };
       down(lv, origin, 0, grid_to, all, true, gsync);
       if (split <= last) {
@@ -334,7 +330,6 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
           }
         }
         grid.sync();
-        MARK(6);
       } else {
         // the coarsest level too large for one block (a thin VOI: level 0 itself)
         coarsest(lv[last], last > 0, all, gsync);
@@ -355,7 +350,6 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       }
       block_sum_add(part, &dots[2 * c]);
       grid.sync();
-      MARK(10);
       const double rho_new = dots[2 * c];
       if (!(rho_new > 0)) break;  // r = 0: converged
       const float beta = c == 0 ? 0.0f : float(rho_new / rho);
@@ -384,7 +378,6 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       block_sum_add(part, &dots[2 * c + 1]);
       pc ^= 1;
       grid.sync();
-      MARK(11);
       const double pq = dots[2 * c + 1];
       if (!(pq > 0)) break;
       alpha = float(rho / pq);
@@ -421,7 +414,6 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       }
       cur ^= 1;
       grid.sync();
-      MARK(12);
     }
     // the last X += alpha p, and u from X on free elements: d X (X = G) or this component
     const float* pn = m.p[pc];
@@ -440,7 +432,6 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     if (comp + 1 < solves) grid.sync();
   }
   if (clean && first_thread) m.flags[2] = 1;  // X holds G
-  if (a.prof && first_thread) a.prof[0] = prof_n;
 }
 
 }  // namespace
@@ -476,50 +467,19 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float th
   a.hit = reuse && m.cache == key;
   m.cache = key;
   a.parity = int(m.launches++ & 1);
-  a.block_nodes = kBlockNodes;
-  if (const char* v = std::getenv("PALPSIM_MG_BLOCK_NODES")) a.block_nodes = std::atoi(v);
-  // block 0's shared memory: levels split..last (x, f, residual, held mask)
-  int split = a.plan.levels;
-  for (int l = 0; l < a.plan.levels; ++l)
-    if (deform::node_count(a.plan.size[l]) <= a.block_nodes) {
-      split = l;
-      break;
-    }
+  // block 0's shared memory: levels split..last (x, f, residual, held mask); each level
+  // has at most (2/3)^3 of the nodes of the one above, so below 512 / (1 - 0.3) nodes,
+  // 10 KB, within the 48 KB a launch may take without opting in
+  const int split = block_split(a.plan);
   std::size_t smem = 0;
   if (split > 0 && split < a.plan.levels)
     smem = std::size_t(a.plan.coarse_count - a.plan.offset[split]) * (3 * sizeof(float) + 1);
-  static std::size_t smem_set = 0;
-  if (smem > smem_set) {
-    PALPSIM_CUDA_CHECK(cudaFuncSetAttribute((const void*)relax_multigrid_kernel,
-                                            cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem)));
-    smem_set = smem;
-  }
-  static unsigned long long* prof = nullptr;
-  const bool profile = std::getenv("PALPSIM_MG_PROFILE") != nullptr && !a.hit;
-  if (profile && !prof) PALPSIM_CUDA_CHECK(cudaMalloc(&prof, 256 * sizeof(unsigned long long)));
-  a.prof = profile ? prof : nullptr;
   a.b = b;
   a.m = m;
   const int blocks = int(std::min<long long>(max_blocks, (n + kPersistentThreads - 1) / kPersistentThreads));
   void* args[] = {&a};
   PALPSIM_CUDA_CHECK(cudaLaunchCooperativeKernel((const void*)relax_multigrid_kernel, dim3(std::max(blocks, 1)),
                                                  dim3(kPersistentThreads), args, smem, stream));
-  static int printed = 0;
-  if (profile && printed < 3 && n >= 200000) {
-    ++printed;
-    unsigned long long h[256];
-    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream));
-    PALPSIM_CUDA_CHECK(cudaMemcpy(h, prof, sizeof h, cudaMemcpyDeviceToHost));
-    int khz = 0, dev = 0;
-    cudaGetDevice(&dev);
-    cudaDeviceGetAttribute(&khz, cudaDevAttrClockRate, dev);
-    std::fprintf(stderr, "mg profile (block_nodes %d, %d marks, clock %d kHz):", a.block_nodes,
-                 int(h[0]), khz);
-    const unsigned long long mask = (1ull << 56) - 1;
-    for (int q = 1; q < int(h[0]); ++q)
-      std::fprintf(stderr, " %d:%.2f", int(h[q + 1] >> 56), double((h[q + 1] & mask) - (h[q] & mask)) / (khz * 1e-3));
-    std::fprintf(stderr, " total %.1f us\n", double((h[int(h[0])] & mask) - (h[1] & mask)) / (khz * 1e-3));
-  }
 }
 
 }  // namespace palpsim::cuda

@@ -191,10 +191,9 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const MultigridBuffers& m = a.m;
   const deform::Voi& voi = a.geo.voi;
   float* u[3] = {a.b.u[a.src][0], a.b.u[a.src][1], a.b.u[a.src][2]};
-  // the levels: 0 solves for z with right-hand side r (one of two buffers), the field is X = G
-  // (in shared memory, one copy per block: per-thread arrays indexed by level would live
-  // in local memory); lvs[b] has r[b] as level 0's right-hand side
-  // (raw storage: the types' default member initialisers are not allowed on __shared__)
+  // the levels: 0 solves for z with right-hand side r (lvs[b]: r[b]), the field is X = G;
+  // in shared memory, one copy per block (per-thread arrays indexed by level would live
+  // in local memory), as raw bytes (__shared__ allows no default member initialisers)
   constexpr int kL = deform::kMultigridMaxLevels;
   __shared__ alignas(16) unsigned char level_bytes[3 * kL * sizeof(MultigridLevel) + kL * sizeof(Vec3i)];
   auto* lvs = reinterpret_cast<MultigridLevel(*)[kL]>(level_bytes);
@@ -238,8 +237,8 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const bool hit = a.hit && *(volatile int*)(m.flags + 2) != 0;
 
   // the held mask (grabbed element, material weight 0), whether a held element other
-  // than the grabbed one moved, and with a reusable G already u = d G (taken back below
-  // if a held element moved: free elements' u is not the solve's data)
+  // than the grabbed one moved, and with a reusable G already u = d G (overwritten below
+  // if a held element moved: the solves read u at held elements only)
   if (first_thread) m.flags[a.parity ^ 1] = 0;
   if (all.first < 6 * a.cycles) m.dots[all.first] = 0.0;
   bool moved_held = false;

@@ -374,18 +374,13 @@ TEST_CASE("gpu multigrid reuses its unit response to the bit, and as the cpu doe
   // the cpu case of tests/unit/deform_relax_multigrid_test.cpp: a tip moving within one
   // voxel (the VOI stays), a voxel on, and back
   auto torso = make_torso_patient(64);
-  DeformConfig cfg = preset_config(1);
-  cfg.settings.voi_edge = 40;
-  cfg.settings.relax_method = "multigrid";
-  DeformConfig fresh_cfg = cfg;
+  const ReusePress press = reuse_press();
+  DeformConfig fresh_cfg = press.cfg;
   fresh_cfg.relax_reuse = false;
   auto cpu = make_deform_backend("cpu"), reuse = make_deform_backend("cuda"), fresh = make_deform_backend("cuda");
-  cpu->bind(torso, cfg);
-  reuse->bind(torso, cfg);
+  cpu->bind(torso, press.cfg);
+  reuse->bind(torso, press.cfg);
   fresh->bind(torso, fresh_cfg);
-  const Vec3i g{32, 10, 32};
-  const Vec3 d[] = {{2, 7, -3}, {2.2, 7.3, -3.1}, {1.9, 6.8, -2.8}, {3, 7, -3}, {2.1, 7.1, -3}};
-  const int solves[] = {1, 0, 0, 1, 1};
   // the cpu's field against a gpu's: FMA contraction and the order of the dot products'
   // sums, as in the case above
   auto close = [&](const std::vector<Vec3f>& ua, const std::vector<Vec3f>& ug) {
@@ -394,19 +389,19 @@ TEST_CASE("gpu multigrid reuses its unit response to the bit, and as the cpu doe
       worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
     return worst <= 1e-4f * std::max(1.0f, max_abs(ua));
   };
-  for (int s = 0; s < 5; ++s) {
-    const DeformContact c = voxel_contact(g, d[s]);
+  for (std::size_t s = 0; s < press.contacts.size(); ++s) {
+    const DeformContact& c = press.contacts[s];
     const DeformStats a = cpu->step(c), r = reuse->step(c), f = fresh->step(c);
     INFO("contact " << s);
-    CHECK(a.relax_solves == solves[s]);
-    CHECK(r.relax_solves == solves[s]);
+    CHECK(a.relax_solves == press.solves[s]);
+    CHECK(r.relax_solves == press.solves[s]);
     CHECK(f.relax_solves == 1);
     CHECK(reuse->displacement() == fresh->displacement());
     CHECK(close(cpu->displacement(), reuse->displacement()));
   }
   // the same VOI with a bone element displaced by hand (a held element that moved): three
   // solves, as on the cpu, after which G is gone and the next clean step solves afresh
-  const DeformContact c = voxel_contact(g, d[4]);
+  const DeformContact c = press.contacts.back();
   long long bone_e = -1;
   const Voi voi = reuse->voi();
   for (long long e = 0; e < voi.count() && bone_e < 0; ++e) {

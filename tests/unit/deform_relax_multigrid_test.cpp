@@ -153,21 +153,16 @@ TEST_CASE("multigrid reuses its unit response while the VOI and grabbed element 
   // voxel, stays), then a voxel on (the VOI moves), then back: the steady state is u = d G
   // (relax_multigrid.h), so a reused G must give the bits of a fresh solve
   auto torso = make_torso_patient(64);
-  DeformConfig cfg = preset_config(1);
-  cfg.settings.voi_edge = 40;
-  cfg.settings.relax_method = "multigrid";
-  DeformConfig fresh_cfg = cfg;
+  const ReusePress press = reuse_press();
+  DeformConfig fresh_cfg = press.cfg;
   fresh_cfg.relax_reuse = false;
   CpuDeformBackend reuse, fresh;
-  reuse.bind(torso, cfg);
+  reuse.bind(torso, press.cfg);
   fresh.bind(torso, fresh_cfg);
-  const Vec3i g{32, 10, 32};
-  const Vec3 d[] = {{2, 7, -3}, {2.2, 7.3, -3.1}, {1.9, 6.8, -2.8}, {3, 7, -3}, {2.1, 7.1, -3}};
-  const int solves[] = {1, 0, 0, 1, 1};  // G is kept for the last VOI only
-  for (int s = 0; s < 5; ++s) {
-    const DeformStats a = reuse.step(voxel_contact(g, d[s])), b = fresh.step(voxel_contact(g, d[s]));
+  for (std::size_t s = 0; s < press.contacts.size(); ++s) {
+    const DeformStats a = reuse.step(press.contacts[s]), b = fresh.step(press.contacts[s]);
     INFO("contact " << s);
-    CHECK(a.relax_solves == solves[s]);
+    CHECK(a.relax_solves == press.solves[s]);
     CHECK(b.relax_solves == 1);
     REQUIRE(a.chainmail.voi.lo == b.chainmail.voi.lo);
     CHECK(reuse.displacement() == fresh.displacement());

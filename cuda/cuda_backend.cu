@@ -66,8 +66,9 @@ void CudaDeformBackend::release() {
   cudaFree(d_.untangle_flags);
   for (float*& c : d_.untangle_new) cudaFree(c);
   cudaFree(d_.counters);
-  for (void* q : {(void*)mg_.x, (void*)mg_.r, (void*)mg_.z, (void*)mg_.p, (void*)mg_.p2, (void*)mg_.q, (void*)mg_.held, (void*)mg_.cx,
-                  (void*)mg_.cf, (void*)mg_.cr, (void*)mg_.cheld, (void*)mg_.dots})
+  for (void* q : {(void*)mg_.g, (void*)mg_.r[0], (void*)mg_.r[1], (void*)mg_.z, (void*)mg_.p[0], (void*)mg_.p[1],
+                  (void*)mg_.q, (void*)mg_.res, (void*)mg_.held, (void*)mg_.cx, (void*)mg_.cf, (void*)mg_.cres, (void*)mg_.cheld, (void*)mg_.dots,
+                  (void*)mg_.flags})
     cudaFree(q);
   mg_ = MultigridBuffers{};
   cudaFreeHost(host_counters_);
@@ -138,11 +139,14 @@ void CudaDeformBackend::ensure_multigrid_buffers() {
     most[a] = config_.settings.whole_volume ? patient_->grid.size[a] : std::min(config_.settings.voi_edge, patient_->grid.size[a]);
   const long long nc = std::max(1LL, deform::multigrid_plan(most, Vec3i{0, 0, 0}).coarse_count);
   const std::size_t n = std::size_t(capacity_);
-  for (Vec3f** v : {&mg_.x, &mg_.r, &mg_.z, &mg_.p, &mg_.p2, &mg_.q}) PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(Vec3f)));
+  for (float** v : {&mg_.g, &mg_.r[0], &mg_.r[1], &mg_.z, &mg_.p[0], &mg_.p[1], &mg_.q, &mg_.res})
+    PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(float)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.held, n));
-  for (Vec3f** v : {&mg_.cx, &mg_.cf, &mg_.cr}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(Vec3f)));
+  for (float** v : {&mg_.cx, &mg_.cf, &mg_.cres}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(float)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.cheld, std::size_t(nc)));
-  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.dots, 2 * deform::kMultigridMaxCycles * sizeof(double)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.dots, 6 * deform::kMultigridMaxCycles * sizeof(double)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.flags, 3 * sizeof(int)));
+  PALPSIM_CUDA_CHECK(cudaMemset(mg_.flags, 0, 3 * sizeof(int)));
   mg_.capacity = capacity_;
   mg_.coarse_capacity = nc;
   full_mg_blocks_ = mg_blocks_ = relax_multigrid_blocks();
@@ -161,11 +165,12 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   if (d_.untangle_flags) m.relax_bytes = 2 * n + sizeof(d_.untangle_new) / sizeof(float*) * n * sizeof(float);
   m.invert_bytes = 2 * n * sizeof(float);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
-  // multigrid: six VOI fields and a mask, three coarse fields and a mask, the dot sums
+  // multigrid: eight scalar VOI fields and a mask, three coarse fields and a mask, the dot
+  // sums and flags
   if (mg_.capacity > 0)
-    m.relax_bytes += std::size_t(mg_.capacity) * (6 * sizeof(Vec3f) + 1) +
-                    std::size_t(mg_.coarse_capacity) * (3 * sizeof(Vec3f) + 1) +
-                    2 * deform::kMultigridMaxCycles * sizeof(double);
+    m.relax_bytes += std::size_t(mg_.capacity) * (8 * sizeof(float) + 1) +
+                    std::size_t(mg_.coarse_capacity) * (3 * sizeof(float) + 1) +
+                    6 * deform::kMultigridMaxCycles * sizeof(double) + 3 * sizeof(int);
   return m;
 }
 
@@ -202,7 +207,7 @@ void CudaDeformBackend::enqueue_relax() {
     // in place on the current buffer
     ensure_multigrid_buffers();
     launch_relax_multigrid(geometry(), cur_, s.relax_cycles, float(config_.bone_threshold), float(s.material_width),
-                           d_, mg_, mg_blocks_, stream_);
+                           config_.relax_reuse, d_, mg_, mg_blocks_, stream_);
     return;
   }
   launch_relax(geometry(), cur_, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
@@ -353,6 +358,7 @@ DeformStats CudaDeformBackend::end_step_impl() {
   const bool untangle = config_.relax && config_.settings.untangle;
   InvertStats inv;
   finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
+  out.relax_solves = config_.relax && config_.settings.relax_method == "multigrid" ? host_counters_->relax_solves : 0;
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;

@@ -29,6 +29,7 @@ struct Counters {
   int untangle_changed[3];         // elements changed per sweep, by sweep % 3
   int untangle_box[6];             // lo and hi (VOI-local) of the elements untangling may move
   int untangle_reverted;           // 1: it ended with more folds and restored the relaxed field
+  int relax_solves;                // multigrid: scalar solves run (0: the unit response was reused)
 };
 
 /// Device pointers of one session's state.
@@ -45,17 +46,24 @@ struct DeviceBuffers {
 };
 
 /// Device buffers of the multigrid relaxation (relax_multigrid.cu), allocated only when
-/// the scene asks for it: the field X, CG's residual r, preconditioned residual z,
-/// direction p (two buffers, one written while the other is read) and A p (q) and the held mask on the VOI; the coarse levels' correction,
-/// right-hand side, residual and held mask (deform::MultigridPlan::offset); dot sums.
+/// the scene asks for it, scalar fields on the VOI: the solved field X (the unit response G
+/// after a clean step), CG's residual r (two buffers, one written while the other is read),
+/// preconditioned residual z, direction p (two buffers), A p (q), the V-cycle's residual and
+/// the held mask; the coarse levels' correction, right-hand side, residual and held mask
+/// (deform::MultigridPlan::offset);
+/// the dot sums; and what G was solved for.
 struct MultigridBuffers {
-  Vec3f *x = nullptr, *r = nullptr, *z = nullptr, *p = nullptr, *p2 = nullptr, *q = nullptr;
+  float *g = nullptr, *r[2] = {nullptr, nullptr}, *z = nullptr, *p[2] = {nullptr, nullptr}, *q = nullptr;
   std::uint8_t* held = nullptr;
-  Vec3f *cx = nullptr, *cf = nullptr, *cr = nullptr;
+  float* res = nullptr;                // the V-cycle's residual on level 0
+  float *cx = nullptr, *cf = nullptr, *cres = nullptr;
   std::uint8_t* cheld = nullptr;
-  double* dots = nullptr;             // 2 per step: r . z and p . q
+  double* dots = nullptr;             // 2 per step and solve (3 solves at most): r . z and p . q
+  int* flags = nullptr;               // [0], [1]: a held element other than the grabbed one moved (by launch parity); [2]: g holds G
   long long capacity = 0;             // VOI elements the VOI buffers hold
   long long coarse_capacity = 0;      // nodes the coarse buffers hold
+  deform::MultigridCache cache;       // the host's record of the last launch's VOI, grabbed element and steps
+  unsigned long long launches = 0;    // launches so far (picks the dirty flag)
 };
 
 /// Where a step works: the VOI, the patient grid size and the grabbed element.
@@ -130,8 +138,10 @@ int relax_multigrid_blocks();
 
 /// `cycles` multigrid-preconditioned CG steps on displacement buffer `src`, in place, in
 /// one cooperative launch of at most `max_blocks` blocks; `m` must hold the VOI's plan.
-void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float threshold, float width,
-                            const DeviceBuffers& b, const MultigridBuffers& m, int max_blocks, cudaStream_t stream);
+/// With `reuse`, a step with the last launch's VOI, grabbed element and steps whose held
+/// elements other than the grabbed one are at rest takes u = d G from the kept unit response.
+void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float threshold, float width, bool reuse,
+                            const DeviceBuffers& b, MultigridBuffers& m, int max_blocks, cudaStream_t stream);
 /// Untangles displacement buffer `cur` in place (server/deform/untangle.cpp's rounds and
 /// sweeps; the other buffer keeps the relaxed field), in one cooperative launch; counts
 /// in counters.

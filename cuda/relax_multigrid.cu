@@ -1,9 +1,12 @@
-// Multigrid relaxation on the GPU: the same conjugate gradients with a symmetric
-// V-cycle preconditioner as server/deform/relax_multigrid.cpp, in one persistent
-// cooperative kernel. Levels with more than kBlockNodes nodes run on the whole grid
-// with grid.sync() between passes; the coarser ones run in block 0 alone with
-// __syncthreads(). Each grid-wide pass with its barrier costs ~4.8 us at VOI 64 on the
-// H100 whatever the level's size (a step has 24), so the step's cost is its barriers.
+// Multigrid relaxation on the GPU: the same scalar conjugate gradients with a symmetric
+// V-cycle preconditioner as server/deform/relax_multigrid.cpp, the same passes in the
+// same order (relax_multigrid.h), in one persistent cooperative kernel. Levels with more
+// than kBlockNodes nodes run on the whole grid with grid.sync() between passes; the
+// coarser ones run in block 0 alone, in its shared memory, with __syncthreads(). A
+// grid-wide pass costs 2.2-2.5 us at VOI 64 on the H100 whatever its level's size (level
+// 0's heavier ones 3.5-9 us), and a step has 20 of them (three grid levels) and block 0's
+// part (~13 us): ~70 us per step. A step whose VOI and grabbed element equal the last
+// solved one's reuses the unit response G: one pass, u = d G.
 #include <cooperative_groups.h>
 
 #include <algorithm>
@@ -17,128 +20,139 @@ namespace palpsim::cuda {
 
 namespace {
 
+using deform::MultigridLevel;
 using deform::MultigridPlan;
 
-// levels of at most this many nodes (8^3) run in block 0 alone: measured at VOI 64 on
-// the H100, a step took 118 us with 512, 129 us with 4096 (16^3 in one block), 144 us
-// with none and 330 us with 32768
-constexpr long long kBlockNodes = 512;
+// levels of at most this many nodes (8^3) run in block 0 alone, in its shared memory:
+// measured at VOI 64 on the H100 (5 steps), 0.369 ms with 512, 0.364 ms with 4096 (16^3;
+// 61 KB of shared memory), 0.425 ms with 64; one block's pass over 16^3 costs about as
+// much as a grid-wide pass (~2.3 us), so moving levels into the block gains little
+constexpr int kBlockNodes = 512;
 
-
-// one level: nodes, field x, right-hand side f (null: 0), residual r, held mask
-struct Level {
-  Vec3i n;
-  Vec3f* x;
-  Vec3f* f;
-  Vec3f* r;
-  std::uint8_t* held;
-
-  __device__ int count() const { return n.x * n.y * n.z; }
-  __device__ bool inside(int i, int j, int k) const { return i >= 0 && j >= 0 && k >= 0 && i < n.x && j < n.y && k < n.z; }
-  __device__ int index(int i, int j, int k) const { return (k * n.y + j) * n.x + i; }
-  __device__ void coords(int e, int& i, int& j, int& k) const {
-    k = e / (n.x * n.y);
-    const int rem = e - k * n.x * n.y;
-    j = rem / n.x;
-    i = rem - j * n.x;
-  }
-  __device__ Vec3f rhs(int e) const { return f ? f[e] : Vec3f{0, 0, 0}; }
-  // the six neighbours of `v` in the fixed order, zero outside the level
-  __device__ Vec3f sum6(const Vec3f* v, int i, int j, int k) const {
-    Vec3f s{0, 0, 0};
-    for (int q = 0; q < 6; ++q) {
-      const Vec3i m = Vec3i{i, j, k} + deform::neighbour_offset(q);
-      if (inside(m.x, m.y, m.z)) s += v[index(m.x, m.y, m.z)];
-    }
-    return s;
-  }
-};
+// the first level that block 0 handles alone (plan.levels: none)
+__host__ __device__ int block_split(const MultigridPlan& plan) {
+  for (int l = 0; l < plan.levels; ++l)
+    if (deform::node_count(plan.size[l]) <= kBlockNodes) return l;
+  return plan.levels;
+}
 
 // the threads that share a pass: the whole grid, or block 0 alone
 struct Team {
-  unsigned first, stride;
+  int first, stride;
 };
 
-__device__ void smooth_colour(const Level& L, int colour, Team t) {
-  for (int e = int(t.first); e < L.count(); e += int(t.stride)) {
+// calls fn(i, j, k) for the nodes of `colour` of a level of `n` nodes, split over team t:
+// task q is row q / half of the level, its (q % half)-th node of that colour
+template <typename Fn>
+__device__ void each_of_colour(const Vec3i n, int colour, Team t, Fn fn) {
+  const int half = (n.x + 1) / 2, rows = n.y * n.z;
+  for (int q = t.first; q < rows * half; q += t.stride) {
+    const int row = q / half;
+    const int k = row / n.y, j = row - k * n.y;
+    const int i = 2 * (q - row * half) + ((colour + j + k) & 1);
+    if (i < n.x) fn(i, j, k);
+  }
+}
+
+// one half-sweep of `colour` over level L (levels by value: in registers, where stores
+// through their fields cannot alias them)
+__device__ void sweep(const MultigridLevel L, int colour, Team t) {
+  each_of_colour(L.n, colour, t, [&](int i, int j, int k) { deform::multigrid_sweep_node(L, colour, i, j, k); });
+}
+
+// the coarse level from the fine one's residual, one thread per coarse node (block 0)
+__device__ void restrict_block(const MultigridLevel fine, const MultigridLevel coarse, const Vec3i o, Team t) {
+  for (int e = t.first; e < coarse.count(); e += t.stride) {
+    int I, J, K;
+    coarse.coords(e, I, J, K);
+    const float f = deform::multigrid_restrict_sum(deform::multigrid_restrict_plane(fine, o, I, J, K, -1),
+                                                   deform::multigrid_restrict_plane(fine, o, I, J, K, 0),
+                                                   deform::multigrid_restrict_plane(fine, o, I, J, K, 1));
+    deform::multigrid_coarse_node(fine, coarse, o, I, J, K, f);
+  }
+}
+
+// the same on the whole grid, four lanes per coarse node: lanes 0-2 sum one plane each
+// (dk = -1, 0, 1), lane 3 adds 0, and two shuffles add (p0 + p1) + (p2 + 0), the order of
+// multigrid_restrict_sum; whole warps run each round so the shuffles see every lane
+__device__ void restrict_grid(const MultigridLevel fine, const MultigridLevel coarse, const Vec3i o) {
+  const int lane = threadIdx.x & 31;
+  const int stride = gridDim.x * blockDim.x;
+  const int tasks = 4 * coarse.count();
+  for (int t0 = blockIdx.x * blockDim.x + (threadIdx.x & ~31); t0 < tasks; t0 += stride) {
+    const int t = t0 + lane, e = t >> 2, part = t & 3;
+    const bool mine = t < tasks && part < 3;
+    int I = 0, J = 0, K = 0;
+    if (t < tasks) coarse.coords(e, I, J, K);
+    float v = mine ? deform::multigrid_restrict_plane(fine, o, I, J, K, part - 1) : 0.0f;
+    v += __shfl_down_sync(0xffffffffu, v, 1, 4);
+    v += __shfl_down_sync(0xffffffffu, v, 2, 4);
+    if (t < tasks && part == 0) deform::multigrid_coarse_node(fine, coarse, o, I, J, K, v);
+  }
+}
+
+// the coarse correction of level l's red free nodes from level l+1
+__device__ void correct_red(const MultigridLevel fine, const MultigridLevel coarse, const Vec3i o, Team t) {
+  each_of_colour(fine.n, 0, t, [&](int i, int j, int k) { deform::multigrid_correct_red(fine, coarse, o, i, j, k); });
+}
+
+// the residual of level L after its black half-sweep (red free nodes; 0 elsewhere)
+__device__ void residual(const MultigridLevel L, Team t) {
+  for (int e = t.first; e < L.count(); e += t.stride) {
     int i, j, k;
     L.coords(e, i, j, k);
-    if (deform::multigrid_colour(i, j, k) != colour || L.held[e]) continue;
-    L.x[e] = deform::multigrid_smooth(L.sum6(L.x, i, j, k), L.rhs(e));
+    deform::multigrid_residual_node(L, i, j, k);
   }
 }
 
-__device__ void residual(const Level& L, Team t) {
-  for (int e = int(t.first); e < L.count(); e += int(t.stride)) {
-    int i, j, k;
-    L.coords(e, i, j, k);
-    L.r[e] = L.held[e] ? Vec3f{0, 0, 0} : deform::multigrid_residual(L.x[e], L.sum6(L.x, i, j, k), L.rhs(e));
-  }
-}
-
-__device__ void restrict_to(const Level& fine, const Level& coarse, const Vec3i& o, Team t) {
-  auto load_r = [&](int i, int j, int k) { return fine.inside(i, j, k) ? fine.r[fine.index(i, j, k)] : Vec3f{0, 0, 0}; };
-  for (int e = int(t.first); e < coarse.count(); e += int(t.stride)) {
-    int i, j, k;
-    coarse.coords(e, i, j, k);
-    coarse.f[e] = deform::multigrid_restrict(load_r, o, i, j, k);
-    coarse.held[e] = fine.held[fine.index(2 * i + o.x, 2 * j + o.y, 2 * k + o.z)];
-    coarse.x[e] = Vec3f{0, 0, 0};
-  }
-}
-
-__device__ void correct(const Level& fine, const Level& coarse, const Vec3i& o, Team t) {
-  auto load_x = [&](int i, int j, int k) { return coarse.inside(i, j, k) ? coarse.x[coarse.index(i, j, k)] : Vec3f{0, 0, 0}; };
-  for (int e = int(t.first); e < fine.count(); e += int(t.stride)) {
-    int i, j, k;
-    fine.coords(e, i, j, k);
-    if (!fine.held[e]) fine.x[e] += deform::multigrid_prolong(load_x, o, i, j, k);
-  }
-}
-
-// the V-cycle from level `from` down to the coarsest and back (level from's x starts at
-// 0), all passes by team `t`, `sync` between them
-// (level 0's first red half-sweep is left out when the caller did it: from z = 0 it is
-// z = r / 6 on red free nodes, which CG's update pass writes)
+// the V-cycle's levels from..to-1 going down (level from's black half-sweep done when
+// from is 0), each pass by team t with `sync` after it
 template <typename Sync>
-__device__ void vcycle(const Level* lv, const MultigridPlan& plan, int from, int to, Team t, Sync sync) {
+__device__ void down(const MultigridLevel* lv, const Vec3i* origin, int from, int to, Team t, bool grid_wide,
+                     Sync sync) {
   for (int l = from; l < to; ++l) {
-    for (int s = 0; s < deform::kMultigridPreSweeps; ++s)
-      for (int c = 0; c < 2; ++c) {
-        if (l == 0 && s == 0 && c == 0) continue;
-        smooth_colour(lv[l], c, t);
-        sync();
-      }
+    if (l > 0) {
+      sweep(lv[l], 1, t);
+      sync();
+    }
     residual(lv[l], t);
     sync();
-    restrict_to(lv[l], lv[l + 1], plan.origin[l], t);
+    if (grid_wide)
+      restrict_grid(lv[l], lv[l + 1], origin[l]);
+    else
+      restrict_block(lv[l], lv[l + 1], origin[l], t);
     sync();
   }
 }
 
+// ... and back up from level to-1 to from: red correction, black, red (the last red
+// half-sweep of level `skip_red`'s is left to the caller)
 template <typename Sync>
-__device__ void vcycle_up(const Level* lv, const MultigridPlan& plan, int from, int to, Team t, Sync sync) {
+__device__ void up(const MultigridLevel* lv, const Vec3i* origin, int from, int to, Team t, int skip_red,
+                   Sync sync) {
   for (int l = to - 1; l >= from; --l) {
-    correct(lv[l], lv[l + 1], plan.origin[l], t);
+    correct_red(lv[l], lv[l + 1], origin[l], t);
     sync();
-    for (int s = 0; s < deform::kMultigridPostSweeps; ++s)
-      for (int c = 1; c >= 0; --c) {
-        smooth_colour(lv[l], c, t);
-        sync();
-      }
+    sweep(lv[l], 1, t);
+    sync();
+    if (l == skip_red) continue;
+    sweep(lv[l], 0, t);
+    sync();
   }
 }
 
-// the coarsest level's symmetric sweeps
+// the coarsest level's half-sweeps after its first red one (its black one unless level
+// 0's came with CG's update)
 template <typename Sync>
-__device__ void coarsest(const Level& L, int sweeps, Team t, Sync sync) {
-  // forward then backward, so the V-cycle stays symmetric
-  for (int dir = 0; dir < 2; ++dir)
-    for (int s = 0; s < sweeps; ++s)
-      for (int c = 0; c < 2; ++c) {
-        smooth_colour(L, dir == 0 ? c : 1 - c, t);
-        sync();
-      }
+__device__ void coarsest(const MultigridLevel& L, bool black_first, Team t, Sync sync) {
+  if (black_first) {
+    sweep(L, 1, t);
+    sync();
+  }
+  for (int h = 0; h < deform::kMultigridCoarsestHalfSweeps; ++h) {
+    sweep(L, h % 2, t);
+    sync();
+  }
 }
 
 // adds this thread's `v` to *out: a block sum, then one atomic per block
@@ -156,146 +170,267 @@ __device__ void block_sum_add(double v, double* out) {
   __syncthreads();
 }
 
-__device__ double dot3(const Vec3f& a, const Vec3f& b) { return double(a.x) * b.x + double(a.y) * b.y + double(a.z) * b.z; }
-
 struct MgArgs {
   StepGeometry geo;
   MultigridPlan plan;
   int src;
   int cycles;
   float threshold, width;
+  int hit;     // the host's cache key matches: G may be reused if the device says it holds it
+  int parity;  // which of the two dirty flags this launch uses (the other is zeroed for the next)
   DeviceBuffers b;
   MultigridBuffers m;
 };
 
 __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgArgs a) {
   cg::grid_group grid = cg::this_grid();
-  auto gsync = [&] { grid.sync(); };
-  auto bsync = [] { __syncthreads(); };
-  const Team all{blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x};
-  const Team block0{threadIdx.x, blockDim.x};
+  const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
+  const Team block0{int(threadIdx.x), int(blockDim.x)};
+  const bool first_thread = blockIdx.x == 0 && threadIdx.x == 0;
   const MultigridPlan& plan = a.plan;
   const MultigridBuffers& m = a.m;
   const deform::Voi& voi = a.geo.voi;
-  const int n = int(voi.count());
   float* u[3] = {a.b.u[a.src][0], a.b.u[a.src][1], a.b.u[a.src][2]};
-  // the levels: 0 solves for z with right-hand side r (residual in q); the field is X
-  Level lv[deform::kMultigridMaxLevels];
-  lv[0] = Level{voi.size, m.z, m.r, m.q, m.held};
-  for (int l = 1; l < plan.levels; ++l) {
-    const long long o = plan.offset[l];
-    lv[l] = Level{plan.size[l], m.cx + o, m.cf + o, m.cr + o, m.cheld + o};
-  }
-  const Level field{voi.size, m.x, nullptr, m.r, m.held};
-  // the first level that block 0 handles alone
-  int split = plan.levels;
-  for (int l = 0; l < plan.levels; ++l)
-    if (deform::node_count(plan.size[l]) <= kBlockNodes) {
-      split = l;
-      break;
+  // the levels: 0 solves for z with right-hand side r (lvs[b]: r[b]), the field is X = G;
+  // in shared memory, one copy per block (per-thread arrays indexed by level would live
+  // in local memory), as raw bytes (__shared__ allows no default member initialisers)
+  constexpr int kL = deform::kMultigridMaxLevels;
+  __shared__ alignas(16) unsigned char level_bytes[3 * kL * sizeof(MultigridLevel) + kL * sizeof(Vec3i)];
+  auto* lvs = reinterpret_cast<MultigridLevel(*)[kL]>(level_bytes);
+  MultigridLevel* sl = reinterpret_cast<MultigridLevel*>(level_bytes + 2 * kL * sizeof(MultigridLevel));
+  Vec3i* origin = reinterpret_cast<Vec3i*>(level_bytes + 3 * kL * sizeof(MultigridLevel));
+  if (threadIdx.x == 0) {
+    for (int b = 0; b < 2; ++b) {
+      lvs[b][0] = MultigridLevel{voi.size, m.z, m.r[b], m.held, m.res};
+      for (int l = 1; l < plan.levels; ++l) {
+        const long long o = plan.offset[l];
+        lvs[b][l] = MultigridLevel{plan.size[l], m.cx + o, m.cf + o, m.cheld + o, m.cres + o};
+      }
     }
+    for (int l = 0; l + 1 < plan.levels; ++l) origin[l] = plan.origin[l];
+  }
+  const MultigridLevel* lv = lvs[0];
+  const MultigridLevel L0{voi.size, m.z, m.r[0], m.held, m.res};  // level 0 (its f aside)
+  const int n = L0.count();
+  float* X = m.g;
+  const int split = block_split(plan);
   const int last = plan.levels - 1;
   const int grid_to = split < last ? split : last;
+  // levels split..last (the end of the coarse buffers) in block 0's shared memory
+  extern __shared__ float mg_smem[];
+  if (threadIdx.x == 0 && split > 0 && split <= last) {
+    const long long base = plan.offset[split];
+    const int nb = int(plan.coarse_count - base);
+    float* sx = mg_smem;
+    float* sf = sx + nb;
+    float* sr = sf + nb;
+    std::uint8_t* sh = reinterpret_cast<std::uint8_t*>(sr + nb);
+    for (int l = split; l <= last; ++l) {
+      const int o = int(plan.offset[l] - base);
+      sl[l] = MultigridLevel{plan.size[l], sx + o, sf + o, sh + o, sr + o};
+    }
+  }
+  __syncthreads();
+  const int g_idx = L0.index(a.geo.grabbed.x, a.geo.grabbed.y, a.geo.grabbed.z);
+  const Vec3f d{u[0][g_idx], u[1][g_idx], u[2][g_idx]};
+  int* dirty = m.flags + a.parity;
+  const bool hit = a.hit && *(volatile int*)(m.flags + 2) != 0;
 
-  // X from u, the held mask (grabbed element, material weight 0), dot sums zeroed
-  const int g_idx = field.index(a.geo.grabbed.x, a.geo.grabbed.y, a.geo.grabbed.z);
-  for (int e = int(all.first); e < n; e += int(all.stride)) {
+  // the held mask (grabbed element, material weight 0), whether a held element other
+  // than the grabbed one moved, and with a reusable G already u = d G (overwritten below
+  // if a held element moved: the solves read u at held elements only)
+  if (first_thread) m.flags[a.parity ^ 1] = 0;
+  if (all.first < 6 * a.cycles) m.dots[all.first] = 0.0;
+  bool moved_held = false;
+  for (int e = all.first; e < n; e += all.stride) {
     int i, j, k;
-    field.coords(e, i, j, k);
+    L0.coords(e, i, j, k);
     const long long gi = ((long long)(voi.lo.z + k) * a.geo.volume_size.y + (voi.lo.y + j)) * a.geo.volume_size.x +
                          (voi.lo.x + i);
     const bool held =
         e == g_idx || deform::material_weight(a.b.intensity[gi], a.b.bone[gi] != 0, a.threshold, a.width) == 0.0f;
-    // the start: u on held elements, 0 on free ones (as the CPU reference)
-    m.x[e] = held ? Vec3f{u[0][e], u[1][e], u[2][e]} : Vec3f{0, 0, 0};
     m.held[e] = held;
-    m.p[e] = Vec3f{0, 0, 0};
+    if (held && e != g_idx && (u[0][e] != 0.0f || u[1][e] != 0.0f || u[2][e] != 0.0f)) moved_held = true;
+    if (hit && !held) {
+      const float ge = X[e];
+      u[0][e] = d.x * ge;
+      u[1][e] = d.y * ge;
+      u[2][e] = d.z * ge;
+    }
   }
-  if (all.first < unsigned(2 * a.cycles)) m.dots[all.first] = 0.0;
+  if (moved_held) *(volatile int*)dirty = 1;
   grid.sync();
-  // r = -(6 X - sum6) on free elements; z = r / 6 on red free elements (the V-cycle's
-  // first half-sweep from z = 0), 0 elsewhere
-  for (int e = int(all.first); e < n; e += int(all.stride)) {
-    int i, j, k;
-    field.coords(e, i, j, k);
-    const Vec3f r = m.held[e] ? Vec3f{0, 0, 0} : deform::multigrid_residual(m.x[e], field.sum6(m.x, i, j, k), Vec3f{0, 0, 0});
-    m.r[e] = r;
-    m.z[e] = deform::multigrid_colour(i, j, k) == 0 ? deform::multigrid_smooth(Vec3f{0, 0, 0}, r) : Vec3f{0, 0, 0};
+  const bool clean = *(volatile int*)dirty == 0;
+  // one scalar solve per component with its own held data, or one for G when clean
+  const int solves = hit && clean ? 0 : (clean ? 1 : 3);
+  if (first_thread) {
+    a.b.counters->relax_solves = solves;
+    if (!clean) m.flags[2] = 0;  // X will not hold G
   }
-  grid.sync();
+  if (solves == 0) return;
+  for (int comp = 0; comp < solves; ++comp) {
+    const float* ucomp = u[comp];
+    auto data = [&](int e) { return clean ? (e == g_idx ? 1.0f : 0.0f) : ucomp[e]; };
+    double* dots = m.dots + 2 * a.cycles * comp;
+    // X: the held data, 0 on free nodes; r = sum6(X) - 6 X on free nodes; z its first red
+    // half-sweep from 0 (X of the neighbours from the mask and the data)
+    for (int e = all.first; e < n; e += all.stride) {
+      int i, j, k;
+      L0.coords(e, i, j, k);
+      const bool held = m.held[e];
+      const float xe = held ? data(e) : 0.0f;
+      float s = 0;
+      for (int q = 0; q < 6; ++q) {
+        const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
+        if (!L0.inside(nb.x, nb.y, nb.z)) continue;
+        const int ne = L0.index(nb.x, nb.y, nb.z);
+        s += m.held[ne] ? data(ne) : 0.0f;
+      }
+      const float re = held ? 0.0f : s - 6.0f * xe;
+      X[e] = xe;
+      m.r[0][e] = re;
+      m.z[e] = !held && deform::multigrid_colour(i, j, k) == 0 ? deform::multigrid_smooth(0.0f, re) : 0.0f;
+    }
+    grid.sync();
+    lv = lvs[0];
+    sweep(lv[0], 1, all);
+    grid.sync();
 
-  Vec3f* p = m.p;
-  Vec3f* p_next = m.p2;
-  double rho = 0;
-  for (int c = 0; c < a.cycles; ++c) {
-    // z = one symmetric V-cycle applied to r: the grid down to level `split`, block 0
-    // below it, the grid back up
-    vcycle(lv, plan, 0, grid_to, all, gsync);
-    if (split <= last) {
-      if (blockIdx.x == 0) {
-        vcycle(lv, plan, split, last, block0, bsync);
-        coarsest(lv[last], deform::kMultigridCoarsestSweeps, block0, bsync);
-        vcycle_up(lv, plan, split, last, block0, bsync);
+    int cur = 0, pc = 0;
+    double rho = 0;
+    float alpha = 0;
+    bool stepped = false;  // the last step's X += alpha p is left to the output pass
+    for (int c = 0; c < a.cycles; ++c) {
+      lv = lvs[cur];
+      // z = M r: the grid down to level split, block 0 below it (in shared memory when
+      // split > 0), the grid back up; level 0's last red half-sweep comes with rho below
+      auto gsync = [&] { grid.sync(); };
+      auto bsync = [] { __syncthreads(); };
+      down(lv, origin, 0, grid_to, all, true, gsync);
+      if (split <= last) {
+        if (blockIdx.x == 0) {
+          const MultigridLevel* bl = split > 0 ? sl : lv;
+          if (split > 0) {
+            // level split's f, held mask and first red half-sweep into shared memory
+            const MultigridLevel g = lv[split], sg = bl[split];
+            for (int e = block0.first; e < g.count(); e += block0.stride) {
+              sg.x[e] = g.x[e];
+              sg.f[e] = g.f[e];
+              sg.held[e] = g.held[e];
+            }
+            __syncthreads();
+          }
+          down(bl, origin, split, last, block0, false, bsync);
+          coarsest(bl[last], last > 0, block0, bsync);
+          up(bl, origin, split, last, block0, -1, bsync);
+          if (split > 0) {
+            const MultigridLevel g = lv[split], sg = bl[split];
+            for (int e = block0.first; e < g.count(); e += block0.stride) g.x[e] = sg.x[e];
+          }
+        }
+        grid.sync();
+      } else {
+        // the coarsest level too large for one block (a thin VOI: level 0 itself)
+        coarsest(lv[last], last > 0, all, gsync);
       }
+      up(lv, origin, 0, grid_to, all, 0, gsync);
+      // level 0's red half-sweep, when the grid runs it, with rho = r . z; else rho alone
+      const float* r = m.r[cur];
+      double part = 0;
+      const bool red_on_grid = grid_to > 0;
+      const MultigridLevel l0 = lv[0];
+      for (int e = all.first; e < n; e += all.stride) {
+        if (red_on_grid) {
+          int i, j, k;
+          L0.coords(e, i, j, k);
+          deform::multigrid_sweep_node(l0, 0, i, j, k);
+        }
+        part += double(r[e]) * m.z[e];
+      }
+      block_sum_add(part, &dots[2 * c]);
       grid.sync();
-    } else {
-      coarsest(lv[last], deform::kMultigridCoarsestSweeps, all, gsync);  // a thin VOI whose coarsest level is too large for one block
-    }
-    vcycle_up(lv, plan, 0, grid_to, all, gsync);
-    // rho = r . z
-    double part = 0;
-    for (int e = int(all.first); e < n; e += int(all.stride)) part += dot3(m.r[e], m.z[e]);
-    block_sum_add(part, &m.dots[2 * c]);
-    grid.sync();
-    const double rho_new = m.dots[2 * c];
-    if (!(rho_new > 0)) break;  // r = 0: converged
-    const float beta = c == 0 ? 0.0f : float(rho_new / rho);
-    rho = rho_new;
-    // p' = z + beta p into the other buffer, q = A p' on free elements (p' of the
-    // neighbours from z and p), and p' . q
-    part = 0;
-    for (int e = int(all.first); e < n; e += int(all.stride)) {
-      int i, j, k;
-      field.coords(e, i, j, k);
-      const Vec3f pe = m.z[e] + p[e] * beta;
-      Vec3f sum6{0, 0, 0};
-      for (int nq = 0; nq < 6; ++nq) {
-        const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(nq);
-        if (!field.inside(nb.x, nb.y, nb.z)) continue;
-        const int ne = field.index(nb.x, nb.y, nb.z);
-        sum6 += m.z[ne] + p[ne] * beta;
+      const double rho_new = dots[2 * c];
+      if (!(rho_new > 0)) break;  // r = 0: converged
+      const float beta = c == 0 ? 0.0f : float(rho_new / rho);
+      rho = rho_new;
+      // p' = z + beta p into the other buffer, q = A p' on free nodes (p' of the
+      // neighbours from z and p), and p' . q
+      const float* p = m.p[pc];
+      float* p_next = m.p[pc ^ 1];
+      part = 0;
+      for (int e = all.first; e < n; e += all.stride) {
+        int i, j, k;
+        L0.coords(e, i, j, k);
+        const float pe = c == 0 ? m.z[e] : m.z[e] + p[e] * beta;
+        float s = 0;
+        for (int q = 0; q < 6; ++q) {
+          const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
+          if (!L0.inside(nb.x, nb.y, nb.z)) continue;
+          const int ne = L0.index(nb.x, nb.y, nb.z);
+          s += c == 0 ? m.z[ne] : m.z[ne] + p[ne] * beta;
+        }
+        const float qe = m.held[e] ? 0.0f : 6.0f * pe - s;
+        p_next[e] = pe;
+        m.q[e] = qe;
+        part += double(pe) * qe;
       }
-      const Vec3f q = m.held[e] ? Vec3f{0, 0, 0} : -deform::multigrid_residual(pe, sum6, Vec3f{0, 0, 0});
-      p_next[e] = pe;
-      m.q[e] = q;
-      part += dot3(pe, q);
+      block_sum_add(part, &dots[2 * c + 1]);
+      pc ^= 1;
+      grid.sync();
+      const double pq = dots[2 * c + 1];
+      if (!(pq > 0)) break;
+      alpha = float(rho / pq);
+      if (c + 1 == a.cycles) {
+        stepped = true;
+        break;
+      }
+      // X += alpha p; r' = r - alpha q into the other buffer; z for the next V-cycle:
+      // r' / 6 at red free nodes, the black half-sweep from those at black free nodes
+      const float* pn = m.p[pc];
+      float* r_next = m.r[cur ^ 1];
+      for (int e = all.first; e < n; e += all.stride) {
+        int i, j, k;
+        L0.coords(e, i, j, k);
+        X[e] += pn[e] * alpha;
+        const float re = deform::multigrid_cg_residual(r[e], m.q[e], alpha);
+        r_next[e] = re;
+        float ze = 0;
+        if (!m.held[e]) {
+          if (deform::multigrid_colour(i, j, k) == 0) {
+            ze = deform::multigrid_smooth(0.0f, re);
+          } else {
+            float s = 0;
+            for (int q = 0; q < 6; ++q) {
+              const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
+              if (!L0.inside(nb.x, nb.y, nb.z)) continue;
+              const int ne = L0.index(nb.x, nb.y, nb.z);
+              s += m.held[ne] ? 0.0f : deform::multigrid_smooth(0.0f, deform::multigrid_cg_residual(r[ne], m.q[ne], alpha));
+            }
+            ze = deform::multigrid_smooth(s, re);
+          }
+        }
+        m.z[e] = ze;
+      }
+      cur ^= 1;
+      grid.sync();
     }
-    block_sum_add(part, &m.dots[2 * c + 1]);
-    Vec3f* t = p;
-    p = p_next;
-    p_next = t;
-    grid.sync();
-    const double pq = m.dots[2 * c + 1];
-    if (!(pq > 0)) break;
-    const float alpha = float(rho / pq);
-    // X += alpha p, r -= alpha q, and z for the next V-cycle as at the start
-    for (int e = int(all.first); e < n; e += int(all.stride)) {
-      int i, j, k;
-      field.coords(e, i, j, k);
-      m.x[e] += p[e] * alpha;
-      const Vec3f r = m.r[e] - m.q[e] * alpha;
-      m.r[e] = r;
-      m.z[e] = deform::multigrid_colour(i, j, k) == 0 && !m.held[e] ? deform::multigrid_smooth(Vec3f{0, 0, 0}, r)
-                                                                   : Vec3f{0, 0, 0};
+    // the last X += alpha p, and u from X on free elements: d X (X = G) or this component
+    const float* pn = m.p[pc];
+    for (int e = all.first; e < n; e += all.stride) {
+      if (stepped) X[e] += pn[e] * alpha;
+      if (m.held[e]) continue;
+      const float xe = X[e];
+      if (clean) {
+        u[0][e] = d.x * xe;
+        u[1][e] = d.y * xe;
+        u[2][e] = d.z * xe;
+      } else {
+        u[comp][e] = xe;
+      }
     }
-    grid.sync();
+    if (comp + 1 < solves) grid.sync();
   }
-  // u = X
-  for (int e = int(all.first); e < n; e += int(all.stride)) {
-    u[0][e] = m.x[e].x;
-    u[1][e] = m.x[e].y;
-    u[2][e] = m.x[e].z;
-  }
+  if (clean && first_thread) m.flags[2] = 1;  // X holds G
 }
 
 }  // namespace
@@ -312,8 +447,8 @@ int relax_multigrid_blocks() {
   return blocks;
 }
 
-void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float threshold, float width,
-                            const DeviceBuffers& b, const MultigridBuffers& m, int max_blocks, cudaStream_t stream) {
+void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float threshold, float width, bool reuse,
+                            const DeviceBuffers& b, MultigridBuffers& m, int max_blocks, cudaStream_t stream) {
   if (cycles <= 0) return;
   const long long n = g.voi.count();
   MgArgs a;
@@ -325,12 +460,25 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float th
   a.cycles = std::min(cycles, deform::kMultigridMaxCycles);
   a.threshold = threshold;
   a.width = width;
+  // the unit response in m.g was solved for this VOI and grabbed element (if the device
+  // found the step clean then: flags[2])
+  const deform::MultigridCache key{g.voi.lo, g.voi.size, g.grabbed, a.cycles, true};
+  a.hit = reuse && m.cache == key;
+  m.cache = key;
+  a.parity = int(m.launches++ & 1);
+  // block 0's shared memory: levels split..last (x, f, residual, held mask); each level
+  // has at most (2/3)^3 of the nodes of the one above, so below 512 / (1 - 0.3) nodes,
+  // 10 KB, within the 48 KB a launch may take without opting in
+  const int split = block_split(a.plan);
+  std::size_t smem = 0;
+  if (split > 0 && split < a.plan.levels)
+    smem = std::size_t(a.plan.coarse_count - a.plan.offset[split]) * (3 * sizeof(float) + 1);
   a.b = b;
   a.m = m;
   const int blocks = int(std::min<long long>(max_blocks, (n + kPersistentThreads - 1) / kPersistentThreads));
   void* args[] = {&a};
   PALPSIM_CUDA_CHECK(cudaLaunchCooperativeKernel((const void*)relax_multigrid_kernel, dim3(std::max(blocks, 1)),
-                                                 dim3(kPersistentThreads), args, 0, stream));
+                                                 dim3(kPersistentThreads), args, smem, stream));
 }
 
 }  // namespace palpsim::cuda

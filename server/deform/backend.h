@@ -33,6 +33,9 @@ struct DeformConfig {
   double bone_threshold = 200; // the material function's step, in Patient::intensity units (HU)
   bool relax = true;           // run the relaxation stage (scene effect "relaxation")
   bool invert = true;          // produce the deformed image J (scene effect "inversion")
+  /// Multigrid relaxation reuses its unit response while the VOI and the grabbed element
+  /// stay (exact: relax_multigrid.h); false solves every step (benchmarks time both).
+  bool relax_reuse = true;
 
   /// The configuration a scene asks for: Deform{}, prep's bone threshold and the effects.
   /// The scene's settings; the material function's bone threshold is the scene's
@@ -103,6 +106,9 @@ struct DeformStats {
   ChainMailStats chainmail;
   int relax_iterations = 0;          // explicit steps run; 0 when relaxation is off or multigrid
   int relax_cycles = 0;              // multigrid V-cycles run; 0 when relaxation is off or explicit
+  /// Scalar multigrid solves run (relax_multigrid.h): 1 for a fresh unit response, 0 when
+  /// the kept one was reused, 3 when a held element other than the grabbed one had moved.
+  int relax_solves = 0;
   double invert_residual_vox = 0;    // max |p + u(p) - y| over the VOI (voxel); 0 without inversion
   long long invert_unresolved = 0;   // VOI voxels with a residual above deform::kInvertResolvedVox
   double invert_max_change = 0;      // max |J - I| over the VOI (HU); 0 without inversion

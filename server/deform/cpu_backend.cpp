@@ -22,7 +22,9 @@ void CpuDeformBackend::bind_impl() {
   std::vector<Vec3f>().swap(s_.u_next);
   std::vector<float>().swap(s_.weight);
   std::vector<float>().swap(s_.j);
-  for (auto* v : {&s_.mg_r0, &s_.mg_z, &s_.mg_p, &s_.mg_q, &s_.mg_x, &s_.mg_f, &s_.mg_r}) std::vector<Vec3f>().swap(*v);
+  for (auto* v : {&s_.mg_g, &s_.mg_r, &s_.mg_z, &s_.mg_p, &s_.mg_q, &s_.mg_res, &s_.mg_cx, &s_.mg_cf,
+                  &s_.mg_cres}) std::vector<float>().swap(*v);
+  s_.mg_cache = deform::MultigridCache{};
   std::vector<std::uint8_t>().swap(s_.mg_held);
   std::vector<std::uint8_t>().swap(s_.mg_held_coarse);
   std::vector<std::uint8_t>().swap(s_.cell_folded);
@@ -52,9 +54,9 @@ DeformMemory CpuDeformBackend::memory_impl() const {
   DeformMemory m;
   m.chainmail_bytes = bytes(s_.u) + bytes(s_.moved_at) + bytes(s_.visited_at) + bytes(s_.movers) +
                       bytes(s_.candidates) + bytes(s_.changes);
-  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.mg_held) + bytes(s_.mg_r0) + bytes(s_.mg_z) +
-                  bytes(s_.mg_p) + bytes(s_.mg_q) + bytes(s_.mg_x) + bytes(s_.mg_f) +
-                  bytes(s_.mg_r) + bytes(s_.mg_held_coarse) + bytes(s_.cell_folded) + bytes(s_.untangle_flags);
+  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.mg_held) + bytes(s_.mg_g) + bytes(s_.mg_r) +
+                  bytes(s_.mg_z) + bytes(s_.mg_p) + bytes(s_.mg_q) + bytes(s_.mg_res) + bytes(s_.mg_cx) + bytes(s_.mg_cf) + bytes(s_.mg_cres) +
+                  bytes(s_.mg_held_coarse) + bytes(s_.cell_folded) + bytes(s_.untangle_flags);
   m.invert_bytes = bytes(s_.j);
   return m;
 }
@@ -77,8 +79,8 @@ void CpuDeformBackend::relax_impl() {
   const DeformSettings& d = config_.settings;
   if (d.relax_method == "multigrid") {
     // its buffers grow on first use
-    deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, float(config_.bone_threshold),
-                                float(d.material_width), s_);
+    relax_solves_ = deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, float(config_.bone_threshold),
+                                float(d.material_width), config_.relax_reuse, s_);
     return;
   }
   grow_relax_buffers();
@@ -123,6 +125,7 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
     t0 = clock::now();
     relax_impl();
     set_relax_counts(out);
+    if (config_.settings.relax_method == "multigrid") out.relax_solves = relax_solves_;
     out.times.relax_ms = ms_since(t0);
     // untangling, with relaxation when the configuration asks for it
     if (config_.settings.untangle) {

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "deform/backend.h"
+#include "deform/relax_multigrid.h"
 
 namespace palpsim {
 
@@ -24,13 +25,15 @@ struct CpuState {
   std::vector<Vec3i> movers;     // elements that moved in the previous sweep (local index)
   std::vector<Vec3i> candidates; // their neighbours, examined in this sweep
   std::vector<std::pair<long long, Vec3f>> changes;  // this sweep's new positions, applied after it
-  // multigrid relaxation (relax_multigrid.cpp): held mask and CG's residual, preconditioned
-  // residual, direction and A times direction on the VOI, and the coarse levels'
-  // correction, right-hand side, residual and held mask (MultigridPlan::offset)
+  // multigrid relaxation (relax_multigrid.cpp), scalar fields on the VOI: held mask, the
+  // solved field (the unit response G when mg_cache says so), CG's residual,
+  // preconditioned residual, direction, A times direction and the V-cycle's residual; the
+  // coarse levels' correction, right-hand side, residual and held mask (MultigridPlan::offset)
   std::vector<std::uint8_t> mg_held;
-  std::vector<Vec3f> mg_r0, mg_z, mg_p, mg_q;
-  std::vector<Vec3f> mg_x, mg_f, mg_r;
+  std::vector<float> mg_g, mg_r, mg_z, mg_p, mg_q, mg_res;
+  std::vector<float> mg_cx, mg_cf, mg_cres;
   std::vector<std::uint8_t> mg_held_coarse;
+  MultigridCache mg_cache;  // what mg_g holds
   std::vector<std::uint8_t> cell_folded;     // untangling: 1 where the cell with this lowest corner folds
   std::vector<std::uint8_t> untangle_flags;  // untangling: seed and moved bits per element
 };
@@ -53,9 +56,13 @@ void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float
 /// Multigrid relaxation of the VOI's displacement (deform.relax_method "multigrid"):
 /// `cycles` V-cycles towards the explicit scheme's steady state (relax_multigrid.h),
 /// the grabbed element and elements of material weight 0 (bone) held, u = 0 outside
-/// the VOI; the residual of the steady state falls by about 10x per cycle.
-void relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, float threshold, float width,
-                         CpuState& s);
+/// the VOI; the residual of the steady state falls by 3-10x per cycle. With `reuse`, a
+/// step whose VOI, grabbed element and steps equal the last solved one's, and whose held
+/// elements other than the grabbed one are at rest, takes u = d G from the cached unit
+/// response G (the same bits as solving again). Returns the scalar solves run
+/// (DeformStats::relax_solves).
+int relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, float threshold, float width,
+                        bool reuse, CpuState& s);
 
 /// Untangling of the VOI's displacement (DeformBackend::untangle): up to
 /// kUntangleMaxRounds rounds of finding the folded cells and Jacobi sweeps from their
@@ -97,6 +104,7 @@ class CpuDeformBackend final : public DeformBackend {
   void grow_untangle_buffers();
 
   deform::CpuState s_;
+  int relax_solves_ = 0;  // the last multigrid relaxation's scalar solves
   Voi dirty_;  // the VOI whose buffers hold a deformation
 };
 

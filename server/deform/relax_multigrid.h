@@ -1,6 +1,6 @@
 // Multigrid relaxation (deform.relax_method = "multigrid"): the level plan and the
-// per-node math of geometric multigrid V-cycles, written once and compiled by both
-// backends (g++ for server/deform/relax_multigrid.cpp, nvcc for cuda/relax_multigrid.cu).
+// per-node passes of the solver, written once and compiled by both backends (g++ for
+// server/deform/relax_multigrid.cpp, nvcc for cuda/relax_multigrid.cu).
 //
 // What it solves: the steady state of the explicit relaxation (relax.cpp). The explicit
 // update u' = u + s m (sum6 - 6 u) stops changing exactly where sum6 - 6 u = 0, so its
@@ -9,20 +9,45 @@
 // VOI as Dirichlet data. The material function m sets only how fast the explicit scheme
 // gets there (and, through m == 0, which elements are held), not where it gets.
 //
-// How: conjugate gradients on that Laplace equation (free elements only), each step
-// preconditioned by one symmetric geometric multigrid V-cycle. Level 0 is the VOI;
-// level l+1 has half the nodes of level l along each axis, its node I on level l's node
-// 2 I + origin (origin 0 or 1 per axis, chosen so that the grabbed element is a node of
-// every level), and every level holds the 7-point operator 6 x - sum6 with zero outside
+// Linearity: the equation is the same scalar Laplace equation for each component, and
+// its data are the held elements' displacements. ChainMail never moves bone, so where
+// every held element but the grabbed one is at rest (u = 0; "clean"), the steady state is
+// u = d G with d the grabbed element's displacement and G the unit response: 1 at the
+// grabbed element, 0 at the other held elements and outside the VOI, harmonic elsewhere.
+// G depends on the VOI, the grabbed element and the patient, not on d or on ChainMail,
+// so one scalar solve serves the three components, and while the VOI and the grabbed
+// element stay (a press within the tip's voxel) the next step reuses G (u = d G, the
+// same bits as solving again). A held element that ChainMail did move (m == 0 outside
+// the bone mask: intensities far above the bone threshold) makes the step solve each
+// component with its own data instead.
+//
+// How: conjugate gradients (CG) on that scalar Laplace equation (free elements only),
+// each step preconditioned by one symmetric geometric multigrid V-cycle. Level 0 is the
+// VOI; level l+1 has half the nodes of level l along each axis, its node I on level l's
+// node 2 I + origin (origin 0 or 1 per axis, chosen so that the grabbed element is a node
+// of every level), and every level holds the 7-point operator 6 x - sum6 with zero outside
 // it. A coarse node is held (its correction stays 0) when the fine node it lies on is.
 // Smoother: red-black Gauss-Seidel (colour = parity of i + j + k), in place, red then
 // black going down and black then red coming up, so the V-cycle is symmetric; residuals
 // restricted by full weighting, corrections prolonged trilinearly and never applied to
 // held nodes. Plain V-cycles with these coarse grids stall near the held elements and
 // the VOI's faces (0.6-0.95 per cycle where the faces fall between coarse nodes);
-// conjugate gradients remove those few slow modes, and each step costs one V-cycle,
-// one operator application and two dot products.
+// conjugate gradients remove those few slow modes.
+//
+// The passes are shaped for few grid-wide barriers on the GPU (each costs microseconds
+// there), and the CPU runs the same passes in the same order, so both compute alike:
+// - going down, each level starts from x = 0, so its first red half-sweep is x = f / 6,
+//   written by the pass that makes f (the restriction, or CG's update on level 0);
+// - after the black half-sweep the residual is 0 at black nodes (Gauss-Seidel zeroes it
+//   where it just updated), so only red nodes compute one; the restriction sums each
+//   plane of its 27 weights apart (a GPU warp sums the three planes in three lanes);
+// - going up, only red nodes take the coarse correction: the black half-sweep that
+//   follows overwrites the black ones;
+// - CG's update pass makes the next V-cycle's first red-black sweep on level 0 (z = r / 6
+//   at red nodes, the black sweep from those computed on the fly).
 #pragma once
+
+#include <cstdint>
 
 #include "core/hd.h"
 #include "core/vec3.h"
@@ -34,16 +59,12 @@ namespace palpsim::deform {
 constexpr int kMultigridMaxLevels = 16;
 /// The most steps (deform.relax_cycles) a scene may ask for.
 constexpr int kMultigridMaxCycles = 100;
-/// Red-black Gauss-Seidel sweeps before and after each coarse-grid correction (one each:
-/// two reached 1% of the phantom press's steady state in one step fewer, at twice the
-/// barriers per step).
-constexpr int kMultigridPreSweeps = 1;
-constexpr int kMultigridPostSweeps = 1;
-/// Symmetric sweep pairs on the coarsest level (some axis below 3 nodes there, so the
-/// Dirichlet faces are at most 2 nodes apart along it and each sweep reduces the error by
-/// 0.7 or better; CG absorbs the rest: 2 pairs reach the steady state as fast per step as
-/// 16 on the phantom press, and cost 0.1 ms less over 5 steps on the H100).
-constexpr int kMultigridCoarsestSweeps = 2;
+/// Red-black sweeps after the first (red, black) one on the coarsest level (some axis
+/// below 3 nodes there, so the Dirichlet faces are at most 2 nodes apart along it and each
+/// sweep reduces the error by 0.7 or better; CG absorbs the rest): red, black, red, black,
+/// red, i.e. two symmetric sweep pairs (a black half-sweep repeated at the turn changes
+/// nothing and is left out).
+constexpr int kMultigridCoarsestHalfSweeps = 5;
 
 /// Sizes of the levels of one VOI and where the coarse levels lie in one buffer.
 struct MultigridPlan {
@@ -85,43 +106,119 @@ PALPSIM_HD MultigridPlan multigrid_plan(const Vec3i& voi_size, const Vec3i& grab
   return p;
 }
 
-/// The red-black colour of node (i, j, k): sweeps update colour 0, then colour 1.
+/// What the unit response G in a backend's buffer was solved for: the VOI (patient
+/// voxel indices), the VOI-local grabbed element and the steps; `ok` false: none.
+struct MultigridCache {
+  Vec3i lo{0, 0, 0}, size{0, 0, 0}, grabbed{0, 0, 0};
+  int cycles = 0;
+  bool ok = false;
+
+  PALPSIM_HD bool operator==(const MultigridCache& o) const {
+    return ok && o.ok && lo == o.lo && size == o.size && grabbed == o.grabbed && cycles == o.cycles;
+  }
+};
+
+/// The red-black colour of node (i, j, k): 0 red, 1 black.
 PALPSIM_HD int multigrid_colour(int i, int j, int k) { return (i + j + k) & 1; }
 
+/// One level of the scalar problem: its nodes, field x, right-hand side f, held mask and
+/// the residual after the way down's black half-sweep (local index i fastest; VOIs hold
+/// < 2^31 voxels, checked at bind).
+struct MultigridLevel {
+  Vec3i n;
+  float* x;
+  float* f;
+  std::uint8_t* held;
+  float* res;
+
+  PALPSIM_HD int count() const { return n.x * n.y * n.z; }
+  PALPSIM_HD bool inside(int i, int j, int k) const { return i >= 0 && j >= 0 && k >= 0 && i < n.x && j < n.y && k < n.z; }
+  PALPSIM_HD int index(int i, int j, int k) const { return (k * n.y + j) * n.x + i; }
+  PALPSIM_HD void coords(int e, int& i, int& j, int& k) const {
+    k = e / (n.x * n.y);
+    const int rem = e - k * n.x * n.y;
+    j = rem / n.x;
+    i = rem - j * n.x;
+  }
+  /// The six neighbours of (i, j, k) in `v` in the fixed order, zero outside the level.
+  PALPSIM_HD float sum6(const float* v, int i, int j, int k) const {
+    float s = 0;
+    for (int q = 0; q < 6; ++q) {
+      const Vec3i m = Vec3i{i, j, k} + neighbour_offset(q);
+      if (inside(m.x, m.y, m.z)) s += v[index(m.x, m.y, m.z)];
+    }
+    return s;
+  }
+};
+
 /// The Gauss-Seidel value of a free node: the x that makes 6 x - sum6 = f.
-PALPSIM_HD Vec3f multigrid_smooth(const Vec3f& sum6, const Vec3f& f) {
-  return Vec3f{(f.x + sum6.x) / 6.0f, (f.y + sum6.y) / 6.0f, (f.z + sum6.z) / 6.0f};
+PALPSIM_HD float multigrid_smooth(float sum6, float f) { return (f + sum6) / 6.0f; }
+
+/// One red-black half-sweep at node (i, j, k): a free node of `colour` takes its
+/// Gauss-Seidel value; others stay.
+PALPSIM_HD void multigrid_sweep_node(const MultigridLevel& L, int colour, int i, int j, int k) {
+  const int e = L.index(i, j, k);
+  if (multigrid_colour(i, j, k) != colour || L.held[e]) return;
+  L.x[e] = multigrid_smooth(L.sum6(L.x, i, j, k), L.f[e]);
 }
 
-/// The residual f - (6 x - sum6) of a free node (0 at held nodes, decided by the caller).
-PALPSIM_HD Vec3f multigrid_residual(const Vec3f& x, const Vec3f& sum6, const Vec3f& f) {
-  return Vec3f{f.x + sum6.x - 6.0f * x.x, f.y + sum6.y - 6.0f * x.y, f.z + sum6.z - 6.0f * x.z};
+/// The residual f - (6 x - sum6) at node (i, j, k) of level L after its black half-sweep,
+/// into L.res: 0 at black nodes (the sweep zeroed it) and held nodes.
+PALPSIM_HD void multigrid_residual_node(const MultigridLevel& L, int i, int j, int k) {
+  const int e = L.index(i, j, k);
+  L.res[e] = multigrid_colour(i, j, k) != 0 || L.held[e] ? 0.0f : L.f[e] + L.sum6(L.x, i, j, k) - 6.0f * L.x[e];
 }
 
-/// The right-hand side of coarse node (I, J, K): full weighting of the fine residual
-/// `load_r(i, j, k)` (zero outside the fine level and at held fine nodes) over the 27
-/// fine nodes around 2I+1, times 4 (the coarse operator's spacing is 2 fine spacings).
-/// Sums in a fixed order (k, then j, then i) so both backends add alike; `o` is the
-/// level's origin (MultigridPlan::origin).
-template <typename LoadR>
-PALPSIM_HD Vec3f multigrid_restrict(const LoadR& load_r, const Vec3i& o, int I, int J, int K) {
-  Vec3f sum{0, 0, 0};
-  for (int dk = -1; dk <= 1; ++dk)
-    for (int dj = -1; dj <= 1; ++dj)
-      for (int di = -1; di <= 1; ++di) {
-        const int i = 2 * I + o.x + di, j = 2 * J + o.y + dj, k = 2 * K + o.z + dk;
-        // tensor weights 1/2 at the centre, 1/4 beside it, per axis; times 4
-        const float w = 4.0f * (di ? 0.25f : 0.5f) * (dj ? 0.25f : 0.5f) * (dk ? 0.25f : 0.5f);
-        sum += load_r(i, j, k) * w;
-      }
+/// One plane (dk) of the full weighting at coarse node (I, J, K): the fine residuals
+/// (multigrid_residual_node; zero outside the fine level) of the 9 nodes around 2I+o at
+/// fine offset dk along k, each times its tensor weight (1/2 at the centre, 1/4 beside it,
+/// per axis) times 4 (the coarse operator's spacing is 2 fine spacings), summed j then i.
+/// multigrid_restrict_sum() adds the three planes.
+PALPSIM_HD float multigrid_restrict_plane(const MultigridLevel& fine, const Vec3i& o, int I, int J, int K, int dk) {
+  float sum = 0;
+  const int k = 2 * K + o.z + dk;
+  for (int dj = -1; dj <= 1; ++dj)
+    for (int di = -1; di <= 1; ++di) {
+      const int i = 2 * I + o.x + di, j = 2 * J + o.y + dj;
+      const float w = 4.0f * (di ? 0.25f : 0.5f) * (dj ? 0.25f : 0.5f) * (dk ? 0.25f : 0.5f);
+      sum += (fine.inside(i, j, k) ? fine.res[fine.index(i, j, k)] : 0.0f) * w;
+    }
   return sum;
 }
 
-/// The coarse correction at fine node (i, j, k): trilinear interpolation of the coarse
-/// level's values `load_x` (zero outside it) at coarse coordinate ((i-1)/2, (j-1)/2, (k-1)/2).
-template <typename LoadX>
-PALPSIM_HD Vec3f multigrid_prolong(const LoadX& load_x, const Vec3i& o, int i, int j, int k) {
-  return trilinear<Vec3f>(load_x, Vec3f{0.5f * float(i - o.x), 0.5f * float(j - o.y), 0.5f * float(k - o.z)});
+/// The restriction's planes added in a fixed order: (dk -1 + dk 0) + dk 1.
+PALPSIM_HD float multigrid_restrict_sum(float below, float centre, float above) { return (below + centre) + above; }
+
+/// Makes coarse node (I, J, K) from the fine level after its black half-sweep: its
+/// right-hand side `f` (the restricted residual, multigrid_restrict_sum of the planes),
+/// its held mask (the fine node's), and x = f / 6 at red free nodes (the first red
+/// half-sweep from x = 0), 0 elsewhere.
+PALPSIM_HD void multigrid_coarse_node(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o, int I,
+                                      int J, int K, float f) {
+  const int e = coarse.index(I, J, K);
+  const bool held = fine.held[fine.index(2 * I + o.x, 2 * J + o.y, 2 * K + o.z)] != 0;
+  coarse.f[e] = f;
+  coarse.held[e] = held;
+  coarse.x[e] = !held && multigrid_colour(I, J, K) == 0 ? multigrid_smooth(0.0f, f) : 0.0f;
 }
+
+/// The coarse correction at fine node (i, j, k): trilinear interpolation of the coarse
+/// level's x (zero outside it) at coarse coordinate ((i-o)/2, (j-o)/2, (k-o)/2).
+PALPSIM_HD float multigrid_prolong(const MultigridLevel& coarse, const Vec3i& o, int i, int j, int k) {
+  auto load = [&](int a, int b, int c) { return coarse.inside(a, b, c) ? coarse.x[coarse.index(a, b, c)] : 0.0f; };
+  return trilinear<float>(load, Vec3f{0.5f * float(i - o.x), 0.5f * float(j - o.y), 0.5f * float(k - o.z)});
+}
+
+/// The coarse correction of red free node (i, j, k): x += prolonged correction (black
+/// nodes are overwritten by the black half-sweep that follows, so they need none).
+PALPSIM_HD void multigrid_correct_red(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o, int i,
+                                      int j, int k) {
+  const int e = fine.index(i, j, k);
+  if (multigrid_colour(i, j, k) != 0 || fine.held[e]) return;
+  fine.x[e] = fine.x[e] + multigrid_prolong(coarse, o, i, j, k);
+}
+
+/// CG's new residual at a node, r - alpha q (alpha: the step length).
+PALPSIM_HD float multigrid_cg_residual(float r, float q, float alpha) { return r - alpha * q; }
 
 }  // namespace palpsim::deform

@@ -329,6 +329,9 @@ TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and wit
   // levels all fit in block 0
   const PatientPtr thin = make_patient({64, 64, 2}, [](int i, int, int) { return kSoftHu + 0.5f * i; });
   const PatientPtr small = make_soft_patient(8);
+  // held elements that ChainMail moves (material weight 0 outside the bone mask): one
+  // scalar solve per component instead of the unit response
+  const PatientPtr hot = with_hot_voxels(make_soft_patient(64), {{32, 32, 34}, {33, 32, 33}, {32, 33, 35}}, 3000.0f);
   struct Case {
     const char* name;
     PatientPtr p;
@@ -337,7 +340,8 @@ TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and wit
   const Case cases[] = {{"phantom press", phantom, press.contact},
                         {"cube in bone", cube, voxel_contact({32, 32, 13}, {1, 0, 5})},
                         {"thin VOI", thin, voxel_contact({32, 32, 1}, {2, -1, 0.4})},
-                        {"8^3 VOI", small, voxel_contact({4, 4, 4}, {0, 1.5, 0})}};
+                        {"8^3 VOI", small, voxel_contact({4, 4, 4}, {0, 1.5, 0})},
+                        {"moved held voxels", hot, voxel_contact({32, 32, 32}, {0, 1, 3})}};
   for (const Case& k : cases)
     for (int steps : {1, 6, 20}) {
       DeformConfig cfg = preset_config(1);
@@ -363,6 +367,62 @@ TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and wit
       CHECK(worst <= tol);
       CHECK(moved_bone_count(*k.p, b.gpu->voi(), ug) == 0);
     }
+}
+
+TEST_CASE("gpu multigrid reuses its unit response to the bit, and as the cpu does") {
+  if (!have_gpu()) return;
+  // the cpu case of tests/unit/deform_relax_multigrid_test.cpp: a tip moving within one
+  // voxel (the VOI stays), a voxel on, and back
+  auto torso = make_torso_patient(64);
+  const ReusePress press = reuse_press();
+  DeformConfig fresh_cfg = press.cfg;
+  fresh_cfg.relax_reuse = false;
+  auto cpu = make_deform_backend("cpu"), reuse = make_deform_backend("cuda"), fresh = make_deform_backend("cuda");
+  cpu->bind(torso, press.cfg);
+  reuse->bind(torso, press.cfg);
+  fresh->bind(torso, fresh_cfg);
+  // the cpu's field against a gpu's: FMA contraction and the order of the dot products'
+  // sums, as in the case above
+  auto close = [&](const std::vector<Vec3f>& ua, const std::vector<Vec3f>& ug) {
+    float worst = 0;
+    for (std::size_t e = 0; e < ua.size(); ++e)
+      worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
+    return worst <= 1e-4f * std::max(1.0f, max_abs(ua));
+  };
+  for (std::size_t s = 0; s < press.contacts.size(); ++s) {
+    const DeformContact& c = press.contacts[s];
+    const DeformStats a = cpu->step(c), r = reuse->step(c), f = fresh->step(c);
+    INFO("contact " << s);
+    CHECK(a.relax_solves == press.solves[s]);
+    CHECK(r.relax_solves == press.solves[s]);
+    CHECK(f.relax_solves == 1);
+    // to the bit: the step lengths are floats of double dot products, and the atomics'
+    // order changes those doubles by ~1e-16 relative, which a float rounding crosses
+    // with a probability near 1e-8 per step length
+    CHECK(reuse->displacement() == fresh->displacement());
+    CHECK(close(cpu->displacement(), reuse->displacement()));
+  }
+  // the same VOI with a bone element displaced by hand (a held element that moved): three
+  // solves, as on the cpu, after which G is gone and the next clean step solves afresh
+  const DeformContact c = press.contacts.back();
+  long long bone_e = -1;
+  const Voi voi = reuse->voi();
+  for (long long e = 0; e < voi.count() && bone_e < 0; ++e) {
+    const int i = int(e % voi.size.x), j = int(e / voi.size.x % voi.size.y), k = int(e / (voi.size.x * voi.size.y));
+    if (torso->bone.data[torso->grid.index(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k)]) bone_e = e;
+  }
+  REQUIRE(bone_e >= 0);
+  for (DeformBackend* b : {cpu.get(), reuse.get()}) {
+    b->chainmail(c);
+    auto u = b->displacement();
+    u[std::size_t(bone_e)] = Vec3f{0.5f, -0.25f, 1.0f};
+    b->set_displacement(u);
+    b->relax();
+  }
+  CHECK(close(cpu->displacement(), reuse->displacement()));
+  const DeformStats r = reuse->step(c), f = fresh->step(c);
+  CHECK(r.relax_solves == 1);
+  CHECK(reuse->displacement() == fresh->displacement());
 }
 
 TEST_CASE("steps of several sessions in flight at once, each with a share of the GPU, equal steps one at a time") {

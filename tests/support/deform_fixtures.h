@@ -80,6 +80,18 @@ inline PatientPtr make_torso_patient(int n) {
   });
 }
 
+/// A copy of `p` whose voxels `hot` hold `hu` outside the bone mask: far above the bone
+/// threshold the material function is exactly 0 (relaxation holds them) while ChainMail,
+/// which knows only the mask, moves them (what contrast or metal outside bone would do).
+inline PatientPtr with_hot_voxels(const PatientPtr& p, const std::vector<Vec3i>& hot, float hu) {
+  auto q = std::make_shared<Patient>(*p);
+  for (const Vec3i& v : hot) {
+    q->intensity.at(v.x, v.y, v.z) = hu;
+    q->bone.data[q->grid.index(v.x, v.y, v.z)] = 0;
+  }
+  return q;
+}
+
 /// The paper's ChainMail presets (voxel edge lengths).
 inline DeformConfig preset_config(int preset) {
   DeformConfig c;
@@ -94,6 +106,28 @@ inline DeformConfig preset_config(int preset) {
 /// A contact on a 1 mm grid at the origin: grab voxel g and move it by d voxels.
 inline DeformContact voxel_contact(const Vec3i& g, const Vec3& d) {
   return {Vec3(g.x, g.y, g.z), Vec3(g.x + d.x, g.y + d.y, g.z + d.z)};
+}
+
+/// A press whose tip moves within one voxel (the VOI, centred on the tip voxel, stays),
+/// then a voxel on (the VOI moves), then back, on make_torso_patient(64) with multigrid
+/// relaxation at VOI 40: the multigrid reuse tests (cpu and gpu). `solves` is what
+/// DeformStats::relax_solves must say at each contact (G is kept for the last VOI only).
+struct ReusePress {
+  DeformConfig cfg;
+  std::vector<DeformContact> contacts;
+  std::vector<int> solves;
+};
+
+inline ReusePress reuse_press() {
+  ReusePress r;
+  r.cfg = preset_config(1);
+  r.cfg.settings.voi_edge = 40;
+  r.cfg.settings.relax_method = "multigrid";
+  const Vec3i g{32, 10, 32};
+  for (const Vec3& d : {Vec3{2, 7, -3}, Vec3{2.2, 7.3, -3.1}, Vec3{1.9, 6.8, -2.8}, Vec3{3, 7, -3}, Vec3{2.1, 7.1, -3}})
+    r.contacts.push_back(voxel_contact(g, d));
+  r.solves = {1, 0, 0, 1, 1};
+  return r;
 }
 
 /// The Table 1 press of `palpsim-bench deform`: near the middle of the volume, 10 mm

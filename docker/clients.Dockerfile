@@ -28,6 +28,15 @@ RUN if [ -n "$EXTRA_CA_CERTS" ]; then \
 ENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt PIP_DISABLE_PIP_VERSION_CHECK=1
 RUN python3 -m venv /opt/venv && /opt/venv/bin/pip install -q --no-cache-dir 'cmake>=3.31,<5'
 
+# the Python package's dependencies (no Ray: studies on a cluster install palpsim[ray]),
+# from its pyproject.toml alone, so that a change to the sources does not install them
+# again, into a venv at the path it keeps in the runtime stage
+COPY clients/python/pyproject.toml /tmp/pyproject.toml
+RUN --mount=type=cache,target=/root/.cache/pip \
+    python3 -c 'import tomllib; print("\n".join(tomllib.load(open("/tmp/pyproject.toml", "rb"))["project"]["dependencies"]))' \
+      > /tmp/requirements.txt \
+ && python3 -m venv /opt/palpsim/venv && /opt/palpsim/venv/bin/pip install -q -r /tmp/requirements.txt
+
 # palpsim-haptic, palpsim-keys and the generated protobuf modules of the Python package
 # (ccache kept between builds in a BuildKit cache), then bin/ and lib/ of /opt/palpsim
 COPY . /src
@@ -40,11 +49,9 @@ RUN --mount=type=cache,target=/root/.ccache \
  && ccache -s | grep -E 'Hits|Misses' | head -2 \
  && /src/docker/collect-libs.sh /opt/palpsim /build/palpsim-haptic /build/palpsim-keys
 
-# the Python package with its dependencies (no Ray: studies on a cluster install palpsim[ray])
-# in a venv at the path it keeps in the runtime stage, less the libraries' own test suites
-# (110 MB); the check imports what the three tools use
-RUN --mount=type=cache,target=/root/.cache/pip \
-    python3 -m venv /opt/palpsim/venv && /opt/palpsim/venv/bin/pip install -q /src/clients/python \
+# the package itself, less the libraries' own test suites (110 MB); the check imports what
+# the three tools use
+RUN --mount=type=cache,target=/root/.cache/pip /opt/palpsim/venv/bin/pip install -q --no-deps /src/clients/python \
  && find /opt/palpsim/venv/lib -depth -type d -name tests -prune -exec rm -rf {} + \
  && /opt/palpsim/venv/bin/python -c 'import palpsim.batch, palpsim.view, palpsim.plots, pyarrow.parquet, zmq; \
       assert zmq.has("curve"), "pyzmq without CURVE"'

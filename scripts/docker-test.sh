@@ -172,18 +172,24 @@ done
 cp "$keys/station1.key" "$keys/allowed"
 note "keys: server, station1 (allowed), intruder (not allowed), by palpsim-keys in $keys"
 
+# start_server IMAGE LOG RUN-ARGS...: runs container $server_ctr (`docker run -d RUN-ARGS`,
+# which name IMAGE) and waits for the server's 'ready on' line, its output in LOG
+start_server() {
+  local image=$1 log=$2; shift 2
+  dk run -d --name "$server_ctr" "$@" > /dev/null || die "starting container $server_ctr from $image"
+  for _ in $(seq 180); do
+    dk logs "$server_ctr" > "$log" 2>&1 || true
+    grep -q 'ready on' "$log" && return 0
+    [ "$(dk inspect -f '{{.State.Running}}' "$server_ctr")" = true ] ||
+      die "container $server_ctr ($image) exited before it was ready" "$log"
+    sleep 1
+  done
+  die "container $server_ctr ($image) printed no 'ready on' within 180 s" "$log"
+}
+
 dk network create "$net" > /dev/null || die "docker network create $net"
 # the image's default command: the phantom scene on 0.0.0.0:7420 with /keys/server.key_secret and /keys/allowed
-dk run -d --name "$server_ctr" --network "$net" -v "$keys:/keys:ro" palpsim-server:cpu > /dev/null ||
-  die "starting container $server_ctr from palpsim-server:cpu"
-for _ in $(seq 180); do
-  dk logs "$server_ctr" > "$logs/server.log" 2>&1 || true
-  grep -q 'ready on' "$logs/server.log" && break
-  [ "$(dk inspect -f '{{.State.Running}}' "$server_ctr")" = true ] ||
-    die "container $server_ctr (palpsim-server:cpu) exited before it was ready" "$logs/server.log"
-  sleep 1
-done
-grep -q 'ready on' "$logs/server.log" || die "container $server_ctr printed no 'ready on' within 180 s" "$logs/server.log"
+start_server palpsim-server:cpu "$logs/server.log" --network "$net" -v "$keys:/keys:ro" palpsim-server:cpu
 note "server: $(grep -m1 'ready on' "$logs/server.log")"
 
 # a small plan: 3 x 2 presses over the lumbar spine of the phantom, 20 mm deep
@@ -260,7 +266,8 @@ summary_json=$client_out/batch/summary.json
 batch_line=$(python3 -c '
 import json, sys
 s = json.load(open(sys.argv[1]))
-print(s["presses"], s["presses_without_contact"], s["force"]["peak_force_n_min"], s["force"]["peak_force_n_max"], s["poses"])
+f = s["force"]
+print(s["presses"], s["presses_without_contact"], f"{f['peak_force_n_min']:.3f}", f"{f['peak_force_n_max']:.3f}", s["poses"])
 ' "$summary_json")
 read -r presses no_contact fmin fmax poses <<< "$batch_line"
 note "batch: $presses presses ($poses poses) over 2 sessions, $no_contact without contact, peak force $fmin-$fmax N"
@@ -269,7 +276,7 @@ note "batch: $presses presses ($poses poses) over 2 sessions, $no_contact withou
 awk -v f="$fmin" 'BEGIN { exit !(f > 0) }' || die "palpsim-batch: a press felt no force (min peak $fmin N)" "$client_out/batch.txt"
 
 frames=$(ls "$client_out/view"/*.png 2>/dev/null | wc -l)
-note "view: $frames frames received: $(grep -m1 -i 'frames' "$client_out/view.txt" || true)"
+note "view: $frames PNG frames; $(grep -m1 'frames received' "$client_out/view.txt" || true)"
 [ "$frames" -ge 2 ] || die "palpsim-view received $frames frames (expected 2)" "$client_out/view.txt"
 
 read -r intruder admitted refused < <(python3 -c '
@@ -282,10 +289,15 @@ note "server stats: curve_admitted $admitted, curve_refused $refused; the intrud
   die "CURVE: expected station1 admitted and the intruder refused (stats in $client_out/stats.json)" "$logs/server.log"
 dk stop -t 10 "$server_ctr" > /dev/null
 dk logs "$server_ctr" > "$logs/server.log" 2>&1 || true
+dk rm -f "$server_ctr" > /dev/null
 note "palpation across containers with CURVE: PASSED"
 
-# ---- the GPU server image: built here, run only on a machine with an NVIDIA GPU
+# ---- the GPU server image: built here, run in full only on a machine with an NVIDIA GPU;
+# here it must start on the built-in scene (no frames: no EGL vendor without the driver)
 if [ $gpu_build -eq 1 ]; then
   build palpsim-server:gpu docker/server.Dockerfile VARIANT=gpu
+  start_server palpsim-server:gpu "$logs/server-gpu.log" palpsim-server:gpu --bind tcp://127.0.0.1:7420
+  dk rm -f "$server_ctr" > /dev/null
+  note "palpsim-server:gpu: starts here on the built-in scene (all libraries found, patient prepared); deformation on CUDA and frames through the NVIDIA EGL need a GPU host"
 fi
 say "summary in $summary"

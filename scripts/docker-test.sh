@@ -60,7 +60,8 @@ die() {
   printf 'FAILED: %s%s\n' "$1" "${2:+ (log: $2)}" >> "$summary"
   exit 1
 }
-trap 'die "line $LINENO of scripts/docker-test.sh: $BASH_COMMAND (exit $?)"' ERR
+# any other failing command (once: not again in the subshell of a $(...) it failed in)
+trap 'rc=$?; if [ "$BASH_SUBSHELL" -eq 0 ]; then die "line $LINENO of scripts/docker-test.sh: $BASH_COMMAND (exit $rc)"; fi' ERR
 
 [ "$(id -u)" -eq 0 ] || die "needs root: it installs Docker's engine and starts dockerd (run it as root)"
 
@@ -267,7 +268,7 @@ batch_line=$(python3 -c '
 import json, sys
 s = json.load(open(sys.argv[1]))
 f = s["force"]
-print(s["presses"], s["presses_without_contact"], f"{f['peak_force_n_min']:.3f}", f"{f['peak_force_n_max']:.3f}", s["poses"])
+print(s["presses"], s["presses_without_contact"], format(f["peak_force_n_min"], ".3f"), format(f["peak_force_n_max"], ".3f"), s["poses"])
 ' "$summary_json")
 read -r presses no_contact fmin fmax poses <<< "$batch_line"
 note "batch: $presses presses ($poses poses) over 2 sessions, $no_contact without contact, peak force $fmin-$fmax N"

@@ -35,7 +35,7 @@ for a in "$@"; do
   case "$a" in
     --no-gpu-build) gpu_build=0 ;;
     --keep) keep=1 ;;
-    -h|--help) sed -n '2,27p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,26p' "$0"; exit 0 ;;
     *) echo "docker-test: unknown argument '$a' (expected --no-gpu-build, --keep)" >&2; exit 2 ;;
   esac
 done

@@ -23,6 +23,7 @@
 #include <zmq.hpp>
 
 #include "device.h"
+#include "endpoint.h"
 #include "local_model.h"
 #include "net/curve_keys.h"
 #include "palpsim/wire.pb.h"
@@ -241,8 +242,10 @@ int main(int argc, char** argv) {
     params.max_force_n = op.max_force_n();
     params.max_force_rate_n_per_s = op.max_force_rate_n_per_s();
     params.min_gradient_norm = op.min_gradient_norm();
-    pose.connect(pose_via.empty() ? opened.open().pose_endpoint() : pose_via);
-    spdlog::info("session {:016x} on {} (poses {}), device: {}, {} Hz", session, addr, opened.open().pose_endpoint(),
+    const std::string pose_addr =
+        pose_via.empty() ? palpsim::haptic::resolve_endpoint(opened.open().pose_endpoint(), addr) : pose_via;
+    pose.connect(pose_addr);
+    spdlog::info("session {:016x} on {} (poses {}), device: {}, {} Hz", session, addr, pose_addr,
                  device->describe(), rate_hz);
     if (!log_path.empty()) {
       log = std::fopen(log_path.c_str(), "w");

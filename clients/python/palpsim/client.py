@@ -22,6 +22,7 @@ import itertools
 import time
 from dataclasses import dataclass
 from typing import Any, Sequence
+from urllib.parse import urlsplit
 
 import numpy as np
 import zmq
@@ -123,6 +124,23 @@ def _check(request: str, reply: Any) -> None:
     """Raises ServerError when a reply carries an error."""
     if reply.HasField("error") and reply.error.code != wire.ERROR_NONE:
         raise ServerError(request, reply.error.code, reply.error.message)
+
+
+def resolve_endpoint(endpoint: str, control_address: str | None) -> str:
+    """`endpoint` with a wildcard host (`*`, 0.0.0.0, ::) replaced by the host of the
+    control address, so a client can connect where the server bound all interfaces (its
+    pose and stream endpoints are then tcp://0.0.0.0:PORT, as in a container)."""
+    if not control_address or not endpoint.startswith("tcp://"):
+        return endpoint
+    host, _, port = endpoint[len("tcp://"):].rpartition(":")
+    if host not in ("*", "0.0.0.0", "[::]", "::"):
+        return endpoint
+    control_host = urlsplit(control_address).hostname
+    if not control_host or control_host in ("*", "0.0.0.0", "::"):
+        control_host = "127.0.0.1"
+    if ":" in control_host:
+        control_host = f"[{control_host}]"
+    return f"tcp://{control_host}:{port}"
 
 
 class Client:
@@ -257,7 +275,7 @@ class Session:
     def __init__(self, client: Client, reply: "wire.OpenReply"):
         self.client = client
         self.id: int = reply.session_id
-        self.pose_endpoint: str = reply.pose_endpoint
+        self.pose_endpoint: str = resolve_endpoint(reply.pose_endpoint, client.address)
         self.params: "wire.HapticsParams" = reply.params
         self.server_info: "wire.ServerInfo" = reply.server
         self._sock = client.socket(zmq.DEALER)

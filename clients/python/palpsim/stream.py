@@ -29,12 +29,11 @@ import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
-from urllib.parse import urlsplit
 
 import numpy as np
 import zmq
 
-from .client import PalpsimError
+from .client import PalpsimError, resolve_endpoint
 from .keys import CurveKeys
 from .proto import SCHEMA_VERSION, wire
 
@@ -85,22 +84,6 @@ def frame_topic(session_id: int) -> bytes:
 def brick_topic(session_id: int) -> bytes:
     """The brick topic of a session: b"brick." + 16 lowercase hex digits."""
     return BRICK_TOPIC_PREFIX + f"{session_id:016x}".encode()
-
-
-def resolve_endpoint(endpoint: str, control_address: str | None) -> str:
-    """`endpoint` with a wildcard host (`*`, 0.0.0.0, ::) replaced by the host of the
-    control address, so a viewer can connect where the server bound all interfaces."""
-    if not control_address or not endpoint.startswith("tcp://"):
-        return endpoint
-    host, _, port = endpoint[len("tcp://"):].rpartition(":")
-    if host not in ("*", "0.0.0.0", "[::]", "::"):
-        return endpoint
-    control_host = urlsplit(control_address).hostname
-    if not control_host or control_host in ("*", "0.0.0.0", "::"):
-        control_host = "127.0.0.1"
-    if ":" in control_host:
-        control_host = f"[{control_host}]"
-    return f"tcp://{control_host}:{port}"
 
 
 # ---------------------------------------------------------------------------------------

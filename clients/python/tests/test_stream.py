@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import zmq
 
-from palpsim.client import view_settings
+from palpsim.client import Client, Session, view_settings
 from palpsim.proto import wire
 from palpsim.stream import (DeformedVolume, MalformedMessage, SessionClosed, StreamClient,
                             StreamStats, UnknownSession, brick_topic, decode_brick,
@@ -330,6 +330,19 @@ def test_resolve_endpoint():
     assert resolve_endpoint("tcp://0.0.0.0:7422", "tcp://host.lan:7420") == "tcp://host.lan:7422"
     assert resolve_endpoint("tcp://127.0.0.1:7422", "tcp://10.0.0.5:7420") == "tcp://127.0.0.1:7422"
     assert resolve_endpoint("ipc:///tmp/s.stream", "ipc:///tmp/s") == "ipc:///tmp/s.stream"
+
+
+def test_session_pose_endpoint_resolved():
+    # a server bound to every interface (a container's tcp://0.0.0.0:7420) names its pose
+    # endpoint with the wildcard host; the session connects to the control address's host
+    # (127.0.0.2: a loopback address no test server binds; nothing is sent)
+    c = Client("tcp://127.0.0.2:9")
+    s = Session(c, wire.OpenReply(session_id=5, pose_endpoint="tcp://0.0.0.0:9"))
+    try:
+        assert s.pose_endpoint == "tcp://127.0.0.2:9"
+    finally:
+        s._close_socket()
+        c.close()
 
 
 # ---------------------------------------------------------------------------------------

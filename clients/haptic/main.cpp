@@ -316,6 +316,17 @@ int main(int argc, char** argv) {
       ++replies;
       const std::uint64_t s = rep.seq();
       const Vec3 fs{rep.force_n().x(), rep.force_n().y(), rep.force_n().z()};
+      // the patch first, so that the round trip of the reply that brings the first one can switch to local
+      if (rep.has_local_model()) {
+        const char* why = nullptr;
+        if (decode_patch(rep.local_model(), renderer.incoming(), why)) {
+          if (renderer.accept_incoming(now)) ++patches;
+          selector.set_patch_available(true);
+        } else {
+          if (first_bad_patch.empty()) first_bad_patch = why;
+          ++bad_patches;
+        }
+      }
       if (s + ring > n && s <= n && sent_at[s % ring] >= 0) {
         rtt_step = (now - sent_at[s % ring]) * 1e6;
         rtts_us.push_back(rtt_step);
@@ -334,16 +345,6 @@ int main(int argc, char** argv) {
         server_seq[s % ring] = s;
       } else {
         ++late;
-      }
-      if (rep.has_local_model()) {
-        const char* why = nullptr;
-        if (decode_patch(rep.local_model(), renderer.incoming(), why)) {
-          if (renderer.accept_incoming(now)) ++patches;
-          selector.set_patch_available(true);
-        } else {
-          if (first_bad_patch.empty()) first_bad_patch = why;
-          ++bad_patches;
-        }
       }
       if (s > newest_seq) {
         newest_seq = s;

@@ -85,6 +85,28 @@ TEST_CASE("the mode follows the round trip with hysteresis and a dwell", "[hapti
   CHECK(f.mode() == RenderMode::kLocal);
 }
 
+TEST_CASE("a new client asks for patches from its first pose, and a far first reply with one goes local",
+          "[haptic][local]") {
+  // before any round trip the link may be far: ask, so that its first reply brings a patch
+  // (over a packet link the first reply comes 3 to 4 round trips after the loop starts:
+  // TCP and ZMTP handshakes, slow start; a tip may reach the body by then)
+  ModeSelector far;
+  CHECK(far.wants_patches());
+  far.set_patch_available(true);  // the first reply's patch is taken before its round trip
+  CHECK(far.add_round_trip(0.27, 0.40));
+  CHECK(far.mode() == RenderMode::kLocal);
+  // a near link stops asking at its first reply
+  ModeSelector near;
+  CHECK(near.wants_patches());
+  CHECK_FALSE(near.add_round_trip(0.0002, 0.001));
+  CHECK_FALSE(near.wants_patches());
+  CHECK(near.mode() == RenderMode::kRemote);
+  // held in remote mode: never asks
+  ModeSelector held;
+  held.force(RenderMode::kRemote);
+  CHECK_FALSE(held.wants_patches());
+}
+
 TEST_CASE("local rendering equals the patch's eq. 2 and blends to a new patch within the rate bound",
           "[haptic][local]") {
   HapticsSettings params;

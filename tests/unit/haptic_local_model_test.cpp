@@ -211,6 +211,63 @@ TEST_CASE("the passivity controller keeps a delayed spring from generating energ
   CHECK(r.energy().cycles() >= 4);
 }
 
+TEST_CASE("a rendering that starts inside the body gives back only the energy it took in", "[haptic][local]") {
+  // a body below y = 6.5 mm (C = 1 for j <= 6 on a 1 mm patch), F = 1 + 0.5 (6 - y) mm, so
+  // f = k F along +y: 0.25 N at the skin, rising 0.125 N/mm; friction 0. The tip presses
+  // from y = 9 to 2 mm and back at 20 mm/s. Started outside, the rendered force follows
+  // the patch out to the skin; started 2.5 mm inside (no patch before: a far link's
+  // start-up), it gives back on the way out what it took in after it started, and from
+  // there the force along the motion is cut (the energy of the first 2.5 mm never came in)
+  auto press = [](double start_y_mm, double probe_y_mm, double& force_at_probe_n, double& model_at_probe_n) {
+    HapticsSettings params;
+    LocalRenderer r(params, 16);
+    ForcePatch& p = r.incoming();
+    fill_patch(p, 0, 0, 1);
+    for (int k = 0; k < 10; ++k)
+      for (int j = 0; j < 10; ++j)
+        for (int i = 0; i < 10; ++i) {
+          const std::size_t n = p.grid.index(i, j, k);
+          p.body[n] = j <= 6 ? 1 : 0;
+          p.force_mm[n] = float(1.0 + 0.5 * (6 - j));
+          p.grad_force[n] = Vec3f{0, -0.5f, 0};
+        }
+    const double dt = 1e-3, v = 20.0;  // s, mm/s
+    bool accepted = false, probed = false;
+    double t = 0, y = 9;
+    for (int dir = -1; dir <= 1; dir += 2) {
+      while (dir < 0 ? y > 2 : y < 9) {
+        y += dir * v * dt;
+        t += dt;
+        if (!accepted && y <= start_y_mm) accepted = r.accept_incoming(t);
+        const RenderStep s = r.step(t, dt, {5, y, 5}, {0, 0, 0}, RenderMode::kLocal, 1.0);
+        // the first step past the probe on the way out
+        if (dir > 0 && !probed && y >= probe_y_mm) {
+          probed = true;
+          force_at_probe_n = s.force_n.y;
+          model_at_probe_n = s.local_force_n.y;
+        }
+      }
+    }
+    REQUIRE(accepted);
+    REQUIRE(probed);
+    CHECK(r.energy().cycles() == 1);
+    CHECK(r.energy().min_cycle_mj() > -0.01);  // passive (the 0.01 mJ of the other tests)
+  };
+  double f = 0, model = 0;
+  // started outside: 1 mm under the skin on the way out, the patch's force (0.25 + 0.125 *
+  // 0.5 = 0.31 N; 1e-9 N: the same arithmetic as the patch's eq. 2)
+  press(9.5, 5.5, f, model);
+  CHECK(model == Approx(0.3125).margin(1e-3));
+  CHECK(f == Approx(model).margin(1e-9));
+  // started at y = 4: at y = 3 (deeper than the start) the patch's force is still rendered,
+  // at y = 5 (shallower) none of it along the motion is
+  press(4.0, 3.0, f, model);
+  CHECK(f == Approx(model).margin(1e-9));
+  press(4.0, 5.0, f, model);
+  CHECK(model > 0.3);
+  CHECK(std::abs(f) < 1e-9);
+}
+
 TEST_CASE("the watchdog ramps to zero, slower in local mode and on slower links", "[haptic][local]") {
   CHECK(watchdog_scale(0.001, RenderMode::kRemote, 0.1) == 1.0);
   CHECK(watchdog_scale(0.006, RenderMode::kRemote, 0.1) == Approx(0.5));

@@ -256,6 +256,7 @@ def summary(out):
         "local": 100.0 * int(mode.group(2)) / max(1, int(mode.group(3))) if mode else float("nan"),
         "rms": rms, "max": mx, "peak": peak,
         "missed": num(r"missed deadlines (\d+) of", 1, int)[0],
+        "lost": num(r"(\d+) lost", 1, int)[0],
         "wdog": num(r"(\d+) watchdog trips", 1, int)[0],
         "e_rend": e_rend, "e_srv": e_srv,
         "first_reply": num(r"first reply at ([-\d.]+) s")[0],
@@ -311,7 +312,9 @@ def run_case(build, seconds, case, scene_path, log_path, link, client_args=(), w
                               f"tcp://{IP_SERVER}:7420", "--seconds", str(seconds), "--log", log_path,
                               "--warmup", "%g" % warm, *client_args],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=120)
-        if cli.returncode != 0:
+        # 3: some replies came back after the client's 1 s drain, or not at all (counted as
+        # lost in the summary); the press itself ran
+        if cli.returncode not in (0, 3):
             raise RuntimeError("palpsim-haptic failed (%d) in case '%s': %s" % (
                 cli.returncode, name, (cli.stderr or cli.stdout).strip()[-400:]))
         s = summary(cli.stdout)
@@ -380,18 +383,19 @@ def main():
         scene = os.path.join(tmp, "scene.textproto")
         with open(scene, "w") as f:
             f.write(SCENE)
-        print("%-26s %-6s %7s %8s %8s %7s %6s %5s %5s %10s %10s %6s %7s %7s %5s" % (
+        print("%-26s %-6s %7s %8s %8s %7s %6s %5s %5s %10s %10s %6s %7s %7s %5s %5s" % (
             "case", "mode", "local", "rms N", "max N", "rms/pk", "missed", "wdog", "revs", "E rend mJ", "E srv mJ",
-            "warm s", "reply s", "patch s", "wdogW"))
+            "warm s", "reply s", "patch s", "wdogW", "lost"))
         try:
             for case in cases:
                 log = os.path.join(args.log_dir or tmp, "client-%s.csv" % re.sub(r"\W+", "_", case[0]))
                 s = run_case(args.build, args.seconds, case, scene, log, link, args.client_args.split(), args.warmup,
                              args.realtime)
                 pct = 100 * s["rms"] / s["peak"] if s["peak"] > 0 else float("nan")
-                print("%-26s %-6s %6.1f%% %8.4f %8.4f %6.2f%% %6d %5d %5d %10.3f %10.3f %6.2f %7.3f %7.3f %5d" % (
+                print("%-26s %-6s %6.1f%% %8.4f %8.4f %6.2f%% %6d %5d %5d %10.3f %10.3f %6.2f %7.3f %7.3f %5d %5d" % (
                     s["name"], s["mode"], s["local"], s["rms"], s["max"], pct, s["missed"], s["wdog"], s["revs"],
-                    s["e_rend"], s["e_srv"], s["warmup"], s["first_reply"], s["first_patch"], s["warm_trips"]),
+                    s["e_rend"], s["e_srv"], s["warmup"], s["first_reply"], s["first_patch"], s["warm_trips"],
+                    s["lost"]),
                     flush=True)
                 failures += ["%s: %s" % (s["name"], m) for m in misses(s)]
         finally:

@@ -10,8 +10,8 @@ poses (RMS, max, % of peak), missed deadlines, watchdog trips, force reversals
 and the first patch came, watchdog trips before the press); --check fails (exit 1) where
 a case misses the issue's goals (RMS and oscillation at 100 ms round trip, energy in all).
 
-The press starts after a warm-up (--warmup; default 8 round trips, at least 1 s): a cold
-TCP link takes about 5 round trips (TCP and ZMTP handshakes, slow start, a 29 KiB patch
+The press starts when the link is up (the first reply; on a far link the first patch and
+local mode; --warmup: at most that long, default 5 s): a cold TCP link takes about 5 round trips (TCP and ZMTP handshakes, slow start, a 29 KiB patch
 through the initial window) before the first patch, and a tip that reaches the body
 before the client renders any force cannot get back, on the way out, the force that the
 passivity controller will not return (energy the hand never put in). --warmup 0 shows
@@ -75,10 +75,10 @@ GOAL_MAX_REVERSALS = 2
 # by the last one's, an error under 1e-3 mJ a step at 20 mm/s, and a few such steps may
 # add up: the same 0.01 mJ as palpsim-test-local-model allows
 GOAL_MIN_ENERGY_MJ = -0.01
-# the warm-up before the press starts (s): the link's start-up (TCP and ZMTP handshakes,
-# slow start, the first patch) takes about 5 round trips; 8 round trips, at least 1 s
-def warmup_s(rtt_ms):
-    return max(1.0, 8 * rtt_ms / 1000.0)
+# the longest warm-up (s): the client holds the press until its link is up (the first
+# reply; on a far link the first patch and local mode), about 5 round trips, but a lost
+# SYN costs TCP's initial retransmission timeout of 1 s (and 2 s more for a second)
+MAX_WARMUP_S = 5.0
 
 
 def run(*cmd, check=True):
@@ -262,6 +262,7 @@ def summary(out):
         "first_reply": num(r"first reply at ([-\d.]+) s")[0],
         "first_patch": num(r"first patch at ([-\d.]+) s")[0],
         "warm_trips": num(r"(\d+) watchdog trips in it", 1, int)[0],
+        "warmup": num(r"warm-up ([-\d.]+) s")[0],
     }
 
 
@@ -288,7 +289,8 @@ def reversals(log_path, swing_n=REVERSAL_SWING_N):
 
 def run_case(build, seconds, case, scene_path, log_path, link, client_args=(), warmup=None, realtime=False):
     """One case: shape the link, the server in one namespace, the client in the other; the
-    press starts after the warm-up (None: warmup_s(round trip); 0: a cold start). realtime:
+    press starts after the warm-up (None: when the link is up, at most MAX_WARMUP_S; 0: a
+    cold start). realtime:
     both run under SCHED_FIFO (chrt), which tells a loaded CPU's delays from the link's."""
     rt = ["chrt", "-f", "10"] if realtime else []
     name, rtt, jitter, loss = case
@@ -307,7 +309,7 @@ def run_case(build, seconds, case, scene_path, log_path, link, client_args=(), w
             line = srv.stdout.readline()
         if "ready on" not in line:
             raise RuntimeError("palpsim-server did not start: " + line)
-        warm = warmup_s(rtt) if warmup is None else warmup
+        warm = MAX_WARMUP_S if warmup is None else warmup
         cli = subprocess.run(["ip", "netns", "exec", NS_CLIENT, *rt, os.path.join(build, "palpsim-haptic"), "--connect",
                               f"tcp://{IP_SERVER}:7420", "--seconds", str(seconds), "--log", log_path,
                               "--warmup", "%g" % warm, *client_args],
@@ -321,7 +323,7 @@ def run_case(build, seconds, case, scene_path, log_path, link, client_args=(), w
         s["revs"] = reversals(log_path)
         s["name"] = name
         s["rtt"] = rtt
-        s["warmup"] = warm
+
         return s
     finally:
         srv.terminate()
@@ -356,7 +358,7 @@ def main():
     ap.add_argument("--cases", default="", help="round trips (ms) to run, comma-separated (default: all cases)")
     ap.add_argument("--check", action="store_true", help="exit 1 when a case misses the goals")
     ap.add_argument("--warmup", type=float, default=None,
-                    help="seconds before the press starts (default: 8 round trips, at least 1 s; 0: a cold start)")
+                    help="the longest wait for the link before the press starts (default 5 s; 0: a cold start)")
     ap.add_argument("--realtime", action="store_true",
                     help="run server and client under SCHED_FIFO (chrt -f 10): a diagnosis of CPU load")
     ap.add_argument("--client-args", default="", help="more palpsim-haptic arguments, e.g. '--patch-edge 8'")

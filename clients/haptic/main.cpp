@@ -53,8 +53,8 @@ const char* kUsage =
     "  --patch-edge N  voxels per axis of the patches of F asked for in local mode, 4..16 (default 12)\n"
     "  --patch-period S  at most one patch per S seconds, 0.01..1 (default 0.05)\n"
     "  --pose-via ADDR send poses to ADDR instead of the server's pose endpoint (a tunnel or relay to it)\n"
-    "  --warmup S      hold the device's path at its start for S seconds (0..10, default 0) while the link\n"
-    "                  warms up; the rendered-vs-server comparison starts with the path\n";
+    "  --warmup S      hold the device's path at its start until the link is up (the first reply; far:\n"
+    "                  local mode), at most S seconds (0..10, default 0); the comparison starts with the path\n";
 
 // the largest patch the client asks for (PoseRequest.local_model_edge's range is 4..16)
 constexpr int kMaxPatchEdge = 16;
@@ -293,7 +293,7 @@ int main(int argc, char** argv) {
   // the warm-up: the first pose of the device's path (the comparison starts there), when the
   // first reply and the first patch arrived (s), and the watchdog trips before the path
   std::uint64_t path_seq = 0, warmup_trips = 0;
-  double first_reply_s = -1, first_patch_s = -1;
+  double first_reply_s = -1, first_patch_s = -1, path_t0 = 0;
   palpsim::haptic::EnergyMeter server_energy;
 
   const double period_s = 1.0 / rate_hz;
@@ -387,13 +387,18 @@ int main(int argc, char** argv) {
   for (n = 1; !g_stop; ++n) {
     const Clock::time_point deadline = t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(n * period_s));
     const double t = seconds(Clock::now() - t0);
-    // the device's time: held at 0 through the warm-up
-    const double t_dev = std::max(0.0, t - warmup_s);
-    if (max_seconds > 0 && t_dev >= max_seconds) break;
-    if (!path_seq && t >= warmup_s) {
+    // the device's time: held at 0 through the warm-up, which ends when the link is up (a
+    // reply came, and the client renders locally or the round trip does not ask it to) or
+    // after warmup_s
+    const bool link_up = newest_seq != 0 && (selector.mode() == RenderMode::kLocal ||
+                                             selector.round_trip_s() <= palpsim::haptic::ModeSelector::kLocalAboveS);
+    if (!path_seq && (t >= warmup_s || link_up)) {
       path_seq = n;
+      path_t0 = t;
       warmup_trips = watchdog_trips;
     }
+    const double t_dev = path_seq ? t - path_t0 : 0.0;
+    if (max_seconds > 0 && t_dev >= max_seconds) break;
     V3 tip;
     if (!device->read_tip(t_dev, tip)) break;
     take_replies();
@@ -502,7 +507,7 @@ int main(int argc, char** argv) {
   // the link's start: a cold TCP link takes round trips (handshakes, slow start) before any force
   std::printf("palpsim-haptic: first reply at %.3f s, first patch at %.3f s (-1: none); warm-up %.3f s, "
               "%llu watchdog trips in it\n",
-              first_reply_s, first_patch_s, warmup_s, (unsigned long long)warmup_trips);
+              first_reply_s, first_patch_s, path_t0, (unsigned long long)warmup_trips);
   // local rendering, the rendered force against the server's for the same poses, energies
   const auto& re = renderer.energy();
   const double rms = compared ? std::sqrt(err_sq / double(compared)) : 0.0;

@@ -215,6 +215,14 @@ class DelayLineLink:
         return counts[0] if counts else ""
 
 
+def realtime_ok():
+    """True when processes may run under SCHED_FIFO here (chrt -f 10; root, or CAP_SYS_NICE)."""
+    try:
+        return run("chrt", "-f", "10", "true", check=False)[0] == 0
+    except FileNotFoundError:
+        return False
+
+
 def pick_link(which):
     """(link, None) when namespaces and the asked impairment work here, else (None, reason)."""
     if os.geteuid() != 0:

@@ -49,11 +49,16 @@ def test_impaired_links_meet_the_goal_at_100_ms(tmp_path):
     assert len(cases) == len(wanted), "netem_matrix.CASES lost a case this test runs"
     scene = tmp_path / "scene.textproto"
     scene.write_text(nm.SCENE)
+    # the server and the client under SCHED_FIFO where allowed: the test measures the link, and
+    # on a loaded 2-core machine a client descheduled for 0.4 s (seen once in about a dozen
+    # runs beside builds) trips its watchdog whatever the link does
+    realtime = nm.realtime_ok()
+    print("server and client under SCHED_FIFO: %s" % ("yes" if realtime else "no (chrt refused)"))
     results = {}
     try:
         for case in cases:
             log = tmp_path / ("client-%d.csv" % len(results))
-            results[case[0]] = nm.run_case(str(build), 4.8, case, str(scene), str(log), link)
+            results[case[0]] = nm.run_case(str(build), 4.8, case, str(scene), str(log), link, realtime=realtime)
     finally:
         nm.teardown()
     for name, s in results.items():
@@ -64,8 +69,7 @@ def test_impaired_links_meet_the_goal_at_100_ms(tmp_path):
 
     # the plain link: a near client renders the server's force (remote). Its watchdog trips,
     # missed deadlines and force reversals follow the machine's load (2 ms of grace at 1 kHz;
-    # under SCHED_FIFO, netem_matrix.py --realtime, they almost vanish), so they are printed,
-    # not asserted
+    # SCHED_FIFO makes them fewer, not none), so they are printed, not asserted
     s0 = results["rtt 0 ms"]
     assert s0["mode"] == "remote"
     assert s0["e_rend"] >= nm.GOAL_MIN_ENERGY_MJ

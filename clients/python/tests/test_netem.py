@@ -67,11 +67,13 @@ def test_impaired_links_meet_the_goal_at_100_ms(tmp_path):
                   name, link.name, s["mode"], s["local"], s["rms"], s["peak"], s["max"], s["missed"], s["wdog"],
                   s["warm_trips"], s["revs"], s["e_rend"], s["e_srv"]))
 
-    # the plain link: a near client renders the server's force (remote). Its watchdog trips,
-    # missed deadlines and force reversals follow the machine's load (2 ms of grace at 1 kHz;
-    # SCHED_FIFO makes them fewer, not none), so they are printed, not asserted
+    # the plain link: a near client renders the server's force (remote), for most of the run:
+    # a stall of over 64 ms on a loaded machine is a slow link for that moment and may take
+    # it local for the 0.5 s dwell (palpsim-test-local-model allows a fifth of the steps
+    # too). Its watchdog trips, missed deadlines and force reversals follow the machine's
+    # load (2 ms of grace at 1 kHz; SCHED_FIFO makes them fewer, not none): printed only
     s0 = results["rtt 0 ms"]
-    assert s0["mode"] == "remote"
+    assert s0["local"] <= 20.0
     assert s0["e_rend"] >= nm.GOAL_MIN_ENERGY_MJ
 
     for name in ("rtt 100 ms", "rtt 100 ms, loss 1 %"):

@@ -36,9 +36,12 @@ class ModeSelector {
   /// The current mode (remote until round trips say otherwise; never local without a patch).
   RenderMode mode() const { return mode_; }
   /// True when patches should be asked for: local mode, or (not held in remote mode) a round
-  /// trip above kRemoteBelowS, so that a patch is there when local mode starts.
+  /// trip above kRemoteBelowS or none measured yet, so that a patch is there when local mode
+  /// starts: a far link's first reply then brings one and local mode starts at once, a round
+  /// trip earlier than after asking on the first reply; a near link stops asking at its first
+  /// reply (a patch or two at most).
   bool wants_patches() const {
-    return mode_ == RenderMode::kLocal || (!forced_ && rtt_s_ > kRemoteBelowS);
+    return mode_ == RenderMode::kLocal || (!forced_ && (count_ == 0 || rtt_s_ > kRemoteBelowS));
   }
   /// The median round trip (s) of the window; 0 before the first.
   double round_trip_s() const { return rtt_s_; }

@@ -40,11 +40,11 @@ const char* kUsage =
     "usage: palpsim-haptic --connect ADDR [--device press|press:X,Y,Z|csv:FILE|replay:FILE] [--rate HZ]\n"
     "                      [--seconds S] [--log FILE] [--name NAME] [--server-key FILE --client-key FILE]\n"
     "                      [--client-token TEXT] [--mode auto|local|remote] [--patch-edge N] [--patch-period S]\n"
-    "                      [--pose-via ADDR]\n"
+    "                      [--pose-via ADDR] [--warmup S]\n"
     "  --connect ADDR  the server's control address (its 'ready on ADDR' line)\n"
     "  --device SPEC   the built-in press path (default), a CSV of t,x,y,z (s, mm), or a palpsim-haptic log to replay\n"
     "  --rate HZ       loop rate, 100 to 4000 (default 1000)\n"
-    "  --seconds S     stop after S seconds (default: when the device's path ends)\n"
+    "  --seconds S     stop S seconds after the device's path starts (default: when it ends)\n"
     "  --log FILE      CSV of every step (time, pose, force, round trip)\n"
     "  --server-key FILE  the server's public key (its NAME.key from palpsim-keys): speak CURVE\n"
     "  --client-key FILE  this client's secret key (NAME.key_secret), whose public key the server allows\n"
@@ -53,7 +53,9 @@ const char* kUsage =
     "  --mode M        auto (default: local when the round trip is over 8 ms, remote under 4 ms), local or remote\n"
     "  --patch-edge N  voxels per axis of the patches of F asked for in local mode, 4..16 (default 12)\n"
     "  --patch-period S  at most one patch per S seconds, 0.01..1 (default 0.05)\n"
-    "  --pose-via ADDR send poses to ADDR instead of the server's pose endpoint (a tunnel or relay to it)\n";
+    "  --pose-via ADDR send poses to ADDR instead of the server's pose endpoint (a tunnel or relay to it)\n"
+    "  --warmup S      hold the device's path at its start until the link is up (the first reply; far:\n"
+    "                  local mode), at most S seconds (0..10, default 0); the comparison starts with the path\n";
 
 // the largest patch the client asks for (PoseRequest.local_model_edge's range is 4..16)
 constexpr int kMaxPatchEdge = 16;
@@ -136,7 +138,7 @@ Vec3 to_vec(const V3& v) { return {v.x, v.y, v.z}; }
 int main(int argc, char** argv) {
   std::string addr, device_spec = "press", log_path, name = "palpsim-haptic", server_key_file, client_key_file,
               client_token, mode_name = "auto", pose_via;
-  double rate_hz = 1000, max_seconds = 0, patch_period_s = 0.05;
+  double rate_hz = 1000, max_seconds = 0, patch_period_s = 0.05, warmup_s = 0;
   int patch_edge = 12;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -164,6 +166,7 @@ int main(int argc, char** argv) {
       else if (a == "--patch-edge") patch_edge = std::stoi(value());
       else if (a == "--patch-period") patch_period_s = std::stod(value());
       else if (a == "--pose-via") pose_via = value();
+      else if (a == "--warmup") warmup_s = std::stod(value());
       else {
         std::fprintf(stderr, "palpsim-haptic: unknown argument '%s'\n%s", a.c_str(), kUsage);
         return 2;
@@ -195,6 +198,10 @@ int main(int argc, char** argv) {
   }
   if (!(patch_period_s >= 0.01 && patch_period_s <= 1)) {
     std::fprintf(stderr, "palpsim-haptic: --patch-period %g: must be within 0.01..1 s\n", patch_period_s);
+    return 2;
+  }
+  if (!(warmup_s >= 0 && warmup_s <= 10)) {
+    std::fprintf(stderr, "palpsim-haptic: --warmup %g: must be within 0..10 s\n", warmup_s);
     return 2;
   }
   if (!(max_seconds >= 0)) {
@@ -268,7 +275,7 @@ int main(int argc, char** argv) {
   std::vector<Vec3> tip_at(ring), rendered_at(ring), server_at(ring);
   std::vector<std::uint64_t> server_seq(ring, 0);  // the seq server_at holds (0: none)
   std::vector<double> rtts_us;
-  rtts_us.reserve(std::size_t(rate_hz * (max_seconds > 0 ? max_seconds : 60)) + 1024);
+  rtts_us.reserve(std::size_t(rate_hz * (warmup_s + (max_seconds > 0 ? max_seconds : 60))) + 1024);
   v1::PoseRequest req;
   req.set_schema_version(v1::VERSION_CURRENT);
   req.set_session_id(session);
@@ -286,6 +293,10 @@ int main(int argc, char** argv) {
   // the rendered force against the server's for the same pose, and the server's energy
   double err_sq = 0, err_max = 0, server_peak = 0;
   std::uint64_t compared = 0, energy_cursor = 0;
+  // the warm-up: the first pose of the device's path (the comparison starts there), when the
+  // first reply and the first patch arrived (s), and the watchdog trips before the path
+  std::uint64_t path_seq = 0, warmup_trips = 0;
+  double first_reply_s = -1, first_patch_s = -1, path_t0 = 0;
   palpsim::haptic::EnergyMeter server_energy;
 
   const double period_s = 1.0 / rate_hz;
@@ -317,8 +328,21 @@ int main(int argc, char** argv) {
         continue;
       }
       ++replies;
+      if (first_reply_s < 0) first_reply_s = now;
       const std::uint64_t s = rep.seq();
       const Vec3 fs{rep.force_n().x(), rep.force_n().y(), rep.force_n().z()};
+      // the patch first, so that the round trip of the reply that brings the first one can switch to local
+      if (rep.has_local_model()) {
+        const char* why = nullptr;
+        if (decode_patch(rep.local_model(), renderer.incoming(), why)) {
+          if (renderer.accept_incoming(now)) ++patches;
+          if (first_patch_s < 0) first_patch_s = now;
+          selector.set_patch_available(true);
+        } else {
+          if (first_bad_patch.empty()) first_bad_patch = why;
+          ++bad_patches;
+        }
+      }
       if (s + ring > n && s <= n && sent_at[s % ring] >= 0) {
         rtt_step = (now - sent_at[s % ring]) * 1e6;
         rtts_us.push_back(rtt_step);
@@ -327,26 +351,18 @@ int main(int argc, char** argv) {
           std::printf("palpsim-haptic: mode %s at t = %.3f s (round trip %.1f ms)\n",
                       selector.mode() == RenderMode::kLocal ? "local" : "remote", now, selector.round_trip_s() * 1e3);
         }
-        // what was rendered at step s against the server's force for pose s
-        const Vec3 d = rendered_at[s % ring] - fs;
-        err_sq += palpsim::dot(d, d);
-        err_max = std::max(err_max, palpsim::norm(d));
-        server_peak = std::max(server_peak, palpsim::norm(fs));
-        ++compared;
+        // what was rendered at step s against the server's force for pose s (from the path's start)
+        if (path_seq && s >= path_seq) {
+          const Vec3 d = rendered_at[s % ring] - fs;
+          err_sq += palpsim::dot(d, d);
+          err_max = std::max(err_max, palpsim::norm(d));
+          server_peak = std::max(server_peak, palpsim::norm(fs));
+          ++compared;
+        }
         server_at[s % ring] = fs;
         server_seq[s % ring] = s;
       } else {
         ++late;
-      }
-      if (rep.has_local_model()) {
-        const char* why = nullptr;
-        if (decode_patch(rep.local_model(), renderer.incoming(), why)) {
-          if (renderer.accept_incoming(now)) ++patches;
-          selector.set_patch_available(true);
-        } else {
-          if (first_bad_patch.empty()) first_bad_patch = why;
-          ++bad_patches;
-        }
       }
       if (s > newest_seq) {
         newest_seq = s;
@@ -374,9 +390,20 @@ int main(int argc, char** argv) {
   for (n = 1; !g_stop; ++n) {
     const Clock::time_point deadline = t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(n * period_s));
     const double t = seconds(Clock::now() - t0);
-    if (max_seconds > 0 && t >= max_seconds) break;
+    // the device's time: held at 0 through the warm-up, which ends when the link is up (a
+    // reply came, and the client renders locally or the round trip does not ask it to) or
+    // after warmup_s
+    const bool link_up = newest_seq != 0 && (selector.mode() == RenderMode::kLocal ||
+                                             selector.round_trip_s() <= palpsim::haptic::ModeSelector::kLocalAboveS);
+    if (!path_seq && (t >= warmup_s || link_up)) {
+      path_seq = n;
+      path_t0 = t;
+      warmup_trips = watchdog_trips;
+    }
+    const double t_dev = path_seq ? t - path_t0 : 0.0;
+    if (max_seconds > 0 && t_dev >= max_seconds) break;
     V3 tip;
-    if (!device->read_tip(t, tip)) break;
+    if (!device->read_tip(t_dev, tip)) break;
     take_replies();
     const RenderMode mode = selector.mode();
 
@@ -480,6 +507,10 @@ int main(int argc, char** argv) {
       (unsigned long long)lost, (unsigned long long)watchdog_trips, percentile(rtts_us, 0.5), percentile(rtts_us, 0.99),
       percentile(rtts_us, 0.999), (unsigned long long)missed, (unsigned long long)steps);
   if (!first_error.empty()) std::printf("palpsim-haptic: first error reply: %s\n", first_error.c_str());
+  // the link's start: a cold TCP link takes round trips (handshakes, slow start) before any force
+  std::printf("palpsim-haptic: first reply at %.3f s, first patch at %.3f s (-1: none); warm-up %.3f s, "
+              "%llu watchdog trips in it\n",
+              first_reply_s, first_patch_s, path_t0, (unsigned long long)warmup_trips);
   // local rendering, the rendered force against the server's for the same poses, energies
   const auto& re = renderer.energy();
   const double rms = compared ? std::sqrt(err_sq / double(compared)) : 0.0;

@@ -23,7 +23,7 @@ struct ForcePatch {
   HapticsSettings params;             // the session's haptics parameters when the patch was made
   std::uint64_t version = 0;          // the server's patch number (grows per session); 0: empty
   std::uint64_t generation = 0;       // the scene generation whose patient it was cut from
-  Vec3 center_mm{0, 0, 0};            // the tip it was made around
+  Vec3 center_mm{0, 0, 0};            // the point its box was centred on: the tip, led by its velocity
 
   /// True when the patch holds samples.
   bool valid() const { return version != 0 && grid.count() != 0 && body.size() == grid.count(); }

@@ -1,5 +1,6 @@
 #include "net/pose_service.h"
 
+#include <algorithm>
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
@@ -234,7 +235,7 @@ class PoseService {
 
     const HapticsSettings params = slot->params();
     const ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
-    if (edge != 0) serve_patches(*slot, params, tip, edge, period, now_s);
+    if (edge != 0) serve_patches(*slot, params, tip, edge, period, now_s, tc);
     slot->renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);
     if (req_.renders_locally()) slot->local_poses.fetch_add(1, std::memory_order_relaxed);
 
@@ -286,11 +287,26 @@ class PoseService {
     return false;
   }
 
+  // the centre of the next patch's box: the tip, led by its velocity since the last patch
+  // (on the client's clock: after a TCP stall poses arrive in a burst) times kPatchLeadS, at
+  // most edge / 2 - kPatchMarginVox - 1 voxels (the tip stays inside with the margin); the
+  // tip itself for a session's first patch, after a pause, or without client times
+  Vec3 patch_center(const SessionSlot& slot, const Vec3& tip, int edge, double client_time_s) const {
+    const double since_s = client_time_s - slot.patch_client_time_s;
+    if (slot.patch_sent_s < 0 || slot.patch_version == 0 || !(since_s > 0) || since_s > 1.0) return tip;
+    const Vec3 lead = (tip - slot.patch_tip_mm) * (kPatchLeadS / since_s);
+    const Vec3& sp = world_->patient->grid.spacing_mm;
+    const double max_mm = std::max(0.0, 0.5 * edge - kPatchMarginVox - 1) * std::min(sp.x, std::min(sp.y, sp.z));
+    const double n = norm(lead);
+    if (!(n > 0) || !std::isfinite(n)) return tip;
+    return n > max_mm ? tip + lead * (max_mm / n) : tip + lead;
+  }
+
   // a session that asks for patches: the first time, the patch worker is told to make the
   // slot's channel; then a request when a patch is due, and the newest patch the worker
   // has cut for this session and world goes with this reply (patch_worker.h)
   void serve_patches(SessionSlot& slot, const HapticsSettings& params, const Vec3& tip, std::uint32_t edge,
-                     double period_s, double now_s) {
+                     double period_s, double now_s, double client_time_s) {
     if (!slot.patch_asked.load(std::memory_order_relaxed)) {
       slot.patch_asked.store(true, std::memory_order_release);
       sh_.patches_asked.store(true, std::memory_order_release);
@@ -298,17 +314,20 @@ class PoseService {
     PatchChannel* ch = slot.patch_channel.load(std::memory_order_acquire);
     if (!ch) return;
     if (patch_due(slot, tip, now_s, period_s)) {
+      const Vec3 center = patch_center(slot, tip, int(edge), client_time_s);
       PatchRequest& q = ch->request.back();
       q.session_id = slot.state_id;
       q.generation = world_->generation;
       q.version = ++slot.patch_version;
-      q.tip_mm = tip;
+      q.tip_mm = center;
       q.edge = int(edge);
       q.params = params;
       q.server_time_s = now_s;
       ch->request.publish();
       slot.patch_sent_s = now_s;
-      slot.patch_lo = patch_box(world_->patient->grid, tip, int(edge), slot.patch_size);
+      slot.patch_tip_mm = tip;
+      slot.patch_client_time_s = client_time_s;
+      slot.patch_lo = patch_box(world_->patient->grid, center, int(edge), slot.patch_size);
     }
     if (ch->patch.take()) {
       const PatchBytes& b = ch->patch.front();

@@ -68,6 +68,8 @@ struct SessionSlot {
   // (pose) the session's local force model patches (PROTOCOL.md, "Local force model")
   std::uint64_t patch_version = 0;     // of the last patch asked for (0: none since the session opened)
   double patch_sent_s = 0;             // server clock when it was asked for (< 0: due now)
+  Vec3 patch_tip_mm{0, 0, 0};          // the tip then (its velocity since leads the next box)
+  double patch_client_time_s = 0;      // and the client's time of that pose (s)
   Vec3i patch_lo{0, 0, 0};             // its box on the patient grid
   Vec3i patch_size{0, 0, 0};
   // the slot's hand-over to the patch worker: the pose thread says that patches were asked
@@ -204,6 +206,12 @@ constexpr int kMinPatchEdge = 4, kMaxPatchEdge = 16;
 constexpr double kMinPatchPeriodS = 0.01, kMaxPatchPeriodS = 1.0;
 /// A patch is sent early when the tip comes within this many voxels of the last box's faces.
 constexpr double kPatchMarginVox = 2.0;
+/// A patch's box is centred ahead of the tip by its velocity (since the last patch) times this
+/// (s), at most so far that the tip stays kPatchMarginVox + 1 voxels inside: a patch is used
+/// a round trip after it was cut, longer when TCP waits for a lost segment (100 to 300 ms
+/// at 100 ms round trip and 1 % loss), and a box centred on the tip where it was cut covers
+/// 10 mm ahead at most (12 voxels of 2 mm), 0.5 s at 20 mm/s.
+constexpr double kPatchLeadS = 0.25;
 /// The largest PoseReply: a small reply and the largest patch (C 1, F 4, grad F 12 bytes a voxel).
 constexpr std::size_t kMaxPoseReplyBytes = 4096 + std::size_t(kMaxPatchEdge) * kMaxPatchEdge * kMaxPatchEdge * 17;
 /// Longest ControlRequest.client_token (bytes).

@@ -173,14 +173,16 @@ TEST_CASE("patches are served on request, bad requests are refused by name, and 
   const double x = 0.5 * (pi.body_min_mm().x() + pi.body_max_mm().x()), y = pi.body_max_mm().y() - 10,
                z = 0.5 * (pi.body_min_mm().z() + pi.body_max_mm().z());
   std::uint64_t seq = 0;
-  auto pose_call = [&](std::uint32_t edge, double period, bool local = false) {
+  // one pose at the tip moved by dy_mm along y, at client time tc_s (0: none), and its reply
+  auto pose_call = [&](std::uint32_t edge, double period, bool local = false, double dy_mm = 0, double tc_s = 0) {
     v1::PoseRequest q;
     q.set_schema_version(v1::VERSION_CURRENT);
     q.set_session_id(id);
     q.set_seq(++seq);
     q.mutable_tip_mm()->set_x(x);
-    q.mutable_tip_mm()->set_y(y);
+    q.mutable_tip_mm()->set_y(y + dy_mm);
     q.mutable_tip_mm()->set_z(z);
+    q.set_client_time_s(tc_s);
     q.set_local_model_edge(edge);
     q.set_local_model_period_s(period);
     q.set_renders_locally(local);
@@ -235,6 +237,28 @@ TEST_CASE("patches are served on request, bad requests are refused by name, and 
   CHECK(stats.stats().session().renders_locally());
   CHECK(stats.stats().session().local_poses() == 1);
   CHECK(stats.stats().server().bad_parameter() == 2);
+
+  // a tip moving at 20 mm/s along +y on the client's clock (a pose a millisecond): each box
+  // is centred ahead of it by its velocity times kPatchLeadS (0.25 s: 5 mm), so it covers
+  // the tip for longer where it goes (a patch is used a round trip or a TCP stall later)
+  int led = 0, moving_patches = 0;
+  for (int i = 1; i <= 300; ++i) {
+    const double dy = 0.02 * i;
+    const v1::PoseReply r = pose_call(12, 0.01, true, dy, 1.0 + 1e-3 * i);
+    REQUIRE(r.error().code() == v1::ERROR_NONE);
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    if (!r.has_local_model() || i < 50) continue;  // from the second patch on (the first has no velocity)
+    ++moving_patches;
+    // 5 mm ahead of the pose that asked for it, a pose or a few before this one (0.02 mm
+    // each; the worker answers within milliseconds, under 1 mm on a loaded machine)
+    const double ahead = r.local_model().center_mm().y() - (y + dy);
+    INFO("patch " << r.local_model().version() << ": centre " << ahead << " mm ahead of the tip");
+    CHECK(ahead > 4.0);
+    CHECK(ahead <= 5.0 + 1e-6);
+    led += int(ahead > 4.0);
+  }
+  CHECK(moving_patches >= 10);  // one per 10 ms (0.01 s period) over 0.25 s at least
+  CHECK(led == moving_patches);
   CHECK(server.stop() == 0);
 }
 

@@ -85,6 +85,28 @@ TEST_CASE("the mode follows the round trip with hysteresis and a dwell", "[hapti
   CHECK(f.mode() == RenderMode::kLocal);
 }
 
+TEST_CASE("a new client asks for patches from its first pose, and a far first reply with one goes local",
+          "[haptic][local]") {
+  // before any round trip the link may be far: ask, so that its first reply brings a patch
+  // (over a packet link the first reply comes 3 to 4 round trips after the loop starts:
+  // TCP and ZMTP handshakes, slow start; a tip may reach the body by then)
+  ModeSelector far;
+  CHECK(far.wants_patches());
+  far.set_patch_available(true);  // the first reply's patch is taken before its round trip
+  CHECK(far.add_round_trip(0.27, 0.40));
+  CHECK(far.mode() == RenderMode::kLocal);
+  // a near link stops asking at its first reply
+  ModeSelector near;
+  CHECK(near.wants_patches());
+  CHECK_FALSE(near.add_round_trip(0.0002, 0.001));
+  CHECK_FALSE(near.wants_patches());
+  CHECK(near.mode() == RenderMode::kRemote);
+  // held in remote mode: never asks
+  ModeSelector held;
+  held.force(RenderMode::kRemote);
+  CHECK_FALSE(held.wants_patches());
+}
+
 TEST_CASE("local rendering equals the patch's eq. 2 and blends to a new patch within the rate bound",
           "[haptic][local]") {
   HapticsSettings params;
@@ -187,6 +209,63 @@ TEST_CASE("the passivity controller keeps a delayed spring from generating energ
   CHECK(min_running > -0.01);
   CHECK(r.passivity_steps() > 100);
   CHECK(r.energy().cycles() >= 4);
+}
+
+TEST_CASE("a rendering that starts inside the body gives back only the energy it took in", "[haptic][local]") {
+  // a body below y = 6.5 mm (C = 1 for j <= 6 on a 1 mm patch), F = 1 + 0.5 (6 - y) mm, so
+  // f = k F along +y: 0.25 N at the skin, rising 0.125 N/mm; friction 0. The tip presses
+  // from y = 9 to 2 mm and back at 20 mm/s. Started outside, the rendered force follows
+  // the patch out to the skin; started 2.5 mm inside (no patch before: a far link's
+  // start-up), it gives back on the way out what it took in after it started, and from
+  // there the force along the motion is cut (the energy of the first 2.5 mm never came in)
+  auto press = [](double start_y_mm, double probe_y_mm, double& force_at_probe_n, double& model_at_probe_n) {
+    HapticsSettings params;
+    LocalRenderer r(params, 16);
+    ForcePatch& p = r.incoming();
+    fill_patch(p, 0, 0, 1);
+    for (int k = 0; k < 10; ++k)
+      for (int j = 0; j < 10; ++j)
+        for (int i = 0; i < 10; ++i) {
+          const std::size_t n = p.grid.index(i, j, k);
+          p.body[n] = j <= 6 ? 1 : 0;
+          p.force_mm[n] = float(1.0 + 0.5 * (6 - j));
+          p.grad_force[n] = Vec3f{0, -0.5f, 0};
+        }
+    const double dt = 1e-3, v = 20.0;  // s, mm/s
+    bool accepted = false, probed = false;
+    double t = 0, y = 9;
+    for (int dir = -1; dir <= 1; dir += 2) {
+      while (dir < 0 ? y > 2 : y < 9) {
+        y += dir * v * dt;
+        t += dt;
+        if (!accepted && y <= start_y_mm) accepted = r.accept_incoming(t);
+        const RenderStep s = r.step(t, dt, {5, y, 5}, {0, 0, 0}, RenderMode::kLocal, 1.0);
+        // the first step past the probe on the way out
+        if (dir > 0 && !probed && y >= probe_y_mm) {
+          probed = true;
+          force_at_probe_n = s.force_n.y;
+          model_at_probe_n = s.local_force_n.y;
+        }
+      }
+    }
+    REQUIRE(accepted);
+    REQUIRE(probed);
+    CHECK(r.energy().cycles() == 1);
+    CHECK(r.energy().min_cycle_mj() > -0.01);  // passive (the 0.01 mJ of the other tests)
+  };
+  double f = 0, model = 0;
+  // started outside: 1 mm under the skin on the way out, the patch's force (0.25 + 0.125 *
+  // 0.5 = 0.31 N; 1e-9 N: the same arithmetic as the patch's eq. 2)
+  press(9.5, 5.5, f, model);
+  CHECK(model == Approx(0.3125).margin(1e-3));
+  CHECK(f == Approx(model).margin(1e-9));
+  // started at y = 4: at y = 3 (deeper than the start) the patch's force is still rendered,
+  // at y = 5 (shallower) none of it along the motion is
+  press(4.0, 3.0, f, model);
+  CHECK(f == Approx(model).margin(1e-9));
+  press(4.0, 5.0, f, model);
+  CHECK(model > 0.3);
+  CHECK(std::abs(f) < 1e-9);
 }
 
 TEST_CASE("the watchdog ramps to zero, slower in local mode and on slower links", "[haptic][local]") {

@@ -1,4 +1,4 @@
-// Inversion on the GPU: J on the VOI by the same fixed-point iteration as
+// Inversion on the GPU: J on the VOI by the same Newton steps and cell search as
 // server/deform/invert.cpp; one thread per voxel, one launch.
 #include <algorithm>
 
@@ -34,7 +34,7 @@ __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, 
     };
     const int sxy = voi.size.x * voi.size.y;
     const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
-    const Vec3f p = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
+    const Vec3f p = deform::invert_voxel(load_u, voi.size, Vec3f(float(i), float(j), float(k)), iterations, r);
     const float jv = deform::trilinear<float>(load_i, p);
     b.j[e] = jv;
     // how far J moved from I here, and whether it is a number at all

@@ -261,7 +261,8 @@ constexpr int kInvertHalvings = 6;
 /// is singular or reversed, or at a cell face where Newton's step overshoots the kink),
 /// each full, then halved up to kInvertHalvings times, and takes the first trial whose
 /// residual is lower; so the residual never grows from one iteration to the next. Stops
-/// after `iterations` or when no trial lowers it; returns |r| at the final p.
+/// after `iterations` or when no trial lowers it (a local minimum of |r| as far as these
+/// steps can tell); returns |r| at the final p.
 template <typename Eval, typename Project>
 PALPSIM_HD float newton_descend(const Eval& eval, const Project& project, Vec3f& p, int iterations) {
   Vec3f g[3];
@@ -328,11 +329,10 @@ PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iteration
   return p;
 }
 
-/// Newton's residual (voxel) above which invert_voxel() searches the cells for the source:
-/// a fifth of the goal of issue 8 (max residual 0.05 voxel), so that a voxel Newton leaves
-/// is well within it. Newton converges quadratically from 4-8 iterations on where its
-/// start lies in the source's basin, so the search runs only where it stalls (a local
-/// minimum of |r| next to a fold, bone or a VOI face) or where it was given too few.
+/// The residual (voxel) above which Newton's voxel goes to the cell search of
+/// invert_voxel(): a fifth of the goal of issue 8 (max residual 0.05 voxel), so that a
+/// voxel left to Newton is well within it; also where the search stops (a source within
+/// it ends the search).
 constexpr float kInvertSearchVox = 0.01f;
 
 /// Newton iterations of the solve inside one cell of the search (local coordinates, the
@@ -421,14 +421,17 @@ PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec
   return best;
 }
 
-/// The inversion of one VOI voxel y (both backends): invert_point() from y, and where its
-/// residual stays above kInvertSearchVox, invert_search() around y - u(y) (the fixed-point
-/// guess, the same whatever `iterations` is, so that the search's answer does not depend
-/// on it), whichever leaves the lower residual. Writes the residual (voxel).
+/// The inversion of one VOI voxel y (both backends): `iterations` Newton steps from y
+/// (invert_point()), and where they end above kInvertSearchVox (stalled in a local minimum
+/// of |r| next to a fold, bone or a VOI face, or not there yet), invert_search() around
+/// y - u(y), whichever leaves the lower residual. The search starts from the same guess
+/// whatever `iterations` is, so a voxel it takes gets the same source at any count.
+/// With 0 iterations nothing is inverted (p = y, as the paper's iteration with none).
+/// Writes the residual (voxel).
 template <typename LoadU>
 PALPSIM_HD Vec3f invert_voxel(const LoadU& load_u, const Vec3i& size, const Vec3f& y, int iterations, float& residual) {
   Vec3f p = invert_point(load_u, y, iterations, residual);
-  if (residual > kInvertSearchVox) {
+  if (iterations > 0 && residual > kInvertSearchVox) {
     float rs;
     const Vec3f q = invert_search(load_u, size, y, y - trilinear<Vec3f>(load_u, y), rs);
     if (rs < residual) {

@@ -15,6 +15,7 @@
 //   ChainMail left (this is what an unstable step breaks first);
 // - untangling leaves no more folded soft cells than relaxation left, and as many as
 //   its CPU reference;
+// - the inversion resolves every voxel, residual below 0.05 voxel (issue 8, section 4);
 // - J stays within the intensity range of the patient (trilinear blends of I);
 // - on a backend other than "cpu", ChainMail equals the CPU reference exactly and the
 //   relaxed field agrees within float rounding (the tolerances of deform_gpu_test.cpp).
@@ -179,8 +180,12 @@ class DeformRun {
       INFO("inversion: max residual " << o.invert.max_residual_vox << " voxel, " << o.invert.unresolved
                                       << " unresolved");
       REQUIRE(std::isfinite(o.invert.max_residual_vox));
-      REQUIRE(o.invert.unresolved >= 0);
-      REQUIRE(o.invert.unresolved <= voi.count());
+      // every voxel finds its source (issue 8, section 4's goal: 0 unresolved, residual
+      // below 0.05 voxel): Newton where it converges, the cell search where it does not,
+      // which stops at kInvertSearchVox (0.01 voxel), so 0.05 leaves a factor of 5 for
+      // the octant starts' best where no start gets there (measured: at most 0.0134)
+      REQUIRE(o.invert.unresolved == 0);
+      REQUIRE(o.invert.max_residual_vox < 0.05);
       b_->upload();
       const float* brick = b_->deformed_brick();
       o.j.assign(brick, brick + voi.count());

@@ -1,6 +1,8 @@
 // Inversion on the GPU: J on the VOI by the same Newton steps and cell search as
-// server/deform/invert.cpp; one thread per voxel, one launch.
+// server/deform/invert.cpp (invert_voxel() of deform_math.h); one thread per voxel, one
+// launch, each search shared by the thread's warp.
 #include <algorithm>
+#include <climits>
 
 #include "cuda/check.h"
 #include "cuda/kernels.h"
@@ -9,32 +11,101 @@ namespace palpsim::cuda {
 
 namespace {
 
+// invert_search() of deform_math.h with each ring's cells split over the 32 lanes of the
+// warp (a searching thread alone spent 0.3 ms on the Table 1 press's fold, its cells'
+// loads one after another); every lane takes part and gets the same answer: per ring the
+// lowest residual, the lowest ring index among equals, as the CPU's loop in ring order
+__device__ Vec3f warp_search(const deform::Voi& voi, const float* ux, const float* uy, const float* uz,
+                             const Vec3f& y, const Vec3f& guess, float& residual) {
+  auto load_u = [&](int i, int j, int k) {
+    if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
+    const int n = (k * voi.size.y + j) * voi.size.x + i;
+    return Vec3f{ux[n], uy[n], uz[n]};
+  };
+  const int lane = int(threadIdx.x & 31);
+  int rmax;
+  const Vec3i m = deform::search_centre(voi.size, guess, rmax);
+  Vec3f best = guess;
+  residual = 3.4e38f;
+  for (int pass = 0; pass < 2 && !(residual <= deform::kInvertSearchVox); ++pass)
+    for (int r = 0; r <= rmax && !(residual <= deform::kInvertSearchVox); ++r) {
+      // this lane's best of the ring, then the warp's
+      float br = 3.4e38f;
+      int bi = INT_MAX;
+      Vec3f bp = best;
+      for (int idx = lane, n = deform::search_ring_size(r); idx < n; idx += 32) {
+        Vec3f p;
+        float rc;
+        if (deform::search_cell(load_u, voi.size, m + deform::search_ring_cell(r, idx), y, pass, p, rc) && rc < br) {
+          br = rc;
+          bi = idx;
+          bp = p;
+        }
+      }
+      for (int o = 16; o > 0; o >>= 1) {
+        const float orr = __shfl_xor_sync(0xffffffffu, br, o);
+        const int oi = __shfl_xor_sync(0xffffffffu, bi, o);
+        const Vec3f op{__shfl_xor_sync(0xffffffffu, bp.x, o), __shfl_xor_sync(0xffffffffu, bp.y, o),
+                       __shfl_xor_sync(0xffffffffu, bp.z, o)};
+        if (orr < br || (orr == br && oi < bi)) {
+          br = orr;
+          bi = oi;
+          bp = op;
+        }
+      }
+      if (br < residual) {
+        residual = br;
+        best = bp;
+      }
+    }
+  return best;
+}
+
 __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, DeviceBuffers b) {
   const deform::Voi& voi = geo.voi;
   const int e = int(blockIdx.x * blockDim.x + threadIdx.x);  // VOIs hold < 2^31 voxels (checked at bind)
-  float r = 0.0f, change = 0.0f;
+  const bool mine = e < int(voi.count());
+  const float* ux = b.u[src][0];
+  const float* uy = b.u[src][1];
+  const float* uz = b.u[src][2];
+  const Vec3i size = geo.volume_size;
+  // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
+  auto load_u = [&](int i, int j, int k) {
+    if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
+    const int n = (k * voi.size.y + j) * voi.size.x + i;
+    return Vec3f{ux[n], uy[n], uz[n]};
+  };
+  // intensity at a VOI-local voxel, clamped at the volume border
+  auto load_i = [&](int i, int j, int k) {
+    const int gi = min(max(voi.lo.x + i, 0), size.x - 1);
+    const int gj = min(max(voi.lo.y + j, 0), size.y - 1);
+    const int gk = min(max(voi.lo.z + k, 0), size.z - 1);
+    return b.intensity[((long long)gk * size.y + gj) * size.x + gi];
+  };
+  const int sxy = voi.size.x * voi.size.y;
+  const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
+  const Vec3f y{float(i), float(j), float(k)};
+  // Newton (invert_point), then the cell search where it ends above kInvertSearchVox, as
+  // invert_voxel(), the search done by the whole warp for each lane that needs it in turn
+  float r = 0.0f;
+  Vec3f p = y;
+  if (mine) p = deform::invert_point(load_u, y, iterations, r);
+  unsigned need = __ballot_sync(0xffffffffu, mine && iterations > 0 && r > deform::kInvertSearchVox);
+  while (need) {
+    const int who = __ffs(need) - 1;
+    need &= need - 1;
+    const Vec3f yw{__shfl_sync(0xffffffffu, y.x, who), __shfl_sync(0xffffffffu, y.y, who),
+                   __shfl_sync(0xffffffffu, y.z, who)};
+    float rs;
+    const Vec3f q = warp_search(voi, ux, uy, uz, yw, yw - deform::trilinear<Vec3f>(load_u, yw), rs);
+    if (int(threadIdx.x & 31) == who && rs < r) {
+      r = rs;
+      p = q;
+    }
+  }
+  float change = 0.0f;
   bool broken = false;
-  if (e < int(voi.count())) {
-    const float* ux = b.u[src][0];
-    const float* uy = b.u[src][1];
-    const float* uz = b.u[src][2];
-    const Vec3i size = geo.volume_size;
-    // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
-    auto load_u = [&](int i, int j, int k) {
-      if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
-      const int n = (k * voi.size.y + j) * voi.size.x + i;
-      return Vec3f{ux[n], uy[n], uz[n]};
-    };
-    // intensity at a VOI-local voxel, clamped at the volume border
-    auto load_i = [&](int i, int j, int k) {
-      const int gi = min(max(voi.lo.x + i, 0), size.x - 1);
-      const int gj = min(max(voi.lo.y + j, 0), size.y - 1);
-      const int gk = min(max(voi.lo.z + k, 0), size.z - 1);
-      return b.intensity[((long long)gk * size.y + gj) * size.x + gi];
-    };
-    const int sxy = voi.size.x * voi.size.y;
-    const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
-    const Vec3f p = deform::invert_voxel(load_u, voi.size, Vec3f(float(i), float(j), float(k)), iterations, r);
+  if (mine) {
     const float jv = deform::trilinear<float>(load_i, p);
     b.j[e] = jv;
     // how far J moved from I here, and whether it is a number at all

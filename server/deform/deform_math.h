@@ -339,19 +339,51 @@ constexpr float kInvertSearchVox = 0.01f;
 /// trilinear blend is smooth there: quadratic convergence from the centre in 4-6).
 constexpr int kInvertCellIterations = 12;
 
+/// Sub-cells per axis of invert_in_cell()'s second pass: 64 starts, each within 1/8 cell
+/// (along each axis) of any point of its sub-cell.
+constexpr int kInvertSubcells = 4;
+
+/// True when y (local coordinates of the cell with corners `c`) lies in the bounding box,
+/// grown by kInvertSearchVox, of the deformed corners of the sub-cell [lo, lo + h]^3 (local
+/// coordinates): the blend of a sub-cell is a trilinear patch, so its image lies in the
+/// convex hull of its corners' images too.
+PALPSIM_HD bool subcell_holds(const Vec3f c[8], const Vec3f& lo, float h, const Vec3f& yl) {
+  Vec3f bl{3.4e38f, 3.4e38f, 3.4e38f}, bh{-3.4e38f, -3.4e38f, -3.4e38f};
+  for (int q = 0; q < 8; ++q) {
+    const Vec3f f{lo.x + ((q & 1) ? h : 0.0f), lo.y + ((q & 2) ? h : 0.0f), lo.z + ((q & 4) ? h : 0.0f)};
+    Vec3f g[3];
+    const Vec3f x = f + cell_blend(c, f.x, f.y, f.z, g);
+    for (int a = 0; a < 3; ++a) {
+      bl[a] = x[a] < bl[a] ? x[a] : bl[a];
+      bh[a] = x[a] > bh[a] ? x[a] : bh[a];
+    }
+  }
+  for (int a = 0; a < 3; ++a)
+    if (!(yl[a] >= bl[a] - kInvertSearchVox && yl[a] <= bh[a] + kInvertSearchVox)) return false;
+  return true;
+}
+
 /// Solves p + u(p) = y inside the cell whose lowest corner is `o` (corner displacements
-/// `c`, cell_blend()'s order) by newton_descend() on local coordinates kept in [0, 1],
-/// from the cell's centre (`octants` false), or from the centres of its eight octants in
-/// turn until one gets within kInvertSearchVox (`octants` true: for a twisted cell, whose
-/// blend has several local minima of |r|); returns the best p and writes its residual.
-PALPSIM_HD Vec3f invert_in_cell(const Vec3f c[8], const Vec3i& o, const Vec3f& y, bool octants, float& residual) {
+/// `c`, cell_blend()'s order) by newton_descend() on local coordinates kept in [0, 1]:
+/// from the cell's centre (`fine` false), or (`fine` true: for a twisted or very
+/// stretched cell, whose blend has several local minima of |r|) from the centre of each
+/// of its kInvertSubcells^3 sub-cells whose image may hold y, in turn, until one gets
+/// within kInvertSearchVox; returns the best p and writes its residual (voxel).
+PALPSIM_HD Vec3f invert_in_cell(const Vec3f c[8], const Vec3i& o, const Vec3f& y, bool fine, float& residual) {
   const Vec3f yl{y.x - float(o.x), y.y - float(o.y), y.z - float(o.z)};  // y in local coordinates
+  const float h = 1.0f / float(kInvertSubcells);
   Vec3f best{0.5f, 0.5f, 0.5f};
   residual = 3.4e38f;
-  for (int s = octants ? 1 : 0; s < (octants ? 9 : 1) && !(residual <= kInvertSearchVox); ++s) {
-    // start s: the centre, then octant q = s - 1 (bit 0: +i, bit 1: +j, bit 2: +k)
-    Vec3f f = s == 0 ? Vec3f{0.5f, 0.5f, 0.5f}
-                     : Vec3f{(s - 1) & 1 ? 0.75f : 0.25f, (s - 1) & 2 ? 0.75f : 0.25f, (s - 1) & 4 ? 0.75f : 0.25f};
+  const int starts = fine ? kInvertSubcells * kInvertSubcells * kInvertSubcells : 1;
+  for (int s = 0; s < starts && !(residual <= kInvertSearchVox); ++s) {
+    // start s: the centre, or the centre of sub-cell s (i fastest)
+    Vec3f f{0.5f, 0.5f, 0.5f};
+    if (fine) {
+      const Vec3f lo{h * float(s % kInvertSubcells), h * float((s / kInvertSubcells) % kInvertSubcells),
+                     h * float(s / (kInvertSubcells * kInvertSubcells))};
+      if (!subcell_holds(c, lo, h, yl)) continue;
+      f = Vec3f{lo.x + 0.5f * h, lo.y + 0.5f * h, lo.z + 0.5f * h};
+    }
     const float r = newton_descend([&](const Vec3f& q, Vec3f g[3]) { return q + cell_blend(c, q.x, q.y, q.z, g) - yl; },
                                    [](const Vec3f& q) {
                                      return Vec3f{clamp_to(q.x, 0.0f, 1.0f), clamp_to(q.y, 0.0f, 1.0f),
@@ -366,58 +398,93 @@ PALPSIM_HD Vec3f invert_in_cell(const Vec3f c[8], const Vec3i& o, const Vec3f& y
   return Vec3f{float(o.x) + best.x, float(o.y) + best.y, float(o.z) + best.z};
 }
 
-/// The search of invert_voxel(): the source of y among the cells whose lowest corner lies
-/// in [-1, size - 1] (cells beyond the VOI's faces included: u = 0 outside), in rings of
-/// growing Chebyshev distance around the cell holding `guess`. A cell is solved only when
-/// y lies in the bounding box of its deformed corners (the trilinear image of a cell lies
-/// in their convex hull), from its centre; where no cell gets within kInvertSearchVox so,
-/// the rings again from the octants' centres. The first ring holding a source within
-/// kInvertSearchVox ends the search; its best (lowest residual, first in ring order)
-/// wins. A source always exists: p + u(p) is continuous and the identity beyond the VOI,
-/// so every y in the VOI has one (its degree is 1). Returns p and writes its residual
-/// (voxel).
-template <typename LoadU>
-PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec3f& y, const Vec3f& guess,
-                               float& residual) {
+/// The cells of the search's ring r: those at Chebyshev distance r from its centre cell
+/// (1 for r = 0, else (2r+1)^3 - (2r-1)^3).
+PALPSIM_HD int search_ring_size(int r) {
+  const int s = 2 * r + 1;
+  return r == 0 ? 1 : 2 * s * s + (s - 2) * 8 * r;
+}
+
+/// Cell `idx` (0 <= idx < search_ring_size(r)) of ring r, as an offset from the centre
+/// cell, in the order every backend uses: the face at -k and the face at +k (i fastest),
+/// then each layer between them: its row at -j, its row at +j (i fastest), and the two
+/// ends (-i, +i) of each row between.
+PALPSIM_HD Vec3i search_ring_cell(int r, int idx) {
+  const int s = 2 * r + 1;
+  if (idx < 2 * s * s) {
+    const int f = idx / (s * s), q = idx - f * s * s;
+    return Vec3i{q % s - r, q / s - r, f ? r : -r};
+  }
+  const int m = idx - 2 * s * s, layer = m / (8 * r), q = m - layer * 8 * r;
+  const int dk = layer + 1 - r;
+  if (q < 2 * s) return Vec3i{q % s - r, q < s ? -r : r, dk};
+  const int q2 = q - 2 * s;
+  return Vec3i{(q2 & 1) ? r : -r, q2 / 2 + 1 - r, dk};
+}
+
+/// Where the search of y starts: the cell holding `guess` (clamped to the cells that
+/// touch the VOI, lowest corners in [-1, size - 1]); returns it and writes the last ring
+/// that still holds such a cell.
+PALPSIM_HD Vec3i search_centre(const Vec3i& size, const Vec3f& guess, int& rmax) {
   Vec3i m;
-  int rmax = 0;
+  rmax = 0;
   for (int a = 0; a < 3; ++a) {
     m[a] = int(clamp_to(floorf(guess[a]), -1.0f, float(size[a] - 1)));
     rmax = max_int(rmax, max_int(m[a] + 1, size[a] - 1 - m[a]));
   }
+  return m;
+}
+
+/// One cell of the search: false where the cell with lowest corner `o` lies beyond the
+/// cells that touch the VOI, or y lies outside the bounding box of its deformed corners
+/// (grown by kInvertSearchVox; the trilinear image of a cell lies in its corners' convex
+/// hull); else solves it (invert_in_cell(), from its sub-cells on pass 1) and writes p
+/// and its residual (voxel).
+template <typename LoadU>
+PALPSIM_HD bool search_cell(const LoadU& load_u, const Vec3i& size, const Vec3i& o, const Vec3f& y, int pass,
+                            Vec3f& p, float& residual) {
+  if (o.x < -1 || o.y < -1 || o.z < -1 || o.x > size.x - 1 || o.y > size.y - 1 || o.z > size.z - 1) return false;
+  Vec3f c[8];
+  load_cell(load_u, o.x, o.y, o.z, c);
+  for (int a = 0; a < 3; ++a) {
+    float lo = 3.4e38f, hi = -3.4e38f;
+    for (int q = 0; q < 8; ++q) {
+      const float x = float(o[a] + ((q >> a) & 1)) + c[q][a];
+      lo = x < lo ? x : lo;
+      hi = x > hi ? x : hi;
+    }
+    if (!(y[a] >= lo - kInvertSearchVox && y[a] <= hi + kInvertSearchVox)) return false;
+  }
+  p = invert_in_cell(c, o, y, pass == 1, residual);
+  return true;
+}
+
+/// The search of invert_voxel(): the source of y among the cells whose lowest corner lies
+/// in [-1, size - 1] (cells beyond the VOI's faces included: u = 0 outside), ring by ring
+/// (search_ring_cell()) around the cell holding `guess`; each cell by search_cell(), from
+/// its centre (pass 0), and where no cell gets within kInvertSearchVox so, the rings
+/// again from the centres of the cells' sub-cells (pass 1). The first ring holding a source within
+/// kInvertSearchVox ends the search; the lowest residual wins, the first in ring order
+/// among equals (cuda/invert.cu splits each ring over a warp and reduces to the same).
+/// A source always exists: p + u(p) is continuous and the identity beyond the VOI, so
+/// every y in the VOI has one (its degree is 1). Returns p and writes its residual (voxel).
+template <typename LoadU>
+PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec3f& y, const Vec3f& guess,
+                               float& residual) {
+  int rmax;
+  const Vec3i m = search_centre(size, guess, rmax);
   Vec3f best = guess;
   residual = 3.4e38f;
   for (int pass = 0; pass < 2 && !(residual <= kInvertSearchVox); ++pass)
     for (int r = 0; r <= rmax && !(residual <= kInvertSearchVox); ++r)
-      for (int dk = -r; dk <= r; ++dk)
-        for (int dj = -r; dj <= r; ++dj) {
-          // inside the ring's faces only its two ends along i
-          const bool inner = dk > -r && dk < r && dj > -r && dj < r;
-          for (int di = -r; di <= r; di += (inner && r > 0) ? 2 * r : 1) {
-            const Vec3i o{m.x + di, m.y + dj, m.z + dk};
-            if (o.x < -1 || o.y < -1 || o.z < -1 || o.x > size.x - 1 || o.y > size.y - 1 || o.z > size.z - 1) continue;
-            Vec3f c[8];
-            load_cell(load_u, o.x, o.y, o.z, c);
-            // y within the bounding box of the deformed corners (and the search's tolerance)?
-            bool inside = true;
-            for (int a = 0; a < 3 && inside; ++a) {
-              float lo = 3.4e38f, hi = -3.4e38f;
-              for (int q = 0; q < 8; ++q) {
-                const float x = float(o[a] + ((q >> a) & 1)) + c[q][a];
-                lo = x < lo ? x : lo;
-                hi = x > hi ? x : hi;
-              }
-              inside = y[a] >= lo - kInvertSearchVox && y[a] <= hi + kInvertSearchVox;
-            }
-            if (!inside) continue;
-            float rc;
-            const Vec3f p = invert_in_cell(c, o, y, pass == 1, rc);
-            if (rc < residual) {
-              residual = rc;
-              best = p;
-            }
-          }
+      for (int idx = 0, n = search_ring_size(r); idx < n; ++idx) {
+        Vec3f p;
+        float rc;
+        if (search_cell(load_u, size, m + search_ring_cell(r, idx), y, pass, p, rc) && rc < residual) {
+          residual = rc;
+          best = p;
         }
+      }
   return best;
 }
 

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <vector>
 
 #include "core/error.h"
 #include "deform/cpu_backend.h"
@@ -138,6 +139,29 @@ TEST_CASE("the inversion residual falls to rounding for a smooth displacement fi
     CHECK(inv.unresolved == 0);
     CHECK(inv.max_residual_vox <= kInvertSearchVox);
     if (iters >= 8) CHECK(inv.max_residual_vox < 1e-5);  // Newton's own, as above
+  }
+}
+
+TEST_CASE("the inversion's search visits each cell of a ring once") {
+  // ring r holds exactly the offsets at Chebyshev distance r, each once, in
+  // search_ring_size(r) indices (the order both backends share)
+  for (int r = 0; r <= 6; ++r) {
+    const int s = 2 * r + 1, n = palpsim::deform::search_ring_size(r);
+    CHECK(n == s * s * s - (r > 0 ? (s - 2) * (s - 2) * (s - 2) : 0));
+    std::vector<int> seen(std::size_t(s * s * s), 0);
+    for (int idx = 0; idx < n; ++idx) {
+      const Vec3i d = palpsim::deform::search_ring_cell(r, idx);
+      INFO("ring " << r << " index " << idx << ": " << d.x << "," << d.y << "," << d.z);
+      REQUIRE(std::max({std::abs(d.x), std::abs(d.y), std::abs(d.z)}) == r);
+      ++seen[std::size_t(((d.z + r) * s + d.y + r) * s + d.x + r)];
+    }
+    long long twice = 0, once = 0;
+    for (int v : seen) {
+      twice += v > 1;
+      once += v == 1;
+    }
+    CHECK(twice == 0);
+    CHECK(once == n);
   }
 }
 

@@ -336,8 +336,11 @@ PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iteration
 constexpr float kInvertSearchVox = 0.01f;
 
 /// Newton iterations of the solve inside one cell of the search (local coordinates, the
-/// trilinear blend is smooth there: quadratic convergence from the centre in 4-6).
+/// trilinear blend is smooth there: quadratic convergence from the centre in 4-6), and
+/// of each start of its second pass, in cells stretched over thousands of voxels, whose
+/// source may lie a thousandth of the cell from a corner.
 constexpr int kInvertCellIterations = 12;
+constexpr int kInvertFineIterations = 32;
 
 /// Sub-cells per axis of invert_in_cell()'s second pass: 64 starts, each within 1/8 cell
 /// (along each axis) of any point of its sub-cell.
@@ -389,7 +392,7 @@ PALPSIM_HD Vec3f invert_in_cell(const Vec3f c[8], const Vec3i& o, const Vec3f& y
                                      return Vec3f{clamp_to(q.x, 0.0f, 1.0f), clamp_to(q.y, 0.0f, 1.0f),
                                                   clamp_to(q.z, 0.0f, 1.0f)};
                                    },
-                                   f, kInvertCellIterations);
+                                   f, fine ? kInvertFineIterations : kInvertCellIterations);
     if (r < residual) {
       residual = r;
       best = f;

@@ -187,9 +187,10 @@ class DeformRun {
       // search whose best start ends above that (measured on the cpu: at most 0.0100 with
       // untangling, 0.0178 without). Required on the cpu for every contact; on another
       // backend, whose relaxed field differs by rounding, for contacts whose grabbed
-      // element moves at most kFarVox: on cuda two contacts with the tip 5.5 and 9 m
-      // away (|u| 5546 and 9239 voxel, cells stretched over thousands of voxels) left one
-      // voxel each at 0.17-0.2 voxel, which the cpu's field resolves (0.003, 0.008)
+      // element moves at most kFarVox: on cuda contacts with the tip metres away (|u|
+      // 1000-9000 voxel, cells stretched over thousands of voxels) ended at residuals up
+      // to 0.08 voxel and, at 5.5 m, one voxel at 0.17, which the cpu's field resolves
+      // (0.003-0.008 voxel there)
       constexpr float kFarVox = 1000.0f;
       const Vec3f& ug = cm.grabbed_u_vox;
       if (case_.backend == "cpu" || std::max({std::fabs(ug.x), std::fabs(ug.y), std::fabs(ug.z)}) <= kFarVox) {

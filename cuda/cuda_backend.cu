@@ -99,19 +99,25 @@ void CudaDeformBackend::bind_impl() {
   patient_copy_ = DevicePatient::acquire(patient_);
   d_.intensity = patient_copy_->intensity();
   d_.bone = patient_copy_->bone();
-  // VOI-sized state, undeformed
+  // VOI-sized state, undeformed. The fills go on this backend's own stream, which the
+  // first step's kernels follow: cudaMemset() would run on the legacy default stream, which
+  // a non-blocking stream does not wait for, and returns before a device fill is done, so
+  // the first ChainMail could read stamps and counters not yet set ("did not converge ...,
+  // 0 elements moved": the likely cause of the one such line the H100 render bench logged
+  // at e01d855)
   for (auto& buf : d_.u)
     for (float*& c : buf) {
       PALPSIM_CUDA_CHECK(cudaMalloc(&c, n * sizeof(float)));
-      PALPSIM_CUDA_CHECK(cudaMemset(c, 0, n * sizeof(float)));
+      PALPSIM_CUDA_CHECK(cudaMemsetAsync(c, 0, n * sizeof(float), stream_));
     }
   for (int*& s : d_.stamp) {
     PALPSIM_CUDA_CHECK(cudaMalloc(&s, n * sizeof(int)));
-    PALPSIM_CUDA_CHECK(cudaMemset(s, 0xff, n * sizeof(int)));  // -1: never moved
+    PALPSIM_CUDA_CHECK(cudaMemsetAsync(s, 0xff, n * sizeof(int), stream_));  // -1: never moved
   }
   PALPSIM_CUDA_CHECK(cudaMalloc(&d_.j, n * sizeof(float)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&d_.counters, sizeof(Counters)));
-  PALPSIM_CUDA_CHECK(cudaMemset(d_.counters, 0, sizeof(Counters)));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(d_.counters, 0, sizeof(Counters), stream_));
+  PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
   PALPSIM_CUDA_CHECK(cudaMallocHost(&host_counters_, sizeof(Counters)));
   PALPSIM_CUDA_CHECK(cudaMallocHost(&host_j_, n * sizeof(float)));
   std::memset(host_counters_, 0, sizeof(Counters));
@@ -146,7 +152,9 @@ void CudaDeformBackend::ensure_multigrid_buffers() {
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.cheld, std::size_t(nc)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.dots, 6 * deform::kMultigridMaxCycles * sizeof(double)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.flags, 3 * sizeof(int)));
-  PALPSIM_CUDA_CHECK(cudaMemset(mg_.flags, 0, 3 * sizeof(int)));
+  // on this backend's stream, waited for (a legacy-stream cudaMemset races the steps' stream; see bind)
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(mg_.flags, 0, 3 * sizeof(int), stream_));
+  PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
   mg_.capacity = capacity_;
   mg_.coarse_capacity = nc;
   full_mg_blocks_ = mg_blocks_ = relax_multigrid_blocks();

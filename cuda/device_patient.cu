@@ -28,13 +28,22 @@ std::map<std::pair<int, const Patient*>, std::weak_ptr<const DevicePatient>>& ca
 DevicePatient::DevicePatient(PatientPtr patient, int device) : patient_(std::move(patient)), device_(device) {
   const Patient& p = *patient_;
   const std::size_t nvol = p.grid.count();
-  // allocate both first: a failure frees what was made (the destructor does not run)
+  // allocate both first: a failure frees what was made (the destructor does not run).
+  // The copies go on a stream of their own that is waited for: cudaMemcpy() from pageable
+  // memory may return before its DMA has landed, and the sessions' non-blocking streams
+  // do not wait for the legacy default stream it runs on
+  cudaStream_t copy = nullptr;
   try {
     PALPSIM_CUDA_CHECK(cudaMalloc(&intensity_, nvol * sizeof(float)));
     PALPSIM_CUDA_CHECK(cudaMalloc(&bone_, nvol));
-    PALPSIM_CUDA_CHECK(cudaMemcpy(intensity_, p.intensity.data.data(), nvol * sizeof(float), cudaMemcpyHostToDevice));
-    PALPSIM_CUDA_CHECK(cudaMemcpy(bone_, p.bone.data.data(), nvol, cudaMemcpyHostToDevice));
+    PALPSIM_CUDA_CHECK(cudaStreamCreateWithFlags(&copy, cudaStreamNonBlocking));
+    PALPSIM_CUDA_CHECK(
+        cudaMemcpyAsync(intensity_, p.intensity.data.data(), nvol * sizeof(float), cudaMemcpyHostToDevice, copy));
+    PALPSIM_CUDA_CHECK(cudaMemcpyAsync(bone_, p.bone.data.data(), nvol, cudaMemcpyHostToDevice, copy));
+    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(copy));
+    PALPSIM_CUDA_CHECK(cudaStreamDestroy(std::exchange(copy, nullptr)));
   } catch (...) {
+    if (copy) cudaStreamDestroy(copy);
     cudaFree(intensity_);
     cudaFree(bone_);
     throw;

@@ -1,6 +1,8 @@
-// Inversion on the GPU: J on the VOI by the same fixed-point iteration as
-// server/deform/invert.cpp; one thread per voxel, one launch.
+// Inversion on the GPU: J on the VOI by the same Newton steps and cell search as
+// server/deform/invert.cpp (invert_voxel() of deform_math.h); one thread per voxel, one
+// launch (for one session or a batch of them), each search shared by the thread's warp.
 #include <algorithm>
+#include <climits>
 
 #include "cuda/check.h"
 #include "cuda/kernels.h"
@@ -9,12 +11,64 @@ namespace palpsim::cuda {
 
 namespace {
 
+// invert_search() of deform_math.h with each ring's cells split over the 32 lanes of the
+// warp (a searching thread alone spent 0.3 ms on the Table 1 press's fold, its cells'
+// loads one after another); every lane takes part and gets the same answer: per ring the
+// lowest residual, the lowest ring index among equals, as the CPU's loop in ring order
+__device__ Vec3f warp_search(const deform::Voi& voi, const float* ux, const float* uy, const float* uz,
+                             const Vec3f& y, const Vec3f& guess, float& residual) {
+  auto load_u = [&](int i, int j, int k) {
+    if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
+    const int n = (k * voi.size.y + j) * voi.size.x + i;
+    return Vec3f{ux[n], uy[n], uz[n]};
+  };
+  const int lane = int(threadIdx.x & 31);
+  int rmax;
+  const Vec3i m = deform::search_centre(voi.size, guess, rmax);
+  Vec3f best = guess;
+  residual = 3.4e38f;
+  for (int pass = 0; pass < 2 && !(residual <= deform::kInvertSearchVox); ++pass)
+    for (int r = 0; r <= rmax && !(residual <= deform::kInvertSearchVox); ++r) {
+      // this lane's best of the ring, then the warp's
+      float br = 3.4e38f;
+      int bi = INT_MAX;
+      Vec3f bp = best;
+      for (int idx = lane, n = deform::search_ring_size(r); idx < n; idx += 32) {
+        Vec3f p;
+        float rc;
+        if (deform::search_cell(load_u, voi.size, m + deform::search_ring_cell(r, idx), y, pass, p, rc) && rc < br) {
+          br = rc;
+          bi = idx;
+          bp = p;
+        }
+      }
+      for (int o = 16; o > 0; o >>= 1) {
+        const float orr = __shfl_xor_sync(0xffffffffu, br, o);
+        const int oi = __shfl_xor_sync(0xffffffffu, bi, o);
+        const Vec3f op{__shfl_xor_sync(0xffffffffu, bp.x, o), __shfl_xor_sync(0xffffffffu, bp.y, o),
+                       __shfl_xor_sync(0xffffffffu, bp.z, o)};
+        if (orr < br || (orr == br && oi < bi)) {
+          br = orr;
+          bi = oi;
+          bp = op;
+        }
+      }
+      if (br < residual) {
+        residual = br;
+        best = bp;
+      }
+    }
+  return best;
+}
+
 // J at VOI-local element e of one session from displacement buffer src (e past the VOI:
-// nothing); its residual r, |J - I| and whether J is not a number go to the reduction
+// nothing); its residual r, |J - I| and whether J is not a number go to the reduction.
+// Every lane of the warp must call it (the cell search is shared by the warp), and a
+// warp's lanes belong to one session (a block never spans two sessions)
 __device__ __forceinline__ void invert_element(const StepGeometry& geo, int src, int iterations, const DeviceBuffers& b,
                                                int e, float& r, float& change, bool& broken) {
   const deform::Voi& voi = geo.voi;
-  if (e >= int(voi.count())) return;
+  const bool mine = e < int(voi.count());
   const float* ux = b.u[src][0];
   const float* uy = b.u[src][1];
   const float* uz = b.u[src][2];
@@ -34,12 +88,34 @@ __device__ __forceinline__ void invert_element(const StepGeometry& geo, int src,
   };
   const int sxy = voi.size.x * voi.size.y;
   const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
-  const Vec3f p = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
-  const float jv = deform::trilinear<float>(load_i, p);
-  b.j[e] = jv;
-  // how far J moved from I here, and whether it is a number at all
-  broken = !isfinite(jv);
-  if (!broken) change = fabsf(jv - load_i(i, j, k));
+  const Vec3f y{float(i), float(j), float(k)};
+  // Newton (invert_point), then the cell search where it ends above kInvertSearchVox, as
+  // invert_voxel(), the search done by the whole warp for each lane that needs it in turn
+  r = 0.0f;
+  Vec3f p = y;
+  if (mine) p = deform::invert_point(load_u, y, iterations, r);
+  unsigned need = __ballot_sync(0xffffffffu, mine && iterations > 0 && r > deform::kInvertSearchVox);
+  while (need) {
+    const int who = __ffs(need) - 1;
+    need &= need - 1;
+    const Vec3f yw{__shfl_sync(0xffffffffu, y.x, who), __shfl_sync(0xffffffffu, y.y, who),
+                   __shfl_sync(0xffffffffu, y.z, who)};
+    float rs;
+    const Vec3f q = warp_search(voi, ux, uy, uz, yw, yw - deform::trilinear<Vec3f>(load_u, yw), rs);
+    if (int(threadIdx.x & 31) == who && rs < r) {
+      r = rs;
+      p = q;
+    }
+  }
+  change = 0.0f;
+  broken = false;
+  if (mine) {
+    const float jv = deform::trilinear<float>(load_i, p);
+    b.j[e] = jv;
+    // how far J moved from I here, and whether it is a number at all
+    broken = !isfinite(jv);
+    if (!broken) change = fabsf(jv - load_i(i, j, k));
+  }
 }
 
 // the warp's unresolved and non-finite voxels, largest residual and largest change of

@@ -50,6 +50,9 @@ inline ChainMailLimits chainmail_limits(double min_dist, double max_dist, double
 /// Clamps v into [lo, hi] (lo <= hi); plain comparisons so both compilers agree bit for bit.
 PALPSIM_HD float clamp_to(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
+/// The larger of two ints (std::max is not a device function).
+PALPSIM_HD int max_int(int a, int b) { return a > b ? a : b; }
+
 /// The six neighbour offsets in the fixed order every backend uses: -i, +i, -j, +j, -k, +k.
 /// Neighbour q lies along axis q / 2, below the element for even q.
 PALPSIM_HD int neighbour_axis(int q) { return q >> 1; }
@@ -126,27 +129,38 @@ PALPSIM_HD T trilinear(const Load& load, const Vec3f& p) {
 /// invertible there).
 constexpr float kInvertResolvedVox = 0.1f;
 
+/// Trilinear blend of the eight corner values `c` of one cell (index bit 0: +i, bit 1:
+/// +j, bit 2: +k) at local coordinates (fx, fy, fz) in [0, 1], with its partial
+/// derivatives along i, j, k (the columns of the Jacobian of the blend inside the cell).
+PALPSIM_HD Vec3f cell_blend(const Vec3f c[8], float fx, float fy, float fz, Vec3f grad[3]) {
+  const float gx = 1.0f - fx, gy = 1.0f - fy, gz = 1.0f - fz;
+  // along i first (as trilinear()), so that the value is the same bits as trilinear()'s
+  const Vec3f c00 = c[0] * gx + c[1] * fx, c10 = c[2] * gx + c[3] * fx;
+  const Vec3f c01 = c[4] * gx + c[5] * fx, c11 = c[6] * gx + c[7] * fx;
+  const Vec3f c0 = c00 * gy + c10 * fy, c1 = c01 * gy + c11 * fy;
+  // d/di: differences along i blended in j and k; likewise for j and k
+  const Vec3f d00 = c[1] - c[0], d10 = c[3] - c[2], d01 = c[5] - c[4], d11 = c[7] - c[6];
+  grad[0] = (d00 * gy + d10 * fy) * gz + (d01 * gy + d11 * fy) * fz;
+  grad[1] = (c10 - c00) * gz + (c11 - c01) * fz;
+  grad[2] = c1 - c0;
+  return c0 * gz + c1 * fz;
+}
+
+/// The eight corner displacements of the cell whose lowest corner is voxel (i, j, k), in
+/// cell_blend()'s order.
+template <typename LoadU>
+PALPSIM_HD void load_cell(const LoadU& load_u, int i, int j, int k, Vec3f c[8]) {
+  for (int q = 0; q < 8; ++q) c[q] = load_u(i + (q & 1), j + ((q >> 1) & 1), k + (q >> 2));
+}
+
 /// Trilinear interpolation of the displacement `load_u` at p with its partial
 /// derivatives along i, j, k (the columns of the Jacobian of u inside p's cell).
 template <typename LoadU>
 PALPSIM_HD Vec3f trilinear_with_gradient(const LoadU& load_u, const Vec3f& p, Vec3f grad[3]) {
   const float fx0 = floorf(p.x), fy0 = floorf(p.y), fz0 = floorf(p.z);
-  const int i = int(fx0), j = int(fy0), k = int(fz0);
-  const float fx = p.x - fx0, fy = p.y - fy0, fz = p.z - fz0;
-  const float gx = 1.0f - fx, gy = 1.0f - fy, gz = 1.0f - fz;
-  const Vec3f c000 = load_u(i, j, k), c100 = load_u(i + 1, j, k), c010 = load_u(i, j + 1, k),
-              c110 = load_u(i + 1, j + 1, k), c001 = load_u(i, j, k + 1), c101 = load_u(i + 1, j, k + 1),
-              c011 = load_u(i, j + 1, k + 1), c111 = load_u(i + 1, j + 1, k + 1);
-  // along i first (as trilinear()), so that the value is the same bits as trilinear()'s
-  const Vec3f c00 = c000 * gx + c100 * fx, c10 = c010 * gx + c110 * fx;
-  const Vec3f c01 = c001 * gx + c101 * fx, c11 = c011 * gx + c111 * fx;
-  const Vec3f c0 = c00 * gy + c10 * fy, c1 = c01 * gy + c11 * fy;
-  // d/di: differences along i blended in j and k; likewise for j and k
-  const Vec3f d00 = c100 - c000, d10 = c110 - c010, d01 = c101 - c001, d11 = c111 - c011;
-  grad[0] = (d00 * gy + d10 * fy) * gz + (d01 * gy + d11 * fy) * fz;
-  grad[1] = (c10 - c00) * gz + (c11 - c01) * fz;
-  grad[2] = c1 - c0;
-  return c0 * gz + c1 * fz;
+  Vec3f c[8];
+  load_cell(load_u, int(fx0), int(fy0), int(fz0), c);
+  return cell_blend(c, p.x - fx0, p.y - fy0, p.z - fz0, grad);
 }
 
 /// The smallest determinant of I + grad u (the trilinear displacement field's Jacobian;
@@ -240,21 +254,19 @@ PALPSIM_HD void untangle_pull(Vec3f& u, const Vec3f& un, int axis, bool below) {
 /// The backtracking halvings of one inversion step before it gives up on the step.
 constexpr int kInvertHalvings = 6;
 
-/// Inverts the displacement at the deformed point y (continuous VOI-local index): finds
-/// the undeformed point p with p + u(p) = y, starting at p = y; `load_u` gives the
-/// displacement of a VOI-local voxel (zero outside the VOI). Each iteration is a Newton
-/// step on p + u(p) - y with the Jacobian I + grad u of the trilinear field (a steepest
-/// descent step of the squared residual where that Jacobian is singular or reversed, or
-/// Newton's step fails), halved until the residual falls, so the residual never grows
-/// from one iteration to the next. The paper's fixed-point iteration p <- y - u(p)
-/// converges only where |grad u| < 1 and swings between two points next to a grabbed
-/// element stretched by more than that (the Table 1 press: 450 voxels, 7.5 voxel);
-/// Newton converges wherever the deformation is locally invertible. Returns p and
-/// writes |p + u(p) - y| (voxel), the inversion residual, to `residual`.
-template <typename LoadU>
-PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iterations, float& residual) {
-  Vec3f p = y, g[3];
-  Vec3f r = p + trilinear_with_gradient(load_u, p, g) - y;
+/// Damped Newton descent on a residual r(p) (voxel) with Jacobian A = I + g (columns
+/// I + g[a]): `eval(q, g)` returns r(q) and writes g at q; `project(q)` maps a trial point
+/// into the domain. Each iteration tries Newton's step (where A is invertible and keeps
+/// orientation), then steepest descent of |r|^2 (-A^T r, scaled to r's length: where A
+/// is singular or reversed, or at a cell face where Newton's step overshoots the kink),
+/// each full, then halved up to kInvertHalvings times, and takes the first trial whose
+/// residual is lower; so the residual never grows from one iteration to the next. Stops
+/// after `iterations` or when no trial lowers it (a local minimum of |r| as far as these
+/// steps can tell); returns |r| at the final p.
+template <typename Eval, typename Project>
+PALPSIM_HD float newton_descend(const Eval& eval, const Project& project, Vec3f& p, int iterations) {
+  Vec3f g[3];
+  Vec3f r = eval(p, g);
   float rn = sqrtf(r.x * r.x + r.y * r.y + r.z * r.z);
   for (int it = 0; it < iterations && rn > 0.0f; ++it) {
     // the step d solving (I + grad u) d = -r by Cramer's rule
@@ -264,9 +276,6 @@ PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iteration
     const Vec3f ca{c.y * a.z - c.z * a.y, c.z * a.x - c.x * a.z, c.x * a.y - c.y * a.x};
     const Vec3f ab{a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
     const float det = a.x * bc.x + a.y * bc.y + a.z * bc.z;
-    // directions tried in turn: Newton's (where A is invertible and keeps orientation),
-    // then steepest descent of |r|^2, -A^T r, scaled to r's length (at a cell face
-    // where Newton's step overshoots the kink); each full, then halved
     bool moved = false;
     for (int dir = det > 1e-3f ? 0 : 1; dir < 2 && !moved; ++dir) {
       Vec3f d;
@@ -282,9 +291,9 @@ PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iteration
         d = d * (rn / dn);
       }
       for (int h = 0; h <= kInvertHalvings && !moved; ++h) {
-        const Vec3f q = p + d;
+        const Vec3f q = project(p + d);
         Vec3f gq[3];
-        const Vec3f rq = q + trilinear_with_gradient(load_u, q, gq) - y;
+        const Vec3f rq = eval(q, gq);
         const float qn = sqrtf(rq.x * rq.x + rq.y * rq.y + rq.z * rq.z);
         if (qn < rn) {
           p = q;
@@ -300,7 +309,206 @@ PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iteration
     }
     if (!moved) break;  // no step lowers the residual: p is as good as it gets
   }
-  residual = rn;
+  return rn;
+}
+
+/// Inverts the displacement at the deformed point y (continuous VOI-local index): finds
+/// the undeformed point p with p + u(p) = y, starting at p = y; `load_u` gives the
+/// displacement of a VOI-local voxel (zero outside the VOI). `iterations` steps of
+/// newton_descend() on p + u(p) - y with the Jacobian I + grad u of the trilinear field.
+/// The paper's fixed-point iteration p <- y - u(p) converges only where |grad u| < 1 and
+/// swings between two points next to a grabbed element stretched by more than that (the
+/// Table 1 press: 450 voxels, 7.5 voxel); Newton converges wherever the deformation is
+/// locally invertible and its start lies in the source's basin. Returns p and writes
+/// |p + u(p) - y| (voxel), the inversion residual, to `residual`.
+template <typename LoadU>
+PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iterations, float& residual) {
+  Vec3f p = y;
+  residual = newton_descend([&](const Vec3f& q, Vec3f g[3]) { return q + trilinear_with_gradient(load_u, q, g) - y; },
+                            [](const Vec3f& q) { return q; }, p, iterations);
+  return p;
+}
+
+/// The residual (voxel) above which Newton's voxel goes to the cell search of
+/// invert_voxel(): a fifth of the goal of issue 8 (max residual 0.05 voxel), so that a
+/// voxel left to Newton is well within it; also where the search stops (a source within
+/// it ends the search).
+constexpr float kInvertSearchVox = 0.01f;
+
+/// Newton iterations of the solve inside one cell of the search (local coordinates, the
+/// trilinear blend is smooth there: quadratic convergence from the centre in 4-6), and
+/// of each start of its second pass, in cells stretched over thousands of voxels, whose
+/// source may lie a thousandth of the cell from a corner.
+constexpr int kInvertCellIterations = 12;
+constexpr int kInvertFineIterations = 32;
+
+/// Sub-cells per axis of invert_in_cell()'s second pass: 64 starts, each within 1/8 cell
+/// (along each axis) of any point of its sub-cell.
+constexpr int kInvertSubcells = 4;
+
+/// True when y (local coordinates of the cell with corners `c`) lies in the bounding box,
+/// grown by kInvertSearchVox, of the deformed corners of the sub-cell [lo, lo + h]^3 (local
+/// coordinates): the blend of a sub-cell is a trilinear patch, so its image lies in the
+/// convex hull of its corners' images too.
+PALPSIM_HD bool subcell_holds(const Vec3f c[8], const Vec3f& lo, float h, const Vec3f& yl) {
+  Vec3f bl{3.4e38f, 3.4e38f, 3.4e38f}, bh{-3.4e38f, -3.4e38f, -3.4e38f};
+  for (int q = 0; q < 8; ++q) {
+    const Vec3f f{lo.x + ((q & 1) ? h : 0.0f), lo.y + ((q & 2) ? h : 0.0f), lo.z + ((q & 4) ? h : 0.0f)};
+    Vec3f g[3];
+    const Vec3f x = f + cell_blend(c, f.x, f.y, f.z, g);
+    for (int a = 0; a < 3; ++a) {
+      bl[a] = x[a] < bl[a] ? x[a] : bl[a];
+      bh[a] = x[a] > bh[a] ? x[a] : bh[a];
+    }
+  }
+  for (int a = 0; a < 3; ++a)
+    if (!(yl[a] >= bl[a] - kInvertSearchVox && yl[a] <= bh[a] + kInvertSearchVox)) return false;
+  return true;
+}
+
+/// Solves p + u(p) = y inside the cell whose lowest corner is `o` (corner displacements
+/// `c`, cell_blend()'s order) by newton_descend() on local coordinates kept in [0, 1]:
+/// from the cell's centre (`fine` false), or (`fine` true: for a twisted or very
+/// stretched cell, whose blend has several local minima of |r|) from the centre of each
+/// of its kInvertSubcells^3 sub-cells whose image may hold y, in turn, until one gets
+/// within kInvertSearchVox; returns the best p and writes its residual (voxel).
+PALPSIM_HD Vec3f invert_in_cell(const Vec3f c[8], const Vec3i& o, const Vec3f& y, bool fine, float& residual) {
+  const Vec3f yl{y.x - float(o.x), y.y - float(o.y), y.z - float(o.z)};  // y in local coordinates
+  const float h = 1.0f / float(kInvertSubcells);
+  Vec3f best{0.5f, 0.5f, 0.5f};
+  residual = 3.4e38f;
+  const int starts = fine ? kInvertSubcells * kInvertSubcells * kInvertSubcells : 1;
+  for (int s = 0; s < starts && !(residual <= kInvertSearchVox); ++s) {
+    // start s: the centre, or the centre of sub-cell s (i fastest)
+    Vec3f f{0.5f, 0.5f, 0.5f};
+    if (fine) {
+      const Vec3f lo{h * float(s % kInvertSubcells), h * float((s / kInvertSubcells) % kInvertSubcells),
+                     h * float(s / (kInvertSubcells * kInvertSubcells))};
+      if (!subcell_holds(c, lo, h, yl)) continue;
+      f = Vec3f{lo.x + 0.5f * h, lo.y + 0.5f * h, lo.z + 0.5f * h};
+    }
+    const float r = newton_descend([&](const Vec3f& q, Vec3f g[3]) { return q + cell_blend(c, q.x, q.y, q.z, g) - yl; },
+                                   [](const Vec3f& q) {
+                                     return Vec3f{clamp_to(q.x, 0.0f, 1.0f), clamp_to(q.y, 0.0f, 1.0f),
+                                                  clamp_to(q.z, 0.0f, 1.0f)};
+                                   },
+                                   f, fine ? kInvertFineIterations : kInvertCellIterations);
+    if (r < residual) {
+      residual = r;
+      best = f;
+    }
+  }
+  return Vec3f{float(o.x) + best.x, float(o.y) + best.y, float(o.z) + best.z};
+}
+
+/// The cells of the search's ring r: those at Chebyshev distance r from its centre cell
+/// (1 for r = 0, else (2r+1)^3 - (2r-1)^3).
+PALPSIM_HD int search_ring_size(int r) {
+  const int s = 2 * r + 1;
+  return r == 0 ? 1 : 2 * s * s + (s - 2) * 8 * r;
+}
+
+/// Cell `idx` (0 <= idx < search_ring_size(r)) of ring r, as an offset from the centre
+/// cell, in the order every backend uses: the face at -k and the face at +k (i fastest),
+/// then each layer between them: its row at -j, its row at +j (i fastest), and the two
+/// ends (-i, +i) of each row between.
+PALPSIM_HD Vec3i search_ring_cell(int r, int idx) {
+  const int s = 2 * r + 1;
+  if (idx < 2 * s * s) {
+    const int f = idx / (s * s), q = idx - f * s * s;
+    return Vec3i{q % s - r, q / s - r, f ? r : -r};
+  }
+  const int m = idx - 2 * s * s, layer = m / (8 * r), q = m - layer * 8 * r;
+  const int dk = layer + 1 - r;
+  if (q < 2 * s) return Vec3i{q % s - r, q < s ? -r : r, dk};
+  const int q2 = q - 2 * s;
+  return Vec3i{(q2 & 1) ? r : -r, q2 / 2 + 1 - r, dk};
+}
+
+/// Where the search of y starts: the cell holding `guess` (clamped to the cells that
+/// touch the VOI, lowest corners in [-1, size - 1]); returns it and writes the last ring
+/// that still holds such a cell.
+PALPSIM_HD Vec3i search_centre(const Vec3i& size, const Vec3f& guess, int& rmax) {
+  Vec3i m;
+  rmax = 0;
+  for (int a = 0; a < 3; ++a) {
+    m[a] = int(clamp_to(floorf(guess[a]), -1.0f, float(size[a] - 1)));
+    rmax = max_int(rmax, max_int(m[a] + 1, size[a] - 1 - m[a]));
+  }
+  return m;
+}
+
+/// One cell of the search: false where the cell with lowest corner `o` lies beyond the
+/// cells that touch the VOI, or y lies outside the bounding box of its deformed corners
+/// (grown by kInvertSearchVox; the trilinear image of a cell lies in its corners' convex
+/// hull); else solves it (invert_in_cell(), from its sub-cells on pass 1) and writes p
+/// and its residual (voxel).
+template <typename LoadU>
+PALPSIM_HD bool search_cell(const LoadU& load_u, const Vec3i& size, const Vec3i& o, const Vec3f& y, int pass,
+                            Vec3f& p, float& residual) {
+  if (o.x < -1 || o.y < -1 || o.z < -1 || o.x > size.x - 1 || o.y > size.y - 1 || o.z > size.z - 1) return false;
+  Vec3f c[8];
+  load_cell(load_u, o.x, o.y, o.z, c);
+  for (int a = 0; a < 3; ++a) {
+    float lo = 3.4e38f, hi = -3.4e38f;
+    for (int q = 0; q < 8; ++q) {
+      const float x = float(o[a] + ((q >> a) & 1)) + c[q][a];
+      lo = x < lo ? x : lo;
+      hi = x > hi ? x : hi;
+    }
+    if (!(y[a] >= lo - kInvertSearchVox && y[a] <= hi + kInvertSearchVox)) return false;
+  }
+  p = invert_in_cell(c, o, y, pass == 1, residual);
+  return true;
+}
+
+/// The search of invert_voxel(): the source of y among the cells whose lowest corner lies
+/// in [-1, size - 1] (cells beyond the VOI's faces included: u = 0 outside), ring by ring
+/// (search_ring_cell()) around the cell holding `guess`; each cell by search_cell(), from
+/// its centre (pass 0), and where no cell gets within kInvertSearchVox so, the rings
+/// again from the centres of the cells' sub-cells (pass 1). The first ring holding a source within
+/// kInvertSearchVox ends the search; the lowest residual wins, the first in ring order
+/// among equals (cuda/invert.cu splits each ring over a warp and reduces to the same).
+/// A source always exists: p + u(p) is continuous and the identity beyond the VOI, so
+/// every y in the VOI has one (its degree is 1). Returns p and writes its residual (voxel).
+template <typename LoadU>
+PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec3f& y, const Vec3f& guess,
+                               float& residual) {
+  int rmax;
+  const Vec3i m = search_centre(size, guess, rmax);
+  Vec3f best = guess;
+  residual = 3.4e38f;
+  for (int pass = 0; pass < 2 && !(residual <= kInvertSearchVox); ++pass)
+    for (int r = 0; r <= rmax && !(residual <= kInvertSearchVox); ++r)
+      for (int idx = 0, n = search_ring_size(r); idx < n; ++idx) {
+        Vec3f p;
+        float rc;
+        if (search_cell(load_u, size, m + search_ring_cell(r, idx), y, pass, p, rc) && rc < residual) {
+          residual = rc;
+          best = p;
+        }
+      }
+  return best;
+}
+
+/// The inversion of one VOI voxel y (both backends): `iterations` Newton steps from y
+/// (invert_point()), and where they end above kInvertSearchVox (stalled in a local minimum
+/// of |r| next to a fold, bone or a VOI face, or not there yet), invert_search() around
+/// y - u(y), whichever leaves the lower residual. The search starts from the same guess
+/// whatever `iterations` is, so a voxel it takes gets the same source at any count.
+/// With 0 iterations nothing is inverted (p = y, as the paper's iteration with none).
+/// Writes the residual (voxel).
+template <typename LoadU>
+PALPSIM_HD Vec3f invert_voxel(const LoadU& load_u, const Vec3i& size, const Vec3f& y, int iterations, float& residual) {
+  Vec3f p = invert_point(load_u, y, iterations, residual);
+  if (iterations > 0 && residual > kInvertSearchVox) {
+    float rs;
+    const Vec3f q = invert_search(load_u, size, y, y - trilinear<Vec3f>(load_u, y), rs);
+    if (rs < residual) {
+      residual = rs;
+      p = q;
+    }
+  }
   return p;
 }
 

@@ -8,6 +8,8 @@
 #include <cstdio>
 #include <random>
 
+#include <cuda_runtime.h>
+
 #include "cuda/device_patient.h"
 #include "deform/backend.h"
 #include "deform/engine.h"
@@ -165,6 +167,97 @@ TEST_CASE("gpu inversion matches the cpu on the same displacement field") {
   std::printf("invert: max |J_cpu - J_gpu| = %g HU (tolerance 0.05), residual cpu %g gpu %g voxel\n", worst, ra, rg);
   CHECK(worst <= 0.05f);
   CHECK(std::fabs(ra - rg) <= 1e-4);
+}
+
+TEST_CASE("gpu inversion with the cell search equals the cpu where Newton stalls (40 random pushes)") {
+  if (!have_gpu()) return;
+  // relaxation alone folds these fields, so Newton stalls at some voxels and the cell
+  // search takes them (issue 8, section 4). Both invert the cpu's relaxed field; invert.cu
+  // is compiled without fused multiply-adds, so every step, bounding-box test and in-cell
+  // solve is the same float operations in the same order: residuals, counts and J must
+  // agree exactly (the 0.05 HU bound of the smooth-field test above is checked as well)
+  const PatientPtr torso = make_torso_patient(48);
+  long long searched = 0, differ = 0;
+  float worst = 0;
+  for (const RandomPush& push : random_pushes(*torso, 40, 8)) {
+    Pair b(torso, push.config);
+    same_chainmail(b, push.contact);
+    b.cpu->relax();
+    const std::vector<Vec3f> u = b.cpu->displacement();
+    b.gpu->set_displacement(u);
+    const InvertStats a = b.cpu->invert(), g = b.gpu->invert();
+    b.cpu->upload();
+    b.gpu->upload();
+    const float* ja = b.cpu->deformed_brick();
+    const float* jg = b.gpu->deformed_brick();
+    const Voi voi = b.cpu->voi();
+    for (long long e = 0; e < voi.count(); ++e) {
+      differ += ja[e] != jg[e];
+      worst = std::max(worst, std::fabs(ja[e] - jg[e]));
+    }
+    INFO("X " << push.contact.skin_point_mm.x << "," << push.contact.skin_point_mm.y << ","
+              << push.contact.skin_point_mm.z << ": residual cpu " << a.max_residual_vox << " gpu " << g.max_residual_vox);
+    CHECK(a.unresolved == 0);
+    CHECK(g.unresolved == 0);
+    CHECK(g.max_residual_vox < 0.05f);
+    CHECK(g.max_residual_vox == a.max_residual_vox);
+    // voxels Newton alone leaves (what the search had to do)
+    auto load_u = [&](int i, int j, int k) { return voi.contains(i, j, k) ? u[voi.index(i, j, k)] : Vec3f{0, 0, 0}; };
+    for (int k = 0; k < voi.size.z; ++k)
+      for (int j = 0; j < voi.size.y; ++j)
+        for (int i = 0; i < voi.size.x; ++i) {
+          float r = 0;
+          deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), push.config.settings.invert_iterations, r);
+          searched += r > deform::kInvertSearchVox;
+        }
+  }
+  std::printf("invert with search: %lld voxels searched over 40 pushes; J differs in %lld voxels, max %g HU\n", searched,
+              differ, worst);
+  CHECK(searched > 0);
+  CHECK(worst <= 0.05f);
+  CHECK(differ == 0);
+}
+
+TEST_CASE("a backend bound while the legacy default stream is busy steps from the undeformed state") {
+  if (!have_gpu()) return;
+  // bind() fills its buffers (displacements 0, stamps -1, counters 0) and copies the
+  // patient; each step runs on the backend's non-blocking stream, which does not wait for
+  // the legacy default stream. Fills and copies left there (cudaMemset, cudaMemcpy) would
+  // race the first step: here the memory bind gets back is likely to hold 0x01 bytes (stamps
+  // 16843009: "moved long ago", so no move counts as a first one: "0 elements moved"),
+  // and the legacy stream is kept busy while bind and the step run
+  const PatientPtr torso = make_torso_patient(64);  // a new patient: bind copies it
+  DeformConfig cfg = preset_config(1);
+  cfg.settings.voi_edge = 48;
+  const std::size_t busy_bytes = std::size_t(1) << 30, junk_bytes = std::size_t(256) << 20;
+  void* busy = nullptr;
+  void* junk = nullptr;
+  REQUIRE(cudaMalloc(&busy, busy_bytes) == cudaSuccess);
+  REQUIRE(cudaMalloc(&junk, junk_bytes) == cudaSuccess);
+  REQUIRE(cudaMemset(junk, 0x01, junk_bytes) == cudaSuccess);
+  REQUIRE(cudaDeviceSynchronize() == cudaSuccess);
+  REQUIRE(cudaFree(junk) == cudaSuccess);
+  // about 100 ms of fills on the legacy stream (1 GiB each, ~0.4 ms on an H100)
+  for (int i = 0; i < 256; ++i) REQUIRE(cudaMemsetAsync(busy, i, busy_bytes, 0) == cudaSuccess);
+  auto gpu = make_deform_backend("cuda");
+  gpu->bind(torso, cfg);
+  const DeformContact k = voxel_contact({32, 14, 32}, {1.0, 6.0, -1.0});
+  const ChainMailStats g = gpu->chainmail(k);
+  const std::vector<Vec3f> ug = gpu->displacement();
+  const bool still_busy = cudaStreamQuery(0) == cudaErrorNotReady;
+  std::printf("bind and step with the legacy stream busy: %s\n",
+              still_busy ? "it was still busy after the step (the race was exercised)"
+                         : "it had drained before the step ended (bind or the step waited for it)");
+  REQUIRE(cudaDeviceSynchronize() == cudaSuccess);
+  REQUIRE(cudaFree(busy) == cudaSuccess);
+  auto cpu = make_deform_backend("cpu");
+  cpu->bind(torso, cfg);
+  const ChainMailStats a = cpu->chainmail(k);
+  CHECK(a.moved > 0);
+  CHECK(g.moved == a.moved);
+  CHECK(g.sweeps == a.sweeps);
+  CHECK(g.converged);
+  CHECK(ug == cpu->displacement());
 }
 
 TEST_CASE("gpu untangling equals the cpu on the same relaxed field (40 random pushes)") {

@@ -46,6 +46,11 @@ TEST_CASE("hundreds of random steps keep every invariant") {
       REQUIRE(moved_bone_count(*patient, voi, u) == 0);
       for (const Vec3f& v : u) REQUIRE(is_finite(v));
       REQUIRE(std::isfinite(st.invert_residual_vox));
+      // untangling off (the scenes' default): the field folds, and the inversion's cell
+      // search still finds a source for every voxel within its 0.01 voxel; 0.05 is issue
+      // 8's goal
+      REQUIRE(st.invert_unresolved == 0);
+      REQUIRE(st.invert_residual_vox < 0.05);
       if (s % 25 == 0) {
         // restrictions hold right after ChainMail (before relaxation changes the field),
         // up to float rounding of u_n + limit: a few ulps of 64 voxel (7.6e-6 each)

@@ -15,6 +15,8 @@
 //   ChainMail left (this is what an unstable step breaks first);
 // - untangling leaves no more folded soft cells than relaxation left, and as many as
 //   its CPU reference;
+// - the inversion resolves every voxel, residual below 0.05 voxel (issue 8, section 4;
+//   on a GPU backend for contacts that move the grabbed element at most 1000 voxel);
 // - J stays within the intensity range of the patient (trilinear blends of I);
 // - on a backend other than "cpu", ChainMail equals the CPU reference exactly and the
 //   relaxed field agrees within float rounding (the tolerances of deform_gpu_test.cpp).
@@ -179,8 +181,22 @@ class DeformRun {
       INFO("inversion: max residual " << o.invert.max_residual_vox << " voxel, " << o.invert.unresolved
                                       << " unresolved");
       REQUIRE(std::isfinite(o.invert.max_residual_vox));
-      REQUIRE(o.invert.unresolved >= 0);
-      REQUIRE(o.invert.unresolved <= voi.count());
+      // every voxel finds its source (issue 8, section 4's goal: 0 unresolved, residual
+      // below 0.05 voxel): Newton where it converges, the cell search where it does not,
+      // which stops at kInvertSearchVox (0.01 voxel); 0.05 leaves a factor of 5 for a
+      // search whose best start ends above that (measured on the cpu: at most 0.0100 with
+      // untangling, 0.0178 without). Required on the cpu for every contact; on another
+      // backend, whose relaxed field differs by rounding, for contacts whose grabbed
+      // element moves at most kFarVox: on cuda contacts with the tip metres away (|u|
+      // 1000-9000 voxel, cells stretched over thousands of voxels) ended at residuals up
+      // to 0.08 voxel and, at 5.5 m, one voxel at 0.17, which the cpu's field resolves
+      // (0.003-0.008 voxel there)
+      constexpr float kFarVox = 1000.0f;
+      const Vec3f& ug = cm.grabbed_u_vox;
+      if (case_.backend == "cpu" || std::max({std::fabs(ug.x), std::fabs(ug.y), std::fabs(ug.z)}) <= kFarVox) {
+        REQUIRE(o.invert.unresolved == 0);
+        REQUIRE(o.invert.max_residual_vox < 0.05);
+      }
       b_->upload();
       const float* brick = b_->deformed_brick();
       o.j.assign(brick, brick + voi.count());

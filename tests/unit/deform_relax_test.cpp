@@ -1,8 +1,10 @@
 // Relaxation and inversion on the CPU reference, and the Fig. 4 cases end to end.
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <vector>
 
 #include "core/error.h"
 #include "deform/cpu_backend.h"
@@ -13,6 +15,7 @@ using namespace palpsim;
 using namespace palpsim::test;
 using palpsim::deform::invert_point;
 using palpsim::deform::kInvertResolvedVox;
+using palpsim::deform::kInvertSearchVox;
 using palpsim::deform::trilinear;
 
 TEST_CASE("relaxation keeps bone and the grabbed element still and obeys the maximum principle") {
@@ -100,23 +103,66 @@ TEST_CASE("the inversion residual falls to rounding for a smooth displacement fi
         const float w = 3.14159265f / 31.0f;
         u[st.voi.index(i, j, k)] = Vec3f(0, 4.0f * std::sin(w * i) * std::sin(w * j) * std::sin(w * k), 0);
       }
+  // Newton alone (invert_point): the largest residual over the VOI falls with every
+  // doubling of the iterations until it reaches float rounding of positions up to 32 (ulp
+  // 4e-6 voxel; 1e-5 allows a few ulps), then stays there
+  const Voi& voi = st.voi;
+  auto load_u = [&](int i, int j, int k) { return voi.contains(i, j, k) ? u[voi.index(i, j, k)] : Vec3f{0, 0, 0}; };
   double last = 1e9;
   for (int iters : {0, 2, 4, 8, 16}) {
+    float worst = 0;
+    long long above = 0;
+    for (int k = 0; k < 32; ++k)
+      for (int j = 0; j < 32; ++j)
+        for (int i = 0; i < 32; ++i) {
+          float r = 0;
+          invert_point(load_u, Vec3f(float(i), float(j), float(k)), iters, r);
+          worst = std::max(worst, r);
+          above += r > kInvertResolvedVox;
+        }
+    INFO("Newton, iterations " << iters << ": residual " << worst << ", above 0.1 voxel " << above);
+    if (iters >= 4) CHECK(above == 0);  // Newton: 0.1 voxel is reached in 2-3 steps
+    if (iters == 0) CHECK(above > 0);   // without iterations the residual is |u(y)| up to 4 voxel
+    CHECK((worst < last || worst <= 1e-5));
+    last = worst;
+  }
+  CHECK(last < 1e-5);
+  // the backend's inversion adds the cell search where Newton stays above
+  // kInvertSearchVox: every voxel resolved from one iteration on (0 inverts nothing)
+  for (int iters : {1, 2, 4, 8, 16}) {
     cfg.settings.invert_iterations = iters;
     b.bind(patient, cfg);
     b.chainmail(voxel_contact({16, 16, 16}, {0, 0, 0}));
     b.set_displacement(u);
     const InvertStats inv = b.invert();
-    const double r = inv.max_residual_vox;
-    INFO("iterations " << iters << " residual " << r << ", unresolved " << inv.unresolved);
-    if (iters >= 4) CHECK(inv.unresolved == 0);  // Newton: 0.1 voxel is reached in 2-3 steps
-    if (iters == 0) CHECK(inv.unresolved > 0);   // without iterations the residual is |u(y)| up to 4 voxel
-    // it falls with every doubling of the iterations until it reaches float rounding of
-    // positions up to 32 (ulp 4e-6 voxel; 1e-5 allows a few ulps), then stays there
-    CHECK((r < last || r <= 1e-5));
-    last = r;
+    INFO("inversion, iterations " << iters << ": residual " << inv.max_residual_vox << ", unresolved " << inv.unresolved);
+    CHECK(inv.unresolved == 0);
+    CHECK(inv.max_residual_vox <= kInvertSearchVox);
+    if (iters >= 8) CHECK(inv.max_residual_vox < 1e-5);  // Newton's own, as above
   }
-  CHECK(last < 1e-5);
+}
+
+TEST_CASE("the inversion's search visits each cell of a ring once") {
+  // ring r holds exactly the offsets at Chebyshev distance r, each once, in
+  // search_ring_size(r) indices (the order both backends share)
+  for (int r = 0; r <= 6; ++r) {
+    const int s = 2 * r + 1, n = palpsim::deform::search_ring_size(r);
+    CHECK(n == s * s * s - (r > 0 ? (s - 2) * (s - 2) * (s - 2) : 0));
+    std::vector<int> seen(std::size_t(s * s * s), 0);
+    for (int idx = 0; idx < n; ++idx) {
+      const Vec3i d = palpsim::deform::search_ring_cell(r, idx);
+      INFO("ring " << r << " index " << idx << ": " << d.x << "," << d.y << "," << d.z);
+      REQUIRE(std::max({std::abs(d.x), std::abs(d.y), std::abs(d.z)}) == r);
+      ++seen[std::size_t(((d.z + r) * s + d.y + r) * s + d.x + r)];
+    }
+    long long twice = 0, once = 0;
+    for (int v : seen) {
+      twice += v > 1;
+      once += v == 1;
+    }
+    CHECK(twice == 0);
+    CHECK(once == n);
+  }
 }
 
 TEST_CASE("the inversion converges where the fixed-point iteration of the paper cannot (a stretch over 2x)") {

@@ -89,38 +89,41 @@ void measure(const char* name, const PatientPtr& p, const DeformConfig& cfg, con
               b.st.invert_residual_vox, rms(b.j, b64.j), du_rms, du_max, rms(b64.j, a64.j), b.st.times.untangle_ms);
 }
 
-// VOI voxels the inversion leaves unresolved (residual above kInvertResolvedVox) whose
-// source lies away from the two places untangling leaves alone: within one voxel of bone
-// (soft tissue may pass bone, which enforces nothing) and of the VOI's faces (u = 0
-// beyond them, and a face element pushed more than a voxel outwards passes its outside
-// neighbour)
-long long unresolved_inside(const Patient& p, const Voi& voi, const std::vector<Vec3f>& u, int iterations) {
+// VOI voxels Newton alone (invert_point, without the inversion's cell search) leaves
+// unresolved (residual above kInvertResolvedVox): where it stalls next to folds, bone and
+// the VOI's faces
+long long newton_unresolved(const Voi& voi, const std::vector<Vec3f>& u, int iterations) {
   auto load_u = [&](int i, int j, int k) { return voi.contains(i, j, k) ? u[voi.index(i, j, k)] : Vec3f{0, 0, 0}; };
   long long n = 0;
   for (int k = 0; k < voi.size.z; ++k)
     for (int j = 0; j < voi.size.y; ++j)
       for (int i = 0; i < voi.size.x; ++i) {
         float r = 0;
-        const Vec3f x = deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
-        if (r <= deform::kInvertResolvedVox) continue;
-        bool excused = false;
-        for (int c = 0; c < 8 && !excused; ++c) {
-          // the corners of the cell around the source point, and the faces next to them
-          const Vec3i q{int(std::floor(x.x)) + (c & 1), int(std::floor(x.y)) + ((c >> 1) & 1), int(std::floor(x.z)) + (c >> 2)};
-          for (int a = 0; a < 3; ++a) excused = excused || q[a] <= 0 || q[a] >= voi.size[a] - 1;
-          if (!excused) excused = p.bone.at(voi.lo.x + q.x, voi.lo.y + q.y, voi.lo.z + q.z) != 0;
-        }
-        n += !excused;
+        deform::invert_point(load_u, Vec3f(float(i), float(j), float(k)), iterations, r);
+        n += r > deform::kInvertResolvedVox;
       }
   return n;
+}
+
+// J's RMS error against 64 inversion iterations must not grow with more iterations; the
+// iteration counts and errors go to the message
+void check_error_falls(const PatientPtr& p, const DeformConfig& cfg, const DeformContact& c, bool untangle) {
+  const Result ref = run(p, cfg, c, untangle, 64);
+  double prev = 1e30;
+  for (int it : {0, 1, 2, 4, 8, 16, 32}) {
+    const double err = rms(run(p, cfg, c, untangle, it).j, ref.j);
+    INFO("untangle " << untangle << ", inversion " << it << " iterations: J's RMS error " << err << " HU, previous "
+                     << prev);
+    CHECK(err <= prev);
+    prev = err;
+  }
 }
 
 }  // namespace
 
 TEST_CASE("untangling leaves det(I + grad u) > 0 in every soft cell of 40 random pushes") {
   const PatientPtr torso = make_torso_patient(48);
-  long long folded_before = 0, unresolved_before = 0;
-  int clean = 0;
+  long long folded_before = 0, newton_left_off = 0, newton_left_on = 0;
   for (const RandomPush& push : random_pushes(*torso, 40, 8)) {
     const Result off = run(torso, push.config, push.contact, false, 8), on = run(torso, push.config, push.contact, true, 8);
     const Voi& voi = on.st.chainmail.voi;
@@ -128,24 +131,38 @@ TEST_CASE("untangling leaves det(I + grad u) > 0 in every soft cell of 40 random
               << push.contact.skin_point_mm.z << " d " << on.st.chainmail.grabbed_u_vox.x << ","
               << on.st.chainmail.grabbed_u_vox.y << "," << on.st.chainmail.grabbed_u_vox.z << ": folded "
               << on.st.untangle.folded_before << " -> " << on.st.untangle.folded_after << ", min det " << on.min_det
-              << ", unresolved " << on.st.invert_unresolved << " (residual " << on.st.invert_residual_vox << ")");
+              << ", unresolved " << on.st.invert_unresolved << " (residual " << on.st.invert_residual_vox
+              << "), relaxation alone " << off.st.invert_unresolved << " (residual " << off.st.invert_residual_vox << ")");
     CHECK(on.st.untangle.folded_after == 0);
     CHECK(on.min_det > 0);
-    // every voxel whose source lies away from bone and the VOI's faces is resolved
-    CHECK(unresolved_inside(*torso, voi, on.u, 8) == 0);
-    // where nothing is left at all, the residual is far below the goal's 0.05 voxel
-    if (on.st.invert_unresolved == 0) {
-      CHECK(on.st.invert_residual_vox < 0.05);
-      ++clean;
-    }
+    // every voxel finds its source, with untangling and without (the cell search stops at
+    // kInvertSearchVox = 0.01 voxel; 0.05 is issue 8's goal, measured at most 0.0098)
+    CHECK(on.st.invert_unresolved == 0);
+    CHECK(on.st.invert_residual_vox < 0.05);
+    CHECK(off.st.invert_unresolved == 0);
+    CHECK(off.st.invert_residual_vox < 0.05);
     folded_before += on.st.untangle.folded_before;
-    unresolved_before += unresolved_inside(*torso, voi, off.u, 8);
+    newton_left_off += newton_unresolved(voi, off.u, 8);
+    newton_left_on += newton_unresolved(voi, on.u, 8);
   }
-  // relaxation alone folds and leaves voxels unresolved inside: the checks above mean something
+  // relaxation alone folds, and Newton alone leaves voxels there (measured: 9 of 40 pushes
+  // with untangling, 1-11 voxels each, next to bone or a VOI face): the search is what
+  // resolves them, and the checks above mean something
+  INFO("Newton alone leaves " << newton_left_off << " voxels unresolved without untangling, " << newton_left_on
+                              << " with");
   CHECK(folded_before > 40);
-  CHECK(unresolved_before > 0);
-  // measured: 31 of the 40 leave no voxel unresolved; the rest lie at bone or a VOI face
-  CHECK(clean >= 30);
+  CHECK(newton_left_off > 0);
+  CHECK(newton_left_on > 0);
+}
+
+TEST_CASE("J's error falls with inversion iterations on random pushes, with untangling and without") {
+  // the cell search starts from y - u(y), not from Newton's last point, so a voxel that
+  // Newton leaves at 64 iterations gets the same source at fewer; the rest is Newton's
+  // own convergence (the first 10 of the 40 pushes: a second each)
+  const PatientPtr torso = make_torso_patient(48);
+  const auto pushes = random_pushes(*torso, 10, 8);
+  for (const RandomPush& push : pushes)
+    for (bool untangle : {true, false}) check_error_falls(torso, push.config, push.contact, untangle);
 }
 
 TEST_CASE("untangling the Table 1 press: no fold, every voxel resolved, J's error falls with iterations") {

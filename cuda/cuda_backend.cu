@@ -229,7 +229,7 @@ void CudaDeformBackend::enqueue_untangle() {
 }
 
 void CudaDeformBackend::enqueue_invert() {
-  launch_invert(geometry(), cur_, config_.settings.invert_iterations, d_, stream_);
+  launch_invert(geometry(), cur_, config_.settings.invert_iterations, config_.settings.invert_search, d_, stream_);
 }
 
 void CudaDeformBackend::enqueue_upload() {
@@ -395,6 +395,7 @@ bool CudaDeformBackend::batchable_with(const CudaDeformBackend& o) const {
          b.relax_method == "explicit" && !(config_.relax && a.untangle) && !(o.config_.relax && b.untangle) &&
          a.max_sweeps == b.max_sweeps && a.relax_iterations == b.relax_iterations && a.relax_step == b.relax_step &&
          a.material_width == b.material_width && a.invert_iterations == b.invert_iterations &&
+         a.invert_search == b.invert_search &&
          limits_.axial_lo == o.limits_.axial_lo && limits_.axial_hi == o.limits_.axial_hi &&
          limits_.sheer == o.limits_.sheer;
 }
@@ -457,7 +458,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
     launch_relax_batch(bt.dev_items, n, max_voi, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
                        float(s.material_width), full_shape_, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[3], st));
-  if (config_.invert) launch_invert_batch(bt.dev_items, n, max_voi, s.invert_iterations, st);
+  if (config_.invert) launch_invert_batch(bt.dev_items, n, max_voi, s.invert_iterations, s.invert_search, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[4], st));
   // the counters to each session's pinned host copy in one launch; J stays on the device
   // until deformed_brick() asks for it (batch.cu says why)

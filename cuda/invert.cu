@@ -65,8 +65,8 @@ __device__ Vec3f warp_search(const deform::Voi& voi, const float* ux, const floa
 // nothing); its residual r, |J - I| and whether J is not a number go to the reduction.
 // Every lane of the warp must call it (the cell search is shared by the warp), and a
 // warp's lanes belong to one session (a block never spans two sessions)
-__device__ __forceinline__ void invert_element(const StepGeometry& geo, int src, int iterations, const DeviceBuffers& b,
-                                               int e, float& r, float& change, bool& broken) {
+__device__ __forceinline__ void invert_element(const StepGeometry& geo, int src, int iterations, bool search,
+                                               const DeviceBuffers& b, int e, float& r, float& change, bool& broken) {
   const deform::Voi& voi = geo.voi;
   const bool mine = e < int(voi.count());
   const float* ux = b.u[src][0];
@@ -94,7 +94,7 @@ __device__ __forceinline__ void invert_element(const StepGeometry& geo, int src,
   r = 0.0f;
   Vec3f p = y;
   if (mine) p = deform::invert_point(load_u, y, iterations, r);
-  unsigned need = __ballot_sync(0xffffffffu, mine && iterations > 0 && r > deform::kInvertSearchVox);
+  unsigned need = __ballot_sync(0xffffffffu, search && mine && iterations > 0 && r > deform::kInvertSearchVox);
   while (need) {
     const int who = __ffs(need) - 1;
     need &= need - 1;
@@ -138,38 +138,42 @@ __device__ __forceinline__ void invert_reduce(const DeviceBuffers& b, float r, f
   }
 }
 
-__global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, DeviceBuffers b) {
+__global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, bool search,
+                                                             DeviceBuffers b) {
   const int e = int(blockIdx.x * blockDim.x + threadIdx.x);  // VOIs hold < 2^31 voxels (checked at bind)
   float r = 0.0f, change = 0.0f;
   bool broken = false;
-  invert_element(geo, src, iterations, b, e, r, change, broken);
+  invert_element(geo, src, iterations, search, b, e, r, change, broken);
   invert_reduce(b, r, change, broken);
 }
 
 // the inversion of several sessions in one launch (batch.cu says why): blockIdx.y is
 // the session, each of its elements as in the kernel above
-__global__ void __launch_bounds__(256) invert_batch_kernel(const BatchItem* __restrict__ items, int iterations) {
+__global__ void __launch_bounds__(256) invert_batch_kernel(const BatchItem* __restrict__ items, int iterations,
+                                                                   bool search) {
   const BatchItem& item = items[blockIdx.y];
   const int e = int(blockIdx.x * blockDim.x + threadIdx.x);
   float r = 0.0f, change = 0.0f;
   bool broken = false;
-  invert_element(item.geo, item.invert_src, iterations, item.b, e, r, change, broken);
+  invert_element(item.geo, item.invert_src, iterations, search, item.b, e, r, change, broken);
   invert_reduce(item.b, r, change, broken);
 }
 
 }  // namespace
 
-void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream) {
+void launch_invert(const StepGeometry& g, int src, int iterations, bool search, const DeviceBuffers& b,
+                   cudaStream_t stream) {
   const long long n = g.voi.count();
   const int threads = 256;
-  invert_kernel<<<unsigned((n + threads - 1) / threads), threads, 0, stream>>>(g, src, iterations, b);
+  invert_kernel<<<unsigned((n + threads - 1) / threads), threads, 0, stream>>>(g, src, iterations, search, b);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
 }
 
-void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, cudaStream_t stream) {
+void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, bool search,
+                         cudaStream_t stream) {
   if (n < 1) return;
   const unsigned threads = 256;
-  invert_batch_kernel<<<dim3((max_count + threads - 1) / threads, unsigned(n)), threads, 0, stream>>>(items, iterations);
+  invert_batch_kernel<<<dim3((max_count + threads - 1) / threads, unsigned(n)), threads, 0, stream>>>(items, iterations, search);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
 }
 

@@ -149,7 +149,8 @@ void launch_untangle(const StepGeometry& g, int cur, const DeviceBuffers& b, con
                      cudaStream_t stream);
 
 /// J on the VOI from displacement buffer `src`; the max residual goes to counters.
-void launch_invert(const StepGeometry& g, int src, int iterations, const DeviceBuffers& b, cudaStream_t stream);
+void launch_invert(const StepGeometry& g, int src, int iterations, bool search, const DeviceBuffers& b,
+                   cudaStream_t stream);
 
 // ---- batched stages (batch.cu): `items` is a device array of n <= kMaxBatch sessions
 // with the same settings; each session's results equal its own launches' to the bit.
@@ -165,7 +166,8 @@ void launch_chainmail_batch(const BatchItem* items, int n, const deform::ChainMa
 void launch_relax_batch(const BatchItem* items, int n, unsigned max_count, int iterations, float step, float threshold,
                         float width, const LaunchShape& shape, cudaStream_t stream);
 /// J of every session from its invert_src, in one launch.
-void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, cudaStream_t stream);
+void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, bool search,
+                         cudaStream_t stream);
 /// Copies every session's counters to its host_counters, in one launch.
 void launch_gather_batch(const BatchItem* items, int n, cudaStream_t stream);
 

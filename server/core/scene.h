@@ -56,6 +56,7 @@ struct DeformSettings {
   double material_width = 50;   // HU, width of the material function's step at bone
   int invert_iterations = 8;
   bool untangle = false;        // untangle relaxation's folds before the inversion (server/deform/README.md)
+  bool invert_search = false;   // search the cells where Newton stalls: every voxel resolved (server/deform/README.md)
   std::string backend = "auto"; // "auto", "cpu" or "cuda"
 };
 

@@ -96,7 +96,7 @@ UntangleStats CpuDeformBackend::untangle_impl() {
 
 InvertStats CpuDeformBackend::invert_impl() {
   if (s_.j.size() < std::size_t(max_voi_count())) s_.j.assign(std::size_t(max_voi_count()), 0.0f);
-  return deform::invert_cpu(*patient_, voi_, config_.settings.invert_iterations, s_);
+  return deform::invert_cpu(*patient_, voi_, config_.settings.invert_iterations, config_.settings.invert_search, s_);
 }
 
 std::vector<Vec3f> CpuDeformBackend::displacement_impl() const {

@@ -74,7 +74,7 @@ UntangleStats untangle_cpu(const Patient& p, const ChainMailStats& st, CpuState&
 /// J on the VOI by inverting the displacement (Newton steps, deform_math.h; trilinear
 /// sampling of u and I); returns the largest residual |p + u(p) - y| (voxel) and
 /// the count of voxels left unresolved.
-InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s);
+InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool search, CpuState& s);
 
 }  // namespace deform
 

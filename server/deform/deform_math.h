@@ -496,12 +496,14 @@ PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec
 /// of |r| next to a fold, bone or a VOI face, or not there yet), invert_search() around
 /// y - u(y), whichever leaves the lower residual. The search starts from the same guess
 /// whatever `iterations` is, so a voxel it takes gets the same source at any count.
-/// With 0 iterations nothing is inverted (p = y, as the paper's iteration with none).
-/// Writes the residual (voxel).
+/// With 0 iterations nothing is inverted (p = y, as the paper's iteration with none);
+/// without `search` (deform.invert_search off) Newton's answer stands. Writes the
+/// residual (voxel).
 template <typename LoadU>
-PALPSIM_HD Vec3f invert_voxel(const LoadU& load_u, const Vec3i& size, const Vec3f& y, int iterations, float& residual) {
+PALPSIM_HD Vec3f invert_voxel(const LoadU& load_u, const Vec3i& size, const Vec3f& y, int iterations, bool search,
+                              float& residual) {
   Vec3f p = invert_point(load_u, y, iterations, residual);
-  if (iterations > 0 && residual > kInvertSearchVox) {
+  if (search && iterations > 0 && residual > kInvertSearchVox) {
     float rs;
     const Vec3f q = invert_search(load_u, size, y, y - trilinear<Vec3f>(load_u, y), rs);
     if (rs < residual) {

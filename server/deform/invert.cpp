@@ -6,7 +6,7 @@
 
 namespace palpsim::deform {
 
-InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuState& s) {
+InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool search, CpuState& s) {
   const Grid& grid = p.grid;
   // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
   auto load_u = [&](int i, int j, int k) {
@@ -25,7 +25,7 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, CpuStat
     for (int j = 0; j < voi.size.y; ++j)
       for (int i = 0; i < voi.size.x; ++i) {
         float r = 0;
-        const Vec3f x0 = invert_voxel(load_u, voi.size, Vec3f(float(i), float(j), float(k)), iterations, r);
+        const Vec3f x0 = invert_voxel(load_u, voi.size, Vec3f(float(i), float(j), float(k)), iterations, search, r);
         const float jv = trilinear<float>(load_i, x0);
         s.j[voi.index(i, j, k)] = jv;
         worst = std::max(worst, r);

@@ -196,6 +196,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.material_width = d.material_width();
   out.deform.invert_iterations = d.invert_iterations();
   out.deform.untangle = d.untangle();
+  out.deform.invert_search = d.invert_search();
   out.deform.backend = d.backend();
   if (out.deform.backend != "auto" && out.deform.backend != "cpu" && out.deform.backend != "cuda")
     throw Error(origin + ": deform.backend = \"" + out.deform.backend + "\"; allowed: \"auto\", \"cpu\", \"cuda\"");

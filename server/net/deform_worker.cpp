@@ -415,8 +415,10 @@ void DeformWorker::begin_ready() {
   const auto t0 = std::chrono::steady_clock::now();
   // the sessions ready in this pass, in slot order, stepped by shared launches where the
   // backend can (cuda with one configuration: one launch per stage for all of them)
-  std::vector<DeformEngine*> engines;
-  std::vector<DeformContact> contacts;
+  std::vector<DeformEngine*>& engines = batch_engines_;
+  std::vector<DeformContact>& contacts = batch_contacts_;
+  engines.clear();
+  contacts.clear();
   // a batch fills the device whatever the share; steps its backend begins alone (scenes
   // the batched kernels do not cover) are all in flight at once, so each takes 1/n of
   // the device: a cooperative grid needs all its blocks resident, and n grids of 1/n fit

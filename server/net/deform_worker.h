@@ -159,6 +159,8 @@ class DeformWorker {
   };
   std::vector<Inflight> inflight_;
   std::vector<Inflight> ready_;  // steps readied in this pass, begun together by begin_ready()
+  std::vector<DeformEngine*> batch_engines_;    // begin_ready()'s batch, kept to reuse their room
+  std::vector<DeformContact> batch_contacts_;
   int max_inflight_ = 1;  // steps in flight at most (ServerOptions::deform_concurrency)
   int max_batch_ = 1;     // sessions begun together at most (ServerOptions::deform_batch)
   int gpu_share_ = 1;     // this pass: min(max_inflight_, open sessions)

@@ -11,9 +11,12 @@
 //   computed from I and the bone mask once per step, in the first iteration, and kept
 //   in a VOI buffer (DeviceBuffers::relax_w) for the other 19: before, every iteration
 //   read I and the mask at 64-bit patient indices and evaluated tanhf and a division.
-// - A block updates a unit of 32 rows of one VOI plane, 64 threads along i and 16 rows
-//   along j: an element's (i, j, k) come from its thread and unit, not from three integer
-//   divisions of its linear index (tens of instructions each on the GPU) as before.
+// - A thread walks up one column (i, j) of the VOI over a run of planes, keeping the
+//   planes below and above in registers: each displacement is read from memory about once
+//   an iteration instead of three times (itself and as the neighbour above and below,
+//   which another block had read); a block is 64 x 16 columns, so the neighbours in the
+//   plane come through its L1 cache, and (i, j, k) come from the thread and its unit, not
+//   from three integer divisions of a linear index (tens of instructions each) as before.
 // - Sessions are relaxed a group at a time, all 20 iterations of a group before the next
 //   group, the group as large as keeps its fields (both displacement buffers and the
 //   weights, 28 bytes an element) within a share of the L2 cache: a batch of 16 VOIs of
@@ -31,13 +34,11 @@ namespace palpsim::cuda {
 
 namespace {
 
-// a block's threads: 64 along i (two warps a row, coalesced) by 16 rows along j
+// a block's threads: 64 along i (two warps a row, coalesced) by 16 rows along j; a block
+// updates a tile of 64 x 16 columns over a run of planes
 constexpr int kRelaxTx = 64;
 constexpr int kRelaxTy = kPersistentThreads / kRelaxTx;
 static_assert(kRelaxTx * kRelaxTy == kPersistentThreads, "a relaxation block is 64 x 16 threads");
-// rows along j a work unit holds: two per thread, so that a 64^3 VOI makes 128 units, about
-// one per multiprocessor for a session alone
-constexpr int kRelaxUnitRows = 2 * kRelaxTy;
 
 // the share of the L2 cache a group of sessions' fields may fill; 0: all sessions at once.
 // A build may set it (-DPALPSIM_RELAX_L2_SHARE=...) to compare; bench/results has the
@@ -46,86 +47,97 @@ constexpr int kRelaxUnitRows = 2 * kRelaxTy;
 #define PALPSIM_RELAX_L2_SHARE 0.6
 #endif
 
-// one relaxation update of VOI-local element e = (i, j, k) of a VOI of `size`, from
-// buffer pa into the other, with weight w (0: the element keeps its displacement)
-__device__ __forceinline__ void relax_element(const Vec3i& size, const DeviceBuffers& b, int pa, int e, int i, int j,
-                                              int k, float w) {
-  const int sx = size.x, sxy = size.x * size.y;  // VOIs hold < 2^31 voxels (checked at bind)
+__device__ __forceinline__ Vec3f load3(const float* x, const float* y, const float* z, int e) {
+  return Vec3f{x[e], y[e], z[e]};
+}
+
+// iteration `it` of one session on column (i, j) of its VOI, planes k0 .. k1 - 1, from
+// buffer pa into the other. The thread walks up the column keeping the planes below and
+// above in registers, so each displacement is read from memory once (plus a plane at
+// either end of the run) instead of three times; the four neighbours in the plane come
+// from the block's neighbouring threads through the L1 cache. The weight (0 at the grabbed
+// element, which keeps its displacement) is computed from I and the bone mask in the first
+// iteration and kept in b.relax_w; each element sums its neighbours in the fixed order
+// -i, +i, -j, +j, -k, +k and updates by deform::relax_update, as server/deform/relax.cpp
+__device__ __forceinline__ void relax_column(const BatchItem& item, int it, int i, int j, int k0, int k1, float step,
+                                             float threshold, float width) {
+  const StepGeometry& geo = item.geo;
+  const Vec3i size = geo.voi.size;
+  const DeviceBuffers& b = item.b;
+  const int pa = (item.relax_src + it) & 1, pb = pa ^ 1;
   const float* ax = b.u[pa][0];
   const float* ay = b.u[pa][1];
   const float* az = b.u[pa][2];
-  const Vec3f u{ax[e], ay[e], az[e]};
-  Vec3f out = u;
-  if (w != 0.0f) {
-    // the six neighbours in the fixed order, zero outside the VOI
-    Vec3f sum6{0, 0, 0};
-    if (i > 0) sum6 += Vec3f{ax[e - 1], ay[e - 1], az[e - 1]};
-    if (i + 1 < sx) sum6 += Vec3f{ax[e + 1], ay[e + 1], az[e + 1]};
-    if (j > 0) sum6 += Vec3f{ax[e - sx], ay[e - sx], az[e - sx]};
-    if (j + 1 < size.y) sum6 += Vec3f{ax[e + sx], ay[e + sx], az[e + sx]};
-    if (k > 0) sum6 += Vec3f{ax[e - sxy], ay[e - sxy], az[e - sxy]};
-    if (k + 1 < size.z) sum6 += Vec3f{ax[e + sxy], ay[e + sxy], az[e + sxy]};
-    out = deform::relax_update(u, sum6, w);
+  const int sx = size.x, sxy = size.x * size.y;  // VOIs hold < 2^31 voxels (checked at bind)
+  const int g_idx = (geo.grabbed.z * size.y + geo.grabbed.y) * size.x + geo.grabbed.x;
+  const long long vxy = (long long)geo.volume_size.x * geo.volume_size.y;
+  // the column's element at plane k0, in the VOI and in the patient volume
+  int e = (k0 * size.y + j) * sx + i;
+  long long gi = (geo.voi.lo.z + k0) * vxy + (long long)(geo.voi.lo.y + j) * geo.volume_size.x + geo.voi.lo.x + i;
+  Vec3f below{0, 0, 0};
+  if (k0 > 0) below = load3(ax, ay, az, e - sxy);
+  Vec3f cur = load3(ax, ay, az, e);
+  for (int k = k0; k < k1; ++k, e += sxy, gi += vxy) {
+    Vec3f above{0, 0, 0};
+    if (k + 1 < size.z) above = load3(ax, ay, az, e + sxy);
+    float w;
+    if (it == 0) {
+      w = e == g_idx ? 0.0f : step * deform::material_weight(b.intensity[gi], b.bone[gi] != 0, threshold, width);
+      b.relax_w[e] = w;
+    } else {
+      w = b.relax_w[e];
+    }
+    Vec3f out = cur;
+    if (w != 0.0f) {
+      // the six neighbours in the fixed order, zero outside the VOI
+      Vec3f sum6{0, 0, 0};
+      if (i > 0) sum6 += load3(ax, ay, az, e - 1);
+      if (i + 1 < sx) sum6 += load3(ax, ay, az, e + 1);
+      if (j > 0) sum6 += load3(ax, ay, az, e - sx);
+      if (j + 1 < size.y) sum6 += load3(ax, ay, az, e + sx);
+      if (k > 0) sum6 += below;
+      if (k + 1 < size.z) sum6 += above;
+      out = deform::relax_update(cur, sum6, w);
+    }
+    b.u[pb][0][e] = out.x;
+    b.u[pb][1][e] = out.y;
+    b.u[pb][2][e] = out.z;
+    below = cur;
+    cur = above;
   }
-  const int pb = pa ^ 1;
-  b.u[pb][0][e] = out.x;
-  b.u[pb][1][e] = out.y;
-  b.u[pb][2][e] = out.z;
 }
 
-// iteration `it` of one session on the rows j0 .. j0 + kRelaxUnitRows - 1 of VOI plane k
-__device__ __forceinline__ void relax_unit(const BatchItem& item, int it, int k, int j0, float step, float threshold,
-                                           float width) {
-  const StepGeometry& geo = item.geo;
-  const Vec3i size = geo.voi.size;
-  if (k >= size.z) return;  // a smaller (clipped) VOI than the batch's largest
-  const DeviceBuffers& b = item.b;
-  const int pa = (item.relax_src + it) & 1;
-  const int tx = int(threadIdx.x) % kRelaxTx, ty = int(threadIdx.x) / kRelaxTx;
-  const int g_idx = (geo.grabbed.z * size.y + geo.grabbed.y) * size.x + geo.grabbed.x;
-  const int j_end = min(j0 + kRelaxUnitRows, size.y);
-  for (int j = j0 + ty; j < j_end; j += kRelaxTy) {
-    const int row = (k * size.y + j) * size.x;
-    // the row's start in the patient volume
-    const long long grow = ((long long)(geo.voi.lo.z + k) * geo.volume_size.y + (geo.voi.lo.y + j)) *
-                               geo.volume_size.x + geo.voi.lo.x;
-    for (int i = tx; i < size.x; i += kRelaxTx) {
-      const int e = row + i;
-      float w;
-      if (it == 0) {
-        // the grabbed element keeps its displacement: weight 0
-        w = e == g_idx ? 0.0f
-                       : step * deform::material_weight(b.intensity[grow + i], b.bone[grow + i] != 0, threshold, width);
-        b.relax_w[e] = w;
-      } else {
-        w = b.relax_w[e];
-      }
-      relax_element(size, b, pa, e, i, j, k, w);
-    }
-  }
-}
+// the shape of a launch's work: a session's units are tiles_x x tiles_y tiles of 64 x 16
+// columns times chunks runs of `planes` planes, as if its VOI were the largest
+struct RelaxUnits {
+  int tiles_x = 1, tiles_y = 1, chunks = 1, planes = 1;
+};
 
 // `iterations` relaxation steps of n sessions, `group` at a time (each group all its
 // iterations before the next), each iteration a grid-stride loop over the group's units
-// (a session's units as if its VOI were the largest: `planes` planes of `row_units` units)
 // and a grid barrier. kBatch: the sessions are items[0 .. n-1]; otherwise the one in `one`
 template <bool kBatch>
 __global__ void __launch_bounds__(kPersistentThreads)
-    relax_kernel(const BatchItem* __restrict__ items, BatchItem one, int n, int group, int planes, int row_units,
+    relax_kernel(const BatchItem* __restrict__ items, BatchItem one, int n, int group, RelaxUnits shape,
                  int iterations, float step, float threshold, float width) {
   cg::grid_group grid = cg::this_grid();
-  const unsigned per_session = unsigned(planes) * unsigned(row_units);
+  const unsigned tiles = unsigned(shape.tiles_x) * unsigned(shape.tiles_y);
+  const unsigned per_session = tiles * unsigned(shape.chunks);
+  const int tx = int(threadIdx.x) % kRelaxTx, ty = int(threadIdx.x) / kRelaxTx;
   for (int g0 = 0; g0 < n; g0 += group) {
     const int gn = min(group, n - g0);
     const unsigned units = unsigned(gn) * per_session;
     for (int it = 0; it < iterations; ++it) {
       for (unsigned t = blockIdx.x; t < units; t += gridDim.x) {
         const unsigned q = t / per_session, r = t - q * per_session;
-        const unsigned k = r / unsigned(row_units), jb = r - k * unsigned(row_units);
-        if (kBatch)
-          relax_unit(items[g0 + int(q)], it, int(k), int(jb) * kRelaxUnitRows, step, threshold, width);
-        else
-          relax_unit(one, it, int(k), int(jb) * kRelaxUnitRows, step, threshold, width);
+        const unsigned c = r / tiles, tile = r - c * tiles;
+        const unsigned ty0 = tile / unsigned(shape.tiles_x), tx0 = tile - ty0 * unsigned(shape.tiles_x);
+        const BatchItem& item = kBatch ? items[g0 + int(q)] : one;
+        const Vec3i size = item.geo.voi.size;
+        const int i = int(tx0) * kRelaxTx + tx, j = int(ty0) * kRelaxTy + ty;
+        const int k0 = int(c) * shape.planes, k1 = min(k0 + shape.planes, size.z);
+        // beyond a smaller (clipped) VOI than the batch's largest: nothing
+        if (i < size.x && j < size.y && k0 < k1) relax_column(item, it, i, j, k0, k1, step, threshold, width);
       }
       // the last iteration of the last group needs none: the kernel's end is one
       if (it + 1 < iterations || g0 + group < n) grid.sync();
@@ -150,18 +162,28 @@ int relax_group(int n, unsigned long long max_count) {
 
 void launch(const BatchItem* items, const BatchItem& one, int n, const Vec3i& most, int iterations, float step,
             float threshold, float width, int max_blocks, cudaStream_t stream) {
-  int planes = most.z, row_units = (most.y + kRelaxUnitRows - 1) / kRelaxUnitRows;
   const unsigned long long count = (unsigned long long)most.x * most.y * most.z;
   int group = items ? relax_group(n, count) : 1;
+  RelaxUnits shape;
+  shape.tiles_x = (most.x + kRelaxTx - 1) / kRelaxTx;
+  shape.tiles_y = (most.y + kRelaxTy - 1) / kRelaxTy;
+  // the longest runs of planes that still give every block a unit (each run's ends read
+  // a plane more), at least three quarters of the blocks busy: a 64^3 VOI alone in runs of
+  // 2 planes (128 units), 16 of them together in runs of 32
+  const unsigned long long tiles = (unsigned long long)group * shape.tiles_x * shape.tiles_y;
+  shape.planes = std::max(1, most.z);
+  while (shape.planes > 1 && 4 * tiles * ((most.z + shape.planes - 1) / shape.planes) < 3ULL * max_blocks)
+    shape.planes = (shape.planes + 1) / 2;
+  shape.chunks = (most.z + shape.planes - 1) / shape.planes;
+  const unsigned long long units = tiles * shape.chunks;
   // the units of a group must be indexable with 32 bits
-  if ((unsigned long long)group * planes * row_units >= (1ULL << 32))
+  if (units >= (1ULL << 32))
     throw Error("launch_relax: " + std::to_string(group) + " VOIs of " + std::to_string(count) +
                 " elements exceed 32-bit unit indices");
-  const unsigned long long units = (unsigned long long)group * planes * row_units;
   const int blocks = int(std::min<unsigned long long>(max_blocks, units));
   const BatchItem* it = items;
   BatchItem single = one;
-  void* args[] = {&it, &single, &n, &group, &planes, &row_units, &iterations, &step, &threshold, &width};
+  void* args[] = {&it, &single, &n, &group, &shape, &iterations, &step, &threshold, &width};
   const void* kernel = items ? (const void*)relax_kernel<true> : (const void*)relax_kernel<false>;
   PALPSIM_CUDA_CHECK(cudaLaunchCooperativeKernel(kernel, dim3(blocks), dim3(kPersistentThreads), args, 0, stream));
 }

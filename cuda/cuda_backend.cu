@@ -352,10 +352,7 @@ void CudaDeformBackend::begin_step_impl(const ChainMailStats& setup) {
   // every stage is enqueued on one stream with an event between stages; end_step_impl()
   // waits once, then reads the stage times from the events
   in_batch_.reset();
-  // J stays on the device until deformed_brick() asks for it, as in a batch (batch.cu
-  // says why): the server reads the host copy only for brick viewers, and a session's
-  // copy of 1 MB at VOI 64 cost 0.025 ms of a 0.43 ms step on the H100
-  host_j_stale_ = config_.invert;
+  host_j_stale_ = false;  // the upload below copies J
   step_start_ = std::chrono::steady_clock::now();
   launch_shape_for_share();
   prepare_stats(setup);
@@ -370,7 +367,7 @@ void CudaDeformBackend::begin_step_impl(const ChainMailStats& setup) {
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[4], stream_));
   if (config_.invert) enqueue_invert();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[5], stream_));
-  // no upload: J stays on the device until deformed_brick() (the upload stage reads ~0)
+  if (config_.invert) enqueue_upload();
   PALPSIM_CUDA_CHECK(cudaEventRecord(ev_[6], stream_));
 }
 

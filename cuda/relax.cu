@@ -21,6 +21,12 @@
 //   group, the group as large as keeps its fields (both displacement buffers and the
 //   weights, 28 bytes an element) within a share of the L2 cache: a batch of 16 VOIs of
 //   64^3 holds 116 MB, which every iteration streamed from device memory.
+// Measured (H100, palpsim-bench server, lumbar phantom presses at VOI 64, relax stage per
+// step, a batch's share; bench/results/server-2026-11-23-h100-*.json): before (f32eabd)
+// 0.0724 ms at 16 sessions, 0.0677 at 64, 0.0881 alone; rows of a plane per unit instead
+// of the columns (fcc2888) 0.078 / 0.077 in L2 groups and 0.085 / 0.080 all at once:
+// slower, so the divisions and tanhf were not what cost; columns (ad19d85) 0.0493 /
+// 0.0566 / 0.0800 in L2 groups and 0.0665 / 0.0626 all at once.
 #include <cooperative_groups.h>
 
 #include <algorithm>

@@ -61,7 +61,11 @@ struct Row {
   std::vector<double> step_ms;         // per session: mean whole step (ms)
   std::vector<double> own_bytes;       // per session: its engine's own memory
   double server_bytes = 0;             // every deformation stage, server-wide, with all sessions open
-  double worker_step_share = 0, worker_sleep_share = 0;  // of the deformation thread's time, over the run
+  // of the deformation thread's time over the runs with deformation (not the runs without,
+  // when the server has no session and its worker naps): in steps (enqueueing, waiting for
+  // the GPU), napping for want of a new contact (every press client is above the body about
+  // a quarter of each 1 Hz press, all in phase), and the rest (passes, reports)
+  double worker_step_share = 0, worker_sleep_share = 0;
   double batched_share = 0, mean_batch = 0;  // steps run in batches, of all; their mean batch size
   std::vector<double> rtt_with, rtt_without;  // round trips (us), pooled over rounds
   std::vector<double> ratios;          // per round: p99 with / p99 without deformation
@@ -147,10 +151,11 @@ int run(int argc, char** argv) {
     std::mutex mu;
     v1::ControlRequest sq;
     sq.mutable_stats();
-    const v1::ServerStats before = control(ctl, sq).stats().server();
+    double wall = 0, step_s = 0, sleep_s = 0, steps = 0, batched = 0, batches = 0;
     for (int round = 0; round < o.rounds; ++round) {
       // haptics only, then the same clients with deformation
       const bench::PressResult a = bench::press_sessions(without.control_endpoint(), pi, n, o.seconds);
+      const v1::ServerStats before = control(ctl, sq).stats().server();
       const bench::PressResult b = bench::press_sessions(
           with.control_endpoint(), pi, n, o.seconds, nullptr, {}, [&](int c, zmq::socket_t& s, std::uint64_t id) {
             v1::ControlRequest q;
@@ -178,6 +183,14 @@ int run(int argc, char** argv) {
                   row.server_bytes += double(stage.bytes_allocated());
             }
           });
+      // the worker's time over this run with deformation
+      const v1::ServerStats after = control(ctl, sq).stats().server();
+      wall += after.deform_worker_wall_s() - before.deform_worker_wall_s();
+      step_s += after.deform_worker_step_s() - before.deform_worker_step_s();
+      sleep_s += after.deform_worker_sleep_s() - before.deform_worker_sleep_s();
+      steps += double(after.deform_steps() - before.deform_steps());
+      batched += double(after.deform_batched_steps() - before.deform_batched_steps());
+      batches += double(after.deform_batches() - before.deform_batches());
       std::vector<double> ra, rb;
       for (const auto& v : a.rtt_us) ra.insert(ra.end(), v.begin(), v.end());
       for (const auto& v : b.rtt_us) rb.insert(rb.end(), v.begin(), v.end());
@@ -186,24 +199,20 @@ int run(int argc, char** argv) {
       row.rtt_without.insert(row.rtt_without.end(), ra.begin(), ra.end());
       row.rtt_with.insert(row.rtt_with.end(), rb.begin(), rb.end());
     }
-    // the worker's time over this session count's runs
-    const v1::ServerStats after = control(ctl, sq).stats().server();
-    const double wall = after.deform_worker_wall_s() - before.deform_worker_wall_s();
     if (wall > 0) {
-      row.worker_step_share = (after.deform_worker_step_s() - before.deform_worker_step_s()) / wall;
-      row.worker_sleep_share = (after.deform_worker_sleep_s() - before.deform_worker_sleep_s()) / wall;
+      row.worker_step_share = step_s / wall;
+      row.worker_sleep_share = sleep_s / wall;
     }
-    const double steps = double(after.deform_steps() - before.deform_steps());
-    const double batched = double(after.deform_batched_steps() - before.deform_batched_steps());
-    const double batches = double(after.deform_batches() - before.deform_batches());
     row.batched_share = steps > 0 ? batched / steps : 0.0;
     row.mean_batch = batches > 0 ? batched / batches : 1.0;
     rows.push_back(row);
     const Row& r = rows.back();
+    double gpu_ms = 0;  // the stages' sum: the step's share of the batch's GPU time
+    for (int k = 0; k < 5; ++k) gpu_ms += quantile(r.stage_ms[k], 0.5);
     std::printf("%2d sessions: mean stage times per step (ms, a batch's share), medians over sessions: reset %.4f "
-                "ChainMail %.4f relax %.4f invert %.4f upload %.4f\n",
+                "ChainMail %.4f relax %.4f invert %.4f upload/counters %.4f, GPU %.4f of a %.4f ms step\n",
                 n, quantile(r.stage_ms[0], 0.5), quantile(r.stage_ms[1], 0.5), quantile(r.stage_ms[2], 0.5),
-                quantile(r.stage_ms[3], 0.5), quantile(r.stage_ms[4], 0.5));
+                quantile(r.stage_ms[3], 0.5), quantile(r.stage_ms[4], 0.5), gpu_ms, quantile(r.step_ms, 0.5));
     const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
     std::printf(
         "%2d sessions (%s, VOI %d, %s, %d in flight, batches of up to %d): steps/s per session min %.0f median %.0f; "
@@ -245,6 +254,11 @@ int run(int argc, char** argv) {
           << json_number(r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()))
           << ", \"steps_per_s_median\": " << json_number(quantile(r.steps_per_s, 0.5))
           << ", \"step_ms_median\": " << json_number(quantile(r.step_ms, 0.5))
+          << ", \"stage_ms_median\": {\"reset\": " << json_number(quantile(r.stage_ms[0], 0.5))
+          << ", \"chainmail\": " << json_number(quantile(r.stage_ms[1], 0.5))
+          << ", \"relax\": " << json_number(quantile(r.stage_ms[2], 0.5))
+          << ", \"invert\": " << json_number(quantile(r.stage_ms[3], 0.5))
+          << ", \"upload\": " << json_number(quantile(r.stage_ms[4], 0.5)) << "}"
           << ", \"dropped_share_median\": " << json_number(quantile(r.dropped_share, 0.5))
           << ", \"worker_step_share\": " << json_number(r.worker_step_share)
           << ", \"worker_sleep_share\": " << json_number(r.worker_sleep_share)

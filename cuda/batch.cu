@@ -13,21 +13,25 @@
 // sessions 63 steps/s each (c85ba1b, J copied to the host in every step), 268 and 69
 // with J's host copy made only when read (below); 16 watched sessions kept 29.9 frames/s.
 //
-// Where a batch's time goes then (H100, 16 sessions, per step): reset 0.004 ms,
+// Where a batch's time goes then (H100, 16 sessions, per step, at c85ba1b): reset 0.004 ms,
 // ChainMail 0.046, relaxation 0.073, inversion 0.039: the GPU is busy, no longer waiting.
-// The explicit relaxation streams each session's two fields, I and the bone mask 20
-// times (29 bytes an element and iteration: about 2 TB/s at 16 sessions, near the
-// device's bandwidth); relaxing 4 sessions at a time, so that their fields stay in the
-// L2 cache, gave 0.0705 ms instead of 0.073 and was not kept. The press clients are out
-// of the body about a quarter of the time, so steps/s per session is about three
-// quarters of the in-contact rate. Copying J to the host in every step cost 16 MB per
-// batch of 16 over PCIe (a seventh of the batch); the server reads the host copy only
-// for brick viewers (frames take the device copy), so a batched step leaves it on the
-// device and deformed_brick() copies it when asked.
+// Measured again for issue 10 (palpsim-bench server now records the stage times; H100,
+// f32eabd): at 16 sessions reset 0.0034, ChainMail 0.044, relaxation 0.072, inversion
+// 0.060, counters 0.0004, GPU 0.180 of a 0.182 ms step; at 64 sessions 0.003, 0.038,
+// 0.068, 0.061, GPU 0.169 of 0.169. The host adds ~1%: the batch's wall is its GPU time.
+// The worker's naps (28% of its time at 16 and 64 sessions) are the quarter of each 1 Hz
+// press when every bench client, all in phase, is above the body: no contact, no step.
+// The relaxation then read each element three times an iteration, from device memory
+// (16 sessions' fields are 116 MB); it now walks columns with the sessions in L2-sized
+// groups (relax.cu): 0.049 ms at 16 sessions, 0.056 at 64 (ad19d85), and the inversion
+// is the largest stage. Copying J to the host in every step cost 16 MB per batch of 16
+// over PCIe (a seventh of the batch); the server reads the host copy only for brick
+// viewers (frames take the device copy), so a batched step leaves it on the device and
+// deformed_brick() copies it when asked.
 //
 // Each session's results equal its own step's to the bit: every element runs the same
-// device function as the single kernels (chainmail_element, relax_element,
-// invert_element), reads only its own session's buffers, and a session's ChainMail
+// device function as the single kernels (chainmail_element, relax_column (one kernel for
+// both), invert_element), reads only its own session's buffers, and a session's ChainMail
 // stops sweeping after its own quiet sweep; sums are per element or integer counts.
 #include "cuda/batch.h"
 

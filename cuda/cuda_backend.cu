@@ -62,6 +62,7 @@ void CudaDeformBackend::release() {
     for (float*& c : buf) cudaFree(c);
   for (int*& s : d_.stamp) cudaFree(s);
   cudaFree(d_.j);
+  cudaFree(d_.relax_w);
   cudaFree(d_.cell_folded);
   cudaFree(d_.untangle_flags);
   for (float*& c : d_.untangle_new) cudaFree(c);
@@ -123,9 +124,16 @@ void CudaDeformBackend::bind_impl() {
   std::memset(host_counters_, 0, sizeof(Counters));
   full_shape_ = shape_ = persistent_launch_shape();
   if (config_.relax && config_.settings.relax_method == "multigrid") ensure_multigrid_buffers();
+  if (config_.relax && config_.settings.relax_method != "multigrid") ensure_relax_buffers();
   if (config_.relax && config_.settings.untangle) ensure_untangle_buffers();
   dirty_ = Voi{};
   cur_ = 0;
+}
+
+void CudaDeformBackend::ensure_relax_buffers() {
+  // the explicit relaxation's weights, only for scenes (or callers of relax()) that relax
+  if (d_.relax_w) return;
+  PALPSIM_CUDA_CHECK(cudaMalloc(&d_.relax_w, std::size_t(capacity_) * sizeof(float)));
 }
 
 void CudaDeformBackend::ensure_untangle_buffers() {
@@ -171,6 +179,8 @@ DeformMemory CudaDeformBackend::memory_impl() const {
                       sizeof(d_.stamp) / sizeof(int*) * n * sizeof(int) + 2 * sizeof(Counters);
   // untangling's flags and sweep buffer, when it was asked for
   if (d_.untangle_flags) m.relax_bytes = 2 * n + sizeof(d_.untangle_new) / sizeof(float*) * n * sizeof(float);
+  // the explicit relaxation's weights, when it was asked for
+  if (d_.relax_w) m.relax_bytes += n * sizeof(float);
   m.invert_bytes = 2 * n * sizeof(float);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
   // multigrid: eight scalar VOI fields and a mask, three coarse fields and a mask, the dot
@@ -218,6 +228,7 @@ void CudaDeformBackend::enqueue_relax() {
                            config_.relax_reuse, d_, mg_, mg_blocks_, stream_);
     return;
   }
+  ensure_relax_buffers();
   launch_relax(geometry(), cur_, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
                float(s.material_width), d_, shape_, stream_);
   cur_ = (cur_ + s.relax_iterations) & 1;
@@ -419,6 +430,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   bt.wait();  // the last use of the items is over
   const DeformSettings& s = config_.settings;
   unsigned max_reset = 0, max_voi = 0;
+  Vec3i most{0, 0, 0};  // the largest VOI size along each axis
   bool any_chainmail = false;
   // each session's item: its state and where each stage reads, as its own step would
   for (int i = 0; i < n; ++i) {
@@ -441,6 +453,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
     c.prepare_stats(c.setup_);
     max_reset = std::max(max_reset, it.reset_count);
     max_voi = std::max(max_voi, unsigned(c.voi_.count()));
+    for (int a = 0; a < 3; ++a) most[a] = std::max(most[a], c.voi_.size[a]);
     any_chainmail = any_chainmail || it.chainmail;
   }
   // the stages, one launch each for all sessions, with an event between stages
@@ -455,7 +468,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   if (any_chainmail) launch_chainmail_batch(bt.dev_items, n, limits_, s.max_sweeps, full_shape_, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[2], st));
   if (config_.relax)
-    launch_relax_batch(bt.dev_items, n, max_voi, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
+    launch_relax_batch(bt.dev_items, n, most, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
                        float(s.material_width), full_shape_, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[3], st));
   if (config_.invert) launch_invert_batch(bt.dev_items, n, max_voi, s.invert_iterations, s.invert_search, st);

@@ -68,6 +68,8 @@ class CudaDeformBackend final : public DeformBackend {
   void launch_shape_for_share();
   // allocates the multigrid relaxation's buffers once (deform.relax_method "multigrid")
   void ensure_multigrid_buffers();
+  // allocates the explicit relaxation's weights once (deform.relax_method "explicit")
+  void ensure_relax_buffers();
   // allocates untangling's buffers once (deform.untangle, or a call of untangle())
   void ensure_untangle_buffers();
   StepGeometry geometry() const;

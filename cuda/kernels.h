@@ -39,6 +39,7 @@ struct DeviceBuffers {
   float* u[2][3] = {{nullptr, nullptr, nullptr}, {nullptr, nullptr, nullptr}};
   int* stamp[2] = {nullptr, nullptr};   // last sweep an element moved, by sweep parity; -1 never
   float* j = nullptr;                   // J on the VOI
+  float* relax_w = nullptr;             // explicit relaxation: relax_step x the material weight per element, 0 at the grabbed element
   std::uint8_t* cell_folded = nullptr;  // untangling: 1 where the cell with this lowest corner folds
   std::uint8_t* untangle_flags = nullptr;  // untangling: seed, moved and changes bits per element
   float* untangle_new[3] = {nullptr, nullptr, nullptr};  // untangling: a sweep's new displacements
@@ -129,7 +130,7 @@ void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::Chai
                       int max_sweeps, const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream);
 
 /// `iterations` relaxation steps starting from buffer `src`, in one cooperative
-/// launch; the result is in buffer (src + iterations) & 1.
+/// launch; the result is in buffer (src + iterations) & 1. `b.relax_w` must hold the VOI.
 void launch_relax(const StepGeometry& g, int src, int iterations, float step, float threshold, float width,
                   const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream);
 
@@ -162,8 +163,8 @@ void launch_reset_batch(const BatchItem* items, int n, unsigned max_reset, cudaS
 void launch_chainmail_batch(const BatchItem* items, int n, const deform::ChainMailLimits& limits, int max_sweeps,
                             const LaunchShape& shape, cudaStream_t stream);
 /// `iterations` relaxation steps of every session from its relax_src, in one cooperative
-/// launch; `max_count` is the largest VOI's element count.
-void launch_relax_batch(const BatchItem* items, int n, unsigned max_count, int iterations, float step, float threshold,
+/// launch; `most` is the largest VOI size along each axis.
+void launch_relax_batch(const BatchItem* items, int n, const Vec3i& most, int iterations, float step, float threshold,
                         float width, const LaunchShape& shape, cudaStream_t stream);
 /// J of every session from its invert_src, in one launch.
 void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, bool search,

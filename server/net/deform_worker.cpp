@@ -179,6 +179,10 @@ void DeformWorker::run() {
       const auto t0 = std::chrono::steady_clock::now();
       std::this_thread::sleep_for(std::chrono::duration<double>(any_open ? kIdleSleepS : kDisabledSleepS));
       sleep_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      // the worker's times in stats stay current while no step publishes them (a stats
+      // request between two loads, as palpsim-bench server makes, reads the nap so far)
+      std::lock_guard<std::mutex> lock(report_mu_);
+      publish_worker_times();
     }
   }
   // every engine is destroyed on this thread (cuda: its stream and buffers too)
@@ -598,9 +602,7 @@ void DeformWorker::publish(const Session& s, int index) {
   out = s.report;
   out.memory = s.engine ? s.engine->memory() : DeformMemory{};
   // server_.memory holds the spare engines; server_report() adds the sessions' own
-  server_.worker_wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - world_start_).count();
-  server_.worker_step_s = step_s_;
-  server_.worker_sleep_s = sleep_s_;
+  publish_worker_times();
   server_.batches = std::uint64_t(std::llround(batch_share_));
   server_.batched_steps = batched_steps_;
   server_.memory = DeformMemory{};
@@ -609,6 +611,12 @@ void DeformWorker::publish(const Session& s, int index) {
     add_memory(server_.memory, e->memory());
     ++server_.engines;
   }
+}
+
+void DeformWorker::publish_worker_times() {
+  server_.worker_wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - world_start_).count();
+  server_.worker_step_s = step_s_;
+  server_.worker_sleep_s = sleep_s_;
 }
 
 bool DeformWorker::session_report(std::uint64_t session_id, DeformSessionReport& out) const {

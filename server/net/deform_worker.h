@@ -135,6 +135,7 @@ class DeformWorker {
   std::unique_ptr<DeformEngine> take_engine();
   void give_back(std::unique_ptr<DeformEngine> engine);
   void publish(const Session& s, int index);
+  void publish_worker_times();  // the worker's wall, step and nap times into server_ (report_mu_ held)
   void answer_request();
   double now_s() const;
 

@@ -63,6 +63,7 @@ void CudaDeformBackend::release() {
   for (int*& s : d_.stamp) cudaFree(s);
   cudaFree(d_.j);
   cudaFree(d_.relax_w);
+  cudaFree(d_.search_queue);
   cudaFree(d_.cell_folded);
   cudaFree(d_.untangle_flags);
   for (float*& c : d_.untangle_new) cudaFree(c);
@@ -126,6 +127,13 @@ void CudaDeformBackend::bind_impl() {
   if (config_.relax && config_.settings.relax_method == "multigrid") ensure_multigrid_buffers();
   if (config_.relax && config_.settings.relax_method != "multigrid") ensure_relax_buffers();
   if (config_.relax && config_.settings.untangle) ensure_untangle_buffers();
+  // the inversion's search queue, only for scenes that ask for the search: a sixteenth of
+  // the VOI (a fold's searched voxels are a few hundred to a few thousand at VOI 64), at
+  // least 4096; voxels beyond it are searched in place (invert.cu)
+  if (config_.invert && config_.settings.invert_search) {
+    d_.search_capacity = unsigned(std::max<long long>(4096, capacity_ / 16));
+    PALPSIM_CUDA_CHECK(cudaMalloc(&d_.search_queue, std::size_t(d_.search_capacity) * sizeof(InvertQueued)));
+  }
   dirty_ = Voi{};
   cur_ = 0;
 }
@@ -181,7 +189,7 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   if (d_.untangle_flags) m.relax_bytes = 2 * n + sizeof(d_.untangle_new) / sizeof(float*) * n * sizeof(float);
   // the explicit relaxation's weights, when it was asked for
   if (d_.relax_w) m.relax_bytes += n * sizeof(float);
-  m.invert_bytes = 2 * n * sizeof(float);
+  m.invert_bytes = 2 * n * sizeof(float) + std::size_t(d_.search_capacity) * sizeof(InvertQueued);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
   // multigrid: eight scalar VOI fields and a mask, three coarse fields and a mask, the dot
   // sums and flags
@@ -311,6 +319,7 @@ InvertStats CudaDeformBackend::invert_impl() {
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->unresolved, 0, sizeof(unsigned long long), stream_));
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->change_bits, 0, sizeof(unsigned), stream_));
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->nonfinite, 0, sizeof(unsigned long long), stream_));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_queued, 0, sizeof(unsigned), stream_));
   enqueue_invert();
   finish(nullptr, &r);
   return r;

@@ -61,61 +61,101 @@ __device__ Vec3f warp_search(const deform::Voi& voi, const float* ux, const floa
   return best;
 }
 
+// a session's displacement at a VOI-local voxel, zero outside the VOI (undeformed tissue)
+struct ULoader {
+  const deform::Voi* voi;
+  const float *ux, *uy, *uz;
+  __device__ Vec3f operator()(int i, int j, int k) const {
+    if (!voi->contains(i, j, k)) return Vec3f{0, 0, 0};
+    const int n = (k * voi->size.y + j) * voi->size.x + i;
+    return Vec3f{ux[n], uy[n], uz[n]};
+  }
+};
+
+// a session's intensity at a VOI-local voxel, clamped at the volume border
+struct ILoader {
+  const deform::Voi* voi;
+  Vec3i size;
+  const float* intensity;
+  __device__ float operator()(int i, int j, int k) const {
+    const int gi = min(max(voi->lo.x + i, 0), size.x - 1);
+    const int gj = min(max(voi->lo.y + j, 0), size.y - 1);
+    const int gk = min(max(voi->lo.z + k, 0), size.z - 1);
+    return intensity[((long long)gk * size.y + gj) * size.x + gi];
+  }
+};
+
+// VOI-local voxel of element e
+__device__ __forceinline__ Vec3i element_voxel(const deform::Voi& voi, int e) {
+  const int sxy = voi.size.x * voi.size.y;
+  const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x;
+  return Vec3i{rem - j * voi.size.x, j, k};
+}
+
+// J at p for element e at voxel v: written, and what the reduction needs of it
+__device__ __forceinline__ void write_j(const ILoader& load_i, const DeviceBuffers& b, int e, const Vec3i& v,
+                                       const Vec3f& p, float& change, bool& broken) {
+  const float jv = deform::trilinear<float>(load_i, p);
+  b.j[e] = jv;
+  // how far J moved from I here, and whether it is a number at all
+  broken = !isfinite(jv);
+  change = broken ? 0.0f : fabsf(jv - load_i(v.x, v.y, v.z));
+}
+
 // J at VOI-local element e of one session from displacement buffer src (e past the VOI:
 // nothing); its residual r, |J - I| and whether J is not a number go to the reduction.
-// Every lane of the warp must call it (the cell search is shared by the warp), and a
-// warp's lanes belong to one session (a block never spans two sessions)
+// Newton (invert_point) for every voxel; where it ends above kInvertSearchVox and the
+// search is on, the voxel goes to the session's search queue (search_queued_kernel
+// searches it, a warp per voxel, and writes its J), and only where the queue is full does
+// the warp search here, for each lane that needs it in turn: a fold's voxels lie side by
+// side, so searching in place left a few warps to search 32 voxels each one after another
+// while the rest of the GPU idled (0.62 ms a step on lumbar presses, H100, ec7f6e7).
+// Every lane of the warp must call it (the ballots), and a warp's lanes belong to one
+// session (a block never spans two sessions)
 __device__ __forceinline__ void invert_element(const StepGeometry& geo, int src, int iterations, bool search,
                                                const DeviceBuffers& b, int e, float& r, float& change, bool& broken) {
   const deform::Voi& voi = geo.voi;
   const bool mine = e < int(voi.count());
-  const float* ux = b.u[src][0];
-  const float* uy = b.u[src][1];
-  const float* uz = b.u[src][2];
-  const Vec3i size = geo.volume_size;
-  // displacement of a VOI-local voxel, zero outside the VOI (undeformed tissue)
-  auto load_u = [&](int i, int j, int k) {
-    if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
-    const int n = (k * voi.size.y + j) * voi.size.x + i;
-    return Vec3f{ux[n], uy[n], uz[n]};
-  };
-  // intensity at a VOI-local voxel, clamped at the volume border
-  auto load_i = [&](int i, int j, int k) {
-    const int gi = min(max(voi.lo.x + i, 0), size.x - 1);
-    const int gj = min(max(voi.lo.y + j, 0), size.y - 1);
-    const int gk = min(max(voi.lo.z + k, 0), size.z - 1);
-    return b.intensity[((long long)gk * size.y + gj) * size.x + gi];
-  };
-  const int sxy = voi.size.x * voi.size.y;
-  const int k = e / sxy, rem = e - k * sxy, j = rem / voi.size.x, i = rem - j * voi.size.x;
-  const Vec3f y{float(i), float(j), float(k)};
-  // Newton (invert_point), then the cell search where it ends above kInvertSearchVox, as
-  // invert_voxel(), the search done by the whole warp for each lane that needs it in turn
+  const ULoader load_u{&voi, b.u[src][0], b.u[src][1], b.u[src][2]};
+  const ILoader load_i{&voi, geo.volume_size, b.intensity};
+  const Vec3i v = mine ? element_voxel(voi, e) : Vec3i{0, 0, 0};
+  const Vec3f y{float(v.x), float(v.y), float(v.z)};
   r = 0.0f;
+  change = 0.0f;
+  broken = false;
   Vec3f p = y;
   if (mine) p = deform::invert_point(load_u, y, iterations, r);
   unsigned need = __ballot_sync(0xffffffffu, search && mine && iterations > 0 && r > deform::kInvertSearchVox);
+  const int lane = int(threadIdx.x & 31);
+  bool queued = false;
+  if (need && b.search_queue) {
+    // one atomic per warp: the lanes that need the search take consecutive slots
+    unsigned first = 0;
+    if (lane == __ffs(need) - 1) first = atomicAdd(&b.counters->search_queued, unsigned(__popc(need)));
+    first = __shfl_sync(0xffffffffu, first, __ffs(need) - 1);
+    const unsigned slot = first + unsigned(__popc(need & ((1u << lane) - 1u)));
+    if ((need >> lane) & 1u && slot < b.search_capacity) {
+      b.search_queue[slot] = InvertQueued{e, p.x, p.y, p.z, r};
+      queued = true;
+    }
+    need &= ~__ballot_sync(0xffffffffu, queued);
+  }
+  // the queue is full: the warp searches for its lanes in turn
   while (need) {
     const int who = __ffs(need) - 1;
     need &= need - 1;
     const Vec3f yw{__shfl_sync(0xffffffffu, y.x, who), __shfl_sync(0xffffffffu, y.y, who),
                    __shfl_sync(0xffffffffu, y.z, who)};
     float rs;
-    const Vec3f q = warp_search(voi, ux, uy, uz, yw, yw - deform::trilinear<Vec3f>(load_u, yw), rs);
-    if (int(threadIdx.x & 31) == who && rs < r) {
+    const Vec3f q = warp_search(voi, load_u.ux, load_u.uy, load_u.uz, yw, yw - deform::trilinear<Vec3f>(load_u, yw), rs);
+    if (lane == who && rs < r) {
       r = rs;
       p = q;
     }
   }
-  change = 0.0f;
-  broken = false;
-  if (mine) {
-    const float jv = deform::trilinear<float>(load_i, p);
-    b.j[e] = jv;
-    // how far J moved from I here, and whether it is a number at all
-    broken = !isfinite(jv);
-    if (!broken) change = fabsf(jv - load_i(i, j, k));
-  }
+  // a queued voxel's J, residual and change come from the search kernel
+  if (queued) r = 0.0f;
+  if (mine && !queued) write_j(load_i, b, e, v, p, change, broken);
 }
 
 // the warp's unresolved and non-finite voxels, largest residual and largest change of
@@ -139,7 +179,7 @@ __device__ __forceinline__ void invert_reduce(const DeviceBuffers& b, float r, f
 }
 
 __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, int iterations, bool search,
-                                                             DeviceBuffers b) {
+                                                     DeviceBuffers b) {
   const int e = int(blockIdx.x * blockDim.x + threadIdx.x);  // VOIs hold < 2^31 voxels (checked at bind)
   float r = 0.0f, change = 0.0f;
   bool broken = false;
@@ -150,13 +190,81 @@ __global__ void __launch_bounds__(256) invert_kernel(StepGeometry geo, int src, 
 // the inversion of several sessions in one launch (batch.cu says why): blockIdx.y is
 // the session, each of its elements as in the kernel above
 __global__ void __launch_bounds__(256) invert_batch_kernel(const BatchItem* __restrict__ items, int iterations,
-                                                                   bool search) {
+                                                           bool search) {
   const BatchItem& item = items[blockIdx.y];
   const int e = int(blockIdx.x * blockDim.x + threadIdx.x);
   float r = 0.0f, change = 0.0f;
   bool broken = false;
   invert_element(item.geo, item.invert_src, iterations, search, item.b, e, r, change, broken);
   invert_reduce(item.b, r, change, broken);
+}
+
+// the cell search of one session's queued voxels (invert_element queued them), a warp
+// per voxel, `warps` warps of the launch striding over the queue: the same warp_search
+// from the same guess as in place, the lower residual of it and Newton's kept (as
+// invert_voxel()), then J there; the warp's largest residual and change and its
+// unresolved and non-finite voxels into the counters at the end
+__device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, const DeviceBuffers& b, int warp,
+                                              int warps) {
+  const deform::Voi& voi = geo.voi;
+  const ULoader load_u{&voi, b.u[src][0], b.u[src][1], b.u[src][2]};
+  const ILoader load_i{&voi, geo.volume_size, b.intensity};
+  const unsigned n = min(*(volatile unsigned*)&b.counters->search_queued, b.search_capacity);
+  float r_max = 0.0f, change_max = 0.0f;
+  unsigned long long bad = 0, nonfinite = 0;
+  for (unsigned q = unsigned(warp); q < n; q += unsigned(warps)) {
+    const InvertQueued in = b.search_queue[q];
+    const Vec3i v = element_voxel(voi, in.e);
+    const Vec3f y{float(v.x), float(v.y), float(v.z)};
+    float rs;
+    const Vec3f s = warp_search(voi, load_u.ux, load_u.uy, load_u.uz, y, y - deform::trilinear<Vec3f>(load_u, y), rs);
+    float r = in.r;
+    Vec3f p{in.px, in.py, in.pz};
+    if (rs < r) {
+      r = rs;
+      p = s;
+    }
+    if ((threadIdx.x & 31) == 0) {
+      float change;
+      bool broken;
+      write_j(load_i, b, in.e, v, p, change, broken);
+      r_max = fmaxf(r_max, r);
+      change_max = fmaxf(change_max, change);
+      bad += r > deform::kInvertResolvedVox;
+      nonfinite += broken;
+    }
+  }
+  if ((threadIdx.x & 31) == 0 && unsigned(warp) < n) {
+    atomicMax(&b.counters->residual_bits, __float_as_uint(r_max));
+    atomicMax(&b.counters->change_bits, __float_as_uint(change_max));
+    if (bad) atomicAdd(&b.counters->unresolved, bad);
+    if (nonfinite) atomicAdd(&b.counters->nonfinite, nonfinite);
+  }
+}
+
+constexpr int kSearchThreads = 256;  // 8 warps a block
+constexpr int kSearchWarpsPerBlock = kSearchThreads / 32;
+
+__global__ void __launch_bounds__(kSearchThreads) search_kernel(StepGeometry geo, int src, DeviceBuffers b) {
+  search_queued(geo, src, b, int(blockIdx.x) * kSearchWarpsPerBlock + int(threadIdx.x / 32),
+                int(gridDim.x) * kSearchWarpsPerBlock);
+}
+
+// blockIdx.y is the session
+__global__ void __launch_bounds__(kSearchThreads) search_batch_kernel(const BatchItem* __restrict__ items) {
+  const BatchItem& item = items[blockIdx.y];
+  if (!item.b.search_queue) return;
+  search_queued(item.geo, item.invert_src, item.b, int(blockIdx.x) * kSearchWarpsPerBlock + int(threadIdx.x / 32),
+                int(gridDim.x) * kSearchWarpsPerBlock);
+}
+
+// blocks of the search kernel: two per multiprocessor in all, at least 8 per session, so
+// that a fold's few hundred to few thousand voxels spread over the whole GPU
+unsigned search_blocks(int sessions) {
+  int dev = 0, sms = 0;
+  PALPSIM_CUDA_CHECK(cudaGetDevice(&dev));
+  PALPSIM_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev));
+  return unsigned(std::max(8, 2 * sms / std::max(1, sessions)));
 }
 
 }  // namespace
@@ -167,6 +275,10 @@ void launch_invert(const StepGeometry& g, int src, int iterations, bool search, 
   const int threads = 256;
   invert_kernel<<<unsigned((n + threads - 1) / threads), threads, 0, stream>>>(g, src, iterations, search, b);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
+  if (search && iterations > 0 && b.search_queue) {
+    search_kernel<<<search_blocks(1), kSearchThreads, 0, stream>>>(g, src, b);
+    PALPSIM_CUDA_CHECK(cudaGetLastError());
+  }
 }
 
 void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, bool search,
@@ -175,6 +287,10 @@ void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int 
   const unsigned threads = 256;
   invert_batch_kernel<<<dim3((max_count + threads - 1) / threads, unsigned(n)), threads, 0, stream>>>(items, iterations, search);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
+  if (search && iterations > 0) {
+    search_batch_kernel<<<dim3(search_blocks(n), unsigned(n)), kSearchThreads, 0, stream>>>(items);
+    PALPSIM_CUDA_CHECK(cudaGetLastError());
+  }
 }
 
 }  // namespace palpsim::cuda

@@ -29,7 +29,15 @@ struct Counters {
   int untangle_changed[3];         // elements changed per sweep, by sweep % 3
   int untangle_box[6];             // lo and hi (VOI-local) of the elements untangling may move
   int untangle_reverted;           // 1: it ended with more folds and restored the relaxed field
+  unsigned int search_queued;      // inversion: voxels Newton left to the cell search, queued (may pass the queue's capacity)
   int relax_solves;                // multigrid: scalar solves run (0: the unit response was reused)
+};
+
+/// A voxel queued for the inversion's cell search: its VOI-local index and Newton's answer.
+struct InvertQueued {
+  int e;
+  float px, py, pz;  // Newton's source (VOI-local voxel)
+  float r;           // its residual (voxel)
 };
 
 /// Device pointers of one session's state.
@@ -43,6 +51,10 @@ struct DeviceBuffers {
   std::uint8_t* cell_folded = nullptr;  // untangling: 1 where the cell with this lowest corner folds
   std::uint8_t* untangle_flags = nullptr;  // untangling: seed, moved and changes bits per element
   float* untangle_new[3] = {nullptr, nullptr, nullptr};  // untangling: a sweep's new displacements
+  /// The inversion's search queue (invert.cu): voxels whose Newton steps ended above
+  /// deform::kInvertSearchVox, searched afterwards by a warp each; only with deform.invert_search.
+  InvertQueued* search_queue = nullptr;
+  unsigned search_capacity = 0;         // entries search_queue holds; voxels beyond it are searched in place
   Counters* counters = nullptr;
 };
 

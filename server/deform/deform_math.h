@@ -478,12 +478,18 @@ PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec
   const Vec3i m = search_centre(size, guess, rmax);
   Vec3f best = guess;
   residual = 3.4e38f;
+  // the rings of pass 0 with a cell whose box holds y: pass 1 visits only those, as
+  // search_cell() refuses the same cells on either pass (the result is unchanged)
+  int r_lo = rmax + 1, r_hi = -1;
   for (int pass = 0; pass < 2 && !(residual <= kInvertSearchVox); ++pass)
-    for (int r = 0; r <= rmax && !(residual <= kInvertSearchVox); ++r)
+    for (int r = pass ? r_lo : 0; r <= (pass ? r_hi : rmax) && !(residual <= kInvertSearchVox); ++r)
       for (int idx = 0, n = search_ring_size(r); idx < n; ++idx) {
         Vec3f p;
         float rc;
-        if (search_cell(load_u, size, m + search_ring_cell(r, idx), y, pass, p, rc) && rc < residual) {
+        if (!search_cell(load_u, size, m + search_ring_cell(r, idx), y, pass, p, rc)) continue;
+        r_lo = r < r_lo ? r : r_lo;
+        r_hi = r > r_hi ? r : r_hi;
+        if (rc < residual) {
           residual = rc;
           best = p;
         }

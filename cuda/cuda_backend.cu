@@ -64,7 +64,6 @@ void CudaDeformBackend::release() {
   cudaFree(d_.j);
   cudaFree(d_.relax_w);
   cudaFree(d_.search_queue);
-  cudaFree(d_.search_bricks);
   cudaFree(d_.cell_folded);
   cudaFree(d_.untangle_flags);
   for (float*& c : d_.untangle_new) cudaFree(c);
@@ -134,8 +133,6 @@ void CudaDeformBackend::bind_impl() {
   if (config_.invert && config_.settings.invert_search) {
     d_.search_capacity = unsigned(std::max<long long>(4096, capacity_ / 16));
     PALPSIM_CUDA_CHECK(cudaMalloc(&d_.search_queue, std::size_t(d_.search_capacity) * sizeof(InvertQueued)));
-    search_brick_count_ = search_brick_count(max_voi_size());
-    PALPSIM_CUDA_CHECK(cudaMalloc(&d_.search_bricks, search_brick_count_ * 6 * sizeof(float)));
   }
   dirty_ = Voi{};
   cur_ = 0;
@@ -192,8 +189,7 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   if (d_.untangle_flags) m.relax_bytes = 2 * n + sizeof(d_.untangle_new) / sizeof(float*) * n * sizeof(float);
   // the explicit relaxation's weights, when it was asked for
   if (d_.relax_w) m.relax_bytes += n * sizeof(float);
-  m.invert_bytes = 2 * n * sizeof(float) + std::size_t(d_.search_capacity) * sizeof(InvertQueued) +
-                   (d_.search_bricks ? search_brick_count_ * 6 * sizeof(float) : 0);
+  m.invert_bytes = 2 * n * sizeof(float) + std::size_t(d_.search_capacity) * sizeof(InvertQueued);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
   // multigrid: eight scalar VOI fields and a mask, three coarse fields and a mask, the dot
   // sums and flags

@@ -107,7 +107,6 @@ class CudaDeformBackend final : public DeformBackend {
   float* host_j_ = nullptr;            // pinned, J's VOI after upload
   mutable bool host_j_stale_ = false;  // a batched step left J on the device only: deformed_brick() copies it
   long long capacity_ = 0;             // elements per VOI buffer
-  std::size_t search_brick_count_ = 0; // bricks d_.search_bricks holds (0 without the inversion's search)
   Voi dirty_;                          // VOI whose buffers hold a deformation
   int cur_ = 0;                        // displacement buffer holding the current field
   std::shared_ptr<CudaBatch> batch_;     // the launches' resources when this backend leads a batch, kept for the next

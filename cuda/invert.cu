@@ -3,7 +3,6 @@
 // launch (for one session or a batch of them), each search shared by the thread's warp.
 #include <algorithm>
 #include <climits>
-#include <cmath>
 
 #include "cuda/check.h"
 #include "cuda/kernels.h"
@@ -12,102 +11,49 @@ namespace palpsim::cuda {
 
 namespace {
 
-// edge of a search brick (cells along each axis)
-constexpr int kSearchBrick = 4;
+// invert_search() of deform_math.h with each ring's cells split over the kWarps x 32
+// threads of a group (a searching thread alone spent 0.3 ms on the Table 1 press's fold,
+// its cells' loads one after another): a warp (kWarps 1, the search in place) or a whole
+// block of kWarps warps (the queued search: a fold's queued voxels are a few thousand, too
+// few to fill the GPU a warp each, and each ring's cells are a chain of dependent loads).
+// Every thread of the group takes part and gets the same answer: per ring the lowest
+// residual, the lowest ring index among equals, as the CPU's loop in ring order; pass 1
+// visits only the rings of pass 0 with a cell whose box holds y, as the CPU. `shared`: a
+// block's scratch for kWarps > 1 (GroupScratch), unused for a warp
+template <int kWarps>
+struct GroupScratch {
+  float r[kWarps];
+  int idx[kWarps];
+  float p[kWarps][3];
+  int held[kWarps];
+};
 
-// index of the brick of the cell with lowest corner o (each of o's coordinates in
-// [-1, size - 1]), and the bricks along i and j
-__device__ __forceinline__ int brick_index(const Vec3i& size, const Vec3i& o) {
-  const int nx = (size.x + kSearchBrick) / kSearchBrick, ny = (size.y + kSearchBrick) / kSearchBrick;
-  return (((o.z + 1) / kSearchBrick) * ny + (o.y + 1) / kSearchBrick) * nx + (o.x + 1) / kSearchBrick;
-}
-
-// false where the cell with lowest corner o lies beyond the search's cells or its brick's
-// deformed box, grown by kInvertSearchVox as search_cell() grows a cell's, cannot hold y
-__device__ __forceinline__ bool brick_may_hold(const float* bricks, const Vec3i& size, const Vec3i& o, const Vec3f& y) {
-  if (o.x < -1 || o.y < -1 || o.z < -1 || o.x > size.x - 1 || o.y > size.y - 1 || o.z > size.z - 1) return false;
-  const float* b = bricks + 6 * brick_index(size, o);
-  for (int a = 0; a < 3; ++a)
-    if (!(y[a] >= b[a] - deform::kInvertSearchVox && y[a] <= b[3 + a] + deform::kInvertSearchVox)) return false;
-  return true;
-}
-
-// the deformed box of every brick of one session's field (u = 0 beyond the VOI): the
-// lowest and highest node + u(node) over the corners of its cells, the same float sums
-// as search_cell()'s; `t0`, `stride`: this thread's bricks
-__device__ __forceinline__ void brick_boxes(const deform::Voi& voi, const float* ux, const float* uy, const float* uz,
-                                            float* bricks, unsigned t0, unsigned stride) {
-  const Vec3i size = voi.size;
-  const int nx = (size.x + kSearchBrick) / kSearchBrick, ny = (size.y + kSearchBrick) / kSearchBrick,
-            nz = (size.z + kSearchBrick) / kSearchBrick;
-  auto load_u = [&](int i, int j, int k) {
-    if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
-    const int n = (k * voi.size.y + j) * voi.size.x + i;
-    return Vec3f{ux[n], uy[n], uz[n]};
-  };
-  for (unsigned t = t0; t < unsigned(nx * ny * nz); t += stride) {
-    const int bx = int(t) % nx, by = (int(t) / nx) % ny, bz = int(t) / (nx * ny);
-    // the bricks' cells have lowest corners from kSearchBrick * b - 1 (up to size - 1), so
-    // their corners run from there to kSearchBrick * b + kSearchBrick - 1 (up to size)
-    const Vec3i lo{kSearchBrick * bx - 1, kSearchBrick * by - 1, kSearchBrick * bz - 1};
-    const Vec3i hi{min(lo.x + kSearchBrick, size.x), min(lo.y + kSearchBrick, size.y), min(lo.z + kSearchBrick, size.z)};
-    float bl[3] = {3.4e38f, 3.4e38f, 3.4e38f}, bh[3] = {-3.4e38f, -3.4e38f, -3.4e38f};
-    for (int k = lo.z; k <= hi.z; ++k)
-      for (int j = lo.y; j <= hi.y; ++j)
-        for (int i = lo.x; i <= hi.x; ++i) {
-          const Vec3f u = load_u(i, j, k);
-          const int node[3] = {i, j, k};
-          for (int a = 0; a < 3; ++a) {
-            const float x = float(node[a]) + u[a];
-            bl[a] = x < bl[a] ? x : bl[a];
-            bh[a] = x > bh[a] ? x : bh[a];
-          }
-        }
-    float* b = bricks + 6 * t;
-    for (int a = 0; a < 3; ++a) {
-      b[a] = bl[a];
-      b[3 + a] = bh[a];
-    }
-  }
-}
-
-// invert_search() of deform_math.h with each ring's cells split over the 32 lanes of the
-// warp (a searching thread alone spent 0.3 ms on the Table 1 press's fold, its cells'
-// loads one after another); every lane takes part and gets the same answer: per ring the
-// lowest residual, the lowest ring index among equals, as the CPU's loop in ring order
-// `bricks` (or nullptr): DeviceBuffers::search_bricks of this field; a cell of a brick
-// whose deformed box cannot hold y is skipped before its corners are read, which changes
-// nothing: the brick's box holds each of its cells' boxes, so search_cell() would refuse
-// the cell too (the same float sums and tolerance, taken over more corners). The search's
-// cost was those corner reads: 2,000 queued voxels at a 25 voxel press read about 2,200
-// cells each (rings 0-6) to solve 8
-__device__ Vec3f warp_search(const deform::Voi& voi, const float* ux, const float* uy, const float* uz,
-                             const float* bricks, const Vec3f& y, const Vec3f& guess, float& residual) {
+template <int kWarps>
+__device__ Vec3f group_search(const deform::Voi& voi, const float* ux, const float* uy, const float* uz,
+                              const Vec3f& y, const Vec3f& guess, float& residual, GroupScratch<kWarps>* shared) {
   auto load_u = [&](int i, int j, int k) {
     if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
     const int n = (k * voi.size.y + j) * voi.size.x + i;
     return Vec3f{ux[n], uy[n], uz[n]};
   };
   const int lane = int(threadIdx.x & 31);
+  const int t = kWarps == 1 ? lane : int(threadIdx.x);
   int rmax;
   const Vec3i m = deform::search_centre(voi.size, guess, rmax);
   Vec3f best = guess;
   residual = 3.4e38f;
-  // pass 1 visits only the rings of pass 0 with a cell whose box holds y, as the cpu
   int r_lo = rmax + 1, r_hi = -1;
   for (int pass = 0; pass < 2 && !(residual <= deform::kInvertSearchVox); ++pass)
     for (int r = pass ? r_lo : 0; r <= (pass ? r_hi : rmax) && !(residual <= deform::kInvertSearchVox); ++r) {
-      // this lane's best of the ring, then the warp's
+      // this thread's best of the ring, then the warp's, then the group's
       float br = 3.4e38f;
       int bi = INT_MAX;
       Vec3f bp = best;
       bool held = false;
-      for (int idx = lane, n = deform::search_ring_size(r); idx < n; idx += 32) {
-        const Vec3i o = m + deform::search_ring_cell(r, idx);
-        if (bricks && !brick_may_hold(bricks, voi.size, o, y)) continue;
+      for (int idx = t, n = deform::search_ring_size(r); idx < n; idx += 32 * kWarps) {
         Vec3f p;
         float rc;
-        if (!deform::search_cell(load_u, voi.size, o, y, pass, p, rc)) continue;
+        if (!deform::search_cell(load_u, voi.size, m + deform::search_ring_cell(r, idx), y, pass, p, rc)) continue;
         held = true;
         if (rc < br) {
           br = rc;
@@ -115,10 +61,7 @@ __device__ Vec3f warp_search(const deform::Voi& voi, const float* ux, const floa
           bp = p;
         }
       }
-      if (__any_sync(0xffffffffu, held)) {
-        r_lo = min(r_lo, r);
-        r_hi = max(r_hi, r);
-      }
+      held = __any_sync(0xffffffffu, held);
       for (int o = 16; o > 0; o >>= 1) {
         const float orr = __shfl_xor_sync(0xffffffffu, br, o);
         const int oi = __shfl_xor_sync(0xffffffffu, bi, o);
@@ -129,6 +72,31 @@ __device__ Vec3f warp_search(const deform::Voi& voi, const float* ux, const floa
           bi = oi;
           bp = op;
         }
+      }
+      if constexpr (kWarps > 1) {
+        const int w = int(threadIdx.x / 32);
+        if (lane == 0) {
+          shared->r[w] = br;
+          shared->idx[w] = bi;
+          shared->p[w][0] = bp.x;
+          shared->p[w][1] = bp.y;
+          shared->p[w][2] = bp.z;
+          shared->held[w] = held;
+        }
+        __syncthreads();
+        for (int q = 0; q < kWarps; ++q) {
+          held = held || shared->held[q] != 0;
+          if (shared->r[q] < br || (shared->r[q] == br && shared->idx[q] < bi)) {
+            br = shared->r[q];
+            bi = shared->idx[q];
+            bp = Vec3f{shared->p[q][0], shared->p[q][1], shared->p[q][2]};
+          }
+        }
+        __syncthreads();  // the scratch is written again next ring
+      }
+      if (held) {
+        r_lo = min(r_lo, r);
+        r_hi = max(r_hi, r);
       }
       if (br < residual) {
         residual = br;
@@ -182,8 +150,8 @@ __device__ __forceinline__ void write_j(const ILoader& load_i, const DeviceBuffe
 // J at VOI-local element e of one session from displacement buffer src (e past the VOI:
 // nothing); its residual r, |J - I| and whether J is not a number go to the reduction.
 // Newton (invert_point) for every voxel; where it ends above kInvertSearchVox and the
-// search is on, the voxel goes to the session's search queue (search_queued_kernel
-// searches it, a warp per voxel, and writes its J), and only where the queue is full does
+// search is on, the voxel goes to the session's search queue (search_kernel searches
+// it, a block per voxel, and writes its J), and only where the queue is full does
 // the warp search here, for each lane that needs it in turn: a fold's voxels lie side by
 // side, so searching in place left a few warps to search 32 voxels each one after another
 // while the rest of the GPU idled (0.62 ms a step on lumbar presses, H100, ec7f6e7).
@@ -224,8 +192,8 @@ __device__ __forceinline__ void invert_element(const StepGeometry& geo, int src,
     const Vec3f yw{__shfl_sync(0xffffffffu, y.x, who), __shfl_sync(0xffffffffu, y.y, who),
                    __shfl_sync(0xffffffffu, y.z, who)};
     float rs;
-    const Vec3f q = warp_search(voi, load_u.ux, load_u.uy, load_u.uz, nullptr, yw,
-                                yw - deform::trilinear<Vec3f>(load_u, yw), rs);
+    const Vec3f q = group_search<1>(voi, load_u.ux, load_u.uy, load_u.uz, yw, yw - deform::trilinear<Vec3f>(load_u, yw),
+                                    rs, nullptr);
     if (lane == who && rs < r) {
       r = rs;
       p = q;
@@ -277,33 +245,38 @@ __global__ void __launch_bounds__(256) invert_batch_kernel(const BatchItem* __re
   invert_reduce(item.b, r, change, broken);
 }
 
-// the cell search of one session's queued voxels (invert_element queued them), a warp
-// per voxel, `warps` warps of the launch striding over the queue: the same warp_search
-// from the same guess as in place, the lower residual of it and Newton's kept (as
-// invert_voxel()), then J there; the warp's largest residual and change and its
+// warps of the block that searches one queued voxel (group_search says why)
+constexpr int kSearchWarps = 4;
+constexpr int kSearchThreads = 32 * kSearchWarps;
+
+// the cell search of one session's queued voxels (invert_element queued them), a block
+// per voxel, the launch's `blocks` blocks striding over the queue: the same search from
+// the same guess as in place, the lower residual of it and Newton's kept (as
+// invert_voxel()), then J there; the block's largest residual and change and its
 // unresolved and non-finite voxels into the counters at the end
-__device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, const DeviceBuffers& b, int warp,
-                                              int warps) {
+__device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, const DeviceBuffers& b, int block,
+                                              int blocks) {
+  __shared__ GroupScratch<kSearchWarps> scratch;
   const deform::Voi& voi = geo.voi;
   const ULoader load_u{&voi, b.u[src][0], b.u[src][1], b.u[src][2]};
   const ILoader load_i{&voi, geo.volume_size, b.intensity};
-  const unsigned n = min(*(volatile unsigned*)&b.counters->search_queued, b.search_capacity);
+  const unsigned n = min(b.counters->search_queued, b.search_capacity);
   float r_max = 0.0f, change_max = 0.0f;
   unsigned long long bad = 0, nonfinite = 0;
-  for (unsigned q = unsigned(warp); q < n; q += unsigned(warps)) {
+  for (unsigned q = unsigned(block); q < n; q += unsigned(blocks)) {
     const InvertQueued in = b.search_queue[q];
     const Vec3i v = element_voxel(voi, in.e);
     const Vec3f y{float(v.x), float(v.y), float(v.z)};
     float rs;
-    const Vec3f s = warp_search(voi, load_u.ux, load_u.uy, load_u.uz, b.search_bricks, y,
-                                y - deform::trilinear<Vec3f>(load_u, y), rs);
+    const Vec3f s = group_search<kSearchWarps>(voi, load_u.ux, load_u.uy, load_u.uz, y,
+                                               y - deform::trilinear<Vec3f>(load_u, y), rs, &scratch);
     float r = in.r;
     Vec3f p{in.px, in.py, in.pz};
     if (rs < r) {
       r = rs;
       p = s;
     }
-    if ((threadIdx.x & 31) == 0) {
+    if (threadIdx.x == 0) {
       float change;
       bool broken;
       write_j(load_i, b, in.e, v, p, change, broken);
@@ -313,7 +286,7 @@ __device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, 
       nonfinite += broken;
     }
   }
-  if ((threadIdx.x & 31) == 0 && unsigned(warp) < n) {
+  if (threadIdx.x == 0 && unsigned(block) < n) {
     atomicMax(&b.counters->residual_bits, __float_as_uint(r_max));
     atomicMax(&b.counters->change_bits, __float_as_uint(change_max));
     if (bad) atomicAdd(&b.counters->unresolved, bad);
@@ -321,43 +294,24 @@ __device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, 
   }
 }
 
-__global__ void __launch_bounds__(256) bricks_kernel(StepGeometry geo, int src, DeviceBuffers b) {
-  brick_boxes(geo.voi, b.u[src][0], b.u[src][1], b.u[src][2], b.search_bricks, blockIdx.x * blockDim.x + threadIdx.x,
-              gridDim.x * blockDim.x);
-}
-
-// blockIdx.y is the session
-__global__ void __launch_bounds__(256) bricks_batch_kernel(const BatchItem* __restrict__ items) {
-  const BatchItem& item = items[blockIdx.y];
-  if (!item.b.search_bricks) return;
-  const int src = item.invert_src;
-  brick_boxes(item.geo.voi, item.b.u[src][0], item.b.u[src][1], item.b.u[src][2], item.b.search_bricks,
-              blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
-}
-
-constexpr int kSearchThreads = 256;  // 8 warps a block
-constexpr int kSearchWarpsPerBlock = kSearchThreads / 32;
-
 __global__ void __launch_bounds__(kSearchThreads) search_kernel(StepGeometry geo, int src, DeviceBuffers b) {
-  search_queued(geo, src, b, int(blockIdx.x) * kSearchWarpsPerBlock + int(threadIdx.x / 32),
-                int(gridDim.x) * kSearchWarpsPerBlock);
+  search_queued(geo, src, b, int(blockIdx.x), int(gridDim.x));
 }
 
 // blockIdx.y is the session
 __global__ void __launch_bounds__(kSearchThreads) search_batch_kernel(const BatchItem* __restrict__ items) {
   const BatchItem& item = items[blockIdx.y];
   if (!item.b.search_queue) return;
-  search_queued(item.geo, item.invert_src, item.b, int(blockIdx.x) * kSearchWarpsPerBlock + int(threadIdx.x / 32),
-                int(gridDim.x) * kSearchWarpsPerBlock);
+  search_queued(item.geo, item.invert_src, item.b, int(blockIdx.x), int(gridDim.x));
 }
 
-// blocks of the search kernel: two per multiprocessor in all, at least 8 per session, so
-// that a fold's few hundred to few thousand voxels spread over the whole GPU
+// blocks of the search kernel: eight per multiprocessor in all, at least 8 per session,
+// so that a fold's few hundred to few thousand voxels spread over the whole GPU
 unsigned search_blocks(int sessions) {
   int dev = 0, sms = 0;
   PALPSIM_CUDA_CHECK(cudaGetDevice(&dev));
   PALPSIM_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev));
-  return unsigned(std::max(8, 2 * sms / std::max(1, sessions)));
+  return unsigned(std::max(8, 8 * sms / std::max(1, sessions)));
 }
 
 }  // namespace
@@ -369,8 +323,6 @@ void launch_invert(const StepGeometry& g, int src, int iterations, bool search, 
   invert_kernel<<<unsigned((n + threads - 1) / threads), threads, 0, stream>>>(g, src, iterations, search, b);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
   if (search && iterations > 0 && b.search_queue) {
-    const unsigned bricks = unsigned(search_brick_count(g.voi.size));
-    bricks_kernel<<<(bricks + threads - 1) / threads, threads, 0, stream>>>(g, src, b);
     search_kernel<<<search_blocks(1), kSearchThreads, 0, stream>>>(g, src, b);
     PALPSIM_CUDA_CHECK(cudaGetLastError());
   }
@@ -383,10 +335,6 @@ void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int 
   invert_batch_kernel<<<dim3((max_count + threads - 1) / threads, unsigned(n)), threads, 0, stream>>>(items, iterations, search);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
   if (search && iterations > 0) {
-    // bricks of the largest VOI: a smaller one's threads beyond its bricks do nothing
-    const unsigned edge = unsigned(std::cbrt(double(max_count))) + 1;
-    const unsigned bricks = unsigned(search_brick_count(Vec3i{int(edge), int(edge), int(edge)}));
-    bricks_batch_kernel<<<dim3((bricks + threads - 1) / threads, unsigned(n)), threads, 0, stream>>>(items);
     search_batch_kernel<<<dim3(search_blocks(n), unsigned(n)), kSearchThreads, 0, stream>>>(items);
     PALPSIM_CUDA_CHECK(cudaGetLastError());
   }

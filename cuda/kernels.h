@@ -55,10 +55,6 @@ struct DeviceBuffers {
   /// deform::kInvertSearchVox, searched afterwards by a warp each; only with deform.invert_search.
   InvertQueued* search_queue = nullptr;
   unsigned search_capacity = 0;         // entries search_queue holds; voxels beyond it are searched in place
-  /// The deformed bounding box (lo xyz, hi xyz, voxel) of each brick of 4^3 search cells
-  /// (invert.cu, search_bricks_kernel): the queued search skips the cells of a brick whose
-  /// box cannot hold y; only with deform.invert_search.
-  float* search_bricks = nullptr;
   Counters* counters = nullptr;
 };
 
@@ -164,12 +160,6 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float th
 /// in counters.
 void launch_untangle(const StepGeometry& g, int cur, const DeviceBuffers& b, const LaunchShape& shape,
                      cudaStream_t stream);
-
-/// Bricks of the inversion's search (DeviceBuffers::search_bricks) for a VOI of `size`:
-/// 4^3 cells each, over the cells whose lowest corner lies in [-1, size - 1].
-inline std::size_t search_brick_count(const Vec3i& size) {
-  return std::size_t((size.x + 4) / 4) * std::size_t((size.y + 4) / 4) * std::size_t((size.z + 4) / 4);
-}
 
 /// J on the VOI from displacement buffer `src`; the max residual goes to counters.
 void launch_invert(const StepGeometry& g, int src, int iterations, bool search, const DeviceBuffers& b,

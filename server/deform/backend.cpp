@@ -113,17 +113,12 @@ void DeformBackend::set_relax_counts(DeformStats& out) const {
   out.relax_cycles = mg ? config_.settings.relax_cycles : 0;
 }
 
-Vec3i DeformBackend::max_voi_size() const {
-  const Vec3i& g = patient_->grid.size;
-  if (config_.settings.whole_volume) return g;
-  Vec3i s;
-  for (int a = 0; a < 3; ++a) s[a] = std::min(config_.settings.voi_edge, g[a]);
-  return s;
-}
-
 long long DeformBackend::max_voi_count() const {
-  const Vec3i s = max_voi_size();
-  return (long long)s.x * s.y * s.z;
+  const Vec3i& g = patient_->grid.size;
+  if (config_.settings.whole_volume) return (long long)g.x * g.y * g.z;
+  long long n = 1;
+  for (int a = 0; a < 3; ++a) n *= std::min(config_.settings.voi_edge, g[a]);
+  return n;
 }
 
 void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {

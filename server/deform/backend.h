@@ -228,8 +228,6 @@ class DeformBackend {
 
   /// Largest VOI the state holds (voxels): deform.voi_edge^3, or the whole volume.
   long long max_voi_count() const;
-  /// Its size along each axis (voxels): deform.voi_edge clipped to the volume, or the volume's.
-  Vec3i max_voi_size() const;
 
   PatientPtr patient_;
   DeformConfig config_;

@@ -64,6 +64,8 @@ void CudaDeformBackend::release() {
   cudaFree(d_.j);
   cudaFree(d_.relax_w);
   cudaFree(d_.search_queue);
+  cudaFree(d_.search_slot);
+  cudaFree(d_.search_candidates);
   cudaFree(d_.cell_folded);
   cudaFree(d_.untangle_flags);
   for (float*& c : d_.untangle_new) cudaFree(c);
@@ -127,12 +129,19 @@ void CudaDeformBackend::bind_impl() {
   if (config_.relax && config_.settings.relax_method == "multigrid") ensure_multigrid_buffers();
   if (config_.relax && config_.settings.relax_method != "multigrid") ensure_relax_buffers();
   if (config_.relax && config_.settings.untangle) ensure_untangle_buffers();
-  // the inversion's search queue, only for scenes that ask for the search: a sixteenth of
-  // the VOI (a fold's searched voxels are a few hundred to a few thousand at VOI 64), at
-  // least 4096; voxels beyond it are searched in place (invert.cu)
+  // the inversion's search queue, slot map and the scatter's list, only for scenes that
+  // ask for the search: the queue a 32nd of the VOI (a fold's searched voxels are a few
+  // hundred to a few thousand at VOI 64), at least 2048, the list four cells a queued
+  // voxel (about nine are found for each, and few voxels are queued at once); voxels
+  // beyond the queue are searched in place, and a full list sends the queue to the rings
+  // (invert.cu)
   if (config_.invert && config_.settings.invert_search) {
-    d_.search_capacity = unsigned(std::max<long long>(4096, capacity_ / 16));
+    d_.search_capacity = unsigned(std::max<long long>(2048, capacity_ / 32));
+    d_.candidate_capacity = 4 * d_.search_capacity;
     PALPSIM_CUDA_CHECK(cudaMalloc(&d_.search_queue, std::size_t(d_.search_capacity) * sizeof(InvertQueued)));
+    PALPSIM_CUDA_CHECK(cudaMalloc(&d_.search_slot, n * sizeof(int)));
+    PALPSIM_CUDA_CHECK(
+        cudaMalloc(&d_.search_candidates, std::size_t(d_.candidate_capacity) * sizeof(InvertCandidate)));
   }
   dirty_ = Voi{};
   cur_ = 0;
@@ -189,7 +198,9 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   if (d_.untangle_flags) m.relax_bytes = 2 * n + sizeof(d_.untangle_new) / sizeof(float*) * n * sizeof(float);
   // the explicit relaxation's weights, when it was asked for
   if (d_.relax_w) m.relax_bytes += n * sizeof(float);
-  m.invert_bytes = 2 * n * sizeof(float) + std::size_t(d_.search_capacity) * sizeof(InvertQueued);
+  m.invert_bytes = 2 * n * sizeof(float) + std::size_t(d_.search_capacity) * sizeof(InvertQueued) +
+                   (d_.search_slot ? n * sizeof(int) : 0) +
+                   std::size_t(d_.candidate_capacity) * sizeof(InvertCandidate);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
   // multigrid: eight scalar VOI fields and a mask, three coarse fields and a mask, the dot
   // sums and flags
@@ -320,6 +331,8 @@ InvertStats CudaDeformBackend::invert_impl() {
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->change_bits, 0, sizeof(unsigned), stream_));
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->nonfinite, 0, sizeof(unsigned long long), stream_));
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_queued, 0, sizeof(unsigned), stream_));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_candidates, 0, sizeof(unsigned), stream_));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_spill, 0, sizeof(int), stream_));
   enqueue_invert();
   finish(nullptr, &r);
   return r;

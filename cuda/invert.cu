@@ -180,11 +180,16 @@ __device__ __forceinline__ void invert_element(const StepGeometry& geo, int src,
     first = __shfl_sync(0xffffffffu, first, __ffs(need) - 1);
     const unsigned slot = first + unsigned(__popc(need & ((1u << lane) - 1u)));
     if ((need >> lane) & 1u && slot < b.search_capacity) {
-      b.search_queue[slot] = InvertQueued{e, p.x, p.y, p.z, r};
+      int rmax;
+      const Vec3i m = deform::search_centre(voi.size, y - deform::trilinear<Vec3f>(load_u, y), rmax);
+      b.search_queue[slot] = InvertQueued{~0ull, e, p.x, p.y, p.z, r, m.x, m.y, m.z, INT_MAX, 0.0f, 0.0f, 0.0f};
+      b.search_slot[e] = int(slot);
       queued = true;
     }
     need &= ~__ballot_sync(0xffffffffu, queued);
   }
+  // the scatter finds queued voxels by this map: every other voxel is marked not queued
+  if (mine && b.search_slot && !queued) b.search_slot[e] = -1;
   // the queue is full: the warp searches for its lanes in turn
   while (need) {
     const int who = __ffs(need) - 1;
@@ -245,6 +250,128 @@ __global__ void __launch_bounds__(256) invert_batch_kernel(const BatchItem* __re
   invert_reduce(item.b, r, change, broken);
 }
 
+// ---- the scatter: each queued voxel's source without walking the rings ----
+// Lumbar presses queue a few hundred voxels a step whose sources lie 9-13 rings (up to
+// 21) from y - u(y) (make_phantom, 25 mm along the midline, VOI 64), so the ring search
+// read 10,000-80,000 cells a voxel to solve about 9. Instead every cell of the search
+// ([-1, size - 1]^3 lowest corners) goes to the queued voxels its deformed box holds and
+// is solved there from its centre (pass 0); each voxel then takes, among its cells in
+// rings up to the first ring holding a source within kInvertSearchVox, the lowest
+// residual, then ring, then index in the ring: the ring search's own pick
+// (deform_math.h's functions, the same float operations; a CPU test checks the rule
+// against invert_search() bit for bit). A voxel without such a ring, and every voxel of
+// a step where the scatter gave up (a full list, a cell whose box spans more than
+// kScatterMaxVoxels voxels, a ring or index beyond the key's bits), takes the ring search.
+
+// voxels a cell's box may span before the scatter gives up for the step (a cell stretched
+// over thousands of voxels, the tip metres away)
+constexpr int kScatterMaxVoxels = 512;
+
+// the pick's order as one 64-bit key: residual (float bits order as unsigned for r >= 0),
+// ring (10 bits), index in the ring (22 bits)
+__device__ __forceinline__ unsigned long long pick_key(float rc, int ring, int idx) {
+  return ((unsigned long long)__float_as_uint(rc) << 32) | ((unsigned long long)ring << 22) | unsigned(idx);
+}
+
+// cells t0, t0 + stride, ... of one session's search: each to the queued voxels its box holds
+__device__ __forceinline__ void scatter_cells(const StepGeometry& geo, int src, const DeviceBuffers& b, unsigned t0,
+                                              unsigned stride) {
+  if (b.counters->search_queued == 0) return;
+  const deform::Voi& voi = geo.voi;
+  const Vec3i size = voi.size;
+  const ULoader load_u{&voi, b.u[src][0], b.u[src][1], b.u[src][2]};
+  const unsigned cx = unsigned(size.x + 1), cxy = cx * unsigned(size.y + 1);
+  const unsigned cells = cxy * unsigned(size.z + 1);
+  for (unsigned t = t0; t < cells; t += stride) {
+    const Vec3i o{int(t % cx) - 1, int((t / cx) % unsigned(size.y + 1)) - 1, int(t / cxy) - 1};
+    Vec3f c[8], lo, hi;
+    deform::load_cell(load_u, o.x, o.y, o.z, c);
+    deform::cell_box(c, o, lo, hi);
+    int from[3], to[3];
+    long long span = 1;
+    for (int a = 0; a < 3; ++a) {
+      // the voxels within the grown box (box_holds() below decides each one exactly)
+      from[a] = int(fmaxf(0.0f, ceilf(lo[a] - deform::kInvertSearchVox)));
+      to[a] = int(fminf(float(size[a] - 1), floorf(hi[a] + deform::kInvertSearchVox)));
+      span *= to[a] >= from[a] ? to[a] - from[a] + 1 : 0;
+    }
+    if (span == 0) continue;
+    if (!(span <= kScatterMaxVoxels)) {
+      b.counters->search_spill = 1;
+      continue;
+    }
+    for (int k = from[2]; k <= to[2]; ++k)
+      for (int j = from[1]; j <= to[1]; ++j)
+        for (int i = from[0]; i <= to[0]; ++i) {
+          const int slot = b.search_slot[(k * size.y + j) * size.x + i];
+          if (slot < 0) continue;
+          const Vec3f y{float(i), float(j), float(k)};
+          if (!deform::box_holds(lo, hi, y)) continue;
+          InvertQueued& q = b.search_queue[slot];
+          const Vec3i d{o.x - q.mx, o.y - q.my, o.z - q.mz};
+          const int ring = max(abs(d.x), max(abs(d.y), abs(d.z)));
+          const int idx = deform::search_ring_index(ring, d);
+          if (ring >= (1 << 10) || idx >= (1 << 22)) {
+            b.counters->search_spill = 1;
+            continue;
+          }
+          float rc;
+          const Vec3f p = deform::invert_in_cell(c, o, y, false, rc);
+          // the ring search keeps a cell only below its start of 3.4e38 (NaN never)
+          if (!(rc < 3.4e38f)) continue;
+          if (rc <= deform::kInvertSearchVox) atomicMin(&q.last_ring, ring);
+          const unsigned at = atomicAdd(&b.counters->search_candidates, 1u);
+          if (at >= b.candidate_capacity) {
+            b.counters->search_spill = 1;
+            continue;
+          }
+          b.search_candidates[at] = InvertCandidate{slot, ring, idx, rc, p.x, p.y, p.z};
+        }
+  }
+}
+
+// candidates t0, t0 + stride, ...: `write` false, each in a ring up to its voxel's first
+// ring with a source offers its key; true, the one whose key won writes its source
+__device__ __forceinline__ void pick_candidates(const DeviceBuffers& b, bool write, unsigned t0, unsigned stride) {
+  if (b.counters->search_spill) return;
+  const unsigned n = min(b.counters->search_candidates, b.candidate_capacity);
+  for (unsigned t = t0; t < n; t += stride) {
+    const InvertCandidate c = b.search_candidates[t];
+    InvertQueued& q = b.search_queue[c.slot];
+    if (c.ring > q.last_ring) continue;
+    const unsigned long long key = pick_key(c.rc, c.ring, c.idx);
+    if (!write) {
+      atomicMin(&q.key, key);
+    } else if (key == q.key) {
+      q.sx = c.px;
+      q.sy = c.py;
+      q.sz = c.pz;
+    }
+  }
+}
+
+__global__ void __launch_bounds__(256) scatter_kernel(StepGeometry geo, int src, DeviceBuffers b) {
+  scatter_cells(geo, src, b, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
+}
+
+// blockIdx.y is the session
+__global__ void __launch_bounds__(256) scatter_batch_kernel(const BatchItem* __restrict__ items) {
+  const BatchItem& item = items[blockIdx.y];
+  if (!item.b.search_queue) return;
+  scatter_cells(item.geo, item.invert_src, item.b, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
+}
+
+__global__ void __launch_bounds__(256) pick_kernel(DeviceBuffers b, bool write) {
+  pick_candidates(b, write, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
+}
+
+// blockIdx.y is the session
+__global__ void __launch_bounds__(256) pick_batch_kernel(const BatchItem* __restrict__ items, bool write) {
+  const BatchItem& item = items[blockIdx.y];
+  if (!item.b.search_queue) return;
+  pick_candidates(item.b, write, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
+}
+
 // warps of the block that searches one queued voxel (group_search says why)
 constexpr int kSearchWarps = 4;
 constexpr int kSearchThreads = 32 * kSearchWarps;
@@ -261,6 +388,7 @@ __device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, 
   const ULoader load_u{&voi, b.u[src][0], b.u[src][1], b.u[src][2]};
   const ILoader load_i{&voi, geo.volume_size, b.intensity};
   const unsigned n = min(b.counters->search_queued, b.search_capacity);
+  const bool spill = b.counters->search_spill != 0;
   float r_max = 0.0f, change_max = 0.0f;
   unsigned long long bad = 0, nonfinite = 0;
   for (unsigned q = unsigned(block); q < n; q += unsigned(blocks)) {
@@ -268,8 +396,15 @@ __device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, 
     const Vec3i v = element_voxel(voi, in.e);
     const Vec3f y{float(v.x), float(v.y), float(v.z)};
     float rs;
-    const Vec3f s = group_search<kSearchWarps>(voi, load_u.ux, load_u.uy, load_u.uz, y,
-                                               y - deform::trilinear<Vec3f>(load_u, y), rs, &scratch);
+    Vec3f s;
+    if (!spill && in.last_ring != INT_MAX) {
+      // the scatter's pick: the ring search's answer (pick_kernel says why)
+      rs = __uint_as_float(unsigned(in.key >> 32));
+      s = Vec3f{in.sx, in.sy, in.sz};
+    } else {
+      s = group_search<kSearchWarps>(voi, load_u.ux, load_u.uy, load_u.uz, y, y - deform::trilinear<Vec3f>(load_u, y),
+                                     rs, &scratch);
+    }
     float r = in.r;
     Vec3f p{in.px, in.py, in.pz};
     if (rs < r) {
@@ -323,6 +458,11 @@ void launch_invert(const StepGeometry& g, int src, int iterations, bool search, 
   invert_kernel<<<unsigned((n + threads - 1) / threads), threads, 0, stream>>>(g, src, iterations, search, b);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
   if (search && iterations > 0 && b.search_queue) {
+    const long long cells = (long long)(g.voi.size.x + 1) * (g.voi.size.y + 1) * (g.voi.size.z + 1);
+    scatter_kernel<<<unsigned((cells + threads - 1) / threads), threads, 0, stream>>>(g, src, b);
+    const unsigned picks = search_blocks(1);
+    pick_kernel<<<picks, threads, 0, stream>>>(b, false);
+    pick_kernel<<<picks, threads, 0, stream>>>(b, true);
     search_kernel<<<search_blocks(1), kSearchThreads, 0, stream>>>(g, src, b);
     PALPSIM_CUDA_CHECK(cudaGetLastError());
   }
@@ -335,6 +475,13 @@ void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int 
   invert_batch_kernel<<<dim3((max_count + threads - 1) / threads, unsigned(n)), threads, 0, stream>>>(items, iterations, search);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
   if (search && iterations > 0) {
+    // about a thread per cell of the largest VOI, at most 4096 blocks in all: each
+    // session's threads stride over its own cells
+    const unsigned per = std::max(1u, std::min((max_count + threads - 1) / threads + 1, 4096u / unsigned(n) + 1));
+    scatter_batch_kernel<<<dim3(per, unsigned(n)), threads, 0, stream>>>(items);
+    const unsigned picks = search_blocks(n);
+    pick_batch_kernel<<<dim3(picks, unsigned(n)), threads, 0, stream>>>(items, false);
+    pick_batch_kernel<<<dim3(picks, unsigned(n)), threads, 0, stream>>>(items, true);
     search_batch_kernel<<<dim3(search_blocks(n), unsigned(n)), kSearchThreads, 0, stream>>>(items);
     PALPSIM_CUDA_CHECK(cudaGetLastError());
   }

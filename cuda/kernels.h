@@ -30,14 +30,29 @@ struct Counters {
   int untangle_box[6];             // lo and hi (VOI-local) of the elements untangling may move
   int untangle_reverted;           // 1: it ended with more folds and restored the relaxed field
   unsigned int search_queued;      // inversion: voxels Newton left to the cell search, queued (may pass the queue's capacity)
+  unsigned int search_candidates;  // inversion: (cell, queued voxel) pairs the scatter found (may pass the list's capacity)
+  int search_spill;                // inversion: 1 when the scatter gave up (a full list, a huge cell): every queued voxel takes the ring search
   int relax_solves;                // multigrid: scalar solves run (0: the unit response was reused)
 };
 
-/// A voxel queued for the inversion's cell search: its VOI-local index and Newton's answer.
+/// A voxel queued for the inversion's cell search (invert.cu): its VOI-local index,
+/// Newton's answer, the search's centre, and what the scatter of cells found for it.
 struct InvertQueued {
+  unsigned long long key;  // the best cell so far: residual's float bits, ring, index in the ring (invert.cu, pick_key)
   int e;
   float px, py, pz;  // Newton's source (VOI-local voxel)
   float r;           // its residual (voxel)
+  int mx, my, mz;    // the search's centre cell (deform::search_centre)
+  int last_ring;     // the first ring with a source within deform::kInvertSearchVox; INT_MAX: none found
+  float sx, sy, sz;  // the best cell's source
+};
+
+/// A cell whose deformed box holds a queued voxel, solved there (invert.cu's scatter).
+struct InvertCandidate {
+  int slot;          // the voxel's entry in the queue
+  int ring, idx;     // the cell's ring around the voxel's search centre and its index in that ring
+  float rc;          // the cell's residual (voxel)
+  float px, py, pz;  // its source
 };
 
 /// Device pointers of one session's state.
@@ -55,6 +70,9 @@ struct DeviceBuffers {
   /// deform::kInvertSearchVox, searched afterwards by a warp each; only with deform.invert_search.
   InvertQueued* search_queue = nullptr;
   unsigned search_capacity = 0;         // entries search_queue holds; voxels beyond it are searched in place
+  int* search_slot = nullptr;           // per VOI element: its entry in search_queue, -1 where not queued
+  InvertCandidate* search_candidates = nullptr;  // the scatter's (cell, voxel) pairs
+  unsigned candidate_capacity = 0;      // entries search_candidates holds
   Counters* counters = nullptr;
 };
 

@@ -438,6 +438,29 @@ PALPSIM_HD Vec3i search_centre(const Vec3i& size, const Vec3f& guess, int& rmax)
   return m;
 }
 
+/// The bounding box (voxel) of the deformed corners of the cell with lowest corner `o`
+/// (corner displacements `c`, cell_blend()'s order): the trilinear image of the cell lies
+/// inside it.
+PALPSIM_HD void cell_box(const Vec3f c[8], const Vec3i& o, Vec3f& lo, Vec3f& hi) {
+  for (int a = 0; a < 3; ++a) {
+    float l = 3.4e38f, h = -3.4e38f;
+    for (int q = 0; q < 8; ++q) {
+      const float x = float(o[a] + ((q >> a) & 1)) + c[q][a];
+      l = x < l ? x : l;
+      h = x > h ? x : h;
+    }
+    lo[a] = l;
+    hi[a] = h;
+  }
+}
+
+/// True when y lies in the box [lo, hi] grown by kInvertSearchVox.
+PALPSIM_HD bool box_holds(const Vec3f& lo, const Vec3f& hi, const Vec3f& y) {
+  for (int a = 0; a < 3; ++a)
+    if (!(y[a] >= lo[a] - kInvertSearchVox && y[a] <= hi[a] + kInvertSearchVox)) return false;
+  return true;
+}
+
 /// One cell of the search: false where the cell with lowest corner `o` lies beyond the
 /// cells that touch the VOI, or y lies outside the bounding box of its deformed corners
 /// (grown by kInvertSearchVox; the trilinear image of a cell lies in its corners' convex
@@ -449,17 +472,25 @@ PALPSIM_HD bool search_cell(const LoadU& load_u, const Vec3i& size, const Vec3i&
   if (o.x < -1 || o.y < -1 || o.z < -1 || o.x > size.x - 1 || o.y > size.y - 1 || o.z > size.z - 1) return false;
   Vec3f c[8];
   load_cell(load_u, o.x, o.y, o.z, c);
-  for (int a = 0; a < 3; ++a) {
-    float lo = 3.4e38f, hi = -3.4e38f;
-    for (int q = 0; q < 8; ++q) {
-      const float x = float(o[a] + ((q >> a) & 1)) + c[q][a];
-      lo = x < lo ? x : lo;
-      hi = x > hi ? x : hi;
-    }
-    if (!(y[a] >= lo - kInvertSearchVox && y[a] <= hi + kInvertSearchVox)) return false;
-  }
+  Vec3f lo, hi;
+  cell_box(c, o, lo, hi);
+  if (!box_holds(lo, hi, y)) return false;
   p = invert_in_cell(c, o, y, pass == 1, residual);
   return true;
+}
+
+/// The index of the cell at offset d (Chebyshev distance r from the centre) in ring r's
+/// order: the inverse of search_ring_cell(), for a search that finds its cells some other
+/// way (cuda/invert.cu scatters each cell to the voxels its box holds) and must still pick
+/// as the ring order does.
+PALPSIM_HD int search_ring_index(int r, const Vec3i& d) {
+  if (r == 0) return 0;
+  const int s = 2 * r + 1;
+  if (d.z == -r || d.z == r) return (d.z == r ? s * s : 0) + (d.y + r) * s + (d.x + r);
+  const int base = 2 * s * s + (d.z + r - 1) * 8 * r;
+  if (d.y == -r) return base + d.x + r;
+  if (d.y == r) return base + s + d.x + r;
+  return base + 2 * s + 2 * (d.y + r - 1) + (d.x == r ? 1 : 0);
 }
 
 /// The search of invert_voxel(): the source of y among the cells whose lowest corner lies

@@ -288,6 +288,8 @@ void CudaDeformBackend::read_counters(ChainMailStats* stats, InvertStats* inv, U
     std::memcpy(&c, &host_counters_->change_bits, sizeof c);
     inv->max_change = c;
     inv->nonfinite = (long long)host_counters_->nonfinite;
+    inv->searched = (long long)host_counters_->search_queued;
+    inv->scattered = (long long)host_counters_->search_scattered;
   }
   if (unt && !setup_.grabbed_in_bone) {
     const Counters& c = *host_counters_;
@@ -333,6 +335,8 @@ InvertStats CudaDeformBackend::invert_impl() {
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_queued, 0, sizeof(unsigned), stream_));
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_candidates, 0, sizeof(unsigned), stream_));
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_spill, 0, sizeof(int), stream_));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_scattered, 0, sizeof(unsigned), stream_));
+  PALPSIM_CUDA_CHECK(cudaMemsetAsync(&d_.counters->search_bounds, 0, sizeof(ScatterBounds), stream_));
   enqueue_invert();
   finish(nullptr, &r);
   return r;

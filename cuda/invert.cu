@@ -187,6 +187,28 @@ __device__ __forceinline__ void invert_element(const StepGeometry& geo, int src,
       queued = true;
     }
     need &= ~__ballot_sync(0xffffffffu, queued);
+    // the box of the queued voxels, for the scatter: one atomic per warp and bound
+    ScatterBounds& sb = b.counters->search_bounds;
+    for (int a = 0; a < 3; ++a) {
+      const unsigned lo = __reduce_max_sync(0xffffffffu, queued ? unsigned(INT_MAX - v[a]) : 0u);
+      const unsigned hi = __reduce_max_sync(0xffffffffu, queued ? unsigned(v[a] + 1) : 0u);
+      if (lane == 0 && hi) {
+        atomicMax(&sb.lo_flip[a], lo);
+        atomicMax(&sb.hi_plus[a], hi);
+      }
+    }
+  }
+  // the largest |u| per axis over the VOI, for the scatter: a warp's maximum, and an
+  // atomic only where it beats the maximum seen so far (a stale read costs an atomic, no
+  // more); NaN's bits order above every number, so a broken field widens the scatter to
+  // the whole VOI
+  if (search && b.search_queue) {
+    const Vec3f uv = mine ? load_u(v.x, v.y, v.z) : Vec3f{0.0f, 0.0f, 0.0f};
+    unsigned* umax = b.counters->search_bounds.umax_bits;
+    for (int a = 0; a < 3; ++a) {
+      const unsigned m = __reduce_max_sync(0xffffffffu, __float_as_uint(fabsf(uv[a])));
+      if (lane == 0 && m > *(volatile unsigned*)&umax[a]) atomicMax(&umax[a], m);
+    }
   }
   // the scatter finds queued voxels by this map: every other voxel is marked not queued
   if (mine && b.search_slot && !queued) b.search_slot[e] = -1;
@@ -254,8 +276,9 @@ __global__ void __launch_bounds__(256) invert_batch_kernel(const BatchItem* __re
 // Lumbar presses queue a few hundred voxels a step whose sources lie 9-13 rings (up to
 // 21) from y - u(y) (make_phantom, 25 mm along the midline, VOI 64), so the ring search
 // read 10,000-80,000 cells a voxel to solve about 9. Instead every cell of the search
-// ([-1, size - 1]^3 lowest corners) goes to the queued voxels its deformed box holds and
-// is solved there from its centre (pass 0); each voxel then takes, among its cells in
+// ([-1, size - 1]^3 lowest corners, within the bounds scatter_cells() gives) goes to the
+// queued voxels its deformed box holds, each such pair is solved from the cell's centre
+// (pass 0) by a thread of its own, and each voxel then takes, among its cells in
 // rings up to the first ring holding a source within kInvertSearchVox, the lowest
 // residual, then ring, then index in the ring: the ring search's own pick
 // (deform_math.h's functions, the same float operations; a CPU test checks the rule
@@ -280,10 +303,27 @@ __device__ __forceinline__ void scatter_cells(const StepGeometry& geo, int src, 
   const deform::Voi& voi = geo.voi;
   const Vec3i size = voi.size;
   const ULoader load_u{&voi, b.u[src][0], b.u[src][1], b.u[src][2]};
-  const unsigned cx = unsigned(size.x + 1), cxy = cx * unsigned(size.y + 1);
-  const unsigned cells = cxy * unsigned(size.z + 1);
+  // only cells whose box may hold a queued voxel: a cell's corners move at most max |u_a|
+  // along axis a, so its box lies within [o - umax, o + 1 + umax]; one cell more each side
+  // covers the float rounding of the corners' positions. A press moves tissue mostly along
+  // one axis, so this is a slab of the VOI, not all of it
+  const ScatterBounds& sb = b.counters->search_bounds;
+  Vec3i first, extent;
+  for (int a = 0; a < 3; ++a) {
+    const float um = __uint_as_float(sb.umax_bits[a]);
+    const int ylo = INT_MAX - int(sb.lo_flip[a]), yhi = int(sb.hi_plus[a]) - 1;
+    int from = -1, to = size[a] - 1;
+    if (um <= 1e6f) {
+      from = max(from, int(floorf(float(ylo) - 1.0f - um - deform::kInvertSearchVox)) - 1);
+      to = min(to, int(ceilf(float(yhi) + um + deform::kInvertSearchVox)) + 1);
+    }
+    first[a] = from;
+    extent[a] = max(0, to - from + 1);
+  }
+  const unsigned cx = unsigned(extent.x), cxy = cx * unsigned(extent.y);
+  const unsigned cells = cxy * unsigned(extent.z);
   for (unsigned t = t0; t < cells; t += stride) {
-    const Vec3i o{int(t % cx) - 1, int((t / cx) % unsigned(size.y + 1)) - 1, int(t / cxy) - 1};
+    const Vec3i o{first.x + int(t % cx), first.y + int((t / cx) % unsigned(extent.y)), first.z + int(t / cxy)};
     Vec3f c[8], lo, hi;
     deform::load_cell(load_u, o.x, o.y, o.z, c);
     deform::cell_box(c, o, lo, hi);
@@ -307,7 +347,7 @@ __device__ __forceinline__ void scatter_cells(const StepGeometry& geo, int src, 
           if (slot < 0) continue;
           const Vec3f y{float(i), float(j), float(k)};
           if (!deform::box_holds(lo, hi, y)) continue;
-          InvertQueued& q = b.search_queue[slot];
+          const InvertQueued& q = b.search_queue[slot];
           const Vec3i d{o.x - q.mx, o.y - q.my, o.z - q.mz};
           const int ring = max(abs(d.x), max(abs(d.y), abs(d.z)));
           const int idx = deform::search_ring_index(ring, d);
@@ -315,18 +355,43 @@ __device__ __forceinline__ void scatter_cells(const StepGeometry& geo, int src, 
             b.counters->search_spill = 1;
             continue;
           }
-          float rc;
-          const Vec3f p = deform::invert_in_cell(c, o, y, false, rc);
-          // the ring search keeps a cell only below its start of 3.4e38 (NaN never)
-          if (!(rc < 3.4e38f)) continue;
-          if (rc <= deform::kInvertSearchVox) atomicMin(&q.last_ring, ring);
           const unsigned at = atomicAdd(&b.counters->search_candidates, 1u);
           if (at >= b.candidate_capacity) {
             b.counters->search_spill = 1;
             continue;
           }
-          b.search_candidates[at] = InvertCandidate{slot, ring, idx, rc, p.x, p.y, p.z};
+          // solved by solve_candidates(), a thread each
+          b.search_candidates[at] = InvertCandidate{slot, ring, idx, o.x, o.y, o.z, 0.0f, 0.0f, 0.0f, 0.0f};
         }
+  }
+}
+
+// candidates t0, t0 + stride, ...: each solved in its cell from the centre (pass 0, as
+// search_cell() does), and the first ring with a source within kInvertSearchVox kept per
+// voxel. A thread per pair, not per cell: a cell stretched over a fold holds dozens of
+// queued voxels, and their solves one after another in one thread (12 Newton steps each,
+// a chain of dependent operations) made the scatter take 0.3-0.5 ms (H200, spinous
+// presses 20-30 mm) while the rest of the GPU idled
+__device__ __forceinline__ void solve_candidates(const StepGeometry& geo, int src, const DeviceBuffers& b, unsigned t0,
+                                                 unsigned stride) {
+  if (b.counters->search_spill) return;
+  const deform::Voi& voi = geo.voi;
+  const ULoader load_u{&voi, b.u[src][0], b.u[src][1], b.u[src][2]};
+  const unsigned n = min(b.counters->search_candidates, b.candidate_capacity);
+  for (unsigned t = t0; t < n; t += stride) {
+    InvertCandidate& c = b.search_candidates[t];
+    InvertQueued& q = b.search_queue[c.slot];
+    const Vec3i v = element_voxel(voi, q.e);
+    Vec3f corners[8];
+    deform::load_cell(load_u, c.ox, c.oy, c.oz, corners);
+    float rc;
+    const Vec3f p = deform::invert_in_cell(corners, Vec3i{c.ox, c.oy, c.oz}, Vec3f{float(v.x), float(v.y), float(v.z)},
+                                           false, rc);
+    c.rc = rc;
+    c.px = p.x;
+    c.py = p.y;
+    c.pz = p.z;
+    if (rc <= deform::kInvertSearchVox) atomicMin(&q.last_ring, c.ring);
   }
 }
 
@@ -338,7 +403,8 @@ __device__ __forceinline__ void pick_candidates(const DeviceBuffers& b, bool wri
   for (unsigned t = t0; t < n; t += stride) {
     const InvertCandidate c = b.search_candidates[t];
     InvertQueued& q = b.search_queue[c.slot];
-    if (c.ring > q.last_ring) continue;
+    // the ring search keeps a cell only below its start of 3.4e38 (NaN never)
+    if (c.ring > q.last_ring || !(c.rc < 3.4e38f)) continue;
     const unsigned long long key = pick_key(c.rc, c.ring, c.idx);
     if (!write) {
       atomicMin(&q.key, key);
@@ -359,6 +425,17 @@ __global__ void __launch_bounds__(256) scatter_batch_kernel(const BatchItem* __r
   const BatchItem& item = items[blockIdx.y];
   if (!item.b.search_queue) return;
   scatter_cells(item.geo, item.invert_src, item.b, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
+}
+
+__global__ void __launch_bounds__(256) solve_kernel(StepGeometry geo, int src, DeviceBuffers b) {
+  solve_candidates(geo, src, b, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
+}
+
+// blockIdx.y is the session
+__global__ void __launch_bounds__(256) solve_batch_kernel(const BatchItem* __restrict__ items) {
+  const BatchItem& item = items[blockIdx.y];
+  if (!item.b.search_queue) return;
+  solve_candidates(item.geo, item.invert_src, item.b, blockIdx.x * blockDim.x + threadIdx.x, gridDim.x * blockDim.x);
 }
 
 __global__ void __launch_bounds__(256) pick_kernel(DeviceBuffers b, bool write) {
@@ -391,6 +468,7 @@ __device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, 
   const bool spill = b.counters->search_spill != 0;
   float r_max = 0.0f, change_max = 0.0f;
   unsigned long long bad = 0, nonfinite = 0;
+  unsigned scattered = 0;
   for (unsigned q = unsigned(block); q < n; q += unsigned(blocks)) {
     const InvertQueued in = b.search_queue[q];
     const Vec3i v = element_voxel(voi, in.e);
@@ -401,6 +479,7 @@ __device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, 
       // the scatter's pick: the ring search's answer (pick_kernel says why)
       rs = __uint_as_float(unsigned(in.key >> 32));
       s = Vec3f{in.sx, in.sy, in.sz};
+      ++scattered;
     } else {
       s = group_search<kSearchWarps>(voi, load_u.ux, load_u.uy, load_u.uz, y, y - deform::trilinear<Vec3f>(load_u, y),
                                      rs, &scratch);
@@ -426,6 +505,7 @@ __device__ __forceinline__ void search_queued(const StepGeometry& geo, int src, 
     atomicMax(&b.counters->change_bits, __float_as_uint(change_max));
     if (bad) atomicAdd(&b.counters->unresolved, bad);
     if (nonfinite) atomicAdd(&b.counters->nonfinite, nonfinite);
+    if (scattered) atomicAdd(&b.counters->search_scattered, scattered);
   }
 }
 
@@ -461,6 +541,7 @@ void launch_invert(const StepGeometry& g, int src, int iterations, bool search, 
     const long long cells = (long long)(g.voi.size.x + 1) * (g.voi.size.y + 1) * (g.voi.size.z + 1);
     scatter_kernel<<<unsigned((cells + threads - 1) / threads), threads, 0, stream>>>(g, src, b);
     const unsigned picks = search_blocks(1);
+    solve_kernel<<<picks, threads, 0, stream>>>(g, src, b);
     pick_kernel<<<picks, threads, 0, stream>>>(b, false);
     pick_kernel<<<picks, threads, 0, stream>>>(b, true);
     search_kernel<<<search_blocks(1), kSearchThreads, 0, stream>>>(g, src, b);
@@ -480,6 +561,7 @@ void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int 
     const unsigned per = std::max(1u, std::min((max_count + threads - 1) / threads + 1, 4096u / unsigned(n) + 1));
     scatter_batch_kernel<<<dim3(per, unsigned(n)), threads, 0, stream>>>(items);
     const unsigned picks = search_blocks(n);
+    solve_batch_kernel<<<dim3(picks, unsigned(n)), threads, 0, stream>>>(items);
     pick_batch_kernel<<<dim3(picks, unsigned(n)), threads, 0, stream>>>(items, false);
     pick_batch_kernel<<<dim3(picks, unsigned(n)), threads, 0, stream>>>(items, true);
     search_batch_kernel<<<dim3(search_blocks(n), unsigned(n)), kSearchThreads, 0, stream>>>(items);

@@ -13,6 +13,15 @@
 namespace palpsim::cuda {
 
 /// Small results the kernels write on the device and the host reads once per step.
+/// What bounds the cells the inversion's scatter must visit (invert.cu, scatter_cells):
+/// the largest |u| per axis over the VOI and the box of the queued voxels, each kept
+/// with atomicMax from zero (float bits order as unsigned for values >= 0).
+struct ScatterBounds {
+  unsigned int umax_bits[3];  // max |u_a| over the VOI's voxels (voxel), float bits
+  unsigned int lo_flip[3];    // INT_MAX - the lowest queued voxel's coordinate (0: none queued)
+  unsigned int hi_plus[3];    // the highest queued voxel's coordinate + 1 (0: none queued)
+};
+
 struct Counters {
   int sweep_moved[3];              // elements moved per sweep, by sweep % 3
   int sweeps;                      // sweeps run
@@ -31,6 +40,8 @@ struct Counters {
   int untangle_reverted;           // 1: it ended with more folds and restored the relaxed field
   unsigned int search_queued;      // inversion: voxels Newton left to the cell search, queued (may pass the queue's capacity)
   unsigned int search_candidates;  // inversion: (cell, queued voxel) pairs the scatter found (may pass the list's capacity)
+  ScatterBounds search_bounds;     // inversion: what bounds the scatter's cells (invert.cu)
+  unsigned int search_scattered;   // inversion: queued voxels that took the scatter's pick (the rest walked the rings)
   int search_spill;                // inversion: 1 when the scatter gave up (a full list, a huge cell): every queued voxel takes the ring search
   int relax_solves;                // multigrid: scalar solves run (0: the unit response was reused)
 };
@@ -47,12 +58,13 @@ struct InvertQueued {
   float sx, sy, sz;  // the best cell's source
 };
 
-/// A cell whose deformed box holds a queued voxel, solved there (invert.cu's scatter).
+/// A cell whose deformed box holds a queued voxel (invert.cu's scatter), and its solve there.
 struct InvertCandidate {
   int slot;          // the voxel's entry in the queue
   int ring, idx;     // the cell's ring around the voxel's search centre and its index in that ring
-  float rc;          // the cell's residual (voxel)
-  float px, py, pz;  // its source
+  int ox, oy, oz;    // the cell's lowest corner (VOI-local voxel)
+  float rc;          // the cell's residual (voxel), once solved
+  float px, py, pz;  // its source, once solved
 };
 
 /// Device pointers of one session's state.

@@ -535,12 +535,13 @@ PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec
 /// whatever `iterations` is, so a voxel it takes gets the same source at any count.
 /// With 0 iterations nothing is inverted (p = y, as the paper's iteration with none);
 /// without `search` (deform.invert_search off) Newton's answer stands. Writes the
-/// residual (voxel).
+/// residual (voxel) and whether the search ran.
 template <typename LoadU>
 PALPSIM_HD Vec3f invert_voxel(const LoadU& load_u, const Vec3i& size, const Vec3f& y, int iterations, bool search,
-                              float& residual) {
+                              float& residual, bool& searched) {
   Vec3f p = invert_point(load_u, y, iterations, residual);
-  if (search && iterations > 0 && residual > kInvertSearchVox) {
+  searched = search && iterations > 0 && residual > kInvertSearchVox;
+  if (searched) {
     float rs;
     const Vec3f q = invert_search(load_u, size, y, y - trilinear<Vec3f>(load_u, y), rs);
     if (rs < residual) {

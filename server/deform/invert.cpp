@@ -20,12 +20,15 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
     return p.intensity.data[grid.index(gi, gj, gk)];
   };
   float worst = 0, change = 0;
-  long long unresolved = 0, nonfinite = 0;
+  long long unresolved = 0, nonfinite = 0, searched = 0;
   for (int k = 0; k < voi.size.z; ++k)
     for (int j = 0; j < voi.size.y; ++j)
       for (int i = 0; i < voi.size.x; ++i) {
         float r = 0;
-        const Vec3f x0 = invert_voxel(load_u, voi.size, Vec3f(float(i), float(j), float(k)), iterations, search, r);
+        bool took_search = false;
+        const Vec3f x0 =
+            invert_voxel(load_u, voi.size, Vec3f(float(i), float(j), float(k)), iterations, search, r, took_search);
+        searched += took_search;
         const float jv = trilinear<float>(load_i, x0);
         s.j[voi.index(i, j, k)] = jv;
         worst = std::max(worst, r);
@@ -36,7 +39,7 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
         else
           ++nonfinite;
       }
-  return {worst, unresolved, change, nonfinite};
+  return {worst, unresolved, change, nonfinite, searched, 0};
 }
 
 }  // namespace palpsim::deform

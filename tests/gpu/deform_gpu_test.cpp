@@ -5,6 +5,7 @@
 #include <catch2/catch.hpp>
 
 #include <cfloat>
+#include <chrono>
 #include <cstdio>
 #include <random>
 
@@ -55,6 +56,60 @@ float max_abs(const std::vector<Vec3f>& u) {
   float m = 0;
   for (const Vec3f& v : u) m = std::max({m, std::fabs(v.x), std::fabs(v.y), std::fabs(v.z)});
   return m;
+}
+
+// the phantom (340 mm over 256 voxels), the skin point over L3's spinous tip, and the
+// server's lumbar configuration with the inversion's cell search: deep presses from there
+// fold and send hundreds of voxels to the search
+struct SearchPress {
+  PatientPtr phantom;
+  Vec3 X;  // skin point over L3 (mm)
+  DeformConfig cfg;
+};
+
+SearchPress search_press() {
+  PhantomCt ct = make_phantom(340.0 / 255.0);
+  SearchPress sp;
+  sp.X = spinous_press(ct.geometry).contact.skin_point_mm;
+  sp.phantom = patient_from_intensity(std::move(ct.hu), "phantom");
+  sp.cfg = preset_config(1);
+  sp.cfg.settings.voi_edge = 64;
+  sp.cfg.settings.relax_iterations = 20;
+  sp.cfg.settings.invert_search = true;
+  return sp;
+}
+
+// one batched step of every session (DeformBackend::begin_steps), each one's stats
+std::vector<DeformStats> step_batch(const std::vector<std::unique_ptr<DeformEngine>>& sessions,
+                                    const std::vector<DeformBackend*>& backends, const std::vector<DeformContact>& k) {
+  const std::vector<std::exception_ptr> errors = DeformBackend::begin_steps(backends, k);
+  std::vector<DeformStats> st(sessions.size());
+  for (std::size_t s = 0; s < sessions.size(); ++s) {
+    REQUIRE(!errors[s]);
+    st[s] = sessions[s]->end_step();
+  }
+  return st;
+}
+
+// a session's batched step (b, on `batched`) against the same step alone (a): every
+// element runs the single kernels' device functions on its own session's buffers, so the
+// stats, the field and J are the same bits
+void check_same_step(const DeformStats& b, const DeformStats& a, DeformEngine& batched, DeformEngine& alone, int n) {
+  CHECK(b.batch == n);
+  CHECK(b.chainmail.voi == a.chainmail.voi);
+  CHECK(b.chainmail.grabbed_in_bone == a.chainmail.grabbed_in_bone);
+  CHECK(b.chainmail.moved == a.chainmail.moved);
+  CHECK(b.chainmail.sweeps == a.chainmail.sweeps);
+  CHECK(b.chainmail.converged == a.chainmail.converged);
+  CHECK(b.invert_unresolved == a.invert_unresolved);
+  CHECK(b.invert_residual_vox == a.invert_residual_vox);
+  CHECK(b.invert_max_change == a.invert_max_change);
+  CHECK(b.invert_nonfinite == a.invert_nonfinite);
+  CHECK(batched.backend().displacement() == alone.backend().displacement());
+  const float* jb = batched.deformed_brick();
+  REQUIRE(jb);
+  CHECK(std::vector<float>(jb, jb + b.chainmail.voi.count()) ==
+        std::vector<float>(alone.deformed_brick(), alone.deformed_brick() + a.chainmail.voi.count()));
 }
 
 }  // namespace
@@ -177,7 +232,7 @@ TEST_CASE("gpu inversion with the cell search equals the cpu where Newton stalls
   // solve is the same float operations in the same order: residuals, counts and J must
   // agree exactly (the 0.05 HU bound of the smooth-field test above is checked as well)
   const PatientPtr torso = make_torso_patient(48);
-  long long searched = 0, differ = 0;
+  long long searched = 0, differ = 0, queued = 0, scattered = 0;
   float worst = 0;
   for (const RandomPush& push : random_pushes(*torso, 40, 8)) {
     Pair b(torso, push.config);
@@ -201,6 +256,11 @@ TEST_CASE("gpu inversion with the cell search equals the cpu where Newton stalls
     CHECK(g.unresolved == 0);
     CHECK(g.max_residual_vox < 0.05f);
     CHECK(g.max_residual_vox == a.max_residual_vox);
+    // the same voxels went to the search; the scatter answered some or all of them
+    CHECK(g.searched == a.searched);
+    CHECK(g.scattered <= g.searched);
+    queued += g.searched;
+    scattered += g.scattered;
     // voxels Newton alone leaves (what the search had to do)
     auto load_u = [&](int i, int j, int k) { return voi.contains(i, j, k) ? u[voi.index(i, j, k)] : Vec3f{0, 0, 0}; };
     for (int k = 0; k < voi.size.z; ++k)
@@ -211,11 +271,72 @@ TEST_CASE("gpu inversion with the cell search equals the cpu where Newton stalls
           searched += r > deform::kInvertSearchVox;
         }
   }
-  std::printf("invert with search: %lld voxels searched over 40 pushes; J differs in %lld voxels, max %g HU\n", searched,
-              differ, worst);
+  std::printf("invert with search: %lld voxels searched over 40 pushes (%lld by the gpu, %lld of them answered by the "
+              "scatter); J differs in %lld voxels, max %g HU\n",
+              searched, queued, scattered, differ, worst);
   CHECK(searched > 0);
+  CHECK(queued == searched);
+  // the scatter (invert.cu) answers a voxel whenever a ring up to its first with a source
+  // holds one, which Newton's stalls next to these folds have; the rings are its fallback
+  CHECK(scattered > 0);
   CHECK(worst <= 0.05f);
   CHECK(differ == 0);
+}
+
+TEST_CASE("gpu inversion with the cell search equals the cpu on deep spinous presses") {
+  if (!have_gpu()) return;
+  // the server bench's presses reach 25 mm into the back; here the phantom's press over
+  // L3 15-30 mm deep (VOI 64): hundreds of voxels a step go to the search, and the scatter
+  // (invert.cu) must answer them as the cpu's ring search does, bit for bit. It prints
+  // the inversion's time with and without the search (a figure to read, not a bound)
+  const SearchPress sp = search_press();
+  const PatientPtr& phantom = sp.phantom;
+  const Vec3 X = sp.X;
+  const DeformConfig& cfg = sp.cfg;
+  DeformConfig newton = cfg;
+  newton.settings.invert_search = false;
+  long long searched = 0, scattered = 0;
+  for (double depth_mm : {15.0, 20.0, 25.0, 30.0}) {
+    const DeformContact c{X, X - Vec3{0, depth_mm, 0}};
+    Pair b(phantom, cfg);
+    same_chainmail(b, c);
+    b.cpu->relax();
+    b.gpu->set_displacement(b.cpu->displacement());
+    const InvertStats a = b.cpu->invert(), g = b.gpu->invert();
+    b.cpu->upload();
+    b.gpu->upload();
+    const Voi voi = b.cpu->voi();
+    const float* ja = b.cpu->deformed_brick();
+    const float* jg = b.gpu->deformed_brick();
+    long long differ = 0;
+    for (long long e = 0; e < voi.count(); ++e) differ += ja[e] != jg[e];
+    // the inversion alone, repeated on the same field: with the search, and Newton alone
+    auto time_invert = [](DeformBackend& d) {
+      d.invert();
+      const auto t0 = std::chrono::steady_clock::now();
+      for (int i = 0; i < 20; ++i) d.invert();
+      return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / 20;
+    };
+    const double with_ms = time_invert(*b.gpu);
+    auto off = make_deform_backend("cuda");
+    off->bind(phantom, newton);
+    off->chainmail(c);
+    off->set_displacement(b.cpu->displacement());
+    const double without_ms = time_invert(*off);
+    std::printf("spinous press %.0f mm: %lld voxels searched, %lld answered by the scatter; J differs in %lld voxels; "
+                "inversion %.3f ms with the search, %.3f ms without\n",
+                depth_mm, g.searched, g.scattered, differ, with_ms, without_ms);
+    INFO("press " << depth_mm << " mm: residual cpu " << a.max_residual_vox << " gpu " << g.max_residual_vox);
+    CHECK(g.searched == a.searched);
+    CHECK(g.max_residual_vox == a.max_residual_vox);
+    CHECK(g.unresolved == a.unresolved);
+    CHECK(differ == 0);
+    searched += g.searched;
+    scattered += g.scattered;
+  }
+  // these presses fold (measured: 1, 117, 392 and 798 voxels searched at 15, 20, 25, 30 mm)
+  CHECK(searched > 100);
+  CHECK(scattered > 0);
 }
 
 TEST_CASE("a backend bound while the legacy default stream is busy steps from the undeformed state") {
@@ -587,33 +708,11 @@ TEST_CASE("a batch of sessions stepped by shared launches equals each session st
     int capped = 0, in_bone = 0, clipped = 0;
     for (int round = 0; round < 2; ++round) {
       std::vector<DeformContact> k(pushes.begin() + round * n, pushes.begin() + round * n + n);
-      const std::vector<std::exception_ptr> errors = DeformBackend::begin_steps(backends, k);
-      std::vector<DeformStats> st(n);
-      for (int s = 0; s < n; ++s) {
-        REQUIRE(!errors[s]);
-        st[s] = sessions[s]->end_step();
-      }
+      const std::vector<DeformStats> st = step_batch(sessions, backends, k);
       for (int s = 0; s < n; ++s) {
         INFO("max_sweeps " << max_sweeps << ", round " << round << ", session " << s);
         const DeformStats a = alone.step(k[s]);
-        const DeformStats& b = st[s];
-        CHECK(b.batch == n);
-        CHECK(b.chainmail.voi == a.chainmail.voi);
-        CHECK(b.chainmail.grabbed_in_bone == a.chainmail.grabbed_in_bone);
-        CHECK(b.chainmail.moved == a.chainmail.moved);
-        CHECK(b.chainmail.sweeps == a.chainmail.sweeps);
-        CHECK(b.chainmail.converged == a.chainmail.converged);
-        CHECK(b.invert_unresolved == a.invert_unresolved);
-        CHECK(b.invert_residual_vox == a.invert_residual_vox);
-        CHECK(b.invert_max_change == a.invert_max_change);
-        CHECK(b.invert_nonfinite == a.invert_nonfinite);
-        // every element runs the single kernels' device functions on its own session's
-        // buffers: the fields and J are the same bits
-        CHECK(sessions[s]->backend().displacement() == alone.backend().displacement());
-        const float* jb = sessions[s]->deformed_brick();
-        REQUIRE(jb);
-        CHECK(std::vector<float>(jb, jb + b.chainmail.voi.count()) ==
-              std::vector<float>(alone.deformed_brick(), alone.deformed_brick() + a.chainmail.voi.count()));
+        check_same_step(st[s], a, *sessions[s], alone, n);
         capped += !a.chainmail.converged;
         in_bone += a.chainmail.grabbed_in_bone;
         clipped += a.chainmail.voi.count() < 48LL * 48 * 48;
@@ -640,4 +739,47 @@ TEST_CASE("a batch of sessions stepped by shared launches equals each session st
       CHECK(four[s]->displacement() == alone.backend().displacement());
     }
   }
+}
+
+TEST_CASE("a batch of sessions with the inversion's cell search equals each session alone, bit for bit") {
+  if (!have_gpu()) return;
+  // 16 sessions pressing the phantom's back 25 mm deep at 8 mm apart along the spine
+  // (bench/press_load.h's pattern): each folds and sends hundreds of voxels to the
+  // search, which the batched scatter, solve, pick and search kernels must answer as a
+  // session stepping alone does. Prints the inversion's time per session both ways (a
+  // figure to read, not a bound)
+  const SearchPress sp = search_press();
+  const PatientPtr& phantom = sp.phantom;
+  const Vec3 X0 = sp.X;
+  DeformConfig cfg = sp.cfg;
+  cfg.settings.backend = "cuda";
+  const int n = 16;
+  std::vector<DeformContact> k;
+  for (int s = 0; s < n; ++s) {
+    const Vec3 X{X0.x, X0.y, X0.z + 8.0 * (s - n / 2)};
+    k.push_back({X, X - Vec3{0, 25, 0}});
+  }
+  DeformEngine alone(phantom, cfg);
+  std::vector<std::unique_ptr<DeformEngine>> sessions;
+  std::vector<DeformBackend*> backends;
+  for (int s = 0; s < n; ++s) {
+    sessions.push_back(std::make_unique<DeformEngine>(phantom, cfg));
+    backends.push_back(&sessions.back()->backend());
+  }
+  double batch_invert_ms = 0, alone_invert_ms = 0;
+  for (int round = 0; round < 3; ++round) {
+    const std::vector<DeformStats> st = step_batch(sessions, backends, k);
+    for (int s = 0; s < n; ++s) {
+      INFO("round " << round << ", session " << s);
+      const DeformStats a = alone.step(k[s]);
+      const DeformStats& b = st[s];
+      check_same_step(b, a, *sessions[s], alone, n);
+      if (round > 0) {
+        batch_invert_ms += b.times.invert_ms;
+        alone_invert_ms += a.times.invert_ms;
+      }
+    }
+  }
+  std::printf("batch of %d with the cell search: inversion %.3f ms a session's share in the batch, %.3f ms alone\n", n,
+              batch_invert_ms / (2 * n), alone_invert_ms / (2 * n));
 }

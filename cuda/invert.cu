@@ -6,6 +6,7 @@
 
 #include "cuda/check.h"
 #include "cuda/kernels.h"
+#include "deform/invert_scatter.h"
 
 namespace palpsim::cuda {
 
@@ -286,10 +287,6 @@ __global__ void __launch_bounds__(256) invert_batch_kernel(const BatchItem* __re
 // a step where the scatter gave up (a full list, a cell whose box spans more than
 // kScatterMaxVoxels voxels, a ring or index beyond the key's bits), takes the ring search.
 
-// voxels a cell's box may span before the scatter gives up for the step (a cell stretched
-// over thousands of voxels, the tip metres away)
-constexpr int kScatterMaxVoxels = 512;
-
 // the pick's order as one 64-bit key: residual (float bits order as unsigned for r >= 0),
 // ring (10 bits), index in the ring (22 bits)
 __device__ __forceinline__ unsigned long long pick_key(float rc, int ring, int idx) {
@@ -336,7 +333,7 @@ __device__ __forceinline__ void scatter_cells(const StepGeometry& geo, int src, 
       span *= to[a] >= from[a] ? to[a] - from[a] + 1 : 0;
     }
     if (span == 0) continue;
-    if (!(span <= kScatterMaxVoxels)) {
+    if (!(span <= deform::kScatterMaxVoxels)) {
       b.counters->search_spill = 1;
       continue;
     }

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "deform/backend.h"
+#include "deform/invert_scatter.h"
 #include "deform/relax_multigrid.h"
 
 namespace palpsim {
@@ -36,6 +37,8 @@ struct CpuState {
   MultigridCache mg_cache;  // what mg_g holds
   std::vector<std::uint8_t> cell_folded;     // untangling: 1 where the cell with this lowest corner folds
   std::vector<std::uint8_t> untangle_flags;  // untangling: seed and moved bits per element
+  std::vector<SearchVoxel> search_queue;     // inversion: voxels Newton left to the cell search
+  std::vector<int> search_slot;              // inversion: each element's entry in search_queue, -1 where none
 };
 
 /// ChainMail by plain Jacobi sweeps (paper sec. 2.2): in sweep s every element next

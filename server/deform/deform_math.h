@@ -535,13 +535,14 @@ PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec
 /// whatever `iterations` is, so a voxel it takes gets the same source at any count.
 /// With 0 iterations nothing is inverted (p = y, as the paper's iteration with none);
 /// without `search` (deform.invert_search off) Newton's answer stands. Writes the
-/// residual (voxel) and whether the search ran.
+/// residual (voxel). The definition both backends follow; they run it in two halves
+/// (Newton for every voxel, then the search for the voxels Newton left, found mostly by
+/// invert_scatter.h's scatter_search() and cuda/invert.cu's kernels).
 template <typename LoadU>
 PALPSIM_HD Vec3f invert_voxel(const LoadU& load_u, const Vec3i& size, const Vec3f& y, int iterations, bool search,
-                              float& residual, bool& searched) {
+                              float& residual) {
   Vec3f p = invert_point(load_u, y, iterations, residual);
-  searched = search && iterations > 0 && residual > kInvertSearchVox;
-  if (searched) {
+  if (search && iterations > 0 && residual > kInvertSearchVox) {
     float rs;
     const Vec3f q = invert_search(load_u, size, y, y - trilinear<Vec3f>(load_u, y), rs);
     if (rs < residual) {

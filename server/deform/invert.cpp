@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "deform/cpu_backend.h"
+#include "deform/invert_scatter.h"
 
 namespace palpsim::deform {
 
@@ -20,26 +21,54 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
     return p.intensity.data[grid.index(gi, gj, gk)];
   };
   float worst = 0, change = 0;
-  long long unresolved = 0, nonfinite = 0, searched = 0;
+  long long unresolved = 0, nonfinite = 0, scattered = 0;
+  // J at voxel v from its source x0 with residual r, and what the stats need of it
+  auto finish = [&](const Vec3i& v, const Vec3f& x0, float r) {
+    const float jv = trilinear<float>(load_i, x0);
+    s.j[voi.index(v.x, v.y, v.z)] = jv;
+    worst = std::max(worst, r);
+    unresolved += r > kInvertResolvedVox;
+    // how far J moved from I here, and whether it is a number at all
+    if (std::isfinite(jv))
+      change = std::max(change, std::fabs(jv - load_i(v.x, v.y, v.z)));
+    else
+      ++nonfinite;
+  };
+  // Newton for every voxel (invert_voxel()'s first half); where it ends above
+  // kInvertSearchVox and the search is on, the voxel waits for the cell search
+  const bool searching = search && iterations > 0;
+  s.search_queue.clear();
+  if (searching) s.search_slot.assign(std::size_t(voi.count()), -1);
   for (int k = 0; k < voi.size.z; ++k)
     for (int j = 0; j < voi.size.y; ++j)
       for (int i = 0; i < voi.size.x; ++i) {
+        const Vec3f y{float(i), float(j), float(k)};
         float r = 0;
-        bool took_search = false;
-        const Vec3f x0 =
-            invert_voxel(load_u, voi.size, Vec3f(float(i), float(j), float(k)), iterations, search, r, took_search);
-        searched += took_search;
-        const float jv = trilinear<float>(load_i, x0);
-        s.j[voi.index(i, j, k)] = jv;
-        worst = std::max(worst, r);
-        unresolved += r > kInvertResolvedVox;
-        // how far J moved from I here, and whether it is a number at all
-        if (std::isfinite(jv))
-          change = std::max(change, std::fabs(jv - load_i(i, j, k)));
-        else
-          ++nonfinite;
+        const Vec3f x0 = invert_point(load_u, y, iterations, r);
+        if (searching && r > kInvertSearchVox) {
+          int rmax;
+          s.search_slot[voi.index(i, j, k)] = int(s.search_queue.size());
+          s.search_queue.push_back(
+              SearchVoxel{{i, j, k}, search_centre(voi.size, y - trilinear<Vec3f>(load_u, y), rmax), x0, r});
+          continue;
+        }
+        finish({i, j, k}, x0, r);
       }
-  return {worst, unresolved, change, nonfinite, searched, 0};
+  // the cell search (invert_voxel()'s second half) for the queued voxels: the scatter's
+  // pick where pass 0 decides it, else the ring search; the lower residual of it and
+  // Newton's wins
+  const bool scatter = scatter_search(load_u, voi.size, s.search_queue, s.search_slot);
+  for (const SearchVoxel& q : s.search_queue) {
+    const Vec3f y{float(q.v.x), float(q.v.y), float(q.v.z)};
+    float rs = q.residual;
+    Vec3f ps = q.p;
+    if (scatter && q.found)
+      ++scattered;
+    else
+      ps = invert_search(load_u, voi.size, y, y - trilinear<Vec3f>(load_u, y), rs);
+    finish(q.v, rs < q.newton_r ? ps : q.newton_p, rs < q.newton_r ? rs : q.newton_r);
+  }
+  return {worst, unresolved, change, nonfinite, (long long)s.search_queue.size(), scattered};
 }
 
 }  // namespace palpsim::deform

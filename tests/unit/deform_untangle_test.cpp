@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "deform/cpu_backend.h"
+#include "deform/invert_scatter.h"
 #include "prep/phantom.h"
 #include "support/deform_fixtures.h"
 #include "support/phantom_press.h"
@@ -241,16 +242,18 @@ TEST_CASE("deform.invert_search: off, Newton's answer stands next to the fold; o
   CHECK(differ <= 8);
 }
 
-// cuda/invert.cu finds a queued voxel's source without walking the rings: each cell of
-// the search ([-1, size - 1]^3 lowest corners) is scattered to the voxels its deformed box
-// holds and solved there from its centre (pass 0), and the voxel takes, among its cells in
-// rings up to the first ring with a source within kInvertSearchVox, the lowest residual,
-// then the lowest ring, then the lowest index in the ring (search_ring_index()); a voxel
-// with no such ring goes to the ring search. This checks that rule against
+// Both backends find a queued voxel's source without walking the rings: every cell of
+// the search that can reach a queued voxel is solved from its centre (pass 0) for each
+// queued voxel its deformed box holds, and the voxel takes, among its cells in rings up
+// to the first ring with a source within kInvertSearchVox, the lowest residual, then the
+// lowest ring, then the lowest index in the ring (search_ring_index()); a voxel with no
+// such ring goes to the ring search (invert_scatter.h's scatter_search() on the cpu,
+// cuda/invert.cu's kernels on the GPU). This checks scatter_search() against
 // invert_search() itself, bit for bit, on every voxel Newton leaves in 40 random pushes,
-// the Table 1 press and presses over L3 15-30 mm deep, and that the inverse of
+// the Table 1 press and presses over L3 15-30 mm deep; that the cpu backend's J with the
+// search is invert_voxel()'s, the definition, voxel by voxel; and that the inverse of
 // search_ring_cell() is one.
-TEST_CASE("the cell search's scatter rule (cuda) picks the source the ring search picks") {
+TEST_CASE("the cell search's scatter picks the source the ring search picks") {
   for (int r = 0; r <= 9; ++r)
     for (int idx = 0; idx < deform::search_ring_size(r); ++idx)
       REQUIRE(deform::search_ring_index(r, deform::search_ring_cell(r, idx)) == idx);
@@ -264,13 +267,10 @@ TEST_CASE("the cell search's scatter rule (cuda) picks the source the ring searc
   std::vector<Case> cases;
   for (const RandomPush& push : pushes) cases.push_back({torso, push.config, push.contact});
   cases.push_back({phantom(), table1_config(), table1_press(*phantom())});
-  // the server's lumbar scene presses the spinous processes this deep: the folds there
-  // leave voxels with no source within kInvertSearchVox from the cells' centres
+  // the server's lumbar scene presses the spinous processes this deep
   const Vec3 X = spinous_press(make_phantom(340.0 / 255.0).geometry).contact.skin_point_mm;
-  for (double depth_mm : {15.0, 20.0, 25.0, 30.0}) {
-    cases.push_back({phantom(), table1_config(), {X, X - Vec3{0, depth_mm, 0}}});
-  }
-  long long compared = 0, to_rings = 0;
+  for (double depth_mm : {15.0, 20.0, 25.0, 30.0}) cases.push_back({phantom(), table1_config(), {X, X - Vec3{0, depth_mm, 0}}});
+  long long compared = 0, to_rings = 0, searched = 0, scattered = 0, j_differ = 0;
   for (std::size_t n = 0; n < cases.size(); ++n) {
     const Case& cs = cases[n];
     const Result res = run(cs.p, cs.cfg, cs.c, false, 8);
@@ -280,85 +280,73 @@ TEST_CASE("the cell search's scatter rule (cuda) picks the source the ring searc
       if (!voi.contains(i, j, k)) return Vec3f{0, 0, 0};
       return res.u[voi.index(i, j, k)];
     };
-    // the voxels Newton leaves (slot per voxel) and their search centres
+    // the voxels Newton leaves, as the cpu backend queues them
     std::vector<int> slot(std::size_t(voi.count()), -1);
-    std::vector<Vec3i> centre;
-    std::vector<Vec3f> ys;
+    std::vector<deform::SearchVoxel> queue;
     for (int k = 0; k < size.z; ++k)
       for (int j = 0; j < size.y; ++j)
         for (int i = 0; i < size.x; ++i) {
           const Vec3f y{float(i), float(j), float(k)};
           float r;
-          deform::invert_point(load_u, y, cs.cfg.settings.invert_iterations, r);
+          const Vec3f p = deform::invert_point(load_u, y, cs.cfg.settings.invert_iterations, r);
           if (!(r > deform::kInvertSearchVox)) continue;
           int rmax;
-          slot[voi.index(i, j, k)] = int(ys.size());
-          centre.push_back(deform::search_centre(size, y - deform::trilinear<Vec3f>(load_u, y), rmax));
-          ys.push_back(y);
+          slot[voi.index(i, j, k)] = int(queue.size());
+          queue.push_back({{i, j, k}, deform::search_centre(size, y - deform::trilinear<Vec3f>(load_u, y), rmax), p, r});
         }
-    // scatter every cell to the queued voxels its box holds
-    struct Candidate {
-      int ring, idx;
-      float rc;
-      Vec3f p;
-    };
-    std::vector<std::vector<Candidate>> cand(ys.size());
-    for (int oz = -1; oz < size.z; ++oz)
-      for (int oy = -1; oy < size.y; ++oy)
-        for (int ox = -1; ox < size.x; ++ox) {
-          const Vec3i o{ox, oy, oz};
-          Vec3f c[8], lo, hi;
-          deform::load_cell(load_u, ox, oy, oz, c);
-          deform::cell_box(c, o, lo, hi);
-          int from[3], to[3];
-          for (int a = 0; a < 3; ++a) {
-            from[a] = std::max(0, int(std::ceil(lo[a] - deform::kInvertSearchVox)));
-            to[a] = std::min(size[a] - 1, int(std::floor(hi[a] + deform::kInvertSearchVox)));
-          }
-          for (int k = from[2]; k <= to[2]; ++k)
-            for (int j = from[1]; j <= to[1]; ++j)
-              for (int i = from[0]; i <= to[0]; ++i) {
-                const int s = slot[voi.index(i, j, k)];
-                if (s < 0 || !deform::box_holds(lo, hi, ys[std::size_t(s)])) continue;
-                const Vec3i d{ox - centre[s].x, oy - centre[s].y, oz - centre[s].z};
-                const int ring = std::max({std::abs(d.x), std::abs(d.y), std::abs(d.z)});
-                Candidate q{ring, deform::search_ring_index(ring, d), 0.0f, {}};
-                q.p = deform::invert_in_cell(c, o, ys[std::size_t(s)], false, q.rc);
-                cand[std::size_t(s)].push_back(q);
-              }
-        }
-    // each voxel's pick by the rule, against the ring search
-    for (std::size_t s = 0; s < ys.size(); ++s) {
-      int last = INT_MAX;
-      for (const Candidate& q : cand[s])
-        if (q.rc <= deform::kInvertSearchVox) last = std::min(last, q.ring);
-      if (last == INT_MAX) {
-        // no source within kInvertSearchVox from the cells' centres: the ring search's
-        // second pass decides, and so does cuda's
+    REQUIRE(deform::scatter_search(load_u, size, queue, slot));
+    for (const deform::SearchVoxel& q : queue) {
+      if (!q.found) {
         ++to_rings;
         continue;
       }
+      const Vec3f y{float(q.v.x), float(q.v.y), float(q.v.z)};
       float want_r;
-      const Vec3f want =
-          deform::invert_search(load_u, size, ys[s], ys[s] - deform::trilinear<Vec3f>(load_u, ys[s]), want_r);
-      const Candidate* best = nullptr;
-      for (const Candidate& q : cand[s]) {
-        if (q.ring > last || !(q.rc < 3.4e38f)) continue;
-        if (!best || q.rc < best->rc || (q.rc == best->rc && (q.ring < best->ring || (q.ring == best->ring && q.idx < best->idx))))
-          best = &q;
-      }
-      INFO("case " << n << ", voxel " << ys[s].x << " " << ys[s].y << " " << ys[s].z << ": rule " << best->rc
-                   << " ring " << best->ring << ", ring search " << want_r);
-      REQUIRE(best->rc == want_r);
-      REQUIRE(best->p.x == want.x);
-      REQUIRE(best->p.y == want.y);
-      REQUIRE(best->p.z == want.z);
+      const Vec3f want = deform::invert_search(load_u, size, y, y - deform::trilinear<Vec3f>(load_u, y), want_r);
+      INFO("case " << n << ", voxel " << y.x << " " << y.y << " " << y.z << ": scatter " << q.residual
+                   << ", ring search " << want_r);
+      REQUIRE(q.residual == want_r);
+      REQUIRE(q.p.x == want.x);
+      REQUIRE(q.p.y == want.y);
+      REQUIRE(q.p.z == want.z);
       ++compared;
     }
+    // the cpu backend with the search on, on the same field: J as invert_voxel() defines it
+    DeformConfig on = cs.cfg;
+    on.settings.invert_search = true;
+    CpuDeformBackend b;
+    b.bind(cs.p, on);
+    b.chainmail(cs.c);
+    b.set_displacement(res.u);
+    const InvertStats st = b.invert();
+    b.upload();
+    const float* jb = b.deformed_brick();
+    const Patient& pt = *cs.p;
+    auto load_i = [&](int i, int j, int k) {
+      const Vec3i g{std::clamp(voi.lo.x + i, 0, pt.grid.size.x - 1), std::clamp(voi.lo.y + j, 0, pt.grid.size.y - 1),
+                    std::clamp(voi.lo.z + k, 0, pt.grid.size.z - 1)};
+      return pt.intensity.data[pt.grid.index(g.x, g.y, g.z)];
+    };
+    for (int k = 0; k < size.z; ++k)
+      for (int j = 0; j < size.y; ++j)
+        for (int i = 0; i < size.x; ++i) {
+          float r;
+          const Vec3f x0 = deform::invert_voxel(load_u, size, Vec3f(float(i), float(j), float(k)),
+                                                on.settings.invert_iterations, true, r);
+          j_differ += jb[voi.index(i, j, k)] != deform::trilinear<float>(load_i, x0);
+        }
+    CHECK(st.searched == (long long)queue.size());
+    searched += st.searched;
+    scattered += st.scattered;
   }
-  std::printf("scatter rule: %lld voxels picked as the ring search picks, %lld left to the rings\n", compared, to_rings);
+  std::printf("scatter: %lld voxels picked as the ring search picks, %lld left to the rings; the cpu backend "
+              "searched %lld, %lld by the scatter, J differs from invert_voxel() in %lld voxels\n",
+              compared, to_rings, searched, scattered, j_differ);
+  CHECK(j_differ == 0);
+  CHECK(scattered == compared);
+  CHECK(searched == compared + to_rings);
   // the pushes and presses leave voxels to the search (measured on this compiler: 1,384
-  // picked by the rule, 76 of them in the pushes and Table 1's press, none left to the
-  // rings); 500 fails if the deep presses stopped folding and the test compared little
+  // picked, 76 of them in the pushes and Table 1's press, none left to the rings); 500
+  // fails if the deep presses stopped folding and the test compared little
   CHECK(compared >= 500);
 }

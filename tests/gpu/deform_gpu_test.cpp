@@ -259,6 +259,8 @@ TEST_CASE("gpu inversion with the cell search equals the cpu where Newton stalls
     // the same voxels went to the search; the scatter answered some or all of them
     CHECK(g.searched == a.searched);
     CHECK(g.scattered <= g.searched);
+    // the same rule on both backends (invert_scatter.h), and no capacity near its limits
+    CHECK(g.scattered == a.scattered);
     queued += g.searched;
     scattered += g.scattered;
     // voxels Newton alone leaves (what the search had to do)
@@ -328,6 +330,7 @@ TEST_CASE("gpu inversion with the cell search equals the cpu on deep spinous pre
                 depth_mm, g.searched, g.scattered, differ, with_ms, without_ms);
     INFO("press " << depth_mm << " mm: residual cpu " << a.max_residual_vox << " gpu " << g.max_residual_vox);
     CHECK(g.searched == a.searched);
+    CHECK(g.scattered == a.scattered);
     CHECK(g.max_residual_vox == a.max_residual_vox);
     CHECK(g.unresolved == a.unresolved);
     CHECK(differ == 0);

@@ -76,7 +76,7 @@ struct InvertStats {
   double max_change = 0;        // max |J - I| over the VOI's finite J (Patient::intensity units, HU)
   long long nonfinite = 0;      // VOI voxels whose J is NaN or Inf (a broken step)
   long long searched = 0;       // voxels Newton left above deform::kInvertSearchVox, taken to the cell search (deform.invert_search)
-  long long scattered = 0;      // of those, answered by the scatter's pick (invert_scatter.h) without walking rings
+  long long scattered = 0;      // of those, decided on the search's pass 0 without walking all rings (invert_scatter.h)
 };
 
 /// What untangling did: the folded cells (cell_min_det() <= deform::kUntangleFoldDet,

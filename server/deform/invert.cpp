@@ -54,9 +54,27 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
         }
         finish({i, j, k}, x0, r);
       }
-  // the cell search (invert_voxel()'s second half) for the queued voxels: the scatter's
-  // pick where pass 0 decides it, else the ring search; the lower residual of it and
-  // Newton's wins
+  // the cell search (invert_voxel()'s second half) for the queued voxels: rings 0 and 1
+  // of pass 0, then for the voxels still without a source the scatter's pick where
+  // pass 0 decides it, else the whole ring search; the lower residual of it and Newton's
+  // wins. The voxels found near leave the scatter's queue (and its bounds)
+  constexpr int kNearRings = 1;
+  std::size_t far = 0;
+  for (std::size_t n = 0; n < s.search_queue.size(); ++n) {
+    SearchVoxel q = s.search_queue[n];
+    const Vec3f y{float(q.v.x), float(q.v.y), float(q.v.z)};
+    q.found = invert_search_near(load_u, voi.size, y, q.centre, kNearRings, q.p, q.residual);
+    if (q.found) {
+      ++scattered;
+      s.search_slot[voi.index(q.v.x, q.v.y, q.v.z)] = -1;
+      finish(q.v, q.residual < q.newton_r ? q.p : q.newton_p, q.residual < q.newton_r ? q.residual : q.newton_r);
+      continue;
+    }
+    s.search_slot[voi.index(q.v.x, q.v.y, q.v.z)] = int(far);
+    s.search_queue[far++] = q;
+  }
+  const long long searched = (long long)s.search_queue.size();
+  s.search_queue.resize(far);
   const bool scatter = scatter_search(load_u, voi.size, s.search_queue, s.search_slot);
   for (const SearchVoxel& q : s.search_queue) {
     const Vec3f y{float(q.v.x), float(q.v.y), float(q.v.z)};
@@ -68,7 +86,7 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
       ps = invert_search(load_u, voi.size, y, y - trilinear<Vec3f>(load_u, y), rs);
     finish(q.v, rs < q.newton_r ? ps : q.newton_p, rs < q.newton_r ? rs : q.newton_r);
   }
-  return {worst, unresolved, change, nonfinite, (long long)s.search_queue.size(), scattered};
+  return {worst, unresolved, change, nonfinite, searched, scattered};
 }
 
 }  // namespace palpsim::deform

@@ -340,7 +340,7 @@ TEST_CASE("the cell search's scatter picks the source the ring search picks") {
     scattered += st.scattered;
   }
   std::printf("scatter: %lld voxels picked as the ring search picks, %lld left to the rings; the cpu backend "
-              "searched %lld, %lld by the scatter, J differs from invert_voxel() in %lld voxels\n",
+              "searched %lld, %lld decided on pass 0, J differs from invert_voxel() in %lld voxels\n",
               compared, to_rings, searched, scattered, j_differ);
   CHECK(j_differ == 0);
   CHECK(scattered == compared);

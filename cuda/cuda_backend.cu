@@ -407,6 +407,7 @@ DeformStats CudaDeformBackend::end_step_impl() {
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
+    out.invert_searched = inv.searched;
     out.invert_max_change = inv.max_change;
     out.invert_nonfinite = inv.nonfinite;
   }
@@ -519,6 +520,7 @@ DeformStats CudaDeformBackend::end_batched_step() {
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
+    out.invert_searched = inv.searched;
     out.invert_max_change = inv.max_change;
     out.invert_nonfinite = inv.nonfinite;
   }

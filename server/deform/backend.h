@@ -113,6 +113,7 @@ struct DeformStats {
   int relax_solves = 0;
   double invert_residual_vox = 0;    // max |p + u(p) - y| over the VOI (voxel); 0 without inversion
   long long invert_unresolved = 0;   // VOI voxels with a residual above deform::kInvertResolvedVox
+  long long invert_searched = 0;     // VOI voxels Newton left to the cell search (0 without deform.invert_search)
   double invert_max_change = 0;      // max |J - I| over the VOI (HU); 0 without inversion
   long long invert_nonfinite = 0;    // VOI voxels whose J is NaN or Inf; 0 without inversion
   UntangleStats untangle;            // all 0 when untangling is off

@@ -504,6 +504,7 @@ void DeformWorker::complete(Session& s, const Contact& c) {
     r.converged = st.chainmail.converged;
     r.invert_residual_vox = st.invert_residual_vox;
     r.invert_unresolved = st.invert_unresolved;
+    r.invert_searched = st.invert_searched;
     r.max_change_hu = change;
     r.deformed = true;
     r.last_contact_seq = c.seq;

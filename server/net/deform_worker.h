@@ -42,6 +42,7 @@ struct DeformSessionReport {
   bool converged = true;               // latest step: ChainMail converged within max_sweeps
   double invert_residual_vox = 0;      // latest step: max inversion residual (voxel)
   long long invert_unresolved = 0;     // latest step: voxels with a residual above 0.1 voxel
+  long long invert_searched = 0;       // latest step: voxels Newton left to the cell search (deform.invert_search)
   double max_change_hu = 0;            // latest step: max |J - I| over the VOI (0 without inversion)
   bool deformed = false;               // a deformation is in place now
   std::uint64_t last_contact_seq = 0;  // pose seq of the newest contact the deformation reflects (one equal to

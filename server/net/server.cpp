@@ -764,6 +764,7 @@ class Server::Control {
     o->set_converged(r.converged);
     o->set_invert_residual_vox(r.invert_residual_vox);
     o->set_invert_unresolved(std::uint64_t(r.invert_unresolved));
+    o->set_invert_searched(std::uint64_t(r.invert_searched));
     o->set_max_change_hu(r.max_change_hu);
     o->set_deformed(r.deformed);
     o->set_last_contact_seq(r.last_contact_seq);

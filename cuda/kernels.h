@@ -12,7 +12,6 @@
 
 namespace palpsim::cuda {
 
-/// Small results the kernels write on the device and the host reads once per step.
 /// What bounds the cells the inversion's scatter must visit (invert.cu, scatter_cells):
 /// the largest |u| per axis over the VOI and the box of the queued voxels, each kept
 /// with atomicMax from zero (float bits order as unsigned for values >= 0).
@@ -22,6 +21,7 @@ struct ScatterBounds {
   unsigned int hi_plus[3];    // the highest queued voxel's coordinate + 1 (0: none queued)
 };
 
+/// Small results the kernels write on the device and the host reads once per step.
 struct Counters {
   int sweep_moved[3];              // elements moved per sweep, by sweep % 3
   int sweeps;                      // sweeps run

@@ -493,6 +493,26 @@ PALPSIM_HD int search_ring_index(int r, const Vec3i& d) {
   return base + 2 * s + 2 * (d.y + r - 1) + (d.x == r ? 1 : 0);
 }
 
+/// Ring r of the search around centre cell m on `pass` (0: cells' centres, 1: their
+/// sub-cells'): each cell by search_cell(), in ring order; a lower residual replaces
+/// `best` (the first in ring order wins among equals), and [r_lo, r_hi] widens to r
+/// where a cell's box holds y.
+template <typename LoadU>
+PALPSIM_HD void search_ring(const LoadU& load_u, const Vec3i& size, const Vec3i& m, const Vec3f& y, int pass, int r,
+                            Vec3f& best, float& residual, int& r_lo, int& r_hi) {
+  for (int idx = 0, n = search_ring_size(r); idx < n; ++idx) {
+    Vec3f p;
+    float rc;
+    if (!search_cell(load_u, size, m + search_ring_cell(r, idx), y, pass, p, rc)) continue;
+    r_lo = r < r_lo ? r : r_lo;
+    r_hi = r > r_hi ? r : r_hi;
+    if (rc < residual) {
+      residual = rc;
+      best = p;
+    }
+  }
+}
+
 /// The search of invert_voxel(): the source of y among the cells whose lowest corner lies
 /// in [-1, size - 1] (cells beyond the VOI's faces included: u = 0 outside), ring by ring
 /// (search_ring_cell()) around the cell holding `guess`; each cell by search_cell(), from
@@ -514,17 +534,7 @@ PALPSIM_HD Vec3f invert_search(const LoadU& load_u, const Vec3i& size, const Vec
   int r_lo = rmax + 1, r_hi = -1;
   for (int pass = 0; pass < 2 && !(residual <= kInvertSearchVox); ++pass)
     for (int r = pass ? r_lo : 0; r <= (pass ? r_hi : rmax) && !(residual <= kInvertSearchVox); ++r)
-      for (int idx = 0, n = search_ring_size(r); idx < n; ++idx) {
-        Vec3f p;
-        float rc;
-        if (!search_cell(load_u, size, m + search_ring_cell(r, idx), y, pass, p, rc)) continue;
-        r_lo = r < r_lo ? r : r_lo;
-        r_hi = r > r_hi ? r : r_hi;
-        if (rc < residual) {
-          residual = rc;
-          best = p;
-        }
-      }
+      search_ring(load_u, size, m, y, pass, r, best, residual, r_lo, r_hi);
   return best;
 }
 

@@ -34,6 +34,11 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
     else
       ++nonfinite;
   };
+  // a searched voxel's J: the search's source where its residual is lower than Newton's
+  // (invert_voxel()), else Newton's
+  auto finish_searched = [&](const SearchVoxel& q, const Vec3f& ps, float rs) {
+    finish(q.v, rs < q.newton_r ? ps : q.newton_p, rs < q.newton_r ? rs : q.newton_r);
+  };
   // Newton for every voxel (invert_voxel()'s first half); where it ends above
   // kInvertSearchVox and the search is on, the voxel waits for the cell search
   const bool searching = search && iterations > 0;
@@ -67,7 +72,7 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
     if (q.found) {
       ++scattered;
       s.search_slot[voi.index(q.v.x, q.v.y, q.v.z)] = -1;
-      finish(q.v, q.residual < q.newton_r ? q.p : q.newton_p, q.residual < q.newton_r ? q.residual : q.newton_r);
+      finish_searched(q, q.p, q.residual);
       continue;
     }
     s.search_slot[voi.index(q.v.x, q.v.y, q.v.z)] = int(far);
@@ -84,7 +89,7 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
       ++scattered;
     else
       ps = invert_search(load_u, voi.size, y, y - trilinear<Vec3f>(load_u, y), rs);
-    finish(q.v, rs < q.newton_r ? ps : q.newton_p, rs < q.newton_r ? rs : q.newton_r);
+    finish_searched(q, ps, rs);
   }
   return {worst, unresolved, change, nonfinite, searched, scattered};
 }

@@ -44,16 +44,9 @@ template <typename LoadU>
 bool invert_search_near(const LoadU& load_u, const Vec3i& size, const Vec3f& y, const Vec3i& m, int max_ring,
                         Vec3f& p, float& residual) {
   residual = 3.4e38f;
+  int r_lo = max_ring + 1, r_hi = -1;  // pass 1's rings: not needed here
   for (int r = 0; r <= max_ring; ++r) {
-    for (int idx = 0, n = search_ring_size(r); idx < n; ++idx) {
-      Vec3f q;
-      float rc;
-      if (!search_cell(load_u, size, m + search_ring_cell(r, idx), y, 0, q, rc)) continue;
-      if (rc < residual) {
-        residual = rc;
-        p = q;
-      }
-    }
+    search_ring(load_u, size, m, y, 0, r, p, residual, r_lo, r_hi);
     if (residual <= kInvertSearchVox) return true;
   }
   return false;

@@ -148,10 +148,12 @@ def markdown(cpu, gpu, rows, plots):
              f"{b['relax_iterations']}, inversion {b['invert_iterations']}; each row changes one knob.")
     L.append(f"- Storage precision: {cpu.get('storage', 'fp32')} only: no backend stores fields in fp16, so there is "
              "no fp16 row. Relaxation methods: the paper's explicit diffusion (iterations) and the multigrid "
-             "steady-state solver (deform.relax_method \"multigrid\", steps), timed solving afresh every step (a new VOI "
-             "or grabbed element: the tip entered another voxel) and, as \"multigrid reused\", with the same press "
-             "repeated, which reuses the unit response (u = d G, the same bits; server/deform/README.md); another is "
-             "one entry in kRelaxMethods (bench/deform_accuracy_bench.cpp).")
+             "steady-state solver (deform.relax_method \"multigrid\", steps), timed solving afresh from zero every "
+             "step (a new VOI or grabbed element: the tip entered another voxel, with deform.relax_warm_cycles 0), "
+             "as \"multigrid warm\" (steps: deform.relax_warm_cycles) with the tip reaching the press a voxel a "
+             "step, each step starting from the last step's unit response, and as \"multigrid reused\" with the "
+             "same press repeated, which reuses the unit response (u = d G, the same bits; "
+             "server/deform/README.md); another is one entry in kRelaxMethods (bench/deform_accuracy_bench.cpp).")
     L.append("")
     L.append("## References and error metrics")
     L.append("")
@@ -263,6 +265,7 @@ def markdown(cpu, gpu, rows, plots):
 
 
 KNOB_STYLE = {"relaxation diffusion": ("tab:blue", "o"), "relaxation multigrid": ("tab:red", "P"),
+              "relaxation multigrid warm": ("tab:pink", "X"),
               "relaxation multigrid reused": ("tab:brown", "*"),
               "inversion iterations": ("tab:orange", "s"), "VOI edge": ("tab:green", "^"),
               "ChainMail preset": ("tab:purple", "D")}

@@ -81,10 +81,12 @@ struct Run {
 
 // the settings `cfgs` on one backend, one engine each, timed round-robin (every
 // repetition steps each setting once) so that load from other processes on a shared
-// machine spreads over all settings instead of skewing the ones that ran during it
+// machine spreads over all settings instead of skewing the ones that ran during it;
+// the repetitions take `contacts` in turn, backwards, so that the last one is contacts[0]
+// (two contacts a voxel apart: every step enters another voxel)
 std::vector<Run> run_settings(const std::string& backend, const PatientPtr& patient,
-                              const std::vector<DeformConfig>& cfgs, const DeformContact& contact, int warmup,
-                              int reps, Stage stage) {
+                              const std::vector<DeformConfig>& cfgs, const std::vector<DeformContact>& contacts,
+                              int warmup, int reps, Stage stage) {
   std::vector<std::unique_ptr<DeformBackend>> engines;
   for (const DeformConfig& c : cfgs) {
     engines.push_back(make_deform_backend(backend));
@@ -92,9 +94,10 @@ std::vector<Run> run_settings(const std::string& backend, const PatientPtr& pati
   }
   std::vector<Run> runs(cfgs.size());
   std::vector<std::vector<double>> step(cfgs.size()), part(cfgs.size());
+  const int n_contacts = int(contacts.size());
   for (int i = -warmup; i < reps; ++i)
     for (std::size_t s = 0; s < cfgs.size(); ++s) {
-      runs[s].last = engines[s]->step(contact);
+      runs[s].last = engines[s]->step(contacts[(reps - 1 - i) % n_contacts]);
       if (i < 0) continue;
       const DeformTimes& t = runs[s].last.times;
       step[s].push_back(t.total_ms);
@@ -110,6 +113,33 @@ std::vector<Run> run_settings(const std::string& backend, const PatientPtr& pati
     if (!r.last.chainmail.converged) throw Error("deform accuracy: ChainMail hit deform.max_sweeps on " + backend);
   }
   return runs;
+}
+
+// the same, every repetition on one contact
+std::vector<Run> run_settings(const std::string& backend, const PatientPtr& patient,
+                              const std::vector<DeformConfig>& cfgs, const DeformContact& contact, int warmup,
+                              int reps, Stage stage) {
+  return run_settings(backend, patient, cfgs, std::vector<DeformContact>{contact}, warmup, reps, stage);
+}
+
+// `c` with the tip `k` voxels further along the press (its largest axis in voxel space;
+// k < 0: back towards the skin): each voxel on, the VOI moves (relax_warm_cycles' case)
+DeformContact tip_moved(const Grid& grid, const DeformContact& c, int k) {
+  const Vec3 t = grid.to_index(c.tip_mm), d = t - grid.to_index(c.skin_point_mm);
+  int a = 0;
+  for (int b = 1; b < 3; ++b)
+    if (std::fabs(d[b]) > std::fabs(d[a])) a = b;
+  Vec3 t2 = t;
+  t2[a] += d[a] < 0 ? -k : k;
+  return DeformContact{c.skin_point_mm, grid.to_physical(t2)};
+}
+
+// a press reached a voxel at a time: `c` and the tip 1..n-1 voxels short of it, which
+// run_settings takes from the shallowest to `c` (then back to the shallowest: a jump)
+std::vector<DeformContact> pressing(const Grid& grid, const DeformContact& c, int n) {
+  std::vector<DeformContact> v;
+  for (int k = 0; k < n; ++k) v.push_back(tip_moved(grid, c, -k));
+  return v;
 }
 
 // one setting, timed alone
@@ -437,6 +467,36 @@ int run_deform_accuracy(const AccuracyOptions& o) {
                       std::to_string(o.ref_multigrid_cycles) +
                       "; u_rms_diff_rel over the reference's RMS; relax_ms_reused: the same press repeated, "
                       "the unit response reused (solves_reused 0)");
+      // warm starts: the tip reaching the press a voxel a step (from 5 voxels short), so
+      // that every step has another VOI and starts from the last step's unit response
+      // (relax_warm_cycles steps); the last step is the press itself
+      std::vector<DeformConfig> ws;
+      const int warm_set[] = {1, 2, 3, 4};
+      for (int n : warm_set) {
+        ws.push_back(c);
+        ws.back().settings.relax_cycles = DeformSettings{}.relax_cycles;
+        ws.back().settings.relax_warm_cycles = n;
+      }
+      const std::vector<Run> warm =
+          run_settings(be, patient, ws, pressing(patient->grid, press.contact, 6), warmup, reps, Stage::relax);
+      const std::vector<Run> warm_block = run_settings(be, block, ws, pressing(block->grid, push, 4), 0, 8, Stage::relax);
+      for (std::size_t s = 0; s < ws.size(); ++s) {
+        const Run& r = warm[s];
+        if (!(r.last.chainmail.voi == voi)) throw Error("deform accuracy: the VOI changed between runs");
+        if (!r.last.relax_warm || !warm_block[s].last.relax_warm)
+          throw Error("deform accuracy: a relax_warm_cycles step did not start from the last unit response");
+        const Diff d = field_diff(r.u, ref.u);
+        const ChainMailStats& bs = warm_block[s].last.chainmail;
+        Row row = make_row(be, "relax_warm_cycles", warm_set[s], false, r);
+        row.metrics = {{"u_rms_diff_rel", d.rms / ref_rms}, {"u_max_diff_vox", d.max},
+                       {"laplacian_rms_vox", laplacian_rms(*patient, voi, grabbed, r.u)},
+                       {"isotropy6_block", test::isotropy(bs.voi, warm_block[s].u, bs.grabbed_vox - bs.voi.lo, 6)}};
+        rows.push_back(row);
+      }
+      print_table(rows, be, "relax_warm_cycles", "relax",
+                  "relax_method multigrid, VOI 64, inversion 8, the tip a voxel deeper every step (a new VOI "
+                  "each, from 5 voxels short of the press), each solve started from the last unit response; "
+                  "reference as above");
     }
 
     // inversion iterations against inversion with ref_invert_iterations on the same field
@@ -575,14 +635,21 @@ struct RelaxMethod {
   std::string name;
   std::vector<int> iterations;
 };
-// "multigrid" solves every step (DeformConfig::relax_reuse false: the cost of a new VOI or
-// grabbed element); "multigrid reused" repeats the press, so every timed step reuses the
-// unit response (the cost while the tip stays in its voxel)
+// "multigrid" solves every step from zero (DeformConfig::relax_reuse false: the cost of a
+// new VOI or grabbed element with deform.relax_warm_cycles 0); "multigrid warm" reaches the
+// press a voxel a step, so every timed step has a new VOI and starts from the last unit
+// response (deform.relax_warm_cycles, the settings; relax_cycles 5 for the first solve);
+// "multigrid reused" repeats the press, so every timed step reuses the unit response (the
+// cost while the tip stays in its voxel)
 const std::vector<RelaxMethod> kRelaxMethods = {
     {"diffusion", {0, 5, 10, 20, 40, 80, 160, 400}},
     {"multigrid", {1, 2, 3, 4, 5, 8}},
+    {"multigrid warm", {1, 2, 3}},
     {"multigrid reused", {5}},
 };
+
+// the methods whose timed steps reach the press a voxel at a time (pressing())
+bool moves_tip(const std::string& method) { return method == "multigrid warm"; }
 
 // sets relaxation method `method` with `n` iterations (diffusion) or steps (multigrid)
 void apply_relax_method(DeformConfig& cfg, const std::string& method, int n) {
@@ -593,6 +660,11 @@ void apply_relax_method(DeformConfig& cfg, const std::string& method, int n) {
     cfg.settings.relax_method = "multigrid";
     cfg.settings.relax_cycles = n;
     cfg.relax_reuse = method == "multigrid reused";
+  } else if (method == "multigrid warm") {
+    cfg.settings.relax_method = "multigrid";
+    cfg.settings.relax_cycles = DeformSettings{}.relax_cycles;
+    cfg.settings.relax_warm_cycles = n;
+    cfg.relax_reuse = true;
   } else {
     throw Error("accuracy: relaxation method '" + method + "' is not in this build");
   }
@@ -625,6 +697,7 @@ struct Group {
   std::vector<Setting> settings;
   bool has_ref = false;
   DeformConfig ref;
+  bool pressing = false;  // timed steps reach the press a voxel at a time (moves_tip)
 };
 
 // the errors of one row against the references (NaN where not computed)
@@ -982,6 +1055,7 @@ int run_accuracy_report(const ReportOptions& o) {
     Group g;
     g.has_ref = true;
     g.ref = base;
+    g.pressing = moves_tip(m.name);
     apply_relax_method(g.ref, "multigrid", kRefMultigridSteps);
     for (int n : m.iterations) {
       DeformConfig cfg = base;
@@ -1065,7 +1139,12 @@ int run_accuracy_report(const ReportOptions& o) {
         cfgs.push_back(s.cfg);
         cfgs.back().settings.backend = be;
       }
-      const std::vector<Run> runs = run_settings(be, patient, cfgs, press.contact, warmup, reps, group.front().stage);
+      // the press itself, or reached a voxel a step from 5 voxels short (the last step on it)
+      const std::vector<DeformContact> contacts =
+          grp.pressing ? pressing(patient->grid, press.contact, 6) : std::vector<DeformContact>{press.contact};
+      const std::vector<DeformContact> block_contacts =
+          grp.pressing ? pressing(block->grid, block_press, 4) : std::vector<DeformContact>{block_press};
+      const std::vector<Run> runs = run_settings(be, patient, cfgs, contacts, warmup, reps, group.front().stage);
       for (std::size_t s = 0; s < group.size(); ++s) {
         const Run& r = runs[s];
         ReportRow row;
@@ -1085,7 +1164,10 @@ int run_accuracy_report(const ReportOptions& o) {
         row.err.a_J_pct = 100 * row.err.a_J_rms_hu / ref.change_rms_hu;
         }
         // (b): the same setting on the block
-        const Run rb = run_setting(be, block, cfgs[s], block_press, 0, 1, Stage::total);
+        const Run rb = run_settings(be, block, {cfgs[s]}, block_contacts, 0,
+                                    grp.pressing ? int(block_contacts.size()) + 1 : 1, Stage::total).front();
+        if (grp.pressing && !(r.last.relax_warm && rb.last.relax_warm))
+          throw Error("accuracy: a '" + row.label + "' step of " + row.knob + " did not start from the last unit response");
         block_errors(rb.last.chainmail.voi, rb.u, row.err);
         // (c)
         if (fem.ok) fem_errors(fem, v, r.u, row.err);

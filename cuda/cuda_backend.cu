@@ -70,7 +70,7 @@ void CudaDeformBackend::release() {
   cudaFree(d_.untangle_flags);
   for (float*& c : d_.untangle_new) cudaFree(c);
   cudaFree(d_.counters);
-  for (void* q : {(void*)mg_.g, (void*)mg_.r[0], (void*)mg_.r[1], (void*)mg_.z, (void*)mg_.p[0], (void*)mg_.p[1],
+  for (void* q : {(void*)mg_.g, (void*)mg_.g_last, (void*)mg_.r[0], (void*)mg_.r[1], (void*)mg_.z, (void*)mg_.p[0], (void*)mg_.p[1],
                   (void*)mg_.q, (void*)mg_.res, (void*)mg_.held, (void*)mg_.cx, (void*)mg_.cf, (void*)mg_.cres, (void*)mg_.cheld, (void*)mg_.dots,
                   (void*)mg_.flags})
     cudaFree(q);
@@ -170,7 +170,7 @@ void CudaDeformBackend::ensure_multigrid_buffers() {
     most[a] = config_.settings.whole_volume ? patient_->grid.size[a] : std::min(config_.settings.voi_edge, patient_->grid.size[a]);
   const long long nc = std::max(1LL, deform::multigrid_plan(most, Vec3i{0, 0, 0}).coarse_count);
   const std::size_t n = std::size_t(capacity_);
-  for (float** v : {&mg_.g, &mg_.r[0], &mg_.r[1], &mg_.z, &mg_.p[0], &mg_.p[1], &mg_.q, &mg_.res})
+  for (float** v : {&mg_.g, &mg_.g_last, &mg_.r[0], &mg_.r[1], &mg_.z, &mg_.p[0], &mg_.p[1], &mg_.q, &mg_.res})
     PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(float)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.held, n));
   for (float** v : {&mg_.cx, &mg_.cf, &mg_.cres}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(float)));
@@ -202,10 +202,10 @@ DeformMemory CudaDeformBackend::memory_impl() const {
                    (d_.search_slot ? n * sizeof(int) : 0) +
                    std::size_t(d_.candidate_capacity) * sizeof(InvertCandidate);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
-  // multigrid: eight scalar VOI fields and a mask, three coarse fields and a mask, the dot
+  // multigrid: nine scalar VOI fields and a mask, three coarse fields and a mask, the dot
   // sums and flags
   if (mg_.capacity > 0)
-    m.relax_bytes += std::size_t(mg_.capacity) * (8 * sizeof(float) + 1) +
+    m.relax_bytes += std::size_t(mg_.capacity) * (9 * sizeof(float) + 1) +
                     std::size_t(mg_.coarse_capacity) * (3 * sizeof(float) + 1) +
                     6 * deform::kMultigridMaxCycles * sizeof(double) + 3 * sizeof(int);
   return m;
@@ -243,8 +243,8 @@ void CudaDeformBackend::enqueue_relax() {
   if (s.relax_method == "multigrid") {
     // in place on the current buffer
     ensure_multigrid_buffers();
-    launch_relax_multigrid(geometry(), cur_, s.relax_cycles, float(config_.bone_threshold), float(s.material_width),
-                           config_.relax_reuse, d_, mg_, mg_blocks_, stream_);
+    launch_relax_multigrid(geometry(), cur_, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
+                           float(s.material_width), config_.relax_reuse, d_, mg_, mg_blocks_, stream_);
     return;
   }
   ensure_relax_buffers();
@@ -403,7 +403,8 @@ DeformStats CudaDeformBackend::end_step_impl() {
   const bool untangle = config_.relax && config_.settings.untangle;
   InvertStats inv;
   finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
-  out.relax_solves = config_.relax && config_.settings.relax_method == "multigrid" ? host_counters_->relax_solves : 0;
+  if (config_.relax && config_.settings.relax_method == "multigrid")
+    set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;

@@ -44,6 +44,7 @@ struct Counters {
   unsigned int search_scattered;   // inversion: queued voxels that took the scatter's pick (the rest walked the rings)
   int search_spill;                // inversion: 1 when the scatter gave up (a full list, a huge cell): every queued voxel takes the ring search
   int relax_solves;                // multigrid: scalar solves run (0: the unit response was reused)
+  int relax_warm;                  // multigrid: 1 when the solve started from the last unit response
 };
 
 /// A voxel queued for the inversion's cell search (invert.cu): its VOI-local index,
@@ -97,12 +98,13 @@ struct DeviceBuffers {
 /// the dot sums; and what G was solved for.
 struct MultigridBuffers {
   float *g = nullptr, *r[2] = {nullptr, nullptr}, *z = nullptr, *p[2] = {nullptr, nullptr}, *q = nullptr;
+  float* g_last = nullptr;             // the last solve's field, a warm start's source (the host swaps it with g)
   std::uint8_t* held = nullptr;
   float* res = nullptr;                // the V-cycle's residual on level 0
   float *cx = nullptr, *cf = nullptr, *cres = nullptr;
   std::uint8_t* cheld = nullptr;
   double* dots = nullptr;             // 2 per step and solve (3 solves at most): r . z and p . q
-  int* flags = nullptr;               // [0], [1]: a held element other than the grabbed one moved (by launch parity); [2]: g holds G
+  int* flags = nullptr;               // [0], [1]: a held element other than the grabbed one moved (by launch parity); [2]: the last solve's field holds G
   long long capacity = 0;             // VOI elements the VOI buffers hold
   long long coarse_capacity = 0;      // nodes the coarse buffers hold
   deform::MultigridCache cache;       // the host's record of the last launch's VOI, grabbed element and steps
@@ -182,9 +184,12 @@ int relax_multigrid_blocks();
 /// `cycles` multigrid-preconditioned CG steps on displacement buffer `src`, in place, in
 /// one cooperative launch of at most `max_blocks` blocks; `m` must hold the VOI's plan.
 /// With `reuse`, a step with the last launch's VOI, grabbed element and steps whose held
-/// elements other than the grabbed one are at rest takes u = d G from the kept unit response.
-void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float threshold, float width, bool reuse,
-                            const DeviceBuffers& b, MultigridBuffers& m, int max_blocks, cudaStream_t stream);
+/// elements other than the grabbed one are at rest takes u = d G from the kept unit response,
+/// and another VOI or grabbed element starts G from the kept one (deform::MultigridStart)
+/// and runs `warm_cycles` steps (when above 0).
+void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
+                            bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
+                            cudaStream_t stream);
 /// Untangles displacement buffer `cur` in place (server/deform/untangle.cpp's rounds and
 /// sweeps; the other buffer keeps the relaxed field), in one cooperative launch; counts
 /// in counters.

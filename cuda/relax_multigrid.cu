@@ -6,7 +6,9 @@
 // grid-wide pass costs 2.2-2.5 us at VOI 64 on the H100 whatever its level's size (level
 // 0's heavier ones 3.5-9 us), and a step has 20 of them (three grid levels) and block 0's
 // part (~13 us): ~70 us per step. A step whose VOI and grabbed element equal the last
-// solved one's reuses the unit response G: one pass, u = d G.
+// solved one's reuses the unit response G: one pass, u = d G; another VOI or grabbed
+// element starts G from the last one (deform::MultigridStart), so that fewer steps
+// (deform.relax_warm_cycles) reach the same distance to the steady state.
 #include <cooperative_groups.h>
 
 #include <algorithm>
@@ -177,6 +179,9 @@ struct MgArgs {
   int cycles;
   float threshold, width;
   int hit;     // the host's cache key matches: G may be reused if the device says it holds it
+  int warm;    // the host swapped the last field into m.g_last: start from it if the device says it is a G
+  int warm_cycles;
+  deform::MultigridStart start;  // the last G's VOI size and shift (its g set on the device)
   int parity;  // which of the two dirty flags this launch uses (the other is zeroed for the next)
   DeviceBuffers b;
   MultigridBuffers m;
@@ -234,13 +239,14 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const int g_idx = L0.index(a.geo.grabbed.x, a.geo.grabbed.y, a.geo.grabbed.z);
   const Vec3f d{u[0][g_idx], u[1][g_idx], u[2][g_idx]};
   int* dirty = m.flags + a.parity;
-  const bool hit = a.hit && *(volatile int*)(m.flags + 2) != 0;
+  const bool kept = *(volatile int*)(m.flags + 2) != 0;  // read before the first thread may clear it
+  const bool hit = a.hit && kept;
 
   // the held mask (grabbed element, material weight 0), whether a held element other
   // than the grabbed one moved, and with a reusable G already u = d G (overwritten below
   // if a held element moved: the solves read u at held elements only)
   if (first_thread) m.flags[a.parity ^ 1] = 0;
-  if (all.first < 6 * a.cycles) m.dots[all.first] = 0.0;
+  for (int e = all.first; e < 6 * max(a.cycles, a.warm_cycles); e += all.stride) m.dots[e] = 0.0;
   bool moved_held = false;
   for (int e = all.first; e < n; e += all.stride) {
     int i, j, k;
@@ -263,28 +269,38 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const bool clean = *(volatile int*)dirty == 0;
   // one scalar solve per component with its own held data, or one for G when clean
   const int solves = hit && clean ? 0 : (clean ? 1 : 3);
+  // a new G from the last one (the host swapped it into g_last) when that one is a G
+  const bool warm = solves == 1 && a.warm && kept;
+  const int cycles = warm ? a.warm_cycles : a.cycles;
+  deform::MultigridStart start;
+  if (warm) {
+    start = a.start;
+    start.g = m.g_last;
+  }
   if (first_thread) {
     a.b.counters->relax_solves = solves;
+    a.b.counters->relax_warm = warm;
     if (!clean) m.flags[2] = 0;  // X will not hold G
   }
   if (solves == 0) return;
   for (int comp = 0; comp < solves; ++comp) {
     const float* ucomp = u[comp];
     auto data = [&](int e) { return clean ? (e == g_idx ? 1.0f : 0.0f) : ucomp[e]; };
-    double* dots = m.dots + 2 * a.cycles * comp;
-    // X: the held data, 0 on free nodes; r = sum6(X) - 6 X on free nodes; z its first red
-    // half-sweep from 0 (X of the neighbours from the mask and the data)
+    double* dots = m.dots + 2 * cycles * comp;
+    // X: the held data, the start on free nodes (0, or the last G shifted); r = sum6(X) -
+    // 6 X on free nodes; z its first red half-sweep from 0 (X of the neighbours from the
+    // mask, the data and the start)
     for (int e = all.first; e < n; e += all.stride) {
       int i, j, k;
       L0.coords(e, i, j, k);
       const bool held = m.held[e];
-      const float xe = held ? data(e) : 0.0f;
+      const float xe = held ? data(e) : start.at(i, j, k);
       float s = 0;
       for (int q = 0; q < 6; ++q) {
         const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
         if (!L0.inside(nb.x, nb.y, nb.z)) continue;
         const int ne = L0.index(nb.x, nb.y, nb.z);
-        s += m.held[ne] ? data(ne) : 0.0f;
+        s += m.held[ne] ? data(ne) : start.at(nb.x, nb.y, nb.z);
       }
       const float re = held ? 0.0f : s - 6.0f * xe;
       X[e] = xe;
@@ -300,7 +316,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     double rho = 0;
     float alpha = 0;
     bool stepped = false;  // the last step's X += alpha p is left to the output pass
-    for (int c = 0; c < a.cycles; ++c) {
+    for (int c = 0; c < cycles; ++c) {
       lv = lvs[cur];
       // z = M r: the grid down to level split, block 0 below it (in shared memory when
       // split > 0), the grid back up; level 0's last red half-sweep comes with rho below
@@ -380,7 +396,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       const double pq = dots[2 * c + 1];
       if (!(pq > 0)) break;
       alpha = float(rho / pq);
-      if (c + 1 == a.cycles) {
+      if (c + 1 == cycles) {
         stepped = true;
         break;
       }
@@ -447,8 +463,9 @@ int relax_multigrid_blocks() {
   return blocks;
 }
 
-void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float threshold, float width, bool reuse,
-                            const DeviceBuffers& b, MultigridBuffers& m, int max_blocks, cudaStream_t stream) {
+void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
+                            bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
+                            cudaStream_t stream) {
   if (cycles <= 0) return;
   const long long n = g.voi.count();
   MgArgs a;
@@ -464,6 +481,15 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, float th
   // found the step clean then: flags[2])
   const deform::MultigridCache key{g.voi.lo, g.voi.size, g.grabbed, a.cycles, true};
   a.hit = reuse && m.cache == key;
+  // another VOI or grabbed element after a launch (whose field the device marks as G or
+  // not): its field becomes the start, the new one goes to the other buffer
+  a.warm = reuse && !a.hit && warm_cycles > 0 && m.cache.ok;
+  a.warm_cycles = std::min(warm_cycles, deform::kMultigridMaxCycles);
+  if (a.warm) {
+    std::swap(m.g, m.g_last);
+    a.start.size = m.cache.size;
+    a.start.shift = m.cache.grabbed - g.grabbed;
+  }
   m.cache = key;
   a.parity = int(m.launches++ & 1);
   // block 0's shared memory: levels split..last (x, f, residual, held mask); each level

@@ -90,6 +90,9 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
   if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
   if (s.relax_cycles < 0 || s.relax_cycles > deform::kMultigridMaxCycles)
     bad("relax_cycles", s.relax_cycles, "must lie in [0, " + std::to_string(deform::kMultigridMaxCycles) + "]");
+  if (s.relax_warm_cycles < 0 || s.relax_warm_cycles > deform::kMultigridMaxCycles)
+    bad("relax_warm_cycles", s.relax_warm_cycles,
+        "must lie in [0, " + std::to_string(deform::kMultigridMaxCycles) + "]");
   if (!(s.relax_step >= 0)) bad("relax_step", s.relax_step, "must not be negative");
   if (s.relax_step > deform::kRelaxStableStep) {
     std::ostringstream m;
@@ -111,6 +114,12 @@ void DeformBackend::set_relax_counts(DeformStats& out) const {
   const bool mg = config_.settings.relax_method == "multigrid";
   out.relax_iterations = mg ? 0 : config_.settings.relax_iterations;
   out.relax_cycles = mg ? config_.settings.relax_cycles : 0;
+}
+
+void DeformBackend::set_multigrid_counts(DeformStats& out, int solves, bool warm) const {
+  out.relax_solves = solves;
+  out.relax_warm = warm;
+  if (warm) out.relax_cycles = config_.settings.relax_warm_cycles;
 }
 
 long long DeformBackend::max_voi_count() const {

@@ -34,7 +34,8 @@ struct DeformConfig {
   bool relax = true;           // run the relaxation stage (scene effect "relaxation")
   bool invert = true;          // produce the deformed image J (scene effect "inversion")
   /// Multigrid relaxation reuses its unit response while the VOI and the grabbed element
-  /// stay (exact: relax_multigrid.h); false solves every step (benchmarks time both).
+  /// stay (exact: relax_multigrid.h), and starts a new one from it (deform.relax_warm_cycles);
+  /// false solves every step from zero with relax_cycles steps (benchmarks time both).
   bool relax_reuse = true;
 
   /// The configuration a scene asks for: Deform{}, prep's bone threshold and the effects.
@@ -111,6 +112,9 @@ struct DeformStats {
   /// Scalar multigrid solves run (relax_multigrid.h): 1 for a fresh unit response, 0 when
   /// the kept one was reused, 3 when a held element other than the grabbed one had moved.
   int relax_solves = 0;
+  /// The multigrid solve started from the last step's unit response (the tip entered a
+  /// neighbouring voxel) and ran deform.relax_warm_cycles steps (relax_cycles says so).
+  bool relax_warm = false;
   double invert_residual_vox = 0;    // max |p + u(p) - y| over the VOI (voxel); 0 without inversion
   long long invert_unresolved = 0;   // VOI voxels with a residual above deform::kInvertResolvedVox
   long long invert_searched = 0;     // VOI voxels Newton left to the cell search (0 without deform.invert_search)
@@ -228,6 +232,9 @@ class DeformBackend {
 
   /// Writes the relaxation's counts (iterations or cycles, by deform.relax_method) into `out`.
   void set_relax_counts(DeformStats& out) const;
+  /// Writes a multigrid relaxation's solves and start into `out` (after set_relax_counts):
+  /// a warm start ran deform.relax_warm_cycles steps.
+  void set_multigrid_counts(DeformStats& out, int solves, bool warm) const;
 
   /// Largest VOI the state holds (voxels): deform.voi_edge^3, or the whole volume.
   long long max_voi_count() const;

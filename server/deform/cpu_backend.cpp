@@ -79,8 +79,9 @@ void CpuDeformBackend::relax_impl() {
   const DeformSettings& d = config_.settings;
   if (d.relax_method == "multigrid") {
     // its buffers grow on first use
-    relax_solves_ = deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, float(config_.bone_threshold),
-                                float(d.material_width), config_.relax_reuse, s_);
+    relax_run_ = deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, d.relax_warm_cycles,
+                                             float(config_.bone_threshold), float(d.material_width),
+                                             config_.relax_reuse, s_);
     return;
   }
   grow_relax_buffers();
@@ -125,7 +126,7 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
     t0 = clock::now();
     relax_impl();
     set_relax_counts(out);
-    if (config_.settings.relax_method == "multigrid") out.relax_solves = relax_solves_;
+    if (config_.settings.relax_method == "multigrid") set_multigrid_counts(out, relax_run_.solves, relax_run_.warm);
     out.times.relax_ms = ms_since(t0);
     // untangling, with relaxation when the configuration asks for it
     if (config_.settings.untangle) {

@@ -32,6 +32,7 @@ struct CpuState {
   // coarse levels' correction, right-hand side, residual and held mask (MultigridPlan::offset)
   std::vector<std::uint8_t> mg_held;
   std::vector<float> mg_g, mg_r, mg_z, mg_p, mg_q, mg_res;
+  std::vector<float> mg_g_last;  // the unit response a warm start begins from (swapped with mg_g)
   std::vector<float> mg_cx, mg_cf, mg_cres;
   std::vector<std::uint8_t> mg_held_coarse;
   MultigridCache mg_cache;  // what mg_g holds
@@ -62,10 +63,15 @@ void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float
 /// the VOI; the residual of the steady state falls by 3-10x per cycle. With `reuse`, a
 /// step whose VOI, grabbed element and steps equal the last solved one's, and whose held
 /// elements other than the grabbed one are at rest, takes u = d G from the cached unit
-/// response G (the same bits as solving again). Returns the scalar solves run
-/// (DeformStats::relax_solves).
-int relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, float threshold, float width,
-                        bool reuse, CpuState& s);
+/// response G (the same bits as solving again), and a step with another VOI or grabbed
+/// element starts G from the last one shifted onto its grabbed element and runs
+/// `warm_cycles` steps (when above 0; MultigridStart).
+struct MultigridRun {
+  int solves = 0;     // scalar solves run (DeformStats::relax_solves)
+  bool warm = false;  // the solve started from the last G (DeformStats::relax_warm)
+};
+MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
+                                 float threshold, float width, bool reuse, CpuState& s);
 
 /// Untangling of the VOI's displacement (DeformBackend::untangle): up to
 /// kUntangleMaxRounds rounds of finding the folded cells and Jacobi sweeps from their
@@ -107,7 +113,7 @@ class CpuDeformBackend final : public DeformBackend {
   void grow_untangle_buffers();
 
   deform::CpuState s_;
-  int relax_solves_ = 0;  // the last multigrid relaxation's scalar solves
+  deform::MultigridRun relax_run_;  // the last multigrid relaxation's solves and start
   Voi dirty_;  // the VOI whose buffers hold a deformation
 };
 

@@ -51,16 +51,21 @@ void vcycle(const MultigridLevel* lv, const MultigridPlan& plan) {
 }
 
 // conjugate gradients for the field X on level 0 (`held` set), held nodes at
-// data(e), free ones started at 0; `cycles` steps (fewer when the residual vanishes)
+// data(e), free ones started at `start` (0 unless it holds the last G); `cycles` steps
+// (fewer when the residual vanishes)
 template <typename Data>
-void solve(const MultigridPlan& plan, MultigridLevel* lv, float* X, float* p, float* q, int cycles, Data data) {
+void solve(const MultigridPlan& plan, MultigridLevel* lv, float* X, float* p, float* q, int cycles,
+           const MultigridStart& start, Data data) {
   const MultigridLevel& L0 = lv[0];
   const Vec3i n = L0.n;
   const std::uint8_t* held = L0.held;
   float* r = L0.f;
   float* z = L0.x;
   const int count = L0.count();
-  for (int e = 0; e < count; ++e) X[e] = held[e] ? data(e) : 0.0f;
+  each_node(n, [&](int i, int j, int k) {
+    const int e = L0.index(i, j, k);
+    X[e] = held[e] ? data(e) : start.at(i, j, k);
+  });
   // r = -(6 X - sum6) on free nodes: the residual of the steady state; z = its first
   // red half-sweep from 0, then the black one
   each_node(n, [&](int i, int j, int k) {
@@ -102,16 +107,16 @@ void solve(const MultigridPlan& plan, MultigridLevel* lv, float* X, float* p, fl
 
 }  // namespace
 
-int relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, float threshold, float width,
-                        bool reuse, CpuState& s) {
-  if (cycles <= 0) return 0;  // no steps: the field stays as ChainMail left it
+MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
+                                 float threshold, float width, bool reuse, CpuState& s) {
+  if (cycles <= 0) return {};  // no steps: the field stays as ChainMail left it
   const Voi& voi = st.voi;
   const Grid& grid = p.grid;
   const Vec3i g = st.grabbed_vox - voi.lo;
   const MultigridPlan plan = multigrid_plan(voi.size, g);
   const std::size_t n = std::size_t(voi.count());
   const std::size_t nc = std::size_t(plan.coarse_count);
-  for (auto* v : {&s.mg_g, &s.mg_r, &s.mg_z, &s.mg_p, &s.mg_q, &s.mg_res})
+  for (auto* v : {&s.mg_g, &s.mg_g_last, &s.mg_r, &s.mg_z, &s.mg_p, &s.mg_q, &s.mg_res})
     if (v->size() < n) v->resize(n);
   if (s.mg_held.size() < n) s.mg_held.resize(n);
   if (s.mg_cx.size() < nc) {
@@ -145,24 +150,35 @@ int relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, 
     lv[l] = MultigridLevel{plan.size[l], s.mg_cx.data() + o, s.mg_cf.data() + o, s.mg_held_coarse.data() + o,
                            s.mg_cres.data() + o};
   }
-  float* X = s.mg_g.data();
   if (clean) {
+    // a new G starts from the last one (kept in mg_g_last) when there is one and the
+    // scene asks for it
+    MultigridStart start;
+    const bool warm = !reused && reuse && warm_cycles > 0 && s.mg_cache.ok;
+    if (warm) {
+      std::swap(s.mg_g, s.mg_g_last);
+      start = MultigridStart{s.mg_g_last.data(), s.mg_cache.size, s.mg_cache.grabbed - g};
+    }
+    float* X = s.mg_g.data();
     // u = d G on free elements
-    if (!reused) solve(plan, lv, X, s.mg_p.data(), s.mg_q.data(), cycles, [&](int e) { return e == g_idx ? 1.0f : 0.0f; });
+    if (!reused)
+      solve(plan, lv, X, s.mg_p.data(), s.mg_q.data(), warm ? warm_cycles : cycles, start,
+            [&](int e) { return e == g_idx ? 1.0f : 0.0f; });
     s.mg_cache = key;
     const Vec3f d = s.u[g_idx];
     for (std::size_t e = 0; e < n; ++e)
       if (!s.mg_held[e]) s.u[e] = Vec3f{d.x * X[e], d.y * X[e], d.z * X[e]};
-    return reused ? 0 : 1;
+    return {reused ? 0 : 1, warm};
   }
-  // each component from its own held data; X no longer holds G
+  // each component from its own held data, from zero; X no longer holds G
   s.mg_cache = MultigridCache{};
+  float* X = s.mg_g.data();
   for (int c = 0; c < 3; ++c) {
-    solve(plan, lv, X, s.mg_p.data(), s.mg_q.data(), cycles, [&](int e) { return s.u[e][c]; });
+    solve(plan, lv, X, s.mg_p.data(), s.mg_q.data(), cycles, MultigridStart{}, [&](int e) { return s.u[e][c]; });
     for (std::size_t e = 0; e < n; ++e)
       if (!s.mg_held[e]) s.u[e][c] = X[e];
   }
-  return 3;
+  return {3, false};
 }
 
 }  // namespace palpsim::deform

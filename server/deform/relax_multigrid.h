@@ -118,6 +118,28 @@ struct MultigridCache {
   }
 };
 
+/// Where a new unit response starts when the last one is at hand (deform.relax_warm_cycles):
+/// the last G, solved on a VOI of `size` nodes, shifted so that its grabbed element lies
+/// on the new one: node (i, j, k) of the new VOI takes the last G's node (i, j, k) + shift
+/// (shift: the last VOI-local grabbed element minus the new one), 0 where that lies
+/// outside the last VOI. A press a voxel on moves the VOI with the tip while the grabbed
+/// element stays (the last G on the same patient voxels, its far faces a voxel off), and
+/// a tip sliding a voxel along the skin moves both (the same response beside bone a voxel
+/// off): either way close to the new G, so fewer steps reach the same distance.
+struct MultigridStart {
+  const float* g = nullptr;  // the last G (VOI-local index, i fastest); null: start from zero
+  Vec3i size{0, 0, 0};
+  Vec3i shift{0, 0, 0};
+
+  /// The start at free node (i, j, k) of the new VOI.
+  PALPSIM_HD float at(int i, int j, int k) const {
+    if (!g) return 0.0f;
+    const int a = i + shift.x, b = j + shift.y, c = k + shift.z;
+    if (a < 0 || b < 0 || c < 0 || a >= size.x || b >= size.y || c >= size.z) return 0.0f;
+    return g[(c * size.y + b) * size.x + a];
+  }
+};
+
 /// The red-black colour of node (i, j, k): 0 red, 1 black.
 PALPSIM_HD int multigrid_colour(int i, int j, int k) { return (i + j + k) & 1; }
 

@@ -622,25 +622,53 @@ TEST_CASE("gpu multigrid reuses its unit response to the bit, and as the cpu doe
   // the same VOI with a bone element displaced by hand (a held element that moved): three
   // solves, as on the cpu, after which G is gone and the next clean step solves afresh
   const DeformContact c = press.contacts.back();
-  long long bone_e = -1;
-  const Voi voi = reuse->voi();
-  for (long long e = 0; e < voi.count() && bone_e < 0; ++e) {
-    const int i = int(e % voi.size.x), j = int(e / voi.size.x % voi.size.y), k = int(e / (voi.size.x * voi.size.y));
-    if (torso->bone.data[torso->grid.index(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k)]) bone_e = e;
-  }
-  REQUIRE(bone_e >= 0);
-  for (DeformBackend* b : {cpu.get(), reuse.get()}) {
-    b->chainmail(c);
-    auto u = b->displacement();
-    u[std::size_t(bone_e)] = Vec3f{0.5f, -0.25f, 1.0f};
-    b->set_displacement(u);
-    b->relax();
-  }
+  for (DeformBackend* b : {cpu.get(), reuse.get()}) REQUIRE(relax_with_bone_moved(*b, *torso, c) >= 0);
   CHECK(close(cpu->displacement(), reuse->displacement()));
   const DeformStats r = reuse->step(c);
   fresh->step(c);
   CHECK(r.relax_solves == 1);
   CHECK(reuse->displacement() == fresh->displacement());
+}
+
+TEST_CASE("gpu multigrid starts a new unit response from the last one as the cpu does") {
+  if (!have_gpu()) return;
+  // the cpu case of tests/unit/deform_relax_multigrid_test.cpp: paths whose every step
+  // enters another voxel (deform.relax_warm_cycles, the default), each path after a
+  // solve from zero; then a held element moved by hand (three solves, G gone) and the
+  // next step solves from zero again on both
+  auto torso = make_torso_patient(64);
+  DeformConfig cfg = reuse_press().cfg;
+  cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+  for (const WarmPath& path : warm_paths()) {
+    auto cpu = make_deform_backend("cpu"), gpu = make_deform_backend("cuda");
+    cpu->bind(torso, cfg);
+    gpu->bind(torso, cfg);
+    for (std::size_t s = 0; s < path.contacts.size(); ++s) {
+      const DeformStats a = cpu->step(path.contacts[s]), g = gpu->step(path.contacts[s]);
+      const auto ua = cpu->displacement(), ug = gpu->displacement();
+      float worst = 0;
+      for (std::size_t e = 0; e < ua.size(); ++e)
+        worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
+      // FMA contraction and the order of the dot products' sums, as in the cases above; a
+      // warm start carries the last step's difference on, which its steps do not grow
+      const float tol = 1e-4f * std::max(1.0f, max_abs(ua));
+      INFO(path.name << ", step " << s << ": max |u_cpu - u_gpu| " << worst << " voxel, tolerance " << tol);
+      CHECK(a.relax_warm == (s > 0));
+      CHECK(g.relax_warm == a.relax_warm);
+      CHECK(g.relax_cycles == a.relax_cycles);
+      CHECK(g.relax_solves == 1);
+      CHECK(worst <= tol);
+      CHECK(moved_bone_count(*torso, gpu->voi(), ug) == 0);
+    }
+    if (path.contacts.size() < 2) continue;
+    const DeformContact c = path.contacts.front();
+    for (DeformBackend* b : {cpu.get(), gpu.get()}) REQUIRE(relax_with_bone_moved(*b, *torso, path.contacts.back()) >= 0);
+    const DeformStats a = cpu->step(c), g = gpu->step(c);
+    INFO(path.name << ", after three solves");
+    CHECK_FALSE(a.relax_warm);
+    CHECK_FALSE(g.relax_warm);
+    CHECK(g.relax_cycles == cfg.settings.relax_cycles);
+  }
 }
 
 TEST_CASE("steps of several sessions in flight at once, each with a share of the GPU, equal steps one at a time") {

@@ -125,11 +125,35 @@ inline ReusePress reuse_press() {
   r.cfg = preset_config(1);
   r.cfg.settings.voi_edge = 40;
   r.cfg.settings.relax_method = "multigrid";
+  r.cfg.settings.relax_warm_cycles = 0;  // a new VOI solves from zero, as the fresh solve it is compared with
   const Vec3i g{32, 10, 32};
   for (const Vec3& d : {Vec3{2, 7, -3}, Vec3{2.2, 7.3, -3.1}, Vec3{1.9, 6.8, -2.8}, Vec3{3, 7, -3}, Vec3{2.1, 7.1, -3}})
     r.contacts.push_back(voxel_contact(g, d));
   r.solves = {1, 0, 0, 1, 1};
   return r;
+}
+
+/// Paths a tip takes a voxel or more a step on make_torso_patient(64) with multigrid
+/// relaxation at VOI 40, so that every step after the first has another VOI or grabbed
+/// element and starts from the last unit response (deform.relax_warm_cycles): the
+/// multigrid warm-start tests (cpu and gpu).
+struct WarmPath {
+  const char* name;
+  std::vector<DeformContact> contacts;
+};
+
+inline std::vector<WarmPath> warm_paths() {
+  std::vector<WarmPath> paths(3);
+  // pressing into the back a voxel a step: the grabbed element stays, the VOI moves along j
+  paths[0].name = "pressing a voxel a step";
+  for (int s = 0; s < 6; ++s) paths[0].contacts.push_back(voxel_contact({32, 10, 32}, {2, 3.0 + s, -3}));
+  // sliding along the back's skin (k) a voxel a step: grabbed element and VOI move together
+  paths[1].name = "sliding along the skin";
+  for (int s = 0; s < 6; ++s) paths[1].contacts.push_back(voxel_contact({32, 10, 28 + s}, {2, 7, -3}));
+  // pressing 4 voxels a step (a fast tip: the VOI moves 4 voxels)
+  paths[2].name = "pressing 4 voxels a step";
+  for (int s = 0; s < 3; ++s) paths[2].contacts.push_back(voxel_contact({32, 10, 32}, {2, 1.0 + 4 * s, -3}));
+  return paths;
 }
 
 /// The Table 1 press of `palpsim-bench deform`: near the middle of the volume, 10 mm
@@ -241,6 +265,24 @@ inline long long moved_bone_count(const Patient& p, const Voi& voi, const std::v
       for (int i = 0; i < voi.size.x; ++i)
         if (p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) && u[voi.index(i, j, k)] != Vec3f(0, 0, 0)) ++n;
   return n;
+}
+
+/// Relaxes `b`'s ChainMail of contact `c` with the first bone element of its VOI displaced
+/// by hand: a held element that moved, so multigrid solves each component (3 solves) and
+/// drops its unit response. Returns that element's VOI-local index (-1: the VOI has no bone).
+inline long long relax_with_bone_moved(DeformBackend& b, const Patient& p, const DeformContact& c) {
+  b.chainmail(c);
+  std::vector<Vec3f> u = b.displacement();
+  const Voi v = b.voi();
+  for (long long e = 0; e < v.count(); ++e) {
+    const int i = int(e % v.size.x), j = int(e / v.size.x % v.size.y), k = int(e / (v.size.x * v.size.y));
+    if (!p.bone.data[p.grid.index(v.lo.x + i, v.lo.y + j, v.lo.z + k)]) continue;
+    u[std::size_t(e)] = Vec3f{0.5f, -0.25f, 1.0f};
+    b.set_displacement(u);
+    b.relax();
+    return e;
+  }
+  return -1;
 }
 
 /// Number of voxels outside the VOI where J differs from I (must be 0).

@@ -169,6 +169,60 @@ TEST_CASE("multigrid reuses its unit response while the VOI and grabbed element 
   }
 }
 
+TEST_CASE("a tip entering another voxel starts the unit response from the last one and stays near the steady state") {
+  // each step of the paths against the steady state of its own contact (30 steps from
+  // zero: 1e-7 of the field or better, the first test case): a warm start with the
+  // default relax_warm_cycles must land within 1% of it (issue 8's goal; measured here
+  // 0.01-0.1%), and must be closer than the same number of steps from zero; steps run
+  // from zero with relax_warm_cycles 0 are unchanged, bit for bit
+  auto torso = make_torso_patient(64);
+  DeformConfig cfg = reuse_press().cfg;
+  cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+  REQUIRE(cfg.settings.relax_warm_cycles > 0);
+  DeformConfig steady_cfg = cfg, cold_cfg = cfg, off_cfg = cfg;
+  steady_cfg.settings.relax_cycles = 30;
+  steady_cfg.relax_reuse = false;
+  cold_cfg.settings.relax_cycles = cfg.settings.relax_warm_cycles;
+  cold_cfg.relax_reuse = false;
+  off_cfg.settings.relax_warm_cycles = 0;
+  DeformConfig fresh_cfg = cfg;
+  fresh_cfg.relax_reuse = false;
+  for (const WarmPath& path : warm_paths()) {
+    CpuDeformBackend warm, steady, cold, off, fresh;
+    warm.bind(torso, cfg);
+    steady.bind(torso, steady_cfg);
+    cold.bind(torso, cold_cfg);
+    off.bind(torso, off_cfg);
+    fresh.bind(torso, fresh_cfg);
+    for (std::size_t s = 0; s < path.contacts.size(); ++s) {
+      const DeformContact& c = path.contacts[s];
+      const DeformStats w = warm.step(c);
+      steady.step(c);
+      cold.step(c);
+      const DeformStats o = off.step(c);
+      fresh.step(c);
+      const std::vector<Vec3f> ref = steady.displacement();
+      const double scale = rms(ref), d_warm = rms_distance(warm.displacement(), ref),
+                   d_cold = rms_distance(cold.displacement(), ref);
+      std::printf("warm start, %s, step %zu: %.4f%% from the steady state (%d steps from zero: %.4f%%)\n", path.name,
+                  s, 100 * d_warm / scale, cfg.settings.relax_warm_cycles, 100 * d_cold / scale);
+      INFO(path.name << ", step " << s);
+      CHECK(w.relax_solves == 1);
+      CHECK(w.relax_warm == (s > 0));
+      CHECK(w.relax_cycles == (s > 0 ? cfg.settings.relax_warm_cycles : cfg.settings.relax_cycles));
+      CHECK_FALSE(o.relax_warm);
+      CHECK(off.displacement() == fresh.displacement());
+      CHECK(d_warm <= 0.01 * scale);
+      if (s > 0) CHECK(d_warm < d_cold);
+    }
+    // a held element moved by hand: three solves drop G, so the next step starts from zero
+    REQUIRE(relax_with_bone_moved(warm, *torso, path.contacts.back()) >= 0);
+    const DeformStats after = warm.step(path.contacts.front());
+    CHECK_FALSE(after.relax_warm);
+    CHECK(after.relax_cycles == cfg.settings.relax_cycles);
+  }
+}
+
 TEST_CASE("multigrid solves each component when ChainMail moved a held element other than the grabbed one") {
   // soft tissue with three voxels far above the bone threshold outside the bone mask,
   // next to the grabbed element: ChainMail moves them, relaxation holds them where they

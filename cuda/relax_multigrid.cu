@@ -179,9 +179,9 @@ struct MgArgs {
   int cycles;
   float threshold, width;
   int hit;     // the host's cache key matches: G may be reused if the device says it holds it
-  int warm;    // the host swapped the last field into m.g_last: start from it if the device says it is a G
+  int warm;    // the host swapped a close last field into m.g_last: start from it if the device says it is a G
   int warm_cycles;
-  deform::MultigridStart start;  // the last G's VOI size and shift (its g set on the device)
+  deform::MultigridStart start;  // the last field shifted onto the new grabbed element (its g: m.g_last)
   int parity;  // which of the two dirty flags this launch uses (the other is zeroed for the next)
   DeviceBuffers b;
   MultigridBuffers m;
@@ -272,11 +272,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   // a new G from the last one (the host swapped it into g_last) when that one is a G
   const bool warm = solves == 1 && a.warm && kept;
   const int cycles = warm ? a.warm_cycles : a.cycles;
-  deform::MultigridStart start;
-  if (warm) {
-    start = a.start;
-    start.g = m.g_last;
-  }
+  const deform::MultigridStart start = warm ? a.start : deform::MultigridStart{};
   if (first_thread) {
     a.b.counters->relax_solves = solves;
     a.b.counters->relax_warm = warm;
@@ -481,15 +477,14 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
   // found the step clean then: flags[2])
   const deform::MultigridCache key{g.voi.lo, g.voi.size, g.grabbed, a.cycles, true};
   a.hit = reuse && m.cache == key;
-  // another VOI or grabbed element after a launch (whose field the device marks as G or
-  // not): its field becomes the start, the new one goes to the other buffer
-  a.warm = reuse && !a.hit && warm_cycles > 0 && m.cache.ok;
+  // another VOI or grabbed element close to the last launch's (multigrid_start; whether
+  // that field is a G the device knows): that field becomes the start, the new one goes
+  // to the other buffer (a swap: a.start.g stays the old field's)
+  a.start = reuse && !a.hit && warm_cycles > 0 ? deform::multigrid_start(m.cache, m.g, g.voi.lo, g.grabbed)
+                                               : deform::MultigridStart{};
+  a.warm = a.start.g != nullptr;
   a.warm_cycles = std::min(warm_cycles, deform::kMultigridMaxCycles);
-  if (a.warm) {
-    std::swap(m.g, m.g_last);
-    a.start.size = m.cache.size;
-    a.start.shift = m.cache.grabbed - g.grabbed;
-  }
+  if (a.warm) std::swap(m.g, m.g_last);
   m.cache = key;
   a.parity = int(m.launches++ & 1);
   // block 0's shared memory: levels split..last (x, f, residual, held mask); each level

@@ -151,14 +151,12 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
                            s.mg_cres.data() + o};
   }
   if (clean) {
-    // a new G starts from the last one (kept in mg_g_last) when there is one and the
-    // scene asks for it
+    // a new G starts from the last one when the scene asks for it and that one is close
+    // (multigrid_start); the last one moves to mg_g_last (a swap: start.g stays its data)
     MultigridStart start;
-    const bool warm = !reused && reuse && warm_cycles > 0 && s.mg_cache.ok;
-    if (warm) {
-      std::swap(s.mg_g, s.mg_g_last);
-      start = MultigridStart{s.mg_g_last.data(), s.mg_cache.size, s.mg_cache.grabbed - g};
-    }
+    if (!reused && reuse && warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), voi.lo, g);
+    const bool warm = start.g != nullptr;
+    if (warm) std::swap(s.mg_g, s.mg_g_last);
     float* X = s.mg_g.data();
     // u = d G on free elements
     if (!reused)

@@ -171,10 +171,11 @@ TEST_CASE("multigrid reuses its unit response while the VOI and grabbed element 
 
 TEST_CASE("a tip entering another voxel starts the unit response from the last one and stays near the steady state") {
   // each step of the paths against the steady state of its own contact (30 steps from
-  // zero: 1e-7 of the field or better, the first test case): a warm start with the
-  // default relax_warm_cycles must land within 1% of it (issue 8's goal; measured here
-  // 0.01-0.1%), and must be closer than the same number of steps from zero; steps run
-  // from zero with relax_warm_cycles 0 are unchanged, bit for bit
+  // zero: 1e-7 of the field or better, the first test case): every step must land within
+  // 1% of it (issue 8's goal; measured 0.03-0.55% with the default 2 warm steps, 0.1-0.2%
+  // for 5 steps from zero), and a warm step closer than as many steps from zero; a jump
+  // farther than kMultigridWarmMaxMove solves from zero; steps with relax_warm_cycles 0
+  // are unchanged, bit for bit
   auto torso = make_torso_patient(64);
   DeformConfig cfg = reuse_press().cfg;
   cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
@@ -207,13 +208,15 @@ TEST_CASE("a tip entering another voxel starts the unit response from the last o
       std::printf("warm start, %s, step %zu: %.4f%% from the steady state (%d steps from zero: %.4f%%)\n", path.name,
                   s, 100 * d_warm / scale, cfg.settings.relax_warm_cycles, 100 * d_cold / scale);
       INFO(path.name << ", step " << s);
+      const bool warm_step = s > 0 && path.warm;
       CHECK(w.relax_solves == 1);
-      CHECK(w.relax_warm == (s > 0));
-      CHECK(w.relax_cycles == (s > 0 ? cfg.settings.relax_warm_cycles : cfg.settings.relax_cycles));
+      CHECK(w.relax_warm == warm_step);
+      CHECK(w.relax_cycles == (warm_step ? cfg.settings.relax_warm_cycles : cfg.settings.relax_cycles));
       CHECK_FALSE(o.relax_warm);
       CHECK(off.displacement() == fresh.displacement());
       CHECK(d_warm <= 0.01 * scale);
-      if (s > 0) CHECK(d_warm < d_cold);
+      if (warm_step) CHECK(d_warm < d_cold);
+      if (!path.warm) CHECK(warm.displacement() == fresh.displacement());
     }
     // a held element moved by hand: three solves drop G, so the next step starts from zero
     REQUIRE(relax_with_bone_moved(warm, *torso, path.contacts.back()) >= 0);

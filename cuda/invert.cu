@@ -141,7 +141,7 @@ __device__ __forceinline__ Vec3i element_voxel(const deform::Voi& voi, int e) {
 // J at p for element e at voxel v: written, and what the reduction needs of it
 __device__ __forceinline__ void write_j(const ILoader& load_i, const DeviceBuffers& b, int e, const Vec3i& v,
                                        const Vec3f& p, float& change, bool& broken) {
-  const float jv = deform::trilinear<float>(load_i, p);
+  const float jv = deform::sample_at_source<float>(load_i, p);
   b.j[e] = jv;
   // how far J moved from I here, and whether it is a number at all
   broken = !isfinite(jv);

@@ -124,6 +124,16 @@ PALPSIM_HD T trilinear(const Load& load, const Vec3f& p) {
   return c0 * gz + c1 * fz;
 }
 
+/// `load` at the source p of an inversion: trilinear, except at a voxel centre (where
+/// invert_point() leaves a voxel at rest) the voxel itself, the blend's value there
+/// (its other seven weights are 0), read alone.
+template <typename T, typename Load>
+PALPSIM_HD T sample_at_source(const Load& load, const Vec3f& p) {
+  const float fx0 = floorf(p.x), fy0 = floorf(p.y), fz0 = floorf(p.z);
+  if (p.x == fx0 && p.y == fy0 && p.z == fz0) return load(int(fx0), int(fy0), int(fz0));
+  return trilinear<T>(load, p);
+}
+
 /// A voxel whose inversion residual exceeds this (voxel) counts as unresolved: the
 /// inversion did not find where its tissue came from (a fold: the deformation is not
 /// invertible there).
@@ -254,6 +264,13 @@ PALPSIM_HD void untangle_pull(Vec3f& u, const Vec3f& un, int axis, bool below) {
 /// The backtracking halvings of one inversion step before it gives up on the step.
 constexpr int kInvertHalvings = 6;
 
+/// The residual (voxel) at which the inversion's Newton steps stop: near float rounding
+/// of VOI coordinates (a float's spacing is 4e-6 at 32-64 voxels), so a further step
+/// finds nothing lower and costs 2 (kInvertHalvings + 1) evaluations of u to learn it,
+/// most of the inversion's work where a deep press moves most of the VOI; J moves by
+/// 1e-4 voxel times I's gradient at most (0.1 HU at a 1000 HU/voxel bone edge).
+constexpr float kInvertConvergedVox = 1e-5f;
+
 /// Damped Newton descent on a residual r(p) (voxel) with Jacobian A = I + g (columns
 /// I + g[a]): `eval(q, g)` returns r(q) and writes g at q; `project(q)` maps a trial point
 /// into the domain. Each iteration tries Newton's step (where A is invertible and keeps
@@ -261,14 +278,14 @@ constexpr int kInvertHalvings = 6;
 /// is singular or reversed, or at a cell face where Newton's step overshoots the kink),
 /// each full, then halved up to kInvertHalvings times, and takes the first trial whose
 /// residual is lower; so the residual never grows from one iteration to the next. Stops
-/// after `iterations` or when no trial lowers it (a local minimum of |r| as far as these
-/// steps can tell); returns |r| at the final p.
+/// after `iterations`, once |r| <= `done` (0: only at r = 0), or when no trial lowers it
+/// (a local minimum of |r| as far as these steps can tell); returns |r| at the final p.
 template <typename Eval, typename Project>
-PALPSIM_HD float newton_descend(const Eval& eval, const Project& project, Vec3f& p, int iterations) {
+PALPSIM_HD float newton_descend(const Eval& eval, const Project& project, Vec3f& p, int iterations, float done = 0.0f) {
   Vec3f g[3];
   Vec3f r = eval(p, g);
   float rn = sqrtf(r.x * r.x + r.y * r.y + r.z * r.z);
-  for (int it = 0; it < iterations && rn > 0.0f; ++it) {
+  for (int it = 0; it < iterations && rn > done; ++it) {
     // the step d solving (I + grad u) d = -r by Cramer's rule
     const Vec3f a{1.0f + g[0].x, g[0].y, g[0].z}, b{g[1].x, 1.0f + g[1].y, g[1].z}, c{g[2].x, g[2].y, 1.0f + g[2].z};
     // columns a, b, c of A = I + grad u: det = a . (b x c)
@@ -323,9 +340,20 @@ PALPSIM_HD float newton_descend(const Eval& eval, const Project& project, Vec3f&
 /// |p + u(p) - y| (voxel), the inversion residual, to `residual`.
 template <typename LoadU>
 PALPSIM_HD Vec3f invert_point(const LoadU& load_u, const Vec3f& y, int iterations, float& residual) {
+  // a voxel centre at rest (u = 0 there) is its own source: Newton's first evaluation
+  // finds r = 0 there (the blend's other seven weights are 0); its one voxel is read
+  // instead of the cell's eight and the gradient (most of a VOI away from the dent)
+  const float fx0 = floorf(y.x), fy0 = floorf(y.y), fz0 = floorf(y.z);
+  if (y.x == fx0 && y.y == fy0 && y.z == fz0) {
+    const Vec3f u0 = load_u(int(fx0), int(fy0), int(fz0));
+    if (u0.x == 0.0f && u0.y == 0.0f && u0.z == 0.0f) {
+      residual = 0.0f;
+      return y;
+    }
+  }
   Vec3f p = y;
   residual = newton_descend([&](const Vec3f& q, Vec3f g[3]) { return q + trilinear_with_gradient(load_u, q, g) - y; },
-                            [](const Vec3f& q) { return q; }, p, iterations);
+                            [](const Vec3f& q) { return q; }, p, iterations, kInvertConvergedVox);
   return p;
 }
 

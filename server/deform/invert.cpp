@@ -24,7 +24,7 @@ InvertStats invert_cpu(const Patient& p, const Voi& voi, int iterations, bool se
   long long unresolved = 0, nonfinite = 0, scattered = 0;
   // J at voxel v from its source x0 with residual r, and what the stats need of it
   auto finish = [&](const Vec3i& v, const Vec3f& x0, float r) {
-    const float jv = trilinear<float>(load_i, x0);
+    const float jv = sample_at_source<float>(load_i, x0);
     s.j[voi.index(v.x, v.y, v.z)] = jv;
     worst = std::max(worst, r);
     unresolved += r > kInvertResolvedVox;

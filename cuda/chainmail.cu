@@ -103,6 +103,11 @@ __device__ __forceinline__ void chainmail_element(const StepGeometry& geo, const
   int* sb = b.stamp[pb];
   const int e = k * sxy + j * sx + i;
   if (e == g_idx) return;
+  // the wave moves one neighbour a sweep, so only elements within s neighbour steps (L1)
+  // of the grabbed one can have moved in sweep s - 1 or have a neighbour that did: the
+  // rest of the box (its corners, 5/6 of it before the VOI clips it) stops here, on its
+  // coordinates, without reading seven stamps
+  if (abs(i - g.x) + abs(j - g.y) + abs(k - g.z) > s) return;
   // which neighbours moved in the previous sweep (stamps only: most elements stop here)
   const int n_ok[6] = {i > 0, i + 1 < voi.size.x, j > 0, j + 1 < voi.size.y, k > 0, k + 1 < voi.size.z};
   unsigned mask = 0;

@@ -145,6 +145,7 @@ void CudaDeformBackend::bind_impl() {
   }
   dirty_ = Voi{};
   cur_ = 0;
+  field_extra_ = 0;
 }
 
 void CudaDeformBackend::ensure_relax_buffers() {
@@ -228,10 +229,12 @@ void CudaDeformBackend::enqueue_reset() {
   PALPSIM_CUDA_CHECK(cudaGetLastError());
   dirty_ = Voi{};
   cur_ = 0;
+  field_extra_ = 0;
 }
 
 void CudaDeformBackend::enqueue_chainmail() {
   dirty_ = voi_;
+  field_extra_ = 0;  // the field reaches as far as ChainMail's sweeps
   if (setup_.grabbed_in_bone) return;  // nothing moves
   launch_chainmail(geometry(), setup_.grabbed_u_vox, limits_, config_.settings.max_sweeps, d_, shape_, stream_);
   // converged: both buffers hold the result; capped: the last sweep's buffer does
@@ -245,16 +248,19 @@ void CudaDeformBackend::enqueue_relax() {
     ensure_multigrid_buffers();
     launch_relax_multigrid(geometry(), cur_, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
                            float(s.material_width), config_.relax_reuse, d_, mg_, mg_blocks_, stream_);
+    field_extra_ = -1;  // the steady state is nonzero wherever the grabbed element is felt
     return;
   }
   ensure_relax_buffers();
-  launch_relax(geometry(), cur_, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
+  launch_relax(geometry(), cur_, field_extra_, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
                float(s.material_width), d_, shape_, stream_);
   cur_ = (cur_ + s.relax_iterations) & 1;
+  if (field_extra_ >= 0) field_extra_ = std::min(field_extra_ + s.relax_iterations, 1 << 24);
 }
 
 void CudaDeformBackend::enqueue_untangle() {
   ensure_untangle_buffers();
+  field_extra_ = -1;
   if (!setup_.grabbed_in_bone) launch_untangle(geometry(), cur_, d_, shape_, stream_);
 }
 
@@ -477,6 +483,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
     if (config_.relax) cur = (cur + s.relax_iterations) & 1;
     it.invert_src = cur;
     c.cur_ = cur;
+    c.field_extra_ = config_.relax ? s.relax_iterations : 0;
     c.dirty_ = c.voi_;
     c.prepare_stats(c.setup_);
     max_reset = std::max(max_reset, it.reset_count);
@@ -574,6 +581,7 @@ std::vector<Vec3f> CudaDeformBackend::displacement_impl() const {
 }
 
 void CudaDeformBackend::set_displacement_impl(const std::vector<Vec3f>& u) {
+  field_extra_ = -1;  // any field
   const std::size_t n = u.size();
   std::vector<float> c[3];
   for (int a = 0; a < 3; ++a) {

@@ -109,6 +109,7 @@ class CudaDeformBackend final : public DeformBackend {
   long long capacity_ = 0;             // elements per VOI buffer
   Voi dirty_;                          // VOI whose buffers hold a deformation
   int cur_ = 0;                        // displacement buffer holding the current field
+  int field_extra_ = 0;                // BatchItem::relax_extra of the current field (-1: unknown extent)
   std::shared_ptr<CudaBatch> batch_;     // the launches' resources when this backend leads a batch, kept for the next
   std::shared_ptr<CudaBatch> in_batch_;  // the batch this backend's step is in, until end_step()
 };

@@ -129,6 +129,10 @@ struct BatchItem {
   Vec3f u0{0, 0, 0};               // the grabbed element's displacement (voxel)
   int chainmail = 0;               // 1: ChainMail runs; 0: the grabbed element is in bone, nothing moves
   int relax_src = 0;               // displacement buffer the relaxation starts from
+  /// Explicit relaxation steps the field had since this step's ChainMail (its extent:
+  /// counters->sweeps plus these, deform::relax_reach); -1: unknown (set by hand,
+  /// untangled), every element is relaxed.
+  int relax_extra = 0;
   int invert_src = 0;              // displacement buffer the inversion reads
   unsigned reset_count = 0;        // elements the previous step left deformed (the reset zeroes them)
   DeviceBuffers b;
@@ -175,7 +179,8 @@ void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::Chai
 
 /// `iterations` relaxation steps starting from buffer `src`, in one cooperative
 /// launch; the result is in buffer (src + iterations) & 1. `b.relax_w` must hold the VOI.
-void launch_relax(const StepGeometry& g, int src, int iterations, float step, float threshold, float width,
+/// `extra`: BatchItem::relax_extra (the steps only touch the elements the field can reach).
+void launch_relax(const StepGeometry& g, int src, int extra, int iterations, float step, float threshold, float width,
                   const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream);
 
 /// Blocks of the multigrid relaxation kernel that run at once on this device (one per SM).

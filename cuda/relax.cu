@@ -65,10 +65,17 @@ __device__ __forceinline__ Vec3f load3(const float* x, const float* y, const flo
 // element, which keeps its displacement) is computed from I and the bone mask in the first
 // iteration and kept in b.relax_w; each element sums its neighbours in the fixed order
 // -i, +i, -j, +j, -k, +k and updates by deform::relax_update, as server/deform/relax.cpp
-__device__ __forceinline__ void relax_column(const BatchItem& item, int it, int i, int j, int k0, int k1, float step,
-                                             float threshold, float width) {
+__device__ __forceinline__ void relax_column(const BatchItem& item, int it, int reach, int i, int j, int k0, int k1,
+                                             float step, float threshold, float width) {
   const StepGeometry& geo = item.geo;
   const Vec3i size = geo.voi.size;
+  // only the planes within `reach` (L1, deform::relax_reach) of the grabbed element: the
+  // rest of the column is 0 in both buffers and stays so
+  const int rest = reach - abs(i - geo.grabbed.x) - abs(j - geo.grabbed.y);
+  if (rest < 0) return;
+  k0 = max(k0, geo.grabbed.z - rest);
+  k1 = min(k1, geo.grabbed.z + rest + 1);
+  if (k0 >= k1) return;
   const DeviceBuffers& b = item.b;
   const int pa = (item.relax_src + it) & 1, pb = pa ^ 1;
   const float* ax = b.u[pa][0];
@@ -142,8 +149,11 @@ __global__ void __launch_bounds__(kPersistentThreads)
         const Vec3i size = item.geo.voi.size;
         const int i = int(tx0) * kRelaxTx + tx, j = int(ty0) * kRelaxTy + ty;
         const int k0 = int(c) * shape.planes, k1 = min(k0 + shape.planes, size.z);
+        // how far the field reaches (ChainMail's sweeps, in the counters, plus the steps since)
+        const int reach = deform::relax_reach(item.relax_extra < 0 ? -1 : item.b.counters->sweeps + item.relax_extra,
+                                              it, iterations);
         // beyond a smaller (clipped) VOI than the batch's largest: nothing
-        if (i < size.x && j < size.y && k0 < k1) relax_column(item, it, i, j, k0, k1, step, threshold, width);
+        if (i < size.x && j < size.y && k0 < k1) relax_column(item, it, reach, i, j, k0, k1, step, threshold, width);
       }
       // the last iteration of the last group needs none: the kernel's end is one
       if (it + 1 < iterations || g0 + group < n) grid.sync();
@@ -203,7 +213,7 @@ int relax_blocks_per_sm(int threads) {
   return std::min(per_sm, per_sm_batch);
 }
 
-void launch_relax(const StepGeometry& g, int src, int iterations, float step, float threshold, float width,
+void launch_relax(const StepGeometry& g, int src, int extra, int iterations, float step, float threshold, float width,
                   const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream) {
   if (iterations <= 0) return;
   if (shape.threads != kPersistentThreads)
@@ -212,6 +222,7 @@ void launch_relax(const StepGeometry& g, int src, int iterations, float step, fl
   BatchItem one;
   one.geo = g;
   one.relax_src = src;
+  one.relax_extra = extra;
   one.b = b;
   launch(nullptr, one, 1, g.voi.size, iterations, step, threshold, width, shape.relax_blocks, stream);
 }

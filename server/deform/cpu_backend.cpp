@@ -34,6 +34,7 @@ void CpuDeformBackend::bind_impl() {
   if (config_.relax && config_.settings.untangle) grow_untangle_buffers();
   if (config_.invert) s_.j.assign(n, 0.0f);
   dirty_ = Voi{};
+  s_.reach = 0;
 }
 
 void CpuDeformBackend::grow_relax_buffers() {
@@ -68,11 +69,13 @@ void CpuDeformBackend::reset_impl() {
   std::fill_n(s_.moved_at.begin(), n, -1);
   std::fill_n(s_.visited_at.begin(), n, -1);
   dirty_ = Voi{};
+  s_.reach = 0;
 }
 
 void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
   dirty_ = st.voi;
   deform::chainmail_cpu(*patient_, limits_, config_.settings.max_sweeps, st, s_);
+  s_.reach = st.grabbed_in_bone ? 0 : st.sweeps;  // its wave moved one neighbour a sweep
 }
 
 void CpuDeformBackend::relax_impl() {
@@ -82,6 +85,7 @@ void CpuDeformBackend::relax_impl() {
     relax_run_ = deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, d.relax_warm_cycles,
                                              float(config_.bone_threshold), float(d.material_width),
                                              config_.relax_reuse, s_);
+    s_.reach = -1;  // the steady state is nonzero wherever the grabbed element is felt
     return;
   }
   grow_relax_buffers();
@@ -92,6 +96,7 @@ void CpuDeformBackend::relax_impl() {
 UntangleStats CpuDeformBackend::untangle_impl() {
   grow_relax_buffers();  // u_next keeps the relaxed field
   grow_untangle_buffers();
+  s_.reach = -1;
   return deform::untangle_cpu(*patient_, setup_, s_);
 }
 
@@ -105,6 +110,7 @@ std::vector<Vec3f> CpuDeformBackend::displacement_impl() const {
 }
 
 void CpuDeformBackend::set_displacement_impl(const std::vector<Vec3f>& u) {
+  s_.reach = -1;  // any field
   std::copy(u.begin(), u.end(), s_.u.begin());
 }
 

@@ -23,6 +23,10 @@ struct CpuState {
   std::vector<int> moved_at;     // last sweep in which the element moved; -1: never
   std::vector<int> visited_at;   // last sweep that examined the element; -1: never
   std::vector<float> j;          // the deformed image J on the VOI
+  /// How far (neighbour steps, L1) from the grabbed element the field can be nonzero:
+  /// ChainMail's sweeps, plus the explicit relaxation's iterations since; -1: unknown (a
+  /// field set by hand, untangled or relaxed by multigrid), every element may be.
+  int reach = -1;
   std::vector<Vec3i> movers;     // elements that moved in the previous sweep (local index)
   std::vector<Vec3i> candidates; // their neighbours, examined in this sweep
   std::vector<std::pair<long long, Vec3f>> changes;  // this sweep's new positions, applied after it
@@ -53,7 +57,8 @@ void chainmail_cpu(const Patient& p, const ChainMailLimits& limits, int max_swee
 
 /// Diffusive relaxation of the VOI's displacement: `iterations` explicit steps
 /// weighted by the material function; outside the VOI the tissue is undeformed (u = 0),
-/// the grabbed element keeps its displacement and bone has weight 0.
+/// the grabbed element keeps its displacement and bone has weight 0. Each step updates
+/// only the elements within relax_reach() of the grabbed element (the rest stay 0).
 void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float step, float threshold,
                float width, CpuState& s);
 

@@ -124,6 +124,19 @@ PALPSIM_HD T trilinear(const Load& load, const Vec3f& p) {
   return c0 * gz + c1 * fz;
 }
 
+/// How far (neighbour steps, L1) from the grabbed element explicit relaxation step `it`
+/// (0-based) of `iterations` must update, for a field nonzero only within `reach` steps
+/// of it (ChainMail moves its wave one neighbour a sweep, so its field reaches as far as
+/// its sweeps; each relaxation step one neighbour further): reach + it + 1, and in step 0
+/// reach + iterations, so that step 0 sees every element a later step updates (the CUDA
+/// kernel computes the weights there). Beyond it the update leaves u = 0 as it is.
+/// reach < 0 (a field of unknown extent): every element.
+PALPSIM_HD int relax_reach(int reach, int it, int iterations) {
+  if (reach < 0) return 1 << 30;
+  const int r = reach < (1 << 24) ? reach : (1 << 24);
+  return r + (it == 0 ? (iterations > 1 ? iterations : 1) : it + 1);
+}
+
 /// `load` at the source p of an inversion: trilinear, except at a voxel centre (where
 /// invert_point() leaves a voxel at rest) the voxel itself, the blend's value there
 /// (its other seven weights are 0), read alone.

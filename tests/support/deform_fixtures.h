@@ -281,6 +281,31 @@ inline long long moved_bone_count(const Patient& p, const Voi& voi, const std::v
   return n;
 }
 
+/// Presses for the relaxation's reach (deform::relax_reach: only the elements ChainMail's
+/// wave and the steps since can have moved are updated): on make_torso_patient(64), a
+/// shallow and a deep press (preset p1 and p2), one at the volume's border (a clipped
+/// VOI) and one whose grabbed element sits next to the spine; each names its settings.
+struct ReachPress {
+  const char* name;
+  DeformContact contact;
+  DeformConfig cfg;
+};
+
+inline std::vector<ReachPress> reach_presses() {
+  std::vector<ReachPress> v;
+  auto add = [&](const char* name, const Vec3i& g, const Vec3& d, int preset, int voi, int iterations) {
+    DeformConfig cfg = preset_config(preset);
+    cfg.settings.voi_edge = voi;
+    cfg.settings.relax_iterations = iterations;
+    v.push_back({name, voxel_contact(g, d), cfg});
+  };
+  add("shallow, p1", {32, 10, 32}, {0.5, 2.5, 0.3}, 1, 48, 20);
+  add("deep, p2", {32, 10, 32}, {1.2, 14.0, -2.0}, 2, 48, 40);
+  add("clipped at the border", {32, 10, 1}, {2.0, 6.0, -1.5}, 1, 40, 20);
+  add("next to the spine", {32, 36, 32}, {3.0, 4.0, 0.0}, 1, 32, 80);
+  return v;
+}
+
 /// Relaxes `b`'s ChainMail of contact `c` with the first bone element of its VOI displaced
 /// by hand: a held element that moved, so multigrid solves each component (3 solves) and
 /// drops its unit response. Returns that element's VOI-local index (-1: the VOI has no bone).

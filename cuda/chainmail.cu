@@ -75,29 +75,21 @@ __device__ __forceinline__ unsigned sweep_box(const StepGeometry& geo, int s, in
   return unsigned(ext[0] * ext[1]) * unsigned(ext[2]);
 }
 
-// the sweep's box as pieces of 32 elements along i: each row of the box in
-// ceil(ext_i / 32) pieces, a warp a piece, a lane an element
-__device__ __forceinline__ unsigned sweep_pieces(const int ext[3]) {
-  return unsigned((ext[0] + 31) / 32) * unsigned(ext[1]) * unsigned(ext[2]);
-}
-
-// piece t of the sweep's box: its row (j, k) and the part [i0, i1] of it within s
-// neighbour steps (L1) of the grabbed element, where sweep s can find an element to move
-// (the wave moves one neighbour a sweep); false when it holds none. The box's corners
-// cost a piece's test, not an element's index arithmetic each
-__device__ __forceinline__ bool sweep_piece(const StepGeometry& geo, int s, const int lo[3], const int ext[3],
-                                            unsigned t, int& j, int& k, int& i0, int& i1) {
-  const unsigned per_row = unsigned((ext[0] + 31) / 32), ey = unsigned(ext[1]);
-  const unsigned r = t / per_row, kk = r / ey;
-  const int piece = int(t - r * per_row);
+// row r (j, k) of the sweep's box and the run [i0, i1] of it within s neighbour steps
+// (L1) of the grabbed element, where sweep s can find an element to move (the wave moves
+// one neighbour a sweep); false when the row holds none. A warp takes a row, its lanes
+// the run: the box's corners cost a row's test, not an element's index arithmetic each
+__device__ __forceinline__ bool sweep_row(const StepGeometry& geo, int s, const int lo[3], const int ext[3],
+                                          unsigned r, int& j, int& k, int& i0, int& i1) {
+  const unsigned ey = unsigned(ext[1]);
+  const unsigned kk = r / ey;
   j = lo[1] + int(r - kk * ey);
   k = lo[2] + int(kk);
   const Vec3i g = geo.grabbed;
   const int rest = s - abs(j - g.y) - abs(k - g.z);
   if (rest < 0) return false;
-  const int p0 = lo[0] + 32 * piece;
-  i0 = max(p0, g.x - rest);
-  i1 = min(min(p0 + 31, lo[0] + ext[0] - 1), g.x + rest);
+  i0 = max(lo[0], g.x - rest);
+  i1 = min(lo[0] + ext[0] - 1, g.x + rest);
   return i0 <= i1;
 }
 
@@ -179,14 +171,13 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
   for (int s = 1; s <= max_sweeps; ++s) {
     int lo[3], ext[3];
     sweep_box(geo, s, lo, ext);
-    const unsigned pieces = sweep_pieces(ext);
+    const unsigned rows = unsigned(ext[1]) * unsigned(ext[2]);
     int moved_here = 0, fresh_here = 0;
-    // a warp a piece of a row of the box, its lanes along the piece's part within reach
-    for (unsigned t = warp; t < pieces; t += nwarps) {
+    // a warp a row of the box, its lanes along the row's run within reach
+    for (unsigned r = warp; r < rows; r += nwarps) {
       int j, k, i0, i1;
-      if (!sweep_piece(geo, s, lo, ext, t, j, k, i0, i1)) continue;
-      const int i = i0 + lane;
-      if (i <= i1) chainmail_element(geo, b, lim, s, i, j, k, moved_here, fresh_here);
+      if (!sweep_row(geo, s, lo, ext, r, j, k, i0, i1)) continue;
+      for (int i = i0 + lane; i <= i1; i += 32) chainmail_element(geo, b, lim, s, i, j, k, moved_here, fresh_here);
     }
     // one atomic per block for the sweep's counts
     const int2 sums = block_sum2(moved_here, fresh_here, scratch);
@@ -209,15 +200,15 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_kernel(StepGeome
 }
 
 // ChainMail of several sessions in one cooperative grid (batch.cu says why): every
-// sweep's boxes of the sessions still sweeping are laid end to end in pieces of 32
-// elements along i, and the grid's warps stride over all those pieces, so the work spreads over the device whatever
+// sweep's boxes of the sessions still sweeping are laid end to end, row by row, and the
+// grid's warps stride over all those rows, so the work spreads over the device whatever
 // each box holds; each
 // element runs chainmail_element as in the kernel above, and a session leaves the sweeps
 // after its own quiet sweep, so its sweeps, counts and fields are those of its step
 // alone. The grid leaves when every session has converged or at the sweep cap.
 __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(const BatchItem* __restrict__ items, int n,
                                                                              deform::ChainMailLimits lim, int max_sweeps) {
-  __shared__ unsigned box_end[kMaxBatch];     // sweeping sessions' boxes' pieces end to end: where each ends
+  __shared__ unsigned box_end[kMaxBatch];     // sweeping sessions' boxes' rows end to end: where each ends
   __shared__ int which[kMaxBatch];            // the session of each of them
   __shared__ int active_n;                    // sessions still sweeping
   __shared__ unsigned char active[kMaxBatch]; // 1: the session still sweeps
@@ -231,7 +222,7 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(con
   const unsigned nwarps = gridDim.x * blockDim.x / 32, warp = (blockIdx.x * blockDim.x + threadIdx.x) / 32;
   const int lane = threadIdx.x & 31;
   for (int s = 1; s <= max_sweeps; ++s) {
-    // the sweeping sessions' boxes end to end, in pieces: a scan over the sessions in the first warp
+    // the sweeping sessions' boxes end to end, in rows: a scan over the sessions in the first warp
     if (threadIdx.x < 32) {
       unsigned carry = 0;
       int m = 0;
@@ -242,7 +233,7 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(con
         unsigned box = 0u;
         if (on) {
           sweep_box(items[q].geo, s, lo, ext);
-          box = sweep_pieces(ext);
+          box = unsigned(ext[1]) * unsigned(ext[2]);  // the box's rows
         }
         for (int o = 1; o < 32; o <<= 1) {
           const unsigned up = __shfl_up_sync(0xffffffffu, box, o);
@@ -264,10 +255,10 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(con
     const int m_on = active_n;
     if (m_on == 0) return;  // no session sweeps at all (every grabbed element in bone)
     const unsigned total = box_end[m_on - 1];
-    // a warp a piece of the sessions' boxes laid end to end, its lanes along the piece's
-    // part within reach (sweep_piece)
+    // a warp a row of the sessions' boxes laid end to end, its lanes along the row's run
+    // within reach (sweep_row)
     for (unsigned t = warp; t < total; t += nwarps) {
-      // the session whose box holds piece t
+      // the session whose box holds row t
       int a = 0, z = m_on - 1;
       while (a < z) {
         const int mid = (a + z) >> 1;
@@ -277,10 +268,10 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(con
       const StepGeometry& geo = items[q].geo;
       int lo[3], ext[3], j, k, i0, i1;
       sweep_box(geo, s, lo, ext);
-      if (!sweep_piece(geo, s, lo, ext, t - (a ? box_end[a - 1] : 0u), j, k, i0, i1)) continue;
+      if (!sweep_row(geo, s, lo, ext, t - (a ? box_end[a - 1] : 0u), j, k, i0, i1)) continue;
       int moved_here = 0, fresh_here = 0;
-      const int i = i0 + lane;
-      if (i <= i1) chainmail_element(geo, items[q].b, lim, s, i, j, k, moved_here, fresh_here);
+      for (int i = i0 + lane; i <= i1; i += 32)
+        chainmail_element(geo, items[q].b, lim, s, i, j, k, moved_here, fresh_here);
       if (moved_here) atomicAdd(&moved_s[q], moved_here);
       if (fresh_here) atomicAdd(&fresh_s[q], fresh_here);
     }

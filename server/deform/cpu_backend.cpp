@@ -22,7 +22,7 @@ void CpuDeformBackend::bind_impl() {
   std::vector<Vec3f>().swap(s_.u_next);
   std::vector<float>().swap(s_.weight);
   std::vector<float>().swap(s_.j);
-  for (auto* v : {&s_.mg_g, &s_.mg_r, &s_.mg_z, &s_.mg_p, &s_.mg_q, &s_.mg_res, &s_.mg_cx, &s_.mg_cf,
+  for (auto* v : {&s_.mg_g, &s_.mg_g_last, &s_.mg_r, &s_.mg_z, &s_.mg_p, &s_.mg_q, &s_.mg_res, &s_.mg_cx, &s_.mg_cf,
                   &s_.mg_cres}) std::vector<float>().swap(*v);
   s_.mg_cache = deform::MultigridCache{};
   std::vector<std::uint8_t>().swap(s_.mg_held);
@@ -55,7 +55,7 @@ DeformMemory CpuDeformBackend::memory_impl() const {
   DeformMemory m;
   m.chainmail_bytes = bytes(s_.u) + bytes(s_.moved_at) + bytes(s_.visited_at) + bytes(s_.movers) +
                       bytes(s_.candidates) + bytes(s_.changes);
-  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.mg_held) + bytes(s_.mg_g) + bytes(s_.mg_r) +
+  m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.mg_held) + bytes(s_.mg_g) + bytes(s_.mg_g_last) + bytes(s_.mg_r) +
                   bytes(s_.mg_z) + bytes(s_.mg_p) + bytes(s_.mg_q) + bytes(s_.mg_res) + bytes(s_.mg_cx) + bytes(s_.mg_cf) + bytes(s_.mg_cres) +
                   bytes(s_.mg_held_coarse) + bytes(s_.cell_folded) + bytes(s_.untangle_flags);
   m.invert_bytes = bytes(s_.j);

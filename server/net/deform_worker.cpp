@@ -346,10 +346,12 @@ bool DeformWorker::serve_deformation(int index) {
     if (dropped) publish(s, index);
     return worked;
   }
-  // the same contact as the step in place (a held tip): the same J, nothing to step
+  // the same contact as the step in place (a held tip): the same J, nothing to step; the
+  // report says which contact J now stands for (published even when no contact was
+  // dropped: a client waiting for its last pose's seq would otherwise wait for ever)
   if (s.report.deformed && s.engine && c.tip_mm == s.last_tip_mm && c.skin_point_mm == s.last_skin_mm) {
     s.report.last_contact_seq = c.seq;
-    if (dropped) publish(s, index);
+    publish(s, index);
     return worked;
   }
   // a session whose frames are watched steps at most once per frame: its viewer sees

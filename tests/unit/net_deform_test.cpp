@@ -256,6 +256,31 @@ TEST_CASE("poses are answered while a slow deformation step runs; stale contacts
   server.stop();
 }
 
+TEST_CASE("a held tip's poses move the stats' last contact on, one at a time, without a step", "[net][deform]") {
+  // the same pose again and again, each after the worker has caught up (no contact is
+  // dropped): J stands for each in turn, so last_contact_seq must reach each seq; it used
+  // to be published only along with a dropped contact, so a client waiting for its last
+  // pose's seq waited for ever once steps became faster than poses. Without friction the
+  // skin point is a function of the tip, so the held poses are the very same contact
+  Scene scene = deform_scene();
+  scene.haptics.friction = 0;
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client c(server);
+  c.press(kPressX, kPressY, 5);
+  const Vec3 held{kPressX, kPressY, test::kSlabSkinZ - 5};
+  std::uint64_t steps = 0;
+  for (int n = 0; n < 5; ++n) {
+    c.send_pose(held);
+    const std::uint64_t last = c.seq;
+    v1::DeformSessionStats d;
+    INFO("held pose " << n << ", seq " << last);
+    REQUIRE(c.wait_deform([&](const v1::DeformSessionStats& s) { return s.last_contact_seq() == last; }, &d));
+    if (n == 0) steps = d.steps();
+    CHECK(d.steps() == steps);  // the same contact: nothing to step
+  }
+}
+
 TEST_CASE("a reset, a reset flag and leaving the body restore the undeformed image", "[net][deform]") {
   const auto patient = test::slab_patient();
   net::Server server(deform_scene(), patient, nullptr, loopback());

@@ -64,15 +64,14 @@ __device__ __forceinline__ void chainmail_start(const StepGeometry& geo, const V
 }
 
 // the wave moves one voxel per sweep: only the box g +- s can hold candidates; its
-// corner and extent (VOI-local), and its element count
-__device__ __forceinline__ unsigned sweep_box(const StepGeometry& geo, int s, int lo[3], int ext[3]) {
+// corner and extent (VOI-local)
+__device__ __forceinline__ void sweep_box(const StepGeometry& geo, int s, int lo[3], int ext[3]) {
   const Vec3i g = geo.grabbed;
 #pragma unroll
   for (int a = 0; a < 3; ++a) {
     lo[a] = max(g[a] - s, 0);
     ext[a] = min(g[a] + s, geo.voi.size[a] - 1) - lo[a] + 1;
   }
-  return unsigned(ext[0] * ext[1]) * unsigned(ext[2]);
 }
 
 // row r (j, k) of the sweep's box and the run [i0, i1] of it within s neighbour steps
@@ -111,11 +110,6 @@ __device__ __forceinline__ void chainmail_element(const StepGeometry& geo, const
   int* sb = b.stamp[pb];
   const int e = k * sxy + j * sx + i;
   if (e == g_idx) return;
-  // the wave moves one neighbour a sweep, so only elements within s neighbour steps (L1)
-  // of the grabbed one can have moved in sweep s - 1 or have a neighbour that did: the
-  // rest of the box (its corners, 5/6 of it before the VOI clips it) stops here, on its
-  // coordinates, without reading seven stamps
-  if (abs(i - g.x) + abs(j - g.y) + abs(k - g.z) > s) return;
   // which neighbours moved in the previous sweep (stamps only: most elements stop here)
   const int n_ok[6] = {i > 0, i + 1 < voi.size.x, j > 0, j + 1 < voi.size.y, k > 0, k + 1 < voi.size.z};
   unsigned mask = 0;

@@ -300,22 +300,15 @@ __device__ __forceinline__ void scatter_cells(const StepGeometry& geo, int src, 
   const deform::Voi& voi = geo.voi;
   const Vec3i size = voi.size;
   const ULoader load_u{&voi, b.u[src][0], b.u[src][1], b.u[src][2]};
-  // only cells whose box may hold a queued voxel: a cell's corners move at most max |u_a|
-  // along axis a, so its box lies within [o - umax, o + 1 + umax]; one cell more each side
-  // covers the float rounding of the corners' positions. A press moves tissue mostly along
-  // one axis, so this is a slab of the VOI, not all of it
+  // only cells whose box may hold a queued voxel (deform::scatter_cell_range()): a press
+  // moves tissue mostly along one axis, so this is a slab of the VOI, not all of it
   const ScatterBounds& sb = b.counters->search_bounds;
   Vec3i first, extent;
   for (int a = 0; a < 3; ++a) {
-    const float um = __uint_as_float(sb.umax_bits[a]);
-    const int ylo = INT_MAX - int(sb.lo_flip[a]), yhi = int(sb.hi_plus[a]) - 1;
-    int from = -1, to = size[a] - 1;
-    if (um <= 1e6f) {
-      from = max(from, int(floorf(float(ylo) - 1.0f - um - deform::kInvertSearchVox)) - 1);
-      to = min(to, int(ceilf(float(yhi) + um + deform::kInvertSearchVox)) + 1);
-    }
-    first[a] = from;
-    extent[a] = max(0, to - from + 1);
+    int last;
+    deform::scatter_cell_range(INT_MAX - int(sb.lo_flip[a]), int(sb.hi_plus[a]) - 1,
+                               __uint_as_float(sb.umax_bits[a]), size[a], first[a], last);
+    extent[a] = max(0, last - first[a] + 1);
   }
   const unsigned cx = unsigned(extent.x), cxy = cx * unsigned(extent.y);
   const unsigned cells = cxy * unsigned(extent.z);
@@ -325,13 +318,7 @@ __device__ __forceinline__ void scatter_cells(const StepGeometry& geo, int src, 
     deform::load_cell(load_u, o.x, o.y, o.z, c);
     deform::cell_box(c, o, lo, hi);
     int from[3], to[3];
-    long long span = 1;
-    for (int a = 0; a < 3; ++a) {
-      // the voxels within the grown box (box_holds() below decides each one exactly)
-      from[a] = int(fmaxf(0.0f, ceilf(lo[a] - deform::kInvertSearchVox)));
-      to[a] = int(fminf(float(size[a] - 1), floorf(hi[a] + deform::kInvertSearchVox)));
-      span *= to[a] >= from[a] ? to[a] - from[a] + 1 : 0;
-    }
+    const long long span = deform::cell_voxel_span(lo, hi, size, from, to);
     if (span == 0) continue;
     if (!(span <= deform::kScatterMaxVoxels)) {
       b.counters->search_spill = 1;

@@ -179,9 +179,10 @@ struct MgArgs {
   int cycles;
   float threshold, width;
   int hit;     // the host's cache key matches: G may be reused if the device says it holds it
-  int warm;    // the host swapped a close last field into m.g_last: start from it if the device says it is a G
   int warm_cycles;
-  deform::MultigridStart start;  // the last field shifted onto the new grabbed element (its g: m.g_last)
+  // the last field shifted onto the new grabbed element (its g: m.g_last, swapped there by
+  // the host when close; null: none), the start if the device says that field is a G
+  deform::MultigridStart start;
   int parity;  // which of the two dirty flags this launch uses (the other is zeroed for the next)
   DeviceBuffers b;
   MultigridBuffers m;
@@ -270,7 +271,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   // one scalar solve per component with its own held data, or one for G when clean
   const int solves = hit && clean ? 0 : (clean ? 1 : 3);
   // a new G from the last one (the host swapped it into g_last) when that one is a G
-  const bool warm = solves == 1 && a.warm && kept;
+  const bool warm = solves == 1 && a.start.g && kept;
   const int cycles = warm ? a.warm_cycles : a.cycles;
   const deform::MultigridStart start = warm ? a.start : deform::MultigridStart{};
   if (first_thread) {
@@ -482,9 +483,8 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
   // to the other buffer (a swap: a.start.g stays the old field's)
   a.start = reuse && !a.hit && warm_cycles > 0 ? deform::multigrid_start(m.cache, m.g, g.voi.lo, g.grabbed)
                                                : deform::MultigridStart{};
-  a.warm = a.start.g != nullptr;
   a.warm_cycles = std::min(warm_cycles, deform::kMultigridMaxCycles);
-  if (a.warm) std::swap(m.g, m.g_last);
+  if (a.start.g) std::swap(m.g, m.g_last);
   m.cache = key;
   a.parity = int(m.launches++ & 1);
   // block 0's shared memory: levels split..last (x, f, residual, held mask); each level

@@ -99,6 +99,22 @@ PALPSIM_HD float material_weight(float intensity, bool bone, float threshold, fl
 /// the six neighbours - 6 u) keeps non-negative weights for s m <= 1/6, m <= 1.
 constexpr double kRelaxStableStep = 1.0 / 6.0;
 
+/// The sum of the six neighbours of element e of a box (strides 1, sx, sxy) in the fixed
+/// order -i, +i, -j, +j, -k, +k, from `zero`: for an element off the box's faces, the
+/// same sums as adding each neighbour inside the box in that order (relaxation's and
+/// multigrid's), without the tests.
+template <typename T>
+PALPSIM_HD T sum6_inner(const T* v, long long e, long long sx, long long sxy, T zero) {
+  T s = zero;
+  s += v[e - 1];
+  s += v[e + 1];
+  s += v[e - sx];
+  s += v[e + sx];
+  s += v[e - sxy];
+  s += v[e + sxy];
+  return s;
+}
+
 /// One explicit diffusion update of a voxel: `sum6` is the sum of the six neighbours'
 /// displacements (zero outside the VOI), `step_weight` = relax_step * material_weight.
 PALPSIM_HD Vec3f relax_update(const Vec3f& u, const Vec3f& sum6, float step_weight) {

@@ -22,6 +22,34 @@ namespace palpsim::deform {
 /// takes the ring search; both backends.
 constexpr long long kScatterMaxVoxels = 512;
 
+/// The lowest corners, along one axis of `size` voxels, of the cells whose deformed box
+/// may hold a queued voxel in [qlo, qhi]: a cell's corners move at most `umax` along the
+/// axis, so its box lies within [o - umax, o + 1 + umax]; one cell more each side covers
+/// the float rounding of the corners' positions. umax above 1e6 or NaN: every cell,
+/// -1 .. size - 1. [first, last] (empty where last < first); both backends' scatter.
+PALPSIM_HD void scatter_cell_range(int qlo, int qhi, float umax, int size, int& first, int& last) {
+  first = -1;
+  last = size - 1;
+  if (!(umax <= 1e6f)) return;
+  const int f = int(floorf(float(qlo) - 1.0f - umax - kInvertSearchVox)) - 1;
+  const int l = int(ceilf(float(qhi) + umax + kInvertSearchVox)) + 1;
+  first = f > first ? f : first;
+  last = l < last ? l : last;
+}
+
+/// The VOI voxels within a cell's deformed box [lo, hi] grown by kInvertSearchVox, from[a]
+/// to to[a] along each axis (box_holds() then decides each one exactly); returns how many
+/// (0: none); both backends' scatter.
+PALPSIM_HD long long cell_voxel_span(const Vec3f& lo, const Vec3f& hi, const Vec3i& size, int from[3], int to[3]) {
+  long long span = 1;
+  for (int a = 0; a < 3; ++a) {
+    from[a] = int(fmaxf(0.0f, ceilf(lo[a] - kInvertSearchVox)));
+    to[a] = int(fminf(float(size[a] - 1), floorf(hi[a] + kInvertSearchVox)));
+    span *= to[a] >= from[a] ? to[a] - from[a] + 1 : 0;
+  }
+  return span;
+}
+
 /// A voxel Newton left above kInvertSearchVox, queued for scatter_search().
 struct SearchVoxel {
   Vec3i v;                    // VOI-local voxel (y)
@@ -64,9 +92,7 @@ template <typename LoadU>
 bool scatter_search(const LoadU& load_u, const Vec3i& size, std::vector<SearchVoxel>& queue,
                     const std::vector<int>& slot) {
   if (queue.empty()) return true;
-  // only cells whose box may hold a queued voxel: a cell's corners move at most max |u_a|
-  // along axis a, so its box lies within [o - umax, o + 1 + umax]; one cell more each
-  // side covers the float rounding of the corners' positions (NaN: the whole VOI)
+  // only cells whose box may hold a queued voxel (scatter_cell_range(); NaN: the whole VOI)
   Vec3f umax{0, 0, 0};
   for (int k = 0; k < size.z; ++k)
     for (int j = 0; j < size.y; ++j)
@@ -81,14 +107,7 @@ bool scatter_search(const LoadU& load_u, const Vec3i& size, std::vector<SearchVo
       qhi[a] = std::max(qhi[a], q.v[a]);
     }
   Vec3i first, last;
-  for (int a = 0; a < 3; ++a) {
-    first[a] = -1;
-    last[a] = size[a] - 1;
-    if (umax[a] <= 1e6f) {
-      first[a] = std::max(first[a], int(std::floor(float(qlo[a]) - 1.0f - umax[a] - kInvertSearchVox)) - 1);
-      last[a] = std::min(last[a], int(std::ceil(float(qhi[a]) + umax[a] + kInvertSearchVox)) + 1);
-    }
-  }
+  for (int a = 0; a < 3; ++a) scatter_cell_range(qlo[a], qhi[a], umax[a], size[a], first[a], last[a]);
   // every such cell, solved from its centre (pass 0) for each queued voxel its box holds
   struct Candidate {
     int slot, ring, idx;
@@ -105,13 +124,7 @@ bool scatter_search(const LoadU& load_u, const Vec3i& size, std::vector<SearchVo
         load_cell(load_u, ox, oy, oz, c);
         cell_box(c, o, lo, hi);
         int from[3], to[3];
-        long long span = 1;
-        for (int a = 0; a < 3; ++a) {
-          // the voxels within the grown box (box_holds() decides each one exactly)
-          from[a] = int(std::fmax(0.0f, std::ceil(lo[a] - kInvertSearchVox)));
-          to[a] = int(std::fmin(float(size[a] - 1), std::floor(hi[a] + kInvertSearchVox)));
-          span *= to[a] >= from[a] ? to[a] - from[a] + 1 : 0;
-        }
+        const long long span = cell_voxel_span(lo, hi, size, from, to);
         if (span == 0) continue;
         if (!(span <= kScatterMaxVoxels)) return false;
         for (int k = from[2]; k <= to[2]; ++k)

@@ -52,12 +52,7 @@ void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float
           }
           Vec3f sum6{0, 0, 0};
           if (inner && i > 0 && i + 1 < voi.size.x) {
-            sum6 += u[e - 1];
-            sum6 += u[e + 1];
-            sum6 += u[e - sx];
-            sum6 += u[e + sx];
-            sum6 += u[e - sxy];
-            sum6 += u[e + sxy];
+            sum6 = sum6_inner(u, e, sx, sxy, sum6);
           } else {
             for (int q = 0; q < 6; ++q) {
               const Vec3i n = Vec3i{i, j, k} + neighbour_offset(q);

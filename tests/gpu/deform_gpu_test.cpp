@@ -58,6 +58,14 @@ float max_abs(const std::vector<Vec3f>& u) {
   return m;
 }
 
+// the largest difference of any component of two fields on the same VOI (voxel)
+float max_abs_diff(const std::vector<Vec3f>& ua, const std::vector<Vec3f>& ug) {
+  float worst = 0;
+  for (std::size_t e = 0; e < ua.size(); ++e)
+    worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
+  return worst;
+}
+
 // the phantom (340 mm over 256 voxels), the skin point over L3's spinous tip, and the
 // server's lumbar configuration with the inversion's cell search: deep presses from there
 // fold and send hundreds of voxels to the search
@@ -177,9 +185,7 @@ TEST_CASE("gpu relaxation matches the cpu within float rounding") {
     // iteration a few ulps (FMA contraction on the GPU, tanhf differing by <= 2 ulp)
     // of the largest displacement
     const float tol = iters * 8 * FLT_EPSILON * std::max(1.0f, max_abs(ua));
-    float worst = 0;
-    for (std::size_t e = 0; e < ua.size(); ++e)
-      worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
+    const float worst = max_abs_diff(ua, ug);
     INFO("iterations " << iters << " max |u_cpu - u_gpu| " << worst << " voxel, tolerance " << tol);
     std::printf("relax %d iterations: max |u_cpu - u_gpu| = %g voxel (tolerance %g)\n", iters, worst, tol);
     CHECK(worst <= tol);
@@ -213,9 +219,7 @@ TEST_CASE("gpu relaxation of only the elements ChainMail's field can reach equal
       CHECK(ug == every->displacement());
       // as in the case above, per iteration a few ulps of the largest displacement
       const float tol = (round + 1) * r.cfg.settings.relax_iterations * 8 * FLT_EPSILON * std::max(1.0f, max_abs(ua));
-      float worst = 0;
-      for (std::size_t e = 0; e < ua.size(); ++e)
-        worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
+      const float worst = max_abs_diff(ua, ug);
       INFO("round " << round << ": max |u_cpu - u_gpu| " << worst << " voxel, tolerance " << tol);
       CHECK(worst <= tol);
     }
@@ -605,9 +609,7 @@ TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and wit
       b.cpu->relax();
       b.gpu->relax();
       const auto ua = b.cpu->displacement(), ug = b.gpu->displacement();
-      float worst = 0;
-      for (std::size_t e = 0; e < ua.size(); ++e)
-        worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
+      const float worst = max_abs_diff(ua, ug);
       // the same operations in the same order up to FMA contraction and the order of the
       // dot products' sums (block sums and atomics on the GPU): each step's step lengths
       // agree to ~1e-6 relative, and conjugate gradients carry such differences on without
@@ -636,10 +638,7 @@ TEST_CASE("gpu multigrid reuses its unit response to the bit, and as the cpu doe
   // the cpu's field against a gpu's: FMA contraction and the order of the dot products'
   // sums, as in the case above
   auto close = [&](const std::vector<Vec3f>& ua, const std::vector<Vec3f>& ug) {
-    float worst = 0;
-    for (std::size_t e = 0; e < ua.size(); ++e)
-      worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
-    return worst <= 1e-4f * std::max(1.0f, max_abs(ua));
+    return max_abs_diff(ua, ug) <= 1e-4f * std::max(1.0f, max_abs(ua));
   };
   for (std::size_t s = 0; s < press.contacts.size(); ++s) {
     const DeformContact& c = press.contacts[s];
@@ -681,9 +680,7 @@ TEST_CASE("gpu multigrid starts a new unit response from the last one as the cpu
     for (std::size_t s = 0; s < path.contacts.size(); ++s) {
       const DeformStats a = cpu->step(path.contacts[s]), g = gpu->step(path.contacts[s]);
       const auto ua = cpu->displacement(), ug = gpu->displacement();
-      float worst = 0;
-      for (std::size_t e = 0; e < ua.size(); ++e)
-        worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
+      const float worst = max_abs_diff(ua, ug);
       // FMA contraction and the order of the dot products' sums, as in the cases above; a
       // warm start carries the last step's difference on, which its steps do not grow
       const float tol = 1e-4f * std::max(1.0f, max_abs(ua));

@@ -3,21 +3,53 @@
 
 #include <algorithm>
 #include <cmath>
+#include <memory>
+#include <new>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "core/grid.h"
 
 namespace palpsim {
 
+/// std::allocator, except that an element made without a value is default-initialised
+/// (left as it is for numbers) instead of zeroed: a volume that its maker writes whole
+/// then costs one pass over memory, and its pages are first touched by the threads that
+/// write them, not by one thread zeroing them ahead.
+template <typename T>
+struct DefaultInitAllocator : std::allocator<T> {
+  template <typename U>
+  struct rebind {
+    using other = DefaultInitAllocator<U>;
+  };
+  DefaultInitAllocator() = default;
+  template <typename U>
+  DefaultInitAllocator(const DefaultInitAllocator<U>&) noexcept {}
+  template <typename U>
+  void construct(U* p) noexcept(std::is_nothrow_default_constructible<U>::value) {
+    ::new (static_cast<void*>(p)) U;
+  }
+  template <typename U, typename... Args>
+  void construct(U* p, Args&&... args) {
+    ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+  }
+};
+
+/// Tag for a volume whose voxels are left unset, for makers that write every voxel.
+struct Uninitialized {};
+
 /// A scalar volume of T on a grid; voxel (i, j, k) is data[grid.index(i, j, k)].
 template <typename T>
 struct Volume {
   Grid grid;
-  std::vector<T> data;
+  std::vector<T, DefaultInitAllocator<T>> data;
 
   Volume() = default;
   /// Allocates a volume on `g` filled with `fill`.
   explicit Volume(const Grid& g, T fill = T{}) : grid(g), data(g.count(), fill) {}
+  /// Allocates a volume on `g` without setting its voxels: the caller writes them all.
+  Volume(const Grid& g, Uninitialized) : grid(g), data(g.count()) {}
 
   T& at(int i, int j, int k) { return data[grid.index(i, j, k)]; }
   const T& at(int i, int j, int k) const { return data[grid.index(i, j, k)]; }

@@ -303,7 +303,19 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(con
     if (active[q]) items[q].b.counters->sweeps = max_sweeps;
 }
 
+// ChainMail's start alone (a step that skips ChainMail): the grabbed element at x in both
+// buffers, converged after no sweep
+__global__ void chainmail_start_kernel(StepGeometry geo, Vec3f u0, DeviceBuffers b) {
+  chainmail_start(geo, u0, b);
+  b.counters->converged = 1;
+}
+
 }  // namespace
+
+void launch_chainmail_start(const StepGeometry& g, const Vec3f& u0, const DeviceBuffers& b, cudaStream_t stream) {
+  chainmail_start_kernel<<<1, 1, 0, stream>>>(g, u0, b);
+  PALPSIM_CUDA_CHECK(cudaGetLastError());
+}
 
 void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::ChainMailLimits& limits,
                       int max_sweeps, const DeviceBuffers& b, const LaunchShape& shape, cudaStream_t stream) {

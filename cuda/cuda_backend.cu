@@ -236,6 +236,11 @@ void CudaDeformBackend::enqueue_chainmail() {
   dirty_ = voi_;
   field_extra_ = 0;  // the field reaches as far as ChainMail's sweeps
   if (setup_.grabbed_in_bone) return;  // nothing moves
+  if (setup_.skipped) {
+    // the multigrid relaxation needs the grabbed element alone (both buffers hold it)
+    launch_chainmail_start(geometry(), setup_.grabbed_u_vox, d_, stream_);
+    return;
+  }
   launch_chainmail(geometry(), setup_.grabbed_u_vox, limits_, config_.settings.max_sweeps, d_, shape_, stream_);
   // converged: both buffers hold the result; capped: the last sweep's buffer does
   cur_ = config_.settings.max_sweeps & 1;

@@ -172,6 +172,11 @@ LaunchShape persistent_launch_shape();
 /// Blocks of the relaxation kernel that fit on one multiprocessor at `threads` per block.
 int relax_blocks_per_sm(int threads);
 
+/// ChainMail's start alone, for a step that skips ChainMail (ChainMailStats::skipped):
+/// the grabbed element gets `u0` in both buffers, the counters say converged after 0
+/// sweeps. The buffers must be undeformed on the VOI.
+void launch_chainmail_start(const StepGeometry& g, const Vec3f& u0, const DeviceBuffers& b, cudaStream_t stream);
+
 /// ChainMail sweeps until a quiet sweep or `max_sweeps`, in one cooperative launch.
 /// The grabbed element gets `u0`; the buffers must be undeformed on the VOI.
 void launch_chainmail(const StepGeometry& g, const Vec3f& u0, const deform::ChainMailLimits& limits,

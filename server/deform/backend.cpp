@@ -145,6 +145,11 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
   patient_ = std::move(patient);
   config_ = config;
   limits_ = deform::chainmail_limits(s.min_dist, s.max_dist, s.max_sheer);
+  // a multigrid relaxation that runs (and so overwrites every free element) may do without
+  // ChainMail where nothing ChainMail moves is held
+  held_blocks_.reset();
+  if (config.skip_chainmail && config.relax && s.relax_method == "multigrid" && s.relax_cycles > 0)
+    held_blocks_ = deform::HeldBlocks::of(patient_, float(config.bone_threshold), float(s.material_width));
   voi_ = Voi{};
   setup_ = ChainMailStats{};
   bound_ = false;
@@ -178,6 +183,7 @@ ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
   st.grabbed_u_vox = Vec3f(float(x.x - e0.x), float(x.y - e0.y), float(x.z - e0.z));
   st.grabbed_in_bone = patient_->bone.data[grid.index(e0.x, e0.y, e0.z)] != 0;
   st.voi = compute_voi(grid.size, e0, t, config_.settings.voi_edge, config_.settings.whole_volume);
+  st.skipped = held_blocks_ && !st.grabbed_in_bone && !held_blocks_->any_in(st.voi);
   return st;
 }
 

@@ -15,6 +15,7 @@
 #include "core/scene.h"
 #include "core/vec3.h"
 #include "deform/deform_math.h"
+#include "deform/held_blocks.h"
 
 namespace palpsim {
 
@@ -37,6 +38,11 @@ struct DeformConfig {
   /// stay (exact: relax_multigrid.h), and starts a new one from it (deform.relax_warm_cycles);
   /// false solves every step from zero with relax_cycles steps (benchmarks time both).
   bool relax_reuse = true;
+  /// Multigrid steps leave ChainMail out where its field cannot change their result: the
+  /// VOI holds no element that relaxation would hold and ChainMail could move
+  /// (deform::HeldBlocks), so the steady state is u = d G whatever ChainMail did (exact:
+  /// relax_multigrid.h). false runs ChainMail every step (tests compare both).
+  bool skip_chainmail = true;
 
   /// The configuration a scene asks for: Deform{}, prep's bone threshold and the effects.
   /// The scene's settings; the material function's bone threshold is the scene's
@@ -54,6 +60,9 @@ struct ChainMailStats {
   int sweeps = 0;            // Jacobi sweeps run, the last one quiet when converged
   long long moved = 0;       // elements that moved, the first element not counted
   bool converged = true;     // a quiet sweep came within deform.max_sweeps
+  /// Not run: a multigrid step whose result does not depend on ChainMail's field
+  /// (DeformConfig::skip_chainmail); the grabbed element alone is at x.
+  bool skipped = false;
 };
 
 /// Wall time of each stage of one step (ms). upload: making J's VOI readable on the
@@ -244,6 +253,9 @@ class DeformBackend {
   Voi voi_;                   // VOI of the latest ChainMail
   ChainMailStats setup_;      // grabbed element and VOI of the latest ChainMail
   deform::ChainMailLimits limits_;
+  /// Where the patient may hold elements outside bone (multigrid scenes with
+  /// DeformConfig::skip_chainmail; null otherwise): steps whose VOI has none skip ChainMail.
+  std::shared_ptr<const deform::HeldBlocks> held_blocks_;
   int gpu_share_ = 1;         // set_gpu_share(): the 1/k of the device each persistent kernel may take
   DeformStats pending_;       // the default begin_step_impl()'s result, returned by end_step_impl()
 

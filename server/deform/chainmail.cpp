@@ -3,19 +3,26 @@
 
 namespace palpsim::deform {
 
+void chainmail_grab_cpu(ChainMailStats& st, CpuState& s) {
+  const Vec3i g = st.grabbed_vox - st.voi.lo;
+  st.sweeps = 0;
+  st.moved = 0;
+  st.converged = true;
+  // a grabbed bone element does not move, so nothing does
+  if (st.grabbed_in_bone) return;
+  const long long g_idx = st.voi.index(g.x, g.y, g.z);
+  s.u[g_idx] = st.grabbed_u_vox;
+  s.moved_at[g_idx] = 0;
+}
+
 void chainmail_cpu(const Patient& p, const ChainMailLimits& limits, int max_sweeps, ChainMailStats& st,
                    CpuState& s) {
   const Voi& voi = st.voi;
   const Grid& grid = p.grid;
   const Vec3i g = st.grabbed_vox - voi.lo;
   const long long g_idx = voi.index(g.x, g.y, g.z);
-  st.sweeps = 0;
-  st.moved = 0;
-  st.converged = true;
-  // a grabbed bone element does not move, so nothing does
+  chainmail_grab_cpu(st, s);
   if (st.grabbed_in_bone) return;
-  s.u[g_idx] = st.grabbed_u_vox;
-  s.moved_at[g_idx] = 0;
   s.movers.assign(1, g);
 
   auto is_bone = [&](const Vec3i& l) {

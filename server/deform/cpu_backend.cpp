@@ -74,6 +74,11 @@ void CpuDeformBackend::reset_impl() {
 
 void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
   dirty_ = st.voi;
+  if (st.skipped) {
+    deform::chainmail_grab_cpu(st, s_);
+    s_.reach = 0;
+    return;
+  }
   deform::chainmail_cpu(*patient_, limits_, config_.settings.max_sweeps, st, s_);
   s_.reach = st.grabbed_in_bone ? 0 : st.sweeps;  // its wave moved one neighbour a sweep
 }

@@ -46,6 +46,11 @@ struct CpuState {
   std::vector<int> search_slot;              // inversion: each element's entry in search_queue, -1 where none
 };
 
+/// ChainMail's start alone: the grabbed element at x (unless it lies in bone), no sweep;
+/// for a step that skips ChainMail (ChainMailStats::skipped). The state must be
+/// undeformed on the VOI.
+void chainmail_grab_cpu(ChainMailStats& st, CpuState& s);
+
 /// ChainMail by plain Jacobi sweeps (paper sec. 2.2): in sweep s every element next
 /// to one that moved in sweep s-1 clamps itself, in the fixed neighbour order, into
 /// the box allowed by each such neighbour, reading positions of sweep s-1, and counts

@@ -9,6 +9,7 @@
 #include <functional>
 #include <limits>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include "core/patient.h"
@@ -168,6 +169,40 @@ inline std::vector<WarmPath> warm_paths() {
   for (const Vec3i& g : {Vec3i{32, 10, 32}, Vec3i{32, 24, 32}, Vec3i{20, 30, 20}, Vec3i{44, 36, 40}, Vec3i{12, 30, 50}})
     paths[5].contacts.push_back(voxel_contact(g, {2, 4, -3}));
   return paths;
+}
+
+/// Every contact of reuse_press() and warm_paths() in a row, with reuse_press()'s
+/// configuration and the default warm start: reused, warm and fresh multigrid solves,
+/// for the tests of steps that leave ChainMail out (cpu and gpu).
+struct MultigridSteps {
+  DeformConfig cfg;
+  std::vector<DeformContact> contacts;
+};
+
+inline MultigridSteps multigrid_steps() {
+  MultigridSteps m;
+  m.cfg = reuse_press().cfg;
+  m.cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+  m.contacts = reuse_press().contacts;
+  for (const WarmPath& path : warm_paths()) m.contacts.insert(m.contacts.end(), path.contacts.begin(), path.contacts.end());
+  return m;
+}
+
+/// Steps `skip` (bound with DeformConfig::skip_chainmail) and `full` (without) with
+/// contact `c` and says what differs, "" when nothing: `skip` must have left ChainMail out
+/// (no sweep, no move, converged) and `full` run it, with the same relaxation counts,
+/// displacement, J and inversion residual to the bit.
+inline std::string step_without_chainmail_differs(DeformBackend& skip, DeformBackend& full, const DeformContact& c) {
+  const DeformStats a = skip.step(c), b = full.step(c);
+  if (!a.chainmail.skipped || a.chainmail.sweeps != 0 || a.chainmail.moved != 0 || !a.chainmail.converged)
+    return "ChainMail was not left out";
+  if (b.chainmail.skipped || b.chainmail.moved <= 0) return "ChainMail did not run without skip_chainmail";
+  if (a.relax_solves != b.relax_solves || a.relax_warm != b.relax_warm) return "relaxation counts differ";
+  if (skip.displacement() != full.displacement()) return "displacements differ";
+  const long long n = a.chainmail.voi.count();
+  if (!std::equal(skip.deformed_brick(), skip.deformed_brick() + n, full.deformed_brick())) return "J differs";
+  if (a.invert_residual_vox != b.invert_residual_vox) return "inversion residuals differ";
+  return "";
 }
 
 /// The Table 1 press of `palpsim-bench deform`: near the middle of the volume, 10 mm

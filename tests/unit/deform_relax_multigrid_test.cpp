@@ -2,10 +2,13 @@
 // the explicit scheme's fixed point, keeps held elements still and is isotropic.
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
+#include <random>
 
 #include "core/error.h"
 #include "deform/cpu_backend.h"
+#include "deform/held_blocks.h"
 #include "deform/relax_multigrid.h"
 #include "support/deform_fixtures.h"
 
@@ -295,4 +298,97 @@ TEST_CASE("the multigrid plan puts the grabbed element on a node of every level"
     const Vec3i& s = plan.size[plan.levels - 1];
     CHECK(std::min({s.x, s.y, s.z}) < 3);  // coarsened until an axis is too short
   }
+}
+
+TEST_CASE("multigrid steps leave ChainMail out where nothing it moves is held, with the same fields to the bit") {
+  // u = d G does not depend on ChainMail's field where every held element but the grabbed
+  // one is at rest (relax_multigrid.h), which a VOI without elements held outside the bone
+  // mask guarantees (deform::HeldBlocks): steps without ChainMail must give the
+  // displacement, J and relaxation counts of steps with it, on every press and path of the
+  // multigrid tests above (reused, warm and fresh solves)
+  auto torso = make_torso_patient(64);
+  const MultigridSteps steps = multigrid_steps();
+  const std::vector<DeformContact>& contacts = steps.contacts;
+  const DeformConfig& cfg = steps.cfg;
+  REQUIRE(cfg.skip_chainmail);  // the default
+  DeformConfig full_cfg = cfg;
+  full_cfg.skip_chainmail = false;
+  CpuDeformBackend skip, full;
+  skip.bind(torso, cfg);
+  full.bind(torso, full_cfg);
+  for (std::size_t s = 0; s < contacts.size(); ++s) {
+    INFO("contact " << s);
+    CHECK(step_without_chainmail_differs(skip, full, contacts[s]) == "");
+  }
+}
+
+TEST_CASE("ChainMail still runs where the VOI may hold an element outside bone, and only there") {
+  // two voxels at 3000 HU outside the bone mask in one corner of a soft block: a VOI that
+  // takes in their 8^3 block runs ChainMail (it may move them, and relaxation then holds
+  // them where ChainMail put them: u is not d G), one away from it does not; the fields
+  // are those of steps that always run ChainMail
+  auto patient = with_hot_voxels(make_soft_patient(48), {{40, 40, 40}, {41, 40, 40}}, 3000.0f);
+  DeformConfig cfg = preset_config(1);
+  cfg.settings.voi_edge = 16;
+  cfg.settings.relax_method = "multigrid";
+  DeformConfig full_cfg = cfg;
+  full_cfg.skip_chainmail = false;
+  CpuDeformBackend skip, full;
+  skip.bind(patient, cfg);
+  full.bind(patient, full_cfg);
+  struct Case {
+    Vec3i grabbed;
+    bool skipped;
+  };
+  for (const Case& c : {Case{{10, 10, 10}, true}, Case{{38, 38, 38}, false}, Case{{14, 12, 10}, true}}) {
+    INFO("grabbed (" << c.grabbed.x << ", " << c.grabbed.y << ", " << c.grabbed.z << ")");
+    const DeformContact k = voxel_contact(c.grabbed, {1, 2, -1.5});
+    const DeformStats a = skip.step(k), b = full.step(k);
+    CHECK(a.chainmail.skipped == c.skipped);
+    CHECK_FALSE(b.chainmail.skipped);
+    CHECK(skip.displacement() == full.displacement());
+    CHECK(std::equal(skip.deformed_brick(), skip.deformed_brick() + a.chainmail.voi.count(), full.deformed_brick()));
+  }
+  // the explicit relaxation keeps ChainMail's field, so it never skips it
+  DeformConfig explicit_cfg = cfg;
+  explicit_cfg.settings.relax_method = "explicit";
+  CpuDeformBackend ex;
+  ex.bind(patient, explicit_cfg);
+  CHECK_FALSE(ex.step(voxel_contact({10, 10, 10}, {1, 2, -1.5})).chainmail.skipped);
+}
+
+TEST_CASE("HeldBlocks flags every element relaxation holds outside bone, and is shared") {
+  // may_hold_outside_bone() must hold wherever the material weight is 0 outside the mask
+  // (a scan of intensities across the threshold in steps of a hundredth of a width); the
+  // map is conservative per 8^3 block: a VOI holding such an element is always flagged
+  // (random VOIs against a brute-force scan)
+  const float thr = float(kBoneThresholdHu), width = float(DeformSettings{}.material_width);
+  for (int s = -2000; s <= 2000; ++s) {
+    const float hu = thr + 0.01f * float(s) * width;
+    if (deform::material_weight(hu, false, thr, width) == 0.0f) CHECK(deform::may_hold_outside_bone(hu, false, thr, width));
+  }
+  CHECK_FALSE(deform::may_hold_outside_bone(5000.0f, true, thr, width));  // bone: ChainMail never moves it
+  const std::vector<Vec3i> hot = {{5, 30, 20}, {40, 8, 3}};
+  auto patient = with_hot_voxels(make_torso_patient(48), hot, 2500.0f);
+  const deform::HeldBlocks map(patient, thr, width);
+  CHECK(map.flagged() == 2);
+  std::mt19937 rng(5);
+  int flagged = 0;
+  for (int t = 0; t < 300; ++t) {
+    deform::Voi voi;
+    for (int a = 0; a < 3; ++a) {
+      voi.lo[a] = int(rng() % 48);
+      voi.size[a] = 1 + int(rng() % unsigned(48 - voi.lo[a]));
+    }
+    bool inside = false;
+    for (const Vec3i& h : hot)
+      inside = inside || (h.x >= voi.lo.x && h.x < voi.lo.x + voi.size.x && h.y >= voi.lo.y &&
+                          h.y < voi.lo.y + voi.size.y && h.z >= voi.lo.z && h.z < voi.lo.z + voi.size.z);
+    if (inside) CHECK(map.any_in(voi));
+    flagged += map.any_in(voi);
+  }
+  CHECK(flagged < 300);  // and not every VOI
+  const auto a = deform::HeldBlocks::of(patient, thr, width), b = deform::HeldBlocks::of(patient, thr, width);
+  CHECK(a == b);
+  CHECK(deform::HeldBlocks::of(patient, thr + 1, width) != a);
 }

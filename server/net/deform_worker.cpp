@@ -503,6 +503,7 @@ void DeformWorker::complete(Session& s, const Contact& c) {
     add_times(r.sum, st.times);
     r.moved = st.chainmail.moved;
     r.sweeps = st.chainmail.sweeps;
+    r.chainmail_skipped = st.chainmail.skipped;
     r.converged = st.chainmail.converged;
     r.invert_residual_vox = st.invert_residual_vox;
     r.invert_unresolved = st.invert_unresolved;

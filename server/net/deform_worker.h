@@ -40,6 +40,7 @@ struct DeformSessionReport {
   long long moved = 0;                 // latest step: elements ChainMail moved (the first not counted)
   int sweeps = 0;                      // latest step: ChainMail sweeps
   bool converged = true;               // latest step: ChainMail converged within max_sweeps
+  bool chainmail_skipped = false;      // latest step: ChainMail left out (ChainMailStats::skipped)
   double invert_residual_vox = 0;      // latest step: max inversion residual (voxel)
   long long invert_unresolved = 0;     // latest step: voxels with a residual above 0.1 voxel
   long long invert_searched = 0;       // latest step: voxels Newton left to the cell search (deform.invert_search)

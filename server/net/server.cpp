@@ -762,6 +762,7 @@ class Server::Control {
     o->set_moved(std::uint64_t(r.moved));
     o->set_sweeps(std::uint32_t(r.sweeps));
     o->set_converged(r.converged);
+    o->set_chainmail_skipped(r.chainmail_skipped);
     o->set_invert_residual_vox(r.invert_residual_vox);
     o->set_invert_unresolved(std::uint64_t(r.invert_unresolved));
     o->set_invert_searched(std::uint64_t(r.invert_searched));

@@ -36,13 +36,15 @@ std::string deform_scene_text(const std::string& extra_deform = "") {
 
 }  // namespace
 
-TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and keeps answering poses",
-          "[integration][deform]") {
-  ServerProcess server(test::temp_file("deform.textproto", deform_scene_text()));
-  REQUIRE(server.wait_ready(kStartS));
-  INFO(server.child().err());
-  CHECK(server.child().err().find("deform backend \"") != std::string::npos);
+// opens a session on `server`, presses into the back (+y) at the middle of the body, 10
+// mm deep, at 1 ms of client time per pose (every pose answered without error, some in
+// contact), and returns the stats once the worker has stepped the last contact
+struct Pressed {
+  v1::StatsReply stats;
+  std::uint64_t last_seq = 0;
+};
 
+Pressed press_and_wait(ServerProcess& server) {
   zmq::context_t ctx(1);
   zmq::socket_t ctl(ctx, zmq::socket_type::dealer), pose(ctx, zmq::socket_type::dealer);
   ctl.set(zmq::sockopt::linger, 0);
@@ -58,7 +60,6 @@ TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and k
   const auto& info = open.open().server();
   CHECK(std::find(info.stages().begin(), info.stages().end(), "chainmail") != info.stages().end());
 
-  // press into the back (+y) at the middle of the body, 10 mm deep, at 1 ms of client time per pose
   const auto& lo = info.patient().body_min_mm();
   const auto& hi = info.patient().body_max_mm();
   const double x = 0.5 * (lo.x() + hi.x()), z = 0.5 * (lo.z() + hi.z());
@@ -80,27 +81,42 @@ TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and k
   }
   REQUIRE(touched);
 
-  // the worker ends on the last contact, with every stage timed
+  // the worker ends on the last contact
   v1::ControlRequest sq;
   sq.set_schema_version(1);
   sq.mutable_stats()->set_session_id(id);
-  v1::StatsReply st;
+  Pressed out;
+  out.last_seq = seq;
   const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
   do {
     const auto r = test::exchange<v1::ControlReply>(ctl, sq, kReplyTimeoutMs);
     REQUIRE(r.has_stats());
-    st = r.stats();
-    if (st.session().deform().last_contact_seq() == seq) break;
+    out.stats = r.stats();
+    if (out.stats.session().deform().last_contact_seq() == seq) break;
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
   } while (std::chrono::steady_clock::now() < end);
+  return out;
+}
+
+TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and keeps answering poses",
+          "[integration][deform]") {
+  ServerProcess server(test::temp_file("deform.textproto", deform_scene_text()));
+  REQUIRE(server.wait_ready(kStartS));
+  INFO(server.child().err());
+  CHECK(server.child().err().find("deform backend \"") != std::string::npos);
+
+  // every stage timed
+  const Pressed pr = press_and_wait(server);
+  const v1::StatsReply& st = pr.stats;
   const v1::DeformSessionStats& d = st.session().deform();
   INFO(d.DebugString());
-  REQUIRE(d.last_contact_seq() == seq);
+  REQUIRE(d.last_contact_seq() == pr.last_seq);
   CHECK(d.steps() >= 1);
   CHECK(d.converged());
   CHECK(d.deformed());
   CHECK(d.failures() == 0);
   CHECK(d.moved() > 0);
+  CHECK_FALSE(d.chainmail_skipped());  // the explicit relaxation keeps ChainMail's field
   CHECK(d.last().chainmail_ms() > 0);
   CHECK(d.last().relax_ms() > 0);
   CHECK(d.last().invert_ms() > 0);
@@ -109,10 +125,30 @@ TEST_CASE("palpsim-server deforms a press on the phantom, logs its backend and k
   CHECK(server.child().err().find("deform backend \"" + st.server().deform_backend() + "\"") != std::string::npos);
   std::printf("phantom 4 mm, VOI 32, backend %s: %llu steps for %llu poses, mean step %.2f ms (chainmail %.2f, "
               "relax %.2f, invert %.2f)\n",
-              st.server().deform_backend().c_str(), (unsigned long long)d.steps(), (unsigned long long)seq,
+              st.server().deform_backend().c_str(), (unsigned long long)d.steps(), (unsigned long long)pr.last_seq,
               d.mean().total_ms(), d.mean().chainmail_ms(), d.mean().relax_ms(), d.mean().invert_ms());
   CHECK(server.stop() == 0);
   CHECK(server.child().out().find("palpsim-server: stopped") != std::string::npos);
+}
+
+TEST_CASE("palpsim-server's multigrid steps say they left ChainMail out", "[integration][deform]") {
+  // the phantom holds nothing outside bone that relaxation would hold, so every multigrid
+  // step skips ChainMail (server/deform/README.md) and its stats say so: no sweep, no move
+  ServerProcess server(test::temp_file("deform-mg.textproto", deform_scene_text("relax_method: \"multigrid\"")));
+  REQUIRE(server.wait_ready(kStartS));
+  const Pressed pr = press_and_wait(server);
+  const v1::DeformSessionStats& d = pr.stats.session().deform();
+  INFO(d.DebugString());
+  REQUIRE(d.last_contact_seq() == pr.last_seq);
+  CHECK(d.steps() >= 1);
+  CHECK(d.chainmail_skipped());
+  CHECK(d.sweeps() == 0);
+  CHECK(d.moved() == 0);
+  CHECK(d.converged());
+  CHECK(d.deformed());
+  CHECK(d.failures() == 0);
+  CHECK(d.max_change_hu() > 0);  // the press still deforms J
+  CHECK(server.stop() == 0);
 }
 
 TEST_CASE("palpsim-server refuses to start when the scene's deformation cannot be served", "[integration][deform]") {

@@ -37,11 +37,13 @@ inline v1::ControlReply control(zmq::socket_t& s, v1::ControlRequest q) {
   return r;
 }
 
-/// What press_sessions() did: each client's round trips (us, after the warm-up) and
-/// session id.
+/// What press_sessions() did: each client's round trips (us, after the warm-up), session
+/// id, and poses answered in contact (warm-up included; a pose a millisecond, so this is
+/// the client's time in the body in ms: steps are asked for only then).
 struct PressResult {
   std::vector<std::vector<double>> rtt_us;
   std::vector<std::uint64_t> ids;
+  std::vector<long> contact_poses;
 };
 
 /// Opens `n` sessions on the server at `control_endpoint`, each pressed by its own
@@ -62,6 +64,7 @@ inline PressResult press_sessions(const std::string& control_endpoint, const v1:
   PressResult out;
   out.rtt_us.resize(n);
   out.ids.assign(n, 0);
+  out.contact_poses.assign(n, 0);
   std::atomic<int> local_opened{0};
   std::atomic<int>& count = opened ? *opened : local_opened;
   std::vector<std::thread> threads;
@@ -111,6 +114,8 @@ inline PressResult press_sessions(const std::string& control_endpoint, const v1:
         if (!(it[0].revents & ZMQ_POLLIN)) continue;
         (void)pose.recv(m);
         if (s >= warm) out.rtt_us[c].push_back(std::chrono::duration<double, std::micro>(Clock::now() - ts).count());
+        v1::PoseReply reply;
+        if (reply.ParseFromArray(m.data(), int(m.size())) && reply.contact()) ++out.contact_poses[c];
       }
       if (before_close) before_close(c, ctl, out.ids[c]);
       v1::ControlRequest cl;

@@ -56,6 +56,8 @@ struct Row {
   int sessions = 0;
   std::string backend;
   std::vector<double> steps_per_s;     // per session, over its pressing time
+  std::vector<double> contact_share;   // per session: share of its pressing time in the body
+  std::vector<double> steps_per_contact_s;  // per session, over its time in the body (steps are asked for only then)
   std::vector<double> stage_ms[5];     // per session, mean per step: reset, ChainMail, relax, invert, upload (a batch's share)
   std::vector<double> dropped_share;   // per session: contacts dropped / (steps + dropped)
   std::vector<double> step_ms;         // per session: mean whole step (ms)
@@ -155,6 +157,7 @@ int run(int argc, char** argv) {
     for (int round = 0; round < o.rounds; ++round) {
       // haptics only, then the same clients with deformation
       const bench::PressResult a = bench::press_sessions(without.control_endpoint(), pi, n, o.seconds);
+      std::vector<double> steps_of(std::size_t(n), 0.0);  // each client's session's steps
       const v1::ServerStats before = control(ctl, sq).stats().server();
       const bench::PressResult b = bench::press_sessions(
           with.control_endpoint(), pi, n, o.seconds, nullptr, {}, [&](int c, zmq::socket_t& s, std::uint64_t id) {
@@ -166,6 +169,7 @@ int run(int argc, char** argv) {
             std::lock_guard<std::mutex> lock(mu);
             row.backend = d.backend();
             row.steps_per_s.push_back(double(d.steps()) / pressing_s);
+            steps_of[std::size_t(c)] = double(d.steps());
             const double offered = double(d.steps() + d.contacts_dropped());
             row.dropped_share.push_back(offered > 0 ? double(d.contacts_dropped()) / offered : 0.0);
             row.step_ms.push_back(d.mean().total_ms());
@@ -183,6 +187,12 @@ int run(int argc, char** argv) {
                   row.server_bytes += double(stage.bytes_allocated());
             }
           });
+      // each session's steps over its client's time in the body (a pose a millisecond)
+      for (int c = 0; c < n; ++c) {
+        const double contact_s = 1e-3 * double(b.contact_poses[std::size_t(c)]);
+        row.contact_share.push_back(contact_s / (o.seconds + 0.2));
+        if (contact_s > 0) row.steps_per_contact_s.push_back(steps_of[std::size_t(c)] / contact_s);
+      }
       // the worker's time over this run with deformation
       const v1::ServerStats after = control(ctl, sq).stats().server();
       wall += after.deform_worker_wall_s() - before.deform_worker_wall_s();
@@ -215,13 +225,15 @@ int run(int argc, char** argv) {
                 quantile(r.stage_ms[3], 0.5), quantile(r.stage_ms[4], 0.5), gpu_ms, quantile(r.step_ms, 0.5));
     const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
     std::printf(
-        "%2d sessions (%s, VOI %d, %s, %d in flight, batches of up to %d): steps/s per session min %.0f median %.0f; "
+        "%2d sessions (%s, VOI %d, %s, %d in flight, batches of up to %d): steps/s per session min %.0f median %.0f "
+        "(in the body %.0f%% of the time: %.0f per second of contact); "
         "%.0f%% of steps batched, %.1f sessions a batch; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
         "memory %.1f MB per session, deformation server-wide %.1f MB; round trip p50 %.0f / p99 %.0f us with "
         "deformation, p99 %.0f us without (ratio %.2f, median of %zu rounds)\n",
         n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice", o.concurrency, o.batch,
         r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()),
-        quantile(r.steps_per_s, 0.5), 100 * r.batched_share, r.mean_batch, quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
+        quantile(r.steps_per_s, 0.5), 100 * quantile(r.contact_share, 0.5), quantile(r.steps_per_contact_s, 0.5),
+        100 * r.batched_share, r.mean_batch, quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
         100 * r.worker_sleep_share, own_mb,
         r.server_bytes / (1 << 20), quantile(r.rtt_with, 0.5), quantile(r.rtt_with, 0.99),
         quantile(r.rtt_without, 0.99), quantile(r.ratios, 0.5), r.ratios.size());
@@ -253,6 +265,8 @@ int run(int argc, char** argv) {
       out << "    {\"sessions\": " << r.sessions << ", \"backend\": \"" << r.backend << "\", \"steps_per_s_min\": "
           << json_number(r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()))
           << ", \"steps_per_s_median\": " << json_number(quantile(r.steps_per_s, 0.5))
+          << ", \"contact_share_median\": " << json_number(quantile(r.contact_share, 0.5))
+          << ", \"steps_per_contact_s_median\": " << json_number(quantile(r.steps_per_contact_s, 0.5))
           << ", \"step_ms_median\": " << json_number(quantile(r.step_ms, 0.5))
           << ", \"stage_ms_median\": {\"reset\": " << json_number(quantile(r.stage_ms[0], 0.5))
           << ", \"chainmail\": " << json_number(quantile(r.stage_ms[1], 0.5))

@@ -14,10 +14,11 @@ namespace palpsim::deform {
 
 /// True where relaxation may hold an element outside the bone mask (ChainMail moves every
 /// element outside it): relaxation holds an element of material weight 0, i.e. where
-/// tanhf((I - threshold) / width) rounds to 1, which takes an argument above 8.6 (1 -
-/// tanh(8.6) is half a float ulp below 1); the GPU's tanhf is within 2 ulp, and tanh(7)
-/// lies 28 ulp below 1, so 7 widths flag every such element on either backend, and a few
-/// more. NaN intensities are held by neither.
+/// tanhf((I - threshold) / width) rounds to 1, which glibc's tanhf first does at 9.011
+/// (measured; 1 - tanh is half the float spacing below 1 there). The GPU's tanhf is within
+/// 2 ulp, so it cannot reach 1 before 1 - tanh falls to 2.5 ulp, at 8.2; 1 - tanh(7) is 28
+/// ulp, so 7 widths flag every such element on either backend, and a few more. NaN
+/// intensities are held by neither.
 inline bool may_hold_outside_bone(float intensity, bool bone, float threshold, float width) {
   return !bone && intensity - threshold >= 7.0f * width;
 }

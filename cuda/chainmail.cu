@@ -209,8 +209,11 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(con
   __shared__ int moved_s[kMaxBatch], fresh_s[kMaxBatch];  // this block's counts per session, this sweep
   cg::grid_group grid = cg::this_grid();
   for (int q = int(grid.thread_rank()); q < n; q += int(grid.size()))
-    if (items[q].chainmail) chainmail_start(items[q].geo, items[q].u0, items[q].b);
-  for (int q = threadIdx.x; q < n; q += blockDim.x) active[q] = items[q].chainmail != 0;
+    if (items[q].chainmail) {
+      chainmail_start(items[q].geo, items[q].u0, items[q].b);
+      if (items[q].chainmail == 2) items[q].b.counters->converged = 1;  // left out: the start alone
+    }
+  for (int q = threadIdx.x; q < n; q += blockDim.x) active[q] = items[q].chainmail == 1;
   grid.sync();
 
   const unsigned nwarps = gridDim.x * blockDim.x / 32, warp = (blockIdx.x * blockDim.x + threadIdx.x) / 32;

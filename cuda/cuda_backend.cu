@@ -437,12 +437,16 @@ DeformStats CudaDeformBackend::end_step_impl() {
 }
 
 bool CudaDeformBackend::batchable_with(const CudaDeformBackend& o) const {
-  // the batched kernels take the settings once for all sessions; multigrid relaxation
-  // and untangling have no batched kernels (each session steps alone)
+  // the batched kernels take the settings once for all sessions; untangling has no batched
+  // kernel (each session steps alone); multigrid sessions share the batch's other launches
+  // and its one wait, their solves one launch each on the batch's stream
   const DeformSettings &a = config_.settings, &b = o.config_.settings;
+  const bool mg = a.relax_method == "multigrid";
   return config_.relax == o.config_.relax && config_.invert == o.config_.invert &&
-         config_.bone_threshold == o.config_.bone_threshold && a.relax_method == "explicit" &&
-         b.relax_method == "explicit" && !(config_.relax && a.untangle) && !(o.config_.relax && b.untangle) &&
+         config_.bone_threshold == o.config_.bone_threshold && a.relax_method == b.relax_method &&
+         (!mg || (a.relax_cycles == b.relax_cycles && a.relax_warm_cycles == b.relax_warm_cycles &&
+                  config_.relax_reuse == o.config_.relax_reuse && config_.skip_chainmail == o.config_.skip_chainmail)) &&
+         !(config_.relax && a.untangle) && !(o.config_.relax && b.untangle) &&
          a.max_sweeps == b.max_sweeps && a.relax_iterations == b.relax_iterations && a.relax_step == b.relax_step &&
          a.material_width == b.material_width && a.invert_iterations == b.invert_iterations &&
          a.invert_search == b.invert_search &&
@@ -468,6 +472,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   CudaBatch& bt = *batch_;
   bt.wait();  // the last use of the items is over
   const DeformSettings& s = config_.settings;
+  const bool mg = config_.relax && s.relax_method == "multigrid";
   unsigned max_reset = 0, max_voi = 0;
   Vec3i most{0, 0, 0};  // the largest VOI size along each axis
   bool any_chainmail = false;
@@ -478,17 +483,20 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
     it = BatchItem{};
     it.geo = c.geometry();
     it.u0 = c.setup_.grabbed_u_vox;
-    it.chainmail = c.setup_.grabbed_in_bone ? 0 : 1;
+    // 2: ChainMail left out (the grabbed element alone; ChainMailStats::skipped)
+    it.chainmail = c.setup_.grabbed_in_bone ? 0 : (c.setup_.skipped ? 2 : 1);
     it.reset_count = unsigned(c.dirty_.count());
     it.b = c.d_;
     it.host_counters = c.host_counters_;
-    // reset leaves buffer 0; converged ChainMail leaves its result in both buffers, capped in the last sweep's
-    int cur = it.chainmail ? (s.max_sweeps & 1) : 0;
+    // reset leaves buffer 0; converged ChainMail leaves its result in both buffers (as its
+    // start alone does), capped in the last sweep's; multigrid works in place
+    int cur = it.chainmail == 1 ? (s.max_sweeps & 1) : 0;
     it.relax_src = cur;
-    if (config_.relax) cur = (cur + s.relax_iterations) & 1;
+    if (config_.relax && !mg) cur = (cur + s.relax_iterations) & 1;
     it.invert_src = cur;
     c.cur_ = cur;
-    c.field_extra_ = config_.relax ? s.relax_iterations : 0;
+    c.field_extra_ = config_.relax ? (mg ? -1 : s.relax_iterations) : 0;
+    if (mg) c.ensure_multigrid_buffers();
     c.dirty_ = c.voi_;
     c.prepare_stats(c.setup_);
     max_reset = std::max(max_reset, it.reset_count);
@@ -507,9 +515,19 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[1], st));
   if (any_chainmail) launch_chainmail_batch(bt.dev_items, n, limits_, s.max_sweeps, full_shape_, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[2], st));
-  if (config_.relax)
+  if (mg) {
+    // each session's multigrid solve (or reuse of its unit response) in turn, without a wait
+    // between them: no batched multigrid kernel yet
+    for (int i = 0; i < n; ++i) {
+      CudaDeformBackend& c = *m[i];
+      launch_relax_multigrid(c.geometry(), bt.host_items[i].relax_src, s.relax_cycles, s.relax_warm_cycles,
+                             float(config_.bone_threshold), float(s.material_width), c.config_.relax_reuse, c.d_,
+                             c.mg_, c.full_mg_blocks_, st);
+    }
+  } else if (config_.relax) {
     launch_relax_batch(bt.dev_items, n, most, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
                        float(s.material_width), full_shape_, st);
+  }
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[3], st));
   if (config_.invert) launch_invert_batch(bt.dev_items, n, max_voi, s.invert_iterations, s.invert_search, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[4], st));
@@ -530,6 +548,8 @@ DeformStats CudaDeformBackend::end_batched_step() {
   DeformStats out = step_out_;
   InvertStats inv;
   read_counters(&out.chainmail, &inv, nullptr);
+  if (config_.relax && config_.settings.relax_method == "multigrid")
+    set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;

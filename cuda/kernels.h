@@ -127,7 +127,7 @@ constexpr int kMaxBatch = 64;
 struct BatchItem {
   StepGeometry geo;
   Vec3f u0{0, 0, 0};               // the grabbed element's displacement (voxel)
-  int chainmail = 0;               // 1: ChainMail runs; 0: the grabbed element is in bone, nothing moves
+  int chainmail = 0;               // 1: ChainMail runs; 2: its start alone (skipped); 0: the grabbed element is in bone
   int relax_src = 0;               // displacement buffer the relaxation starts from
   /// Explicit relaxation steps the field had since this step's ChainMail (its extent:
   /// counters->sweeps plus these, deform::relax_reach); -1: unknown (set by hand,

@@ -827,6 +827,65 @@ TEST_CASE("a batch of sessions stepped by shared launches equals each session st
   }
 }
 
+TEST_CASE("a batch of multigrid sessions equals each session stepping alone, bit for bit") {
+  if (!have_gpu()) return;
+  // multigrid sessions share a batch's reset, ChainMail (its start alone where skipped),
+  // inversion and wait, their solves one launch each on the batch's stream: each must
+  // equal a twin stepping the same contacts alone (the same unit responses kept between
+  // rounds: a reuse, a warm start or a fresh solve as the twin has); among the sessions a
+  // grabbed element in bone and a clipped VOI
+  auto torso = make_torso_patient(96);
+  const int n = 12;
+  std::vector<DeformContact> pushes;
+  for (const RandomPush& p : random_pushes(*torso, n, 5)) pushes.push_back(p.contact);
+  REQUIRE(torso->bone.at(47, 67, 40));
+  pushes[3] = voxel_contact({47, 67, 40}, {0.0, -4.0, 0.0});
+  pushes[7] = voxel_contact({6, 48, 48}, {5.0, 1.0, 0.0});
+  DeformConfig cfg = preset_config(2);
+  cfg.settings.voi_edge = 48;
+  cfg.settings.backend = "cuda";
+  cfg.settings.relax_method = "multigrid";
+  cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+  std::vector<std::unique_ptr<DeformEngine>> sessions, twins;
+  std::vector<DeformBackend*> backends;
+  for (int s = 0; s < n; ++s) {
+    sessions.push_back(std::make_unique<DeformEngine>(torso, cfg));
+    twins.push_back(std::make_unique<DeformEngine>(torso, cfg));
+    backends.push_back(&sessions.back()->backend());
+  }
+  // the same contacts again (reuse), a voxel deeper (warm), then far off (fresh)
+  const Vec3 deeper{0.0, 1.0, 0.0};
+  int skipped = 0, solves = 0, warm = 0, reused = 0;
+  for (int round = 0; round < 4; ++round) {
+    std::vector<DeformContact> k = pushes;
+    for (DeformContact& c : k) {
+      if (round >= 2) c.tip_mm = c.tip_mm + deeper;
+      // 9 voxels along k, towards the middle: the grabbed element too far for a warm start
+      const Vec3 far{0.0, 0.0, c.skin_point_mm.z < 48 ? 9.0 : -9.0};
+      if (round == 3) c = {c.skin_point_mm + far, c.tip_mm + far};
+    }
+    const std::vector<DeformStats> st = step_batch(sessions, backends, k);
+    for (int s = 0; s < n; ++s) {
+      INFO("round " << round << ", session " << s);
+      const DeformStats a = twins[s]->step(k[s]);
+      check_same_step(st[s], a, *sessions[s], *twins[s], n);
+      CHECK(st[s].chainmail.skipped == a.chainmail.skipped);
+      CHECK(st[s].relax_solves == a.relax_solves);
+      CHECK(st[s].relax_warm == a.relax_warm);
+      CHECK(st[s].relax_cycles == a.relax_cycles);
+      skipped += a.chainmail.skipped;
+      solves += a.relax_solves;
+      warm += a.relax_warm;
+      reused += a.relax_solves == 0;
+    }
+  }
+  // the kinds of step the batch must handle were there
+  CHECK(skipped >= n);
+  CHECK(reused >= 1);
+  CHECK(warm >= 1);
+  CHECK(solves >= n);
+}
+
 TEST_CASE("a batch of sessions with the inversion's cell search equals each session alone, bit for bit") {
   if (!have_gpu()) return;
   // 16 sessions pressing the phantom's back 25 mm deep at 8 mm apart along the spine

@@ -3,6 +3,8 @@
 
 #include <algorithm>
 #include <chrono>
+#include <mutex>
+#include <vector>
 #include <cstring>
 
 #include "cuda/check.h"
@@ -70,11 +72,11 @@ void CudaDeformBackend::release() {
   cudaFree(d_.untangle_flags);
   for (float*& c : d_.untangle_new) cudaFree(c);
   cudaFree(d_.counters);
-  for (void* q : {(void*)mg_.g, (void*)mg_.g_last, (void*)mg_.r[0], (void*)mg_.r[1], (void*)mg_.z, (void*)mg_.p[0], (void*)mg_.p[1],
-                  (void*)mg_.q, (void*)mg_.res, (void*)mg_.held, (void*)mg_.cx, (void*)mg_.cf, (void*)mg_.cres, (void*)mg_.cheld, (void*)mg_.dots,
-                  (void*)mg_.flags})
-    cudaFree(q);
+  // the session's own multigrid buffers; the scratch goes with its last holder
+  for (void* q : {(void*)mg_.g, (void*)mg_.g_last, (void*)mg_.flags}) cudaFree(q);
   mg_ = MultigridBuffers{};
+  mg_shared_.reset();
+  mg_own_.reset();
   cudaFreeHost(host_counters_);
   cudaFreeHost(host_j_);
   for (cudaEvent_t& e : ev_)
@@ -171,13 +173,11 @@ void CudaDeformBackend::ensure_multigrid_buffers() {
     most[a] = config_.settings.whole_volume ? patient_->grid.size[a] : std::min(config_.settings.voi_edge, patient_->grid.size[a]);
   const long long nc = std::max(1LL, deform::multigrid_plan(most, Vec3i{0, 0, 0}).coarse_count);
   const std::size_t n = std::size_t(capacity_);
-  for (float** v : {&mg_.g, &mg_.g_last, &mg_.r[0], &mg_.r[1], &mg_.z, &mg_.p[0], &mg_.p[1], &mg_.q, &mg_.res})
-    PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(float)));
-  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.held, n));
-  for (float** v : {&mg_.cx, &mg_.cf, &mg_.cres}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(float)));
-  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.cheld, std::size_t(nc)));
-  PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.dots, 6 * deform::kMultigridMaxCycles * sizeof(double)));
+  // the session's own: its unit response, the last one, the flags; the scratch is shared
+  for (float** v : {&mg_.g, &mg_.g_last}) PALPSIM_CUDA_CHECK(cudaMalloc(v, n * sizeof(float)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&mg_.flags, 3 * sizeof(int)));
+  mg_shared_ = MultigridScratch::shared(capacity_, nc);
+  mg_shared_->lend_to(mg_);
   // on this backend's stream, waited for (a legacy-stream cudaMemset races the steps' stream; see bind)
   PALPSIM_CUDA_CHECK(cudaMemsetAsync(mg_.flags, 0, 3 * sizeof(int), stream_));
   PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
@@ -203,13 +203,78 @@ DeformMemory CudaDeformBackend::memory_impl() const {
                    (d_.search_slot ? n * sizeof(int) : 0) +
                    std::size_t(d_.candidate_capacity) * sizeof(InvertCandidate);
   m.shared_patient_bytes = patient_copy_ ? patient_copy_->bytes() : 0;
-  // multigrid: nine scalar VOI fields and a mask, three coarse fields and a mask, the dot
-  // sums and flags
-  if (mg_.capacity > 0)
-    m.relax_bytes += std::size_t(mg_.capacity) * (9 * sizeof(float) + 1) +
-                    std::size_t(mg_.coarse_capacity) * (3 * sizeof(float) + 1) +
-                    6 * deform::kMultigridMaxCycles * sizeof(double) + 3 * sizeof(int);
+  // multigrid: the session's two unit responses and flags, a scratch of its own while steps
+  // run side by side; the shared scratch once per server
+  if (mg_.capacity > 0) m.relax_bytes += 2 * std::size_t(mg_.capacity) * sizeof(float) + 3 * sizeof(int);
+  if (mg_own_) m.relax_bytes += mg_own_->bytes();
+  if (mg_shared_) m.shared_scratch_bytes = mg_shared_->bytes();
   return m;
+}
+
+MultigridScratch::MultigridScratch(long long n, long long nc) : capacity(n), coarse_capacity(nc) {
+  PALPSIM_CUDA_CHECK(cudaGetDevice(&device));
+  for (float** v : {&r[0], &r[1], &z, &p[0], &p[1], &q, &res})
+    PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(n) * sizeof(float)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&held, std::size_t(n)));
+  for (float** v : {&cx, &cf, &cres}) PALPSIM_CUDA_CHECK(cudaMalloc(v, std::size_t(nc) * sizeof(float)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&cheld, std::size_t(nc)));
+  PALPSIM_CUDA_CHECK(cudaMalloc(&dots, 6 * deform::kMultigridMaxCycles * sizeof(double)));
+  PALPSIM_CUDA_CHECK(cudaEventCreateWithFlags(&done, cudaEventDisableTiming));
+}
+
+MultigridScratch::Turn::Turn(MultigridScratch& s, cudaStream_t stream) : s_(s), stream_(stream), lock_(s.mu) {
+  PALPSIM_CUDA_CHECK(cudaStreamWaitEvent(stream, s.done, 0));  // a no-op before the first record
+}
+
+MultigridScratch::Turn::~Turn() { cudaEventRecord(s_.done, stream_); }
+
+MultigridScratch::~MultigridScratch() {
+  cudaEventDestroy(done);
+  for (void* v : {(void*)r[0], (void*)r[1], (void*)z, (void*)p[0], (void*)p[1], (void*)q, (void*)res, (void*)held,
+                  (void*)cx, (void*)cf, (void*)cres, (void*)cheld, (void*)dots})
+    cudaFree(v);
+}
+
+std::shared_ptr<MultigridScratch> MultigridScratch::shared(long long n, long long nc) {
+  // the scratches alive, by device and capacities
+  static std::mutex mu;
+  static std::vector<std::weak_ptr<MultigridScratch>> all;
+  int dev = 0;
+  PALPSIM_CUDA_CHECK(cudaGetDevice(&dev));
+  std::lock_guard<std::mutex> lock(mu);
+  all.erase(std::remove_if(all.begin(), all.end(), [](const auto& w) { return w.expired(); }), all.end());
+  for (const auto& w : all)
+    if (auto s = w.lock())
+      if (s->device == dev && s->capacity == n && s->coarse_capacity == nc) return s;
+  auto s = std::make_shared<MultigridScratch>(n, nc);
+  all.push_back(s);
+  return s;
+}
+
+void MultigridScratch::lend_to(MultigridBuffers& m) const {
+  m.r[0] = r[0];
+  m.r[1] = r[1];
+  m.z = z;
+  m.p[0] = p[0];
+  m.p[1] = p[1];
+  m.q = q;
+  m.res = res;
+  m.held = held;
+  m.cx = cx;
+  m.cf = cf;
+  m.cres = cres;
+  m.cheld = cheld;
+  m.dots = dots;
+}
+
+std::size_t MultigridScratch::bytes() const {
+  return std::size_t(capacity) * (7 * sizeof(float) + 1) + std::size_t(coarse_capacity) * (3 * sizeof(float) + 1) +
+         6 * deform::kMultigridMaxCycles * sizeof(double);
+}
+
+MultigridScratch& CudaDeformBackend::own_multigrid_scratch() {
+  if (!mg_own_) mg_own_ = std::make_shared<MultigridScratch>(mg_.capacity, mg_.coarse_capacity);
+  return *mg_own_;
 }
 
 StepGeometry CudaDeformBackend::geometry() const {
@@ -249,8 +314,12 @@ void CudaDeformBackend::enqueue_chainmail() {
 void CudaDeformBackend::enqueue_relax() {
   const DeformSettings& s = config_.settings;
   if (s.relax_method == "multigrid") {
-    // in place on the current buffer
+    // in place on the current buffer; with other steps in flight beside it, in a scratch
+    // of its own
     ensure_multigrid_buffers();
+    MultigridScratch& scratch = gpu_share_ > 1 ? own_multigrid_scratch() : *mg_shared_;
+    scratch.lend_to(mg_);
+    const MultigridScratch::Turn turn(scratch, stream_);
     launch_relax_multigrid(geometry(), cur_, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
                            float(s.material_width), config_.relax_reuse, d_, mg_, mg_blocks_, stream_);
     field_extra_ = -1;  // the steady state is nonzero wherever the grabbed element is felt
@@ -520,6 +589,8 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
     // between them: no batched multigrid kernel yet
     for (int i = 0; i < n; ++i) {
       CudaDeformBackend& c = *m[i];
+      c.mg_shared_->lend_to(c.mg_);
+      const MultigridScratch::Turn turn(*c.mg_shared_, st);
       launch_relax_multigrid(c.geometry(), bt.host_items[i].relax_src, s.relax_cycles, s.relax_warm_cycles,
                              float(config_.bone_threshold), float(s.material_width), c.config_.relax_reuse, c.d_,
                              c.mg_, c.full_mg_blocks_, st);

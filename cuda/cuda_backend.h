@@ -6,6 +6,9 @@
 
 #include <chrono>
 #include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <mutex>
 
 #include "core/device_bytes.h"
 #include "cuda/batch.h"
@@ -32,6 +35,50 @@ class CudaDeviceBytes final : public DeviceBytes {
  private:
   void* ptr_ = nullptr;
   std::size_t size_ = 0;
+};
+
+/// The multigrid solver's scratch for VOIs of up to `capacity` elements and coarse levels
+/// of up to `coarse_capacity` nodes: level 0's residuals, directions, correction and held
+/// mask, the coarse levels, the dot sums. Nothing in it outlives a launch (the held mask
+/// and the sums are made anew by each), so sessions whose solves run one after another may
+/// share one (their launches take turns: Turn); what a session keeps (its unit responses,
+/// flags) stays in its own buffers.
+struct MultigridScratch {
+  /// Held around a launch that uses the scratch: the launch waits on the device for the
+  /// last one that used it, on whatever stream that ran (no host wait), and the next waits
+  /// for this one.
+  class Turn {
+   public:
+    Turn(MultigridScratch& s, cudaStream_t stream);
+    ~Turn();
+    Turn(const Turn&) = delete;
+    Turn& operator=(const Turn&) = delete;
+
+   private:
+    MultigridScratch& s_;
+    cudaStream_t stream_;
+    std::lock_guard<std::mutex> lock_;
+  };
+
+  MultigridScratch(long long capacity, long long coarse_capacity);
+  ~MultigridScratch();
+  MultigridScratch(const MultigridScratch&) = delete;
+  MultigridScratch& operator=(const MultigridScratch&) = delete;
+  /// The scratch shared on the current device for these capacities: the one alive, or a new one.
+  static std::shared_ptr<MultigridScratch> shared(long long capacity, long long coarse_capacity);
+  /// Points `m`'s scratch fields at this scratch.
+  void lend_to(MultigridBuffers& m) const;
+  /// Device bytes held.
+  std::size_t bytes() const;
+
+  long long capacity, coarse_capacity;
+  int device = 0;
+  float *r[2] = {nullptr, nullptr}, *z = nullptr, *p[2] = {nullptr, nullptr}, *q = nullptr, *res = nullptr;
+  float *cx = nullptr, *cf = nullptr, *cres = nullptr;
+  std::uint8_t *held = nullptr, *cheld = nullptr;
+  double* dots = nullptr;
+  cudaEvent_t done = nullptr;  // recorded after the last launch that used the scratch
+  std::mutex mu;               // one Turn at a time
 };
 
 /// The CUDA backend. The patient's intensity and bone mask live on the device once
@@ -95,6 +142,11 @@ class CudaDeformBackend final : public DeformBackend {
   std::shared_ptr<const DevicePatient> patient_copy_;  // I and the bone mask, shared
   DeviceBuffers d_;
   MultigridBuffers mg_;                // empty unless the scene relaxes by multigrid
+  /// The multigrid solver's scratch: shared by the device's sessions of this VOI size
+  /// (their solves run one after another: alone, or in turn within a batch), or this
+  /// session's own while steps run side by side (set_gpu_share() above 1)
+  std::shared_ptr<MultigridScratch> mg_shared_, mg_own_;
+  MultigridScratch& own_multigrid_scratch();  // mg_own_, made on first use
   int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel, this step
   int full_mg_blocks_ = 0;             // ... that fit on the device
   LaunchShape shape_;                  // persistent kernels' blocks, this step (launch_shape_for_share)

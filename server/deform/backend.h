@@ -109,6 +109,9 @@ struct DeformMemory {
   /// The patient's device copy (cuda: I and the bone mask), shared by every session on
   /// that patient: not the session's own, so not in total(); a server counts it once.
   std::size_t shared_patient_bytes = 0;
+  /// Solver scratch shared by the sessions whose solves run one after another (cuda
+  /// multigrid: residuals, directions, coarse levels): not in total(); a server counts it once.
+  std::size_t shared_scratch_bytes = 0;
   /// The session's own memory.
   std::size_t total() const { return chainmail_bytes + relax_bytes + invert_bytes; }
 };

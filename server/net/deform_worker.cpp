@@ -59,6 +59,8 @@ void add_memory(DeformMemory& a, const DeformMemory& b) {
   a.invert_bytes += b.invert_bytes;
   // every engine of a world shares the one device copy of its patient: count it once
   a.shared_patient_bytes = std::max(a.shared_patient_bytes, b.shared_patient_bytes);
+  // and the one solver scratch of its multigrid sessions
+  a.shared_scratch_bytes = std::max(a.shared_scratch_bytes, b.shared_scratch_bytes);
 }
 
 bool finite(const DeformStats& st) {
@@ -646,6 +648,7 @@ DeformServerReport DeformWorker::server_report() const {
     }
   // server-wide, ChainMail's stage holds the patient's shared device copy too (once)
   r.memory.chainmail_bytes += r.memory.shared_patient_bytes;
+  r.memory.relax_bytes += r.memory.shared_scratch_bytes;
   return r;
 }
 

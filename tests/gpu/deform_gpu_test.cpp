@@ -121,6 +121,12 @@ void check_same_step(const DeformStats& b, const DeformStats& a, DeformEngine& b
         std::vector<float>(alone.deformed_brick(), alone.deformed_brick() + a.chainmail.voi.count()));
 }
 
+// four sessions' presses at different points of make_torso_patient(96)'s back
+std::vector<DeformContact> four_presses() {
+  return {voxel_contact({44, 14, 44}, {1.0, 6.0, -1.0}), voxel_contact({52, 14, 44}, {0.0, 5.0, 0.5}),
+          voxel_contact({44, 14, 52}, {-1.0, 7.0, 0.0}), voxel_contact({52, 14, 52}, {0.5, 4.0, 1.0})};
+}
+
 }  // namespace
 
 TEST_CASE("gpu chainmail reproduces Table 2 exactly, d = 3 to 30") {
@@ -732,8 +738,7 @@ TEST_CASE("steps of several sessions in flight at once, each with a share of the
   cfg.settings.voi_edge = 48;
   cfg.settings.backend = "cuda";
   // four sessions pressing at different points, and one session stepping them in turn
-  const DeformContact k[4] = {voxel_contact({44, 14, 44}, {1.0, 6.0, -1.0}), voxel_contact({52, 14, 44}, {0.0, 5.0, 0.5}),
-                              voxel_contact({44, 14, 52}, {-1.0, 7.0, 0.0}), voxel_contact({52, 14, 52}, {0.5, 4.0, 1.0})};
+  const std::vector<DeformContact> k = four_presses();
   DeformEngine alone(torso, cfg);
   std::vector<std::vector<float>> j_alone(4);
   std::vector<DeformStats> st_alone(4);
@@ -764,6 +769,48 @@ TEST_CASE("steps of several sessions in flight at once, each with a share of the
   sessions[0]->begin_step(k[0]);
   CHECK_THROWS_WITH(sessions[0]->begin_step(k[0]), Catch::Contains("begin_step() twice"));
   sessions[0]->end_step();
+}
+
+TEST_CASE("multigrid sessions share one solver scratch, in turns when in flight at once, and step as alone") {
+  if (!have_gpu()) return;
+  // four multigrid sessions on one patient hold one scratch (residuals, directions, coarse
+  // levels): their own memory is their two unit responses and flags. Begun together on
+  // their own streams, their solves take turns on it (share 1), or use scratches of their
+  // own (share 4); either way each equals a twin stepping the same contacts alone
+  auto torso = make_torso_patient(96);
+  DeformConfig cfg = preset_config(2);
+  cfg.settings.voi_edge = 48;
+  cfg.settings.backend = "cuda";
+  cfg.settings.relax_method = "multigrid";
+  const std::vector<DeformContact> k = four_presses();
+  std::vector<std::unique_ptr<DeformEngine>> sessions, twins;
+  for (int s = 0; s < 4; ++s) {
+    sessions.push_back(std::make_unique<DeformEngine>(torso, cfg));
+    twins.push_back(std::make_unique<DeformEngine>(torso, cfg));
+  }
+  const Vec3 deeper{0.0, 1.0, 0.0};
+  for (int share : {1, 4, 1}) {
+    for (auto& e : sessions) e->backend().set_gpu_share(share);
+    for (int s = 0; s < 4; ++s) sessions[s]->begin_step({k[s].skin_point_mm, k[s].tip_mm + deeper * double(share)});
+    for (int s = 0; s < 4; ++s) {
+      const DeformStats st = sessions[s]->end_step();
+      const DeformStats a = twins[s]->step({k[s].skin_point_mm, k[s].tip_mm + deeper * double(share)});
+      INFO("share " << share << ", session " << s);
+      CHECK(st.relax_solves == a.relax_solves);
+      CHECK(st.relax_warm == a.relax_warm);
+      CHECK(sessions[s]->backend().displacement() == twins[s]->backend().displacement());
+      const std::vector<float> j(sessions[s]->deformed_brick(), sessions[s]->deformed_brick() + sessions[s]->voi().count());
+      CHECK(j == std::vector<float>(twins[s]->deformed_brick(), twins[s]->deformed_brick() + twins[s]->voi().count()));
+    }
+  }
+  // one shared scratch, counted once; each session's own: G, the last G, three flags (and
+  // the scratch it made for share 4)
+  const DeformMemory m0 = sessions[0]->backend().memory(), m1 = sessions[1]->backend().memory();
+  CHECK(m0.shared_scratch_bytes > 0);
+  CHECK(m0.shared_scratch_bytes == m1.shared_scratch_bytes);
+  const std::size_t capacity = 48 * 48 * 48;
+  CHECK(twins[0]->backend().memory().relax_bytes == 2 * capacity * sizeof(float) + 3 * sizeof(int));
+  CHECK(m0.relax_bytes == 2 * capacity * sizeof(float) + 3 * sizeof(int) + m0.shared_scratch_bytes);
 }
 
 TEST_CASE("a batch of sessions stepped by shared launches equals each session stepping alone, bit for bit") {

@@ -476,6 +476,7 @@ int run_deform_accuracy(const AccuracyOptions& o) {
         ws.push_back(c);
         ws.back().settings.relax_cycles = DeformSettings{}.relax_cycles;
         ws.back().settings.relax_warm_cycles = n;
+        ws.back().voi_hold = false;  // every step another VOI
       }
       const std::vector<Run> warm =
           run_settings(be, patient, ws, pressing(patient->grid, press.contact, 6), warmup, reps, Stage::relax);
@@ -665,6 +666,7 @@ void apply_relax_method(DeformConfig& cfg, const std::string& method, int n) {
     cfg.settings.relax_cycles = DeformSettings{}.relax_cycles;
     cfg.settings.relax_warm_cycles = n;
     cfg.relax_reuse = true;
+    cfg.voi_hold = false;  // every step another VOI: what a warm start costs
   } else {
     throw Error("accuracy: relaxation method '" + method + "' is not in this build");
   }

@@ -150,6 +150,9 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
   held_blocks_.reset();
   if (config.skip_chainmail && config.relax && s.relax_method == "multigrid" && s.relax_cycles > 0)
     held_blocks_ = deform::HeldBlocks::of(patient_, float(config.bone_threshold), float(s.material_width));
+  voi_hold_ = config.voi_hold && config.relax && config.relax_reuse && s.relax_method == "multigrid" &&
+              s.relax_cycles > 0 && !s.whole_volume;
+  hold_voi_ = Voi{};
   voi_ = Voi{};
   setup_ = ChainMailStats{};
   bound_ = false;
@@ -183,6 +186,22 @@ ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
   st.grabbed_u_vox = Vec3f(float(x.x - e0.x), float(x.y - e0.y), float(x.z - e0.z));
   st.grabbed_in_bone = patient_->bone.data[grid.index(e0.x, e0.y, e0.z)] != 0;
   st.voi = compute_voi(grid.size, e0, t, config_.settings.voi_edge, config_.settings.whole_volume);
+  // a multigrid press keeps its VOI (and so its unit response) while the tip voxel stays
+  // within edge / 8 voxels of the one it was placed around and it holds the grabbed voxel
+  // (DeformConfig::voi_hold)
+  if (voi_hold_) {
+    const int slack = std::max(1, config_.settings.voi_edge / 8);
+    bool keep = hold_voi_.count() > 0;
+    for (int a = 0; a < 3; ++a)
+      keep = keep && std::abs(t[a] - hold_tip_[a]) <= slack && e0[a] >= hold_voi_.lo[a] &&
+             e0[a] < hold_voi_.lo[a] + hold_voi_.size[a];
+    if (keep) {
+      st.voi = hold_voi_;
+    } else {
+      hold_voi_ = st.voi;
+      hold_tip_ = t;
+    }
+  }
   st.skipped = held_blocks_ && !st.grabbed_in_bone && !held_blocks_->any_in(st.voi);
   return st;
 }
@@ -228,6 +247,7 @@ void DeformBackend::reset() {
   require(bound_, "reset() before bind()");
   if (stage_ != 0) reset_impl();
   stage_ = 0;
+  hold_voi_ = Voi{};  // the next contact starts a press afresh
 }
 
 DeformStats DeformBackend::step(const DeformContact& contact) {

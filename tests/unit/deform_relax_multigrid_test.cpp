@@ -392,3 +392,42 @@ TEST_CASE("HeldBlocks flags every element relaxation holds outside bone, and is 
   CHECK(a == b);
   CHECK(deform::HeldBlocks::of(patient, thr + 1, width) != a);
 }
+
+TEST_CASE("a multigrid press keeps its VOI while the tip stays within edge / 8 voxels, reusing its unit response") {
+  // pressing into the back a voxel a step (the grabbed element stays): with voi_hold the VOI
+  // stays while the centred one lies within 40 / 8 = 5 voxels of it, so those steps reuse G
+  // (0 solves); the sixth voxel re-centres it (a warm start, 1 solve); every step within 1%
+  // of the steady state on its own VOI (30 steps from zero, reused alike), as the warm
+  // starts are; without voi_hold every step moves the VOI and solves
+  auto torso = make_torso_patient(64);
+  DeformConfig cfg = reuse_press().cfg;
+  cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+  cfg.voi_hold = true;
+  DeformConfig steady_cfg = cfg, follow_cfg = cfg;
+  steady_cfg.settings.relax_cycles = 30;
+  steady_cfg.settings.relax_warm_cycles = 30;
+  follow_cfg.voi_hold = false;
+  CpuDeformBackend hold, steady, follow;
+  hold.bind(torso, cfg);
+  steady.bind(torso, steady_cfg);
+  follow.bind(torso, follow_cfg);
+  const int expected[] = {1, 0, 0, 0, 0, 0, 1, 0, 0};
+  deform::Voi first;
+  for (int s = 0; s < 9; ++s) {
+    const DeformContact c = voxel_contact({32, 10, 32}, {2, 3.0 + s, -3});
+    const DeformStats h = hold.step(c), f = follow.step(c);
+    steady.step(c);
+    INFO("step " << s);
+    if (s == 0) first = h.chainmail.voi;
+    CHECK(h.relax_solves == expected[s]);
+    CHECK((h.chainmail.voi == first) == (s < 6));
+    CHECK(f.relax_solves == 1);
+    const std::vector<Vec3f> ref = steady.displacement();
+    CHECK(rms_distance(hold.displacement(), ref) <= 0.01 * rms(ref));
+  }
+  // a reset starts the next press afresh: the centred VOI
+  hold.reset();
+  follow.reset();
+  const DeformContact c = voxel_contact({32, 10, 32}, {2, 5.0, -3});
+  CHECK(hold.step(c).chainmail.voi == follow.step(c).chainmail.voi);
+}

@@ -322,6 +322,7 @@ void CudaDeformBackend::enqueue_relax() {
     const MultigridScratch::Turn turn(scratch, stream_);
     launch_relax_multigrid(geometry(), cur_, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
                            float(s.material_width), config_.relax_reuse, d_, mg_, mg_blocks_, stream_);
+    mg_g_clean_ = setup_.skipped;
     field_extra_ = -1;  // the steady state is nonzero wherever the grabbed element is felt
     return;
   }
@@ -565,7 +566,14 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
     it.invert_src = cur;
     c.cur_ = cur;
     c.field_extra_ = config_.relax ? (mg ? -1 : s.relax_iterations) : 0;
-    if (mg) c.ensure_multigrid_buffers();
+    if (mg) {
+      c.ensure_multigrid_buffers();
+      // reusing a G solved on a step that left ChainMail out (so clean, a G): the batch's
+      // one reuse launch instead of a solver launch of its own
+      if (c.setup_.skipped && c.mg_g_clean_ && multigrid_reuses(it.geo, s.relax_cycles, c.config_.relax_reuse, c.mg_))
+        it.mg_g = c.mg_.g;
+      c.mg_g_clean_ = c.setup_.skipped;
+    }
     c.dirty_ = c.voi_;
     c.prepare_stats(c.setup_);
     max_reset = std::max(max_reset, it.reset_count);
@@ -585,16 +593,23 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   if (any_chainmail) launch_chainmail_batch(bt.dev_items, n, limits_, s.max_sweeps, full_shape_, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[2], st));
   if (mg) {
-    // each session's multigrid solve (or reuse of its unit response) in turn, without a wait
-    // between them: no batched multigrid kernel yet
+    // the reusing sessions in one launch; the others' solves in turn, without a wait
+    // between them: no batched multigrid solver yet
+    bool any_reuse = false;
     for (int i = 0; i < n; ++i) {
       CudaDeformBackend& c = *m[i];
+      if (bt.host_items[i].mg_g) {
+        any_reuse = true;
+        continue;
+      }
       c.mg_shared_->lend_to(c.mg_);
       const MultigridScratch::Turn turn(*c.mg_shared_, st);
       launch_relax_multigrid(c.geometry(), bt.host_items[i].relax_src, s.relax_cycles, s.relax_warm_cycles,
                              float(config_.bone_threshold), float(s.material_width), c.config_.relax_reuse, c.d_,
                              c.mg_, c.full_mg_blocks_, st);
     }
+    if (any_reuse)
+      launch_multigrid_reuse_batch(bt.dev_items, n, max_voi, float(config_.bone_threshold), float(s.material_width), st);
   } else if (config_.relax) {
     launch_relax_batch(bt.dev_items, n, most, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
                        float(s.material_width), full_shape_, st);

@@ -134,6 +134,9 @@ struct BatchItem {
   /// untangled), every element is relaxed.
   int relax_extra = 0;
   int invert_src = 0;              // displacement buffer the inversion reads
+  /// Multigrid: the unit response a step that reuses it writes u = d G from, in the batch's
+  /// one reuse launch (launch_multigrid_reuse_batch); nullptr: the step launches the solver.
+  const float* mg_g = nullptr;
   unsigned reset_count = 0;        // elements the previous step left deformed (the reset zeroes them)
   DeviceBuffers b;
   Counters* host_counters = nullptr;  // pinned host memory, written by launch_gather_batch
@@ -226,6 +229,16 @@ void launch_relax_batch(const BatchItem* items, int n, const Vec3i& most, int it
 /// J of every session from its invert_src, in one launch.
 void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int iterations, bool search,
                          cudaStream_t stream);
+/// Whether a multigrid launch for `g` with `cycles` steps would reuse the unit response
+/// the buffers keep (the host's half of relax_multigrid.cu's test; the device also needs
+/// the kept field to be a G, which the caller vouches for).
+bool multigrid_reuses(const StepGeometry& g, int cycles, bool reuse, const MultigridBuffers& m);
+/// u = d G on every free element of each session whose item has mg_g set, and its counters'
+/// solves and warm start to 0, in one launch: what relax_multigrid.cu does for a reused G,
+/// the same bits, for steps whose held elements other than the grabbed one are at rest
+/// (ChainMail left out: ChainMailStats::skipped).
+void launch_multigrid_reuse_batch(const BatchItem* items, int n, unsigned max_count, float threshold, float width,
+                                  cudaStream_t stream);
 /// Copies every session's counters to its host_counters, in one launch.
 void launch_gather_batch(const BatchItem* items, int n, cudaStream_t stream);
 

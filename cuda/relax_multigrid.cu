@@ -460,6 +460,54 @@ int relax_multigrid_blocks() {
   return blocks;
 }
 
+bool multigrid_reuses(const StepGeometry& g, int cycles, bool reuse, const MultigridBuffers& m) {
+  const deform::MultigridCache key{g.voi.lo, g.voi.size, g.grabbed, std::min(cycles, deform::kMultigridMaxCycles), true};
+  return reuse && m.cache == key;
+}
+
+namespace {
+
+// the reuse pass of relax_multigrid_kernel for a batch's reusing sessions (blockIdx.y): the
+// held mask's test and u = d G on free elements, in the same arithmetic
+__global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float threshold, float width) {
+  const BatchItem& it = items[blockIdx.y];
+  if (!it.mg_g) return;
+  const StepGeometry& geo = it.geo;
+  const deform::Voi& voi = geo.voi;
+  const int n = int(voi.count());  // VOIs hold < 2^31 voxels (checked at bind)
+  float* u[3] = {it.b.u[it.relax_src][0], it.b.u[it.relax_src][1], it.b.u[it.relax_src][2]};
+  const int g_idx = (geo.grabbed.z * voi.size.y + geo.grabbed.y) * voi.size.x + geo.grabbed.x;
+  const Vec3f d{u[0][g_idx], u[1][g_idx], u[2][g_idx]};  // the grabbed element is held: never written here
+  for (int e = int(blockIdx.x * blockDim.x + threadIdx.x); e < n; e += int(gridDim.x * blockDim.x)) {
+    const int i = e % voi.size.x, j = (e / voi.size.x) % voi.size.y, k = e / (voi.size.x * voi.size.y);
+    const long long gi = ((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x +
+                         (voi.lo.x + i);
+    const bool held =
+        e == g_idx || deform::material_weight(it.b.intensity[gi], it.b.bone[gi] != 0, threshold, width) == 0.0f;
+    if (!held) {
+      const float ge = it.mg_g[e];
+      u[0][e] = d.x * ge;
+      u[1][e] = d.y * ge;
+      u[2][e] = d.z * ge;
+    }
+  }
+  if (blockIdx.x == 0 && threadIdx.x == 0) {
+    it.b.counters->relax_solves = 0;
+    it.b.counters->relax_warm = 0;
+  }
+}
+
+}  // namespace
+
+void launch_multigrid_reuse_batch(const BatchItem* items, int n, unsigned max_count, float threshold, float width,
+                                  cudaStream_t stream) {
+  if (n < 1) return;
+  const unsigned threads = 256;
+  const unsigned blocks = std::max(1u, std::min((max_count + threads - 1) / threads, 256u));
+  reuse_batch_kernel<<<dim3(blocks, unsigned(n)), threads, 0, stream>>>(items, threshold, width);
+  PALPSIM_CUDA_CHECK(cudaGetLastError());
+}
+
 void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
                             bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
                             cudaStream_t stream) {

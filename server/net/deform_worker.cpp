@@ -506,6 +506,8 @@ void DeformWorker::complete(Session& s, const Contact& c) {
     r.moved = st.chainmail.moved;
     r.sweeps = st.chainmail.sweeps;
     r.chainmail_skipped = st.chainmail.skipped;
+    r.multigrid_solves += st.relax_solves > 0;
+    r.multigrid_warm += st.relax_warm;
     r.converged = st.chainmail.converged;
     r.invert_residual_vox = st.invert_residual_vox;
     r.invert_unresolved = st.invert_unresolved;

@@ -41,6 +41,8 @@ struct DeformSessionReport {
   int sweeps = 0;                      // latest step: ChainMail sweeps
   bool converged = true;               // latest step: ChainMail converged within max_sweeps
   bool chainmail_skipped = false;      // latest step: ChainMail left out (ChainMailStats::skipped)
+  std::uint64_t multigrid_solves = 0;  // steps whose multigrid relaxation solved (DeformStats::relax_solves > 0)
+  std::uint64_t multigrid_warm = 0;    // ... starting from the last unit response
   double invert_residual_vox = 0;      // latest step: max inversion residual (voxel)
   long long invert_unresolved = 0;     // latest step: voxels with a residual above 0.1 voxel
   long long invert_searched = 0;       // latest step: voxels Newton left to the cell search (deform.invert_search)

@@ -148,6 +148,10 @@ TEST_CASE("palpsim-server's multigrid steps say they left ChainMail out", "[inte
   CHECK(d.deformed());
   CHECK(d.failures() == 0);
   CHECK(d.max_change_hu() > 0);  // the press still deforms J
+  // the first contact solves; a step solves at most once
+  CHECK(d.multigrid_solves() >= 1);
+  CHECK(d.multigrid_solves() <= d.steps());
+  CHECK(d.multigrid_warm() <= d.multigrid_solves());
   CHECK(server.stop() == 0);
 }
 

@@ -45,8 +45,10 @@ __device__ int2 block_sum2(int a, int b, int2* scratch) {
 // a stamp with this bit set records an element's first move (stamps stay below it)
 constexpr int kFirstMove = 1 << 30;
 
-// the first element goes to x in both buffers; it moved in sweep 0 (one thread)
-__device__ __forceinline__ void chainmail_start(const StepGeometry& geo, const Vec3f& u0, const DeviceBuffers& b) {
+// the first element goes to x in both buffers; it moved in sweep 0 (one thread). `alone`:
+// ChainMail is left out (ChainMailStats::skipped), so the run is over, converged
+__device__ __forceinline__ void chainmail_start(const StepGeometry& geo, const Vec3f& u0, const DeviceBuffers& b,
+                                                bool alone = false) {
   const deform::Voi& voi = geo.voi;
   const Vec3i g = geo.grabbed;
   const int g_idx = g.z * voi.size.x * voi.size.y + g.y * voi.size.x + g.x;
@@ -60,7 +62,7 @@ __device__ __forceinline__ void chainmail_start(const StepGeometry& geo, const V
   c->sweep_moved[0] = c->sweep_moved[1] = c->sweep_moved[2] = 0;
   c->moved_total = 0;
   c->sweeps = 0;
-  c->converged = 0;
+  c->converged = alone ? 1 : 0;
 }
 
 // the wave moves one voxel per sweep: only the box g +- s can hold candidates; its
@@ -118,9 +120,7 @@ __device__ __forceinline__ void chainmail_element(const StepGeometry& geo, const
     if (n_ok[q] && (sa[e + step[q]] & ~kFirstMove) == s - 1) mask |= 1u << q;
   const bool self_prev = (sa[e] & ~kFirstMove) == s - 1;
   if (!mask && !self_prev) return;
-  const long long gi = ((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x +
-                       (voi.lo.x + i);
-  if (b.bone[gi]) return;
+  if (b.bone[geo.patient_index(i, j, k)]) return;
   // clamp into the box of every neighbour that moved in an earlier sweep, in the fixed
   // order (chainmail.cpp). sb is being written in this sweep: a neighbour reads as
   // having moved before when its stamp of this parity is an earlier sweep, or this
@@ -209,10 +209,7 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(con
   __shared__ int moved_s[kMaxBatch], fresh_s[kMaxBatch];  // this block's counts per session, this sweep
   cg::grid_group grid = cg::this_grid();
   for (int q = int(grid.thread_rank()); q < n; q += int(grid.size()))
-    if (items[q].chainmail) {
-      chainmail_start(items[q].geo, items[q].u0, items[q].b);
-      if (items[q].chainmail == 2) items[q].b.counters->converged = 1;  // left out: the start alone
-    }
+    if (items[q].chainmail) chainmail_start(items[q].geo, items[q].u0, items[q].b, items[q].chainmail == 2);
   for (int q = threadIdx.x; q < n; q += blockDim.x) active[q] = items[q].chainmail == 1;
   grid.sync();
 
@@ -306,12 +303,8 @@ __global__ void __launch_bounds__(kPersistentThreads) chainmail_batch_kernel(con
     if (active[q]) items[q].b.counters->sweeps = max_sweeps;
 }
 
-// ChainMail's start alone (a step that skips ChainMail): the grabbed element at x in both
-// buffers, converged after no sweep
-__global__ void chainmail_start_kernel(StepGeometry geo, Vec3f u0, DeviceBuffers b) {
-  chainmail_start(geo, u0, b);
-  b.counters->converged = 1;
-}
+// ChainMail's start alone (a step that skips ChainMail)
+__global__ void chainmail_start_kernel(StepGeometry geo, Vec3f u0, DeviceBuffers b) { chainmail_start(geo, u0, b, true); }
 
 }  // namespace
 

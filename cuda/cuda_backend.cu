@@ -3,10 +3,9 @@
 
 #include <algorithm>
 #include <chrono>
-#include <mutex>
-#include <vector>
 #include <cstring>
 
+#include "core/shared_cache.h"
 #include "cuda/check.h"
 
 namespace palpsim::cuda {
@@ -236,19 +235,11 @@ MultigridScratch::~MultigridScratch() {
 }
 
 std::shared_ptr<MultigridScratch> MultigridScratch::shared(long long n, long long nc) {
-  // the scratches alive, by device and capacities
-  static std::mutex mu;
-  static std::vector<std::weak_ptr<MultigridScratch>> all;
+  static SharedCache<MultigridScratch> scratches;
   int dev = 0;
   PALPSIM_CUDA_CHECK(cudaGetDevice(&dev));
-  std::lock_guard<std::mutex> lock(mu);
-  all.erase(std::remove_if(all.begin(), all.end(), [](const auto& w) { return w.expired(); }), all.end());
-  for (const auto& w : all)
-    if (auto s = w.lock())
-      if (s->device == dev && s->capacity == n && s->coarse_capacity == nc) return s;
-  auto s = std::make_shared<MultigridScratch>(n, nc);
-  all.push_back(s);
-  return s;
+  return scratches.get([&](const MultigridScratch& s) { return s.device == dev && s.capacity == n && s.coarse_capacity == nc; },
+                       [&] { return std::make_shared<MultigridScratch>(n, nc); });
 }
 
 void MultigridScratch::lend_to(MultigridBuffers& m) const {
@@ -270,6 +261,15 @@ void MultigridScratch::lend_to(MultigridBuffers& m) const {
 std::size_t MultigridScratch::bytes() const {
   return std::size_t(capacity) * (7 * sizeof(float) + 1) + std::size_t(coarse_capacity) * (3 * sizeof(float) + 1) +
          6 * deform::kMultigridMaxCycles * sizeof(double);
+}
+
+void CudaDeformBackend::launch_multigrid(int src, MultigridScratch& scratch, int blocks, cudaStream_t stream) {
+  const DeformSettings& s = config_.settings;
+  scratch.lend_to(mg_);
+  const MultigridScratch::Turn turn(scratch, stream);
+  launch_relax_multigrid(geometry(), src, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
+                         float(s.material_width), config_.relax_reuse, d_, mg_, blocks, stream);
+  mg_g_clean_ = setup_.skipped;
 }
 
 MultigridScratch& CudaDeformBackend::own_multigrid_scratch() {
@@ -317,12 +317,7 @@ void CudaDeformBackend::enqueue_relax() {
     // in place on the current buffer; with other steps in flight beside it, in a scratch
     // of its own
     ensure_multigrid_buffers();
-    MultigridScratch& scratch = gpu_share_ > 1 ? own_multigrid_scratch() : *mg_shared_;
-    scratch.lend_to(mg_);
-    const MultigridScratch::Turn turn(scratch, stream_);
-    launch_relax_multigrid(geometry(), cur_, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
-                           float(s.material_width), config_.relax_reuse, d_, mg_, mg_blocks_, stream_);
-    mg_g_clean_ = setup_.skipped;
+    launch_multigrid(cur_, gpu_share_ > 1 ? own_multigrid_scratch() : *mg_shared_, mg_blocks_, stream_);
     field_extra_ = -1;  // the steady state is nonzero wherever the grabbed element is felt
     return;
   }
@@ -571,8 +566,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
       // reusing a G solved on a step that left ChainMail out (so clean, a G): the batch's
       // one reuse launch instead of a solver launch of its own
       if (c.setup_.skipped && c.mg_g_clean_ && multigrid_reuses(it.geo, s.relax_cycles, c.config_.relax_reuse, c.mg_))
-        it.mg_g = c.mg_.g;
-      c.mg_g_clean_ = c.setup_.skipped;
+        it.mg_g = c.mg_.g;  // mg_g_clean_ stays: the same G, this step left ChainMail out
     }
     c.dirty_ = c.voi_;
     c.prepare_stats(c.setup_);
@@ -602,11 +596,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
         any_reuse = true;
         continue;
       }
-      c.mg_shared_->lend_to(c.mg_);
-      const MultigridScratch::Turn turn(*c.mg_shared_, st);
-      launch_relax_multigrid(c.geometry(), bt.host_items[i].relax_src, s.relax_cycles, s.relax_warm_cycles,
-                             float(config_.bone_threshold), float(s.material_width), c.config_.relax_reuse, c.d_,
-                             c.mg_, c.full_mg_blocks_, st);
+      c.launch_multigrid(bt.host_items[i].relax_src, *c.mg_shared_, c.full_mg_blocks_, st);
     }
     if (any_reuse)
       launch_multigrid_reuse_batch(bt.dev_items, n, max_voi, float(config_.bone_threshold), float(s.material_width), st);

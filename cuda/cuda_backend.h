@@ -147,6 +147,9 @@ class CudaDeformBackend final : public DeformBackend {
   /// session's own while steps run side by side (set_gpu_share() above 1)
   std::shared_ptr<MultigridScratch> mg_shared_, mg_own_;
   MultigridScratch& own_multigrid_scratch();  // mg_own_, made on first use
+  // this step's multigrid solver (or reuse) from displacement buffer `src`, on `scratch`
+  // in its turn, `blocks` cooperative blocks on `stream`
+  void launch_multigrid(int src, MultigridScratch& scratch, int blocks, cudaStream_t stream);
   bool mg_g_clean_ = false;  // the kept unit response was solved on a step that left ChainMail out (so it is a G)
   int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel, this step
   int full_mg_blocks_ = 0;             // ... that fit on the device

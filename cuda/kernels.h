@@ -116,6 +116,11 @@ struct StepGeometry {
   deform::Voi voi;
   Vec3i volume_size{0, 0, 0};
   Vec3i grabbed{0, 0, 0};  // VOI-local
+
+  /// The patient volume's linear index of VOI-local voxel (i, j, k).
+  PALPSIM_HD long long patient_index(int i, int j, int k) const {
+    return ((long long)(voi.lo.z + k) * volume_size.y + (voi.lo.y + j)) * volume_size.x + (voi.lo.x + i);
+  }
 };
 
 /// Sessions one batched launch steps at most (batch.cu): the batched ChainMail keeps a

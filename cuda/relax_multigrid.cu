@@ -252,10 +252,8 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   for (int e = all.first; e < n; e += all.stride) {
     int i, j, k;
     L0.coords(e, i, j, k);
-    const long long gi = ((long long)(voi.lo.z + k) * a.geo.volume_size.y + (voi.lo.y + j)) * a.geo.volume_size.x +
-                         (voi.lo.x + i);
-    const bool held =
-        e == g_idx || deform::material_weight(a.b.intensity[gi], a.b.bone[gi] != 0, a.threshold, a.width) == 0.0f;
+    const long long gi = a.geo.patient_index(i, j, k);
+    const bool held = deform::multigrid_held(e == g_idx, a.b.intensity[gi], a.b.bone[gi] != 0, a.threshold, a.width);
     m.held[e] = held;
     if (held && e != g_idx && (u[0][e] != 0.0f || u[1][e] != 0.0f || u[2][e] != 0.0f)) moved_held = true;
     if (hit && !held) {
@@ -460,9 +458,17 @@ int relax_multigrid_blocks() {
   return blocks;
 }
 
+namespace {
+
+// what a launch for `g` with `cycles` steps solves for: the key of the unit response it keeps
+deform::MultigridCache multigrid_key(const StepGeometry& g, int cycles) {
+  return {g.voi.lo, g.voi.size, g.grabbed, std::min(cycles, deform::kMultigridMaxCycles), true};
+}
+
+}  // namespace
+
 bool multigrid_reuses(const StepGeometry& g, int cycles, bool reuse, const MultigridBuffers& m) {
-  const deform::MultigridCache key{g.voi.lo, g.voi.size, g.grabbed, std::min(cycles, deform::kMultigridMaxCycles), true};
-  return reuse && m.cache == key;
+  return reuse && m.cache == multigrid_key(g, cycles);
 }
 
 namespace {
@@ -480,10 +486,8 @@ __global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float th
   const Vec3f d{u[0][g_idx], u[1][g_idx], u[2][g_idx]};  // the grabbed element is held: never written here
   for (int e = int(blockIdx.x * blockDim.x + threadIdx.x); e < n; e += int(gridDim.x * blockDim.x)) {
     const int i = e % voi.size.x, j = (e / voi.size.x) % voi.size.y, k = e / (voi.size.x * voi.size.y);
-    const long long gi = ((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x +
-                         (voi.lo.x + i);
-    const bool held =
-        e == g_idx || deform::material_weight(it.b.intensity[gi], it.b.bone[gi] != 0, threshold, width) == 0.0f;
+    const long long gi = geo.patient_index(i, j, k);
+    const bool held = deform::multigrid_held(e == g_idx, it.b.intensity[gi], it.b.bone[gi] != 0, threshold, width);
     if (!held) {
       const float ge = it.mg_g[e];
       u[0][e] = d.x * ge;
@@ -524,8 +528,7 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
   a.width = width;
   // the unit response in m.g was solved for this VOI and grabbed element (if the device
   // found the step clean then: flags[2])
-  const deform::MultigridCache key{g.voi.lo, g.voi.size, g.grabbed, a.cycles, true};
-  a.hit = reuse && m.cache == key;
+  a.hit = multigrid_reuses(g, cycles, reuse, m);
   // another VOI or grabbed element close to the last launch's (multigrid_start; whether
   // that field is a G the device knows): that field becomes the start, the new one goes
   // to the other buffer (a swap: a.start.g stays the old field's)
@@ -533,7 +536,7 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
                                                : deform::MultigridStart{};
   a.warm_cycles = std::min(warm_cycles, deform::kMultigridMaxCycles);
   if (a.start.g) std::swap(m.g, m.g_last);
-  m.cache = key;
+  m.cache = multigrid_key(g, cycles);
   a.parity = int(m.launches++ & 1);
   // block 0's shared memory: levels split..last (x, f, residual, held mask); each level
   // has at most (2/3)^3 of the nodes of the one above, so below 512 / (1 - 0.3) nodes,

@@ -62,7 +62,7 @@ __global__ void __launch_bounds__(kPersistentThreads) untangle_kernel(StepGeomet
     return Vec3f{u[0][e], u[1][e], u[2][e]};
   };
   auto soft = [&](int i, int j, int k) {
-    return b.bone[((long long)(voi.lo.z + k) * geo.volume_size.y + (voi.lo.y + j)) * geo.volume_size.x + voi.lo.x + i] == 0;
+    return b.bone[geo.patient_index(i, j, k)] == 0;
   };
   // no flags yet, the box of possibly active elements empty, the counters zero; the
   // other buffer keeps the relaxed field, to return to if untangling ends with more folds

@@ -1,7 +1,8 @@
 #include "deform/held_blocks.h"
 
 #include <algorithm>
-#include <mutex>
+
+#include "core/shared_cache.h"
 
 namespace palpsim::deform {
 
@@ -25,17 +26,10 @@ HeldBlocks::HeldBlocks(const PatientPtr& patient, float threshold, float width)
 }
 
 std::shared_ptr<const HeldBlocks> HeldBlocks::of(const PatientPtr& patient, float threshold, float width) {
-  // the maps alive, found by their patient (its address while it lives) and values
-  static std::mutex mu;
-  static std::vector<std::weak_ptr<const HeldBlocks>> maps;
-  std::lock_guard<std::mutex> lock(mu);
-  maps.erase(std::remove_if(maps.begin(), maps.end(), [](const auto& w) { return w.expired(); }), maps.end());
-  for (const auto& w : maps)
-    if (auto m = w.lock())
-      if (m->patient_.lock() == patient && m->threshold_ == threshold && m->width_ == width) return m;
-  auto m = std::make_shared<const HeldBlocks>(patient, threshold, width);
-  maps.push_back(m);
-  return m;
+  static SharedCache<const HeldBlocks> maps;
+  return maps.get(
+      [&](const HeldBlocks& m) { return m.patient_.lock() == patient && m.threshold_ == threshold && m.width_ == width; },
+      [&] { return std::make_shared<const HeldBlocks>(patient, threshold, width); });
 }
 
 bool HeldBlocks::any_in(const Voi& voi) const {

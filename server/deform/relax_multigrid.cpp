@@ -134,8 +134,7 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
       for (int i = 0; i < voi.size.x; ++i) {
         const std::size_t gi = grid.index(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k);
         const long long e = voi.index(i, j, k);
-        const bool held =
-            e == g_idx || material_weight(p.intensity.data[gi], p.bone.data[gi] != 0, threshold, width) == 0.0f;
+        const bool held = multigrid_held(e == g_idx, p.intensity.data[gi], p.bone.data[gi] != 0, threshold, width);
         s.mg_held[e] = held;
         if (held && e != g_idx && !(s.u[e] == Vec3f{0, 0, 0})) clean = false;
       }

@@ -165,6 +165,13 @@ PALPSIM_HD MultigridStart multigrid_start(const MultigridCache& last, const floa
   return s;
 }
 
+/// Whether relaxation holds an element (a Dirichlet node of the steady state): the
+/// grabbed element, and every element of material weight 0 (bone, or far above the
+/// threshold). Both backends' solvers and the batched reuse test it the same way.
+PALPSIM_HD bool multigrid_held(bool grabbed, float intensity, bool bone, float threshold, float width) {
+  return grabbed || material_weight(intensity, bone, threshold, width) == 0.0f;
+}
+
 /// The red-black colour of node (i, j, k): 0 red, 1 black.
 PALPSIM_HD int multigrid_colour(int i, int j, int k) { return (i + j + k) & 1; }
 

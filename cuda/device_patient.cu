@@ -3,23 +3,19 @@
 
 #include <cuda_runtime.h>
 
-#include <map>
-#include <mutex>
 #include <utility>
 
+#include "core/shared_cache.h"
 #include "cuda/check.h"
 
 namespace palpsim::cuda {
 
 namespace {
 
-// the copies that exist, by (device, patient); an entry whose copy died is expired
-std::mutex& cache_mu() {
-  static std::mutex mu;
-  return mu;
-}
-std::map<std::pair<int, const Patient*>, std::weak_ptr<const DevicePatient>>& cache() {
-  static std::map<std::pair<int, const Patient*>, std::weak_ptr<const DevicePatient>> c;
+// the copies that exist, by device and patient (a copy holds its patient, so the address
+// names it while the copy lives)
+SharedCache<const DevicePatient>& copies() {
+  static SharedCache<const DevicePatient> c;
   return c;
 }
 
@@ -60,25 +56,13 @@ DevicePatient::~DevicePatient() {
 std::shared_ptr<const DevicePatient> DevicePatient::acquire(const PatientPtr& patient) {
   int device = 0;
   PALPSIM_CUDA_CHECK(cudaGetDevice(&device));
-  std::lock_guard<std::mutex> lock(cache_mu());
-  auto& c = cache();
-  // drop the entries of copies that died
-  for (auto it = c.begin(); it != c.end();) it = it->second.expired() ? c.erase(it) : std::next(it);
-  const auto key = std::make_pair(device, patient.get());
-  if (auto it = c.find(key); it != c.end())
-    if (auto held = it->second.lock()) return held;
-  // the upload runs under the lock: a second session binding the same patient waits for
-  // this copy instead of making its own
-  std::shared_ptr<const DevicePatient> made(new DevicePatient(patient, device));
-  c[key] = made;
-  return made;
+  // the upload runs under the cache's lock: a second session binding the same patient
+  // waits for this copy instead of making its own
+  return copies().get(
+      [&](const DevicePatient& d) { return d.device_ == device && d.patient_.get() == patient.get(); },
+      [&] { return std::shared_ptr<const DevicePatient>(new DevicePatient(patient, device)); });
 }
 
-int DevicePatient::live_copies() {
-  std::lock_guard<std::mutex> lock(cache_mu());
-  int n = 0;
-  for (const auto& [key, weak] : cache()) n += weak.expired() ? 0 : 1;
-  return n;
-}
+int DevicePatient::live_copies() { return copies().live(); }
 
 }  // namespace palpsim::cuda

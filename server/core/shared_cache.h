@@ -1,6 +1,6 @@
 // A process-wide set of objects that every holder of the same key may share, kept only
-// while some holder keeps one: the multigrid solver's scratch per device and VOI size, the
-// held-element map per patient and material.
+// while some holder keeps one: the patient's device copy per device, the multigrid
+// solver's scratch per device and VOI size, the held-element map per patient and material.
 #pragma once
 
 #include <algorithm>
@@ -26,6 +26,14 @@ class SharedCache {
     std::shared_ptr<T> s = make();
     live_.push_back(s);
     return s;
+  }
+
+  /// The objects alive now.
+  int live() {
+    std::lock_guard<std::mutex> lock(mu_);
+    int n = 0;
+    for (const auto& w : live_) n += w.expired() ? 0 : 1;
+    return n;
   }
 
  private:

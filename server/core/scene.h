@@ -32,6 +32,13 @@ struct ForceImageSettings {
   double gamma = 1.0 / 60.0;   // dimensionless
 };
 
+/// Where the skin point X, the deformation's grabbed element, is put (haptics.skin_point).
+enum class SkinPointRule {
+  kNormal,  // the skin point nearest to the tip (out along the skin's normal): the dent under the finger
+  kLine,    // the paper's: where the line through x and p crosses the skin (nearest skin point where
+            // that line runs within ~20 degrees of the skin or misses it)
+};
+
 /// Force model parameters.
 struct HapticsSettings {
   double stiffness_n_per_mm = 0.25;
@@ -39,6 +46,7 @@ struct HapticsSettings {
   double max_force_n = 3.3;
   double max_force_rate_n_per_s = 2000;
   double min_gradient_norm = 1e-4;       // |grad F| below this keeps the last direction
+  SkinPointRule skin_point = SkinPointRule::kNormal;  // scene-wide (not a session parameter)
 };
 
 /// ChainMail, relaxation and inversion parameters (voxel edge lengths where noted).

@@ -131,19 +131,26 @@ ForceSample compute_force(const Patient& patient, const HapticsSettings& params,
   out.depth_mm = depth_from_sample(patient, s);
   const Vec3& proxy = step.proxy_mm;
 
-  // skin point X: along the line through x and p, on the side of x away from p
-  Vec3 away = tip_mm - proxy;
-  double an = norm(away);
-  if (!(an > 1e-9) && step.has_direction) {
-    away = -step.direction;
-    an = 1;
-  }
-  // where that line runs nearly along the skin it meets the skin far from the tip, or
-  // only the grid's face: beyond three depths (a line up to ~70 degrees off the skin's
-  // normal) the skin point nearest to the tip stands in, so X stays where the finger is
-  const double reach_mm = 3.0 * out.depth_mm + 2.0 * voxel_mm(patient);
-  if (!(an > 1e-9) || !skin_crossing(patient, tip_mm, away * (1.0 / an), out.depth_mm, reach_mm, out.skin_point_mm))
+  // skin point X
+  if (params.skin_point == SkinPointRule::kLine) {
+    // the paper's: along the line through x and p, on the side of x away from p
+    Vec3 away = tip_mm - proxy;
+    double an = norm(away);
+    if (!(an > 1e-9) && step.has_direction) {
+      away = -step.direction;
+      an = 1;
+    }
+    // where that line runs nearly along the skin it meets the skin far from the tip, or
+    // only the grid's face: beyond three depths (a line up to ~70 degrees off the skin's
+    // normal) the skin point nearest to the tip stands in
+    const double reach_mm = 3.0 * out.depth_mm + 2.0 * voxel_mm(patient);
+    if (!(an > 1e-9) || !skin_crossing(patient, tip_mm, away * (1.0 / an), out.depth_mm, reach_mm, out.skin_point_mm))
+      out.skin_point_mm = nearest_skin_point(patient, tip_mm, out.depth_mm);
+  } else {
+    // the skin point nearest to the tip: it moves with the tip, not with grad F's
+    // direction, which turns quickly beside bone
     out.skin_point_mm = nearest_skin_point(patient, tip_mm, out.depth_mm);
+  }
 
   // a non-finite value (a corrupt patient) resets the session instead of poisoning it
   if (!is_finite(out.skin_point_mm) || !std::isfinite(out.depth_mm)) {

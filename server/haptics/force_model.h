@@ -18,8 +18,9 @@ namespace palpsim {
 struct ForceSample {
   Vec3 force_n{0, 0, 0};        // f = k (x - p), clamped; exactly zero outside the body
   Vec3 proxy_mm{0, 0, 0};       // p after friction (the tip itself outside the body)
-  Vec3 skin_point_mm{0, 0, 0};  // X: skin crossing of the line through x and p (the tip outside);
-                                // in contact always within the grid's outer faces (the deformation's rule)
+  Vec3 skin_point_mm{0, 0, 0};  // X: the skin point nearest to the tip, or the skin crossing of the line
+                                // through x and p (HapticsSettings::skin_point); the tip outside; in
+                                // contact always within the grid's outer faces (the deformation's rule)
   double depth_mm = 0;          // depth of the tip under the skin (0 outside)
   bool contact = false;         // the tip is inside the body
   bool clamped = false;         // the magnitude or the rate clamp changed the force

@@ -233,7 +233,8 @@ class PoseService {
     slot->last_client_time_s = tc;
     slot->last_server_time_s = now_s;
 
-    const HapticsSettings params = slot->params();
+    HapticsSettings params = slot->params();
+    params.skin_point = world_->scene.haptics.skin_point;  // scene-wide, not a session parameter
     const ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
     if (edge != 0) serve_patches(*slot, params, tip, edge, period, now_s, tc);
     slot->renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);

@@ -171,6 +171,12 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.haptics.max_force_n = h.max_force_n();
   out.haptics.max_force_rate_n_per_s = h.max_force_rate_n_per_s();
   out.haptics.min_gradient_norm = h.min_gradient_norm();
+  if (h.skin_point() == "normal")
+    out.haptics.skin_point = SkinPointRule::kNormal;
+  else if (h.skin_point() == "line")
+    out.haptics.skin_point = SkinPointRule::kLine;
+  else
+    throw Error(origin + ": haptics.skin_point = \"" + h.skin_point() + "\"; allowed: \"normal\", \"line\"");
 
   const auto& d = s.deform();
   if (d.preset() == v1::Deform::P2) {

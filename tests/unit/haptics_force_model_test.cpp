@@ -90,12 +90,14 @@ TEST_CASE("force is larger near bone than far from it at the same depth", "[hapt
 
 TEST_CASE("force points out of the body and X lies on the skin", "[haptics]") {
   const HapticsSettings s = unclamped();
-  SECTION("slab: outward normal +z") {
+  SECTION("slab, the paper's rule (line): outward normal +z") {
     const auto p = test::slab_patient();
+    HapticsSettings line = s;
+    line.skin_point = SkinPointRule::kLine;
     for (double x = 3; x <= 57; x += 6)
       for (double depth : {0.5, 2.0, 7.0, 12.0}) {
         const Vec3 tip{x, 31.3, kSlabSkinZ - depth};
-        const ForceSample f = fresh(*p, s, tip);
+        const ForceSample f = fresh(*p, line, tip);
         INFO("x " << x << " depth " << depth);
         REQUIRE(f.contact);
         CHECK(f.force_n.z > 0);
@@ -122,6 +124,22 @@ TEST_CASE("force points out of the body and X lies on the skin", "[haptics]") {
         }
       }
   }
+  SECTION("slab, the default rule (normal): X straight above the tip") {
+    const auto p = test::slab_patient();
+    for (double x = 3; x <= 57; x += 6)
+      for (double depth : {0.5, 2.0, 7.0, 12.0}) {
+        const Vec3 tip{x, 31.3, kSlabSkinZ - depth};
+        const ForceSample f = fresh(*p, s, tip);
+        INFO("x " << x << " depth " << depth);
+        REQUIRE(f.contact);
+        CHECK(f.force_n.z > 0);
+        // on the skin plane within the bisection's and B's interpolation error (0.05 mm at
+        // 1 mm voxels); grad B is +z, up to one voxel of central-difference error sideways
+        // (near the grid's side faces, where the probes are clamped to the grid)
+        CHECK(f.skin_point_mm.z == Approx(kSlabSkinZ).margin(0.05));
+        CHECK(std::hypot(f.skin_point_mm.x - tip.x, f.skin_point_mm.y - tip.y) < 1.0);
+      }
+  }
   SECTION("sphere with a bone core: force along the outward radius") {
     const auto p = test::sphere_patient();
     const Vec3 c{32, 32, 32};
@@ -143,12 +161,14 @@ TEST_CASE("force points out of the body and X lies on the skin", "[haptics]") {
 }
 
 TEST_CASE("X stays on the skin near the tip where the line through x and p runs along the skin", "[haptics]") {
-  // beside the slab's bone block, 19.5 mm deep: grad F points at the bone (-x), so the
-  // line through x and p runs parallel to the skin and leaves the body only through the
-  // grid's face at x = 60 mm; X must be the skin point above the tip instead
+  // the paper's rule beside the slab's bone block, 19.5 mm deep: grad F points at the bone
+  // (-x), so the line through x and p runs parallel to the skin and leaves the body only
+  // through the grid's face at x = 60 mm; X must be the skin point above the tip instead
   const auto p = test::slab_patient();
   const Vec3 tip{38, 30, 20};
-  const ForceSample r = fresh(*p, unclamped(), tip);
+  HapticsSettings line = unclamped();
+  line.skin_point = SkinPointRule::kLine;
+  const ForceSample r = fresh(*p, line, tip);
   REQUIRE(r.contact);
   INFO("X = " << r.skin_point_mm.x << ", " << r.skin_point_mm.y << ", " << r.skin_point_mm.z);
   // on the skin plane within the bisection's and B's interpolation error (0.05 mm at 1 mm voxels)
@@ -156,6 +176,35 @@ TEST_CASE("X stays on the skin near the tip where the line through x and p runs 
   // straight above the tip: grad B is +z here, up to one voxel of central-difference error
   CHECK(std::abs(r.skin_point_mm.x - tip.x) < 1.0);
   CHECK(std::abs(r.skin_point_mm.y - tip.y) < 1.0);
+}
+
+TEST_CASE("X moves with the tip, not with grad F, on a press beside bone", "[haptics]") {
+  // straight down beside the slab's bone block (its face at x = 35.5 mm), 0.05 mm a pose
+  // from the skin to 24 mm deep, with the default rule: grad F turns from +z towards the
+  // bone, so the paper's line swings sideways, but X must stay straight above the tip:
+  // at most 0.5 voxel (0.5 mm) sideways, a press of 1 mm moving X by well under 1 mm, so
+  // that the deformation grabs the same voxel all the way down
+  const auto p = test::slab_patient();
+  for (double x : {36.7, 38.2, 41.2}) {
+    ProxyState st{};
+    Vec3 last{0, 0, -1};
+    int changes = 0;
+    for (double depth = 0.05; depth <= 24; depth += 0.05) {
+      const Vec3 tip{x, 30.2, kSlabSkinZ - depth};
+      const ForceSample f = compute_force(*p, HapticsSettings{}, tip, 1e-3, st);
+      INFO("x " << x << " depth " << depth << ": X " << f.skin_point_mm.x << ", " << f.skin_point_mm.y << ", "
+                << f.skin_point_mm.z);
+      REQUIRE(f.contact);
+      CHECK(f.skin_point_mm.z == Approx(kSlabSkinZ).margin(0.05));
+      CHECK(std::hypot(f.skin_point_mm.x - tip.x, f.skin_point_mm.y - tip.y) < 0.5);
+      if (last.z > 0 && (std::lround(last.x) != std::lround(f.skin_point_mm.x) ||
+                         std::lround(last.y) != std::lround(f.skin_point_mm.y)))
+        ++changes;
+      last = f.skin_point_mm;
+    }
+    INFO("x " << x);
+    CHECK(changes == 0);
+  }
 }
 
 TEST_CASE("friction makes the proxy lag behind a sliding tip", "[haptics]") {

@@ -88,6 +88,8 @@ TEST_CASE("a bind that fails names the address", "[net]") {
 
 TEST_CASE("over the wire a session gets exactly the force model's answers", "[net]") {
   Scene scene = default_scene();
+  // under either rule for the skin point X (the scene's, which the session's parameters do not carry)
+  scene.haptics.skin_point = GENERATE(SkinPointRule::kNormal, SkinPointRule::kLine);
   const auto patient = test::slab_patient();
   net::Server server(scene, patient, nullptr, test::loopback_options());
   server.start();
@@ -110,6 +112,20 @@ TEST_CASE("over the wire a session gets exactly the force model's answers", "[ne
   };
   for (int n = 0; n < 300; ++n) step({27, 30, test::kSlabSkinZ + 2 - 0.1 * n});
   for (int n = 0; n < 100; ++n) step({27 + 0.05 * n, 30, test::kSlabSkinZ - 28});
+  // and beside the bone block, where the two rules put X apart (so the server must apply the scene's)
+  HapticsSettings other = params;
+  other.skin_point = params.skin_point == SkinPointRule::kLine ? SkinPointRule::kNormal : SkinPointRule::kLine;
+  ProxyState st_other = st;
+  int apart = 0;
+  for (int n = 0; n < 100; ++n) {
+    const Vec3 x{37.2, 30, test::kSlabSkinZ - 0.1 * n};
+    const double dt = 1.0 + (seq + 1) * 1e-3 - t_prev;
+    if (norm(compute_force(*patient, other, x, dt, st_other).skin_point_mm -
+             [&] { ProxyState s2 = st; return compute_force(*patient, params, x, dt, s2); }().skin_point_mm) > 0.5)
+      ++apart;
+    step(x);
+  }
+  CHECK(apart > 10);
 
   SECTION("a reset applies from the next pose on") {
     v1::ControlRequest q;
@@ -141,7 +157,7 @@ TEST_CASE("over the wire a session gets exactly the force model's answers", "[ne
     Contact k;
     CHECK(slot->read(k) > 0);
     CHECK(k.seq == seq);
-    CHECK(k.tip_mm == Vec3{27 + 0.05 * 99, 30, test::kSlabSkinZ - 28});
+    CHECK(k.tip_mm == Vec3{37.2, 30, test::kSlabSkinZ - 0.1 * 99});  // the last pose of the press beside the block
     CHECK(k.contact);
     CHECK(server.contact_slot(c.id ^ 1) == nullptr);
     const auto open = server.open_sessions();

@@ -121,3 +121,15 @@ TEST_CASE("deform.relax_method and relax_cycles are read, checked and default as
   CHECK(error_of("phantom {} deform { relax_method: \"sor\" }").find("deform.relax_method") != std::string::npos);
   CHECK(error_of("phantom {} deform { relax_cycles: 101 }").find("deform.relax_cycles") != std::string::npos);
 }
+
+TEST_CASE("haptics.skin_point is read, checked and defaults as HapticsSettings does") {
+  CHECK(parse_scene_text("phantom {}", "x.textproto").haptics.skin_point == HapticsSettings{}.skin_point);
+  CHECK(HapticsSettings{}.skin_point == SkinPointRule::kNormal);
+  CHECK(parse_scene_text("phantom {} haptics { skin_point: \"line\" }", "x.textproto").haptics.skin_point ==
+        SkinPointRule::kLine);
+  CHECK(parse_scene_text("phantom {} haptics { skin_point: \"normal\" }", "x.textproto").haptics.skin_point ==
+        SkinPointRule::kNormal);
+  const std::string e = error_of("phantom {} haptics { skin_point: \"nearest\" }");
+  CHECK(e.find("haptics.skin_point") != std::string::npos);
+  CHECK(e.find("\"nearest\"") != std::string::npos);
+}

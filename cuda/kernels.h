@@ -206,7 +206,7 @@ int relax_multigrid_blocks();
 /// and another VOI or grabbed element starts G from the kept one (deform::MultigridStart)
 /// and runs `warm_cycles` steps (when above 0).
 void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
-                            bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
+                            float finger_r2, bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
                             cudaStream_t stream);
 /// Untangles displacement buffer `cur` in place (server/deform/untangle.cpp's rounds and
 /// sweeps; the other buffer keeps the relaxed field), in one cooperative launch; counts
@@ -238,12 +238,12 @@ void launch_invert_batch(const BatchItem* items, int n, unsigned max_count, int 
 /// the buffers keep (the host's half of relax_multigrid.cu's test; the device also needs
 /// the kept field to be a G, which the caller vouches for).
 bool multigrid_reuses(const StepGeometry& g, int cycles, bool reuse, const MultigridBuffers& m);
-/// u = d G on every free element of each session whose item has mg_g set, and its counters'
-/// solves and warm start to 0, in one launch: what relax_multigrid.cu does for a reused G,
-/// the same bits, for steps whose held elements other than the grabbed one are at rest
-/// (ChainMail left out: ChainMailStats::skipped).
+/// u = d G on every free element (and d on the fingertip's) of each session whose item has
+/// mg_g set, and its counters' solves and warm start to 0, in one launch: what
+/// relax_multigrid.cu does for a reused G, the same bits, for steps whose elements held at
+/// rest are at rest (ChainMail left out: ChainMailStats::skipped).
 void launch_multigrid_reuse_batch(const BatchItem* items, int n, unsigned max_count, float threshold, float width,
-                                  cudaStream_t stream);
+                                  float finger_r2, cudaStream_t stream);
 /// Copies every session's counters to its host_counters, in one launch.
 void launch_gather_batch(const BatchItem* items, int n, cudaStream_t stream);
 

@@ -178,6 +178,7 @@ struct MgArgs {
   int src;
   int cycles;
   float threshold, width;
+  float finger_r2;  // the fingertip's radius squared (voxel^2; deform::finger_r2)
   int hit;     // the host's cache key matches: G may be reused if the device says it holds it
   int warm_cycles;
   // the last field shifted onto the new grabbed element (its g: m.g_last, swapped there by
@@ -243,9 +244,10 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const bool kept = *(volatile int*)(m.flags + 2) != 0;  // read before the first thread may clear it
   const bool hit = a.hit && kept;
 
-  // the held mask (grabbed element, material weight 0), whether a held element other
-  // than the grabbed one moved, and with a reusable G already u = d G (overwritten below
-  // if a held element moved: the solves read u at held elements only)
+  // the held mask (the grabbed element and the fingertip's soft elements, set to d here;
+  // material weight 0), whether an element held at rest moved, and with a reusable G
+  // already u = d G (overwritten below if one moved: the solves read u at held elements
+  // only). Every thread read d above and writes the same d at the grabbed element.
   if (first_thread) m.flags[a.parity ^ 1] = 0;
   for (int e = all.first; e < 6 * max(a.cycles, a.warm_cycles); e += all.stride) m.dots[e] = 0.0;
   bool moved_held = false;
@@ -253,9 +255,18 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     int i, j, k;
     L0.coords(e, i, j, k);
     const long long gi = a.geo.patient_index(i, j, k);
-    const bool held = deform::multigrid_held(e == g_idx, a.b.intensity[gi], a.b.bone[gi] != 0, a.threshold, a.width);
-    m.held[e] = held;
-    if (held && e != g_idx && (u[0][e] != 0.0f || u[1][e] != 0.0f || u[2][e] != 0.0f)) moved_held = true;
+    const std::uint8_t hold =
+        deform::multigrid_hold(e == g_idx, deform::multigrid_on_finger(i, j, k, a.geo.grabbed, a.finger_r2),
+                               a.b.intensity[gi], a.b.bone[gi] != 0, a.threshold, a.width);
+    const bool held = hold != deform::kMultigridFree;
+    m.held[e] = hold;
+    if (hold == deform::kMultigridHeldGrabbed) {
+      u[0][e] = d.x;
+      u[1][e] = d.y;
+      u[2][e] = d.z;
+    } else if (held && (u[0][e] != 0.0f || u[1][e] != 0.0f || u[2][e] != 0.0f)) {
+      moved_held = true;
+    }
     if (hit && !held) {
       const float ge = X[e];
       u[0][e] = d.x * ge;
@@ -280,7 +291,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   if (solves == 0) return;
   for (int comp = 0; comp < solves; ++comp) {
     const float* ucomp = u[comp];
-    auto data = [&](int e) { return clean ? (e == g_idx ? 1.0f : 0.0f) : ucomp[e]; };
+    auto data = [&](int e) { return clean ? (m.held[e] == deform::kMultigridHeldGrabbed ? 1.0f : 0.0f) : ucomp[e]; };
     double* dots = m.dots + 2 * cycles * comp;
     // X: the held data, the start on free nodes (0, or the last G shifted); r = sum6(X) -
     // 6 X on free nodes; z its first red half-sweep from 0 (X of the neighbours from the
@@ -475,7 +486,7 @@ namespace {
 
 // the reuse pass of relax_multigrid_kernel for a batch's reusing sessions (blockIdx.y): the
 // held mask's test and u = d G on free elements, in the same arithmetic
-__global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float threshold, float width) {
+__global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float threshold, float width, float finger_r2) {
   const BatchItem& it = items[blockIdx.y];
   if (!it.mg_g) return;
   const StepGeometry& geo = it.geo;
@@ -487,12 +498,18 @@ __global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float th
   for (int e = int(blockIdx.x * blockDim.x + threadIdx.x); e < n; e += int(gridDim.x * blockDim.x)) {
     const int i = e % voi.size.x, j = (e / voi.size.x) % voi.size.y, k = e / (voi.size.x * voi.size.y);
     const long long gi = geo.patient_index(i, j, k);
-    const bool held = deform::multigrid_held(e == g_idx, it.b.intensity[gi], it.b.bone[gi] != 0, threshold, width);
-    if (!held) {
+    const std::uint8_t hold =
+        deform::multigrid_hold(e == g_idx, deform::multigrid_on_finger(i, j, k, geo.grabbed, finger_r2),
+                               it.b.intensity[gi], it.b.bone[gi] != 0, threshold, width);
+    if (hold == deform::kMultigridFree) {
       const float ge = it.mg_g[e];
       u[0][e] = d.x * ge;
       u[1][e] = d.y * ge;
       u[2][e] = d.z * ge;
+    } else if (hold == deform::kMultigridHeldGrabbed) {
+      u[0][e] = d.x;
+      u[1][e] = d.y;
+      u[2][e] = d.z;
     }
   }
   if (blockIdx.x == 0 && threadIdx.x == 0) {
@@ -504,16 +521,16 @@ __global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float th
 }  // namespace
 
 void launch_multigrid_reuse_batch(const BatchItem* items, int n, unsigned max_count, float threshold, float width,
-                                  cudaStream_t stream) {
+                                  float finger_r2, cudaStream_t stream) {
   if (n < 1) return;
   const unsigned threads = 256;
   const unsigned blocks = std::max(1u, std::min((max_count + threads - 1) / threads, 256u));
-  reuse_batch_kernel<<<dim3(blocks, unsigned(n)), threads, 0, stream>>>(items, threshold, width);
+  reuse_batch_kernel<<<dim3(blocks, unsigned(n)), threads, 0, stream>>>(items, threshold, width, finger_r2);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
 }
 
 void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
-                            bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
+                            float finger_r2, bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
                             cudaStream_t stream) {
   if (cycles <= 0) return;
   const long long n = g.voi.count();
@@ -526,6 +543,7 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
   a.cycles = std::min(cycles, deform::kMultigridMaxCycles);
   a.threshold = threshold;
   a.width = width;
+  a.finger_r2 = finger_r2;
   // the unit response in m.g was solved for this VOI and grabbed element (if the device
   // found the step clean then: flags[2])
   a.hit = multigrid_reuses(g, cycles, reuse, m);

@@ -62,6 +62,7 @@ struct DeformSettings {
   double relax_step = 0.15;     // explicit diffusion step, stable below 1/6
   int relax_cycles = 5;         // multigrid steps (one V-cycle each)
   int relax_warm_cycles = 2;    // multigrid steps when the last step's unit response is the start (the tip entered a neighbouring voxel); 0: relax_cycles from zero
+  double grab_radius_mm = 0;    // multigrid: soft elements this close to the grabbed one move with it (a fingertip); 0: it alone
   double material_width = 50;   // HU, width of the material function's step at bone
   int invert_iterations = 8;
   bool untangle = false;        // untangle relaxation's folds before the inversion (server/deform/README.md)

@@ -43,6 +43,12 @@ DeformConfig DeformConfig::from_scene(const Scene& scene, const Patient* patient
   return c;
 }
 
+float finger_r2(const DeformSettings& s, const Grid& g) {
+  const double h = std::min(g.spacing_mm.x, std::min(g.spacing_mm.y, g.spacing_mm.z));
+  const double r = s.grab_radius_mm / h;
+  return float(r * r);
+}
+
 Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole) {
   Voi v;
   if (whole) {
@@ -87,6 +93,9 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
   if (!(s.max_sweeps >= 1 && s.max_sweeps <= (1 << 24))) bad("max_sweeps", s.max_sweeps, "must lie in [1, 16777216]");
   if (s.relax_method != "explicit" && s.relax_method != "multigrid")
     throw Error(who + ": deform.relax_method = \"" + s.relax_method + "\" is unknown; use \"explicit\" or \"multigrid\"");
+  if (!(s.grab_radius_mm >= 0 && s.grab_radius_mm <= 20)) bad("grab_radius_mm", s.grab_radius_mm, "must lie in [0, 20] mm");
+  if (s.grab_radius_mm > 0 && s.relax_method != "multigrid")
+    bad("grab_radius_mm", s.grab_radius_mm, "needs deform.relax_method \"multigrid\" (the explicit relaxation grabs one element)");
   if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
   if (s.relax_cycles < 0 || s.relax_cycles > deform::kMultigridMaxCycles)
     bad("relax_cycles", s.relax_cycles, "must lie in [0, " + std::to_string(deform::kMultigridMaxCycles) + "]");

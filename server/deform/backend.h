@@ -288,6 +288,10 @@ class DeformBackend {
 /// whole grid when `whole`. Both backends use it.
 Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole);
 
+/// The fingertip's radius squared in voxels^2 on grid `g` (deform.grab_radius_mm over the
+/// smallest voxel edge; 0: the grabbed element alone), as the multigrid solvers test it.
+float finger_r2(const DeformSettings& s, const Grid& g);
+
 /// Checks deformation settings that every backend needs (ranges, the relaxation step's
 /// stable limit) without a patient or a device, so a scene can be refused before it is
 /// served; throws palpsim::Error starting with `who` and naming the scene field.

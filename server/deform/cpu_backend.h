@@ -69,8 +69,9 @@ void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float
 
 /// Multigrid relaxation of the VOI's displacement (deform.relax_method "multigrid"):
 /// `cycles` V-cycles towards the explicit scheme's steady state (relax_multigrid.h),
-/// the grabbed element and elements of material weight 0 (bone) held, u = 0 outside
-/// the VOI; the residual of the steady state falls by 3-10x per cycle. With `reuse`, a
+/// the grabbed element (with the soft elements within sqrt(finger_r2) voxels of it, set
+/// to its displacement: the fingertip) and elements of material weight 0 (bone) held,
+/// u = 0 outside the VOI; the residual of the steady state falls by 3-10x per cycle. With `reuse`, a
 /// step whose VOI, grabbed element and steps equal the last solved one's, and whose held
 /// elements other than the grabbed one are at rest, takes u = d G from the cached unit
 /// response G (the same bits as solving again), and a step with another VOI or grabbed
@@ -81,7 +82,7 @@ struct MultigridRun {
   bool warm = false;  // the solve started from the last G (DeformStats::relax_warm)
 };
 MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
-                                 float threshold, float width, bool reuse, CpuState& s);
+                                 float threshold, float width, float finger_r2, bool reuse, CpuState& s);
 
 /// Untangling of the VOI's displacement (DeformBackend::untangle): up to
 /// kUntangleMaxRounds rounds of finding the folded cells and Jacobi sweeps from their

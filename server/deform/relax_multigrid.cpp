@@ -108,7 +108,7 @@ void solve(const MultigridPlan& plan, MultigridLevel* lv, float* X, float* p, fl
 }  // namespace
 
 MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
-                                 float threshold, float width, bool reuse, CpuState& s) {
+                                 float threshold, float width, float finger_r2, bool reuse, CpuState& s) {
   if (cycles <= 0) return {};  // no steps: the field stays as ChainMail left it
   const Voi& voi = st.voi;
   const Grid& grid = p.grid;
@@ -125,18 +125,24 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
     s.mg_cres.resize(nc);
     s.mg_held_coarse.resize(nc);
   }
-  // level 0 holds the grabbed element and every element of material weight 0 (bone);
-  // clean: every held element but the grabbed one is at rest
+  // level 0 holds the grabbed element and the soft elements on the fingertip at the
+  // grabbed element's displacement d (set here: ChainMail moved them otherwise), and every
+  // element of material weight 0 (bone) at its own; clean: every one of those at rest
   const long long g_idx = voi.index(g.x, g.y, g.z);
+  const Vec3f d = s.u[g_idx];
   bool clean = true;
   for (int k = 0; k < voi.size.z; ++k)
     for (int j = 0; j < voi.size.y; ++j)
       for (int i = 0; i < voi.size.x; ++i) {
         const std::size_t gi = grid.index(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k);
         const long long e = voi.index(i, j, k);
-        const bool held = multigrid_held(e == g_idx, p.intensity.data[gi], p.bone.data[gi] != 0, threshold, width);
-        s.mg_held[e] = held;
-        if (held && e != g_idx && !(s.u[e] == Vec3f{0, 0, 0})) clean = false;
+        const std::uint8_t hold = multigrid_hold(e == g_idx, multigrid_on_finger(i, j, k, g, finger_r2),
+                                                 p.intensity.data[gi], p.bone.data[gi] != 0, threshold, width);
+        s.mg_held[e] = hold;
+        if (hold == kMultigridHeldGrabbed)
+          s.u[e] = d;
+        else if (hold == kMultigridHeldAtRest && !(s.u[e] == Vec3f{0, 0, 0}))
+          clean = false;
       }
   // the unit response G of this VOI and grabbed element, from the last step where it is that one
   const MultigridCache key{voi.lo, voi.size, g, cycles, true};
@@ -160,9 +166,8 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
     // u = d G on free elements
     if (!reused)
       solve(plan, lv, X, s.mg_p.data(), s.mg_q.data(), warm ? warm_cycles : cycles, start,
-            [&](int e) { return e == g_idx ? 1.0f : 0.0f; });
+            [&](int e) { return s.mg_held[e] == kMultigridHeldGrabbed ? 1.0f : 0.0f; });
     s.mg_cache = key;
-    const Vec3f d = s.u[g_idx];
     for (std::size_t e = 0; e < n; ++e)
       if (!s.mg_held[e]) s.u[e] = Vec3f{d.x * X[e], d.y * X[e], d.z * X[e]};
     return {reused ? 0 : 1, warm};

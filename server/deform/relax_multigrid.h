@@ -165,11 +165,25 @@ PALPSIM_HD MultigridStart multigrid_start(const MultigridCache& last, const floa
   return s;
 }
 
-/// Whether relaxation holds an element (a Dirichlet node of the steady state): the
-/// grabbed element, and every element of material weight 0 (bone, or far above the
-/// threshold). Both backends' solvers and the batched reuse test it the same way.
-PALPSIM_HD bool multigrid_held(bool grabbed, float intensity, bool bone, float threshold, float width) {
-  return grabbed || material_weight(intensity, bone, threshold, width) == 0.0f;
+/// Whether VOI element (i, j, k) lies on the fingertip: within the grab radius of the
+/// grabbed element g (r2: that radius squared, in voxels^2; 0: the grabbed element alone).
+PALPSIM_HD bool multigrid_on_finger(int i, int j, int k, const Vec3i& g, float r2) {
+  const float dx = float(i - g.x), dy = float(j - g.y), dz = float(k - g.z);
+  return dx * dx + dy * dy + dz * dz <= r2;
+}
+
+/// How relaxation holds an element (the held mask's values): kMultigridFree, or a
+/// Dirichlet node of the steady state, either at its own data (kMultigridHeldAtRest: every
+/// element of material weight 0, bone or far above the threshold) or moving with the
+/// grabbed element (kMultigridHeldGrabbed: the grabbed element, and the soft elements on
+/// the fingertip, deform.grab_radius_mm). Both backends' solvers and the batched reuse
+/// test it the same way.
+constexpr std::uint8_t kMultigridFree = 0, kMultigridHeldAtRest = 1, kMultigridHeldGrabbed = 2;
+PALPSIM_HD std::uint8_t multigrid_hold(bool grabbed, bool on_finger, float intensity, bool bone, float threshold,
+                                       float width) {
+  if (grabbed) return kMultigridHeldGrabbed;
+  if (material_weight(intensity, bone, threshold, width) == 0.0f) return kMultigridHeldAtRest;
+  return on_finger ? kMultigridHeldGrabbed : kMultigridFree;
 }
 
 /// The red-black colour of node (i, j, k): 0 red, 1 black.

@@ -200,6 +200,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
     throw Error(origin + ": deform.relax_method = \"" + out.deform.relax_method + "\"; allowed: \"explicit\", \"multigrid\"");
   out.deform.relax_cycles = d.relax_cycles();
   out.deform.relax_warm_cycles = d.relax_warm_cycles();
+  out.deform.grab_radius_mm = d.grab_radius_mm();
   out.deform.material_width = d.material_width();
   out.deform.invert_iterations = d.invert_iterations();
   out.deform.untangle = d.untangle();

@@ -583,6 +583,8 @@ TEST_CASE("sessions on one patient share one device copy of it, and step as one 
 
 TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and with bone") {
   if (!have_gpu()) return;
+  // the grabbed element alone, and a fingertip (deform.grab_radius_mm) that moves with it
+  const double radius = GENERATE(0.0, 3.0);
   // the accuracy bench's press over L3 (VOI 64) and a soft cube in a bone shell
   PhantomCt ct = make_phantom(340.0 / 255.0);
   const Press press = spinous_press(ct.geometry);
@@ -611,6 +613,7 @@ TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and wit
       cfg.settings.voi_edge = 64;
       cfg.settings.relax_method = "multigrid";
       cfg.settings.relax_cycles = steps;
+      cfg.settings.grab_radius_mm = radius;
       Pair b(k.p, cfg);
       same_chainmail(b, k.c);
       b.cpu->relax();
@@ -623,8 +626,10 @@ TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and wit
       // growing them much in 20 steps; 1e-4 of the largest displacement (about 1000 float
       // ulps) bounds that and lies 100 times below the 1% accuracy the steps are chosen for
       const float tol = 1e-4f * std::max(1.0f, max_abs(ua));
-      INFO(k.name << ", " << steps << " steps: max |u_cpu - u_gpu| " << worst << " voxel, tolerance " << tol);
-      std::printf("multigrid %s, %d steps: max |u_cpu - u_gpu| = %g voxel (tolerance %g)\n", k.name, steps, worst, tol);
+      INFO(k.name << ", " << steps << " steps, fingertip " << radius << " mm: max |u_cpu - u_gpu| " << worst
+                  << " voxel, tolerance " << tol);
+      std::printf("multigrid %s, %d steps, fingertip %g mm: max |u_cpu - u_gpu| = %g voxel (tolerance %g)\n", k.name,
+                  steps, radius, worst, tol);
       CHECK(worst <= tol);
       CHECK(moved_bone_count(*k.p, b.gpu->voi(), ug) == 0);
     }
@@ -635,7 +640,9 @@ TEST_CASE("gpu multigrid reuses its unit response to the bit, and as the cpu doe
   // the cpu case of tests/unit/deform_relax_multigrid_test.cpp: a tip moving within one
   // voxel (the VOI stays), a voxel on, and back
   auto torso = make_torso_patient(64);
-  const ReusePress press = reuse_press();
+  ReusePress press = reuse_press();
+  press.cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);  // the grabbed element alone, and a fingertip
+  INFO("grab_radius_mm " << press.cfg.settings.grab_radius_mm);
   DeformConfig fresh_cfg = press.cfg;
   fresh_cfg.relax_reuse = false;
   auto cpu = make_deform_backend("cpu"), reuse = make_deform_backend("cuda"), fresh = make_deform_backend("cuda");
@@ -680,6 +687,8 @@ TEST_CASE("gpu multigrid starts a new unit response from the last one as the cpu
   auto torso = make_torso_patient(64);
   DeformConfig cfg = reuse_press().cfg;
   cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+  cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);  // the grabbed element alone, and a fingertip
+  INFO("grab_radius_mm " << cfg.settings.grab_radius_mm);
   for (const WarmPath& path : warm_paths()) {
     auto cpu = make_deform_backend("cpu"), gpu = make_deform_backend("cuda");
     cpu->bind(torso, cfg);
@@ -719,7 +728,9 @@ TEST_CASE("gpu multigrid steps without ChainMail equal steps with it, to the bit
   auto torso = make_torso_patient(64);
   const MultigridSteps steps = multigrid_steps();
   const std::vector<DeformContact>& contacts = steps.contacts;
-  const DeformConfig& cfg = steps.cfg;
+  DeformConfig cfg = steps.cfg;
+  cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);  // the grabbed element alone, and a fingertip
+  INFO("grab_radius_mm " << cfg.settings.grab_radius_mm);
   DeformConfig full_cfg = cfg;
   full_cfg.skip_chainmail = false;
   auto skip = make_deform_backend("cuda"), full = make_deform_backend("cuda");
@@ -893,6 +904,8 @@ TEST_CASE("a batch of multigrid sessions equals each session stepping alone, bit
   cfg.settings.backend = "cuda";
   cfg.settings.relax_method = "multigrid";
   cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+  cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);  // the grabbed element alone, and a fingertip
+  INFO("grab_radius_mm " << cfg.settings.grab_radius_mm);
   cfg.voi_hold = false;  // a voxel deeper moves the VOI: a warm start
   std::vector<std::unique_ptr<DeformEngine>> sessions, twins;
   std::vector<DeformBackend*> backends;

@@ -156,7 +156,10 @@ TEST_CASE("multigrid reuses its unit response while the VOI and grabbed element 
   // voxel, stays), then a voxel on (the VOI moves), then back: the steady state is u = d G
   // (relax_multigrid.h), so a reused G must give the bits of a fresh solve
   auto torso = make_torso_patient(64);
-  const ReusePress press = reuse_press();
+  ReusePress press = reuse_press();
+  // the grabbed element alone, and a fingertip (deform.grab_radius_mm) that moves with it
+  press.cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);
+  INFO("grab_radius_mm " << press.cfg.settings.grab_radius_mm);
   DeformConfig fresh_cfg = press.cfg;
   fresh_cfg.relax_reuse = false;
   CpuDeformBackend reuse, fresh;
@@ -183,6 +186,9 @@ TEST_CASE("a tip entering another voxel starts the unit response from the last o
   DeformConfig cfg = reuse_press().cfg;
   cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
   REQUIRE(cfg.settings.relax_warm_cycles > 0);
+  // the grabbed element alone, and a fingertip (deform.grab_radius_mm) that moves with it
+  cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);
+  INFO("grab_radius_mm " << cfg.settings.grab_radius_mm);
   DeformConfig steady_cfg = cfg, cold_cfg = cfg, off_cfg = cfg;
   steady_cfg.settings.relax_cycles = 30;
   steady_cfg.relax_reuse = false;
@@ -208,8 +214,9 @@ TEST_CASE("a tip entering another voxel starts the unit response from the last o
       const std::vector<Vec3f> ref = steady.displacement();
       const double scale = rms(ref), d_warm = rms_distance(warm.displacement(), ref),
                    d_cold = rms_distance(cold.displacement(), ref);
-      std::printf("warm start, %s, step %zu: %.4f%% from the steady state (%d steps from zero: %.4f%%)\n", path.name,
-                  s, 100 * d_warm / scale, cfg.settings.relax_warm_cycles, 100 * d_cold / scale);
+      std::printf("warm start, %s, fingertip %g mm, step %zu: %.4f%% from the steady state (%d steps from zero: %.4f%%)\n",
+                  path.name, cfg.settings.grab_radius_mm, s, 100 * d_warm / scale, cfg.settings.relax_warm_cycles,
+                  100 * d_cold / scale);
       INFO(path.name << ", step " << s);
       const bool warm_step = s > 0 && path.warm;
       CHECK(w.relax_solves == 1);
@@ -260,6 +267,51 @@ TEST_CASE("multigrid solves each component when ChainMail moved a held element o
   CHECK(b.step(c).relax_solves == 3);
 }
 
+TEST_CASE("a fingertip grab moves the soft tissue within grab_radius_mm with the grabbed element: a dent of its size") {
+  // a press into the middle of a soft block (1 mm voxels) with a 3 mm fingertip: every
+  // soft element within 3 voxels of the grabbed one takes its displacement d exactly, the
+  // rest is the steady state with that ball held (8 steps within 1e-3 of 30: each step
+  // gains 3-10x), and 6 voxels out the field is several times the point grab's (a ball of
+  // radius R held at 1 gives about R / r, one element about 0.25 / r: 0.5 against 0.04)
+  auto patient = make_soft_patient(56);
+  DeformConfig cfg = preset_config(1);
+  cfg.settings.voi_edge = 48;
+  cfg.settings.grab_radius_mm = 3;
+  const DeformContact c = voxel_contact({28, 28, 28}, {0, 0, 4});
+  const Relaxed finger = relax_with(patient, cfg, c, "multigrid", 8);
+  const Relaxed steady = relax_with(patient, cfg, c, "multigrid", 30);
+  DeformConfig point_cfg = cfg;
+  point_cfg.settings.grab_radius_mm = 0;
+  const Relaxed point = relax_with(patient, point_cfg, c, "multigrid", 8);
+  const Voi& voi = finger.st.voi;
+  const Vec3i g = finger.st.grabbed_vox - voi.lo;
+  const Vec3f d = finger.after[voi.index(g.x, g.y, g.z)];
+  REQUIRE(d.z == Approx(4.0f));
+  int on_finger = 0;
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        const int r2 = (i - g.x) * (i - g.x) + (j - g.y) * (j - g.y) + (k - g.z) * (k - g.z);
+        if (r2 > 9) continue;
+        ++on_finger;
+        INFO("element " << i << ", " << j << ", " << k);
+        CHECK(finger.after[voi.index(i, j, k)] == d);
+      }
+  CHECK(on_finger == 123);  // the lattice points within radius 3
+  CHECK(rms_distance(finger.after, steady.after) <= 1e-3 * rms(steady.after));
+  const Vec3i out = g + Vec3i{6, 0, 0};
+  const float u6 = finger.after[voi.index(out.x, out.y, out.z)].z, p6 = point.after[voi.index(out.x, out.y, out.z)].z;
+  std::printf("u_z 6 voxels beside a 4-voxel press: fingertip 3 mm %.3f, point grab %.3f voxel\n", u6, p6);
+  CHECK(u6 > 4 * p6);
+  CHECK(u6 < d.z);
+  // bone on the fingertip stays held at rest: the torso press with a wide fingertip
+  auto torso = make_torso_patient(64);
+  DeformConfig tcfg = reuse_press().cfg;
+  tcfg.settings.grab_radius_mm = 8;
+  const Relaxed t = relax_with(torso, tcfg, reuse_press().contacts.front(), "multigrid", 5);
+  CHECK(moved_bone_count(*torso, t.st.voi, t.after) == 0);
+}
+
 TEST_CASE("a bad relax_method or relax_cycles is refused naming the field") {
   auto patient = make_soft_patient(16);
   DeformConfig cfg = preset_config(1);
@@ -270,6 +322,15 @@ TEST_CASE("a bad relax_method or relax_cycles is refused naming the field") {
   cfg.settings.relax_cycles = -1;
   CHECK_THROWS_WITH(b.bind(patient, cfg), Catch::Contains("deform.relax_cycles"));
   cfg.settings.relax_cycles = 4;
+  // a fingertip only for multigrid (the explicit relaxation grabs one element), 0-20 mm
+  cfg.settings.grab_radius_mm = 25;
+  CHECK_THROWS_WITH(b.bind(patient, cfg), Catch::Contains("deform.grab_radius_mm"));
+  cfg.settings.grab_radius_mm = 3;
+  cfg.settings.relax_method = "explicit";
+  CHECK_THROWS_WITH(b.bind(patient, cfg), Catch::Contains("deform.grab_radius_mm") && Catch::Contains("multigrid"));
+  cfg.settings.relax_method = "multigrid";
+  CHECK_NOTHROW(b.bind(patient, cfg));
+  cfg.settings.grab_radius_mm = 0;
   CHECK_NOTHROW(b.bind(patient, cfg));
   // a step reports the cycles it ran, and no explicit iterations
   const DeformStats st = b.step(voxel_contact({8, 8, 8}, {0, 0, 2}));
@@ -309,8 +370,10 @@ TEST_CASE("multigrid steps leave ChainMail out where nothing it moves is held, w
   auto torso = make_torso_patient(64);
   const MultigridSteps steps = multigrid_steps();
   const std::vector<DeformContact>& contacts = steps.contacts;
-  const DeformConfig& cfg = steps.cfg;
+  DeformConfig cfg = steps.cfg;
   REQUIRE(cfg.skip_chainmail);  // the default
+  cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);  // the grabbed element alone, and a fingertip
+  INFO("grab_radius_mm " << cfg.settings.grab_radius_mm);
   DeformConfig full_cfg = cfg;
   full_cfg.skip_chainmail = false;
   CpuDeformBackend skip, full;

@@ -59,14 +59,6 @@ float max_abs(const std::vector<Vec3f>& u) {
   return m;
 }
 
-// the largest difference of any component of two fields on the same VOI (voxel)
-float max_abs_diff(const std::vector<Vec3f>& ua, const std::vector<Vec3f>& ug) {
-  float worst = 0;
-  for (std::size_t e = 0; e < ua.size(); ++e)
-    worst = std::max({worst, std::fabs(ua[e].x - ug[e].x), std::fabs(ua[e].y - ug[e].y), std::fabs(ua[e].z - ug[e].z)});
-  return worst;
-}
-
 // the phantom (340 mm over 256 voxels), the skin point over L3's spinous tip, and the
 // server's lumbar configuration with the inversion's cell search: deep presses from there
 // fold and send hundreds of voxels to the search

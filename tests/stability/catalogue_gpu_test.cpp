@@ -120,6 +120,12 @@ TEST_CASE("gpu stability: 100000 random poses including NaN and Inf") {
   deform_random_poses(c, 20000, 20);
 }
 
+TEST_CASE("gpu stability: the shipped deformation (multigrid, 5 mm fingertip, cell search) over presses, pushes and jumps") {
+  if (!have_gpu()) return;
+  Case c = make_case("the shipped deformation (multigrid, 5 mm fingertip, cell search)");
+  deform_shipped_multigrid(c, 2000, 1);
+}
+
 TEST_CASE("gpu stability: the tip sweeping across a rib at 1 m/s") {
   if (!have_gpu()) return;
   Case c = make_case("the tip sweeping across a rib at 1 m/s");

@@ -506,6 +506,11 @@ TEST_CASE("stability: 100000 random poses including NaN and Inf") {
   deform_random_poses(c, 2000, 1);
 }
 
+TEST_CASE("stability: the shipped deformation (multigrid, 5 mm fingertip, cell search) over presses, pushes and jumps") {
+  Case c = make_case("the shipped deformation (multigrid, 5 mm fingertip, cell search)");
+  deform_shipped_multigrid(c, 300, 1);
+}
+
 TEST_CASE("stability: the tip sweeping across a rib at 1 m/s") {
   Case c = make_case("the tip sweeping across a rib at 1 m/s");
   INFO(c.describe());

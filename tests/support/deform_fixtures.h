@@ -307,6 +307,14 @@ inline double min_jacobian_det(const Patient& p, const Voi& voi, const std::vect
   return worst;
 }
 
+/// The largest difference of any component of two fields on the same VOI (voxel).
+inline float max_abs_diff(const std::vector<Vec3f>& ua, const std::vector<Vec3f>& ub) {
+  float worst = 0;
+  for (std::size_t e = 0; e < ua.size(); ++e)
+    worst = std::max({worst, std::fabs(ua[e].x - ub[e].x), std::fabs(ua[e].y - ub[e].y), std::fabs(ua[e].z - ub[e].z)});
+  return worst;
+}
+
 /// Number of bone voxels in the VOI whose displacement is not exactly zero.
 inline long long moved_bone_count(const Patient& p, const Voi& voi, const std::vector<Vec3f>& u) {
   long long n = 0;

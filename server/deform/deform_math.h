@@ -62,8 +62,15 @@ PALPSIM_HD Vec3i neighbour_offset(int q) {
   return q < 2 ? Vec3i{s, 0, 0} : (q < 4 ? Vec3i{0, s, 0} : Vec3i{0, 0, s});
 }
 
-/// Clamps the displacement `u` of an element into the box allowed by the neighbour
-/// with displacement `un` that lies along `axis`, below the element when `below`.
+/// Moves the displacement `u` of an element the least that the neighbour with
+/// displacement `un` (along `axis`, below the element when `below`) asks: per component,
+/// a neighbour moved towards -inf pulls the element to at most its box's upper end, one
+/// moved towards +inf to at least its lower end, one at rest asks nothing. Per component
+/// the restrictions are difference constraints, and with one grabbed element (d) each
+/// component moves one way only, so the sweeps reach their solution nearest rest,
+/// min(0, d + shortest path) for d < 0 (max(0, d - shortest path) for d > 0), where
+/// every restriction holds; clamping into both ends let two neighbours' disjoint boxes
+/// leave an element violating one of them (server/deform/README.md, "Sweeps").
 PALPSIM_HD void chainmail_clamp(Vec3f& u, const Vec3f& un, int axis, bool below, const ChainMailLimits& l) {
 #if defined(__CUDACC__)
 #pragma unroll
@@ -83,7 +90,10 @@ PALPSIM_HD void chainmail_clamp(Vec3f& u, const Vec3f& un, int axis, bool below,
       lo = un[b] - l.axial_hi;
       hi = un[b] - l.axial_lo;
     }
-    u[b] = clamp_to(u[b], lo, hi);
+    if (un[b] < 0.0f)
+      u[b] = u[b] < hi ? u[b] : hi;
+    else if (un[b] > 0.0f)
+      u[b] = u[b] > lo ? u[b] : lo;
   }
 }
 

@@ -586,17 +586,13 @@ TEST_CASE("ChainMail keeps its restrictions next to elements that stopped moving
                            {30.464565804672375, 22.65169110807161, -6.0009171800053087}}) <= kP2RestrictionTol);
 }
 
-// A known bug left, pinned so that it cannot be forgotten: the VOI is clipped at the
-// volume border (6 voxels wide along i) and the grabbed element is displaced 8.9 voxels
-// beyond it; one element is pulled by neighbours whose boxes do not overlap (the
-// neighbour along +j allows its u_z up to -2.23 voxel, the one along +k from -1.98), and
-// clamping in the fixed order lets the last neighbour win, leaving a 0.25 voxel (minDist)
-// violation, and a quiet sweep ends the run. Settling such an element in the middle of
-// the gap fixes this push but keeps the other one above from converging within 2048
-// sweeps (tried, issue 8). [!shouldfail]: this test passes while the bug is there; once
-// fixed it fails, and the tag should go.
-TEST_CASE("known bug: ChainMail restrictions break where neighbours' boxes do not overlap (p2, clipped VOI) [issue 8]",
-          "[!shouldfail]") {
+// Issue 8's last ChainMail bug, fixed: the VOI is clipped at the volume border (6 voxels
+// wide along i) and the grabbed element is displaced 8.9 voxels beyond it; an element was
+// pulled by neighbours whose boxes did not overlap (the neighbour along +j allowed its u_z
+// up to -2.23 voxel, the one along +k from -1.98), the last clamp won and a quiet sweep
+// ended the run 0.25 voxel (minDist) off. A neighbour moved one way only pulls that way
+// now (chainmail_clamp()), and the restrictions' solution is reached.
+TEST_CASE("ChainMail keeps its restrictions where two neighbours' full boxes would not overlap (p2, clipped VOI) [issue 8]") {
   CHECK(p2_push_violation({40, 16, {34.475528833882343, 15.887227523706539, 34.74798598294349},
                            {42.939564058958211, 17.256031169232529, 24.767021691015621}}) <= kP2RestrictionTol);
 }

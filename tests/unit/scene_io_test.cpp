@@ -5,6 +5,7 @@
 #include <filesystem>
 
 #include "core/error.h"
+#include "deform/backend.h"
 #include "net/scene_io.h"
 
 using namespace palpsim;
@@ -81,12 +82,16 @@ TEST_CASE("inconsistent settings are refused") {
   CHECK(error_of("phantom {} deform { backend: \"opencl\" }").find("deform.backend") != std::string::npos);
 }
 
-TEST_CASE("every shipped scene loads") {
+TEST_CASE("every shipped scene loads, and its deformation settings pass the backends' checks") {
   int n = 0;
   for (const auto& e : std::filesystem::directory_iterator(PALPSIM_SOURCE_DIR "/config/scenes")) {
     if (e.path().extension() != ".textproto") continue;
     INFO(e.path().string());
-    CHECK_NOTHROW(load_scene_file(e.path().string()));
+    Scene s;
+    CHECK_NOTHROW(s = load_scene_file(e.path().string()));
+    // what the server checks before serving a scene (a fingertip with the explicit
+    // relaxation, a step above the stable limit, ...), without a patient or a device
+    if (s.effects.chainmail) CHECK_NOTHROW(check_deform_config(DeformConfig::from_scene(s), e.path().string()));
     ++n;
   }
   CHECK(n >= 3);

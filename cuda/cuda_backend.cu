@@ -268,8 +268,7 @@ void CudaDeformBackend::launch_multigrid(int src, MultigridScratch& scratch, int
   scratch.lend_to(mg_);
   const MultigridScratch::Turn turn(scratch, stream);
   launch_relax_multigrid(geometry(), src, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
-                         float(s.material_width), finger_r2(s, patient_->grid), config_.relax_reuse, d_, mg_, blocks,
-                         stream);
+                         float(s.material_width), finger_r2_, config_.relax_reuse, d_, mg_, blocks, stream);
   mg_g_clean_ = setup_.skipped;
 }
 
@@ -568,6 +567,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
       // one reuse launch instead of a solver launch of its own
       if (c.setup_.skipped && c.mg_g_clean_ && multigrid_reuses(it.geo, s.relax_cycles, c.config_.relax_reuse, c.mg_))
         it.mg_g = c.mg_.g;  // mg_g_clean_ stays: the same G, this step left ChainMail out
+      it.finger_r2 = c.finger_r2_;  // each session's own (its settings and patient grid)
     }
     c.dirty_ = c.voi_;
     c.prepare_stats(c.setup_);
@@ -600,8 +600,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
       c.launch_multigrid(bt.host_items[i].relax_src, *c.mg_shared_, c.full_mg_blocks_, st);
     }
     if (any_reuse)
-      launch_multigrid_reuse_batch(bt.dev_items, n, max_voi, float(config_.bone_threshold), float(s.material_width),
-                                   finger_r2(s, patient_->grid), st);
+      launch_multigrid_reuse_batch(bt.dev_items, n, max_voi, float(config_.bone_threshold), float(s.material_width), st);
   } else if (config_.relax) {
     launch_relax_batch(bt.dev_items, n, most, s.relax_iterations, float(s.relax_step), float(config_.bone_threshold),
                        float(s.material_width), full_shape_, st);

@@ -142,6 +142,7 @@ struct BatchItem {
   /// Multigrid: the unit response a step that reuses it writes u = d G from, in the batch's
   /// one reuse launch (launch_multigrid_reuse_batch); nullptr: the step launches the solver.
   const float* mg_g = nullptr;
+  float finger_r2 = 0;             // multigrid: the fingertip's radius squared (voxel^2; deform::finger_r2)
   unsigned reset_count = 0;        // elements the previous step left deformed (the reset zeroes them)
   DeviceBuffers b;
   Counters* host_counters = nullptr;  // pinned host memory, written by launch_gather_batch
@@ -243,7 +244,7 @@ bool multigrid_reuses(const StepGeometry& g, int cycles, bool reuse, const Multi
 /// relax_multigrid.cu does for a reused G, the same bits, for steps whose elements held at
 /// rest are at rest (ChainMail left out: ChainMailStats::skipped).
 void launch_multigrid_reuse_batch(const BatchItem* items, int n, unsigned max_count, float threshold, float width,
-                                  float finger_r2, cudaStream_t stream);
+                                  cudaStream_t stream);
 /// Copies every session's counters to its host_counters, in one launch.
 void launch_gather_batch(const BatchItem* items, int n, cudaStream_t stream);
 

@@ -486,7 +486,7 @@ namespace {
 
 // the reuse pass of relax_multigrid_kernel for a batch's reusing sessions (blockIdx.y): the
 // held mask's test and u = d G on free elements, in the same arithmetic
-__global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float threshold, float width, float finger_r2) {
+__global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float threshold, float width) {
   const BatchItem& it = items[blockIdx.y];
   if (!it.mg_g) return;
   const StepGeometry& geo = it.geo;
@@ -499,7 +499,7 @@ __global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float th
     const int i = e % voi.size.x, j = (e / voi.size.x) % voi.size.y, k = e / (voi.size.x * voi.size.y);
     const long long gi = geo.patient_index(i, j, k);
     const std::uint8_t hold =
-        deform::multigrid_hold(e == g_idx, deform::multigrid_on_finger(i, j, k, geo.grabbed, finger_r2),
+        deform::multigrid_hold(e == g_idx, deform::multigrid_on_finger(i, j, k, geo.grabbed, it.finger_r2),
                                it.b.intensity[gi], it.b.bone[gi] != 0, threshold, width);
     if (hold == deform::kMultigridFree) {
       const float ge = it.mg_g[e];
@@ -521,11 +521,11 @@ __global__ void reuse_batch_kernel(const BatchItem* __restrict__ items, float th
 }  // namespace
 
 void launch_multigrid_reuse_batch(const BatchItem* items, int n, unsigned max_count, float threshold, float width,
-                                  float finger_r2, cudaStream_t stream) {
+                                  cudaStream_t stream) {
   if (n < 1) return;
   const unsigned threads = 256;
   const unsigned blocks = std::max(1u, std::min((max_count + threads - 1) / threads, 256u));
-  reuse_batch_kernel<<<dim3(blocks, unsigned(n)), threads, 0, stream>>>(items, threshold, width, finger_r2);
+  reuse_batch_kernel<<<dim3(blocks, unsigned(n)), threads, 0, stream>>>(items, threshold, width);
   PALPSIM_CUDA_CHECK(cudaGetLastError());
 }
 

@@ -154,6 +154,7 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
   patient_ = std::move(patient);
   config_ = config;
   limits_ = deform::chainmail_limits(s.min_dist, s.max_dist, s.max_sheer);
+  finger_r2_ = finger_r2(s, patient_->grid);
   // a multigrid relaxation that runs (and so overwrites every free element) may do without
   // ChainMail where nothing ChainMail moves is held
   held_blocks_.reset();

@@ -267,6 +267,7 @@ class DeformBackend {
   /// Where the patient may hold elements outside bone (multigrid scenes with
   /// DeformConfig::skip_chainmail; null otherwise): steps whose VOI has none skip ChainMail.
   std::shared_ptr<const deform::HeldBlocks> held_blocks_;
+  float finger_r2_ = 0;       // finger_r2() of the bound settings and patient (voxel^2)
   bool voi_hold_ = false;     // DeformConfig::voi_hold applies (multigrid relaxation that reuses)
   Voi hold_voi_;              // the VOI held since bind() or reset() (empty: none) ...
   Vec3i hold_tip_{0, 0, 0};   // ... and the tip voxel it was placed around

@@ -89,7 +89,7 @@ void CpuDeformBackend::relax_impl() {
     // its buffers grow on first use
     relax_run_ = deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, d.relax_warm_cycles,
                                              float(config_.bone_threshold), float(d.material_width),
-                                             finger_r2(d, patient_->grid), config_.relax_reuse, s_);
+                                             finger_r2_, config_.relax_reuse, s_);
     s_.reach = -1;  // the steady state is nonzero wherever the grabbed element is felt
     return;
   }

@@ -97,6 +97,23 @@ Vec3 nearest_skin_point(const Patient& patient, const Vec3& tip_mm, double depth
   return cut_at_grid(g, tip_mm, tip_mm + out * depth_mm);
 }
 
+// the paper's skin point: where the line through x and p crosses the skin on the side of
+// x away from p (along -grad F where x and p coincide); false where that line runs
+// nearly along the skin and meets it, or only the grid's face, beyond three depths (a
+// line up to ~70 degrees off the skin's normal)
+bool line_skin_point(const Patient& patient, const Vec3& tip_mm, const Vec3& proxy_mm, const ProxyStep& step,
+                     double depth_mm, Vec3& x_mm) {
+  Vec3 away = tip_mm - proxy_mm;
+  double an = norm(away);
+  if (!(an > 1e-9) && step.has_direction) {
+    away = -step.direction;
+    an = 1;
+  }
+  if (!(an > 1e-9)) return false;
+  const double reach_mm = 3.0 * depth_mm + 2.0 * voxel_mm(patient);
+  return skin_crossing(patient, tip_mm, away * (1.0 / an), depth_mm, reach_mm, x_mm);
+}
+
 }  // namespace
 
 FieldView patient_view(const Patient& patient) {
@@ -131,26 +148,12 @@ ForceSample compute_force(const Patient& patient, const HapticsSettings& params,
   out.depth_mm = depth_from_sample(patient, s);
   const Vec3& proxy = step.proxy_mm;
 
-  // skin point X
-  if (params.skin_point == SkinPointRule::kLine) {
-    // the paper's: along the line through x and p, on the side of x away from p
-    Vec3 away = tip_mm - proxy;
-    double an = norm(away);
-    if (!(an > 1e-9) && step.has_direction) {
-      away = -step.direction;
-      an = 1;
-    }
-    // where that line runs nearly along the skin it meets the skin far from the tip, or
-    // only the grid's face: beyond three depths (a line up to ~70 degrees off the skin's
-    // normal) the skin point nearest to the tip stands in
-    const double reach_mm = 3.0 * out.depth_mm + 2.0 * voxel_mm(patient);
-    if (!(an > 1e-9) || !skin_crossing(patient, tip_mm, away * (1.0 / an), out.depth_mm, reach_mm, out.skin_point_mm))
-      out.skin_point_mm = nearest_skin_point(patient, tip_mm, out.depth_mm);
-  } else {
-    // the skin point nearest to the tip: it moves with the tip, not with grad F's
-    // direction, which turns quickly beside bone
+  // skin point X: the paper's line where the scene asks for it and that line meets the
+  // skin near the tip, else the skin point nearest to the tip (it moves with the tip,
+  // not with grad F's direction, which turns quickly beside bone)
+  if (params.skin_point != SkinPointRule::kLine ||
+      !line_skin_point(patient, tip_mm, proxy, step, out.depth_mm, out.skin_point_mm))
     out.skin_point_mm = nearest_skin_point(patient, tip_mm, out.depth_mm);
-  }
 
   // a non-finite value (a corrupt patient) resets the session instead of poisoning it
   if (!is_finite(out.skin_point_mm) || !std::isfinite(out.depth_mm)) {

@@ -896,14 +896,18 @@ TEST_CASE("a batch of multigrid sessions equals each session stepping alone, bit
   cfg.settings.backend = "cuda";
   cfg.settings.relax_method = "multigrid";
   cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
-  cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);  // the grabbed element alone, and a fingertip
-  INFO("grab_radius_mm " << cfg.settings.grab_radius_mm);
+  // the grabbed element alone, a fingertip, and (-1) sessions alternating between the two
+  // in one batch: each session's fingertip travels with its batch item
+  const double radius = GENERATE(0.0, 3.0, -1.0);
+  INFO("grab_radius_mm " << radius);
   cfg.voi_hold = false;  // a voxel deeper moves the VOI: a warm start
   std::vector<std::unique_ptr<DeformEngine>> sessions, twins;
   std::vector<DeformBackend*> backends;
   for (int s = 0; s < n; ++s) {
-    sessions.push_back(std::make_unique<DeformEngine>(torso, cfg));
-    twins.push_back(std::make_unique<DeformEngine>(torso, cfg));
+    DeformConfig own = cfg;
+    own.settings.grab_radius_mm = radius >= 0 ? radius : (s % 2 ? 3.0 : 0.0);
+    sessions.push_back(std::make_unique<DeformEngine>(torso, own));
+    twins.push_back(std::make_unique<DeformEngine>(torso, own));
     backends.push_back(&sessions.back()->backend());
   }
   // the same contacts again (reuse), a voxel deeper (warm), then far off (fresh)

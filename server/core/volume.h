@@ -3,20 +3,55 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <memory>
 #include <new>
 #include <type_traits>
 #include <utility>
 #include <vector>
 
+#if defined(__linux__)
+#include <sys/mman.h>
+#endif
+
 #include "core/grid.h"
 
 namespace palpsim {
 
+/// Blocks of at least this many bytes are placed on 2 MiB boundaries and offered to the
+/// kernel as transparent huge pages (Linux's "madvise" mode, Debian's default): a 43 MB
+/// volume then takes 21 page faults instead of 10,600, which made the first write of a
+/// fresh volume twice as fast (the EDT's first pass on the real CT: 26 -> 13 ms on one
+/// thread, palpsim-bench prep). Smaller blocks come from the ordinary heap.
+constexpr std::size_t kHugeBlockBytes = std::size_t(4) << 20;
+
+constexpr std::size_t kHugePageBytes = std::size_t(2) << 20;
+
+/// Allocates `bytes` for a volume: huge-page aligned and advised from kHugeBlockBytes on.
+inline void* allocate_volume_bytes(std::size_t bytes) {
+  if (bytes < kHugeBlockBytes) return ::operator new(bytes);
+  const std::size_t rounded = (bytes + kHugePageBytes - 1) / kHugePageBytes * kHugePageBytes;
+  void* p = std::aligned_alloc(kHugePageBytes, rounded);
+  if (!p) throw std::bad_alloc();
+#ifdef MADV_HUGEPAGE
+  ::madvise(p, rounded, MADV_HUGEPAGE);  // advice only: without THP the pages stay small
+#endif
+  return p;
+}
+
+/// Frees a block from allocate_volume_bytes (the same `bytes`).
+inline void free_volume_bytes(void* p, std::size_t bytes) noexcept {
+  if (bytes < kHugeBlockBytes)
+    ::operator delete(p);
+  else
+    std::free(p);
+}
+
 /// std::allocator, except that an element made without a value is default-initialised
 /// (left as it is for numbers) instead of zeroed: a volume that its maker writes whole
 /// then costs one pass over memory, and its pages are first touched by the threads that
-/// write them, not by one thread zeroing them ahead.
+/// write them, not by one thread zeroing them ahead. Large blocks sit on huge pages
+/// (allocate_volume_bytes).
 template <typename T>
 struct DefaultInitAllocator : std::allocator<T> {
   template <typename U>
@@ -26,6 +61,11 @@ struct DefaultInitAllocator : std::allocator<T> {
   DefaultInitAllocator() = default;
   template <typename U>
   DefaultInitAllocator(const DefaultInitAllocator<U>&) noexcept {}
+  T* allocate(std::size_t n) {
+    if (n > std::size_t(-1) / sizeof(T)) throw std::bad_array_new_length();
+    return static_cast<T*>(allocate_volume_bytes(n * sizeof(T)));
+  }
+  void deallocate(T* p, std::size_t n) noexcept { free_volume_bytes(p, n * sizeof(T)); }
   template <typename U>
   void construct(U* p) noexcept(std::is_nothrow_default_constructible<U>::value) {
     ::new (static_cast<void*>(p)) U;

@@ -66,7 +66,8 @@ struct Segment {
   float* line;
   std::size_t stride;  // floats between the line's samples
   int lo, hi, first, sites;
-  int top;  // the envelope's top index once built
+  int top;       // the envelope's top index once built
+  bool between;  // no site but the bounding zeros at lo and hi: no envelope needed
 };
 
 class LineBatch {
@@ -129,7 +130,7 @@ class LineBatch {
         s[m++].hq = h22 * q;
       }
       used += std::size_t(m);
-      segs.push_back({f, sd, a > 0 ? a - 1 : a, q < n ? q : n - 1, first, m, 0});
+      segs.push_back({f, sd, a > 0 ? a - 1 : a, q < n ? q : n - 1, first, m, 0, m == 2 && a > 0 && q < n});
     }
   }
 
@@ -167,9 +168,9 @@ class LineBatch {
     const std::size_t count = segs.size();
     std::size_t next = 0;
     int seg[kWays], first[kWays], i[kWays], k[kWays], end[kWays];
-    // hands way w the next segment of two sites or more (smaller ones need no build)
+    // hands way w the next segment that needs an envelope of two parabolas or more
     auto take = [&](int w) {
-      for (; next < count && segs[next].sites <= 1; ++next) {
+      for (; next < count && (segs[next].sites <= 1 || segs[next].between); ++next) {
         if (segs[next].sites == 1) start(segs[next]);
         segs[next].top = 0;
       }
@@ -225,6 +226,14 @@ class LineBatch {
       const std::size_t sd = sg.stride;
       if (sg.sites == 0) {  // no site in this segment
         for (int q = sg.lo; q <= sg.hi; ++q) f[q * sd] = kInf;
+        continue;
+      }
+      if (sg.between) {  // the nearer bounding zero (as the envelope would give, bit for bit)
+        for (int q = sg.lo; q <= sg.hi; ++q) {
+          const double d = double(std::min(q - sg.lo, sg.hi - q));
+          const float v = float(h2 * d * d);
+          f[q * sd] = root ? std::sqrt(v) : v;
+        }
         continue;
       }
       const Parabola* s = st.data() + sg.first;

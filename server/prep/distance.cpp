@@ -46,11 +46,12 @@ constexpr float kInf = std::numeric_limits<float>::infinity();
 // steps form a chain (each waits for the last decision), and a branch that guesses the
 // decision stalls on a wrong guess, which on real CT was every other step (0 or 1 pops
 // per push about equally often); four independent chains keep the core busy instead.
-// Measured on the real CT's masks on the 2-core VM, against one line at a time with the
-// branch (best of nine, two threads, the same maps bit for bit): the depth under the skin
-// 0.060-0.062 -> 0.052-0.055 s, the distance to bone 0.076-0.085 -> 0.062-0.066 s; on the
-// phantom's smooth, regular shapes the branch guesses well and its depth under the skin
-// took 0.073-0.079 -> 0.080-0.087 s (its distance to bone 0.111 -> 0.096-0.097 s).
+// Measured on the 2-core VM against one line at a time with the branch (best of nine, two
+// threads, the same maps bit for bit), with the segment and gather shortcuts below: the
+// real CT's depth under the skin 0.059-0.066 -> 0.050-0.053 s, its distance to bone
+// 0.076-0.085 -> 0.058-0.061 s; the phantom's distance to bone 0.110-0.113 -> 0.087 s,
+// its depth under the skin 0.071-0.079 -> 0.072-0.074 s (on its smooth, regular shapes
+// the branch guessed well; interleaving alone was 10% slower there).
 
 // one parabola of an envelope (site q): g = f(q) + (h q)^2, hq = 2 h^2 q, its left
 // boundary zn/zd (zd > 0; zd = 0 with zn = -1 for -infinity). The boundaries are kept as

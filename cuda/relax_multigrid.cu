@@ -469,17 +469,8 @@ int relax_multigrid_blocks() {
   return blocks;
 }
 
-namespace {
-
-// what a launch for `g` with `cycles` steps solves for: the key of the unit response it keeps
-deform::MultigridCache multigrid_key(const StepGeometry& g, int cycles) {
-  return {g.voi.lo, g.voi.size, g.grabbed, std::min(cycles, deform::kMultigridMaxCycles), true};
-}
-
-}  // namespace
-
 bool multigrid_reuses(const StepGeometry& g, int cycles, bool reuse, const MultigridBuffers& m) {
-  return reuse && m.cache == multigrid_key(g, cycles);
+  return reuse && m.cache == deform::MultigridCache::of(g.voi, g.grabbed, cycles);
 }
 
 namespace {
@@ -554,7 +545,7 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
                                                : deform::MultigridStart{};
   a.warm_cycles = std::min(warm_cycles, deform::kMultigridMaxCycles);
   if (a.start.g) std::swap(m.g, m.g_last);
-  m.cache = multigrid_key(g, cycles);
+  m.cache = deform::MultigridCache::of(g.voi, g.grabbed, cycles);
   a.parity = int(m.launches++ & 1);
   // block 0's shared memory: levels split..last (x, f, residual, held mask); each level
   // has at most (2/3)^3 of the nodes of the one above, so below 512 / (1 - 0.3) nodes,

@@ -24,7 +24,7 @@ namespace palpsim {
 /// fresh volume twice as fast (the EDT's first pass on the real CT: 26 -> 13 ms on one
 /// thread, palpsim-bench prep). Smaller blocks come from the ordinary heap.
 constexpr std::size_t kHugeBlockBytes = std::size_t(4) << 20;
-
+/// The size and alignment of a transparent huge page on x86-64 Linux.
 constexpr std::size_t kHugePageBytes = std::size_t(2) << 20;
 
 /// Allocates `bytes` for a volume: huge-page aligned and advised from kHugeBlockBytes on.

@@ -145,7 +145,7 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
           clean = false;
       }
   // the unit response G of this VOI and grabbed element, from the last step where it is that one
-  const MultigridCache key{voi.lo, voi.size, g, cycles, true};
+  const MultigridCache key = MultigridCache::of(voi, g, cycles);
   const bool reused = clean && reuse && s.mg_cache == key;
   // the levels: 0 solves for z with right-hand side r, the others live in the coarse buffers
   MultigridLevel lv[kMultigridMaxLevels];

@@ -113,6 +113,12 @@ struct MultigridCache {
   int cycles = 0;
   bool ok = false;
 
+  /// The key of a solve on `voi` for the VOI-local grabbed element with `cycles` steps
+  /// (at most kMultigridMaxCycles, as the solvers run); both backends test and keep it.
+  PALPSIM_HD static MultigridCache of(const Voi& voi, const Vec3i& grabbed, int cycles) {
+    return {voi.lo, voi.size, grabbed, cycles < kMultigridMaxCycles ? cycles : kMultigridMaxCycles, true};
+  }
+
   PALPSIM_HD bool operator==(const MultigridCache& o) const {
     return ok && o.ok && lo == o.lo && size == o.size && grabbed == o.grabbed && cycles == o.cycles;
   }

@@ -639,7 +639,7 @@ struct RelaxMethod {
 // "multigrid" solves every step from zero (DeformConfig::relax_reuse false: the cost of a
 // new VOI or grabbed element with deform.relax_warm_cycles 0); "multigrid warm" reaches the
 // press a voxel a step, so every timed step has a new VOI and starts from the last unit
-// response (deform.relax_warm_cycles, the settings; relax_cycles 5 for the first solve);
+// response (deform.relax_warm_cycles, the settings; relax_cycles 4 for the first solve);
 // "multigrid reused" repeats the press, so every timed step reuses the unit response (the
 // cost while the tip stays in its voxel)
 const std::vector<RelaxMethod> kRelaxMethods = {

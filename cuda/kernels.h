@@ -93,7 +93,7 @@ struct DeviceBuffers {
 /// the scene asks for it, scalar fields on the VOI: the solved field X (the unit response G
 /// after a clean step), CG's residual r (two buffers, one written while the other is read),
 /// preconditioned residual z, direction p (two buffers), A p (q), the V-cycle's residual and
-/// the held mask; the coarse levels' correction, right-hand side, residual and held mask
+/// the held mask; the coarse levels' correction, right-hand side, residual and node bytes
 /// (deform::MultigridPlan::offset);
 /// the dot sums; and what G was solved for.
 struct MultigridBuffers {
@@ -102,7 +102,7 @@ struct MultigridBuffers {
   std::uint8_t* held = nullptr;
   float* res = nullptr;                // the V-cycle's residual on level 0
   float *cx = nullptr, *cf = nullptr, *cres = nullptr;
-  std::uint8_t* cheld = nullptr;
+  std::uint8_t* cheld = nullptr;      // coarse node bytes: held, cut links (deform::multigrid_cuts)
   double* dots = nullptr;             // 2 per step and solve (3 solves at most): r . z and p . q
   int* flags = nullptr;               // [0], [1]: a held element other than the grabbed one moved (by launch parity); [2]: the last solve's field holds G
   long long capacity = 0;             // VOI elements the VOI buffers hold

@@ -70,13 +70,14 @@ __device__ void restrict_block(const MultigridLevel fine, const MultigridLevel c
     const float f = deform::multigrid_restrict_sum(deform::multigrid_restrict_plane(fine, o, I, J, K, -1),
                                                    deform::multigrid_restrict_plane(fine, o, I, J, K, 0),
                                                    deform::multigrid_restrict_plane(fine, o, I, J, K, 1));
-    deform::multigrid_coarse_node(fine, coarse, o, I, J, K, f);
+    deform::multigrid_coarse_node(coarse, I, J, K, f, deform::multigrid_coarse_byte(fine, o, I, J, K));
   }
 }
 
 // the same on the whole grid, four lanes per coarse node: lanes 0-2 sum one plane each
-// (dk = -1, 0, 1), lane 3 adds 0, and two shuffles add (p0 + p1) + (p2 + 0), the order of
-// multigrid_restrict_sum; whole warps run each round so the shuffles see every lane
+// (dk = -1, 0, 1), lane 3 adds 0 and makes the node's byte, and two shuffles add
+// (p0 + p1) + (p2 + 0), the order of multigrid_restrict_sum; whole warps run each round so
+// the shuffles see every lane
 __device__ void restrict_grid(const MultigridLevel fine, const MultigridLevel coarse, const Vec3i o) {
   const int lane = threadIdx.x & 31;
   const int stride = gridDim.x * blockDim.x;
@@ -87,9 +88,12 @@ __device__ void restrict_grid(const MultigridLevel fine, const MultigridLevel co
     int I = 0, J = 0, K = 0;
     if (t < tasks) coarse.coords(e, I, J, K);
     float v = mine ? deform::multigrid_restrict_plane(fine, o, I, J, K, part - 1) : 0.0f;
+    // lane 3 makes the coarse node's byte meanwhile
+    const int byte = t < tasks && part == 3 ? deform::multigrid_coarse_byte(fine, o, I, J, K) : 0;
     v += __shfl_down_sync(0xffffffffu, v, 1, 4);
     v += __shfl_down_sync(0xffffffffu, v, 2, 4);
-    if (t < tasks && part == 0) deform::multigrid_coarse_node(fine, coarse, o, I, J, K, v);
+    const int lane3_byte = __shfl_down_sync(0xffffffffu, byte, 3, 4);
+    if (t < tasks && part == 0) deform::multigrid_coarse_node(coarse, I, J, K, v, std::uint8_t(lane3_byte));
   }
 }
 
@@ -182,7 +186,7 @@ struct MgArgs {
   int hit;     // the host's cache key matches: G may be reused if the device says it holds it
   int warm_cycles;
   // the last field shifted onto the new grabbed element (its g: m.g_last, swapped there by
-  // the host when close; null: none), the start if the device says that field is a G
+  // the host; null: none), the start if the device says that field is a G
   deform::MultigridStart start;
   int parity;  // which of the two dirty flags this launch uses (the other is zeroed for the next)
   DeviceBuffers b;
@@ -538,10 +542,10 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
   // the unit response in m.g was solved for this VOI and grabbed element (if the device
   // found the step clean then: flags[2])
   a.hit = multigrid_reuses(g, cycles, reuse, m);
-  // another VOI or grabbed element close to the last launch's (multigrid_start; whether
-  // that field is a G the device knows): that field becomes the start, the new one goes
+  // another VOI or grabbed element than the last launch's (multigrid_start; whether that
+  // field is a G the device knows): that field becomes the start, the new one goes
   // to the other buffer (a swap: a.start.g stays the old field's)
-  a.start = reuse && !a.hit && warm_cycles > 0 ? deform::multigrid_start(m.cache, m.g, g.voi.lo, g.grabbed)
+  a.start = reuse && !a.hit && warm_cycles > 0 ? deform::multigrid_start(m.cache, m.g, g.grabbed)
                                                : deform::MultigridStart{};
   a.warm_cycles = std::min(warm_cycles, deform::kMultigridMaxCycles);
   if (a.start.g) std::swap(m.g, m.g_last);

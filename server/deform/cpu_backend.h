@@ -38,7 +38,7 @@ struct CpuState {
   std::vector<float> mg_g, mg_r, mg_z, mg_p, mg_q, mg_res;
   std::vector<float> mg_g_last;  // the unit response a warm start begins from (swapped with mg_g)
   std::vector<float> mg_cx, mg_cf, mg_cres;
-  std::vector<std::uint8_t> mg_held_coarse;
+  std::vector<std::uint8_t> mg_held_coarse;  // coarse node bytes: held, cut links (relax_multigrid.h)
   MultigridCache mg_cache;  // what mg_g holds
   std::vector<std::uint8_t> cell_folded;     // untangling: 1 where the cell with this lowest corner folds
   std::vector<std::uint8_t> untangle_flags;  // untangling: seed and moved bits per element

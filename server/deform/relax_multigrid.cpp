@@ -33,7 +33,7 @@ void vcycle(const MultigridLevel* lv, const MultigridPlan& plan) {
       const float f = multigrid_restrict_sum(multigrid_restrict_plane(lv[l], o, I, J, K, -1),
                                              multigrid_restrict_plane(lv[l], o, I, J, K, 0),
                                              multigrid_restrict_plane(lv[l], o, I, J, K, 1));
-      multigrid_coarse_node(lv[l], lv[l + 1], o, I, J, K, f);
+      multigrid_coarse_node(lv[l + 1], I, J, K, f, multigrid_coarse_byte(lv[l], o, I, J, K));
     });
   }
   // the coarsest level: its black half-sweep (level 0's, when it is the coarsest, came
@@ -156,10 +156,10 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
                            s.mg_cres.data() + o};
   }
   if (clean) {
-    // a new G starts from the last one when the scene asks for it and that one is close
-    // (multigrid_start); the last one moves to mg_g_last (a swap: start.g stays its data)
+    // a new G starts from the last one when the scene asks for it (multigrid_start); the
+    // last one moves to mg_g_last (a swap: start.g stays its data)
     MultigridStart start;
-    if (!reused && reuse && warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), voi.lo, g);
+    if (!reused && reuse && warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), g);
     const bool warm = start.g != nullptr;
     if (warm) std::swap(s.mg_g, s.mg_g_last);
     float* X = s.mg_g.data();

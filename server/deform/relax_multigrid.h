@@ -27,6 +27,16 @@
 // node 2 I + origin (origin 0 or 1 per axis, chosen so that the grabbed element is a node
 // of every level), and every level holds the 7-point operator 6 x - sum6 with zero outside
 // it. A coarse node is held (its correction stays 0) when the fine node it lies on is.
+// Coarse links that cross a Dirichlet point midway are cut: where the fine node between two
+// coarse nodes is held, lies beyond the fine level's faces (a VOI face between coarse
+// nodes), or a fine half-link on the way is cut, the coarse operator takes the ghost value
+// -x across that link (zero half a coarse spacing away, linearly): the diagonal grows by
+// one per cut link and the neighbour drops out. Without the cuts a coarse level saw no bone
+// or face between its nodes and its correction overshot there: on the accuracy press
+// (phantom, VOI 64; palpsim-bench deform --accuracy --study relax_cycles, cpu) steps from
+// zero to 1% of the steady state went 5 -> 4 (4 steps 2.09% -> 0.46%, 3 steps 6.9% ->
+// 3.8%), one step from the last G 0.046% -> 0.015%. A link is cut from both of its ends,
+// so the operator, and the V-cycle as a preconditioner, stay symmetric.
 // Smoother: red-black Gauss-Seidel (colour = parity of i + j + k), in place, red then
 // black going down and black then red coming up, so the V-cycle is symmetric; residuals
 // restricted by full weighting, corrections prolonged trilinearly and never applied to
@@ -131,7 +141,13 @@ struct MultigridCache {
 /// outside the last VOI. A press a voxel on moves the VOI with the tip while the grabbed
 /// element stays (the last G on the same patient voxels, its far faces a voxel off), and
 /// a tip sliding a voxel along the skin moves both (the same response beside bone a voxel
-/// off): either way close to the new G, so fewer steps reach the same distance.
+/// off): either way close to the new G, so fewer steps reach the same distance. A jump
+/// across the patient starts from a G of another place: the response to a press has one
+/// shape wherever it is (the bone around it changes the detail), so that G is still a far
+/// better start than zero: measured on make_torso_patient(64) at VOI 40 with 2 warm steps
+/// (tests/unit/deform_relax_multigrid_test.cpp), grabbed elements 1-2 voxels on land
+/// 0.004-0.27% from the steady state, jumps of 10-30 voxels 0.28-0.72%, against 1-14% for
+/// 2 steps from zero.
 struct MultigridStart {
   const float* g = nullptr;  // the last G (VOI-local index, i fastest); null: start from zero
   Vec3i size{0, 0, 0};
@@ -146,25 +162,12 @@ struct MultigridStart {
   }
 };
 
-/// The most voxels (along each axis) the grabbed element may have moved since the last G
-/// for that G to start the new one: measured on make_torso_patient(64) at VOI 40 with 2
-/// warm steps, grabbed elements 1-2 voxels on land 0.03-0.55% from the steady state,
-/// jumps of 10-30 voxels 1.3-1.6% (tests/unit/deform_relax_multigrid_test.cpp). The VOI
-/// may move any distance with the grabbed element staying (a fast press: 4 voxels, 0.1%).
-constexpr int kMultigridWarmMaxMove = 2;
-
-/// The start of a G for VOI `lo`/`size` (patient voxels) with VOI-local grabbed element
-/// `grabbed` from the last G `last` (its buffer `g`): shifted onto the new grabbed
-/// element, or none (start from zero) when there is no last G or its grabbed element lies
-/// more than kMultigridWarmMaxMove voxels away.
-PALPSIM_HD MultigridStart multigrid_start(const MultigridCache& last, const float* g, const Vec3i& lo,
-                                          const Vec3i& grabbed) {
+/// The start of a G for the VOI-local grabbed element `grabbed` from the last G `last`
+/// (its buffer `g`): shifted onto the new grabbed element, or none (start from zero) when
+/// there is no last G.
+PALPSIM_HD MultigridStart multigrid_start(const MultigridCache& last, const float* g, const Vec3i& grabbed) {
   MultigridStart s;
   if (!last.ok) return s;
-  for (int a = 0; a < 3; ++a) {
-    const int moved = (lo[a] + grabbed[a]) - (last.lo[a] + last.grabbed[a]);
-    if (moved > kMultigridWarmMaxMove || moved < -kMultigridWarmMaxMove) return s;
-  }
   s.g = g;
   s.size = last.size;
   s.shift = last.grabbed - grabbed;
@@ -192,6 +195,27 @@ PALPSIM_HD std::uint8_t multigrid_hold(bool grabbed, bool on_finger, float inten
   return on_finger ? kMultigridHeldGrabbed : kMultigridFree;
 }
 
+/// A level's per-node byte (MultigridLevel::held): bits 0-1 how the node is held (level 0:
+/// kMultigridFree, kMultigridHeldAtRest or kMultigridHeldGrabbed; coarse levels: 0 or 1),
+/// bits 2-7 its cut links (coarse levels only; bit 2 + q: link q of neighbour_offset's order).
+constexpr std::uint8_t kMultigridHoldMask = 3;
+constexpr int kMultigridCutShift = 2;
+
+/// Whether a level's node byte `h` holds its node (a Dirichlet node: its x stays).
+PALPSIM_HD bool multigrid_held(std::uint8_t h) { return (h & kMultigridHoldMask) != 0; }
+
+/// The cut links of a node byte `h` (bit q: link q), 0 on level 0.
+PALPSIM_HD int multigrid_cuts(std::uint8_t h) { return h >> kMultigridCutShift; }
+
+/// The operator's diagonal at a node with cut links `cuts`: 6 and one per cut (the ghost -x).
+PALPSIM_HD float multigrid_diagonal(int cuts) {
+#ifdef __CUDA_ARCH__
+  return float(6 + __popc(cuts));
+#else
+  return float(6 + __builtin_popcount(unsigned(cuts)));
+#endif
+}
+
 /// The red-black colour of node (i, j, k): 0 red, 1 black.
 PALPSIM_HD int multigrid_colour(int i, int j, int k) { return (i + j + k) & 1; }
 
@@ -202,7 +226,7 @@ struct MultigridLevel {
   Vec3i n;
   float* x;
   float* f;
-  std::uint8_t* held;
+  std::uint8_t* held;  // the node bytes: how each node is held and its cut links (multigrid_held, multigrid_cuts)
   float* res;
 
   PALPSIM_HD int count() const { return n.x * n.y * n.z; }
@@ -230,24 +254,50 @@ struct MultigridLevel {
     }
     return s;
   }
+  /// The neighbours of (i, j, k) in `v` over its uncut links (`cuts`: multigrid_cuts), in
+  /// the fixed order and zero outside the level: sum6 where no link is cut. A cut
+  /// neighbour is loaded and weighted 0 rather than skipped, so that on the GPU the loads
+  /// need not wait for the node byte that holds the cuts (skipping them cost a second
+  /// memory round trip: 1 us per coarse pass on the H100); v * 1 = v and s + (+-0) = s
+  /// (s starts at +0 and a sum that cancels is +0), so the sums are those of skipping.
+  PALPSIM_HD float sum_links(const float* v, int i, int j, int k, int cuts) const {
+#ifndef __CUDA_ARCH__
+    if (cuts == 0) return sum6(v, i, j, k);
+#endif
+    float s = 0;
+    for (int q = 0; q < 6; ++q) {
+      const Vec3i m = Vec3i{i, j, k} + neighbour_offset(q);
+      if (inside(m.x, m.y, m.z)) s += v[index(m.x, m.y, m.z)] * ((cuts >> q) & 1 ? 0.0f : 1.0f);
+    }
+    return s;
+  }
 };
 
 /// The Gauss-Seidel value of a free node: the x that makes 6 x - sum6 = f.
 PALPSIM_HD float multigrid_smooth(float sum6, float f) { return (f + sum6) / 6.0f; }
 
+/// The same with the node's diagonal (multigrid_diagonal): the x that makes diag x - sum = f.
+PALPSIM_HD float multigrid_smooth(float sum, float f, float diag) { return (f + sum) / diag; }
+
 /// One red-black half-sweep at node (i, j, k): a free node of `colour` takes its
 /// Gauss-Seidel value; others stay.
 PALPSIM_HD void multigrid_sweep_node(const MultigridLevel& L, int colour, int i, int j, int k) {
   const int e = L.index(i, j, k);
-  if (multigrid_colour(i, j, k) != colour || L.held[e]) return;
-  L.x[e] = multigrid_smooth(L.sum6(L.x, i, j, k), L.f[e]);
+  const std::uint8_t h = L.held[e];
+  if (multigrid_colour(i, j, k) != colour || multigrid_held(h)) return;
+  const int cuts = multigrid_cuts(h);
+  L.x[e] = multigrid_smooth(L.sum_links(L.x, i, j, k, cuts), L.f[e], multigrid_diagonal(cuts));
 }
 
-/// The residual f - (6 x - sum6) at node (i, j, k) of level L after its black half-sweep,
+/// The residual f - (diag x - sum) at node (i, j, k) of level L after its black half-sweep,
 /// into L.res: 0 at black nodes (the sweep zeroed it) and held nodes.
 PALPSIM_HD void multigrid_residual_node(const MultigridLevel& L, int i, int j, int k) {
   const int e = L.index(i, j, k);
-  L.res[e] = multigrid_colour(i, j, k) != 0 || L.held[e] ? 0.0f : L.f[e] + L.sum6(L.x, i, j, k) - 6.0f * L.x[e];
+  const std::uint8_t h = L.held[e];
+  const int cuts = multigrid_cuts(h);
+  L.res[e] = multigrid_colour(i, j, k) != 0 || multigrid_held(h)
+                 ? 0.0f
+                 : L.f[e] + L.sum_links(L.x, i, j, k, cuts) - multigrid_diagonal(cuts) * L.x[e];
 }
 
 /// One plane (dk) of the full weighting at coarse node (I, J, K): the fine residuals
@@ -270,17 +320,37 @@ PALPSIM_HD float multigrid_restrict_plane(const MultigridLevel& fine, const Vec3
 /// The restriction's planes added in a fixed order: (dk -1 + dk 0) + dk 1.
 PALPSIM_HD float multigrid_restrict_sum(float below, float centre, float above) { return (below + centre) + above; }
 
+/// The node byte of coarse node (I, J, K): held where the fine node it lies on is, else
+/// its cut links (bit q: link q), those whose fine midpoint is held or lies beyond the fine
+/// level's faces, or whose fine half-links are cut. The seven fine bytes are loaded first,
+/// independently of each other (0xff beyond the faces: held).
+PALPSIM_HD std::uint8_t multigrid_coarse_byte(const MultigridLevel& fine, const Vec3i& o, int I, int J, int K) {
+  const Vec3i c{2 * I + o.x, 2 * J + o.y, 2 * K + o.z};
+  std::uint8_t h[6];
+  for (int q = 0; q < 6; ++q) {
+    const Vec3i m = c + neighbour_offset(q);
+    h[q] = fine.inside(m.x, m.y, m.z) ? fine.held[fine.index(m.x, m.y, m.z)] : std::uint8_t(0xff);
+  }
+  const std::uint8_t hc = fine.held[fine.index(c.x, c.y, c.z)];
+  if (multigrid_held(hc)) return 1;
+  const int fine_cuts = multigrid_cuts(hc);
+  int cuts = 0;
+  for (int q = 0; q < 6; ++q)
+    if (((fine_cuts >> q) & 1) != 0 || multigrid_held(h[q]) || ((multigrid_cuts(h[q]) >> q) & 1) != 0) cuts |= 1 << q;
+  return std::uint8_t(cuts << kMultigridCutShift);
+}
+
 /// Makes coarse node (I, J, K) from the fine level after its black half-sweep: its
 /// right-hand side `f` (the restricted residual, multigrid_restrict_sum of the planes),
-/// its held mask (the fine node's), and x = f / 6 at red free nodes (the first red
-/// half-sweep from x = 0), 0 elsewhere.
-PALPSIM_HD void multigrid_coarse_node(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o, int I,
-                                      int J, int K, float f) {
+/// its node byte `byte` (multigrid_coarse_byte), and x = f / diag at red free nodes (the
+/// first red half-sweep from x = 0), 0 elsewhere.
+PALPSIM_HD void multigrid_coarse_node(const MultigridLevel& coarse, int I, int J, int K, float f, std::uint8_t byte) {
   const int e = coarse.index(I, J, K);
-  const bool held = fine.held[fine.index(2 * I + o.x, 2 * J + o.y, 2 * K + o.z)] != 0;
+  const bool held = multigrid_held(byte);
   coarse.f[e] = f;
-  coarse.held[e] = held;
-  coarse.x[e] = !held && multigrid_colour(I, J, K) == 0 ? multigrid_smooth(0.0f, f) : 0.0f;
+  coarse.held[e] = byte;
+  coarse.x[e] = !held && multigrid_colour(I, J, K) == 0 ? multigrid_smooth(0.0f, f, multigrid_diagonal(multigrid_cuts(byte)))
+                                                         : 0.0f;
 }
 
 /// The coarse correction at fine node (i, j, k): trilinear interpolation of the coarse
@@ -295,7 +365,7 @@ PALPSIM_HD float multigrid_prolong(const MultigridLevel& coarse, const Vec3i& o,
 PALPSIM_HD void multigrid_correct_red(const MultigridLevel& fine, const MultigridLevel& coarse, const Vec3i& o, int i,
                                       int j, int k) {
   const int e = fine.index(i, j, k);
-  if (multigrid_colour(i, j, k) != 0 || fine.held[e]) return;
+  if (multigrid_colour(i, j, k) != 0 || multigrid_held(fine.held[e])) return;
   fine.x[e] = fine.x[e] + multigrid_prolong(coarse, o, i, j, k);
 }
 

@@ -693,7 +693,7 @@ TEST_CASE("gpu multigrid starts a new unit response from the last one as the cpu
       // warm start carries the last step's difference on, which its steps do not grow
       const float tol = 1e-4f * std::max(1.0f, max_abs(ua));
       INFO(path.name << ", step " << s << ": max |u_cpu - u_gpu| " << worst << " voxel, tolerance " << tol);
-      CHECK(a.relax_warm == (s > 0 && path.warm));
+      CHECK(a.relax_warm == (s > 0));
       CHECK(g.relax_warm == a.relax_warm);
       CHECK(g.relax_cycles == a.relax_cycles);
       CHECK(g.relax_solves == 1);

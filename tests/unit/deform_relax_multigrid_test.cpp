@@ -178,10 +178,10 @@ TEST_CASE("multigrid reuses its unit response while the VOI and grabbed element 
 TEST_CASE("a tip entering another voxel starts the unit response from the last one and stays near the steady state") {
   // each step of the paths against the steady state of its own contact (30 steps from
   // zero: 1e-7 of the field or better, the first test case): every step must land within
-  // 1% of it (issue 8's goal; measured 0.03-0.55% with the default 2 warm steps, 0.1-0.2%
-  // for 5 steps from zero), and a warm step closer than as many steps from zero; a jump
-  // farther than kMultigridWarmMaxMove solves from zero; steps with relax_warm_cycles 0
-  // are unchanged, bit for bit
+  // 1% of it (issue 8's goal; measured 0.004-0.27% with the default 2 warm steps after
+  // moves of 1-4 voxels, 0.28-0.72% after jumps of 10-30 voxels; 0.02-0.21% for the first
+  // step's 4 from zero), and a warm step closer than as many steps from zero; steps with
+  // relax_warm_cycles 0 are unchanged, bit for bit
   auto torso = make_torso_patient(64);
   DeformConfig cfg = reuse_press().cfg;
   cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
@@ -218,7 +218,7 @@ TEST_CASE("a tip entering another voxel starts the unit response from the last o
                   path.name, cfg.settings.grab_radius_mm, s, 100 * d_warm / scale, cfg.settings.relax_warm_cycles,
                   100 * d_cold / scale);
       INFO(path.name << ", step " << s);
-      const bool warm_step = s > 0 && path.warm;
+      const bool warm_step = s > 0;
       CHECK(w.relax_solves == 1);
       CHECK(w.relax_warm == warm_step);
       CHECK(w.relax_cycles == (warm_step ? cfg.settings.relax_warm_cycles : cfg.settings.relax_cycles));
@@ -226,7 +226,6 @@ TEST_CASE("a tip entering another voxel starts the unit response from the last o
       CHECK(off.displacement() == fresh.displacement());
       CHECK(d_warm <= 0.01 * scale);
       if (warm_step) CHECK(d_warm < d_cold);
-      if (!path.warm) CHECK(warm.displacement() == fresh.displacement());
     }
     // a held element moved by hand: three solves drop G, so the next step starts from zero
     REQUIRE(relax_with_bone_moved(warm, *torso, path.contacts.back()) >= 0);
@@ -358,6 +357,61 @@ TEST_CASE("the multigrid plan puts the grabbed element on a node of every level"
     CHECK(plan.coarse_count == coarse);
     const Vec3i& s = plan.size[plan.levels - 1];
     CHECK(std::min({s.x, s.y, s.z}) < 3);  // coarsened until an axis is too short
+  }
+}
+
+TEST_CASE("coarse links crossing a held node or a face midway are cut, from both ends, on every level") {
+  // random held masks (bone-like: a fifth of the nodes) on VOIs whose faces fall on or
+  // between coarse nodes (odd and even sizes, both origins): on level 1 a link is cut
+  // exactly where the fine node midway is held or beyond the fine faces; on every level a
+  // link between two free nodes is cut from both ends (the operator stays symmetric) and
+  // the diagonal is 6 plus the cuts
+  std::mt19937 rng(8);
+  for (const Vec3i& size : {Vec3i{20, 17, 9}, Vec3i{16, 16, 16}}) {
+    for (const Vec3i& g : {Vec3i{6, 5, 4}, Vec3i{7, 8, 3}}) {
+      const deform::MultigridPlan plan = deform::multigrid_plan(size, g);
+      REQUIRE(plan.levels >= 3);
+      std::vector<std::uint8_t> held(std::size_t(deform::node_count(size))), held_coarse(std::size_t(plan.coarse_count));
+      std::vector<float> x(held.size()), f(held.size()), res(held.size()), cx(held_coarse.size()), cf(cx.size()),
+          cres(cx.size());
+      std::uniform_int_distribution<int> die(0, 4);
+      for (auto& h : held) h = die(rng) == 0 ? deform::kMultigridHeldAtRest : deform::kMultigridFree;
+      std::vector<deform::MultigridLevel> lv(std::size_t(plan.levels));
+      lv[0] = deform::MultigridLevel{size, x.data(), f.data(), held.data(), res.data()};
+      for (int l = 1; l < plan.levels; ++l) {
+        const long long o = plan.offset[l];
+        lv[l] = deform::MultigridLevel{plan.size[l], cx.data() + o, cf.data() + o, held_coarse.data() + o, cres.data() + o};
+      }
+      for (int l = 0; l + 1 < plan.levels; ++l) {
+        const deform::MultigridLevel &F = lv[l], &C = lv[l + 1];
+        const Vec3i o = plan.origin[l];
+        for (int K = 0; K < C.n.z; ++K)
+          for (int J = 0; J < C.n.y; ++J)
+            for (int I = 0; I < C.n.x; ++I)
+              deform::multigrid_coarse_node(C, I, J, K, 0.0f, deform::multigrid_coarse_byte(F, o, I, J, K));
+        for (int K = 0; K < C.n.z; ++K)
+          for (int J = 0; J < C.n.y; ++J)
+            for (int I = 0; I < C.n.x; ++I) {
+              const std::uint8_t h = C.held[C.index(I, J, K)];
+              const Vec3i c{2 * I + o.x, 2 * J + o.y, 2 * K + o.z};
+              REQUIRE(deform::multigrid_held(h) == deform::multigrid_held(F.held[F.index(c.x, c.y, c.z)]));
+              if (deform::multigrid_held(h)) continue;
+              const int cuts = deform::multigrid_cuts(h);
+              CHECK(deform::multigrid_diagonal(cuts) == 6.0f + float(__builtin_popcount(unsigned(cuts))));
+              for (int q = 0; q < 6; ++q) {
+                const bool cut = (cuts >> q) & 1;
+                const Vec3i m = c + deform::neighbour_offset(q);
+                if (l == 0) CHECK(cut == (!F.inside(m.x, m.y, m.z) || F.held[F.index(m.x, m.y, m.z)] != 0));
+                const Vec3i n = Vec3i{I, J, K} + deform::neighbour_offset(q);
+                if (!C.inside(n.x, n.y, n.z)) continue;
+                const std::uint8_t hn = C.held[C.index(n.x, n.y, n.z)];
+                if (deform::multigrid_held(hn)) continue;
+                INFO("level " << l + 1 << " node " << I << " " << J << " " << K << " link " << q);
+                CHECK(cut == (((deform::multigrid_cuts(hn) >> (q ^ 1)) & 1) != 0));
+              }
+            }
+      }
+    }
   }
 }
 

@@ -480,7 +480,7 @@ DeformStats CudaDeformBackend::end_step_impl() {
   InvertStats inv;
   finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
   if (config_.relax && config_.settings.relax_method == "multigrid")
-    set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0);
+    set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0, mg_.warm_steps);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
@@ -626,7 +626,7 @@ DeformStats CudaDeformBackend::end_batched_step() {
   InvertStats inv;
   read_counters(&out.chainmail, &inv, nullptr);
   if (config_.relax && config_.settings.relax_method == "multigrid")
-    set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0);
+    set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0, mg_.warm_steps);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;

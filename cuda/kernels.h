@@ -109,6 +109,7 @@ struct MultigridBuffers {
   long long coarse_capacity = 0;      // nodes the coarse buffers hold
   deform::MultigridCache cache;       // the host's record of the last launch's VOI, grabbed element and steps
   unsigned long long launches = 0;    // launches so far (picks the dirty flag)
+  int warm_steps = 0;                 // the last launch's steps if its start was taken (DeformStats::relax_cycles)
 };
 
 /// Where a step works: the VOI, the patient grid size and the grabbed element.

@@ -61,7 +61,7 @@ struct DeformSettings {
   int relax_iterations = 20;    // explicit steps
   double relax_step = 0.15;     // explicit diffusion step, stable below 1/6
   int relax_cycles = 4;         // multigrid steps (one V-cycle each) from zero
-  int relax_warm_cycles = 2;    // multigrid steps when the last step's unit response is the start (the tip entered another voxel); 0: relax_cycles from zero
+  int relax_warm_cycles = 1;    // multigrid steps when the last step's unit response is the start (the tip entered another voxel; one more where the grabbed element moved over a voxel); 0: relax_cycles from zero
   double grab_radius_mm = 0;    // multigrid: soft elements this close to the grabbed one move with it (a fingertip); 0: it alone
   double material_width = 50;   // HU, width of the material function's step at bone
   int invert_iterations = 8;

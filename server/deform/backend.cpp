@@ -125,10 +125,10 @@ void DeformBackend::set_relax_counts(DeformStats& out) const {
   out.relax_cycles = mg ? config_.settings.relax_cycles : 0;
 }
 
-void DeformBackend::set_multigrid_counts(DeformStats& out, int solves, bool warm) const {
+void DeformBackend::set_multigrid_counts(DeformStats& out, int solves, bool warm, int warm_steps) const {
   out.relax_solves = solves;
   out.relax_warm = warm;
-  if (warm) out.relax_cycles = config_.settings.relax_warm_cycles;
+  if (warm) out.relax_cycles = warm_steps;
 }
 
 long long DeformBackend::max_voi_count() const {

@@ -253,8 +253,8 @@ class DeformBackend {
   /// Writes the relaxation's counts (iterations or cycles, by deform.relax_method) into `out`.
   void set_relax_counts(DeformStats& out) const;
   /// Writes a multigrid relaxation's solves and start into `out` (after set_relax_counts):
-  /// a warm start ran deform.relax_warm_cycles steps.
-  void set_multigrid_counts(DeformStats& out, int solves, bool warm) const;
+  /// a warm start ran `warm_steps` (deform.relax_warm_cycles, one more after a far move).
+  void set_multigrid_counts(DeformStats& out, int solves, bool warm, int warm_steps) const;
 
   /// Largest VOI the state holds (voxels): deform.voi_edge^3, or the whole volume.
   long long max_voi_count() const;

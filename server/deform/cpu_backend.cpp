@@ -137,7 +137,7 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
     t0 = clock::now();
     relax_impl();
     set_relax_counts(out);
-    if (config_.settings.relax_method == "multigrid") set_multigrid_counts(out, relax_run_.solves, relax_run_.warm);
+    if (config_.settings.relax_method == "multigrid") set_multigrid_counts(out, relax_run_.solves, relax_run_.warm, relax_run_.warm_steps);
     out.times.relax_ms = ms_since(t0);
     // untangling, with relaxation when the configuration asks for it
     if (config_.settings.untangle) {

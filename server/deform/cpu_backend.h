@@ -76,10 +76,12 @@ void relax_cpu(const Patient& p, const ChainMailStats& st, int iterations, float
 /// elements other than the grabbed one are at rest, takes u = d G from the cached unit
 /// response G (the same bits as solving again), and a step with another VOI or grabbed
 /// element starts G from the last one shifted onto its grabbed element and runs
-/// `warm_cycles` steps (when above 0; MultigridStart).
+/// `warm_cycles` steps, one more where the grabbed element moved far (when above 0;
+/// MultigridStart, multigrid_warm_steps).
 struct MultigridRun {
-  int solves = 0;     // scalar solves run (DeformStats::relax_solves)
-  bool warm = false;  // the solve started from the last G (DeformStats::relax_warm)
+  int solves = 0;       // scalar solves run (DeformStats::relax_solves)
+  bool warm = false;    // the solve started from the last G (DeformStats::relax_warm)
+  int warm_steps = 0;   // its steps when warm (multigrid_warm_steps)
 };
 MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
                                  float threshold, float width, float finger_r2, bool reuse, CpuState& s);

@@ -159,18 +159,19 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
     // a new G starts from the last one when the scene asks for it (multigrid_start); the
     // last one moves to mg_g_last (a swap: start.g stays its data)
     MultigridStart start;
-    if (!reused && reuse && warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), g);
+    if (!reused && reuse && warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), voi.lo, g);
     const bool warm = start.g != nullptr;
     if (warm) std::swap(s.mg_g, s.mg_g_last);
     float* X = s.mg_g.data();
     // u = d G on free elements
+    const int steps = warm ? multigrid_warm_steps(start, warm_cycles) : cycles;
     if (!reused)
-      solve(plan, lv, X, s.mg_p.data(), s.mg_q.data(), warm ? warm_cycles : cycles, start,
+      solve(plan, lv, X, s.mg_p.data(), s.mg_q.data(), steps, start,
             [&](int e) { return s.mg_held[e] == kMultigridHeldGrabbed ? 1.0f : 0.0f; });
     s.mg_cache = key;
     for (std::size_t e = 0; e < n; ++e)
       if (!s.mg_held[e]) s.u[e] = Vec3f{d.x * X[e], d.y * X[e], d.z * X[e]};
-    return {reused ? 0 : 1, warm};
+    return {reused ? 0 : 1, warm, warm ? steps : 0};
   }
   // each component from its own held data, from zero; X no longer holds G
   s.mg_cache = MultigridCache{};

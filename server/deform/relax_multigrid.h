@@ -144,14 +144,12 @@ struct MultigridCache {
 /// off): either way close to the new G, so fewer steps reach the same distance. A jump
 /// across the patient starts from a G of another place: the response to a press has one
 /// shape wherever it is (the bone around it changes the detail), so that G is still a far
-/// better start than zero: measured on make_torso_patient(64) at VOI 40 with 2 warm steps
-/// (tests/unit/deform_relax_multigrid_test.cpp), grabbed elements 1-2 voxels on land
-/// 0.004-0.27% from the steady state, jumps of 10-30 voxels 0.28-0.72%, against 1-14% for
-/// 2 steps from zero.
+/// better start than zero (kMultigridNearMove has the figures; 2 steps from zero: 1-14%).
 struct MultigridStart {
   const float* g = nullptr;  // the last G (VOI-local index, i fastest); null: start from zero
   Vec3i size{0, 0, 0};
   Vec3i shift{0, 0, 0};
+  bool far = false;          // the grabbed element moved more than kMultigridNearMove voxels: one more step
 
   /// The start at free node (i, j, k) of the new VOI.
   PALPSIM_HD float at(int i, int j, int k) const {
@@ -162,16 +160,37 @@ struct MultigridStart {
   }
 };
 
-/// The start of a G for the VOI-local grabbed element `grabbed` from the last G `last`
-/// (its buffer `g`): shifted onto the new grabbed element, or none (start from zero) when
-/// there is no last G.
-PALPSIM_HD MultigridStart multigrid_start(const MultigridCache& last, const float* g, const Vec3i& grabbed) {
+/// The most voxels (along each axis) the grabbed element may have moved since the last G
+/// for a warm start to take deform.relax_warm_cycles steps; one that moved farther takes
+/// one more. Measured on make_torso_patient(64) at VOI 40 (tests/unit/
+/// deform_relax_multigrid_test.cpp), one warm step: the grabbed element staying (a press a
+/// voxel or 4 voxels a step: the VOI moves) or moving a voxel (sliding along the skin)
+/// 0.03-0.36% from the steady state; moving 2 voxels 0.4-1.4%, jumps of 10-30 voxels up
+/// to 5%, which a second step brings to 0.03-0.27% and 0.28-0.72%.
+constexpr int kMultigridNearMove = 1;
+
+/// The start of a G for VOI `lo` (patient voxels) with VOI-local grabbed element `grabbed`
+/// from the last G `last` (its buffer `g`): shifted onto the new grabbed element, or none
+/// (start from zero) when there is no last G.
+PALPSIM_HD MultigridStart multigrid_start(const MultigridCache& last, const float* g, const Vec3i& lo,
+                                          const Vec3i& grabbed) {
   MultigridStart s;
   if (!last.ok) return s;
   s.g = g;
   s.size = last.size;
   s.shift = last.grabbed - grabbed;
+  for (int a = 0; a < 3; ++a) {
+    const int moved = (lo[a] + grabbed[a]) - (last.lo[a] + last.grabbed[a]);
+    if (moved > kMultigridNearMove || moved < -kMultigridNearMove) s.far = true;
+  }
   return s;
+}
+
+/// The steps of a solve from start `s` for a scene's `warm_cycles`: one more where the
+/// grabbed element moved far (MultigridStart::far), at most kMultigridMaxCycles.
+PALPSIM_HD int multigrid_warm_steps(const MultigridStart& s, int warm_cycles) {
+  const int n = s.far ? warm_cycles + 1 : warm_cycles;
+  return n < kMultigridMaxCycles ? n : kMultigridMaxCycles;
 }
 
 /// Whether VOI element (i, j, k) lies on the fingertip: within the grab radius of the

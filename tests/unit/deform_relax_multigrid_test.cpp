@@ -178,10 +178,10 @@ TEST_CASE("multigrid reuses its unit response while the VOI and grabbed element 
 TEST_CASE("a tip entering another voxel starts the unit response from the last one and stays near the steady state") {
   // each step of the paths against the steady state of its own contact (30 steps from
   // zero: 1e-7 of the field or better, the first test case): every step must land within
-  // 1% of it (issue 8's goal; measured 0.004-0.27% with the default 2 warm steps after
-  // moves of 1-4 voxels, 0.28-0.72% after jumps of 10-30 voxels; 0.02-0.21% for the first
-  // step's 4 from zero), and a warm step closer than as many steps from zero; steps with
-  // relax_warm_cycles 0 are unchanged, bit for bit
+  // 1% of it (issue 8's goal; see the prints and kMultigridNearMove), and closer than one
+  // step more from zero; a warm step takes relax_warm_cycles steps where the grabbed
+  // element moved at most kMultigridNearMove voxels, one more where it moved farther;
+  // steps with relax_warm_cycles 0 are unchanged, bit for bit
   auto torso = make_torso_patient(64);
   DeformConfig cfg = reuse_press().cfg;
   cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
@@ -192,7 +192,7 @@ TEST_CASE("a tip entering another voxel starts the unit response from the last o
   DeformConfig steady_cfg = cfg, cold_cfg = cfg, off_cfg = cfg;
   steady_cfg.settings.relax_cycles = 30;
   steady_cfg.relax_reuse = false;
-  cold_cfg.settings.relax_cycles = cfg.settings.relax_warm_cycles;
+  cold_cfg.settings.relax_cycles = cfg.settings.relax_warm_cycles + 1;
   cold_cfg.relax_reuse = false;
   off_cfg.settings.relax_warm_cycles = 0;
   DeformConfig fresh_cfg = cfg;
@@ -219,9 +219,15 @@ TEST_CASE("a tip entering another voxel starts the unit response from the last o
                   100 * d_cold / scale);
       INFO(path.name << ", step " << s);
       const bool warm_step = s > 0;
+      // the grabbed element is the contact's X voxel (voxel_contact)
+      bool far = false;
+      if (warm_step)
+        for (int a = 0; a < 3; ++a)
+          far = far || std::abs(c.skin_point_mm[a] - path.contacts[s - 1].skin_point_mm[a]) > deform::kMultigridNearMove;
       CHECK(w.relax_solves == 1);
       CHECK(w.relax_warm == warm_step);
-      CHECK(w.relax_cycles == (warm_step ? cfg.settings.relax_warm_cycles : cfg.settings.relax_cycles));
+      CHECK(w.relax_cycles ==
+            (warm_step ? cfg.settings.relax_warm_cycles + (far ? 1 : 0) : cfg.settings.relax_cycles));
       CHECK_FALSE(o.relax_warm);
       CHECK(off.displacement() == fresh.displacement());
       CHECK(d_warm <= 0.01 * scale);

@@ -547,7 +547,7 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
   // to the other buffer (a swap: a.start.g stays the old field's)
   a.start = reuse && !a.hit && warm_cycles > 0 ? deform::multigrid_start(m.cache, m.g, g.voi.lo, g.grabbed)
                                                : deform::MultigridStart{};
-  a.warm_cycles = deform::multigrid_warm_steps(a.start, std::min(warm_cycles, deform::kMultigridMaxCycles));
+  a.warm_cycles = deform::multigrid_warm_steps(a.start, warm_cycles);  // at most kMultigridMaxCycles
   m.warm_steps = a.warm_cycles;
   if (a.start.g) std::swap(m.g, m.g_last);
   m.cache = deform::MultigridCache::of(g.voi, g.grabbed, cycles);

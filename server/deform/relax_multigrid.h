@@ -292,11 +292,9 @@ struct MultigridLevel {
   }
 };
 
-/// The Gauss-Seidel value of a free node: the x that makes 6 x - sum6 = f.
-PALPSIM_HD float multigrid_smooth(float sum6, float f) { return (f + sum6) / 6.0f; }
-
-/// The same with the node's diagonal (multigrid_diagonal): the x that makes diag x - sum = f.
-PALPSIM_HD float multigrid_smooth(float sum, float f, float diag) { return (f + sum) / diag; }
+/// The Gauss-Seidel value of a free node with diagonal `diag` (multigrid_diagonal; 6 on
+/// level 0): the x that makes diag x - sum = f.
+PALPSIM_HD float multigrid_smooth(float sum, float f, float diag = 6.0f) { return (f + sum) / diag; }
 
 /// One red-black half-sweep at node (i, j, k): a free node of `colour` takes its
 /// Gauss-Seidel value; others stay.

@@ -39,6 +39,7 @@
 #include "bench/deform_accuracy.h"
 #include "core/error.h"
 #include "bench/stats.h"
+#include "deform/approach.h"
 #include "deform/backend.h"
 #include "deform/deform_math.h"
 #include "haptics/force_model.h"
@@ -498,6 +499,70 @@ int run_deform_accuracy(const AccuracyOptions& o) {
                   "relax_method multigrid, VOI 64, inversion 8, the tip a voxel deeper every step (a new VOI "
                   "each, from 5 voxels short of the press), each solve started from the last unit response; "
                   "reference as above");
+      // a session's first contact: a new engine each repetition, its first step the tip a
+      // voxel under X (a new press), after a prime where the tip hovering 5 mm out of the
+      // skin above X (setting -1: no prime, from zero; 0: straight above; 3: 3 voxels aside
+      // of X, across the press) is expected to touch (deform::expected_skin_voxel,
+      // as the server does); against that contact's own steady state
+      {
+        const PatientPtr bodied = test::with_body_mask(patient);
+        const Vec3 dir = (x - X) * (1.0 / norm(x - X));
+        const double h = grid.spacing_mm.x;
+        const DeformContact first{X, X + dir * h};
+        DeformConfig fc = c;
+        fc.settings.relax_cycles = DeformSettings{}.relax_cycles;
+        fc.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+        DeformConfig sc = c;
+        sc.relax_reuse = false;
+        const Run fref = run_setting(be, bodied, sc, first, 0, 1, Stage::relax);
+        const double fref_rms = field_diff(fref.u, std::vector<Vec3f>(fref.u.size(), Vec3f{0, 0, 0})).rms;
+        const Vec3 centroid = deform::body_centroid_vox(*bodied);
+        // a direction across the press (the press runs along -y: x)
+        const Vec3 across = std::fabs(dir.x) < 0.9 ? Vec3{1, 0, 0} : Vec3{0, 0, 1};
+        for (const int aside : {-1, 0, 3}) {
+          std::vector<double> relax, step;
+          Run r;
+          int primed_steps = 0;
+          for (int i = -warmup; i < reps; ++i) {
+            auto b = make_deform_backend(be);
+            b->bind(bodied, fc);
+            if (aside >= 0) {
+              const Vec3 hover = X - dir * (5.0 + press.skin_depth_mm) + across * (aside * h);
+              Vec3i v;
+              if (!deform::expected_skin_voxel(*bodied, hover, fc.settings.voi_edge / 2, centroid, v))
+                throw Error("deform accuracy: no skin voxel below the hovering tip");
+              const Vec3 V = grid.to_physical(Vec3(v.x, v.y, v.z));
+              const DeformPrime pr = b->prime({V, V});
+              if (!pr.solved) throw Error("deform accuracy: the prime solved nothing");
+              primed_steps = pr.steps;
+            }
+            r.last = b->step(first);
+            if (i < 0) continue;
+            relax.push_back(r.last.times.relax_ms);
+            step.push_back(r.last.times.total_ms);
+            if (i + 1 == reps) r.u = b->displacement();
+          }
+          r.step_ms = spread(step);
+          r.stage_ms = spread(relax);
+          r.reps = reps;
+          if ((aside >= 0) != r.last.relax_warm)
+            throw Error("deform accuracy: a first contact after a prime did not start warm (or one without did)");
+          const Diff d = field_diff(r.u, fref.u);
+          Row row = make_row(be, "relax_primed", aside, false, r);
+          row.metrics = {{"u_rms_diff_rel", d.rms / fref_rms},
+                         {"u_max_diff_vox", d.max},
+                         {"steps", double(r.last.relax_cycles)},
+                         {"prime_steps", aside >= 0 ? double(primed_steps) : NAN}};
+          rows.push_back(row);
+        }
+        print_table(rows, be, "relax_primed", "relax",
+                    "relax_method multigrid (defaults), VOI 64: a session's first contact, the tip a voxel under "
+                    "X, each repetition a new engine; -1: no prime (from zero); 0: primed where a tip hovering "
+                    "5 mm above X expects to touch, k: the hovering tip k voxels aside; prime_steps: the "
+                    "prime's own solve (before the contact, as much GPU as setting -1's relaxation); "
+                    "reference: that contact's steady state (multigrid " +
+                        std::to_string(o.ref_multigrid_cycles) + ")");
+      }
     }
 
     // inversion iterations against inversion with ref_invert_iterations on the same field

@@ -272,6 +272,28 @@ void CudaDeformBackend::launch_multigrid(int src, MultigridScratch& scratch, int
   mg_g_clean_ = setup_.skipped;
 }
 
+DeformPrime CudaDeformBackend::prime_impl(const ChainMailStats& expected) {
+  const DeformSettings& s = config_.settings;
+  ensure_multigrid_buffers();
+  StepGeometry g;
+  g.voi = expected.voi;
+  g.volume_size = patient_->grid.size;
+  g.grabbed = expected.grabbed_vox - expected.voi.lo;
+  if (mg_.cache == deform::MultigridCache::of(g.voi, g.grabbed, s.relax_cycles)) return {};  // held already
+  launch_shape_for_share();  // this pass's share of the device, as a step takes it
+  // on the session's stream, in the scratch's turn, as a step's solve
+  MultigridScratch& scratch = gpu_share_ > 1 ? own_multigrid_scratch() : *mg_shared_;
+  scratch.lend_to(mg_);
+  const MultigridScratch::Turn turn(scratch, stream_);
+  DeformPrime out;
+  out.warm = launch_relax_multigrid(g, cur_, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
+                                    float(s.material_width), finger_r2_, true, d_, mg_, mg_blocks_, stream_, true);
+  out.solved = true;
+  out.steps = out.warm ? mg_.warm_steps : std::min(s.relax_cycles, deform::kMultigridMaxCycles);
+  mg_g_clean_ = true;  // a prime solves G alone
+  return out;
+}
+
 MultigridScratch& CudaDeformBackend::own_multigrid_scratch() {
   if (!mg_own_) mg_own_ = std::make_shared<MultigridScratch>(mg_.capacity, mg_.coarse_capacity);
   return *mg_own_;

@@ -206,10 +206,14 @@ int relax_multigrid_blocks();
 /// With `reuse`, a step with the last launch's VOI, grabbed element and steps whose held
 /// elements other than the grabbed one are at rest takes u = d G from the kept unit response,
 /// and another VOI or grabbed element starts G from the kept one (deform::MultigridStart)
-/// and runs `warm_cycles` steps (when above 0).
-void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
+/// and runs `warm_cycles` steps (when above 0). With `prime` (DeformBackend::prime) it
+/// solves G for `g` alone, as a clean step would, and keeps it: the displacement buffers
+/// and the step counters are not touched (`src` is unused); the caller skips the launch
+/// when `m` holds that G already. Returns whether the solve starts from the kept field
+/// (the device takes it where that field is a G).
+bool launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
                             float finger_r2, bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
-                            cudaStream_t stream);
+                            cudaStream_t stream, bool prime = false);
 /// Untangles displacement buffer `cur` in place (server/deform/untangle.cpp's rounds and
 /// sweeps; the other buffer keeps the relaxed field), in one cooperative launch; counts
 /// in counters.

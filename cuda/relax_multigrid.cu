@@ -189,6 +189,7 @@ struct MgArgs {
   // the host; null: none), the start if the device says that field is a G
   deform::MultigridStart start;
   int parity;  // which of the two dirty flags this launch uses (the other is zeroed for the next)
+  int prime;   // G alone for this VOI and grabbed element: u and the counters untouched
   DeviceBuffers b;
   MultigridBuffers m;
 };
@@ -243,7 +244,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   }
   __syncthreads();
   const int g_idx = L0.index(a.geo.grabbed.x, a.geo.grabbed.y, a.geo.grabbed.z);
-  const Vec3f d{u[0][g_idx], u[1][g_idx], u[2][g_idx]};
+  const Vec3f d = a.prime ? Vec3f{0, 0, 0} : Vec3f{u[0][g_idx], u[1][g_idx], u[2][g_idx]};
   int* dirty = m.flags + a.parity;
   const bool kept = *(volatile int*)(m.flags + 2) != 0;  // read before the first thread may clear it
   const bool hit = a.hit && kept;
@@ -264,6 +265,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
                                a.b.intensity[gi], a.b.bone[gi] != 0, a.threshold, a.width);
     const bool held = hold != deform::kMultigridFree;
     m.held[e] = hold;
+    if (a.prime) continue;  // a prime's field is G alone
     if (hold == deform::kMultigridHeldGrabbed) {
       u[0][e] = d.x;
       u[1][e] = d.y;
@@ -287,7 +289,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   const bool warm = solves == 1 && a.start.g && kept;
   const int cycles = warm ? a.warm_cycles : a.cycles;
   const deform::MultigridStart start = warm ? a.start : deform::MultigridStart{};
-  if (first_thread) {
+  if (first_thread && !a.prime) {
     a.b.counters->relax_solves = solves;
     a.b.counters->relax_warm = warm;
     if (!clean) m.flags[2] = 0;  // X will not hold G
@@ -444,7 +446,7 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
     const float* pn = m.p[pc];
     for (int e = all.first; e < n; e += all.stride) {
       if (stepped) X[e] += pn[e] * alpha;
-      if (m.held[e]) continue;
+      if (m.held[e] || a.prime) continue;
       const float xe = X[e];
       if (clean) {
         u[0][e] = d.x * xe;
@@ -524,10 +526,10 @@ void launch_multigrid_reuse_batch(const BatchItem* items, int n, unsigned max_co
   PALPSIM_CUDA_CHECK(cudaGetLastError());
 }
 
-void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
+bool launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm_cycles, float threshold, float width,
                             float finger_r2, bool reuse, const DeviceBuffers& b, MultigridBuffers& m, int max_blocks,
-                            cudaStream_t stream) {
-  if (cycles <= 0) return;
+                            cudaStream_t stream, bool prime) {
+  if (cycles <= 0) return false;
   const long long n = g.voi.count();
   MgArgs a;
   a.geo = g;
@@ -541,7 +543,8 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
   a.finger_r2 = finger_r2;
   // the unit response in m.g was solved for this VOI and grabbed element (if the device
   // found the step clean then: flags[2])
-  a.hit = multigrid_reuses(g, cycles, reuse, m);
+  a.hit = !prime && multigrid_reuses(g, cycles, reuse, m);
+  a.prime = prime;
   // another VOI or grabbed element than the last launch's (multigrid_start; whether that
   // field is a G the device knows): that field becomes the start, the new one goes
   // to the other buffer (a swap: a.start.g stays the old field's)
@@ -565,6 +568,7 @@ void launch_relax_multigrid(const StepGeometry& g, int src, int cycles, int warm
   void* args[] = {&a};
   PALPSIM_CUDA_CHECK(cudaLaunchCooperativeKernel((const void*)relax_multigrid_kernel, dim3(std::max(blocks, 1)),
                                                  dim3(kPersistentThreads), args, smem, stream));
+  return a.start.g != nullptr;
 }
 
 }  // namespace palpsim::cuda

@@ -2,6 +2,7 @@
 #include "deform/backend.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <sstream>
@@ -171,8 +172,7 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
   stage_ = 0;
 }
 
-ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
-  require(bound_, "chainmail() or step() before bind()");
+ChainMailStats DeformBackend::locate(const DeformContact& c, Vec3i* tip_vox) const {
   if (!finite(c.skin_point_mm)) throw Error("deform: contact skin_point_mm (X) is not finite: " + fmt_vec(c.skin_point_mm));
   if (!finite(c.tip_mm)) throw Error("deform: contact tip_mm (x) is not finite: " + fmt_vec(c.tip_mm));
   const Grid& grid = patient_->grid;
@@ -196,6 +196,15 @@ ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
   st.grabbed_u_vox = Vec3f(float(x.x - e0.x), float(x.y - e0.y), float(x.z - e0.z));
   st.grabbed_in_bone = patient_->bone.data[grid.index(e0.x, e0.y, e0.z)] != 0;
   st.voi = compute_voi(grid.size, e0, t, config_.settings.voi_edge, config_.settings.whole_volume);
+  if (tip_vox) *tip_vox = t;
+  return st;
+}
+
+ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
+  require(bound_, "chainmail() or step() before bind()");
+  Vec3i t;
+  ChainMailStats st = locate(c, &t);
+  const Vec3i& e0 = st.grabbed_vox;
   // a multigrid press keeps its VOI (and so its unit response) while the tip voxel stays
   // within edge / 8 voxels of the one it was placed around and it holds the grabbed voxel
   // (DeformConfig::voi_hold)
@@ -338,6 +347,23 @@ std::vector<std::exception_ptr> DeformBackend::begin_steps(const std::vector<Def
     }
   }
   return errors;
+}
+
+DeformPrime DeformBackend::prime(const DeformContact& expected) {
+  require(bound_, "prime() before bind()");
+  require(!in_step_, "prime() between begin_step() and end_step()");
+  const DeformSettings& s = config_.settings;
+  // checked as a step checks its contact, whether or not there is anything to prime
+  const ChainMailStats st = locate(expected);
+  if (!config_.relax || !config_.relax_reuse || s.relax_method != "multigrid" || s.relax_cycles <= 0 ||
+      s.relax_warm_cycles <= 0 || st.grabbed_in_bone)
+    return {};
+  const auto t0 = std::chrono::steady_clock::now();
+  DeformPrime out = prime_impl(st);
+  out.voi = st.voi;
+  out.grabbed_vox = st.grabbed_vox;
+  out.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  return out;
 }
 
 void DeformBackend::set_gpu_share(int k) {

@@ -110,6 +110,18 @@ InvertStats CpuDeformBackend::invert_impl() {
   return deform::invert_cpu(*patient_, voi_, config_.settings.invert_iterations, config_.settings.invert_search, s_);
 }
 
+DeformPrime CpuDeformBackend::prime_impl(const ChainMailStats& expected) {
+  const DeformSettings& d = config_.settings;
+  const deform::MultigridRun r =
+      deform::prime_multigrid_cpu(*patient_, expected.voi, expected.grabbed_vox, d.relax_cycles, d.relax_warm_cycles,
+                                  float(config_.bone_threshold), float(d.material_width), finger_r2_, s_);
+  DeformPrime out;
+  out.solved = r.solves > 0;
+  out.warm = r.warm;
+  out.steps = r.solves == 0 ? 0 : (r.warm ? r.warm_steps : d.relax_cycles);
+  return out;
+}
+
 std::vector<Vec3f> CpuDeformBackend::displacement_impl() const {
   return std::vector<Vec3f>(s_.u.begin(), s_.u.begin() + voi_.count());
 }

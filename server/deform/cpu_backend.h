@@ -86,6 +86,14 @@ struct MultigridRun {
 MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
                                  float threshold, float width, float finger_r2, bool reuse, CpuState& s);
 
+/// The unit response G for VOI `voi` and grabbed element `grabbed_vox` (patient voxels),
+/// solved as relax_multigrid_cpu() would solve it on a clean step that reuses (from the
+/// last G, or from zero in `cycles` steps) and kept in the cache, without touching the
+/// displacement field: DeformBackend::prime(). Nothing is solved when the cache holds
+/// that G already (solves 0).
+MultigridRun prime_multigrid_cpu(const Patient& p, const Voi& voi, const Vec3i& grabbed_vox, int cycles,
+                                 int warm_cycles, float threshold, float width, float finger_r2, CpuState& s);
+
 /// Untangling of the VOI's displacement (DeformBackend::untangle): up to
 /// kUntangleMaxRounds rounds of finding the folded cells and Jacobi sweeps from their
 /// corners of untangle_pull() towards the neighbours towards the grabbed element, until
@@ -114,6 +122,7 @@ class CpuDeformBackend final : public DeformBackend {
   void upload_impl() override {}  // J is computed in host memory already
   void reset_impl() override;
   DeformStats step_impl(const ChainMailStats& setup) override;
+  DeformPrime prime_impl(const ChainMailStats& expected) override;
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
   const float* deformed_brick_impl() const override { return s_.j.data(); }

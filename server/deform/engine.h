@@ -35,6 +35,10 @@ class DeformEngine {
   static std::vector<std::exception_ptr> begin_steps(const std::vector<DeformEngine*>& engines,
                                                      const std::vector<DeformContact>& contacts);
 
+  /// Solves the multigrid unit response for a contact expected soon, between steps,
+  /// leaving the deformation in place as it is (DeformBackend::prime).
+  DeformPrime prime(const DeformContact& expected) { return backend_->prime(expected); }
+
   /// Returns everything to undeformed (J = I).
   void reset();
 

@@ -107,13 +107,12 @@ void solve(const MultigridPlan& plan, MultigridLevel* lv, float* X, float* p, fl
 
 }  // namespace
 
-MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
-                                 float threshold, float width, float finger_r2, bool reuse, CpuState& s) {
-  if (cycles <= 0) return {};  // no steps: the field stays as ChainMail left it
-  const Voi& voi = st.voi;
-  const Grid& grid = p.grid;
-  const Vec3i g = st.grabbed_vox - voi.lo;
-  const MultigridPlan plan = multigrid_plan(voi.size, g);
+namespace {
+
+// sizes the state's multigrid buffers for `voi` and `plan` (they only grow) and sets the
+// levels over them: 0 solves for z with right-hand side r, the others live in the
+// coarse buffers
+void multigrid_buffers(const Voi& voi, const MultigridPlan& plan, CpuState& s, MultigridLevel* lv) {
   const std::size_t n = std::size_t(voi.count());
   const std::size_t nc = std::size_t(plan.coarse_count);
   for (auto* v : {&s.mg_g, &s.mg_g_last, &s.mg_r, &s.mg_z, &s.mg_p, &s.mg_q, &s.mg_res})
@@ -125,6 +124,33 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
     s.mg_cres.resize(nc);
     s.mg_held_coarse.resize(nc);
   }
+  lv[0] = MultigridLevel{voi.size, s.mg_z.data(), s.mg_r.data(), s.mg_held.data(), s.mg_res.data()};
+  for (int l = 1; l < plan.levels; ++l) {
+    const long long o = plan.offset[l];
+    lv[l] = MultigridLevel{plan.size[l], s.mg_cx.data() + o, s.mg_cf.data() + o, s.mg_held_coarse.data() + o,
+                           s.mg_cres.data() + o};
+  }
+}
+
+// the hold of VOI element (i, j, k) (patient voxel gi), as both solvers take it
+std::uint8_t hold_of(const Patient& p, std::size_t gi, bool grabbed, int i, int j, int k, const Vec3i& g,
+                     float finger_r2, float threshold, float width) {
+  return multigrid_hold(grabbed, multigrid_on_finger(i, j, k, g, finger_r2), p.intensity.data[gi],
+                        p.bone.data[gi] != 0, threshold, width);
+}
+
+}  // namespace
+
+MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
+                                 float threshold, float width, float finger_r2, bool reuse, CpuState& s) {
+  if (cycles <= 0) return {};  // no steps: the field stays as ChainMail left it
+  const Voi& voi = st.voi;
+  const Grid& grid = p.grid;
+  const Vec3i g = st.grabbed_vox - voi.lo;
+  const MultigridPlan plan = multigrid_plan(voi.size, g);
+  const std::size_t n = std::size_t(voi.count());
+  MultigridLevel lv[kMultigridMaxLevels];
+  multigrid_buffers(voi, plan, s, lv);
   // level 0 holds the grabbed element and the soft elements on the fingertip at the
   // grabbed element's displacement d (set here: ChainMail moved them otherwise), and every
   // element of material weight 0 (bone) at its own; clean: every one of those at rest
@@ -136,8 +162,7 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
       for (int i = 0; i < voi.size.x; ++i) {
         const std::size_t gi = grid.index(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k);
         const long long e = voi.index(i, j, k);
-        const std::uint8_t hold = multigrid_hold(e == g_idx, multigrid_on_finger(i, j, k, g, finger_r2),
-                                                 p.intensity.data[gi], p.bone.data[gi] != 0, threshold, width);
+        const std::uint8_t hold = hold_of(p, gi, e == g_idx, i, j, k, g, finger_r2, threshold, width);
         s.mg_held[e] = hold;
         if (hold == kMultigridHeldGrabbed)
           s.u[e] = d;
@@ -147,14 +172,6 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
   // the unit response G of this VOI and grabbed element, from the last step where it is that one
   const MultigridCache key = MultigridCache::of(voi, g, cycles);
   const bool reused = clean && reuse && s.mg_cache == key;
-  // the levels: 0 solves for z with right-hand side r, the others live in the coarse buffers
-  MultigridLevel lv[kMultigridMaxLevels];
-  lv[0] = MultigridLevel{voi.size, s.mg_z.data(), s.mg_r.data(), s.mg_held.data(), s.mg_res.data()};
-  for (int l = 1; l < plan.levels; ++l) {
-    const long long o = plan.offset[l];
-    lv[l] = MultigridLevel{plan.size[l], s.mg_cx.data() + o, s.mg_cf.data() + o, s.mg_held_coarse.data() + o,
-                           s.mg_cres.data() + o};
-  }
   if (clean) {
     // a new G starts from the last one when the scene asks for it (multigrid_start); the
     // last one moves to mg_g_last (a swap: start.g stays its data)
@@ -182,6 +199,36 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
       if (!s.mg_held[e]) s.u[e][c] = X[e];
   }
   return {3, false};
+}
+
+MultigridRun prime_multigrid_cpu(const Patient& p, const Voi& voi, const Vec3i& grabbed_vox, int cycles,
+                                 int warm_cycles, float threshold, float width, float finger_r2, CpuState& s) {
+  if (cycles <= 0) return {};
+  const Vec3i g = grabbed_vox - voi.lo;
+  const MultigridCache key = MultigridCache::of(voi, g, cycles);
+  if (s.mg_cache == key) return {};  // held already
+  const MultigridPlan plan = multigrid_plan(voi.size, g);
+  MultigridLevel lv[kMultigridMaxLevels];
+  multigrid_buffers(voi, plan, s, lv);
+  // the held mask as a step makes it; the displacement field is not touched
+  const long long g_idx = voi.index(g.x, g.y, g.z);
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        const long long e = voi.index(i, j, k);
+        s.mg_held[e] = hold_of(p, p.grid.index(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k), e == g_idx, i, j, k, g,
+                               finger_r2, threshold, width);
+      }
+  // G from the last one where there is one (the step's warm start), else from zero
+  MultigridStart start;
+  if (warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), voi.lo, g);
+  const bool warm = start.g != nullptr;
+  if (warm) std::swap(s.mg_g, s.mg_g_last);
+  const int steps = warm ? multigrid_warm_steps(start, warm_cycles) : cycles;
+  solve(plan, lv, s.mg_g.data(), s.mg_p.data(), s.mg_q.data(), steps, start,
+        [&](int e) { return s.mg_held[e] == kMultigridHeldGrabbed ? 1.0f : 0.0f; });
+  s.mg_cache = key;
+  return {1, warm, warm ? steps : 0};
 }
 
 }  // namespace palpsim::deform

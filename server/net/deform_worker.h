@@ -43,6 +43,8 @@ struct DeformSessionReport {
   bool chainmail_skipped = false;      // latest step: ChainMail left out (ChainMailStats::skipped)
   std::uint64_t multigrid_solves = 0;  // steps whose multigrid relaxation solved (DeformStats::relax_solves > 0)
   std::uint64_t multigrid_warm = 0;    // ... starting from the last unit response
+  std::uint64_t multigrid_primes = 0;  // unit responses solved while the tip was out of the body, where it was
+                                       // expected to touch (DeformEngine::prime)
   double invert_residual_vox = 0;      // latest step: max inversion residual (voxel)
   long long invert_unresolved = 0;     // latest step: voxels with a residual above 0.1 voxel
   long long invert_searched = 0;       // latest step: voxels Newton left to the cell search (deform.invert_search)
@@ -131,6 +133,7 @@ class DeformWorker {
   void export_watched(int index);
   void fill_snapshot(JSnapshot& out, Session& s, bool device);
   void step(Session& s, int index, const Contact& c);   // begins the step (in flight) or readies it for a batch
+  bool prime(Session& s, int index, const Contact& c);  // primes the unit response for a tip out of the body; true: it ran
   void begin_ready();                                     // begins the readied steps, batched
   void complete_inflight();                               // finishes every step in flight, in order
   void complete(Session& s, const Contact& c);            // finishes one: checks, counts, reports
@@ -168,6 +171,9 @@ class DeformWorker {
   std::vector<DeformContact> batch_contacts_;
   int max_inflight_ = 1;  // steps in flight at most (ServerOptions::deform_concurrency)
   int max_batch_ = 1;     // sessions begun together at most (ServerOptions::deform_batch)
+  bool prime_ = false;    // the scene's relaxation can be primed (multigrid, reuse, warm starts)
+  Vec3 body_centroid_vox_{0, 0, 0};  // the patient's body centroid (deform::expected_skin_voxel)
+  int prime_radius_vox_ = 0;         // the near search's reach: half a VOI edge (voxels)
   int gpu_share_ = 1;     // this pass: min(max_inflight_, open sessions)
   double min_watched_step_s_ = 0;  // least time between steps of a session whose frames are watched (s)
   std::chrono::steady_clock::time_point world_start_;  // when the current scene was set up

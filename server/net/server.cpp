@@ -765,6 +765,7 @@ class Server::Control {
     o->set_chainmail_skipped(r.chainmail_skipped);
     o->set_multigrid_solves(r.multigrid_solves);
     o->set_multigrid_warm(r.multigrid_warm);
+    o->set_multigrid_primes(r.multigrid_primes);
     o->set_invert_residual_vox(r.invert_residual_vox);
     o->set_invert_unresolved(std::uint64_t(r.invert_unresolved));
     o->set_invert_searched(std::uint64_t(r.invert_searched));

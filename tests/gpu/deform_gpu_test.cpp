@@ -711,6 +711,56 @@ TEST_CASE("gpu multigrid starts a new unit response from the last one as the cpu
   }
 }
 
+TEST_CASE("gpu prime solves the unit response as the cpu does, and leaves the deformation in place") {
+  if (!have_gpu()) return;
+  // the cpu cases of tests/unit/deform_relax_multigrid_test.cpp on both backends: a prime
+  // between steps touches neither the field nor J; a step onto the primed contact reuses
+  // it; a session's first contact after a prime on its approach starts warm
+  auto torso = with_body_mask(make_torso_patient(64));
+  DeformConfig cfg = reuse_press().cfg;
+  cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
+  cfg.settings.grab_radius_mm = GENERATE(0.0, 3.0);
+  INFO("grab_radius_mm " << cfg.settings.grab_radius_mm);
+  // FMA contraction and the order of the dot products' sums, as in the cases above
+  auto close = [&](const std::vector<Vec3f>& ua, const std::vector<Vec3f>& ug) {
+    return max_abs_diff(ua, ug) <= 1e-4f * std::max(1.0f, max_abs(ua));
+  };
+  auto cpu = make_deform_backend("cpu"), gpu = make_deform_backend("cuda");
+  cpu->bind(torso, cfg);
+  gpu->bind(torso, cfg);
+  const DeformContact c1 = voxel_contact({32, 10, 32}, {2, 5, -3}), far = voxel_contact({20, 14, 24}, {1, 3, 0});
+  for (DeformBackend* b : {cpu.get(), gpu.get()}) b->step(c1);
+  const std::vector<Vec3f> u = gpu->displacement();
+  const std::vector<float> J(gpu->deformed_brick(), gpu->deformed_brick() + gpu->voi().count());
+  const DeformPrime pa = cpu->prime(far), pg = gpu->prime(far);
+  CHECK(pg.solved);
+  CHECK(pg.warm == pa.warm);
+  CHECK(pg.steps == pa.steps);
+  CHECK(pg.voi == pa.voi);
+  CHECK(gpu->displacement() == u);
+  CHECK(std::equal(J.begin(), J.end(), gpu->deformed_brick()));
+  const DeformStats a = cpu->step(far), g = gpu->step(far);
+  CHECK(a.relax_solves == 0);
+  CHECK(g.relax_solves == 0);
+  CHECK(close(cpu->displacement(), gpu->displacement()));
+  // a prime may not come between the halves of a step
+  gpu->begin_step(c1);
+  CHECK_THROWS_WITH(gpu->prime(far), Catch::Contains("between begin_step() and end_step()"));
+  gpu->end_step();
+  // a new session's first contact, primed on the approach from above the skin
+  auto cpu2 = make_deform_backend("cpu"), gpu2 = make_deform_backend("cuda");
+  cpu2->bind(torso, cfg);
+  gpu2->bind(torso, cfg);
+  const Vec3 X(34, 10, 29);
+  for (DeformBackend* b : {cpu2.get(), gpu2.get()}) REQUIRE(b->prime({X, X}).solved);
+  const DeformContact first = voxel_contact({34, 10, 29}, {0, 1, 0});
+  const DeformStats a2 = cpu2->step(first), g2 = gpu2->step(first);
+  CHECK(a2.relax_warm);
+  CHECK(g2.relax_warm);
+  CHECK(g2.relax_cycles == a2.relax_cycles);
+  CHECK(close(cpu2->displacement(), gpu2->displacement()));
+}
+
 TEST_CASE("gpu multigrid steps without ChainMail equal steps with it, to the bit, as on the cpu") {
   if (!have_gpu()) return;
   // the cpu case of tests/unit/deform_relax_multigrid_test.cpp: where no element ChainMail

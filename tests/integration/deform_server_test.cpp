@@ -38,13 +38,15 @@ std::string deform_scene_text(const std::string& extra_deform = "") {
 
 // opens a session on `server`, presses into the back (+y) at the middle of the body, 10
 // mm deep, at 1 ms of client time per pose (every pose answered without error, some in
-// contact), and returns the stats once the worker has stepped the last contact
+// contact), and returns the stats once the worker has stepped the last contact; with
+// `hover`, the tip first stays 5 mm out of the body until the stats say the worker primed
+// the session's multigrid unit response (DeformEngine::prime), at most kWorkerWaitS
 struct Pressed {
   v1::StatsReply stats;
   std::uint64_t last_seq = 0;
 };
 
-Pressed press_and_wait(ServerProcess& server) {
+Pressed press_and_wait(ServerProcess& server, bool hover = false) {
   zmq::context_t ctx(1);
   zmq::socket_t ctl(ctx, zmq::socket_type::dealer), pose(ctx, zmq::socket_type::dealer);
   ctl.set(zmq::sockopt::linger, 0);
@@ -64,27 +66,41 @@ Pressed press_and_wait(ServerProcess& server) {
   const auto& hi = info.patient().body_max_mm();
   const double x = 0.5 * (lo.x() + hi.x()), z = 0.5 * (lo.z() + hi.z());
   std::uint64_t seq = 0;
-  bool touched = false;
-  for (int n = 0; n <= 400; ++n) {
+  v1::ControlRequest sq;
+  sq.set_schema_version(1);
+  sq.mutable_stats()->set_session_id(id);
+  // one pose with the tip at height y (mm), answered without error; returns the reply
+  auto send = [&](double y) {
     v1::PoseRequest p;
     p.set_schema_version(1);
     p.set_session_id(id);
     p.set_seq(++seq);
     p.set_client_time_s(1 + seq * 1e-3);
     p.mutable_tip_mm()->set_x(x);
-    p.mutable_tip_mm()->set_y(hi.y() + 5 - 15.0 * std::min(1.0, n / 300.0));
+    p.mutable_tip_mm()->set_y(y);
     p.mutable_tip_mm()->set_z(z);
     const auto r = test::exchange<v1::PoseReply>(pose, p, kReplyTimeoutMs);
     REQUIRE(r.error().code() == v1::ERROR_NONE);
     REQUIRE(r.seq() == seq);
-    touched = touched || r.contact();
+    return r;
+  };
+  if (hover) {
+    const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
+    bool primed = false;
+    while (!primed && std::chrono::steady_clock::now() < until) {
+      REQUIRE_FALSE(send(hi.y() + 5).contact());
+      const auto st = test::exchange<v1::ControlReply>(ctl, sq, kReplyTimeoutMs);
+      REQUIRE(st.has_stats());
+      primed = st.stats().session().deform().multigrid_primes() >= 1;
+      if (!primed) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    }
+    REQUIRE(primed);
   }
+  bool touched = false;
+  for (int n = 0; n <= 400; ++n) touched = send(hi.y() + 5 - 15.0 * std::min(1.0, n / 300.0)).contact() || touched;
   REQUIRE(touched);
 
   // the worker ends on the last contact
-  v1::ControlRequest sq;
-  sq.set_schema_version(1);
-  sq.mutable_stats()->set_session_id(id);
   Pressed out;
   out.last_seq = seq;
   const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
@@ -152,6 +168,28 @@ TEST_CASE("palpsim-server's multigrid steps say they left ChainMail out", "[inte
   CHECK(d.multigrid_solves() >= 1);
   CHECK(d.multigrid_solves() <= d.steps());
   CHECK(d.multigrid_warm() <= d.multigrid_solves());
+  CHECK(server.stop() == 0);
+}
+
+TEST_CASE("palpsim-server primes a hovering session's unit response, so that its first contact starts warm",
+          "[integration][deform]") {
+  // the tip 5 mm above the skin until the worker has solved the unit response where it is
+  // expected to touch (multigrid_primes), then the press: no step of the session solves
+  // from zero (every solve a warm start), where without the prime the first contact's would
+  ServerProcess server(test::temp_file("deform-prime.textproto", deform_scene_text("relax_method: \"multigrid\"")));
+  REQUIRE(server.wait_ready(kStartS));
+  const Pressed pr = press_and_wait(server, true);
+  const v1::DeformSessionStats& d = pr.stats.session().deform();
+  INFO(d.DebugString());
+  REQUIRE(d.last_contact_seq() == pr.last_seq);
+  CHECK(d.multigrid_primes() >= 1);
+  CHECK(d.failures() == 0);
+  CHECK(d.deformed());
+  CHECK(d.multigrid_solves() >= 1);
+  CHECK(d.multigrid_warm() == d.multigrid_solves());
+  std::printf("hovering then pressing: %llu primes, %llu steps, %llu solves, %llu warm\n",
+              (unsigned long long)d.multigrid_primes(), (unsigned long long)d.steps(),
+              (unsigned long long)d.multigrid_solves(), (unsigned long long)d.multigrid_warm());
   CHECK(server.stop() == 0);
 }
 

@@ -116,6 +116,20 @@ class DeformRun {
   const DeformConfig& cfg() const { return cfg_; }
   long long contacts() const { return contacts_; }
 
+  /// A prime between contacts (DeformBackend::prime) on the backend and the reference, so
+  /// that their next warm starts agree: the deformation in place must not change, bit for
+  /// bit. Returns whether it solved.
+  bool prime(const DeformContact& k) {
+    INFO("prime: X " << fmt(k.skin_point_mm) << " mm");
+    const bool had = b_->voi().count() > 0;
+    std::vector<Vec3f> before;
+    if (had) before = b_->displacement();
+    const bool solved = b_->prime(k).solved;
+    if (ref_) CHECK(ref_->prime(k).solved == solved);
+    if (had) CHECK(b_->displacement() == before);
+    return solved;
+  }
+
   /// Runs contact `k` stage by stage and checks every invariant (see the file comment).
   Outcome contact(const DeformContact& k, const Expect& e = {}) {
     INFO("contact " << contacts_ << ": X " << fmt(k.skin_point_mm) << " mm, x " << fmt(k.tip_mm) << " mm");
@@ -847,7 +861,7 @@ inline void deform_random_poses(Case& c, int count, int compare_every) {
 /// search, ChainMail left out where it cannot matter) on `count` contacts over the torso:
 /// presses deepening a voxel a step (unit responses reused and warm-started), random
 /// pushes anywhere (fresh solves, clipped VOIs, X in bone), jumps across the torso and
-/// the grid's faces.
+/// the grid's faces, and primes between them.
 inline void deform_shipped_multigrid(Case& c, int count, int compare_every) {
   INFO(c.describe());
   auto p = make_torso_patient(48);
@@ -858,9 +872,15 @@ inline void deform_shipped_multigrid(Case& c, int count, int compare_every) {
   cfg.settings.invert_search = true;
   cfg.settings.untangle = false;
   DeformRun r(c, p, cfg, compare_every);
-  long long skipped = 0, in_bone = 0;
+  long long skipped = 0, in_bone = 0, primes = 0;
   Vec3 X{24, 24, 24}, x = X;
   for (int s = 0; s < count; ++s) {
+    // now and then the tip was out of the body in between: a prime anywhere (the server's
+    // guess of the next contact), bone and the grid's faces included
+    if (c.integer(0, 9) == 0) {
+      const Vec3 P{c.uniform(-0.5, 47.5), c.uniform(-0.5, 47.5), c.uniform(-0.5, 47.5)};
+      primes += r.prime({P, P});
+    }
     const int kind = c.integer(0, 99);
     if (kind < 50 && s > 0) {
       x += Vec3{c.uniform(-0.3, 0.3), c.uniform(-0.3, 0.3), c.uniform(0.5, 1.2)};  // the press goes on
@@ -887,6 +907,7 @@ inline void deform_shipped_multigrid(Case& c, int count, int compare_every) {
   // the kinds of step the case is for were there
   REQUIRE(skipped > 0);
   REQUIRE(in_bone > 0);
+  REQUIRE(primes > 0);
 }
 
 /// The contacts of a tip sweeping across the rib at 1 m/s (the hand-over of every 16th

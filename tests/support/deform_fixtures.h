@@ -93,6 +93,15 @@ inline PatientPtr with_hot_voxels(const PatientPtr& p, const std::vector<Vec3i>&
   return q;
 }
 
+/// A copy of `p` with its body mask C filled: every voxel above -500 HU (air below), as
+/// the tests of the multigrid prime need (deform::expected_skin_voxel reads C).
+inline PatientPtr with_body_mask(const PatientPtr& p) {
+  auto q = std::make_shared<Patient>(*p);
+  q->body = Volume<std::uint8_t>(q->grid);
+  for (std::size_t e = 0; e < q->intensity.data.size(); ++e) q->body.data[e] = q->intensity.data[e] > -500.0f ? 1 : 0;
+  return q;
+}
+
 /// The paper's ChainMail presets (voxel edge lengths).
 inline DeformConfig preset_config(int preset) {
   DeformConfig c;

@@ -34,8 +34,11 @@ constexpr double kDisabledSleepS = 20e-3;
 // tip is expected to touch (DeformEngine::prime), so that its first contact starts warm
 // (1-2 steps, 0.10-0.16 ms at VOI 64 on the H100) instead of solving from zero (4 steps,
 // 0.30 ms). At most once per this interval per session (s): a re-prime, which starts warm,
-// costs 0.10-0.16 ms of GPU, so a hovering session takes under 1% of it.
+// costs 0.10-0.16 ms of GPU, so a hovering session takes under 1% of it; and at most a
+// kPrimeShare of the worker's time, for the "cpu" backend, whose primes take 10-30 ms of
+// a core at VOI 64 (the interval then grows to 10 times the last prime's time).
 constexpr double kPrimeIntervalS = 20e-3;
+constexpr double kPrimeShare = 0.1;
 // Why the server runs the worker at nice 19 (ServerOptions::deform_nice): on a machine
 // with few cores the scheduler should prefer answering poses to deforming. On the shared
 // 2-core VM, lumbar phantom at VOI 64 on the CPU (~100 ms steps) with palpsim-haptic
@@ -96,7 +99,8 @@ struct DeformWorker::Session {
   // the multigrid unit response the engine holds (a prime's or a step's) and its grabbed voxel
   bool g_known = false;
   Vec3i g_vox{0, 0, 0};
-  double last_prime_s = -1e9;           // server time of the latest prime (pacing)
+  double last_prime_s = -1e9;           // server time of the latest prime (pacing) ...
+  double last_prime_cost_s = 0;         // ... and the worker's time it took (s)
   // the stream's hand-overs (stream_state.h): the state's version, and what was exported
   std::uint64_t state_version = 1;      // grows with every step, reset and failure
   std::uint64_t render_exported = 0;    // state_version last handed to the render thread
@@ -218,6 +222,8 @@ void DeformWorker::set_up_world() {
   prime_ = scene.effects.chainmail && config_.relax && config_.relax_reuse && ds.relax_method == "multigrid" &&
            ds.relax_cycles > 0 && ds.relax_warm_cycles > 0;
   if (prime_) body_centroid_vox_ = deform::body_centroid_vox(*patient_);
+  const Vec3i& gs = patient_->grid.size;
+  grid_centre_mm_ = patient_->grid.to_physical(Vec3(0.5 * (gs.x - 1), 0.5 * (gs.y - 1), 0.5 * (gs.z - 1)));
   prime_radius_vox_ = ds.whole_volume ? 0 : ds.voi_edge / 2;
   min_watched_step_s_ = scene.effects.frames && scene.render.max_fps > 0 ? 1.0 / scene.render.max_fps : 0.0;
   world_start_ = std::chrono::steady_clock::now();
@@ -346,7 +352,14 @@ bool DeformWorker::serve_deformation(int index) {
     worked = true;
   }
   // nothing new, or a contact of the slot's previous session
-  if (version == s.last_version || c.session_id != id) return worked;
+  if (version == s.last_version || c.session_id != id) {
+    // a session before its first pose primes at the body voxel nearest the grid's centre:
+    // any unit response is a far better start than zero (a press has one shape wherever
+    // it is: 2 warm steps from 22 voxels away land 0.24-0.35% from the steady state, the
+    // torso test), so that even a first pose already in the body starts warm
+    if (prime_ && c.session_id != id && !s.g_known && prime(s, index, grid_centre_mm_)) worked = true;
+    return worked;
+  }
   // contacts written since the last one taken were stale before the worker got to them
   std::uint64_t dropped = 0;
   if (s.last_version != 0 && version > s.last_version + 1) dropped = version - s.last_version - 1;
@@ -366,7 +379,7 @@ bool DeformWorker::serve_deformation(int index) {
       publish(s, index);
     }
     // and the next contact's unit response is made ready where the tip is expected to touch
-    if (prime_ && prime(s, index, c)) worked = true;
+    if (prime_ && prime(s, index, c.tip_mm)) worked = true;
     return worked;
   }
   // the same contact as the step in place (a held tip): the same J, nothing to step; the
@@ -411,12 +424,12 @@ void DeformWorker::reset(Session& s, int index) {
   publish(s, index);
 }
 
-bool DeformWorker::prime(Session& s, int index, const Contact& c) {
+bool DeformWorker::prime(Session& s, int index, const Vec3& tip_mm) {
   const double now = now_s();
-  if (now - s.last_prime_s < kPrimeIntervalS) return false;
+  if (now - s.last_prime_s < std::max(kPrimeIntervalS, s.last_prime_cost_s / kPrimeShare)) return false;
   Vec3i v;
   bool near = false;
-  if (!deform::expected_skin_voxel(*patient_, c.tip_mm, prime_radius_vox_, body_centroid_vox_, v, &near)) return false;
+  if (!deform::expected_skin_voxel(*patient_, tip_mm, prime_radius_vox_, body_centroid_vox_, v, &near)) return false;
   // a session holding a unit response primes again only near the body, where the expected
   // voxel moved farther than a warm start's near move from the one held
   if (s.g_known) {
@@ -443,7 +456,8 @@ bool DeformWorker::prime(Session& s, int index, const Contact& c) {
     s.report.last_error = std::string("prime: ") + e.what();
     publish(s, index);
   }
-  step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  s.last_prime_cost_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  step_s_ += s.last_prime_cost_s;
   return true;
 }
 

@@ -133,7 +133,7 @@ class DeformWorker {
   void export_watched(int index);
   void fill_snapshot(JSnapshot& out, Session& s, bool device);
   void step(Session& s, int index, const Contact& c);   // begins the step (in flight) or readies it for a batch
-  bool prime(Session& s, int index, const Contact& c);  // primes the unit response for a tip out of the body; true: it ran
+  bool prime(Session& s, int index, const Vec3& tip_mm);  // primes the unit response where a tip out of the body will touch; true: it ran
   void begin_ready();                                     // begins the readied steps, batched
   void complete_inflight();                               // finishes every step in flight, in order
   void complete(Session& s, const Contact& c);            // finishes one: checks, counts, reports
@@ -174,6 +174,7 @@ class DeformWorker {
   bool prime_ = false;    // the scene's relaxation can be primed (multigrid, reuse, warm starts)
   Vec3 body_centroid_vox_{0, 0, 0};  // the patient's body centroid (deform::expected_skin_voxel)
   int prime_radius_vox_ = 0;         // the near search's reach: half a VOI edge (voxels)
+  Vec3 grid_centre_mm_{0, 0, 0};     // where a session primes before its first pose (mm)
   int gpu_share_ = 1;     // this pass: min(max_inflight_, open sessions)
   double min_watched_step_s_ = 0;  // least time between steps of a session whose frames are watched (s)
   std::chrono::steady_clock::time_point world_start_;  // when the current scene was set up

@@ -62,11 +62,12 @@ std::string num(double v) { return json_number(v); }
 
 std::string json_vec(const Vec3& v) { return "[" + num(v.x) + ", " + num(v.y) + ", " + num(v.z) + "]"; }
 
-// the phantom at voxel_mm (deformation reads intensity and bone only) and the press on it
+// the phantom at voxel_mm (deformation reads intensity and bone only; the body mask is
+// for the multigrid prime's guess of the skin point) and the press on it
 std::pair<PatientPtr, Press> phantom_press(double voxel_mm) {
   PhantomCt ct = make_phantom(voxel_mm);
   const Press press = spinous_press(ct.geometry);
-  return {test::patient_from_intensity(std::move(ct.hu), "phantom"), press};
+  return {test::with_body_mask(test::patient_from_intensity(std::move(ct.hu), "phantom")), press};
 }
 
 // one setting run on one backend: times of whole steps and of one stage, and what the last step left
@@ -147,6 +148,44 @@ std::vector<DeformContact> pressing(const Grid& grid, const DeformContact& c, in
 Run run_setting(const std::string& backend, const PatientPtr& patient, const DeformConfig& cfg,
                 const DeformContact& contact, int warmup, int reps, Stage stage) {
   return run_settings(backend, patient, {cfg}, contact, warmup, reps, stage).front();
+}
+
+// a session's first step on `contact`: a new engine every repetition; with `hover_mm`, after
+// a prime where a tip hovering there expects to touch (deform::expected_skin_voxel, as the
+// server's worker guesses it). The step's relax time is its own: the prime, enqueued just
+// before it here, is in the step's wall time on cuda (in the server it runs while the tip
+// approaches). `prime_steps` gets the prime's own steps.
+Run run_first_contacts(const std::string& backend, const PatientPtr& patient, const DeformConfig& cfg,
+                       const DeformContact& contact, const Vec3* hover_mm, int warmup, int reps, int* prime_steps = nullptr) {
+  std::vector<double> step, relax;
+  Run r;
+  const Vec3 centroid = deform::body_centroid_vox(*patient);
+  for (int i = -warmup; i < reps; ++i) {
+    auto b = make_deform_backend(backend);
+    b->bind(patient, cfg);
+    if (hover_mm) {
+      Vec3i v;
+      if (!deform::expected_skin_voxel(*patient, *hover_mm, cfg.settings.voi_edge / 2, centroid, v))
+        throw Error("deform accuracy: no skin voxel below the hovering tip");
+      const Vec3 V = patient->grid.to_physical(Vec3(v.x, v.y, v.z));
+      const DeformPrime pr = b->prime({V, V});
+      if (!pr.solved) throw Error("deform accuracy: the prime solved nothing");
+      if (prime_steps) *prime_steps = pr.steps;
+    }
+    r.last = b->step(contact);
+    if (hover_mm && !r.last.relax_warm) throw Error("deform accuracy: a first contact after a prime did not start warm");
+    if (i < 0) continue;
+    step.push_back(r.last.times.total_ms);
+    relax.push_back(r.last.times.relax_ms);
+    if (i + 1 == reps) {
+      r.u = b->displacement();
+      if (cfg.invert) r.J.assign(b->deformed_brick(), b->deformed_brick() + b->voi().count());
+    }
+  }
+  r.step_ms = spread(step);
+  r.stage_ms = spread(relax);
+  r.reps = reps;
+  return r;
 }
 
 // RMS and max of |a - b| over two fields on the same VOI (voxel)
@@ -505,7 +544,6 @@ int run_deform_accuracy(const AccuracyOptions& o) {
       // of X, across the press) is expected to touch (deform::expected_skin_voxel,
       // as the server does); against that contact's own steady state
       {
-        const PatientPtr bodied = test::with_body_mask(patient);
         const Vec3 dir = (x - X) * (1.0 / norm(x - X));
         const double h = grid.spacing_mm.x;
         const DeformContact first{X, X + dir * h};
@@ -514,52 +552,29 @@ int run_deform_accuracy(const AccuracyOptions& o) {
         fc.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
         DeformConfig sc = c;
         sc.relax_reuse = false;
-        const Run fref = run_setting(be, bodied, sc, first, 0, 1, Stage::relax);
+        const Run fref = run_setting(be, patient, sc, first, 0, 1, Stage::relax);
         const double fref_rms = field_diff(fref.u, std::vector<Vec3f>(fref.u.size(), Vec3f{0, 0, 0})).rms;
-        const Vec3 centroid = deform::body_centroid_vox(*bodied);
         // a direction across the press (the press runs along -y: x)
         const Vec3 across = std::fabs(dir.x) < 0.9 ? Vec3{1, 0, 0} : Vec3{0, 0, 1};
         for (const int aside : {-1, 0, 3}) {
-          std::vector<double> relax, step;
-          Run r;
-          int primed_steps = 0;
-          for (int i = -warmup; i < reps; ++i) {
-            auto b = make_deform_backend(be);
-            b->bind(bodied, fc);
-            if (aside >= 0) {
-              const Vec3 hover = X - dir * (5.0 + press.skin_depth_mm) + across * (aside * h);
-              Vec3i v;
-              if (!deform::expected_skin_voxel(*bodied, hover, fc.settings.voi_edge / 2, centroid, v))
-                throw Error("deform accuracy: no skin voxel below the hovering tip");
-              const Vec3 V = grid.to_physical(Vec3(v.x, v.y, v.z));
-              const DeformPrime pr = b->prime({V, V});
-              if (!pr.solved) throw Error("deform accuracy: the prime solved nothing");
-              primed_steps = pr.steps;
-            }
-            r.last = b->step(first);
-            if (i < 0) continue;
-            relax.push_back(r.last.times.relax_ms);
-            step.push_back(r.last.times.total_ms);
-            if (i + 1 == reps) r.u = b->displacement();
-          }
-          r.step_ms = spread(step);
-          r.stage_ms = spread(relax);
-          r.reps = reps;
-          if ((aside >= 0) != r.last.relax_warm)
-            throw Error("deform accuracy: a first contact after a prime did not start warm (or one without did)");
+          const Vec3 hover = X - dir * (5.0 + press.skin_depth_mm) + across * (std::max(aside, 0) * h);
+          int prime_steps = 0;
+          const Run r = run_first_contacts(be, patient, fc, first, aside >= 0 ? &hover : nullptr, warmup, reps, &prime_steps);
+          if (aside < 0 && r.last.relax_warm) throw Error("deform accuracy: a first contact without a prime started warm");
           const Diff d = field_diff(r.u, fref.u);
           Row row = make_row(be, "relax_primed", aside, false, r);
           row.metrics = {{"u_rms_diff_rel", d.rms / fref_rms},
                          {"u_max_diff_vox", d.max},
                          {"steps", double(r.last.relax_cycles)},
-                         {"prime_steps", aside >= 0 ? double(primed_steps) : NAN}};
+                         {"prime_steps", aside >= 0 ? double(prime_steps) : NAN}};
           rows.push_back(row);
         }
         print_table(rows, be, "relax_primed", "relax",
                     "relax_method multigrid (defaults), VOI 64: a session's first contact, the tip a voxel under "
                     "X, each repetition a new engine; -1: no prime (from zero); 0: primed where a tip hovering "
                     "5 mm above X expects to touch, k: the hovering tip k voxels aside; prime_steps: the "
-                    "prime's own solve (before the contact, as much GPU as setting -1's relaxation); "
+                    "prime's own solve (before the contact, as much GPU as setting -1's relaxation; on cuda the "
+                    "step ms includes it, enqueued just before the step here); "
                     "reference: that contact's steady state (multigrid " +
                         std::to_string(o.ref_multigrid_cycles) + ")");
       }
@@ -706,13 +721,19 @@ struct RelaxMethod {
 // press a voxel a step, so every timed step has a new VOI and starts from the last unit
 // response (deform.relax_warm_cycles, the settings; relax_cycles 4 for the first solve);
 // "multigrid reused" repeats the press, so every timed step reuses the unit response (the
-// cost while the tip stays in its voxel)
+// cost while the tip stays in its voxel); "multigrid primed" is a session's first step, on
+// the press, after the prime the server runs while the tip hovers 5 mm above X (a new
+// engine each repetition; steps: deform.relax_warm_cycles)
 const std::vector<RelaxMethod> kRelaxMethods = {
     {"diffusion", {0, 5, 10, 20, 40, 80, 160, 400}},
     {"multigrid", {1, 2, 3, 4, 5, 8}},
     {"multigrid warm", {1, 2, 3}},
     {"multigrid reused", {4}},  // the default relax_cycles
+    {"multigrid primed", {1}},  // the default relax_warm_cycles
 };
+
+// the methods whose timed steps are a session's first, primed (run_first_contacts)
+bool primes(const std::string& method) { return method == "multigrid primed"; }
 
 // the methods whose timed steps reach the press a voxel at a time (pressing())
 bool moves_tip(const std::string& method) { return method == "multigrid warm"; }
@@ -726,12 +747,12 @@ void apply_relax_method(DeformConfig& cfg, const std::string& method, int n) {
     cfg.settings.relax_method = "multigrid";
     cfg.settings.relax_cycles = n;
     cfg.relax_reuse = method == "multigrid reused";
-  } else if (method == "multigrid warm") {
+  } else if (method == "multigrid warm" || method == "multigrid primed") {
     cfg.settings.relax_method = "multigrid";
     cfg.settings.relax_cycles = DeformSettings{}.relax_cycles;
     cfg.settings.relax_warm_cycles = n;
     cfg.relax_reuse = true;
-    cfg.voi_hold = false;  // every step another VOI: what a warm start costs
+    cfg.voi_hold = !moves_tip(method);  // warm: every step another VOI, what a warm start costs
   } else {
     throw Error("accuracy: relaxation method '" + method + "' is not in this build");
   }
@@ -765,6 +786,7 @@ struct Group {
   bool has_ref = false;
   DeformConfig ref;
   bool pressing = false;  // timed steps reach the press a voxel at a time (moves_tip)
+  bool primed = false;    // timed steps are a new session's first, after a prime (primes)
 };
 
 // the errors of one row against the references (NaN where not computed)
@@ -1108,9 +1130,13 @@ int run_accuracy_report(const ReportOptions& o) {
   const std::vector<std::string> backends = deform_backends(device, "accuracy", o.backend);
   // the phantom press of the deform accuracy study
   const auto [patient, press] = phantom_press(o.voxel_mm);
-  const PatientPtr block = test::make_patient({kBlockN, kBlockN, kBlockN}, [](int, int, int) { return test::kSoftHu; });
+  const PatientPtr block = test::with_body_mask(
+      test::make_patient({kBlockN, kBlockN, kBlockN}, [](int, int, int) { return test::kSoftHu; }));
   const double c = kBlockN / 2;
   const DeformContact block_press{{c, kBlockN - 1.0, c}, {c, kBlockN - 1.0 - kBlockPressVox, c}};
+  // where the primed rows' tip hovers before its press: 5 mm out of the skin above X
+  const Vec3 X = press.contact.skin_point_mm, dir = (press.contact.tip_mm - X) * (1.0 / norm(press.contact.tip_mm - X));
+  const Vec3 hover = X - dir * (5.0 + press.skin_depth_mm), block_hover{c, kBlockN + 4.0, c};
 
   // the settings: one knob at a time from the base (preset p1, VOI 64, relaxation 20, inversion 8)
   DeformConfig base = test::preset_config(1);
@@ -1123,6 +1149,7 @@ int run_accuracy_report(const ReportOptions& o) {
     g.has_ref = true;
     g.ref = base;
     g.pressing = moves_tip(m.name);
+    g.primed = primes(m.name);
     apply_relax_method(g.ref, "multigrid", kRefMultigridSteps);
     for (int n : m.iterations) {
       DeformConfig cfg = base;
@@ -1211,7 +1238,11 @@ int run_accuracy_report(const ReportOptions& o) {
           grp.pressing ? pressing(patient->grid, press.contact, 6) : std::vector<DeformContact>{press.contact};
       const std::vector<DeformContact> block_contacts =
           grp.pressing ? pressing(block->grid, block_press, 4) : std::vector<DeformContact>{block_press};
-      const std::vector<Run> runs = run_settings(be, patient, cfgs, contacts, warmup, reps, group.front().stage);
+      std::vector<Run> runs;
+      if (grp.primed)
+        for (const DeformConfig& pc : cfgs) runs.push_back(run_first_contacts(be, patient, pc, press.contact, &hover, warmup, reps));
+      else
+        runs = run_settings(be, patient, cfgs, contacts, warmup, reps, group.front().stage);
       for (std::size_t s = 0; s < group.size(); ++s) {
         const Run& r = runs[s];
         ReportRow row;
@@ -1231,8 +1262,10 @@ int run_accuracy_report(const ReportOptions& o) {
         row.err.a_J_pct = 100 * row.err.a_J_rms_hu / ref.change_rms_hu;
         }
         // (b): the same setting on the block
-        const Run rb = run_settings(be, block, {cfgs[s]}, block_contacts, 0,
-                                    grp.pressing ? int(block_contacts.size()) + 1 : 1, Stage::total).front();
+        const Run rb = grp.primed ? run_first_contacts(be, block, cfgs[s], block_press, &block_hover, 0, 1)
+                                  : run_settings(be, block, {cfgs[s]}, block_contacts, 0,
+                                                 grp.pressing ? int(block_contacts.size()) + 1 : 1, Stage::total)
+                                        .front();
         if (grp.pressing && !(r.last.relax_warm && rb.last.relax_warm))
           throw Error("accuracy: a '" + row.label + "' step of " + row.knob + " did not start from the last unit response");
         block_errors(rb.last.chainmail.voi, rb.u, row.err);

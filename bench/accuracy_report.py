@@ -156,8 +156,7 @@ def markdown(cpu, gpu, rows, plots):
              "server/deform/README.md), and as \"multigrid primed\": the press as a new session's first step, "
              "after the prime the server's worker runs while the tip hovers 5 mm above the skin (a new engine "
              "each repetition; steps: deform.relax_warm_cycles; the prime's own solve, as much GPU as the 4-step "
-             "row, runs before the contact and is in the CUDA step time here only because the bench enqueues it "
-             "just before the step); another is one entry in kRelaxMethods (bench/deform_accuracy_bench.cpp).")
+             "row, runs before the contact and is not in the step time); another is one entry in kRelaxMethods (bench/deform_accuracy_bench.cpp).")
     L.append("")
     L.append("## References and error metrics")
     L.append("")

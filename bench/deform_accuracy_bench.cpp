@@ -152,9 +152,8 @@ Run run_setting(const std::string& backend, const PatientPtr& patient, const Def
 
 // a session's first step on `contact`: a new engine every repetition; with `hover_mm`, after
 // a prime where a tip hovering there expects to touch (deform::expected_skin_voxel, as the
-// server's worker guesses it). The step's relax time is its own: the prime, enqueued just
-// before it here, is in the step's wall time on cuda (in the server it runs while the tip
-// approaches). `prime_steps` gets the prime's own steps.
+// server's worker guesses it), waited for before the step (in the server it runs while
+// the tip approaches): the times are the step's own. `prime_steps` gets the prime's steps.
 Run run_first_contacts(const std::string& backend, const PatientPtr& patient, const DeformConfig& cfg,
                        const DeformContact& contact, const Vec3* hover_mm, int warmup, int reps, int* prime_steps = nullptr) {
   std::vector<double> step, relax;
@@ -171,6 +170,7 @@ Run run_first_contacts(const std::string& backend, const PatientPtr& patient, co
       const DeformPrime pr = b->prime({V, V});
       if (!pr.solved) throw Error("deform accuracy: the prime solved nothing");
       if (prime_steps) *prime_steps = pr.steps;
+      b->wait();
     }
     r.last = b->step(contact);
     if (hover_mm && !r.last.relax_warm) throw Error("deform accuracy: a first contact after a prime did not start warm");
@@ -573,8 +573,8 @@ int run_deform_accuracy(const AccuracyOptions& o) {
                     "relax_method multigrid (defaults), VOI 64: a session's first contact, the tip a voxel under "
                     "X, each repetition a new engine; -1: no prime (from zero); 0: primed where a tip hovering "
                     "5 mm above X expects to touch, k: the hovering tip k voxels aside; prime_steps: the "
-                    "prime's own solve (before the contact, as much GPU as setting -1's relaxation; on cuda the "
-                    "step ms includes it, enqueued just before the step here); "
+                    "prime's own solve (before the contact, as much GPU as setting -1's relaxation; waited for "
+                    "before the step, as the approach leaves time for it); "
                     "reference: that contact's steady state (multigrid " +
                         std::to_string(o.ref_multigrid_cycles) + ")");
       }

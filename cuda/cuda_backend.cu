@@ -294,6 +294,8 @@ DeformPrime CudaDeformBackend::prime_impl(const ChainMailStats& expected) {
   return out;
 }
 
+void CudaDeformBackend::wait_impl() { PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_)); }
+
 MultigridScratch& CudaDeformBackend::own_multigrid_scratch() {
   if (!mg_own_) mg_own_ = std::make_shared<MultigridScratch>(mg_.capacity, mg_.coarse_capacity);
   return *mg_own_;

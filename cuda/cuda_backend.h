@@ -94,6 +94,7 @@ class CudaDeformBackend final : public DeformBackend {
  protected:
   void bind_impl() override;
   DeformPrime prime_impl(const ChainMailStats& expected) override;
+  void wait_impl() override;
   void chainmail_impl(ChainMailStats& stats) override;
   void relax_impl() override;
   UntangleStats untangle_impl() override;

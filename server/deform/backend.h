@@ -217,6 +217,10 @@ class DeformBackend {
   /// the solve is enqueued on the session's stream and not waited for. Throws
   /// palpsim::Error as step() does for a non-finite contact or X outside the grid.
   DeformPrime prime(const DeformContact& expected);
+  /// Waits until the work the backend has enqueued and not waited for is done (cuda: a
+  /// prime's solve; cpu: nothing is ever left), for benches that time a step apart from
+  /// the prime before it.
+  void wait() { wait_impl(); }
 
   /// Lets each persistent kernel of this backend take 1/k of the device's co-resident
   /// blocks (cuda; cpu ignores it), so that k sessions' steps fit on the GPU side by
@@ -270,6 +274,7 @@ class DeformBackend {
   // solves G for `expected` (voi and grabbed element set; not in bone) and keeps it; the
   // state of the deformation untouched
   virtual DeformPrime prime_impl(const ChainMailStats& expected) = 0;
+  virtual void wait_impl() {}
   virtual std::vector<Vec3f> displacement_impl() const = 0;
   virtual void set_displacement_impl(const std::vector<Vec3f>& u) = 0;
   virtual const float* deformed_brick_impl() const = 0;

@@ -503,8 +503,11 @@ DeformStats CudaDeformBackend::end_step_impl() {
   const bool untangle = config_.relax && config_.settings.untangle;
   InvertStats inv;
   finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
-  if (config_.relax && config_.settings.relax_method == "multigrid")
+  if (config_.relax && config_.settings.relax_method == "multigrid") {
     set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0, mg_.warm_steps);
+    // three solves left no G (the device knew it): nothing to start a prime from, as on the cpu
+    if (host_counters_->relax_solves == 3) mg_.cache = deform::MultigridCache{};
+  }
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
@@ -649,8 +652,11 @@ DeformStats CudaDeformBackend::end_batched_step() {
   DeformStats out = step_out_;
   InvertStats inv;
   read_counters(&out.chainmail, &inv, nullptr);
-  if (config_.relax && config_.settings.relax_method == "multigrid")
+  if (config_.relax && config_.settings.relax_method == "multigrid") {
     set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0, mg_.warm_steps);
+    // three solves left no G (the device knew it): nothing to start a prime from, as on the cpu
+    if (host_counters_->relax_solves == 3) mg_.cache = deform::MultigridCache{};
+  }
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;

@@ -148,7 +148,8 @@ struct DeformStats {
 /// What DeformBackend::prime() did.
 struct DeformPrime {
   bool solved = false;        // a unit response was solved (false: nothing to prime, or held already)
-  bool warm = false;          // it started from the last one (cuda: where the device holds a G)
+  bool warm = false;          // it started from the last G (cuda: the host offered it, and the device takes it
+                              // unless that field is no G; the host knows after a step's three solves only)
   int steps = 0;              // CG steps it ran: deform.relax_cycles from zero, the warm steps otherwise
   Voi voi;                    // the VOI it was solved on (patient voxel indices)
   Vec3i grabbed_vox{0, 0, 0}; // and the grabbed element (patient voxel index)

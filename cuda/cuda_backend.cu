@@ -263,12 +263,18 @@ std::size_t MultigridScratch::bytes() const {
          6 * deform::kMultigridMaxCycles * sizeof(double);
 }
 
-void CudaDeformBackend::launch_multigrid(int src, MultigridScratch& scratch, int blocks, cudaStream_t stream) {
+bool CudaDeformBackend::launch_multigrid_for(const StepGeometry& g, int src, MultigridScratch& scratch, int blocks,
+                                             cudaStream_t stream, bool prime) {
   const DeformSettings& s = config_.settings;
   scratch.lend_to(mg_);
   const MultigridScratch::Turn turn(scratch, stream);
-  launch_relax_multigrid(geometry(), src, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
-                         float(s.material_width), finger_r2_, config_.relax_reuse, d_, mg_, blocks, stream);
+  return launch_relax_multigrid(g, src, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
+                                float(s.material_width), finger_r2_, prime || config_.relax_reuse, d_, mg_, blocks,
+                                stream, prime);
+}
+
+void CudaDeformBackend::launch_multigrid(int src, MultigridScratch& scratch, int blocks, cudaStream_t stream) {
+  launch_multigrid_for(geometry(), src, scratch, blocks, stream, false);
   mg_g_clean_ = setup_.skipped;
 }
 
@@ -279,15 +285,11 @@ DeformPrime CudaDeformBackend::prime_impl(const ChainMailStats& expected) {
   g.voi = expected.voi;
   g.volume_size = patient_->grid.size;
   g.grabbed = expected.grabbed_vox - expected.voi.lo;
-  if (mg_.cache == deform::MultigridCache::of(g.voi, g.grabbed, s.relax_cycles)) return {};  // held already
+  if (multigrid_reuses(g, s.relax_cycles, true, mg_)) return {};  // held already
   launch_shape_for_share();  // this pass's share of the device, as a step takes it
   // on the session's stream, in the scratch's turn, as a step's solve
-  MultigridScratch& scratch = gpu_share_ > 1 ? own_multigrid_scratch() : *mg_shared_;
-  scratch.lend_to(mg_);
-  const MultigridScratch::Turn turn(scratch, stream_);
   DeformPrime out;
-  out.warm = launch_relax_multigrid(g, cur_, s.relax_cycles, s.relax_warm_cycles, float(config_.bone_threshold),
-                                    float(s.material_width), finger_r2_, true, d_, mg_, mg_blocks_, stream_, true);
+  out.warm = launch_multigrid_for(g, cur_, step_multigrid_scratch(), mg_blocks_, stream_, true);
   out.solved = true;
   out.steps = out.warm ? mg_.warm_steps : std::min(s.relax_cycles, deform::kMultigridMaxCycles);
   mg_g_clean_ = true;  // a prime solves G alone
@@ -341,7 +343,7 @@ void CudaDeformBackend::enqueue_relax() {
     // in place on the current buffer; with other steps in flight beside it, in a scratch
     // of its own
     ensure_multigrid_buffers();
-    launch_multigrid(cur_, gpu_share_ > 1 ? own_multigrid_scratch() : *mg_shared_, mg_blocks_, stream_);
+    launch_multigrid(cur_, step_multigrid_scratch(), mg_blocks_, stream_);
     field_extra_ = -1;  // the steady state is nonzero wherever the grabbed element is felt
     return;
   }

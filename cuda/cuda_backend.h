@@ -94,6 +94,7 @@ class CudaDeformBackend final : public DeformBackend {
  protected:
   void bind_impl() override;
   DeformPrime prime_impl(const ChainMailStats& expected) override;
+  const deform::MultigridCache* multigrid_cache_impl() const override { return &mg_.cache; }
   void wait_impl() override;
   void chainmail_impl(ChainMailStats& stats) override;
   void relax_impl() override;
@@ -149,9 +150,16 @@ class CudaDeformBackend final : public DeformBackend {
   /// session's own while steps run side by side (set_gpu_share() above 1)
   std::shared_ptr<MultigridScratch> mg_shared_, mg_own_;
   MultigridScratch& own_multigrid_scratch();  // mg_own_, made on first use
+  // the scratch a solve of this session's own takes: the shared one, or with other steps in
+  // flight beside it (set_gpu_share() above 1) its own
+  MultigridScratch& step_multigrid_scratch() { return gpu_share_ > 1 ? own_multigrid_scratch() : *mg_shared_; }
   // this step's multigrid solver (or reuse) from displacement buffer `src`, on `scratch`
   // in its turn, `blocks` cooperative blocks on `stream`
   void launch_multigrid(int src, MultigridScratch& scratch, int blocks, cudaStream_t stream);
+  // the multigrid solver for geometry `g` on `scratch` in its turn (launch_relax_multigrid;
+  // `prime`: G alone); returns whether it starts from the kept field
+  bool launch_multigrid_for(const StepGeometry& g, int src, MultigridScratch& scratch, int blocks, cudaStream_t stream,
+                            bool prime);
   bool mg_g_clean_ = false;  // the kept unit response was solved on a step that left ChainMail out (so it is a G)
   int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel, this step
   int full_mg_blocks_ = 0;             // ... that fit on the device

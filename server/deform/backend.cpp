@@ -2,7 +2,6 @@
 #include "deform/backend.h"
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <sstream>
@@ -358,12 +357,17 @@ DeformPrime DeformBackend::prime(const DeformContact& expected) {
   if (!config_.relax || !config_.relax_reuse || s.relax_method != "multigrid" || s.relax_cycles <= 0 ||
       s.relax_warm_cycles <= 0 || st.grabbed_in_bone)
     return {};
-  const auto t0 = std::chrono::steady_clock::now();
   DeformPrime out = prime_impl(st);
   out.voi = st.voi;
   out.grabbed_vox = st.grabbed_vox;
-  out.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return out;
+}
+
+bool DeformBackend::unit_response(Vec3i& grabbed_vox) const {
+  const deform::MultigridCache* c = bound_ ? multigrid_cache_impl() : nullptr;
+  if (!c || !c->ok) return false;
+  grabbed_vox = c->lo + c->grabbed;
+  return true;
 }
 
 void DeformBackend::set_gpu_share(int k) {

@@ -19,6 +19,10 @@
 
 namespace palpsim {
 
+namespace deform {
+struct MultigridCache;  // relax_multigrid.h
+}
+
 using deform::Voi;
 
 /// What one deformation step needs from the haptic path (the paper's X and x);
@@ -153,7 +157,6 @@ struct DeformPrime {
   int steps = 0;              // CG steps it ran: deform.relax_cycles from zero, the warm steps otherwise
   Voi voi;                    // the VOI it was solved on (patient voxel indices)
   Vec3i grabbed_vox{0, 0, 0}; // and the grabbed element (patient voxel index)
-  double ms = 0;              // host wall time: the solve (cpu) or its launch (cuda: not waited for)
 };
 
 /// One session's deformation state on one backend. bind() once, then step() per
@@ -222,6 +225,10 @@ class DeformBackend {
   /// prime's solve; cpu: nothing is ever left), for benches that time a step apart from
   /// the prime before it.
   void wait() { wait_impl(); }
+  /// Whether the backend holds a multigrid unit response, the one the next warm start or
+  /// prime begins from, and if so the grabbed element it was solved for (patient voxel),
+  /// into `grabbed_vox`: how far a new guess of the contact is from it.
+  bool unit_response(Vec3i& grabbed_vox) const;
 
   /// Lets each persistent kernel of this backend take 1/k of the device's co-resident
   /// blocks (cuda; cpu ignores it), so that k sessions' steps fit on the GPU side by
@@ -276,6 +283,8 @@ class DeformBackend {
   // state of the deformation untouched
   virtual DeformPrime prime_impl(const ChainMailStats& expected) = 0;
   virtual void wait_impl() {}
+  // what the backend's kept unit response was solved for (null: no multigrid state)
+  virtual const deform::MultigridCache* multigrid_cache_impl() const { return nullptr; }
   virtual std::vector<Vec3f> displacement_impl() const = 0;
   virtual void set_displacement_impl(const std::vector<Vec3f>& u) = 0;
   virtual const float* deformed_brick_impl() const = 0;

@@ -123,6 +123,7 @@ class CpuDeformBackend final : public DeformBackend {
   void reset_impl() override;
   DeformStats step_impl(const ChainMailStats& setup) override;
   DeformPrime prime_impl(const ChainMailStats& expected) override;
+  const deform::MultigridCache* multigrid_cache_impl() const override { return &s_.mg_cache; }
   std::vector<Vec3f> displacement_impl() const override;
   void set_displacement_impl(const std::vector<Vec3f>& u) override;
   const float* deformed_brick_impl() const override { return s_.j.data(); }

@@ -38,6 +38,8 @@ class DeformEngine {
   /// Solves the multigrid unit response for a contact expected soon, between steps,
   /// leaving the deformation in place as it is (DeformBackend::prime).
   DeformPrime prime(const DeformContact& expected) { return backend_->prime(expected); }
+  /// Whether a multigrid unit response is held, and its grabbed element (DeformBackend::unit_response).
+  bool unit_response(Vec3i& grabbed_vox) const { return backend_->unit_response(grabbed_vox); }
 
   /// Returns everything to undeformed (J = I).
   void reset();

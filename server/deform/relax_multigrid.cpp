@@ -139,6 +139,22 @@ std::uint8_t hold_of(const Patient& p, std::size_t gi, bool grabbed, int i, int 
                         p.bone.data[gi] != 0, threshold, width);
 }
 
+// solves the unit response G of `key` into mg_g with level 0's held mask in place: from the
+// last G where `warm_cycles` > 0 and there is one (multigrid_start; the last one moves to
+// mg_g_last, a swap: start.g stays its data), else from zero in `cycles` steps; keeps the key
+MultigridRun solve_unit_response(const MultigridPlan& plan, MultigridLevel* lv, const MultigridCache& key, int cycles,
+                                 int warm_cycles, CpuState& s) {
+  MultigridStart start;
+  if (warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), key.lo, key.grabbed);
+  const bool warm = start.g != nullptr;
+  if (warm) std::swap(s.mg_g, s.mg_g_last);
+  const int steps = warm ? multigrid_warm_steps(start, warm_cycles) : cycles;
+  solve(plan, lv, s.mg_g.data(), s.mg_p.data(), s.mg_q.data(), steps, start,
+        [&](int e) { return s.mg_held[e] == kMultigridHeldGrabbed ? 1.0f : 0.0f; });
+  s.mg_cache = key;
+  return {1, warm, warm ? steps : 0};
+}
+
 }  // namespace
 
 MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int cycles, int warm_cycles,
@@ -173,22 +189,12 @@ MultigridRun relax_multigrid_cpu(const Patient& p, const ChainMailStats& st, int
   const MultigridCache key = MultigridCache::of(voi, g, cycles);
   const bool reused = clean && reuse && s.mg_cache == key;
   if (clean) {
-    // a new G starts from the last one when the scene asks for it (multigrid_start); the
-    // last one moves to mg_g_last (a swap: start.g stays its data)
-    MultigridStart start;
-    if (!reused && reuse && warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), voi.lo, g);
-    const bool warm = start.g != nullptr;
-    if (warm) std::swap(s.mg_g, s.mg_g_last);
-    float* X = s.mg_g.data();
-    // u = d G on free elements
-    const int steps = warm ? multigrid_warm_steps(start, warm_cycles) : cycles;
-    if (!reused)
-      solve(plan, lv, X, s.mg_p.data(), s.mg_q.data(), steps, start,
-            [&](int e) { return s.mg_held[e] == kMultigridHeldGrabbed ? 1.0f : 0.0f; });
-    s.mg_cache = key;
+    // a new G starts from the last one when the scene asks for it; then u = d G on free elements
+    const MultigridRun run = reused ? MultigridRun{} : solve_unit_response(plan, lv, key, cycles, reuse ? warm_cycles : 0, s);
+    const float* X = s.mg_g.data();
     for (std::size_t e = 0; e < n; ++e)
       if (!s.mg_held[e]) s.u[e] = Vec3f{d.x * X[e], d.y * X[e], d.z * X[e]};
-    return {reused ? 0 : 1, warm, warm ? steps : 0};
+    return run;
   }
   // each component from its own held data, from zero; X no longer holds G
   s.mg_cache = MultigridCache{};
@@ -219,16 +225,7 @@ MultigridRun prime_multigrid_cpu(const Patient& p, const Voi& voi, const Vec3i& 
         s.mg_held[e] = hold_of(p, p.grid.index(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k), e == g_idx, i, j, k, g,
                                finger_r2, threshold, width);
       }
-  // G from the last one where there is one (the step's warm start), else from zero
-  MultigridStart start;
-  if (warm_cycles > 0) start = multigrid_start(s.mg_cache, s.mg_g.data(), voi.lo, g);
-  const bool warm = start.g != nullptr;
-  if (warm) std::swap(s.mg_g, s.mg_g_last);
-  const int steps = warm ? multigrid_warm_steps(start, warm_cycles) : cycles;
-  solve(plan, lv, s.mg_g.data(), s.mg_p.data(), s.mg_q.data(), steps, start,
-        [&](int e) { return s.mg_held[e] == kMultigridHeldGrabbed ? 1.0f : 0.0f; });
-  s.mg_cache = key;
-  return {1, warm, warm ? steps : 0};
+  return solve_unit_response(plan, lv, key, cycles, warm_cycles, s);
 }
 
 }  // namespace palpsim::deform

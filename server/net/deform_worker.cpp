@@ -96,9 +96,6 @@ struct DeformWorker::Session {
   Vec3 last_tip_mm{0, 0, 0};            // and its tip, skin point and proxy
   Vec3 last_skin_mm{0, 0, 0};
   Vec3 last_proxy_mm{0, 0, 0};
-  // the multigrid unit response the engine holds (a prime's or a step's) and its grabbed voxel
-  bool g_known = false;
-  Vec3i g_vox{0, 0, 0};
   double last_prime_s = -1e9;           // server time of the latest prime (pacing) ...
   double last_prime_cost_s = 0;         // ... and the worker's time it took (s)
   // the stream's hand-overs (stream_state.h): the state's version, and what was exported
@@ -357,7 +354,9 @@ bool DeformWorker::serve_deformation(int index) {
     // any unit response is a far better start than zero (a press has one shape wherever
     // it is: 2 warm steps from 22 voxels away land 0.24-0.35% from the steady state, the
     // torso test), so that even a first pose already in the body starts warm
-    if (prime_ && c.session_id != id && !s.g_known && prime(s, index, grid_centre_mm_)) worked = true;
+    Vec3i held;
+    const bool holds = s.engine && s.engine->unit_response(held);
+    if (prime_ && c.session_id != id && !holds && prime(s, index, grid_centre_mm_)) worked = true;
     return worked;
   }
   // contacts written since the last one taken were stale before the worker got to them
@@ -432,9 +431,10 @@ bool DeformWorker::prime(Session& s, int index, const Vec3& tip_mm) {
   if (!deform::expected_skin_voxel(*patient_, tip_mm, prime_radius_vox_, body_centroid_vox_, v, &near)) return false;
   // a session holding a unit response primes again only near the body, where the expected
   // voxel moved farther than a warm start's near move from the one held
-  if (s.g_known) {
+  Vec3i held;
+  if (s.engine && s.engine->unit_response(held)) {
     bool moved = false;
-    for (int a = 0; a < 3; ++a) moved = moved || std::abs(v[a] - s.g_vox[a]) > deform::kMultigridNearMove;
+    for (int a = 0; a < 3; ++a) moved = moved || std::abs(v[a] - held[a]) > deform::kMultigridNearMove;
     if (!near || !moved) return false;
   }
   const auto t0 = std::chrono::steady_clock::now();
@@ -447,8 +447,6 @@ bool DeformWorker::prime(Session& s, int index, const Vec3& tip_mm) {
     const DeformPrime pr = s.engine->prime(DeformContact{X, X});
     if (pr.solved) {
       ++s.report.multigrid_primes;
-      s.g_known = true;
-      s.g_vox = v;
       publish(s, index);
     }
   } catch (const std::exception& e) {
@@ -579,11 +577,6 @@ void DeformWorker::complete(Session& s, const Contact& c) {
     r.chainmail_skipped = st.chainmail.skipped;
     r.multigrid_solves += st.relax_solves > 0;
     r.multigrid_warm += st.relax_warm;
-    // the unit response the engine now holds (3 solves keep none)
-    if (config_.settings.relax_method == "multigrid" && config_.relax && !st.chainmail.grabbed_in_bone) {
-      s.g_known = st.relax_solves < 3;
-      s.g_vox = st.chainmail.grabbed_vox;
-    }
     r.converged = st.chainmail.converged;
     r.invert_residual_vox = st.invert_residual_vox;
     r.invert_unresolved = st.invert_unresolved;

@@ -734,6 +734,9 @@ TEST_CASE("gpu prime solves the unit response as the cpu does, and leaves the de
   const std::vector<float> J(gpu->deformed_brick(), gpu->deformed_brick() + gpu->voi().count());
   const DeformPrime pa = cpu->prime(far), pg = gpu->prime(far);
   CHECK(pg.solved);
+  Vec3i held;
+  REQUIRE(gpu->unit_response(held));
+  CHECK(held == Vec3i{20, 14, 24});
   CHECK(pg.warm == pa.warm);
   CHECK(pg.steps == pa.steps);
   CHECK(pg.voi == pa.voi);

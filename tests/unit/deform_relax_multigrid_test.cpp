@@ -570,7 +570,11 @@ TEST_CASE("a prime solves the unit response a step would, and leaves the deforma
   CpuDeformBackend primed, fresh;
   primed.bind(torso, cfg);
   fresh.bind(torso, cfg);
+  Vec3i held;
+  CHECK_FALSE(primed.unit_response(held));  // nothing solved yet
   const DeformPrime pr = primed.prime(c);
+  REQUIRE(primed.unit_response(held));
+  CHECK(held == Vec3i{32, 10, 32});
   CHECK(pr.solved);
   CHECK_FALSE(pr.warm);
   CHECK(pr.steps == cfg.settings.relax_cycles);
@@ -594,6 +598,9 @@ TEST_CASE("a prime solves the unit response a step would, and leaves the deforma
   CHECK(primed.displacement() == u);
   CHECK(std::equal(J.begin(), J.end(), primed.deformed_brick()));
   CHECK(primed.step(far).relax_solves == 0);
+  // three solves (a held element moved) keep no unit response: nothing to start from
+  REQUIRE(relax_with_bone_moved(primed, *torso, far) >= 0);
+  CHECK_FALSE(primed.unit_response(held));
 }
 
 TEST_CASE("a session's first contact after a prime on the approach starts warm, within 1% of the steady state") {

@@ -587,8 +587,15 @@ TEST_CASE("sessions due together are drawn in batches; every frame shows its own
       INFO("session " << n << ", frame " << f.frame_seq());
       CHECK(f.session_id() == clients[n]->id);
       CHECK(f.width() == unsigned(widths[n]));
-      CHECK(f.tip_mm().x() == tip_x[n]);
       CHECK(decode(f).w == widths[n]);
+      // a session that becomes watched gets a frame at once, which may come before its
+      // first pose on a loaded machine (seen once in 15 runs beside two busy loops): no tip
+      // yet (pose_seq 0, tip at the zero vector); every later frame shows its own
+      if (f.pose_seq() == 0) {
+        CHECK(f.tip_mm().x() == 0);
+        continue;
+      }
+      CHECK(f.tip_mm().x() == tip_x[n]);
       ++frames[n];
     }
   }

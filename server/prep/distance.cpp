@@ -318,7 +318,7 @@ class LineBatch {
 // takes the last one below from the marks. So a slice's distances along k are written
 // just before its envelopes read them (in cache), with no store and reload of a whole
 // volume between two sweeps (the forward sweep that wrote one took 7.5 of 82 ms on one
-// thread on the real CT, 2026-11-28; now the marks take 3.3). A column with no site yet
+// thread on the real CT, 2026-11-28; now the marks take 2.7). A column with no site yet
 // has its site at -1e30 or +1e30 (float), whose squared distance overflows to +infinity:
 // no branch, and the plane loops vectorise.
 constexpr float kFar = 1e30f;
@@ -335,7 +335,7 @@ struct Mark {
 // run's last site below is its bottom's k - 1, noted per column at its bottom. Per slice
 // a loop over the mask's bytes, which vectorises, flags the runs' bottoms (1) and tops
 // (2); the flagged bytes (few) are found 32 at a time. (Keeping every column's last site
-// instead, a float per voxel, took 4.0 ms on one thread on the real CT; this 3.3.)
+// instead, a float per voxel, took 4.0 ms on one thread on the real CT; this 2.7.)
 void mark_runs(const Volume<std::uint8_t>& mask, bool to_nonzero, std::size_t e0, std::size_t e1,
                std::vector<float>& below, std::vector<std::uint8_t>& flag, std::vector<Mark>& marks) {
   const int nz = mask.grid.size.z;

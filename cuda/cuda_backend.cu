@@ -291,9 +291,15 @@ DeformPrime CudaDeformBackend::prime_impl(const ChainMailStats& expected) {
   DeformPrime out;
   out.warm = launch_multigrid_for(g, cur_, step_multigrid_scratch(), mg_blocks_, stream_, true);
   out.solved = true;
-  out.steps = out.warm ? mg_.warm_steps : std::min(s.relax_cycles, deform::kMultigridMaxCycles);
+  out.steps = out.warm ? mg_.warm_steps : s.relax_cycles;  // (bind checks relax_cycles <= kMultigridMaxCycles)
   mg_g_clean_ = true;  // a prime solves G alone
   return out;
+}
+
+void CudaDeformBackend::take_multigrid_counts(DeformStats& out) {
+  set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0, mg_.warm_steps);
+  // three solves left no G (the device knew it): nothing to start a prime from, as on the cpu
+  if (host_counters_->relax_solves == 3) mg_.cache = deform::MultigridCache{};
 }
 
 void CudaDeformBackend::wait_impl() { PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_)); }
@@ -505,11 +511,7 @@ DeformStats CudaDeformBackend::end_step_impl() {
   const bool untangle = config_.relax && config_.settings.untangle;
   InvertStats inv;
   finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
-  if (config_.relax && config_.settings.relax_method == "multigrid") {
-    set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0, mg_.warm_steps);
-    // three solves left no G (the device knew it): nothing to start a prime from, as on the cpu
-    if (host_counters_->relax_solves == 3) mg_.cache = deform::MultigridCache{};
-  }
+  if (config_.relax && config_.settings.relax_method == "multigrid") take_multigrid_counts(out);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
@@ -654,11 +656,7 @@ DeformStats CudaDeformBackend::end_batched_step() {
   DeformStats out = step_out_;
   InvertStats inv;
   read_counters(&out.chainmail, &inv, nullptr);
-  if (config_.relax && config_.settings.relax_method == "multigrid") {
-    set_multigrid_counts(out, host_counters_->relax_solves, host_counters_->relax_warm != 0, mg_.warm_steps);
-    // three solves left no G (the device knew it): nothing to start a prime from, as on the cpu
-    if (host_counters_->relax_solves == 3) mg_.cache = deform::MultigridCache{};
-  }
+  if (config_.relax && config_.settings.relax_method == "multigrid") take_multigrid_counts(out);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;

@@ -160,6 +160,9 @@ class CudaDeformBackend final : public DeformBackend {
   // `prime`: G alone); returns whether it starts from the kept field
   bool launch_multigrid_for(const StepGeometry& g, int src, MultigridScratch& scratch, int blocks, cudaStream_t stream,
                             bool prime);
+  // a finished multigrid step's solves and start, from the counters read back, into `out`;
+  // forgets the kept G where the step solved three components (none kept)
+  void take_multigrid_counts(DeformStats& out);
   bool mg_g_clean_ = false;  // the kept unit response was solved on a step that left ChainMail out (so it is a G)
   int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel, this step
   int full_mg_blocks_ = 0;             // ... that fit on the device

@@ -348,15 +348,17 @@ std::vector<std::exception_ptr> DeformBackend::begin_steps(const std::vector<Def
   return errors;
 }
 
+bool DeformConfig::primes() const {
+  return relax && relax_reuse && settings.relax_method == "multigrid" && settings.relax_cycles > 0 &&
+         settings.relax_warm_cycles > 0;
+}
+
 DeformPrime DeformBackend::prime(const DeformContact& expected) {
   require(bound_, "prime() before bind()");
   require(!in_step_, "prime() between begin_step() and end_step()");
-  const DeformSettings& s = config_.settings;
   // checked as a step checks its contact, whether or not there is anything to prime
   const ChainMailStats st = locate(expected);
-  if (!config_.relax || !config_.relax_reuse || s.relax_method != "multigrid" || s.relax_cycles <= 0 ||
-      s.relax_warm_cycles <= 0 || st.grabbed_in_bone)
-    return {};
+  if (!config_.primes() || st.grabbed_in_bone) return {};
   DeformPrime out = prime_impl(st);
   out.voi = st.voi;
   out.grabbed_vox = st.grabbed_vox;

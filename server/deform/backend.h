@@ -56,6 +56,10 @@ struct DeformConfig {
   /// VOI follows the tip every step (the paper's rule; the warm-start tests and benches).
   bool voi_hold = true;
 
+  /// Whether DeformBackend::prime() can solve anything ahead of a contact: relaxation by
+  /// multigrid with reuse and warm starts (relax_cycles and relax_warm_cycles above 0).
+  bool primes() const;
+
   /// The configuration a scene asks for: Deform{}, prep's bone threshold and the effects.
   /// The scene's settings; the material function's bone threshold is the scene's
   /// prep.bone_threshold where the scene sets one, else the one prep chose for `patient`

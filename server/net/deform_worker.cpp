@@ -216,8 +216,7 @@ void DeformWorker::set_up_world() {
   config_ = DeformConfig::from_scene(scene, patient_.get());
   // priming needs multigrid relaxation that reuses and starts warm (DeformBackend::prime)
   const DeformSettings& ds = config_.settings;
-  prime_ = scene.effects.chainmail && config_.relax && config_.relax_reuse && ds.relax_method == "multigrid" &&
-           ds.relax_cycles > 0 && ds.relax_warm_cycles > 0;
+  prime_ = scene.effects.chainmail && config_.primes();
   if (prime_) body_centroid_vox_ = deform::body_centroid_vox(*patient_);
   const Vec3i& gs = patient_->grid.size;
   grid_centre_mm_ = patient_->grid.to_physical(Vec3(0.5 * (gs.x - 1), 0.5 * (gs.y - 1), 0.5 * (gs.z - 1)));

@@ -91,6 +91,9 @@ void CudaDeformBackend::release() {
 
 void CudaDeformBackend::bind_impl() {
   release();
+  if (config_.relax && config_.settings.relax_method == "elastic")
+    throw Error("deform backend \"cuda\": deform.relax_method \"elastic\" runs on the cpu backend only in this "
+                "build; set deform.backend \"cpu\"");
   const Patient& p = *patient_;
   const std::size_t nvol = p.grid.count();
   capacity_ = max_voi_count();

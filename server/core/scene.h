@@ -3,6 +3,7 @@
 #pragma once
 
 #include <string>
+#include <vector>
 
 namespace palpsim {
 
@@ -39,6 +40,12 @@ enum class SkinPointRule {
             // that line runs within ~20 degrees of the skin or misses it)
 };
 
+/// Which force the pose thread renders (haptics.force_model).
+enum class ForceModel {
+  kProxy,    // eq. 2: the proxy on F's gradient and a spring (the paper's)
+  kElastic,  // the elastic model's reaction on the fingertip, from the deformation worker's local linear model
+};
+
 /// Force model parameters.
 struct HapticsSettings {
   double stiffness_n_per_mm = 0.25;
@@ -47,6 +54,27 @@ struct HapticsSettings {
   double max_force_rate_n_per_s = 2000;
   double min_gradient_norm = 1e-4;       // |grad F| below this keeps the last direction
   SkinPointRule skin_point = SkinPointRule::kNormal;  // scene-wide (not a session parameter)
+  ForceModel force_model = ForceModel::kProxy;         // scene-wide
+  double elastic_max_jump_n = 0.05;      // elastic: the most a new local model may move the force at once (N)
+};
+
+/// One point of the elastic model's table from intensity to Young's modulus.
+struct ModulusPoint {
+  double hu = 0;     // intensity (HU, or the image's units)
+  double e_kpa = 0;  // Young's modulus (kPa)
+};
+
+/// The elastic model's settings (Deform.elastic in the schema; server/deform/README.md).
+struct ElasticSettings {
+  // Young's modulus by intensity, sorted by HU, linear between points (defaults: lung
+  // and gas, fat, soft tissue and muscle; the schema's comment cites the sources)
+  std::vector<ModulusPoint> modulus = {{-900, 1.0}, {-200, 3.25}, {-50, 3.25}, {20, 12.0}};
+  double skin_e_kpa = 35;          // body voxels within skin_thickness_mm of the skin
+  double skin_thickness_mm = 2;
+  double poisson = 0.45;           // in (0, 0.5)
+  int max_iterations = 60;         // conjugate-gradient steps per contact round
+  double tolerance = 1e-3;         // relative residual of a round
+  int contact_rounds = 4;          // contact set updates per step
 };
 
 /// ChainMail, relaxation and inversion parameters (voxel edge lengths where noted).
@@ -57,17 +85,19 @@ struct DeformSettings {
   int voi_edge = 64;            // voxel
   bool whole_volume = false;
   int max_sweeps = 2048;
-  std::string relax_method = "explicit";  // "explicit" (the paper's, relax_iterations) or "multigrid" (steady state)
+  std::string relax_method = "explicit";  // "explicit" (the paper's, relax_iterations), "multigrid" (steady state) or "elastic"
   int relax_iterations = 20;    // explicit steps
   double relax_step = 0.15;     // explicit diffusion step, stable below 1/6
   int relax_cycles = 4;         // multigrid steps (one V-cycle each) from zero
   int relax_warm_cycles = 1;    // multigrid steps when the last step's unit response is the start (the tip entered another voxel; one more where the grabbed element moved over a voxel); 0: relax_cycles from zero
-  double grab_radius_mm = 0;    // multigrid: soft elements this close to the grabbed one move with it (a fingertip); 0: it alone
+  double grab_radius_mm = 0;    // multigrid: soft elements this close to the grabbed one move with it (a fingertip); 0: it alone;
+                                // elastic: the fingertip sphere's radius (above 0)
   double material_width = 50;   // HU, width of the material function's step at bone
   int invert_iterations = 8;
   bool untangle = false;        // untangle relaxation's folds before the inversion (server/deform/README.md)
   bool invert_search = false;   // search the cells where Newton stalls: every voxel resolved (server/deform/README.md)
   std::string backend = "auto"; // "auto", "cpu" or "cuda"
+  ElasticSettings elastic;      // relax_method "elastic"
 };
 
 /// Effects a scene calls for; only these stages are built.

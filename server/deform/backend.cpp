@@ -40,6 +40,7 @@ DeformConfig DeformConfig::from_scene(const Scene& scene, const Patient* patient
     c.bone_threshold = patient->bone_threshold_hu;
   c.relax = scene.effects.relaxation;
   c.invert = scene.effects.inversion;
+  c.elastic_stiffness = scene.haptics.force_model == ForceModel::kElastic;
   return c;
 }
 
@@ -76,6 +77,38 @@ Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, 
   return v;
 }
 
+void check_elastic_settings(const ElasticSettings& e, const std::string& who) {
+  auto bad = [&](const std::string& field, double value, const std::string& rule) {
+    std::ostringstream m;
+    m << who << ": deform.elastic." << field << " = " << value << " " << rule;
+    throw Error(m.str());
+  };
+  const int n = int(e.modulus.size());
+  if (n == 0) throw Error(who + ": deform.elastic.modulus is empty; give at least one point { hu: ... e_kpa: ... }");
+  if (n > deform::kElasticMaxTable) {
+    std::ostringstream m;
+    m << who << ": deform.elastic.modulus has " << n << " points; at most " << deform::kElasticMaxTable;
+    throw Error(m.str());
+  }
+  for (int i = 0; i < n; ++i) {
+    const std::string at = "modulus.point[" + std::to_string(i) + "]";
+    if (!std::isfinite(e.modulus[i].hu)) bad(at + ".hu", e.modulus[i].hu, "must be finite");
+    if (!(e.modulus[i].e_kpa > 0 && e.modulus[i].e_kpa <= 1e7))
+      bad(at + ".e_kpa", e.modulus[i].e_kpa, "must be above 0 and at most 1e7 kPa");
+    if (i > 0 && !(e.modulus[i].hu > e.modulus[i - 1].hu))
+      bad(at + ".hu", e.modulus[i].hu,
+          "must be above the point before it (" + std::to_string(e.modulus[i - 1].hu) + "): the table is sorted by hu");
+  }
+  if (!(e.skin_e_kpa > 0 && e.skin_e_kpa <= 1e7)) bad("skin_e_kpa", e.skin_e_kpa, "must be above 0 and at most 1e7 kPa");
+  if (!(e.skin_thickness_mm >= 0 && e.skin_thickness_mm <= 20))
+    bad("skin_thickness_mm", e.skin_thickness_mm, "must lie in [0, 20] mm");
+  if (!(e.poisson > 0 && e.poisson < 0.5))
+    bad("poisson", e.poisson, "must lie in (0, 0.5): 0.5 is incompressible, which linear elasticity cannot hold");
+  if (e.max_iterations < 1) bad("max_iterations", e.max_iterations, "must be at least 1");
+  if (!(e.tolerance > 0 && e.tolerance < 1)) bad("tolerance", e.tolerance, "must lie in (0, 1)");
+  if (e.contact_rounds < 1) bad("contact_rounds", e.contact_rounds, "must be at least 1");
+}
+
 void check_deform_config(const DeformConfig& config, const std::string& who) {
   const DeformSettings& s = config.settings;
   // each setting named as in the scene
@@ -91,11 +124,18 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
     bad("voi_edge", s.voi_edge, "must lie in [3, 1024] voxel");
   // the CUDA sweeps keep a flag above the sweep number in their stamps (bit 30)
   if (!(s.max_sweeps >= 1 && s.max_sweeps <= (1 << 24))) bad("max_sweeps", s.max_sweeps, "must lie in [1, 16777216]");
-  if (s.relax_method != "explicit" && s.relax_method != "multigrid")
-    throw Error(who + ": deform.relax_method = \"" + s.relax_method + "\" is unknown; use \"explicit\" or \"multigrid\"");
+  if (s.relax_method != "explicit" && s.relax_method != "multigrid" && s.relax_method != "elastic")
+    throw Error(who + ": deform.relax_method = \"" + s.relax_method +
+                "\" is unknown; use \"explicit\", \"multigrid\" or \"elastic\"");
   if (!(s.grab_radius_mm >= 0 && s.grab_radius_mm <= 20)) bad("grab_radius_mm", s.grab_radius_mm, "must lie in [0, 20] mm");
-  if (s.grab_radius_mm > 0 && s.relax_method != "multigrid")
-    bad("grab_radius_mm", s.grab_radius_mm, "needs deform.relax_method \"multigrid\" (the explicit relaxation grabs one element)");
+  if (s.grab_radius_mm > 0 && s.relax_method == "explicit")
+    bad("grab_radius_mm", s.grab_radius_mm,
+        "needs deform.relax_method \"multigrid\" or \"elastic\" (the explicit relaxation grabs one element)");
+  if (s.relax_method == "elastic") {
+    if (!(s.grab_radius_mm > 0))
+      bad("grab_radius_mm", s.grab_radius_mm, "must be above 0 with deform.relax_method \"elastic\" (the fingertip sphere's radius)");
+    check_elastic_settings(s.elastic, who);
+  }
   if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
   if (s.relax_cycles < 0 || s.relax_cycles > deform::kMultigridMaxCycles)
     bad("relax_cycles", s.relax_cycles, "must lie in [0, " + std::to_string(deform::kMultigridMaxCycles) + "]");
@@ -119,9 +159,32 @@ void DeformBackend::require(bool ok, const char* what) const {
   if (!ok) throw Error("deform backend \"" + name_ + "\": " + what);
 }
 
+deform::ElasticParams DeformConfig::elastic_params() const {
+  const ElasticSettings& e = settings.elastic;
+  deform::ElasticParams p;
+  deform::ElasticTable& t = p.material.table;
+  t.n = int(std::min<std::size_t>(e.modulus.size(), deform::kElasticMaxTable));
+  float least = float(e.skin_e_kpa);
+  for (int i = 0; i < t.n; ++i) {
+    t.hu[i] = float(e.modulus[std::size_t(i)].hu);
+    t.e_kpa[i] = float(e.modulus[std::size_t(i)].e_kpa);
+    least = std::min(least, t.e_kpa[i]);
+  }
+  p.material.skin_e_kpa = float(e.skin_e_kpa);
+  p.material.skin_mm = float(e.skin_thickness_mm);
+  p.material.air_e_kpa = deform::kElasticAirRatio * least;
+  p.poisson = e.poisson;
+  p.finger_radius_mm = float(settings.grab_radius_mm);
+  p.max_iterations = e.max_iterations;
+  p.tolerance = float(e.tolerance);
+  p.contact_rounds = e.contact_rounds;
+  p.stiffness = elastic_stiffness;
+  return p;
+}
+
 void DeformBackend::set_relax_counts(DeformStats& out) const {
   const bool mg = config_.settings.relax_method == "multigrid";
-  out.relax_iterations = mg ? 0 : config_.settings.relax_iterations;
+  out.relax_iterations = mg || config_.settings.relax_method == "elastic" ? 0 : config_.settings.relax_iterations;
   out.relax_cycles = mg ? config_.settings.relax_cycles : 0;
 }
 
@@ -160,8 +223,8 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
   held_blocks_.reset();
   if (config.skip_chainmail && config.relax && s.relax_method == "multigrid" && s.relax_cycles > 0)
     held_blocks_ = deform::HeldBlocks::of(patient_, float(config.bone_threshold), float(s.material_width));
-  voi_hold_ = config.voi_hold && config.relax && config.relax_reuse && s.relax_method == "multigrid" &&
-              s.relax_cycles > 0 && !s.whole_volume;
+  voi_hold_ = config.voi_hold && config.relax && !s.whole_volume &&
+              ((config.relax_reuse && s.relax_method == "multigrid" && s.relax_cycles > 0) || s.relax_method == "elastic");
   hold_voi_ = Voi{};
   voi_ = Voi{};
   setup_ = ChainMailStats{};
@@ -192,6 +255,8 @@ ChainMailStats DeformBackend::locate(const DeformContact& c, Vec3i* tip_vox) con
   }
   ChainMailStats st;
   st.grabbed_vox = e0;
+  st.skin_vox = X;
+  st.tip_vox = x;
   st.grabbed_u_vox = Vec3f(float(x.x - e0.x), float(x.y - e0.y), float(x.z - e0.z));
   st.grabbed_in_bone = patient_->bone.data[grid.index(e0.x, e0.y, e0.z)] != 0;
   st.voi = compute_voi(grid.size, e0, t, config_.settings.voi_edge, config_.settings.whole_volume);
@@ -220,7 +285,9 @@ ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
       hold_tip_ = t;
     }
   }
-  st.skipped = held_blocks_ && !st.grabbed_in_bone && !held_blocks_->any_in(st.voi);
+  // the elastic solve sets every element itself (ChainMail's field is not its input)
+  st.skipped = (held_blocks_ && !st.grabbed_in_bone && !held_blocks_->any_in(st.voi)) ||
+               (config_.relax && config_.settings.relax_method == "elastic");
   return st;
 }
 
@@ -264,6 +331,7 @@ void DeformBackend::upload() {
 void DeformBackend::reset() {
   require(bound_, "reset() before bind()");
   if (stage_ != 0) reset_impl();
+  forget_impl();
   stage_ = 0;
   hold_voi_ = Voi{};  // the next contact starts a press afresh
 }

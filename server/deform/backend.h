@@ -16,6 +16,7 @@
 #include "core/vec3.h"
 #include "deform/deform_math.h"
 #include "deform/held_blocks.h"
+#include "deform/relax_elastic.h"
 
 namespace palpsim {
 
@@ -55,6 +56,13 @@ struct DeformConfig {
   /// server/deform/README.md), where today's rule moves it 0.5% at every voxel. false: the
   /// VOI follows the tip every step (the paper's rule; the warm-start tests and benches).
   bool voi_hold = true;
+  /// The elastic model also solves the unit press for the contact's stiffness each step
+  /// (ElasticRun::stiffness_n_per_mm), which haptics.force_model "elastic" renders.
+  bool elastic_stiffness = false;
+
+  /// The elastic model's settings as its solvers take them (deform.elastic,
+  /// deform.grab_radius_mm; the stiffness as elastic_stiffness says).
+  deform::ElasticParams elastic_params() const;
 
   /// Whether DeformBackend::prime() can solve anything ahead of a contact: relaxation by
   /// multigrid with reuse and warm starts (relax_cycles and relax_warm_cycles above 0).
@@ -71,13 +79,16 @@ struct DeformConfig {
 struct ChainMailStats {
   Voi voi;                   // the box it worked in (patient voxel indices)
   Vec3i grabbed_vox{0, 0, 0};// the first moved element (patient voxel index nearest X)
+  Vec3 skin_vox{0, 0, 0};    // X as a continuous patient voxel index
+  Vec3 tip_vox{0, 0, 0};     // x as a continuous patient voxel index
   Vec3f grabbed_u_vox;       // its displacement (voxel): x - grabbed voxel
   bool grabbed_in_bone = false;  // X lies in bone: nothing moves
   int sweeps = 0;            // Jacobi sweeps run, the last one quiet when converged
   long long moved = 0;       // elements that moved, the first element not counted
   bool converged = true;     // a quiet sweep came within deform.max_sweeps
   /// Not run: a multigrid step whose result does not depend on ChainMail's field
-  /// (DeformConfig::skip_chainmail); the grabbed element alone is at x.
+  /// (DeformConfig::skip_chainmail), or an elastic one (its solve sets every element);
+  /// the grabbed element alone is at x.
   bool skipped = false;
 };
 
@@ -149,6 +160,7 @@ struct DeformStats {
   double invert_max_change = 0;      // max |J - I| over the VOI (HU); 0 without inversion
   long long invert_nonfinite = 0;    // VOI voxels whose J is NaN or Inf; 0 without inversion
   UntangleStats untangle;            // all 0 when untangling is off
+  deform::ElasticRun elastic;        // the elastic model's solve, contact and force (relax_method "elastic"; all 0 otherwise)
   DeformTimes times;
   int batch = 1;                     // sessions stepped by the same launches (DeformBackend::begin_steps); 1: alone
 };
@@ -276,6 +288,9 @@ class DeformBackend {
   virtual InvertStats invert_impl() = 0;
   virtual void upload_impl() = 0;
   virtual void reset_impl() = 0;
+  // reset(): also forgets what warm starts keep from step to step (the elastic field), so
+  // that the next press starts from rest
+  virtual void forget_impl() {}
   virtual DeformStats step_impl(const ChainMailStats& setup) = 0;  // resets first
   // the halves of step_impl; by default the whole step runs in the first
   virtual void begin_step_impl(const ChainMailStats& setup) { pending_ = step_impl(setup); }
@@ -345,6 +360,11 @@ float finger_r2(const DeformSettings& s, const Grid& g);
 /// stable limit) without a patient or a device, so a scene can be refused before it is
 /// served; throws palpsim::Error starting with `who` and naming the scene field.
 void check_deform_config(const DeformConfig& config, const std::string& who);
+
+/// Checks the elastic model's settings (deform.elastic): a table of 1 to kElasticMaxTable
+/// points sorted by hu with moduli above 0, a skin modulus above 0, Poisson's ratio in
+/// (0, 0.5); throws palpsim::Error starting with `who` and naming the field.
+void check_elastic_settings(const ElasticSettings& elastic, const std::string& who);
 
 /// Makes a backend by name: "cpu", "cuda" or "auto" (cuda where a device and a CUDA
 /// build exist, else cpu). Unknown names and an unavailable "cuda" throw

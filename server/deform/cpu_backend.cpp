@@ -29,6 +29,7 @@ void CpuDeformBackend::bind_impl() {
   std::vector<std::uint8_t>().swap(s_.mg_held_coarse);
   std::vector<std::uint8_t>().swap(s_.cell_folded);
   std::vector<std::uint8_t>().swap(s_.untangle_flags);
+  s_.elastic = deform::ElasticCpu{};
   // explicit relaxation's buffers (untangling keeps the relaxed field in u_next too)
   if (config_.relax && (config_.settings.relax_method == "explicit" || config_.settings.untangle)) grow_relax_buffers();
   if (config_.relax && config_.settings.untangle) grow_untangle_buffers();
@@ -57,7 +58,8 @@ DeformMemory CpuDeformBackend::memory_impl() const {
                       bytes(s_.candidates) + bytes(s_.changes);
   m.relax_bytes = bytes(s_.u_next) + bytes(s_.weight) + bytes(s_.mg_held) + bytes(s_.mg_g) + bytes(s_.mg_g_last) + bytes(s_.mg_r) +
                   bytes(s_.mg_z) + bytes(s_.mg_p) + bytes(s_.mg_q) + bytes(s_.mg_res) + bytes(s_.mg_cx) + bytes(s_.mg_cf) + bytes(s_.mg_cres) +
-                  bytes(s_.mg_held_coarse) + bytes(s_.cell_folded) + bytes(s_.untangle_flags);
+                  bytes(s_.mg_held_coarse) + bytes(s_.cell_folded) + bytes(s_.untangle_flags) +
+                  deform::elastic_cpu_bytes(s_.elastic);
   m.invert_bytes = bytes(s_.j);
   return m;
 }
@@ -70,6 +72,11 @@ void CpuDeformBackend::reset_impl() {
   std::fill_n(s_.visited_at.begin(), n, -1);
   dirty_ = Voi{};
   s_.reach = 0;
+}
+
+void CpuDeformBackend::forget_impl() {
+  s_.elastic.have_u = false;
+  s_.elastic.have_unit = false;
 }
 
 void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
@@ -85,6 +92,13 @@ void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
 
 void CpuDeformBackend::relax_impl() {
   const DeformSettings& d = config_.settings;
+  if (d.relax_method == "elastic") {
+    // its buffers grow on first use; it writes every element of the VOI
+    elastic_run_ = deform::relax_elastic_cpu(*patient_, setup_.voi, setup_.skin_vox, setup_.tip_vox,
+                                             config_.elastic_params(), s_.elastic, s_.u.data());
+    s_.reach = -1;
+    return;
+  }
   if (d.relax_method == "multigrid") {
     // its buffers grow on first use
     relax_run_ = deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, d.relax_warm_cycles,
@@ -112,6 +126,7 @@ InvertStats CpuDeformBackend::invert_impl() {
 
 DeformPrime CpuDeformBackend::prime_impl(const ChainMailStats& expected) {
   const DeformSettings& d = config_.settings;
+  if (d.relax_method != "multigrid") return DeformPrime{};
   const deform::MultigridRun r =
       deform::prime_multigrid_cpu(*patient_, expected.voi, expected.grabbed_vox, d.relax_cycles, d.relax_warm_cycles,
                                   float(config_.bone_threshold), float(d.material_width), finger_r2_, s_);
@@ -150,6 +165,7 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
     relax_impl();
     set_relax_counts(out);
     if (config_.settings.relax_method == "multigrid") set_multigrid_counts(out, relax_run_.solves, relax_run_.warm, relax_run_.warm_steps);
+    if (config_.settings.relax_method == "elastic") out.elastic = elastic_run_;
     out.times.relax_ms = ms_since(t0);
     // untangling, with relaxation when the configuration asks for it
     if (config_.settings.untangle) {

@@ -44,6 +44,7 @@ struct CpuState {
   std::vector<std::uint8_t> untangle_flags;  // untangling: seed and moved bits per element
   std::vector<SearchVoxel> search_queue;     // inversion: voxels Newton left to the cell search
   std::vector<int> search_slot;              // inversion: each element's entry in search_queue, -1 where none
+  ElasticCpu elastic;                        // the elastic model's solver (relax_elastic.h); empty unless a scene asks for it
 };
 
 /// ChainMail's start alone: the grabbed element at x (unless it lies in bone), no sweep;
@@ -121,6 +122,7 @@ class CpuDeformBackend final : public DeformBackend {
   InvertStats invert_impl() override;
   void upload_impl() override {}  // J is computed in host memory already
   void reset_impl() override;
+  void forget_impl() override;
   DeformStats step_impl(const ChainMailStats& setup) override;
   DeformPrime prime_impl(const ChainMailStats& expected) override;
   const deform::MultigridCache* multigrid_cache_impl() const override { return &s_.mg_cache; }
@@ -137,6 +139,7 @@ class CpuDeformBackend final : public DeformBackend {
 
   deform::CpuState s_;
   deform::MultigridRun relax_run_;  // the last multigrid relaxation's solves and start
+  deform::ElasticRun elastic_run_;  // the last elastic solve
   Voi dirty_;  // the VOI whose buffers hold a deformation
 };
 

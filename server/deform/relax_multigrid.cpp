@@ -7,18 +7,11 @@
 #include <algorithm>
 
 #include "deform/cpu_backend.h"
+#include "deform/node_loops.h"
 
 namespace palpsim::deform {
 
 namespace {
-
-// calls fn(i, j, k) for every node of a box of `n` nodes, i fastest
-template <typename Fn>
-void each_node(const Vec3i& n, Fn fn) {
-  for (int k = 0; k < n.z; ++k)
-    for (int j = 0; j < n.y; ++j)
-      for (int i = 0; i < n.x; ++i) fn(i, j, k);
-}
 
 // the V-cycle on levels lv (level 0's x holds the first red-black sweep from 0, the
 // coarser ones are made on the way down): z = M r on level 0

@@ -177,6 +177,13 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
     out.haptics.skin_point = SkinPointRule::kLine;
   else
     throw Error(origin + ": haptics.skin_point = \"" + h.skin_point() + "\"; allowed: \"normal\", \"line\"");
+  if (h.force_model() == "proxy")
+    out.haptics.force_model = ForceModel::kProxy;
+  else if (h.force_model() == "elastic")
+    out.haptics.force_model = ForceModel::kElastic;
+  else
+    throw Error(origin + ": haptics.force_model = \"" + h.force_model() + "\"; allowed: \"proxy\", \"elastic\"");
+  out.haptics.elastic_max_jump_n = h.elastic_max_jump_n();
 
   const auto& d = s.deform();
   if (d.preset() == v1::Deform::P2) {
@@ -196,8 +203,10 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.relax_iterations = d.relax_iterations();
   out.deform.relax_step = d.relax_step();
   out.deform.relax_method = d.relax_method();
-  if (out.deform.relax_method != "explicit" && out.deform.relax_method != "multigrid")
-    throw Error(origin + ": deform.relax_method = \"" + out.deform.relax_method + "\"; allowed: \"explicit\", \"multigrid\"");
+  if (out.deform.relax_method != "explicit" && out.deform.relax_method != "multigrid" &&
+      out.deform.relax_method != "elastic")
+    throw Error(origin + ": deform.relax_method = \"" + out.deform.relax_method +
+                "\"; allowed: \"explicit\", \"multigrid\", \"elastic\"");
   out.deform.relax_cycles = d.relax_cycles();
   out.deform.relax_warm_cycles = d.relax_warm_cycles();
   out.deform.grab_radius_mm = d.grab_radius_mm();
@@ -206,6 +215,19 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.untangle = d.untangle();
   out.deform.invert_search = d.invert_search();
   out.deform.backend = d.backend();
+  // the elastic model's settings: the table as given (checked with the rest of deform by
+  // check_deform_config, which names the field), the defaults where it is left out
+  const auto& el = d.elastic();
+  if (el.has_modulus()) {
+    out.deform.elastic.modulus.clear();
+    for (const auto& pt : el.modulus().point()) out.deform.elastic.modulus.push_back({pt.hu(), pt.e_kpa()});
+  }
+  out.deform.elastic.skin_e_kpa = el.skin_e_kpa();
+  out.deform.elastic.skin_thickness_mm = el.skin_thickness_mm();
+  out.deform.elastic.poisson = el.poisson();
+  out.deform.elastic.max_iterations = el.max_iterations();
+  out.deform.elastic.tolerance = el.tolerance();
+  out.deform.elastic.contact_rounds = el.contact_rounds();
   if (out.deform.backend != "auto" && out.deform.backend != "cpu" && out.deform.backend != "cuda")
     throw Error(origin + ": deform.backend = \"" + out.deform.backend + "\"; allowed: \"auto\", \"cpu\", \"cuda\"");
 

@@ -1,0 +1,304 @@
+// The elastic model (deform.relax_method = "elastic"): the per-node and per-cell math of
+// static linear elasticity on the VOI's voxels, written once and compiled by both
+// backends (g++ for server/deform/relax_elastic.cpp, nvcc for cuda/relax_elastic.cu).
+//
+// What it solves: K u = 0 on the free degrees of freedom, with
+// - nodes at the voxel centres (one per ChainMail element, so u, J, bricks and frames work
+//   as for the other models), u in mm along the grid axes;
+// - trilinear hexahedra (cells) between eight neighbouring nodes, each with one Young's
+//   modulus E (kPa): the mean of its corners' moduli (elastic_node_modulus: a scene table of
+//   HU, a skin layer, and air as a gel kElasticAirRatio times as stiff as the softest
+//   tissue), and the scene's Poisson ratio nu;
+// - selective reduced integration: the mu part with 2x2x2 Gauss points, the lambda part
+//   (the volume change) at the cell centre, so that nu up to 0.49 does not lock (a cell
+//   whose volume change is held to 0 at eight points is held nearly rigid);
+// - held nodes (u = 0): bone (rigid and fixed, as ChainMail's bone) and the VOI's faces;
+// - contact nodes: body nodes under the fingertip, a rigid sphere of radius R whose deepest
+//   point is the tip x, pressing along n (from the skin point X to x). A contact node's
+//   displacement along n is prescribed (it lies on the sphere: elastic_sphere_push); across
+//   n it is free: the finger slides without friction, as Hertz's contact does. Nodes pulled
+//   (tension) leave the contact set and nodes pushed into the sphere join it, round by round.
+//
+// How: conjugate gradients on the free subspace (the projection elastic_project() takes
+// the held components out), each step preconditioned by one symmetric geometric multigrid
+// V-cycle: damped Jacobi smoothing, residuals restricted by the transpose of trilinear
+// prolongation, coarse cells of edge 2^l h whose modulus is the mean of the fine cells they
+// cover (the coarse finite element space is nested in the fine one, so this is the
+// Galerkin operator of a homogeneous region), a coarse node held or in contact where the
+// fine node it lies on is.
+//
+// Units: E in kPa, lengths and u in mm, forces in N: the cell matrix elastic_element()
+// is for E = 1 kPa (N/mm per mm of displacement), so K u is in N.
+#pragma once
+
+#include <cstdint>
+
+#include "core/hd.h"
+#include "core/vec3.h"
+
+namespace palpsim::deform {
+
+/// Largest number of points of a scene's HU-to-modulus table.
+constexpr int kElasticMaxTable = 16;
+/// Most multigrid levels of an elastic plan (a VOI of 2^16 voxels along an axis needs 15).
+constexpr int kElasticMaxLevels = 16;
+/// Air (outside the body mask) is a gel this many times as stiff as the table's softest
+/// entry: its pull on the skin is 1e-4 of the tissue's (traction-free to that), it carries
+/// the displacement on into the air (so that J shows a clean dent, where air held at rest
+/// would stretch the skin's intensity over the whole dent) and anchors tissue fragments that
+/// touch nothing held (otherwise free to move as rigid bodies: a singular system).
+constexpr float kElasticAirRatio = 1e-4f;
+/// The V-cycle's smoother: Chebyshev polynomials in D^-1 K (D the diagonal), aimed at the
+/// upper part [lmax / kElasticChebyshevRatio, kElasticChebyshevMargin lmax] of its spectrum.
+/// Damped Jacobi does not do: the centre-point volume term makes lmax(D^-1 K) about 8 to 24
+/// at nu 0.45 (a cell's divergence couples its 24 unknowns), so a weight that keeps Jacobi
+/// stable leaves the rest of the upper spectrum nearly undamped. lmax comes from
+/// kElasticPowerIterations power iterations per level when a VOI is set up.
+constexpr int kElasticSmoothDegree = 3;      // polynomial degree before and after the coarse correction
+constexpr int kElasticCoarsestDegree = 24;   // on the coarsest level (3 to 9 nodes along its shortest axis)
+constexpr float kElasticChebyshevRatio = 20.0f;
+constexpr float kElasticCoarsestRatio = 400.0f;  // the coarsest level's interval reaches further down
+constexpr float kElasticChebyshevMargin = 1.1f;  // the power estimate is a lower bound of lmax
+constexpr int kElasticPowerIterations = 12;
+
+/// The Chebyshev smoother's recurrence for the interval [lo, hi]: step 0 is d = b[0] D^-1 r,
+/// step s > 0 is d = a[s] d + b[s] D^-1 r (r the residual after the last step), x += d each
+/// step (Saad, Iterative Methods for Sparse Linear Systems, alg. 12.1).
+PALPSIM_HD void elastic_chebyshev(float lo, float hi, int degree, float* a, float* b) {
+  const float theta = 0.5f * (hi + lo), delta = 0.5f * (hi - lo);
+  const float sigma = theta / delta;
+  float rho = 1.0f / sigma;
+  a[0] = 0.0f;
+  b[0] = 1.0f / theta;
+  for (int s = 1; s < degree; ++s) {
+    const float rho_next = 1.0f / (2.0f * sigma - rho);
+    a[s] = rho_next * rho;
+    b[s] = 2.0f * rho_next / delta;
+    rho = rho_next;
+  }
+}
+
+/// The largest Chebyshev degree any level uses (the coefficient arrays' size).
+constexpr int kElasticMaxDegree = 32;
+
+/// A free skin node joins the contact set when the sphere's surface lies deeper than it by
+/// more than this (voxel edges): a margin above float rounding of positions of tens of mm.
+constexpr float kElasticPenetrationVox = 1e-4f;
+
+/// Node flags (one byte a node, every level).
+constexpr std::uint8_t kElasticHeld = 1;     // u = 0 (bone, a VOI face, beyond a coarse level's fine grid)
+constexpr std::uint8_t kElasticContact = 2;  // u . n prescribed (under the fingertip); across n free
+constexpr std::uint8_t kElasticBody = 4;     // level 0: inside the body mask and not bone
+constexpr std::uint8_t kElasticSkin = 8;     // level 0: a body node with a face neighbour outside the body (the finger touches these)
+
+/// A scene's table from intensity (HU) to Young's modulus (kPa): points sorted by HU,
+/// linear between them, constant beyond the ends.
+struct ElasticTable {
+  int n = 0;
+  float hu[kElasticMaxTable] = {};
+  float e_kpa[kElasticMaxTable] = {};
+};
+
+/// The material of the elastic model: the table, the skin layer and the gel of air.
+struct ElasticMaterial {
+  ElasticTable table;
+  float skin_e_kpa = 35;      // body voxels within skin_mm of the skin (depth B below it)
+  float skin_mm = 2;
+  float air_e_kpa = 3e-4f;    // kElasticAirRatio times the table's least modulus
+};
+
+/// Young's modulus (kPa) of the table at intensity `hu`.
+PALPSIM_HD float elastic_table_e(const ElasticTable& t, float hu) {
+  if (t.n <= 0) return 0.0f;
+  if (!(hu > t.hu[0])) return t.e_kpa[0];  // NaN reads as the first entry
+  for (int i = 1; i < t.n; ++i) {
+    if (hu <= t.hu[i]) {
+      const float w = (hu - t.hu[i - 1]) / (t.hu[i] - t.hu[i - 1]);
+      return t.e_kpa[i - 1] + w * (t.e_kpa[i] - t.e_kpa[i - 1]);
+    }
+  }
+  return t.e_kpa[t.n - 1];
+}
+
+/// Young's modulus (kPa) of one voxel: air's gel outside the body, the skin's within
+/// skin_mm under the skin (B, depth_mm), else the table's at its intensity. Bone voxels
+/// take the table's value too (they are held; their modulus only weighs their cells).
+PALPSIM_HD float elastic_node_modulus(const ElasticMaterial& m, float hu, bool body, float depth_mm) {
+  if (!body) return m.air_e_kpa;
+  if (depth_mm < m.skin_mm) return m.skin_e_kpa;
+  return elastic_table_e(m.table, hu);
+}
+
+/// Corner c of a cell (bit 0: +i, bit 1: +j, bit 2: +k; deform_math.h's cell_blend order).
+PALPSIM_HD Vec3i elastic_corner(int c) { return Vec3i{c & 1, (c >> 1) & 1, (c >> 2) & 1}; }
+
+/// The row block of corner `a` of one cell's matrix times the cell's corner displacements
+/// `uc` (8 corners, mm): sum_b K[a][b] uc[b] (N per kPa of the cell's modulus). `k(r, c)`
+/// reads the 24 x 24 cell matrix, row and column 3 corner + component.
+template <typename KMat>
+PALPSIM_HD Vec3f elastic_cell_row(const KMat& k, int a, const Vec3f uc[8]) {
+  Vec3f y{0, 0, 0};
+  for (int b = 0; b < 8; ++b) {
+    for (int r = 0; r < 3; ++r) {
+      const int row = 3 * a + r;
+      y[r] += k(row, 3 * b) * uc[b].x + k(row, 3 * b + 1) * uc[b].y + k(row, 3 * b + 2) * uc[b].z;
+    }
+  }
+  return y;
+}
+
+/// The diagonal of corner `a`'s row block (N/mm per kPa): what one cell adds to its node's
+/// Jacobi diagonal.
+template <typename KMat>
+PALPSIM_HD Vec3f elastic_cell_diag(const KMat& k, int a) {
+  return Vec3f{k(3 * a, 3 * a), k(3 * a + 1, 3 * a + 1), k(3 * a + 2, 3 * a + 2)};
+}
+
+/// (K u) at node (i, j, k) of a level of `size` nodes: over the (up to) eight cells around
+/// it, each cell's modulus `cell_e(lowest corner)` (kPa) times its row block; `scale` is the
+/// level's cell edge over level 0's (2^level: the matrix grows with the edge). Cells lie
+/// between nodes 0 .. size - 1; `load_u(i, j, k)` gives a node's displacement (mm).
+template <typename KMat, typename CellE, typename LoadU>
+PALPSIM_HD Vec3f elastic_apply_node(const KMat& k, const CellE& cell_e, const LoadU& load_u, const Vec3i& size,
+                                    float scale, int i, int j, int kk) {
+  Vec3f y{0, 0, 0};
+  for (int a = 0; a < 8; ++a) {
+    // the cell in which this node is corner a
+    const Vec3i o = elastic_corner(a);
+    const int ci = i - o.x, cj = j - o.y, ck = kk - o.z;
+    if (ci < 0 || cj < 0 || ck < 0 || ci + 1 >= size.x || cj + 1 >= size.y || ck + 1 >= size.z) continue;
+    const float e = cell_e(ci, cj, ck);
+    if (e == 0.0f) continue;
+    Vec3f uc[8];
+    for (int b = 0; b < 8; ++b) {
+      const Vec3i ob = elastic_corner(b);
+      uc[b] = load_u(ci + ob.x, cj + ob.y, ck + ob.z);
+    }
+    y += elastic_cell_row(k, a, uc) * (e * scale);
+  }
+  return y;
+}
+
+/// The Jacobi diagonal (N/mm) of node (i, j, k), as elastic_apply_node() sums it.
+template <typename KMat, typename CellE>
+PALPSIM_HD Vec3f elastic_diag_node(const KMat& k, const CellE& cell_e, const Vec3i& size, float scale, int i, int j,
+                                   int kk) {
+  Vec3f d{0, 0, 0};
+  for (int a = 0; a < 8; ++a) {
+    const Vec3i o = elastic_corner(a);
+    const int ci = i - o.x, cj = j - o.y, ck = kk - o.z;
+    if (ci < 0 || cj < 0 || ck < 0 || ci + 1 >= size.x || cj + 1 >= size.y || ck + 1 >= size.z) continue;
+    d += elastic_cell_diag(k, a) * (cell_e(ci, cj, ck) * scale);
+  }
+  return d;
+}
+
+/// v with the components a node's constraint holds taken out: 0 at a held node, v minus its
+/// part along the press direction n (unit) at a contact node, v elsewhere.
+PALPSIM_HD Vec3f elastic_project(std::uint8_t flags, const Vec3f& n, const Vec3f& v) {
+  if (flags & kElasticHeld) return Vec3f{0, 0, 0};
+  if (flags & kElasticContact) return v - n * dot(v, n);
+  return v;
+}
+
+/// How far along n (mm) the sphere of radius `r_mm` centred at `c` pushes a point at rest
+/// at `p` (mm) to lie on its far side (the side n points to): the point leaves the sphere at
+/// p + t n. Negative where p lies beside the sphere (no line along n through p meets it) or
+/// where the sphere's far side lies behind p along n (p is not under the sphere).
+PALPSIM_HD float elastic_sphere_push(const Vec3f& p, const Vec3f& c, const Vec3f& n, float r_mm) {
+  const Vec3f d = p - c;
+  const float along = dot(d, n);
+  const Vec3f across = d - n * along;
+  const float h2 = r_mm * r_mm - dot(across, across);
+  if (h2 <= 0.0f) return -1.0f;
+  return sqrtf(h2) - along;
+}
+
+/// Nodes of the next coarser level along one axis of `fine` nodes: its node I lies on fine
+/// node 2 I; an even count gets one more node, 2 I = fine, just beyond the fine grid (held:
+/// it stands for the fine level's held face one fine spacing before it).
+PALPSIM_HD int elastic_coarse_nodes(int fine) { return fine % 2 == 0 ? fine / 2 + 1 : (fine + 1) / 2; }
+
+/// The levels of one VOI's multigrid and where the coarse levels lie in one buffer.
+struct ElasticPlan {
+  int levels = 0;
+  Vec3i size[kElasticMaxLevels];
+  long long offset[kElasticMaxLevels];  // first node of level l in the coarse buffers (level 0: 0, its own buffers)
+  long long coarse_count = 0;           // nodes of all levels >= 1
+};
+
+/// The plan for a VOI of `voi_size` nodes: coarsen while every axis of the next level keeps
+/// at least 3 nodes, at most kElasticMaxLevels levels.
+PALPSIM_HD ElasticPlan elastic_plan(const Vec3i& voi_size) {
+  ElasticPlan p;
+  p.size[0] = voi_size;
+  p.offset[0] = 0;
+  p.levels = 1;
+  long long at = 0;
+  while (p.levels < kElasticMaxLevels) {
+    const Vec3i& s = p.size[p.levels - 1];
+    const Vec3i c{elastic_coarse_nodes(s.x), elastic_coarse_nodes(s.y), elastic_coarse_nodes(s.z)};
+    if (s.x < 5 || s.y < 5 || s.z < 5 || c.x < 3 || c.y < 3 || c.z < 3) break;
+    p.size[p.levels] = c;
+    p.offset[p.levels] = at;
+    at += (long long)c.x * c.y * c.z;
+    ++p.levels;
+  }
+  p.coarse_count = at;
+  return p;
+}
+
+/// Trilinear prolongation: the value at fine node (i, j, k) of the coarse field
+/// `load_c(I, J, K)` (coarse node I on fine node 2 I; coarse nodes beyond the coarse grid
+/// read as 0 through the loader).
+template <typename LoadC>
+PALPSIM_HD Vec3f elastic_prolong(const LoadC& load_c, int i, int j, int k) {
+  const int ci0 = i >> 1, cj0 = j >> 1, ck0 = k >> 1;
+  const int ni = (i & 1) ? 2 : 1, nj = (j & 1) ? 2 : 1, nk = (k & 1) ? 2 : 1;
+  const float wi = (i & 1) ? 0.5f : 1.0f, wj = (j & 1) ? 0.5f : 1.0f, wk = (k & 1) ? 0.5f : 1.0f;
+  Vec3f v{0, 0, 0};
+  for (int c = 0; c < nk; ++c)
+    for (int b = 0; b < nj; ++b)
+      for (int a = 0; a < ni; ++a) v += load_c(ci0 + a, cj0 + b, ck0 + c) * (wi * wj * wk);
+  return v;
+}
+
+/// Restriction, the transpose of elastic_prolong(): coarse node (I, J, K) gathers the fine
+/// nodes 2 I + {-1, 0, 1} along each axis with weights 1/2, 1, 1/2; `load_f` reads a fine
+/// node and returns 0 beyond the fine grid.
+template <typename LoadF>
+PALPSIM_HD Vec3f elastic_restrict(const LoadF& load_f, int ci, int cj, int ck) {
+  Vec3f v{0, 0, 0};
+  for (int c = -1; c <= 1; ++c)
+    for (int b = -1; b <= 1; ++b)
+      for (int a = -1; a <= 1; ++a) {
+        const float w = (a == 0 ? 1.0f : 0.5f) * (b == 0 ? 1.0f : 0.5f) * (c == 0 ? 1.0f : 0.5f);
+        v += load_f(2 * ci + a, 2 * cj + b, 2 * ck + c) * w;
+      }
+  return v;
+}
+
+/// A coarse cell's modulus (kPa): the mean of the fine cells it covers (fine cells with
+/// lowest corner 2 C + {0, 1}^3 that lie inside the fine grid's cells); 0 where none does.
+template <typename FineE>
+PALPSIM_HD float elastic_coarse_cell_e(const FineE& fine_e, const Vec3i& fine_size, int ci, int cj, int ck) {
+  float sum = 0.0f;
+  int n = 0;
+  for (int c = 0; c < 8; ++c) {
+    const Vec3i o = elastic_corner(c);
+    const int fi = 2 * ci + o.x, fj = 2 * cj + o.y, fk = 2 * ck + o.z;
+    if (fi + 1 >= fine_size.x || fj + 1 >= fine_size.y || fk + 1 >= fine_size.z) continue;
+    sum += fine_e(fi, fj, fk);
+    ++n;
+  }
+  return n > 0 ? sum / float(n) : 0.0f;
+}
+
+/// A coarse node's flags from the fine node it lies on (2 I): held beyond the fine grid or
+/// where the fine node is held; in contact where it is.
+PALPSIM_HD std::uint8_t elastic_coarse_flags(std::uint8_t fine_flags, bool beyond) {
+  if (beyond) return kElasticHeld;
+  return std::uint8_t(fine_flags & (kElasticHeld | kElasticContact));
+}
+
+}  // namespace palpsim::deform

@@ -1,0 +1,652 @@
+// The elastic model on the CPU: the cell matrix, the per-VOI set-up (moduli, flags,
+// diagonals of every level), the contact rounds and conjugate gradients preconditioned by
+// a multigrid V-cycle (elastic_math.h says what is solved and how).
+#include "deform/relax_elastic.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "deform/node_loops.h"
+
+namespace palpsim::deform {
+
+std::array<float, 576> elastic_element(const Vec3& h_mm, double nu) {
+  // Lame parameters for E = 1 kPa = 1e-3 N/mm^2
+  const double e = 1e-3;
+  const double lambda = e * nu / ((1 + nu) * (1 - 2 * nu));
+  const double mu = e / (2 * (1 + nu));
+  const double vol = h_mm.x * h_mm.y * h_mm.z;
+  // gradient (1/mm) of corner c's shape function at local point t in [0, 1]^3
+  auto grad = [&](int c, const double t[3], double g[3]) {
+    const Vec3i o = elastic_corner(c);
+    const int off[3] = {o.x, o.y, o.z};
+    double l[3], dl[3];
+    for (int a = 0; a < 3; ++a) {
+      l[a] = off[a] ? t[a] : 1 - t[a];
+      dl[a] = off[a] ? 1 : -1;
+    }
+    g[0] = dl[0] * l[1] * l[2] / h_mm.x;
+    g[1] = l[0] * dl[1] * l[2] / h_mm.y;
+    g[2] = l[0] * l[1] * dl[2] / h_mm.z;
+  };
+  double k[24][24] = {};
+  // mu part: 2 mu eps(u) : eps(v) at the 2x2x2 Gauss points (weight vol / 8 each)
+  const double gp[2] = {0.5 - 0.5 / std::sqrt(3.0), 0.5 + 0.5 / std::sqrt(3.0)};
+  for (int q = 0; q < 8; ++q) {
+    const double t[3] = {gp[q & 1], gp[(q >> 1) & 1], gp[(q >> 2) & 1]};
+    double g[8][3];
+    for (int c = 0; c < 8; ++c) grad(c, t, g[c]);
+    for (int a = 0; a < 8; ++a)
+      for (int b = 0; b < 8; ++b) {
+        const double gg = g[a][0] * g[b][0] + g[a][1] * g[b][1] + g[a][2] * g[b][2];
+        for (int al = 0; al < 3; ++al)
+          for (int be = 0; be < 3; ++be)
+            k[3 * a + al][3 * b + be] += vol / 8 * mu * ((al == be ? gg : 0.0) + g[a][be] * g[b][al]);
+      }
+  }
+  // lambda part: lambda div u div v at the centre (weight vol)
+  const double centre[3] = {0.5, 0.5, 0.5};
+  double g[8][3];
+  for (int c = 0; c < 8; ++c) grad(c, centre, g[c]);
+  for (int a = 0; a < 8; ++a)
+    for (int b = 0; b < 8; ++b)
+      for (int al = 0; al < 3; ++al)
+        for (int be = 0; be < 3; ++be) k[3 * a + al][3 * b + be] += vol * lambda * g[a][al] * g[b][be];
+  std::array<float, 576> out{};
+  for (int r = 0; r < 24; ++r)
+    for (int c = 0; c < 24; ++c) out[std::size_t(24 * r + c)] = float(k[r][c]);
+  return out;
+}
+
+namespace {
+
+// one level's arrays (level 0: the session's own; coarse: slices of the coarse buffers)
+struct Level {
+  Vec3i n{0, 0, 0};
+  float scale = 1;  // cell edge over level 0's
+  std::uint8_t* flags = nullptr;
+  float* e = nullptr;  // cell moduli (kPa) at their lowest corner's index
+  Vec3f* inv_diag = nullptr;
+  Vec3f* x = nullptr;  // the V-cycle's correction
+  Vec3f* f = nullptr;  // its right-hand side
+  Vec3f* r = nullptr;  // its residual
+  Vec3f* d = nullptr;  // the smoother's last step
+  float lmax = 1;      // the largest eigenvalue of D^-1 K (power estimate)
+  long long count() const { return (long long)n.x * n.y * n.z; }
+  long long index(int i, int j, int k) const { return ((long long)k * n.y + j) * n.x + i; }
+};
+
+// the levels of the session's plan over its buffers
+struct Levels {
+  Level lv[kElasticMaxLevels];
+  int count = 0;
+};
+
+Levels levels_of(ElasticCpu& s) {
+  Levels L;
+  L.count = s.plan.levels;
+  const long long n0 = (long long)s.voi.count();
+  for (int l = 0; l < L.count; ++l) {
+    Level& v = L.lv[l];
+    v.n = s.plan.size[l];
+    v.scale = float(1 << l);
+    if (l == 0) {
+      v.flags = s.flags.data();
+      v.e = s.cell_e.data();
+      v.inv_diag = s.inv_diag.data();
+      v.x = s.z.data();
+      v.f = s.r.data();
+      v.r = s.res0.data();
+      v.d = s.cheb_d.data();
+    } else {
+      const long long o = s.plan.offset[l];
+      v.flags = s.c_flags.data() + o;
+      v.e = s.c_e.data() + o;
+      v.inv_diag = s.inv_diag.data() + n0 + o;
+      v.x = s.c_x.data() + o;
+      v.f = s.c_f.data() + o;
+      v.r = s.c_r.data() + o;
+      v.d = s.c_d.data() + o;
+    }
+    v.lmax = s.lmax[l];
+  }
+  return L;
+}
+
+// y = K x on a level (every node, held ones included): cell by cell, each cell's 24 x 24
+// matrix times its corners, scattered to them
+void apply_level(const Level& L, const std::array<float, 576>& k, const Vec3f* x, Vec3f* y) {
+  std::fill_n(y, L.count(), Vec3f{0, 0, 0});
+  const Vec3i n = L.n;
+  const long long sx = n.x, sxy = (long long)n.x * n.y;
+  long long off[8];
+  for (int c = 0; c < 8; ++c) {
+    const Vec3i o = elastic_corner(c);
+    off[c] = o.x + o.y * sx + o.z * sxy;
+  }
+  for (int ck = 0; ck + 1 < n.z; ++ck)
+    for (int cj = 0; cj + 1 < n.y; ++cj)
+      for (int ci = 0; ci + 1 < n.x; ++ci) {
+        const long long base = L.index(ci, cj, ck);
+        const float e = L.e[base];
+        if (e == 0.0f) continue;
+        float uc[24];
+        bool any = false;
+        for (int c = 0; c < 8; ++c) {
+          const Vec3f& v = x[base + off[c]];
+          uc[3 * c] = v.x;
+          uc[3 * c + 1] = v.y;
+          uc[3 * c + 2] = v.z;
+          any = any || v.x != 0.0f || v.y != 0.0f || v.z != 0.0f;
+        }
+        if (!any) continue;
+        // the matrix is symmetric: column c is row c
+        float yc[24] = {};
+        for (int c = 0; c < 24; ++c) {
+          const float v = uc[c];
+          if (v == 0.0f) continue;
+          const float* col = k.data() + 24 * c;
+          for (int r = 0; r < 24; ++r) yc[r] += col[r] * v;
+        }
+        const float w = e * L.scale;
+        for (int c = 0; c < 8; ++c) {
+          Vec3f& t = y[base + off[c]];
+          t.x += yc[3 * c] * w;
+          t.y += yc[3 * c + 1] * w;
+          t.z += yc[3 * c + 2] * w;
+        }
+      }
+}
+
+double dot_all(const Vec3f* a, const Vec3f* b, long long count) {
+  double s = 0;
+  for (long long e = 0; e < count; ++e) s += double(a[e].x) * b[e].x + double(a[e].y) * b[e].y + double(a[e].z) * b[e].z;
+  return s;
+}
+
+// res = Pi (f - K x)
+void residual(const Level& L, const std::array<float, 576>& k, const Vec3f& nrm, const Vec3f* f, const Vec3f* x,
+              Vec3f* res) {
+  apply_level(L, k, x, res);
+  for (long long e = 0; e < L.count(); ++e) res[e] = elastic_project(L.flags[e], nrm, f[e] - res[e]);
+}
+
+// x = S f (from_zero) or x += S (f - K x): the level's Chebyshev smoother of `degree`
+// over [lmax / ratio, lmax] (margin included), f projected
+void smooth(const Level& v, const std::array<float, 576>& k, const Vec3f& nrm, const Vec3f* f, Vec3f* x,
+            bool from_zero, int degree, float ratio) {
+  float a[kElasticMaxDegree], b[kElasticMaxDegree];
+  const float hi = kElasticChebyshevMargin * v.lmax;
+  elastic_chebyshev(hi / ratio, hi, degree, a, b);
+  for (int st = 0; st < degree; ++st) {
+    const bool first = st == 0 && from_zero;
+    if (!first) residual(v, k, nrm, f, x, v.r);
+    const Vec3f* r = first ? f : v.r;
+    for (long long e = 0; e < v.count(); ++e) {
+      const Vec3f dg = v.inv_diag[e];
+      const Vec3f z = elastic_project(v.flags[e], nrm, Vec3f{dg.x * r[e].x, dg.y * r[e].y, dg.z * r[e].z});
+      v.d[e] = st == 0 ? z * b[0] : v.d[e] * a[st] + z * b[st];
+      x[e] = first ? v.d[e] : x[e] + v.d[e];
+    }
+  }
+}
+
+// the V-cycle from level l down: L.lv[l].x = B L.lv[l].f (both projected)
+void vcycle(const Levels& L, int l, const std::array<float, 576>& k, const Vec3f& nrm) {
+  const Level& v = L.lv[l];
+  if (l + 1 == L.count) {
+    smooth(v, k, nrm, v.f, v.x, true, kElasticCoarsestDegree, kElasticCoarsestRatio);
+    return;
+  }
+  smooth(v, k, nrm, v.f, v.x, true, kElasticSmoothDegree, kElasticChebyshevRatio);
+  // the coarse level's right-hand side: the restricted residual
+  residual(v, k, nrm, v.f, v.x, v.r);
+  const Level& c = L.lv[l + 1];
+  each_node(c.n, [&](int i, int j, int kk) {
+    const Vec3f g = elastic_restrict(
+        [&](int a, int b, int d) {
+          return (a < 0 || b < 0 || d < 0 || a >= v.n.x || b >= v.n.y || d >= v.n.z) ? Vec3f{0, 0, 0}
+                                                                                    : v.r[v.index(a, b, d)];
+        },
+        i, j, kk);
+    const long long e = c.index(i, j, kk);
+    c.f[e] = elastic_project(c.flags[e], nrm, g);
+  });
+  vcycle(L, l + 1, k, nrm);
+  // the coarse correction, then the post-smoothing
+  each_node(v.n, [&](int i, int j, int kk) {
+    const Vec3f g = elastic_prolong(
+        [&](int a, int b, int d) {
+          return (a >= c.n.x || b >= c.n.y || d >= c.n.z) ? Vec3f{0, 0, 0} : c.x[c.index(a, b, d)];
+        },
+        i, j, kk);
+    const long long e = v.index(i, j, kk);
+    v.x[e] += elastic_project(v.flags[e], nrm, g);
+  });
+  smooth(v, k, nrm, v.f, v.x, false, kElasticSmoothDegree, kElasticChebyshevRatio);
+}
+
+// the largest eigenvalue of D^-1 K on a level (held nodes out), by power iteration from a
+// fixed pseudo-random start; uses the level's x and r
+float estimate_lmax(const Level& v, const std::array<float, 576>& k) {
+  const Vec3f none{0, 0, 0};
+  std::uint32_t seed = 12345u;
+  auto next = [&seed]() {
+    seed = seed * 1664525u + 1013904223u;
+    return float(seed >> 8) / float(1u << 24) - 0.5f;
+  };
+  for (long long e = 0; e < v.count(); ++e) v.x[e] = elastic_project(v.flags[e], none, Vec3f{next(), next(), next()});
+  double lambda = 0;
+  for (int it = 0; it < kElasticPowerIterations; ++it) {
+    const double xn = std::sqrt(dot_all(v.x, v.x, v.count()));
+    if (!(xn > 0)) return 1.0f;
+    apply_level(v, k, v.x, v.r);
+    for (long long e = 0; e < v.count(); ++e) {
+      const Vec3f dg = v.inv_diag[e];
+      v.r[e] = elastic_project(v.flags[e], none, Vec3f{dg.x * v.r[e].x, dg.y * v.r[e].y, dg.z * v.r[e].z});
+    }
+    lambda = std::sqrt(dot_all(v.r, v.r, v.count())) / xn;
+    std::copy_n(v.r, v.count(), v.x);
+  }
+  return lambda > 0 ? float(lambda) : 1.0f;
+}
+
+struct SolveResult {
+  int iterations = 0;
+  double residual = 0;  // relative to rref
+  bool converged = true;
+};
+
+// conjugate gradients on level 0 for `u` (its constrained components set already), to
+// |r| <= tol rref or max_it steps; r, z, p, q, res0 are scratch
+SolveResult pcg(ElasticCpu& s, const Levels& L, const Vec3f& nrm, Vec3f* u, double rref, int max_it, float tol) {
+  const Level& v = L.lv[0];
+  const long long n = v.count();
+  Vec3f* r = s.r.data();
+  Vec3f* z = s.z.data();
+  Vec3f* p = s.p.data();
+  Vec3f* q = s.q.data();
+  SolveResult out;
+  // r = Pi (0 - K u): no load but the constraints
+  apply_level(v, s.k, u, r);
+  for (long long e = 0; e < n; ++e) r[e] = elastic_project(v.flags[e], nrm, -r[e]);
+  double rn = std::sqrt(dot_all(r, r, n));
+  out.residual = rref > 0 ? rn / rref : 0;
+  if (rref <= 0 || rn <= tol * rref) return out;
+  vcycle(L, 0, s.k, nrm);  // z = B r
+  std::copy_n(z, n, p);
+  double rz = dot_all(r, z, n);
+  for (int it = 0; it < max_it; ++it) {
+    apply_level(v, s.k, p, q);
+    for (long long e = 0; e < n; ++e) q[e] = elastic_project(v.flags[e], nrm, q[e]);
+    const double pq = dot_all(p, q, n);
+    if (!(pq > 0)) break;
+    const float alpha = float(rz / pq);
+    for (long long e = 0; e < n; ++e) {
+      u[e] += p[e] * alpha;
+      r[e] -= q[e] * alpha;
+    }
+    out.iterations = it + 1;
+    rn = std::sqrt(dot_all(r, r, n));
+    out.residual = rn / rref;
+    if (rn <= tol * rref) return out;
+    vcycle(L, 0, s.k, nrm);
+    const double rz_new = dot_all(r, z, n);
+    const float beta = float(rz_new / rz);
+    rz = rz_new;
+    for (long long e = 0; e < n; ++e) p[e] = z[e] + p[e] * beta;
+  }
+  out.converged = out.residual <= tol;
+  return out;
+}
+
+template <typename T>
+void grow(std::vector<T>& v, std::size_t n) {
+  if (v.size() < n) v.resize(n);
+}
+
+// the moduli, static flags and diagonals of every level for a new VOI
+}  // namespace
+
+std::uint64_t material_key(const ElasticMaterial& m) {
+  // FNV-1a over the material's bytes: a changed table, skin or gel asks for a new set-up
+  const unsigned char* b = reinterpret_cast<const unsigned char*>(&m);
+  std::uint64_t h = 1469598103934665603ull;
+  for (std::size_t i = 0; i < sizeof(m); ++i) h = (h ^ b[i]) * 1099511628211ull;
+  return h;
+}
+
+void elastic_set_up_cpu(const Patient& p, const Voi& voi, const ElasticParams& prm, ElasticCpu& s) {
+  const Grid& g = p.grid;
+  s.k = elastic_element(g.spacing_mm, prm.poisson);
+  s.poisson = prm.poisson;
+  s.have_u = false;
+  s.have_unit = false;
+  s.plan = elastic_plan(voi.size);
+  const std::size_t n0 = std::size_t(voi.count());
+  const std::size_t nc = std::size_t(s.plan.coarse_count);
+  for (auto* v : {&s.u, &s.u_unit, &s.r, &s.z, &s.p, &s.q, &s.ku, &s.res0, &s.cheb_d}) grow(*v, n0);
+  grow(s.c_d, nc);
+  grow(s.flags, n0);
+  grow(s.cell_e, n0);
+  grow(s.push, n0);
+  grow(s.inv_diag, n0 + nc);
+  grow(s.c_flags, nc);
+  grow(s.c_e, nc);
+  grow(s.c_x, nc);
+  grow(s.c_f, nc);
+  grow(s.c_r, nc);
+  // node moduli (kPa) into push (scratch here), flags
+  auto in_body = [&](int i, int j, int k) { return g.contains(i, j, k) && p.body.data[g.index(i, j, k)] != 0; };
+  each_node(voi.size, [&](int i, int j, int k) {
+    const int gi = voi.lo.x + i, gj = voi.lo.y + j, gk = voi.lo.z + k;
+    const std::size_t pi = g.index(gi, gj, gk);
+    const bool body = p.body.data[pi] != 0;
+    const bool bone = p.bone.data[pi] != 0;
+    const long long e = voi.index(i, j, k);
+    s.push[e] = elastic_node_modulus(prm.material, p.intensity.data[pi], body, p.dist_skin_mm.data[pi]);
+    std::uint8_t f = 0;
+    const bool face = i == 0 || j == 0 || k == 0 || i + 1 == voi.size.x || j + 1 == voi.size.y || k + 1 == voi.size.z;
+    if (bone || face) f |= kElasticHeld;
+    if (body && !bone) {
+      f |= kElasticBody;
+      bool skin = false;
+      for (int q = 0; q < 6 && !skin; ++q) {
+        const Vec3i o = neighbour_offset(q);
+        skin = !in_body(gi + o.x, gj + o.y, gk + o.z);
+      }
+      if (skin) f |= kElasticSkin;
+    }
+    s.flags[e] = f;
+  });
+  // cell moduli: the mean of the corners' where all eight are in the body (bone counts),
+  // else air's gel, so that the tissue ends at the skin nodes (traction-free there, but for the gel)
+  each_node(voi.size, [&](int i, int j, int k) {
+    const long long e = voi.index(i, j, k);
+    if (i + 1 >= voi.size.x || j + 1 >= voi.size.y || k + 1 >= voi.size.z) {
+      s.cell_e[e] = 0;
+      return;
+    }
+    float sum = 0;
+    bool body = true;
+    for (int c = 0; c < 8; ++c) {
+      const Vec3i o = elastic_corner(c);
+      const int gi = voi.lo.x + i + o.x, gj = voi.lo.y + j + o.y, gk = voi.lo.z + k + o.z;
+      body = body && p.body.data[g.index(gi, gj, gk)] != 0;
+      sum += s.push[voi.index(i + o.x, j + o.y, k + o.z)];
+    }
+    s.cell_e[e] = body ? sum / 8 : prm.material.air_e_kpa;
+  });
+  std::fill_n(s.push.begin(), n0, -1.0f);
+  s.voi = voi;
+  Levels L = levels_of(s);
+  // coarse levels: moduli and held nodes from the level below
+  for (int l = 1; l < L.count; ++l) {
+    const Level& f = L.lv[l - 1];
+    const Level& c = L.lv[l];
+    each_node(c.n, [&](int i, int j, int k) {
+      const long long e = c.index(i, j, k);
+      c.e[e] = (i + 1 < c.n.x && j + 1 < c.n.y && k + 1 < c.n.z)
+                   ? elastic_coarse_cell_e([&](int a, int b, int d) { return f.e[f.index(a, b, d)]; }, f.n, i, j, k)
+                   : 0.0f;
+      const bool beyond = 2 * i >= f.n.x || 2 * j >= f.n.y || 2 * k >= f.n.z;
+      c.flags[e] = elastic_coarse_flags(beyond ? 0 : (f.flags[f.index(2 * i, 2 * j, 2 * k)] & kElasticHeld), beyond);
+    });
+  }
+  // every level's inverse Jacobi diagonal
+  for (int l = 0; l < L.count; ++l) {
+    const Level& v = L.lv[l];
+    each_node(v.n, [&](int i, int j, int k) {
+      const Vec3f d = elastic_diag_node([&](int r, int c) { return s.k[std::size_t(24 * r + c)]; },
+                                        [&](int a, int b, int cc) { return v.e[v.index(a, b, cc)]; }, v.n, v.scale, i, j, k);
+      v.inv_diag[v.index(i, j, k)] = Vec3f{d.x > 0 ? 1 / d.x : 0.0f, d.y > 0 ? 1 / d.y : 0.0f, d.z > 0 ? 1 / d.z : 0.0f};
+    });
+  }
+  // every level's largest eigenvalue of D^-1 K, for its smoother
+  for (int l = 0; l < L.count; ++l) {
+    s.lmax[l] = estimate_lmax(L.lv[l], s.k);
+    L.lv[l].lmax = s.lmax[l];
+  }
+}
+
+namespace {
+
+// the coarse levels' contact flags from level 0's
+void coarsen_contact(const Levels& L) {
+  for (int l = 1; l < L.count; ++l) {
+    const Level& f = L.lv[l - 1];
+    const Level& c = L.lv[l];
+    each_node(c.n, [&](int i, int j, int k) {
+      std::uint8_t& cf = c.flags[c.index(i, j, k)];
+      cf = std::uint8_t(cf & ~kElasticContact);
+      const bool beyond = 2 * i >= f.n.x || 2 * j >= f.n.y || 2 * k >= f.n.z;
+      if (!beyond && !(cf & kElasticHeld)) cf |= f.flags[f.index(2 * i, 2 * j, 2 * k)] & kElasticContact;
+    });
+  }
+}
+
+// the cells of the field u (mm, VOI-local) whose deformation folds
+long long count_inverted(const Voi& voi, const Vec3& h, const Vec3f* u) {
+  auto load = [&](int i, int j, int k) {
+    const Vec3f& v = u[voi.index(i, j, k)];
+    return Vec3f{float(v.x / h.x), float(v.y / h.y), float(v.z / h.z)};
+  };
+  long long n = 0;
+  for (int k = 0; k + 1 < voi.size.z; ++k)
+    for (int j = 0; j + 1 < voi.size.y; ++j)
+      for (int i = 0; i + 1 < voi.size.x; ++i) {
+        bool moved = false;
+        for (int c = 0; c < 8 && !moved; ++c) {
+          const Vec3i o = elastic_corner(c);
+          const Vec3f& v = u[voi.index(i + o.x, j + o.y, k + o.z)];
+          moved = v.x != 0.0f || v.y != 0.0f || v.z != 0.0f;
+        }
+        if (moved && !(cell_min_det(load, i, j, k) > 0.0f)) ++n;
+      }
+  return n;
+}
+
+}  // namespace
+
+ElasticSolve elastic_solve_cpu(ElasticCpu& s, const Vec3f& nrm, Vec3f* u, int max_iterations, float tolerance) {
+  Levels L = levels_of(s);
+  const Level& v0 = L.lv[0];
+  const long long n = v0.count();
+  coarsen_contact(L);
+  // the scale of the tolerance: the residual of the constrained values alone (free parts 0)
+  Vec3f* lift = s.q.data();
+  for (long long e = 0; e < n; ++e) {
+    const std::uint8_t f = v0.flags[e];
+    lift[e] = (f & kElasticHeld) ? u[e] : ((f & kElasticContact) ? nrm * dot(u[e], nrm) : Vec3f{0, 0, 0});
+  }
+  apply_level(v0, s.k, lift, s.ku.data());
+  double r2 = 0;
+  for (long long e = 0; e < n; ++e) {
+    const Vec3f t = elastic_project(v0.flags[e], nrm, s.ku[std::size_t(e)]);
+    r2 += double(dot(t, t));
+  }
+  const SolveResult r = pcg(s, L, nrm, u, std::sqrt(r2), max_iterations, tolerance);
+  return ElasticSolve{r.iterations, r.residual, r.converged};
+}
+
+void elastic_operator_cpu(ElasticCpu& s, const Vec3f& nrm, const Vec3f* x, Vec3f* y) {
+  Levels L = levels_of(s);
+  coarsen_contact(L);
+  apply_level(L.lv[0], s.k, x, y);
+  for (long long e = 0; e < L.lv[0].count(); ++e) y[e] = elastic_project(L.lv[0].flags[e], nrm, y[e]);
+}
+
+void elastic_precondition_cpu(ElasticCpu& s, const Vec3f& nrm, const Vec3f* r, Vec3f* z) {
+  Levels L = levels_of(s);
+  coarsen_contact(L);
+  const long long n = L.lv[0].count();
+  std::copy_n(r, n, s.r.begin());
+  vcycle(L, 0, s.k, nrm);
+  std::copy_n(s.z.begin(), n, z);
+}
+
+Vec3f elastic_node_force_cpu(const ElasticCpu& s, const Vec3f* u, int i, int j, int k) {
+  const Voi& voi = s.voi;
+  return elastic_apply_node([&](int r, int c) { return s.k[std::size_t(24 * r + c)]; },
+                            [&](int a, int b, int c) { return s.cell_e[std::size_t(voi.index(a, b, c))]; },
+                            [&](int a, int b, int c) { return u[voi.index(a, b, c)]; }, voi.size, 1.0f, i, j, k);
+}
+
+bool elastic_tip_inside(const Patient& p, const Vec3& tip_vox) {
+  const Grid& g = p.grid;
+  const Vec3f t{float(tip_vox.x), float(tip_vox.y), float(tip_vox.z)};
+  const float c = trilinear<float>(
+      [&](int i, int j, int k) { return g.contains(i, j, k) ? float(p.body.data[g.index(i, j, k)] != 0) : 0.0f; }, t);
+  return c > 0.5f;
+}
+
+std::size_t elastic_cpu_bytes(const ElasticCpu& s) {
+  auto b = [](const auto& v) { return v.capacity() * sizeof(v[0]); };
+  return b(s.u) + b(s.u_unit) + b(s.r) + b(s.z) + b(s.p) + b(s.q) + b(s.ku) + b(s.flags) + b(s.cell_e) + b(s.push) +
+         b(s.inv_diag) + b(s.c_flags) + b(s.c_e) + b(s.c_x) + b(s.c_f) + b(s.c_r) + b(s.res0) + b(s.tmp_u) +
+         b(s.tmp_flags) + b(s.cheb_d) + b(s.c_d);
+}
+
+ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& skin_vox, const Vec3& tip_vox,
+                             const ElasticParams& prm, ElasticCpu& s, Vec3f* u_vox) {
+  const Vec3 h = pat.grid.spacing_mm;
+  ElasticRun out;
+  const long long n = voi.count();
+  // warm start: the last field and contact set, shifted onto this VOI
+  const bool same_model = s.poisson == prm.poisson && s.material_key == material_key(prm.material);
+  const Voi last = s.voi;
+  const bool had = s.have_u && same_model;
+  if (!(voi == last) || !same_model) {
+    if (had) {
+      grow(s.tmp_u, std::size_t(last.count()));
+      grow(s.tmp_flags, std::size_t(last.count()));
+      std::copy_n(s.u.begin(), last.count(), s.tmp_u.begin());
+      std::copy_n(s.flags.begin(), last.count(), s.tmp_flags.begin());
+    }
+    elastic_set_up_cpu(pat, voi, prm, s);
+    s.material_key = material_key(prm.material);
+    each_node(voi.size, [&](int i, int j, int kk) {
+      const long long e = voi.index(i, j, kk);
+      const int a = i + voi.lo.x - last.lo.x, b = j + voi.lo.y - last.lo.y, c = kk + voi.lo.z - last.lo.z;
+      const bool carry = had && last.contains(a, b, c);
+      s.u[std::size_t(e)] = carry ? s.tmp_u[std::size_t(last.index(a, b, c))] : Vec3f{0, 0, 0};
+      if (carry) s.flags[std::size_t(e)] |= s.tmp_flags[std::size_t(last.index(a, b, c))] & kElasticContact;
+    });
+  } else if (!had) {
+    std::fill_n(s.u.begin(), n, Vec3f{0, 0, 0});
+    for (long long e = 0; e < n; ++e) s.flags[std::size_t(e)] &= std::uint8_t(~kElasticContact);
+    s.have_unit = false;
+  }
+  out.warm = had;
+  Vec3f* u = s.u.data();
+  // the press: n from X to x (mm along the grid axes), the sphere's centre R behind the tip
+  const Vec3 d_mm{(tip_vox.x - skin_vox.x) * h.x, (tip_vox.y - skin_vox.y) * h.y, (tip_vox.z - skin_vox.z) * h.z};
+  const double depth = elastic_tip_inside(pat, tip_vox) ? norm(d_mm) : 0.0;
+  out.depth_mm = depth;
+  const Vec3f nrm = depth > 1e-6 ? Vec3f{float(d_mm.x / depth), float(d_mm.y / depth), float(d_mm.z / depth)}
+                                 : Vec3f{0, 0, 0};
+  out.normal = Vec3(nrm);
+  const float R = prm.finger_radius_mm;
+  const Vec3f tip_local{float((tip_vox.x - voi.lo.x) * h.x), float((tip_vox.y - voi.lo.y) * h.y),
+                        float((tip_vox.z - voi.lo.z) * h.z)};
+  const Vec3f centre = tip_local - nrm * R;
+  // the pushes of skin nodes under the sphere; the contact set: last step's nodes still
+  // under it, nodes the last field leaves inside it, and every node under it on a fresh start
+  long long under = 0;
+  each_node(voi.size, [&](int i, int j, int kk) {
+    const long long e = voi.index(i, j, kk);
+    std::uint8_t& f = s.flags[std::size_t(e)];
+    const bool skin = depth > 1e-6 && (f & kElasticSkin) && !(f & kElasticHeld);
+    const Vec3f rest{float(i * h.x), float(j * h.y), float(kk * h.z)};
+    const float t = skin ? elastic_sphere_push(rest, centre, nrm, R) : -1.0f;
+    s.push[std::size_t(e)] = t;
+    if (t > 0) ++under;
+    const bool was = (f & kElasticContact) != 0;
+    const bool pen = t > 0 && t - dot(u[e], nrm) > 0;
+    f = std::uint8_t(f & ~kElasticContact);
+    if (t > 0 && (was || pen || !had)) f |= kElasticContact;
+  });
+  if (under == 0) {
+    // nothing pressed: the tissue at rest
+    std::fill_n(u, n, Vec3f{0, 0, 0});
+    s.have_u = true;
+    s.have_unit = false;
+    std::fill_n(u_vox, n, Vec3f{0, 0, 0});
+    return out;
+  }
+  out.contact = true;
+  // contact nodes on the sphere along n (held nodes stay at 0)
+  auto place = [&]() {
+    for (long long e = 0; e < n; ++e)
+      if (s.flags[std::size_t(e)] & kElasticContact) u[e] = u[e] - nrm * dot(u[e], nrm) + nrm * s.push[std::size_t(e)];
+  };
+  // the contact rounds: solve, then nodes the finger pulls leave and skin nodes pushed into
+  // the sphere join; a last solve when the last round still changed the set
+  bool settled = false;
+  for (int round = 0; round < std::max(1, prm.contact_rounds) && !settled; ++round) {
+    place();
+    const ElasticSolve sr = elastic_solve_cpu(s, nrm, u, prm.max_iterations, prm.tolerance);
+    out.rounds = round + 1;
+    out.iterations += sr.iterations;
+    out.residual = sr.residual;
+    out.converged = out.converged && sr.converged;
+    settled = true;
+    each_node(voi.size, [&](int i, int j, int kk) {
+      const long long e = voi.index(i, j, kk);
+      std::uint8_t& f = s.flags[std::size_t(e)];
+      const float t = s.push[std::size_t(e)];
+      if (f & kElasticContact) {
+        if (dot(elastic_node_force_cpu(s, u, i, j, kk), nrm) < 0.0f) {
+          f = std::uint8_t(f & ~kElasticContact);
+          settled = false;
+        }
+      } else if (t > 0 && t - dot(u[e], nrm) > kElasticPenetrationVox * float(h.x)) {
+        f |= kElasticContact;
+        settled = false;
+      }
+    });
+  }
+  out.contact_settled = settled;
+  if (!settled) {
+    place();
+    const ElasticSolve sr = elastic_solve_cpu(s, nrm, u, prm.max_iterations, prm.tolerance);
+    out.iterations += sr.iterations;
+    out.residual = sr.residual;
+    out.converged = out.converged && sr.converged;
+  }
+  // the reaction: the force the finger applies along n, summed over the contact nodes
+  double press = 0;
+  int contacts = 0;
+  each_node(voi.size, [&](int i, int j, int kk) {
+    if (!(s.flags[std::size_t(voi.index(i, j, kk))] & kElasticContact)) return;
+    ++contacts;
+    press += dot(elastic_node_force_cpu(s, u, i, j, kk), nrm);
+  });
+  out.contact_nodes = contacts;
+  out.force_n = Vec3(nrm) * -press;
+  // the stiffness: the unit press (every contact node 1 mm along n) with the set held
+  if (prm.stiffness && contacts > 0) {
+    Vec3f* w = s.u_unit.data();
+    if (!s.have_unit || !(s.unit_normal == nrm)) std::fill_n(w, n, Vec3f{0, 0, 0});
+    for (long long e = 0; e < n; ++e) {
+      const std::uint8_t f = s.flags[std::size_t(e)];
+      if (f & kElasticContact) w[e] = w[e] - nrm * dot(w[e], nrm) + nrm;
+    }
+    const ElasticSolve sr = elastic_solve_cpu(s, nrm, w, prm.max_iterations, prm.tolerance);
+    out.stiffness_iterations = sr.iterations;
+    double k_n = 0;
+    each_node(voi.size, [&](int i, int j, int kk) {
+      if (s.flags[std::size_t(voi.index(i, j, kk))] & kElasticContact) k_n += dot(elastic_node_force_cpu(s, w, i, j, kk), nrm);
+    });
+    out.stiffness_n_per_mm = k_n;
+    s.have_unit = true;
+    s.unit_normal = nrm;
+  }
+  s.have_u = true;
+  // the field in voxels for the backend's buffers, and the folds it holds
+  for (long long e = 0; e < n; ++e) u_vox[e] = Vec3f{float(u[e].x / h.x), float(u[e].y / h.y), float(u[e].z / h.z)};
+  out.inverted_cells = count_inverted(voi, h, u);
+  return out;
+}
+
+}  // namespace palpsim::deform

@@ -401,7 +401,7 @@ void open_file(const std::string& path, const std::string& real, const PathPolic
                   ": not a readable image (unknown format, or a corrupt or truncated header); "
                   "supported: DICOM folders, .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd");
   } else {
-    header = check_ct_header(path, read_file_head(real, kMaxCtHeaderBytes, "CT file"));
+    header = check_ct_header_file(path);
     if (!header.data_file.empty()) {
       // relative to the header's folder, as ITK's NRRD and MetaImage readers take it
       const fs::path named(header.data_file);

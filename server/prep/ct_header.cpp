@@ -6,6 +6,7 @@
 #include <array>
 #include <cerrno>
 #include <cmath>
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <sstream>
@@ -25,6 +26,8 @@ constexpr std::size_t kMaxMetaStringChars = 254;
 constexpr std::size_t kMaxMetaLineChars = 4096;
 // axes a header may declare (NIfTI-1 allows 7, NRRD 16, MetaIO 10)
 constexpr std::int64_t kMaxHeaderAxes = 16;
+// lines of a NRRD or MetaImage header, at most (a diffusion NRRD's key/value pairs are a few hundred)
+constexpr int kMaxHeaderLines = 10000;
 
 std::string lower(std::string s) {
   std::transform(s.begin(), s.end(), s.begin(), [](unsigned char c) { return char(std::tolower(c)); });
@@ -341,7 +344,7 @@ CtHeader check_nrrd(const std::string& name, std::string_view bytes) {
   std::vector<std::pair<std::string, std::string_view>> per_axis;  // thicknesses, axis mins and maxs
   int line_no = 1;
   while (next_line(line)) {
-    ++line_no;
+    if (++line_no > kMaxHeaderLines) fail(name, "a NRRD header of more than " + std::to_string(kMaxHeaderLines) + " lines");
     if (line.empty()) {
       ended = true;  // the blank line that ends the header
       break;
@@ -454,7 +457,8 @@ CtHeader check_meta(const std::string& name, std::string_view bytes) {
     if (e == std::string_view::npos) e = bytes.size();
     std::string_view line = bytes.substr(pos, e - pos);
     pos = e + 1;
-    ++line_no;
+    if (++line_no > kMaxHeaderLines)
+      fail(name, "a MetaImage header of more than " + std::to_string(kMaxHeaderLines) + " lines");
     if (line.size() > kMaxMetaLineChars)
       fail(name, "MetaImage header line " + std::to_string(line_no) + " is longer than " +
                      std::to_string(kMaxMetaLineChars) + " characters");

@@ -326,29 +326,35 @@ void scan_nifti_data(const std::string& path, const std::string& real, const CtH
   const std::uint64_t start = std::uint64_t(h.vox_offset), bpv = std::uint64_t(h.bytes_per_voxel);
   const std::uint64_t need = start + voxels * bpv;
   const bool is_float = h.datatype == 16 || h.datatype == 64;
-  // non-finite values: counted element by element across the buffer's edges
+  // non-finite values, counted element by element (one element may span two reads)
   std::uint64_t bad = 0, first_bad = 0, element = 0;
   unsigned char part[8];
   std::size_t part_n = 0;
-  auto take = [&](const unsigned char* p, std::size_t n) {
-    for (std::size_t i = 0; i < n && element < voxels; ++i) {
-      part[part_n++] = p[i];
-      if (part_n < bpv) continue;
-      part_n = 0;
-      if (h.big_endian) std::reverse(part, part + bpv);
-      const double v = [&] {
-        if (bpv == 4) {
-          float x;
-          std::memcpy(&x, part, 4);
-          return double(x);
-        }
-        double x;
-        std::memcpy(&x, part, 8);
-        return x;
-      }();
-      if (!std::isfinite(v) && bad++ == 0) first_bad = element;
-      ++element;
+  const auto judge = [&](const unsigned char* e) {
+    unsigned char b[8];
+    std::memcpy(b, e, bpv);
+    if (h.big_endian) std::reverse(b, b + bpv);
+    double v;
+    if (bpv == 4) {
+      float x;
+      std::memcpy(&x, b, 4);
+      v = x;
+    } else {
+      std::memcpy(&v, b, 8);
     }
+    if (!std::isfinite(v) && bad++ == 0) first_bad = element;
+    ++element;
+  };
+  const auto take = [&](const unsigned char* p, std::size_t n) {
+    // the rest of an element the last read began
+    if (part_n > 0) {
+      const std::size_t k = std::min<std::size_t>(sizeof part - part_n, std::min<std::size_t>(bpv - part_n, n));
+      std::memcpy(part + part_n, p, k);
+      part_n += k, p += k, n -= k;
+      if (part_n == bpv) judge(part), part_n = 0;
+    }
+    for (; n >= bpv; p += bpv, n -= bpv) judge(p);
+    if (n > 0) std::memcpy(part, p, n), part_n = n;  // n < bpv, and no element was begun
   };
   // count the bytes (the whole stream, so a cut gzip stream errors)
   std::uint64_t have = 0;

@@ -281,3 +281,31 @@ TEST_CASE("with the server's folders, a CT and the files it consists of must lie
   fs::create_symlink(other.path / "ct.nrrd", scenes.path / "dicom" / "slice.dcm");
   CHECK_THAT(prep_error(scenes / "dicom"), Catch::Contains("slice.dcm") && Catch::Contains("outside"));
 }
+
+TEST_CASE("a NIfTI's NaN voxels are found in either byte order, also across the scan's 1 MiB reads") {
+  TempDir d;
+  // 70^3 float32 voxels (1.37 MB) from byte 354: voxel 262055 spans bytes 1048574..1048577,
+  // across the first 1 MiB read
+  const int n = 70;
+  std::vector<float> v(std::size_t(n) * n * n, -1000.0f);
+  v[262055] = kNan;
+  for (bool big : {false, true}) {
+    INFO((big ? "big" : "little") << "-endian");
+    std::string h = nifti_header(n, n, n, kOne, 16, 32);
+    const float offset = 354;
+    std::memcpy(&h[108], &offset, 4);
+    std::string data(reinterpret_cast<const char*>(v.data()), v.size() * 4);
+    if (big) {
+      h = big_endian(h);
+      for (std::size_t i = 0; i < data.size(); i += 4) std::reverse(data.begin() + long(i), data.begin() + long(i) + 4);
+    }
+    {
+      std::ofstream o(d / "ct.nii", std::ios::binary);
+      o << h;
+      o.write("\0\0", 2);
+      o << data;
+    }
+    CHECK_THAT(error_message([&] { prepare_patient(ct_scene(d / "ct.nii", "")); }),
+               Catch::Contains("1 voxel(s) are NaN or Inf (the first at index (45, 33, 53))"));
+  }
+}

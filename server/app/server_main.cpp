@@ -13,8 +13,8 @@
 #include <string>
 
 #include "core/error.h"
+#include "core/path_policy.h"
 #include "net/curve_keys.h"
-#include "net/path_policy.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "prep/prepare.h"
@@ -25,7 +25,7 @@ const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
     "                      [--max-pose-distance-mm MM] [--background idle|nice] [--deform-concurrency K]\n"
     "                      [--deform-batch N]\n"
-    "                      [--scene-dir DIR ...]\n"
+    "                      [--scene-dir DIR ...] [--cache-dir DIR]\n"
     "                      [--curve-secret FILE --allow FILE] [--insecure]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
     "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
@@ -41,7 +41,12 @@ const char* kUsage =
     "  --deform-batch N   sessions whose steps share one launch per stage, at most (default 64;\n"
     "                     1: each session steps alone, with --deform-concurrency)\n"
     "  --scene-dir DIR    a folder LoadScene requests may read scene files and CTs from and record\n"
-    "                     frames into (repeatable; default: the folder of --scene, none without it)\n"
+    "                     frames into (repeatable; default: the folder of --scene, none without it);\n"
+    "                     only regular files inside it, links resolved, and the data files their\n"
+    "                     headers name and DICOM folders' files likewise\n"
+    "  --cache-dir DIR    the folder of prepared patients, for --scene and LoadScene's scenes (default:\n"
+    "                     --scene's prep.cache_dir, else $PALPSIM_CACHE, else ~/.cache/palpsim); a\n"
+    "                     client's scene that sets prep.cache_dir is refused\n"
     "  --curve-secret FILE the server's secret key (palpsim-keys NAME makes NAME.key_secret): every\n"
     "                     endpoint is CURVE-encrypted, and addresses beyond loopback are allowed\n"
     "  --allow FILE       the client public keys admitted with --curve-secret, one z85 key per line\n"
@@ -69,7 +74,7 @@ int main(int argc, char** argv) {
   spdlog::set_default_logger(spdlog::stderr_color_mt("palpsim-server"));
 
   // command line
-  std::string scene_file, curve_secret_file, allow_file;
+  std::string scene_file, curve_secret_file, allow_file, cache_dir;
   palpsim::net::ServerOptions options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -91,6 +96,8 @@ int main(int argc, char** argv) {
         options.insecure = true;
       } else if (a == "--scene-dir") {
         options.scene_dirs.push_back(value("--scene-dir"));
+      } else if (a == "--cache-dir") {
+        cache_dir = value("--cache-dir");
       } else if (a == "--bind") {
         options.control_bind = value("--bind");
       } else if (a == "--pose-bind") {
@@ -131,7 +138,7 @@ int main(int argc, char** argv) {
 
   // folders that do not exist and bad key files are refused before the patient is prepared
   try {
-    palpsim::net::PathPolicy check(options.scene_dirs);
+    palpsim::PathPolicy check(options.scene_dirs);
     if (curve_secret_file.empty() != allow_file.empty())
       throw palpsim::Error(curve_secret_file.empty() ? "--allow needs --curve-secret (the server's secret key)"
                                                      : "--curve-secret needs --allow (the client keys admitted)");
@@ -153,6 +160,7 @@ int main(int argc, char** argv) {
   palpsim::PatientPtr patient;
   try {
     scene = scene_file.empty() ? palpsim::default_scene() : palpsim::load_scene_file(scene_file);
+    if (!cache_dir.empty()) scene.prep.cache_dir = cache_dir;
     spdlog::info("scene '{}' from {}", scene.name, scene_file.empty() ? std::string("the built-in default") : scene_file);
     palpsim::PrepReport report;
     patient = palpsim::prepare_patient(scene, &report);
@@ -167,11 +175,18 @@ int main(int argc, char** argv) {
   // LoadScene's files: the folder of the starting scene unless the operator names folders
   if (options.scene_dirs.empty() && !scene_file.empty())
     options.scene_dirs.push_back(std::filesystem::absolute(scene_file).parent_path().string());
+  // and its cache: the operator's (the server refuses a client's scene that names one)
+  if (cache_dir.empty()) cache_dir = scene.prep.cache_dir;
 
   // serve
   try {
-    palpsim::net::Server server(scene, patient, [](const palpsim::Scene& s) { return palpsim::prepare_patient(s); },
-                                options);
+    // LoadScene's patients: every CT file through the folders' resolver, the operator's cache
+    auto loader = [files = palpsim::PathPolicy(options.scene_dirs), cache_dir](const palpsim::Scene& s) {
+      palpsim::Scene operators = s;
+      operators.prep.cache_dir = cache_dir;
+      return palpsim::prepare_patient(operators, nullptr, &files);
+    };
+    palpsim::net::Server server(scene, patient, loader, options);
     server.start();
     const std::string stream = server.stream_endpoint();
     std::printf("palpsim-server: ready on %s poses %s%s%s (scene '%s')\n", server.control_endpoint().c_str(),

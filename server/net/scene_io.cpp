@@ -7,10 +7,10 @@
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
-#include <fstream>
 #include <sstream>
 
 #include "core/error.h"
+#include "core/path_policy.h"
 #include "palpsim/options.pb.h"
 #include "palpsim/scene.pb.h"
 
@@ -315,16 +315,22 @@ Scene parse_scene_text(const std::string& text, const std::string& origin) {
   parser.WriteLocationsTo(&tree);
   if (!parser.ParseFromString(text, &msg))
     throw Error((origin.empty() ? "<scene>" : origin) + ":" + errors.message());
+  // an empty scene (no byte, only blanks or comments) is a mistake, not the defaults
+  std::vector<const gp::FieldDescriptor*> set;
+  msg.GetReflection()->ListFields(msg, &set);
+  if (set.empty())
+    throw Error((origin.empty() ? std::string("<scene>") : origin) +
+                ": the scene is empty (no field set); a scene names at least its ct_path or phantom");
   check_ranges(msg, &tree, origin, "");
   return to_scene(msg, origin);
 }
 
 Scene load_scene_file(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw Error(path + ": cannot open scene file");
-  std::ostringstream text;
-  text << in.rdbuf();
-  return parse_scene_text(text.str(), path);
+  // opened without blocking and read only when it is a regular file (a FIFO would stall)
+  const std::string text = read_file_head(path, kMaxSceneBytes + 1, "scene file");
+  if (text.size() > kMaxSceneBytes)
+    throw Error(path + ": the scene file is larger than " + std::to_string(kMaxSceneBytes) + " bytes");
+  return parse_scene_text(text, path);
 }
 
 Scene default_scene() {

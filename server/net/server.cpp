@@ -13,11 +13,11 @@
 #include <zmq.hpp>
 
 #include "core/error.h"
+#include "core/path_policy.h"
 #include "core/thread.h"
 #include "deform/backend.h"
 #include "net/curve_keys.h"
 #include "net/deform_worker.h"
-#include "net/path_policy.h"
 #include "net/pose_service.h"
 #include "net/render_worker.h"
 #include "net/scene_io.h"
@@ -972,9 +972,13 @@ class Server::Control {
         const std::string why = paths_.check(path, "LoadScene: " + field);
         if (!why.empty()) throw Error(why);
       };
-      if (!r.path().empty()) allowed(r.path(), "path");
-      const Scene scene = r.path().empty() ? parse_scene_text(r.text(), "") : load_scene_file(r.path());
+      // the scene file: a regular file inside them, judged after its links are resolved
+      const Scene scene = r.path().empty() ? parse_scene_text(r.text(), "")
+                                           : load_scene_file(paths_.resolve(r.path(), "LoadScene: path"));
       if (!scene.use_phantom) allowed(scene.ct_path, what + ": ct_path");
+      if (!scene.prep.cache_dir.empty())
+        throw Error("LoadScene: " + what + ": prep.cache_dir is the operator's setting (palpsim-server --cache-dir, "
+                    "PALPSIM_CACHE); a client's scene cannot choose the cache folder");
       if (!scene.render.record_dir.empty()) allowed(scene.render.record_dir, what + ": render.record_dir");
       // deformation settings no backend can serve refuse the scene before its patient is made
       if (scene.effects.chainmail) {

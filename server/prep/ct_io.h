@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "core/path_policy.h"
 #include "core/scene.h"
 #include "core/volume.h"
 
@@ -33,15 +34,22 @@ struct CtImage {
 
 /// Reads the header of the CT at `path` (a file, or a folder holding a DICOM
 /// series; prep.dicom_series_uid picks one of several series) without reading
-/// the voxels. Throws palpsim::Error naming the path for a missing path, a folder
-/// without DICOM, an unreadable or corrupt header, a 2D or 4D image, a vector
-/// image, a non-orthonormal direction, zero, negative or non-finite spacing.
-CtInfo read_ct_info(const std::string& path, const PrepSettings& prep);
+/// the voxels. Every file it opens goes through `files` (core/path_policy.h): the CT,
+/// the data file a detached header names, every file of a DICOM folder; each must be a
+/// regular file inside its folders after links are resolved. Without `files` (nullptr:
+/// the operator's own CT), the CT's own folder is the one allowed. NIfTI, NRRD and
+/// MetaImage headers are checked by check_ct_header (ct_header.h) before ITK reads them,
+/// and every CT's size, spacing, origin and direction before ITK builds an image from
+/// them. Throws palpsim::Error, one line naming the path and the field, for a missing
+/// path, a folder without DICOM, an unreadable or corrupt header, a 2D or 4D image, a
+/// vector image, a size, spacing, origin or direction no CT has (ct_header.h's bounds),
+/// a file outside the folders, a FIFO or device.
+CtInfo read_ct_info(const std::string& path, const PrepSettings& prep, const PathPolicy* files = nullptr);
 
 /// Reads the CT's voxels as float after read_ct_info's checks, and refuses
 /// (palpsim::Error naming the path) when the prepared patient would need more
 /// than prep.max_memory_mb (checked before the voxels are read), when the data
-/// are truncated or corrupt, and when a float image holds NaN or Inf.
-CtImage read_ct(const std::string& path, const PrepSettings& prep);
+/// are truncated or corrupt, and when a voxel is NaN or Inf (saying so when none is finite).
+CtImage read_ct(const std::string& path, const PrepSettings& prep, const PathPolicy* files = nullptr);
 
 }  // namespace palpsim

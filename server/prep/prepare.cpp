@@ -202,7 +202,7 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
   return p;
 }
 
-PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
+PatientPtr prepare_patient(const Scene& scene, PrepReport* report, const PathPolicy* files) {
   const auto t0 = Clock::now();
   PrepReport local;
   PrepReport& r = report ? *report : local;
@@ -240,7 +240,7 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
     });
   } else {
     source = scene.ct_path;
-    info = timed(r, "header", [&] { return read_ct_info(scene.ct_path, prep); });
+    info = timed(r, "header", [&] { return read_ct_info(scene.ct_path, prep, files); });
     if (prep.use_cache)
       timed(r, "hash", [&] {
         for (const auto& f : info.files) {
@@ -280,7 +280,7 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report) {
 
   // read the CT (memory limit, NaN/Inf and truncation checked there)
   if (!scene.use_phantom) {
-    CtImage ct = timed(r, "read", [&] { return read_ct(scene.ct_path, prep); });
+    CtImage ct = timed(r, "read", [&] { return read_ct(scene.ct_path, prep, files); });
     info = ct.info;
     phantom = std::move(ct.image);
   }

@@ -6,6 +6,7 @@
 #include <utility>
 #include <vector>
 
+#include "core/path_policy.h"
 #include "core/patient.h"
 #include "core/scene.h"
 #include "prep/pipeline.h"
@@ -29,8 +30,9 @@ struct PrepReport {
 };
 
 /// Prepares the scene's patient. Throws palpsim::Error naming the file and the
-/// problem for bad input; never leaves a half-written cache entry behind.
-PatientPtr prepare_patient(const Scene& scene, PrepReport* report = nullptr);
+/// problem for bad input; never leaves a half-written cache entry behind. Every CT file
+/// is opened through `files` (read_ct_info says how; nullptr: the CT's own folder).
+PatientPtr prepare_patient(const Scene& scene, PrepReport* report = nullptr, const PathPolicy* files = nullptr);
 
 /// Builds a patient from an image already in memory (HU, or image units with
 /// both prep thresholds set): resampling, masks, distance maps, F and grad F.

@@ -4,10 +4,12 @@
 
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <string>
 
 #include "unit/prep_files.h"
@@ -86,4 +88,24 @@ TEST_CASE("palpsim-prep --scene-doc lists the prep fields") {
   const Run r = prep("--scene-doc");
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Catch::Contains("air_threshold") && Catch::Contains("bone_min_volume_ml"));
+}
+
+TEST_CASE("palpsim-prep refuses a NaN spacing and a data file outside the CT's folder in one line, never aborting") {
+  TempDir d, other;
+  // a NIfTI with pixdim[2] NaN: ITK's reader would abort in VNL (exit status 134)
+  const double sp[3] = {1, std::numeric_limits<double>::quiet_NaN(), 1};
+  write_nifti_int16(d / "nan.nii", 16, 16, 16, sp, std::vector<std::int16_t>(16 * 16 * 16, 40));
+  Run r = prep("'" + (d / "nan.nii") + "' --no-cache --out '" + (d / "out") + "'");
+  CHECK(r.code == 1);
+  CHECK_THAT(r.output, Catch::Contains("nan.nii") && Catch::Contains("pixdim[2]"));
+  CHECK(std::count(r.output.begin(), r.output.end(), '\n') == 1);
+  // a detached header whose voxels are another folder's file (a secret, say)
+  std::ofstream(other / "secret") << std::string(16 * 16 * 16, 'S');
+  std::ofstream(d / "steal.nhdr") << "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 16 16 16\nspacings: 1 1 1\n"
+                                     "encoding: raw\ndata file: " << (other / "secret") << "\n";
+  r = prep("'" + (d / "steal.nhdr") + "' --no-cache --out '" + (d / "out") + "'");
+  CHECK(r.code == 1);
+  CHECK_THAT(r.output, Catch::Contains("steal.nhdr") && Catch::Contains("outside the CT's folder"));
+  CHECK(std::count(r.output.begin(), r.output.end(), '\n') == 1);
+  CHECK_FALSE(fs::exists(d.path / "out"));
 }

@@ -2,8 +2,11 @@
 // problem, and leaves nothing in the cache.
 #include <catch2/catch.hpp>
 
+#include <sys/stat.h>
+
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <limits>
@@ -264,4 +267,144 @@ TEST_CASE("a DICOM folder with two series is refused with their UIDs unless one 
   PrepReport r;
   CHECK_NOTHROW(prepare_patient(s, &r));
   CHECK_THAT(r.json, Catch::Contains("\"files\": 20"));
+}
+
+// ---- issue 26: values on which ITK aborts, files outside the CT's folder, FIFOs ----
+
+namespace {
+
+// a float volume as a detached NRRD header `header` whose "data file" line reads
+// `data_file_text`, the voxels written to `data_path`
+void write_detached_nrrd(const std::string& header, const std::string& data_file_text, const std::string& data_path,
+                         const Volume<float>& v) {
+  const Grid& g = v.grid;
+  std::ofstream(header) << "NRRD0004\ntype: float\ndimension: 3\nsizes: " << g.size.x << " " << g.size.y << " "
+                        << g.size.z << "\nspacings: " << g.spacing_mm.x << " " << g.spacing_mm.y << " " << g.spacing_mm.z
+                        << "\nendian: little\nencoding: raw\ndata file: " << data_file_text << "\n";
+  std::ofstream(data_path, std::ios::binary).write(reinterpret_cast<const char*>(v.data.data()), std::streamsize(v.bytes()));
+}
+
+}  // namespace
+
+TEST_CASE("a NaN spacing or sform in a NIfTI header is refused by name, never an abort") {
+  TempDir d;
+  const auto c = cube(16, 40, -1000);
+  const std::vector<std::int16_t> vox(c.begin(), c.end());
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  // ITK's NIfTI reader hands pixdim and the sform to VNL, which aborts on NaN
+  for (int axis = 0; axis < 3; ++axis) {
+    double sp[3] = {1, 1, 1};
+    sp[axis] = nan;
+    write_nifti_int16(d / "nan.nii", 16, 16, 16, sp, vox);
+    INFO("axis " << axis);
+    CHECK_THAT(prep_error(d, d / "nan.nii"),
+               Catch::Contains("nan.nii") && Catch::Contains("pixdim[" + std::to_string(axis + 1) + "]"));
+  }
+  // a finite pixdim, a NaN in the sform's second row
+  const double one[3] = {1, 1, 1};
+  std::string h = nifti_header(16, 16, 16, one, 4, 16);
+  const float fnan = std::numeric_limits<float>::quiet_NaN();
+  std::memcpy(&h[300], &fnan, 4);  // srow_y[1]
+  std::ofstream(d / "sform.nii", std::ios::binary)
+      << h << std::string(reinterpret_cast<const char*>(vox.data()), vox.size() * 2);
+  CHECK_THAT(prep_error(d, d / "sform.nii"), Catch::Contains("sform.nii") && Catch::Contains("srow_y[1]"));
+  CHECK(cache_empty(d));
+}
+
+TEST_CASE("a NaN origin or direction in a NRRD header is refused by name, in one line") {
+  TempDir d;
+  const auto c = cube(16, 40, -1000);
+  for (const std::string& line : {std::string("space origin: (nan,0,0)"),
+                                  std::string("space directions: (1,0,0) (0,nan,0) (0,0,1)")}) {
+    INFO(line);
+    std::ofstream o(d / "bad.nrrd", std::ios::binary);
+    o << "NRRD0004\ntype: float\ndimension: 3\nspace: left-posterior-superior\nsizes: 16 16 16\n"
+      << (line.rfind("space origin", 0) == 0 ? "space directions: (1,0,0) (0,1,0) (0,0,1)\n" : "")
+      << line << "\nendian: little\nencoding: raw\n\n";
+    o.write(reinterpret_cast<const char*>(c.data()), std::streamsize(c.size() * 4));
+    o.close();
+    const std::string e = prep_error(d, d / "bad.nrrd");
+    CHECK_THAT(e, Catch::Contains("bad.nrrd") && Catch::Contains(line.substr(0, line.find(':'))) && Catch::Contains("nan"));
+    CHECK(e.find('\n') == std::string::npos);  // one line, not the NRRD library's trace
+  }
+  CHECK(cache_empty(d));
+}
+
+TEST_CASE("a data file a header names outside the CT's folder is refused (NRRD, MetaImage, a link)") {
+  TempDir d, other;
+  const Volume<float> torso = synthetic_torso({40, 32, 12}, {2, 2, 3});
+  // the voxels lie in another folder: named absolutely, by "..", or through a link
+  write_detached_nrrd(d / "abs.nhdr", other / "data.raw", other / "data.raw", torso);
+  const std::string up = "../" + other.path.filename().string() + "/data.raw";
+  write_detached_nrrd(d / "up.nhdr", up, other / "data.raw", torso);
+  fs::create_symlink(other.path / "data.raw", d.path / "link.raw");
+  write_detached_nrrd(d / "link.nhdr", "link.raw", other / "data.raw", torso);
+  for (const char* name : {"abs.nhdr", "up.nhdr", "link.nhdr"}) {
+    INFO(name);
+    const std::string e = prep_error(d, d / name);
+    CHECK_THAT(e, Catch::Contains(name) && Catch::Contains("data file") && Catch::Contains("outside the CT's folder"));
+  }
+  std::ofstream(d / "abs.mhd") << "ObjectType = Image\nNDims = 3\nDimSize = 40 32 12\nElementSpacing = 2 2 3\n"
+                                  "ElementType = MET_FLOAT\nElementDataFile = " << (other / "data.raw") << "\n";
+  CHECK_THAT(prep_error(d, d / "abs.mhd"), Catch::Contains("abs.mhd") && Catch::Contains("outside the CT's folder"));
+  CHECK(cache_empty(d));
+  // the same voxels beside their header are read
+  write_detached_nrrd(d / "near.nhdr", "near.raw", d / "near.raw", torso);
+  CHECK(prep_error(d, d / "near.nhdr").empty());
+}
+
+TEST_CASE("a FIFO as the CT, as a header's data file or in a DICOM folder is refused without reading it") {
+  TempDir d;
+  REQUIRE(::mkfifo((d / "pipe.nii").c_str(), 0600) == 0);
+  CHECK_THAT(prep_error(d, d / "pipe.nii"), Catch::Contains("pipe.nii") && Catch::Contains("FIFO"));
+  REQUIRE(::mkfifo((d / "pipe.raw").c_str(), 0600) == 0);
+  std::ofstream(d / "pipe.nhdr") << "NRRD0004\ntype: float\ndimension: 3\nsizes: 16 16 16\nspacings: 1 1 1\n"
+                                    "endian: little\nencoding: raw\ndata file: pipe.raw\n";
+  CHECK_THAT(prep_error(d, d / "pipe.nhdr"), Catch::Contains("pipe.raw") && Catch::Contains("FIFO"));
+  fs::create_directory(d.path / "dicom");
+  REQUIRE(::mkfifo((d / "dicom/slice.dcm").c_str(), 0600) == 0);
+  CHECK_THAT(prep_error(d, d / "dicom"), Catch::Contains("slice.dcm") && Catch::Contains("FIFO"));
+  CHECK(cache_empty(d));
+}
+
+TEST_CASE("NaN voxels of a NIfTI are refused, and an all-NaN CT says it holds no finite value") {
+  TempDir d;
+  const double one[3] = {1, 1, 1};
+  // ITK's NIfTI library turns NaN into 0: the values are checked before it reads them
+  write_nifti_float(d / "allnan.nii", 16, 16, 16, one, std::vector<float>(16 * 16 * 16, NAN));
+  CHECK_THAT(prep_error(d, d / "allnan.nii"), Catch::Contains("allnan.nii") && Catch::Contains("holds no finite value"));
+  auto c = cube(16, 40, -1000);
+  c[17] = std::numeric_limits<float>::infinity();
+  write_nifti_float(d / "inf.nii", 16, 16, 16, one, c);
+  CHECK_THAT(prep_error(d, d / "inf.nii"),
+             Catch::Contains("inf.nii") && Catch::Contains("1 voxel(s) are NaN or Inf") && Catch::Contains("(1, 1, 0)"));
+  // the same for another format
+  const std::vector<float> nan(16 * 16 * 16, NAN);
+  write_nrrd_file(d / "allnan.nrrd", "float", {16, 16, 16}, {1, 1, 1}, nan.data(), nan.size() * 4);
+  CHECK_THAT(prep_error(d, d / "allnan.nrrd"), Catch::Contains("holds no finite value"));
+  CHECK(cache_empty(d));
+}
+
+TEST_CASE("a negative size and a damaged NRRD header get one line naming the field") {
+  TempDir d;
+  const auto c = cube(16, 40, -1000);
+  write_nrrd_file(d / "neg.nrrd", "float", {16, -16, 16}, {1, 1, 1}, c.data(), c.size() * 4);
+  std::ofstream(d / "bad.nhdr") << "NRRD0004\ntype: float\ndimension: 3\nsizes: 16 16 x\nspacings: 1 1 1\n"
+                                   "endian: little\nencoding: raw\ndata file: bad.raw\n";
+  std::ofstream(d / "bad.raw") << "x";
+  const std::vector<std::int16_t> vox(16 * 16 * 16, 40);
+  const double one[3] = {1, 1, 1};
+  write_nifti_int16(d / "neg.nii", 16, 16, 16, one, vox);
+  {
+    std::fstream f(d / "neg.nii", std::ios::in | std::ios::out | std::ios::binary);
+    const std::int16_t minus = -16;
+    f.seekp(44);  // dim[2]
+    f.write(reinterpret_cast<const char*>(&minus), 2);
+  }
+  for (const char* name : {"neg.nrrd", "bad.nhdr", "neg.nii"}) {
+    INFO(name);
+    const std::string e = prep_error(d, d / name);
+    CHECK_THAT(e, Catch::Contains(name) && (Catch::Contains("sizes") || Catch::Contains("dim")));
+    CHECK(e.find('\n') == std::string::npos);
+  }
 }

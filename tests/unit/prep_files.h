@@ -65,28 +65,43 @@ inline void write_volume_nrrd(const std::string& path, const Volume<float>& v) {
   o.write(reinterpret_cast<const char*>(v.data.data()), std::streamsize(v.bytes()));
 }
 
-/// Writes a NIfTI-1 file (.nii) of int16 voxels with pixdim = spacing.
-inline void write_nifti_int16(const std::string& path, int nx, int ny, int nz, const double spacing[3],
-                              const std::vector<std::int16_t>& voxels) {
-  char h[352] = {};
-  const auto put_i32 = [&](int off, std::int32_t v) { std::memcpy(h + off, &v, 4); };
-  const auto put_i16 = [&](int off, std::int16_t v) { std::memcpy(h + off, &v, 2); };
-  const auto put_f32 = [&](int off, float v) { std::memcpy(h + off, &v, 4); };
+/// The 352 bytes of a NIfTI-1 header (.nii, little-endian) for nx x ny x nz voxels of
+/// `datatype` (4 = int16, 16 = float32) and `bitpix` bits, pixdim = spacing and the sform
+/// a scaled identity; tests damage single fields through the byte offsets of nifti1.h.
+inline std::string nifti_header(int nx, int ny, int nz, const double spacing[3], int datatype, int bitpix) {
+  std::string h(352, '\0');
+  const auto put_i32 = [&](int off, std::int32_t v) { std::memcpy(&h[off], &v, 4); };
+  const auto put_i16 = [&](int off, std::int16_t v) { std::memcpy(&h[off], &v, 2); };
+  const auto put_f32 = [&](int off, float v) { std::memcpy(&h[off], &v, 4); };
   put_i32(0, 348);
   put_i16(40, 3), put_i16(42, std::int16_t(nx)), put_i16(44, std::int16_t(ny)), put_i16(46, std::int16_t(nz));
   put_i16(48, 1), put_i16(50, 1), put_i16(52, 1), put_i16(54, 1);
-  put_i16(70, 4);   // datatype: DT_INT16
-  put_i16(72, 16);  // bitpix
+  put_i16(70, std::int16_t(datatype));
+  put_i16(72, std::int16_t(bitpix));
   put_f32(76, 1), put_f32(80, float(spacing[0])), put_f32(84, float(spacing[1])), put_f32(88, float(spacing[2]));
   put_f32(108, 352);  // vox_offset
   put_f32(112, 1);    // scl_slope
   h[123] = 2;         // xyzt_units: mm
   put_i16(252, 0), put_i16(254, 1);  // qform 0, sform 1 (scaled identity in RAS)
   put_f32(280, float(spacing[0])), put_f32(300, float(spacing[1])), put_f32(320, float(spacing[2]));
-  std::memcpy(h + 344, "n+1\0", 4);
+  std::memcpy(&h[344], "n+1\0", 4);
+  return h;
+}
+
+/// Writes a NIfTI-1 file (.nii) of int16 voxels with pixdim = spacing.
+inline void write_nifti_int16(const std::string& path, int nx, int ny, int nz, const double spacing[3],
+                              const std::vector<std::int16_t>& voxels) {
   std::ofstream o(path, std::ios::binary);
-  o.write(h, 352);
+  o << nifti_header(nx, ny, nz, spacing, 4, 16);
   o.write(reinterpret_cast<const char*>(voxels.data()), std::streamsize(voxels.size() * 2));
+}
+
+/// Writes a NIfTI-1 file (.nii) of float32 voxels with pixdim = spacing.
+inline void write_nifti_float(const std::string& path, int nx, int ny, int nz, const double spacing[3],
+                              const std::vector<float>& voxels) {
+  std::ofstream o(path, std::ios::binary);
+  o << nifti_header(nx, ny, nz, spacing, 16, 32);
+  o.write(reinterpret_cast<const char*>(voxels.data()), std::streamsize(voxels.size() * 4));
 }
 
 /// A synthetic torso in HU on an anisotropic grid: an elliptic body of soft tissue

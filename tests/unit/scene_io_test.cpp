@@ -1,12 +1,17 @@
-// Scene loading: defaults, presets, paths, and refusal of bad scenes with file:line:column.
+// Scene loading: defaults, presets, paths, and refusal of bad scenes with file:line:column,
+// and of scene files that are empty, not regular files or not names.
 #include <catch2/catch.hpp>
+
+#include <sys/stat.h>
 
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
 
 #include "core/error.h"
 #include "deform/backend.h"
 #include "net/scene_io.h"
+#include "unit/prep_files.h"
 
 using namespace palpsim;
 
@@ -137,4 +142,32 @@ TEST_CASE("haptics.skin_point is read, checked and defaults as HapticsSettings d
   const std::string e = error_of("phantom {} haptics { skin_point: \"nearest\" }");
   CHECK(e.find("haptics.skin_point") != std::string::npos);
   CHECK(e.find("\"nearest\"") != std::string::npos);
+}
+
+TEST_CASE("an empty scene file, a folder, a FIFO and a path holding a NUL are refused, naming them") {
+  test::TempDir d;
+  auto error_of_file = [](const std::string& path) {
+    try {
+      load_scene_file(path);
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  std::ofstream(d / "empty.textproto").close();
+  std::ofstream(d / "blank.textproto") << "  \n# only a comment\n\n";
+  for (const char* name : {"empty.textproto", "blank.textproto"}) {
+    INFO(name);
+    CHECK_THAT(error_of_file(d / name), Catch::Contains(name) && Catch::Contains("empty"));
+  }
+  CHECK_THAT(error_of_file(d.path.string()), Catch::Contains(d.path.string()) && Catch::Contains("folder"));
+  // a FIFO is never opened for reading in blocking mode (no writer would ever come)
+  REQUIRE(::mkfifo((d / "pipe.textproto").c_str(), 0600) == 0);
+  CHECK_THAT(error_of_file(d / "pipe.textproto"), Catch::Contains("pipe.textproto") && Catch::Contains("FIFO"));
+  // the part before the NUL names a good scene, which must not be loaded
+  std::ofstream(d / "good.textproto") << "name: \"good\" phantom {}\n";
+  CHECK_NOTHROW(load_scene_file(d / "good.textproto"));
+  CHECK_THAT(error_of_file(d / "good.textproto" + std::string(1, '\0') + "x"), Catch::Contains("NUL"));
+  // text that sets no field, as LoadScene's text
+  CHECK_THAT(error_of("# nothing\n"), Catch::Contains("empty"));
 }

@@ -351,7 +351,11 @@ Opened open_ct(const std::string& path, const PrepSettings& prep) {
 
 }  // namespace
 
-CtInfo read_ct_info(const std::string& path, const PrepSettings& prep) { return open_ct(path, prep).info; }
+CtInfo read_ct_info(const std::string& path, const PrepSettings& prep) {
+  Opened o = open_ct(path, prep);
+  check_memory(o.info.grid, prep, path);
+  return o.info;
+}
 
 CtImage read_ct(const std::string& path, const PrepSettings& prep) {
   Opened o = open_ct(path, prep);

@@ -35,12 +35,14 @@ struct CtImage {
 /// series; prep.dicom_series_uid picks one of several series) without reading
 /// the voxels. Throws palpsim::Error naming the path for a missing path, a folder
 /// without DICOM, an unreadable or corrupt header, a 2D or 4D image, a vector
-/// image, a non-orthonormal direction, zero, negative or non-finite spacing.
+/// image, a non-orthonormal direction, zero, negative or non-finite spacing, and
+/// one whose prepared patient would need more than prep.max_memory_mb (estimated
+/// from the header's geometry, so a too large CT is refused before its data are
+/// hashed, looked up in the cache or read).
 CtInfo read_ct_info(const std::string& path, const PrepSettings& prep);
 
-/// Reads the CT's voxels as float after read_ct_info's checks, and refuses
-/// (palpsim::Error naming the path) when the prepared patient would need more
-/// than prep.max_memory_mb (checked before the voxels are read), when the data
+/// Reads the CT's voxels as float after read_ct_info's checks (the memory
+/// estimate included), and refuses (palpsim::Error naming the path) when the data
 /// are truncated or corrupt, and when a float image holds NaN or Inf.
 CtImage read_ct(const std::string& path, const PrepSettings& prep);
 

@@ -1077,9 +1077,9 @@ class Server::Control {
   // (loader thread) the world of a LoadScene's scene, or why it is refused, into `l`; then
   // wakes the control thread. Reads only what no other thread writes (options, folders, loader).
   void prepare_world(Load& l, const std::string& path, const std::string& text) {
+    // at the control thread's own priority: a background (SCHED_IDLE or nice 19) loader
+    // would starve on a busy host, and a scene load is an operator's request that must end
     name_this_thread("palpsim-load");
-    // below the pose thread, as the deformation and render threads: preparing a patient takes every core it gets
-    lower_this_thread(opt_.deform_nice, opt_.background_idle);
     const std::string& what = l.what;
     try {
       if (path.empty() == text.empty())

@@ -40,7 +40,7 @@ struct ServerOptions {
   // long is freed (s; 0 = never), beside the scene's server.session_timeout_s for silence
   double idle_timeout_s = 60;
   double bad_input_log_period_s = 5;                    // log a summary of new bad input at most this often
-  int deform_nice = 19;                                 // the deformation, render and scene loading threads' nice value (Linux; 0..19)
+  int deform_nice = 19;                                 // the deformation and render threads' nice value (Linux; 0..19)
   bool background_idle = true;                          // and SCHED_IDLE for them (Linux; core/thread.h says why)
   // sessions' deformation steps in flight on the GPU at once, for steps that are not
   // batched (deform_batch 1, or scenes with multigrid relaxation or untangling). 1 by

@@ -302,6 +302,7 @@ int run(int argc, char** argv) {
   so.pose_bind = "tcp://127.0.0.1:*";
   Scene served = scene;
   served.server.max_sessions = 64;
+  so.max_sessions_per_client = served.server.max_sessions;  // one bench client opens every session
   net::Server server(served, patient, [](const Scene& s) { return prepare_patient(s); }, so);
   server.start();
   // and beside it the same server with CURVE, admitting one client key

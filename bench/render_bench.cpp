@@ -368,6 +368,7 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
   so.stream_bind = "tcp://127.0.0.1:*";
   so.deform_nice = o.nice;
   so.deform_batch = o.deform_batch;
+  so.max_sessions_per_client = scene.server.max_sessions;  // one bench client opens every session
   net::Server server(scene, patient, nullptr, so);
   server.start();
   zmq::context_t ctx(1);

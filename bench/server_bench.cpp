@@ -137,6 +137,7 @@ int run(int argc, char** argv) {
   so.background_idle = o.idle;
   so.deform_concurrency = o.concurrency;
   so.deform_batch = o.batch;
+  so.max_sessions_per_client = deform.server.max_sessions;  // one bench client opens every session
   net::Server with(deform, patient, nullptr, so), without(plain, patient, nullptr, so);
   with.start();
   without.start();

@@ -24,7 +24,7 @@ namespace {
 const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
     "                      [--max-pose-distance-mm MM] [--background idle|nice] [--deform-concurrency K]\n"
-    "                      [--deform-batch N]\n"
+    "                      [--deform-batch N] [--max-sessions-per-client N] [--idle-timeout-s S]\n"
     "                      [--scene-dir DIR ...] [--cache-dir DIR]\n"
     "                      [--curve-secret FILE --allow FILE] [--insecure]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
@@ -40,6 +40,10 @@ const char* kUsage =
     "                     watched sessions frames: for servers without viewers)\n"
     "  --deform-batch N   sessions whose steps share one launch per stage, at most (default 64;\n"
     "                     1: each session steps alone, with --deform-concurrency)\n"
+    "  --max-sessions-per-client N  sessions one client (CURVE key, else client token, else control\n"
+    "                     connection) may hold open at once (default 16; 1..4096)\n"
+    "  --idle-timeout-s S a session without a pose or a control request acting on it (Stats does not\n"
+    "                     count) for S seconds is freed (default 60; 0: never)\n"
     "  --scene-dir DIR    a folder LoadScene requests may read scene files and CTs from and record\n"
     "                     frames into (repeatable; default: the folder of --scene, none without it);\n"
     "                     only regular files inside it, links resolved, and the data files their\n"
@@ -82,6 +86,15 @@ int main(int argc, char** argv) {
       if (i + 1 >= argc) throw palpsim::Error(std::string(name) + " needs a value");
       return argv[++i];
     };
+    // the value of option `name`: a whole number from 1 to `most`
+    auto whole = [&](const char* name, long most) -> int {
+      const std::string v = value(name);
+      char* end = nullptr;
+      const long k = std::strtol(v.c_str(), &end, 10);
+      if (end == v.c_str() || *end != '\0' || k < 1 || k > most)
+        throw palpsim::Error(std::string(name) + " " + v + ": expected a whole number from 1 to " + std::to_string(most));
+      return int(k);
+    };
     try {
       if (a == "--help" || a == "-h") {
         std::fputs(kUsage, stdout);
@@ -109,19 +122,18 @@ int main(int argc, char** argv) {
         if (p != "idle" && p != "nice") throw palpsim::Error("--background " + p + ": expected idle or nice");
         options.background_idle = p == "idle";
       } else if (a == "--deform-concurrency") {
-        const std::string v = value("--deform-concurrency");
-        char* end = nullptr;
-        const long k = std::strtol(v.c_str(), &end, 10);
-        if (end == v.c_str() || *end != '\0' || k < 1 || k > 64)
-          throw palpsim::Error("--deform-concurrency " + v + ": expected a whole number from 1 to 64");
-        options.deform_concurrency = int(k);
+        options.deform_concurrency = whole("--deform-concurrency", 64);
       } else if (a == "--deform-batch") {
-        const std::string v = value("--deform-batch");
+        options.deform_batch = whole("--deform-batch", 64);
+      } else if (a == "--max-sessions-per-client") {
+        options.max_sessions_per_client = whole("--max-sessions-per-client", 4096);
+      } else if (a == "--idle-timeout-s") {
+        const std::string v = value("--idle-timeout-s");
         char* end = nullptr;
-        const long k = std::strtol(v.c_str(), &end, 10);
-        if (end == v.c_str() || *end != '\0' || k < 1 || k > 64)
-          throw palpsim::Error("--deform-batch " + v + ": expected a whole number from 1 to 64");
-        options.deform_batch = int(k);
+        const double t = std::strtod(v.c_str(), &end);
+        if (end == v.c_str() || *end != '\0' || !(t >= 0 && t <= 1e6))
+          throw palpsim::Error("--idle-timeout-s " + v + ": expected seconds from 0 (never) to 1e6");
+        options.idle_timeout_s = t;
       } else if (a == "--max-pose-distance-mm") {
         options.max_pose_distance_mm = std::stod(value("--max-pose-distance-mm"));
       } else if (a == "--log-level") {

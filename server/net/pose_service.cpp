@@ -90,7 +90,9 @@ class PoseService {
         }
         ++frames;
       }
-      const bool req_envelope = frames >= 1 && frame_full_len_[0] == 0;
+      // a REQ's envelope is an empty frame with more after it; the reply echoes it, and any
+      // other request, malformed ones included, gets exactly one frame (a lone empty frame too)
+      const bool req_envelope = frames >= 2 && frame_full_len_[0] == 0;
       if (frames == 1 && frame_full_len_[0] > 0) {
         handle(frame_[0], frame_len_[0], frame_full_len_[0], t_recv, false);
       } else if (frames == 2 && req_envelope) {
@@ -174,6 +176,7 @@ class PoseService {
       return send(req_envelope);
     }
     slot->last_seen_ns.store(t_recv, std::memory_order_relaxed);
+    slot->last_used_ns.store(t_recv, std::memory_order_relaxed);
     // the pose itself
     const Vec3 tip{req_.tip_mm().x(), req_.tip_mm().y(), req_.tip_mm().z()};
     if (!is_finite(tip)) {

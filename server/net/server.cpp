@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <limits>
 #include <random>
 #include <utility>
 #include <zmq.hpp>
@@ -16,6 +17,7 @@
 #include "core/path_policy.h"
 #include "core/thread.h"
 #include "deform/backend.h"
+#include "net/client_text.h"
 #include "net/curve_keys.h"
 #include "net/deform_worker.h"
 #include "net/pose_service.h"
@@ -36,6 +38,9 @@ namespace {
 
 namespace v1 = ::palpsim::v1;
 using Clock = std::chrono::steady_clock;
+
+// a refusal's message is cut to this many characters (client strings in it to kClientTextChars)
+constexpr std::size_t kMaxErrorChars = 2048;
 
 std::string hex_id(std::uint64_t id) {
   char b[32];
@@ -71,7 +76,7 @@ std::string apply_view(const v1::ViewSettings& in, render::ViewSettings& v) {
   if (in.has_width()) v.width = int(std::min<std::uint32_t>(in.width(), 1u << 30));
   if (in.has_height()) v.height = int(std::min<std::uint32_t>(in.height(), 1u << 30));
   if (in.has_preset() && !render::parse_preset(in.preset(), &v.preset))
-    return "preset '" + in.preset() + "' is not one of " + render::preset_names();
+    return "preset '" + client_text(in.preset()) + "' is not one of " + render::preset_names();
   if (in.has_azimuth_deg()) v.azimuth_deg = in.azimuth_deg();
   if (in.has_elevation_deg()) v.elevation_deg = in.elevation_deg();
   if (in.has_zoom()) v.zoom = in.zoom();
@@ -201,9 +206,20 @@ class Server::Control {
   Control(ServerShared& sh, const Scene& scene, PatientPtr patient, PatientLoader loader, const ServerOptions& o)
       : sh_(sh), loader_(std::move(loader)), opt_(o), paths_(o.scene_dirs), ctx_(1),
         control_(ctx_, zmq::socket_type::router),
-        pose_(ctx_, zmq::socket_type::router), in_(kMaxControlBytes + 1) {
+        pose_(ctx_, zmq::socket_type::router), load_done_rx_(ctx_, zmq::socket_type::pair),
+        load_done_tx_(ctx_, zmq::socket_type::pair), in_(kMaxControlBytes + 1) {
     start_ = Clock::now();
     sh_.max_pose_distance_mm = o.max_pose_distance_mm;
+    if (o.max_sessions_per_client < 1 || o.max_sessions_per_client > kMaxSlots)
+      throw Error("--max-sessions-per-client " + std::to_string(o.max_sessions_per_client) + ": expected 1.." +
+                  std::to_string(kMaxSlots));
+    if (!(o.idle_timeout_s >= 0 && o.idle_timeout_s <= 1e6))
+      throw Error("--idle-timeout-s " + std::to_string(o.idle_timeout_s) + ": expected 0 (never) to 1e6 s");
+    // the loader thread's word that a LoadScene has finished, on the control thread's poll
+    for (zmq::socket_t* s : {&load_done_rx_, &load_done_tx_}) s->set(zmq::sockopt::linger, 0);
+    const std::string done = "inproc://palpsim-load-done-" + hex_id(std::uint64_t(reinterpret_cast<std::uintptr_t>(this)));
+    load_done_rx_.bind(done);
+    load_done_tx_.connect(done);
     // CURVE: the ZAP handler binds first, so no connection is ever admitted without it
     if (!o.curve_secret_key.empty()) {
       if (o.curve_allowed_keys.empty())
@@ -218,6 +234,7 @@ class Server::Control {
     }
     current_ = make_world(scene, std::move(patient), 1);
     sh_.world.store(current_.get(), std::memory_order_release);
+    warn_quota();
     for (zmq::socket_t* s : {&control_, &pose_}) {
       s->set(zmq::sockopt::linger, 0);
       s->set(zmq::sockopt::maxmsgsize, kMaxFrameBytes);
@@ -241,6 +258,8 @@ class Server::Control {
     pose_endpoint_ = bind(pose_, o.pose_bind.empty() ? derive_pose_endpoint(o.control_bind) : o.pose_bind,
                           "--pose-bind");
   }
+
+  ~Control() { end_load(); }
 
   Clock::time_point start() const { return start_; }
 
@@ -319,15 +338,26 @@ class Server::Control {
   const std::string& pose_endpoint() const { return pose_endpoint_; }
 
   void close() {
+    end_load();
     control_.close();
     pose_.close();
+    load_done_rx_.close();
+    load_done_tx_.close();
+  }
+
+  // waits for a running LoadScene's loader thread (after the control thread has ended);
+  // its reply is not sent
+  void end_load() {
+    if (load_ && load_->thread.joinable()) load_->thread.join();
+    load_.reset();
   }
 
   void run() {
-    zmq::pollitem_t items[] = {{control_.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::pollitem_t items[] = {{control_.handle(), 0, ZMQ_POLLIN, 0}, {load_done_rx_.handle(), 0, ZMQ_POLLIN, 0}};
     last_log_ = Clock::now();
     while (!sh_.stop.load()) {
-      zmq::poll(items, 1, std::chrono::milliseconds(opt_.housekeeping_ms));
+      zmq::poll(items, 2, std::chrono::milliseconds(opt_.housekeeping_ms));
+      if (items[1].revents & ZMQ_POLLIN) finish_load();
       if (items[0].revents & ZMQ_POLLIN) drain();
       housekeeping();
     }
@@ -340,9 +370,13 @@ class Server::Control {
   PathPolicy paths_;  // the folders LoadScene may touch
   zmq::context_t ctx_;
   zmq::socket_t control_, pose_;
+  zmq::socket_t load_done_rx_, load_done_tx_;  // inproc PAIR: the loader thread (tx) wakes the control thread (rx)
   CurveServer curve_;                 // the server key and the allow-list ("" key: plain text)
   std::unique_ptr<ZapHandler> zap_;   // admits connections to ctx_'s sockets (CURVE only)
   std::string requester_;             // who sent the control request being handled (see identity())
+  zmq::message_t* requester_id_ = nullptr;  // its routing id, and whether it came in a REQ's envelope
+  bool requester_req_ = false;
+  bool deferred_ = false;             // the request being handled is answered later (a LoadScene that started)
   std::string requester_key_;         // its z85 CURVE key ("" without CURVE)
   std::string control_endpoint_, pose_endpoint_;
   Clock::time_point start_;
@@ -366,6 +400,18 @@ class Server::Control {
   mutable std::mutex stream_endpoint_mu_;          // guards stream_endpoint_ (control writes, anyone reads)
   std::string stream_endpoint_;
   std::vector<std::uint64_t> opened_order_ = std::vector<std::uint64_t>(kMaxSlots);  // per slot: when opened
+  // a LoadScene being prepared on its loader thread; its request is answered when it ends
+  struct Load {
+    std::thread thread;
+    zmq::message_t routing_id;      // whom to answer, and how (a REQ's envelope or not)
+    bool req_envelope = false;
+    std::uint64_t request_id = 0;
+    std::string what;               // the path asked for, or "scene text" (made safe for logs)
+    Clock::time_point started;
+    std::unique_ptr<World> world;   // (loader) the world made, its generation not yet set; or
+    std::string error;              // (loader) why the scene was refused
+  };
+  std::unique_ptr<Load> load_;      // (control) the running load, or none
 
   std::string bind(zmq::socket_t& s, const std::string& addr, const char* option) {
     try {
@@ -402,8 +448,11 @@ class Server::Control {
         const char* u = sh_.curve ? zmq_msg_gets(part.handle(), "User-Id") : nullptr;
         if (u) user = u;
       }
-      const bool req_envelope = sizes.size() >= 1 && sizes[0] == 0;
+      // a REQ's envelope is an empty frame with more after it; the reply echoes it, and any
+      // other request, malformed ones included, gets exactly one frame (a lone empty frame too)
+      const bool req_envelope = sizes.size() >= 2 && sizes[0] == 0;
       rep_.Clear();
+      deferred_ = false;
       rep_.set_schema_version(v1::VERSION_CURRENT);
       sh_.counters.control_requests.fetch_add(1);
       if (!((sizes.size() == 1 && sizes[0] > 0) || (sizes.size() == 2 && req_envelope))) {
@@ -422,16 +471,25 @@ class Server::Control {
                "ControlRequest: a CURVE connection without the key its ZAP handler names");
       } else {
         requester_ = identity(id, user);
+        requester_id_ = &id;
+        requester_req_ = req_envelope;
         handle();
+        requester_id_ = nullptr;
       }
-      rep_.SerializeToString(&out_);
-      try {
-        control_.send(id, zmq::send_flags::sndmore | zmq::send_flags::dontwait);
-        if (req_envelope) control_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::sndmore | zmq::send_flags::dontwait);
-        control_.send(zmq::const_buffer(out_.data(), out_.size()), zmq::send_flags::dontwait);
-      } catch (const zmq::error_t&) {
-        // the client is gone
-      }
+      if (!deferred_) send_reply(id, req_envelope);
+    }
+  }
+
+  // sends rep_ to `routing_id` (after an empty delimiter for a REQ); never blocks
+  void send_reply(const zmq::message_t& routing_id, bool req_envelope) {
+    rep_.SerializeToString(&out_);
+    try {
+      control_.send(zmq::const_buffer(routing_id.data(), routing_id.size()),
+                    zmq::send_flags::sndmore | zmq::send_flags::dontwait);
+      if (req_envelope) control_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::sndmore | zmq::send_flags::dontwait);
+      control_.send(zmq::const_buffer(out_.data(), out_.size()), zmq::send_flags::dontwait);
+    } catch (const zmq::error_t&) {
+      // the client is gone
     }
   }
 
@@ -458,11 +516,14 @@ class Server::Control {
   }
 
   void refuse(v1::ErrorCode code, std::atomic<std::uint64_t>& counter, const std::string& message) {
+    // the message may embed client strings from deeper down (a scene's ct_path in a prep
+    // error): escaped and cut once more as a whole
+    const std::string safe = client_text(message, kMaxErrorChars);
     rep_.clear_body();
     rep_.mutable_error()->set_code(code);
-    rep_.mutable_error()->set_message(message);
+    rep_.mutable_error()->set_message(safe);
     counter.fetch_add(1);
-    spdlog::warn("control: {} ({})", message, v1::ErrorCode_Name(code));
+    spdlog::warn("control: {} ({})", safe, v1::ErrorCode_Name(code));
   }
 
   void handle() {
@@ -494,9 +555,9 @@ class Server::Control {
     }
   }
 
-  // the slot of an open session the requester owns (its last message time updated), or
-  // nullptr after refusing
-  SessionSlot* session_or_refuse(std::uint64_t id, const char* field) {
+  // the slot of an open session the requester owns, or nullptr after refusing; its last
+  // message time is updated, and with `use` (a request acting on it, not Stats) its idle clock
+  SessionSlot* session_or_refuse(std::uint64_t id, const char* field, bool use = true) {
     SessionSlot* s = find(id);
     if (!s) {
       refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session,
@@ -504,7 +565,9 @@ class Server::Control {
       return nullptr;
     }
     if (!owned(*s, id, field)) return nullptr;
-    s->last_seen_ns.store(ns_since(start_));
+    const std::int64_t now = ns_since(start_);
+    s->last_seen_ns.store(now);
+    if (use) s->last_used_ns.store(now);
     return s;
   }
 
@@ -512,7 +575,7 @@ class Server::Control {
     const World& w = world();
     const Patient& p = *w.patient;
     info->set_scene_name(w.scene.name);
-    info->set_scene_file(w.scene.file);
+    info->set_scene_file(client_text(w.scene.file, kMaxErrorChars));
     info->set_scene_generation(w.generation);
     auto* pi = info->mutable_patient();
     pi->set_source(p.source);
@@ -539,6 +602,9 @@ class Server::Control {
       info->add_stages(s);
     info->set_stream_endpoint(publisher_ ? publisher_->endpoint() : "");
     info->set_curve(sh_.curve);
+    info->set_max_sessions_per_client(std::uint32_t(opt_.max_sessions_per_client));
+    info->set_idle_timeout_s(opt_.idle_timeout_s);
+    info->set_scene_loading(load_ ? load_->what : "");
   }
 
   int open_count() const {
@@ -547,7 +613,21 @@ class Server::Control {
     return n;
   }
 
+  // how the requester is known, for messages (its key, token or connection is not echoed)
+  const char* requester_kind() const {
+    return sh_.curve ? "CURVE key" : requester_.rfind("token ", 0) == 0 ? "client token" : "control connection";
+  }
+
   void open() {
+    // one client holds at most its quota, so that it cannot take every session
+    int mine = 0;
+    for (int i = 0; i < sh_.slots_used.load(std::memory_order_relaxed); ++i)
+      mine += sh_.slots[i].id.load(std::memory_order_relaxed) != 0 && sh_.slots[i].owner == requester_;
+    if (mine >= opt_.max_sessions_per_client)
+      return refuse(v1::ERROR_SESSION_QUOTA, sh_.counters.session_quota,
+                    "OpenSession: this client (its " + std::string(requester_kind()) + ") already holds " +
+                        std::to_string(mine) + " sessions, the most one client may hold open at once "
+                        "(palpsim-server --max-sessions-per-client); close one first");
     const int limit = std::min(world().scene.server.max_sessions, kMaxSlots);
     SessionSlot* free_slot = nullptr;
     int index = 0;
@@ -578,10 +658,12 @@ class Server::Control {
     s.renders_locally = false;
     s.contact = false;
     s.depth_mm = 0;
-    s.client_name = req_.open().client_name();
+    s.client_name = client_text(req_.open().client_name());
     s.owner = requester_;
     s.set_owner_key(requester_key_.empty() ? nullptr : requester_key_.c_str());
-    s.last_seen_ns.store(ns_since(start_));
+    const std::int64_t now = ns_since(start_);
+    s.last_seen_ns.store(now);
+    s.last_used_ns.store(now);
     opened_order_[index] = ++id_counter_opened_;
     if (index >= sh_.slots_used.load(std::memory_order_relaxed))
       sh_.slots_used.store(index + 1, std::memory_order_release);
@@ -643,14 +725,14 @@ class Server::Control {
     const auto* field = v1::Haptics::descriptor()->FindFieldByName(r.name());
     if (!field || field->cpp_type() != google::protobuf::FieldDescriptor::CPPTYPE_DOUBLE)
       return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter,
-                    "SetParameter.name: '" + r.name() +
+                    "SetParameter.name: '" + client_text(r.name()) +
                         "' is not a haptics parameter (stiffness_n_per_mm, friction, max_force_n, "
                         "max_force_rate_n_per_s, min_gradient_norm)");
     const auto& o = field->options();
     const double lo = o.GetExtension(v1::min), hi = o.GetExtension(v1::max), v = r.value();
     if (!std::isfinite(v) || v < lo || v > hi) {
       char b[256];
-      std::snprintf(b, sizeof b, "SetParameter.value: %s = %g is outside [%g, %g] %s", r.name().c_str(), v, lo, hi,
+      std::snprintf(b, sizeof b, "SetParameter.value: %s = %g is outside [%g, %g] %s", field->name().c_str(), v, lo, hi,
                     o.GetExtension(v1::unit).c_str());
       return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, b);
     }
@@ -694,6 +776,9 @@ class Server::Control {
     s->set_not_owner(c.not_owner);
     s->set_curve_refused(c.curve_refused);
     s->set_curve_admitted(c.curve_admitted);
+    s->set_sessions_idle_timed_out(c.sessions_idle_timed_out);
+    s->set_session_quota(c.session_quota);
+    s->set_load_running(c.load_running);
     auto* l = s->mutable_pose_service();
     l->set_count(sh_.pose_service.count());
     l->set_p50_us(sh_.pose_service.quantile(0.5));
@@ -722,7 +807,8 @@ class Server::Control {
     fill_info(st->mutable_info());
     const std::uint64_t id = req_.stats().session_id();
     if (id != 0) {
-      SessionSlot* slot = session_or_refuse(id, "StatsRequest.session_id");
+      // reading a session's stats is not using it: its idle clock runs on
+      SessionSlot* slot = session_or_refuse(id, "StatsRequest.session_id", false);
       if (!slot) return;
       auto* ss = st->mutable_session();
       ss->set_session_id(id);
@@ -732,7 +818,8 @@ class Server::Control {
       ss->set_last_seq(slot->last_seq);
       ss->set_contact(slot->contact);
       ss->set_depth_mm(slot->depth_mm);
-      ss->set_idle_s((ns_since(start_) - slot->last_seen_ns.load()) * 1e-9);
+      ss->set_idle_s((ns_since(start_) - slot->last_used_ns.load()) * 1e-9);
+      ss->set_silent_s((ns_since(start_) - slot->last_seen_ns.load()) * 1e-9);
       fill_params(ss->mutable_params(), slot->params());
       ss->set_force_clamps(slot->clamps);
       ss->set_local_models_sent(slot->local_models_sent);
@@ -825,13 +912,15 @@ class Server::Control {
                       "WatchSession.session_id: 0 (any session of this client) but none of this client's "
                       "sessions is open");
     }
-    // watching does not keep a session alive: only its own client's messages do
-    const SessionSlot* watched = find(id);
+    // a watch acts on the session (its idle clock), but is no message naming it for the
+    // scene's session_timeout_s: only the session's poses and requests naming it are
+    SessionSlot* watched = find(id);
     if (!watched)
       return refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session,
                     "WatchSession.session_id: " + hex_id(id) +
                         " is not an open session (never opened, closed, or timed out)");
     if (!owned(*watched, id, "WatchSession.session_id")) return;
+    watched->last_used_ns.store(ns_since(start_));
     // the view: the session's current one with the fields this request sets
     StreamSlot& ss = stream_->slot(id);
     std::lock_guard<std::mutex> lock(ss.mu);
@@ -961,20 +1050,49 @@ class Server::Control {
     add_stage(out->mutable_stages(), "bricks", bricks, ss.brick_bytes.load(), 0, mine ? r.bricks_published : 0);
   }
 
+  // LoadScene: refused at once while another runs; else the scene is read, checked and its
+  // patient prepared on a loader thread (prepare_world) and the request answered when that
+  // ends (finish_load), so that every other control request is answered meanwhile
   void load_scene() {
     const auto& r = req_.load_scene();
-    const std::string what = r.path().empty() ? std::string("scene text") : r.path();
+    if (load_) {
+      char b[64];
+      std::snprintf(b, sizeof b, "%.1f", std::chrono::duration<double>(Clock::now() - load_->started).count());
+      return refuse(v1::ERROR_LOAD_RUNNING, sh_.counters.load_running,
+                    "LoadScene: refused: another LoadScene is running (" + load_->what + ", for " + b +
+                        " s); send it again when ServerInfo.scene_loading is empty");
+    }
+    auto l = std::make_unique<Load>();
+    l->routing_id.copy(*requester_id_);
+    l->req_envelope = requester_req_;
+    l->request_id = req_.request_id();
+    l->what = r.path().empty() ? std::string("scene text") : client_text(r.path());
+    l->started = Clock::now();
+    Load* job = l.get();
+    l->thread = std::thread([this, job, path = r.path(), text = r.text()] { prepare_world(*job, path, text); });
+    load_ = std::move(l);
+    deferred_ = true;
+  }
+
+  // (loader thread) the world of a LoadScene's scene, or why it is refused, into `l`; then
+  // wakes the control thread. Reads only what no other thread writes (options, folders, loader).
+  void prepare_world(Load& l, const std::string& path, const std::string& text) {
+    // at the control thread's own priority: a background (SCHED_IDLE or nice 19) loader
+    // would starve on a busy host, and a scene load is an operator's request that must end
+    name_this_thread("palpsim-load");
+    const std::string& what = l.what;
     try {
-      if (r.path().empty() == r.text().empty())
+      if (path.empty() == text.empty())
         throw Error("LoadScene: set exactly one of path or text");
       // no file outside the operator's folders is read or written for a client
-      auto allowed = [&](const std::string& path, const std::string& field) {
-        const std::string why = paths_.check(path, "LoadScene: " + field);
+      auto allowed = [&](const std::string& p, const std::string& field) {
+        const std::string why = paths_.check(p, "LoadScene: " + field);
         if (!why.empty()) throw Error(why);
       };
       // the scene file: a regular file inside them, judged after its links are resolved
-      const Scene scene = r.path().empty() ? parse_scene_text(r.text(), "")
-                                           : load_scene_file(paths_.resolve(r.path(), "LoadScene: path"));
+      Scene scene = path.empty() ? parse_scene_text(text, "") : load_scene_file(paths_.resolve(path, "LoadScene: path"));
+      // its name is the client's string, shown in logs, replies and frames
+      scene.name = client_text(scene.name);
       if (!scene.use_phantom) allowed(scene.ct_path, what + ": ct_path");
       if (!scene.prep.cache_dir.empty())
         throw Error("LoadScene: " + what + ": prep.cache_dir is the operator's setting (palpsim-server --cache-dir, "
@@ -987,48 +1105,93 @@ class Server::Control {
         if (scene.deform.backend == "cuda" && !cuda_deform_available(&why))
           throw Error("LoadScene: " + what + ": deform.backend = \"cuda\" is not available here: " + why);
       }
-      spdlog::info("loading scene '{}' from {} (poses keep being served on the old one)", scene.name, what);
+      spdlog::info("loading scene '{}' from {} (poses and control requests keep being served on the old one)",
+                   scene.name, what);
       PatientPtr patient = loader_(scene);
       if (!patient) throw Error("LoadScene: " + what + ": the loader returned no patient");
-      auto next = make_world(scene, std::move(patient), current_->generation + 1);
-      sh_.world.store(next.get(), std::memory_order_release);
-      retired_.push_back(std::move(current_));
-      current_ = std::move(next);
-      sh_.counters.scene_loads.fetch_add(1);
-      spdlog::info("now serving scene '{}' (generation {})", current_->scene.name, current_->generation);
-      // a running worker picks the new scene up itself; the first scene that asks for
-      // deformation starts one (settings were checked above; a failure past them, such as
-      // a device out of memory, leaves the scene served with haptics only)
-      try {
-        start_deform();
-      } catch (const std::exception& e) {
-        spdlog::error("scene '{}': {}; serving haptics only", current_->scene.name, e.what());
-      }
-      // frames and bricks likewise: a render thread that cannot start leaves the scene without frames
-      try {
-        sync_stream();
-      } catch (const std::exception& e) {
-        spdlog::error("scene '{}': {}; no frames are served", current_->scene.name, e.what());
-      }
-      fill_info(rep_.mutable_load_scene()->mutable_server());
+      l.world = make_world(scene, std::move(patient), 0);
     } catch (const std::exception& e) {
-      refuse(v1::ERROR_SCENE_LOAD_FAILED, sh_.counters.scene_load_failures,
-             std::string("LoadScene: refused, still serving '") + current_->scene.name + "': " + e.what());
+      l.error = e.what();
+    } catch (...) {
+      l.error = "LoadScene: " + what + ": an unknown error";
     }
+    (void)load_done_tx_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::dontwait);
+  }
+
+  // answers the LoadScene whose loader thread has ended: its world is served from now on,
+  // or the refusal is sent and the old one kept
+  void finish_load() {
+    zmq::message_t done;
+    (void)load_done_rx_.recv(done, zmq::recv_flags::dontwait);
+    if (!load_) return;
+    const std::unique_ptr<Load> l = std::move(load_);
+    l->thread.join();
+    rep_.Clear();
+    rep_.set_schema_version(v1::VERSION_CURRENT);
+    rep_.set_request_id(l->request_id);
+    if (!l->world) {
+      refuse(v1::ERROR_SCENE_LOAD_FAILED, sh_.counters.scene_load_failures,
+             std::string("LoadScene: refused, still serving '") + current_->scene.name + "': " + l->error);
+      return send_reply(l->routing_id, l->req_envelope);
+    }
+    std::unique_ptr<World> next = std::move(l->world);
+    next->generation = current_->generation + 1;
+    sh_.world.store(next.get(), std::memory_order_release);
+    retired_.push_back(std::move(current_));
+    current_ = std::move(next);
+    sh_.counters.scene_loads.fetch_add(1);
+    spdlog::info("now serving scene '{}' (generation {})", current_->scene.name, current_->generation);
+    warn_quota();
+    // a running worker picks the new scene up itself; the first scene that asks for
+    // deformation starts one (settings were checked above; a failure past them, such as
+    // a device out of memory, leaves the scene served with haptics only)
+    try {
+      start_deform();
+    } catch (const std::exception& e) {
+      spdlog::error("scene '{}': {}; serving haptics only", current_->scene.name, e.what());
+    }
+    // frames and bricks likewise: a render thread that cannot start leaves the scene without frames
+    try {
+      sync_stream();
+    } catch (const std::exception& e) {
+      spdlog::error("scene '{}': {}; no frames are served", current_->scene.name, e.what());
+    }
+    fill_info(rep_.mutable_load_scene()->mutable_server());
+    send_reply(l->routing_id, l->req_envelope);
+  }
+
+  // says so when one client may hold every session of the scene being served
+  void warn_quota() const {
+    const int most = current_->scene.server.max_sessions;
+    if (most > 1 && opt_.max_sessions_per_client >= most)
+      spdlog::warn("--max-sessions-per-client {} is not below scene '{}''s server.max_sessions {}: one client can "
+                   "hold every session",
+                   opt_.max_sessions_per_client, current_->scene.name, most);
   }
 
   void housekeeping() {
     const std::int64_t now = ns_since(start_);
-    // sessions silent for longer than the timeout are freed
+    // sessions silent for longer than the scene's timeout, or idle (no pose, no control
+    // request acting on them: Stats does not count) for longer than the server's, are freed
     const auto timeout_ns = std::int64_t(world().scene.server.session_timeout_s * 1e9);
+    const std::int64_t idle_ns =
+        opt_.idle_timeout_s > 0 ? std::int64_t(opt_.idle_timeout_s * 1e9) : std::numeric_limits<std::int64_t>::max();
     for (auto& s : sh_.slots) {
       const std::uint64_t id = s.id.load(std::memory_order_relaxed);
-      if (id != 0 && now - s.last_seen_ns.load(std::memory_order_relaxed) > timeout_ns) {
-        const std::string deformation = deform_summary(id);
-        free_session(s);
+      if (id == 0) continue;
+      const bool silent = now - s.last_seen_ns.load(std::memory_order_relaxed) > timeout_ns;
+      if (!silent && now - s.last_used_ns.load(std::memory_order_relaxed) <= idle_ns) continue;
+      const std::string deformation = deform_summary(id);
+      free_session(s);
+      if (silent) {
         sh_.counters.sessions_timed_out.fetch_add(1);
         spdlog::warn("session {} timed out after {:.2f} s without a message; freed{}", hex_id(id),
                      world().scene.server.session_timeout_s, deformation);
+      } else {
+        sh_.counters.sessions_idle_timed_out.fetch_add(1);
+        spdlog::warn("session {} ({}) freed after {:g} s without a pose or a control request acting on it "
+                     "(--idle-timeout-s; Stats does not count){}",
+                     hex_id(id), s.client_name, opt_.idle_timeout_s, deformation);
       }
     }
     // worlds older than the ones the pose thread and the deformation worker have picked up are no longer read

@@ -32,6 +32,13 @@ struct ServerOptions {
   std::string pose_bind;                                // "" = derived (derive_pose_endpoint)
   double max_pose_distance_mm = 1000;                   // poses farther from the patient grid are refused
   int housekeeping_ms = 100;                            // control thread: timeouts, freeing old worlds
+  // sessions one client (CURVE key, else client token, else control connection) may hold
+  // open at once: below the scene's max_sessions (64 by default), one client cannot take
+  // every session
+  int max_sessions_per_client = 16;
+  // a session without a pose or a control request acting on it (Stats does not) for this
+  // long is freed (s; 0 = never), beside the scene's server.session_timeout_s for silence
+  double idle_timeout_s = 60;
   double bad_input_log_period_s = 5;                    // log a summary of new bad input at most this often
   int deform_nice = 19;                                 // the deformation and render threads' nice value (Linux; 0..19)
   bool background_idle = true;                          // and SCHED_IDLE for them (Linux; core/thread.h says why)

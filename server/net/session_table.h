@@ -44,7 +44,9 @@ constexpr int kSlotBits = 12;
 /// (pose) by the pose thread only; atomics may be read by either.
 struct SessionSlot {
   std::atomic<std::uint64_t> id{0};             // (control) 0 = free; else the open session's id
-  std::atomic<std::int64_t> last_seen_ns{0};    // (both) server clock of the last message naming it
+  std::atomic<std::int64_t> last_seen_ns{0};    // (both) server clock of the last message naming it (Stats too)
+  std::atomic<std::int64_t> last_used_ns{0};    // (both) and of the last pose or control request acting on it
+                                                // (not Stats): the idle timeout's clock
   std::atomic<std::uint32_t> reset_requests{0}; // (control) grows by one per ResetSession
   std::atomic<std::uint32_t> pose_resets{0};    // (pose) grows by one per PoseRequest.reset_proxy, for the deformation worker
   // haptics parameters (control), read by the pose thread at every pose
@@ -131,7 +133,8 @@ struct Counters {
   std::atomic<std::uint64_t> sessions_opened{0}, sessions_closed{0}, sessions_timed_out{0}, poses{0}, malformed{0},
       wrong_schema_version{0}, unknown_session{0}, bad_pose{0}, absurd_pose{0}, oversized{0}, too_many_sessions{0},
       bad_parameter{0}, scene_loads{0}, scene_load_failures{0}, control_requests{0}, empty_request{0},
-      internal_errors{0}, bad_view{0}, not_built{0}, not_owner{0}, curve_refused{0}, curve_admitted{0};
+      internal_errors{0}, bad_view{0}, not_built{0}, not_owner{0}, curve_refused{0}, curve_admitted{0},
+      sessions_idle_timed_out{0}, session_quota{0}, load_running{0};
 };
 
 /// A log-binned histogram of service times that one thread fills (relaxed atomics, no

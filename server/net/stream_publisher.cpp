@@ -17,6 +17,7 @@
 
 #include "core/error.h"
 #include "core/thread.h"
+#include "net/client_text.h"
 #include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
 
@@ -194,7 +195,7 @@ struct StreamPublisher::Impl {
     if (foreign || prefix) {
       ++refused;
       (foreign ? sh.counters.not_owner : st.bad_subscriptions).fetch_add(1, std::memory_order_relaxed);
-      spdlog::warn("stream: subscription '{}' refused: {}", topic,
+      spdlog::warn("stream: subscription '{}' refused: {}", client_text(topic),
                    foreign ? "the session belongs to another client's key"
                            : "with CURVE a subscription names one session's full topic");
       return false;
@@ -247,7 +248,7 @@ struct StreamPublisher::Impl {
     }
     st.bad_subscriptions.fetch_add(1, std::memory_order_relaxed);
     notice(topic, 0, "unknown_session",
-           "subscription '" + topic + "' names no stream: subscribe to frame.<16 hex digits of the session id> or "
+           "subscription '" + client_text(topic) + "' names no stream: subscribe to frame.<16 hex digits of the session id> or "
                                       "brick.<...> (WatchReply.frame_topic, brick_topic)",
            true);
   }

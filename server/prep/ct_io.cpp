@@ -507,7 +507,9 @@ Opened open_ct(const std::string& path, const PrepSettings& prep, const PathPoli
 }  // namespace
 
 CtInfo read_ct_info(const std::string& path, const PrepSettings& prep, const PathPolicy* files) {
-  return open_ct(path, prep, files).info;
+  Opened o = open_ct(path, prep, files);
+  check_memory(o.info.grid, prep, path);
+  return o.info;
 }
 
 CtImage read_ct(const std::string& path, const PrepSettings& prep, const PathPolicy* files) {

@@ -43,13 +43,14 @@ struct CtImage {
 /// them. Throws palpsim::Error, one line naming the path and the field, for a missing
 /// path, a folder without DICOM, an unreadable or corrupt header, a 2D or 4D image, a
 /// vector image, a size, spacing, origin or direction no CT has (ct_header.h's bounds),
-/// a file outside the folders, a FIFO or device.
+/// a file outside the folders, a FIFO or device, and one whose prepared patient would
+/// need more than prep.max_memory_mb (estimated from the header's geometry, so a too
+/// large CT is refused before its data are hashed, looked up in the cache or read).
 CtInfo read_ct_info(const std::string& path, const PrepSettings& prep, const PathPolicy* files = nullptr);
 
-/// Reads the CT's voxels as float after read_ct_info's checks, and refuses
-/// (palpsim::Error naming the path) when the prepared patient would need more
-/// than prep.max_memory_mb (checked before the voxels are read), when the data
-/// are truncated or corrupt, and when a voxel is NaN or Inf (saying so when none is finite).
+/// Reads the CT's voxels as float after read_ct_info's checks (the memory estimate
+/// included), and refuses (palpsim::Error naming the path) when the data are truncated
+/// or corrupt, and when a voxel is NaN or Inf (saying so when none is finite).
 CtImage read_ct(const std::string& path, const PrepSettings& prep, const PathPolicy* files = nullptr);
 
 }  // namespace palpsim

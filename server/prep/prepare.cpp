@@ -218,6 +218,13 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report, const PathPol
   sha.update_field(settings_text(scene));
   if (scene.use_phantom) {
     source = "phantom";
+    // the memory estimate from the phantom's geometry alone, before any voxel is made
+    const Grid in = phantom_grid(scene.phantom_voxel_mm);
+    const Grid out = isotropic_grid(in, patient_spacing_mm(in, prep.spacing_mm));
+    const double mb = double(estimate_prep_bytes(in, out)) / (1024.0 * 1024.0);
+    if (mb > prep.max_memory_mb)
+      throw Error("phantom at " + jnum(scene.phantom_voxel_mm) + " mm: preparing it would need about " + jnum(std::round(mb)) +
+                  " MiB, above the scene's prep.max_memory_mb = " + jnum(prep.max_memory_mb));
     phantom = timed(r, "phantom", [&] { return make_phantom(scene.phantom_voxel_mm).hu; });
     info.path = "phantom";
     info.format = "procedural phantom";
@@ -226,11 +233,6 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report, const PathPol
     float lo = std::numeric_limits<float>::infinity(), hi = -lo;
     for (float v : phantom.data) lo = std::min(lo, v), hi = std::max(hi, v);
     info.min_value = lo, info.max_value = hi;
-    const Grid out = isotropic_grid(info.grid, patient_spacing_mm(info.grid, prep.spacing_mm));
-    const double mb = double(estimate_prep_bytes(info.grid, out)) / (1024.0 * 1024.0);
-    if (mb > prep.max_memory_mb)
-      throw Error("phantom at " + jnum(scene.phantom_voxel_mm) + " mm: preparing it would need about " + jnum(std::round(mb)) +
-                  " MiB, above the scene's prep.max_memory_mb = " + jnum(prep.max_memory_mb));
     timed(r, "hash", [&] {
       sha.update_field("phantom");
       sha.update(&phantom.grid.size, sizeof phantom.grid.size);

@@ -36,20 +36,32 @@ class Control {
   v1::ControlReply raw(const std::vector<std::string>& frames) {
     for (std::size_t i = 0; i < frames.size(); ++i)
       s_.send(zmq::buffer(frames[i]), i + 1 < frames.size() ? zmq::send_flags::sndmore : zmq::send_flags::none);
-    zmq::pollitem_t it[] = {{s_.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(kReplyTimeoutMs));
-    if (!(it[0].revents & ZMQ_POLLIN)) throw std::runtime_error("no control reply");
-    zmq::message_t m;
-    (void)s_.recv(m);
     v1::ControlReply r;
-    if (!r.ParseFromArray(m.data(), int(m.size()))) throw std::runtime_error("control reply does not parse");
+    if (!reply(r, kReplyTimeoutMs)) throw std::runtime_error("no control reply");
     return r;
   }
-  v1::ControlReply call(v1::ControlRequest req, std::uint32_t version = v1::VERSION_CURRENT) {
+  /// Sends a request without waiting for its reply (reply() reads it); returns its request id.
+  std::uint64_t send(v1::ControlRequest req, std::uint32_t version = v1::VERSION_CURRENT) {
     req.set_schema_version(version);
     req.set_request_id(++next_id_);
-    const auto r = raw({req.SerializeAsString()});
-    if (version == v1::VERSION_CURRENT) REQUIRE(r.request_id() == next_id_);
+    s_.send(zmq::buffer(req.SerializeAsString()));
+    return next_id_;
+  }
+  /// The next reply if one comes within `timeout_ms` (throws on junk).
+  bool reply(v1::ControlReply& r, int timeout_ms) {
+    zmq::pollitem_t it[] = {{s_.handle(), 0, ZMQ_POLLIN, 0}};
+    zmq::poll(it, 1, std::chrono::milliseconds(timeout_ms));
+    if (!(it[0].revents & ZMQ_POLLIN)) return false;
+    zmq::message_t m;
+    (void)s_.recv(m);
+    if (!r.ParseFromArray(m.data(), int(m.size()))) throw std::runtime_error("control reply does not parse");
+    return true;
+  }
+  v1::ControlReply call(v1::ControlRequest req, std::uint32_t version = v1::VERSION_CURRENT) {
+    const std::uint64_t id = send(std::move(req), version);
+    v1::ControlReply r;
+    if (!reply(r, kReplyTimeoutMs)) throw std::runtime_error("no control reply");
+    if (version == v1::VERSION_CURRENT) REQUIRE(r.request_id() == id);
     return r;
   }
   v1::OpenReply open(const std::string& name) {
@@ -389,15 +401,25 @@ TEST_CASE("bad input is answered and counted, and a session beside it keeps bein
     CHECK(r.info().scene_name() == "integration");
     // still served
     CHECK(bad.call(sid, 1, 0, 0, 0).error().code() == v1::ERROR_NONE);
-    // a good scene replaces it; open sessions continue on it
+    // a good scene replaces it; open sessions continue on it. The load runs on the server's
+    // loader thread and the scene's 0.5 s timeout goes on meanwhile, so the session poses
+    // every 50 ms until the reply comes (20 s at most: a bound against a stalled machine)
     q.mutable_load_scene()->Clear();
     q.mutable_load_scene()->set_text(test::fast_scene_text("reloaded", 0.5));
-    r = ctl.call(q);
+    const std::uint64_t load_id = ctl.send(q);
+    std::uint64_t seq = 1;
+    bool answered = false;
+    for (int n = 0; n < 400 && !answered; ++n) {
+      CHECK(bad.call(sid, ++seq, 0, 0, 0).error().code() == v1::ERROR_NONE);
+      answered = ctl.reply(r, 50);
+    }
+    REQUIRE(answered);
+    CHECK(r.request_id() == load_id);
     INFO(r.error().message());
     REQUIRE(r.error().code() == v1::ERROR_NONE);
     CHECK(r.load_scene().server().scene_generation() == 2);
     CHECK(r.load_scene().server().scene_name() == "reloaded");
-    CHECK(bad.call(sid, 2, 0, 0, 0).error().code() == v1::ERROR_NONE);
+    CHECK(bad.call(sid, ++seq, 0, 0, 0).error().code() == v1::ERROR_NONE);
     const v1::ServerStats after = ctl.stats();
     CHECK(after.scene_load_failures() - before.scene_load_failures() == 2);
     CHECK(after.scene_loads() - before.scene_loads() == 1);

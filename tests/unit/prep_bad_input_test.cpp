@@ -228,6 +228,30 @@ TEST_CASE("a volume above prep.max_memory_mb is refused before its voxels are re
              Catch::Contains("small.nrrd") && Catch::Contains("MiB"));
 }
 
+TEST_CASE("the memory estimate refuses a phantom or a CT from its geometry, before anything is built or read") {
+  TempDir d;
+  // the 0.25 mm phantom (about 13 GiB to prepare): refused by the default limit before a
+  // voxel of it is made, so no "phantom" stage ran
+  Scene s;
+  s.use_phantom = true;
+  s.phantom_voxel_mm = 0.25;
+  s.prep.cache_dir = (d / "cache");
+  PrepReport r;
+  CHECK_THAT(error_message([&] { prepare_patient(s, &r); }),
+             Catch::Contains("phantom at 0.25 mm") && Catch::Contains("prep.max_memory_mb"));
+  for (const auto& [stage, seconds] : r.stage_s) CHECK(stage != "phantom");
+  // a CT header declaring 2000^3 voxels: refused from the header, before its data are
+  // hashed for the cache (a "hash" stage) or read
+  std::ofstream(d / "huge.nhdr") << "NRRD0004\ntype: short\ndimension: 3\nsizes: 2000 2000 2000\n"
+                                    "spacings: 0.5 0.5 0.5\nendian: little\nencoding: raw\ndata file: huge.raw\n\n";
+  std::ofstream(d / "huge.raw") << "xx";
+  const Scene ct = ct_scene(d / "huge.nhdr", d / "cache");
+  CHECK_THAT(error_message([&] { prepare_patient(ct, &r); }),
+             Catch::Contains("huge.nhdr") && Catch::Contains("prep.max_memory_mb"));
+  for (const auto& [stage, seconds] : r.stage_s) CHECK(stage != "hash");
+  CHECK(cache_empty(d));
+}
+
 TEST_CASE("a DICOM folder with two series is refused with their UIDs unless one is chosen") {
   const std::string series = shared_data_file("ct/dicom-partial-body");
   if (series.empty()) return;

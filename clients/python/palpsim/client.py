@@ -211,7 +211,12 @@ class Client:
         return self._request("stats", wire.StatsRequest())
 
     def load_scene(self, path: str | None = None, text: str | None = None) -> "wire.ServerInfo":
-        """Asks the server to serve another scene (a file it can read, or scene text)."""
+        """Asks the server to serve another scene (a file it can read, or scene text).
+
+        The server prepares the patient on a thread of its own and answers when it is
+        served, so a CT that is not in its cache may need a `timeout_s` of minutes; other
+        clients are answered meanwhile. While another load runs it raises ServerError
+        with code_name ERROR_LOAD_RUNNING (`info().scene_loading` names that load)."""
         if (path is None) == (text is None):
             raise ValueError("load_scene: give exactly one of path or text")
         body = wire.LoadScene(path=path) if path is not None else wire.LoadScene(text=text)

@@ -71,6 +71,28 @@ PatientSample sample_field(const FieldView& v, const Vec3& ijk) {
   return s;
 }
 
+/// The force clamps of every force model: `f` (N) limited to params.max_force_n, then to a
+/// change of at most params.max_force_rate_n_per_s * dt from `previous_n`, the force sent
+/// for the previous pose (`dt_s` <= 0: no previous pose, kNominalHapticPeriodS). A blend of
+/// two forces within the magnitude limit stays within it, so the result keeps both. Sets
+/// `clamped` when either changed the force.
+inline Vec3 clamp_force(Vec3 f, const Vec3& previous_n, const HapticsSettings& params, double dt_s, bool& clamped) {
+  const double fn = norm(f);
+  if (fn > params.max_force_n) {
+    f *= params.max_force_n / fn;
+    clamped = true;
+  }
+  const double dt = dt_s > 0 ? dt_s : kNominalHapticPeriodS;
+  const double max_step_n = params.max_force_rate_n_per_s * dt;
+  const Vec3 df = f - previous_n;
+  const double dfn = norm(df);
+  if (dfn > max_step_n) {
+    f = previous_n + df * (max_step_n / dfn);
+    clamped = true;
+  }
+  return f;
+}
+
 /// What eq. 2, friction, the spring and the clamps give for one pose.
 struct ProxyStep {
   Vec3 force_n{0, 0, 0};   // f = k (x - p), clamped; exactly zero outside the body
@@ -114,22 +136,9 @@ inline ProxyStep proxy_step(const PatientSample& s, const HapticsSettings& param
   Vec3 proxy = out.has_direction ? tip_mm + out.direction * std::max(s.force_mm, 0.0) : tip_mm;
   if (state.in_contact) proxy = proxy * (1.0 - params.friction) + state.proxy_mm * params.friction;
 
-  // spring, then the magnitude clamp, then the rate clamp (a blend of two forces within
-  // the magnitude limit stays within it)
-  Vec3 f = (tip_mm - proxy) * params.stiffness_n_per_mm;
-  const double fn = norm(f);
-  if (fn > params.max_force_n) {
-    f *= params.max_force_n / fn;
-    out.clamped = true;
-  }
-  const double dt = (first || !(dt_s > 0)) ? kNominalHapticPeriodS : dt_s;
-  const double max_step_n = params.max_force_rate_n_per_s * dt;
-  const Vec3 df = f - state.force_n;
-  const double dfn = norm(df);
-  if (dfn > max_step_n) {
-    f = state.force_n + df * (max_step_n / dfn);
-    out.clamped = true;
-  }
+  // spring, then the clamps
+  const Vec3 f = clamp_force((tip_mm - proxy) * params.stiffness_n_per_mm, state.force_n, params,
+                             first ? 0.0 : dt_s, out.clamped);
 
   // a non-finite value (corrupt volumes) resets the state instead of poisoning it
   if (!is_finite(f) || !is_finite(proxy)) {

@@ -321,6 +321,7 @@ bool DeformWorker::serve_deformation(int index) {
       s.resets_seen = slot.reset_requests.load(std::memory_order_acquire);
       s.pose_resets_seen = slot.pose_resets.load(std::memory_order_acquire);
       s.report.session_id = id;
+      s.report.elastic.built = config_.relax && config_.settings.relax_method == "elastic";
     }
     if (had || id != 0) publish(s, index);
   }
@@ -419,6 +420,12 @@ void DeformWorker::reset(Session& s, int index) {
   }
   s.report.deformed = false;
   s.report.max_change_hu = 0;
+  // the tissue at rest presses nothing: the haptic thread's elastic force falls to zero
+  if (s.report.elastic.built) {
+    ElasticModel none;
+    none.pose_server_time_s = now_s();
+    publish_elastic(s, index, none);
+  }
   publish(s, index);
 }
 
@@ -479,7 +486,7 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
       inflight_.push_back({index, c});
     }
   } catch (const std::exception& e) {
-    fail(s, c, e);
+    fail(s, index, c, e);
     publish(s, index);
   }
   // enqueueing (cuda) or the whole step (cpu); complete_inflight() adds the wait
@@ -516,9 +523,9 @@ void DeformWorker::begin_ready() {
     try {
       std::rethrow_exception(errors[i]);
     } catch (const std::exception& e) {
-      fail(s, f.contact, e);
+      fail(s, f.index, f.contact, e);
     } catch (...) {
-      fail(s, f.contact, Error("unknown error"));
+      fail(s, f.index, f.contact, Error("unknown error"));
     }
     publish(s, f.index);
   }
@@ -531,7 +538,7 @@ void DeformWorker::complete_inflight() {
   for (const Inflight& f : inflight_) {
     Session& s = sessions_[f.index];
     const auto t0 = std::chrono::steady_clock::now();
-    complete(s, f.contact);
+    complete(s, f.index, f.contact);
     // the wait for this step (the others' steps overlap it on the GPU, so the worker's
     // step time counts waits, not the sum of the steps)
     step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -541,7 +548,7 @@ void DeformWorker::complete_inflight() {
   inflight_.clear();
 }
 
-void DeformWorker::complete(Session& s, const Contact& c) {
+void DeformWorker::complete(Session& s, int index, const Contact& c) {
   DeformSessionReport& r = s.report;
   try {
     const DeformStats st = s.engine->end_step();
@@ -585,6 +592,18 @@ void DeformWorker::complete(Session& s, const Contact& c) {
     r.last_contact_seq = c.seq;
     r.voi = st.chainmail.voi;
     r.last_step_server_time_s = now_s();
+    // the elastic step's force as a local linear model at the tip it solved for
+    if (r.elastic.built) {
+      const deform::ElasticRun& e = st.elastic;
+      ElasticModel m = make_elastic_model(patient_->grid, c.tip_mm, e.contact && e.contact_nodes > 0, e.force_n,
+                                          e.normal, e.stiffness_n_per_mm, e.depth_mm, e.contact_nodes);
+      m.pose_seq = c.seq;
+      m.pose_server_time_s = c.server_time_s;
+      r.elastic.iterations = e.iterations;
+      r.elastic.stiffness_iterations = e.stiffness_iterations;
+      r.elastic.converged = e.converged;
+      publish_elastic(s, index, m);
+    }
     if (!st.chainmail.converged) {
       ++r.non_converged;
       r.last_error = "ChainMail did not converge within deform.max_sweeps = " +
@@ -597,11 +616,11 @@ void DeformWorker::complete(Session& s, const Contact& c) {
     add_times(server_.sum, st.times);
     if (!st.chainmail.converged) ++server_.non_converged;
   } catch (const std::exception& e) {
-    fail(s, c, e);
+    fail(s, index, c, e);
   }
 }
 
-void DeformWorker::fail(Session& s, const Contact& c, const std::exception& e) {
+void DeformWorker::fail(Session& s, int index, const Contact& c, const std::exception& e) {
   // a failed step poisons nothing: the session's deformation starts again from undeformed
   DeformSessionReport& r = s.report;
   ++r.failures;
@@ -614,8 +633,27 @@ void DeformWorker::fail(Session& s, const Contact& c, const std::exception& e) {
   }
   r.deformed = false;
   r.max_change_hu = 0;
+  if (r.elastic.built) {
+    ElasticModel none;
+    none.pose_seq = c.seq;
+    none.pose_server_time_s = c.server_time_s;
+    publish_elastic(s, index, none);
+  }
   std::lock_guard<std::mutex> lock(report_mu_);
   ++server_.failures;
+}
+
+void DeformWorker::publish_elastic(Session& s, int index, const ElasticModel& m) {
+  ElasticForceReport& r = s.report.elastic;
+  r.model = m;
+  r.model.session_id = s.id;
+  r.model.generation = generation_;
+  // with haptics.force_model "elastic" the haptic thread renders it (newest wins; never waits)
+  if (config_.elastic_stiffness) {
+    sh_.slots[index].elastic_model.back() = r.model;
+    sh_.slots[index].elastic_model.publish();
+    ++r.models_published;
+  }
 }
 
 void DeformWorker::export_watched(int index) {

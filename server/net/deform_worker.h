@@ -24,6 +24,17 @@
 
 namespace palpsim::net {
 
+/// The latest elastic step's force (deform.relax_method "elastic"; ElasticForceStats).
+struct ElasticForceReport {
+  bool built = false;                  // the scene's relaxation is the elastic model
+  ElasticModel model;                  // the latest step's local linear model (physical; contact false before
+                                       // the first step, after a release, reset or failure)
+  int iterations = 0;                  // latest step: CG steps over its contact rounds
+  int stiffness_iterations = 0;        // ... and of its unit press (0 unless haptics.force_model "elastic")
+  bool converged = true;               // ... every round reached deform.elastic.tolerance
+  std::uint64_t models_published = 0;  // models handed to the haptic thread (haptics.force_model "elastic")
+};
+
 /// One session's deformation as the worker reports it (copied out for the stats reply).
 struct DeformSessionReport {
   std::uint64_t session_id = 0;
@@ -55,6 +66,7 @@ struct DeformSessionReport {
   double last_step_server_time_s = 0;  // server clock when the latest step ended
   Voi voi;                             // latest step's VOI (patient voxel indices)
   DeformMemory memory;                 // what the session's engine holds (bytes)
+  ElasticForceReport elastic;          // the elastic model's force
 };
 
 /// The whole deformation path of the server (all sessions, spare engines included).
@@ -136,12 +148,13 @@ class DeformWorker {
   bool prime(Session& s, int index, const Vec3& tip_mm);  // primes the unit response where a tip out of the body will touch; true: it ran
   void begin_ready();                                     // begins the readied steps, batched
   void complete_inflight();                               // finishes every step in flight, in order
-  void complete(Session& s, const Contact& c);            // finishes one: checks, counts, reports
-  void fail(Session& s, const Contact& c, const std::exception& e);  // a step that threw: reset, counted
+  void complete(Session& s, int index, const Contact& c);  // finishes one: checks, counts, reports
+  void fail(Session& s, int index, const Contact& c, const std::exception& e);  // a step that threw: reset, counted
   void reset(Session& s, int index);
   std::unique_ptr<DeformEngine> take_engine();
   void give_back(std::unique_ptr<DeformEngine> engine);
   void publish(const Session& s, int index);
+  void publish_elastic(Session& s, int index, const ElasticModel& m);  // the session's newest model, to stats and the haptic thread
   void publish_worker_times();  // the worker's wall, step and nap times into server_ (report_mu_ held)
   void answer_request();
   double now_s() const;

@@ -220,6 +220,8 @@ class PoseService {
       slot->resets_seen = resets;
       slot->state_generation = world_->generation;
       slot->proxy = ProxyState{};
+      slot->elastic = ElasticRenderState{};
+      slot->elastic.left_s = t_recv * 1e-9;  // models of poses before the reset are not taken
       slot->last_client_time_s = 0;
       slot->last_server_time_s = 0;
       // the deformation worker resets the session's deformation too
@@ -238,7 +240,8 @@ class PoseService {
 
     HapticsSettings params = slot->params();
     params.skin_point = world_->scene.haptics.skin_point;  // scene-wide, not a session parameter
-    const ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
+    ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
+    if (world_->scene.haptics.force_model == ForceModel::kElastic) render_elastic_force(*slot, params, tip, dt, now_s, f);
     if (edge != 0) serve_patches(*slot, params, tip, edge, period, now_s, tc);
     slot->renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);
     if (req_.renders_locally()) slot->local_poses.fetch_add(1, std::memory_order_relaxed);
@@ -274,6 +277,25 @@ class PoseService {
     sh_.counters.poses.fetch_add(1, std::memory_order_relaxed);
     sh_.pose_service.add(service_us);
     send(req_envelope);
+  }
+
+  // haptics.force_model "elastic": eq. 2's pass above gave contact, X and depth; the force is
+  // the elastic model's, from the newest local linear model the deformation worker published
+  // for this session and world (taken without waiting; a value copied once per model)
+  void render_elastic_force(SessionSlot& slot, const HapticsSettings& params, const Vec3& tip, double dt,
+                            double now_s, ForceSample& f) {
+    const ElasticModel* fresh = nullptr;
+    if (slot.elastic_model.take()) {
+      const ElasticModel& m = slot.elastic_model.front();
+      if (m.session_id == slot.state_id && m.generation == world_->generation) fresh = &m;
+    }
+    HapticsSettings p = params;
+    p.elastic_max_jump_n = world_->scene.haptics.elastic_max_jump_n;  // scene-wide
+    const ElasticRenderStep e = render_elastic(slot.elastic, fresh, p, tip, f.contact, dt, now_s);
+    slot.elastic_counters.add(e);
+    f.force_n = e.force_n;
+    f.clamped = e.clamped;
+    f.reset = f.reset || e.reset;
   }
 
   // a patch is due once per period, and sooner (a quarter period) when the tip comes within

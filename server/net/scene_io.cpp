@@ -240,6 +240,16 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.effects.bricks = e.bricks();
   if ((out.effects.relaxation || out.effects.inversion) && !out.effects.chainmail)
     throw Error(origin + ": effects.relaxation and effects.inversion need effects.chainmail: true");
+  // the elastic force is the elastic step's reaction: without that step there is none to render
+  if (out.haptics.force_model == ForceModel::kElastic) {
+    if (out.deform.relax_method != "elastic")
+      throw Error(origin + ": haptics.force_model = \"elastic\" needs deform.relax_method = \"elastic\" (got \"" +
+                  out.deform.relax_method + "\"): the force is the elastic step's reaction on the fingertip");
+    if (!out.effects.chainmail || !out.effects.relaxation)
+      throw Error(origin +
+                  ": haptics.force_model = \"elastic\" needs effects.chainmail: true and effects.relaxation: true "
+                  "(the deformation worker's elastic step computes the force)");
+  }
 
   out.server.session_timeout_s = s.server().session_timeout_s();
   out.server.max_sessions = s.server().max_sessions();

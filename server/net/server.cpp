@@ -102,6 +102,28 @@ void fill_times(v1::DeformTimes* out, const DeformTimes& t, double scale) {
   out->set_total_ms(t.total_ms * scale);
 }
 
+// the latest elastic step's model (the worker's report) and the haptic thread's rendering of such models
+void fill_elastic(v1::ElasticForceStats* out, const ElasticForceReport& r, const ElasticRenderCounters& c) {
+  const ElasticModel& m = r.model;
+  out->set_contact(m.contact);
+  set_vec(out->mutable_force_n(), m.f0_n);
+  set_vec(out->mutable_contact_point_mm(), m.x0_mm);
+  set_vec(out->mutable_normal(), m.normal);
+  out->set_stiffness_n_per_mm(m.stiffness_n_per_mm);
+  out->set_depth_mm(m.depth_mm);
+  out->set_contact_nodes(std::uint32_t(m.contact_nodes));
+  out->set_model_pose_seq(m.pose_seq);
+  out->set_model_pose_server_time_s(m.pose_server_time_s);
+  out->set_iterations(std::uint32_t(r.iterations));
+  out->set_stiffness_iterations(std::uint32_t(r.stiffness_iterations));
+  out->set_converged(r.converged);
+  out->set_models_published(r.models_published);
+  out->set_models_taken(c.models_taken.load(std::memory_order_relaxed));
+  out->set_largest_jump_n(c.largest_jump_n.load(std::memory_order_relaxed));
+  out->set_jumps_bounded(c.jumps_bounded.load(std::memory_order_relaxed));
+  out->set_passivity_limited(c.passivity_limited.load(std::memory_order_relaxed));
+}
+
 void add_stage(google::protobuf::RepeatedPtrField<v1::StageInfo>* out, const char* name, bool built,
                std::uint64_t bytes, double mean_ms, std::uint64_t runs) {
   auto* st = out->Add();
@@ -655,6 +677,7 @@ class Server::Control {
     s.clamps = 0;
     s.local_models_sent = 0;
     s.local_poses = 0;
+    s.elastic_counters.clear();
     s.renders_locally = false;
     s.contact = false;
     s.depth_mm = 0;
@@ -832,6 +855,7 @@ class Server::Control {
       add_deform_stages(ss->mutable_stages(), has ? &r : nullptr, d.built, d.relax, d.invert);
       fill_session_stream(ss, id);
       if (has) fill_deform(ss->mutable_deform(), r);
+      if (has && r.elastic.built) fill_elastic(ss->mutable_deform()->mutable_elastic(), r.elastic, slot->elastic_counters);
     }
   }
 

@@ -13,7 +13,9 @@
 
 #include "core/patient.h"
 #include "core/scene.h"
+#include "core/latest.h"
 #include "haptics/contact_slot.h"
+#include "haptics/elastic_force.h"
 #include "haptics/force_model.h"
 #include "net/patch_worker.h"
 
@@ -40,6 +42,32 @@ constexpr int kMaxSlots = 4096;
 /// Low bits of a session id that hold its slot index.
 constexpr int kSlotBits = 12;
 
+/// What the haptic thread's elastic renderer did for a session (haptics.force_model
+/// "elastic"; ElasticForceStats in wire.proto): the pose thread adds, anyone reads, the
+/// control thread clears when a session opens.
+struct ElasticRenderCounters {
+  std::atomic<std::uint64_t> models_taken{0};       // models the renderer started rendering
+  std::atomic<std::uint64_t> jumps_bounded{0};      // updates whose jump was over elastic_max_jump_n
+  std::atomic<std::uint64_t> passivity_limited{0};  // poses whose force the energy bound lowered
+  std::atomic<double> largest_jump_n{0};            // the largest update jump (N)
+
+  /// Adds one pose's step (pose thread only: one writer).
+  void add(const ElasticRenderStep& e) {
+    if (e.updated) models_taken.fetch_add(1, std::memory_order_relaxed);
+    if (e.jump_bounded) jumps_bounded.fetch_add(1, std::memory_order_relaxed);
+    if (e.passivity_limited) passivity_limited.fetch_add(1, std::memory_order_relaxed);
+    if (e.jump_n > largest_jump_n.load(std::memory_order_relaxed))
+      largest_jump_n.store(e.jump_n, std::memory_order_relaxed);
+  }
+  /// Zeroes them (control thread, before the session's id is published).
+  void clear() {
+    models_taken = 0;
+    jumps_bounded = 0;
+    passivity_limited = 0;
+    largest_jump_n = 0;
+  }
+};
+
 /// One session's slot. Fields marked (control) are written by the control thread only,
 /// (pose) by the pose thread only; atomics may be read by either.
 struct SessionSlot {
@@ -60,6 +88,12 @@ struct SessionSlot {
   std::atomic<bool> renders_locally{false};                          // the last pose said so
   // the newest contact, for the deformation path (pose writes, anyone reads)
   ContactSlot latest;
+  // the elastic force (haptics.force_model "elastic"): the deformation worker publishes each
+  // step's local linear model (worker writes, pose reads: newest wins, neither waits), the
+  // pose thread renders it (its state and counters)
+  Latest<ElasticModel> elastic_model;
+  ElasticRenderState elastic;          // (pose)
+  ElasticRenderCounters elastic_counters;
   // (pose) the proxy state and what it belongs to
   std::uint64_t state_id = 0;          // the session id the state below belongs to
   std::uint32_t resets_seen = 0;       // reset_requests already applied

@@ -12,7 +12,7 @@
 
 #include "integration/server_process.h"
 #include "palpsim/wire.pb.h"
-#include "support/zmq_exchange.h"
+#include "support/pose_session.h"
 
 using namespace palpsim;
 namespace v1 = palpsim::v1;
@@ -47,51 +47,21 @@ struct Pressed {
 };
 
 Pressed press_and_wait(ServerProcess& server, bool hover = false) {
-  zmq::context_t ctx(1);
-  zmq::socket_t ctl(ctx, zmq::socket_type::dealer), pose(ctx, zmq::socket_type::dealer);
-  ctl.set(zmq::sockopt::linger, 0);
-  pose.set(zmq::sockopt::linger, 0);
-  ctl.connect(server.control());
-  pose.connect(server.pose());
-  v1::ControlRequest q;
-  q.set_schema_version(1);
-  q.mutable_open()->set_client_name("deform-integration");
-  const auto open = test::exchange<v1::ControlReply>(ctl, q, kReplyTimeoutMs);
-  REQUIRE(open.has_open());
-  const std::uint64_t id = open.open().session_id();
-  const auto& info = open.open().server();
+  test::PoseSession session(server.control(), server.pose(), "deform-integration", kReplyTimeoutMs);
+  const auto& info = session.open.server();
   CHECK(std::find(info.stages().begin(), info.stages().end(), "chainmail") != info.stages().end());
 
   const auto& lo = info.patient().body_min_mm();
   const auto& hi = info.patient().body_max_mm();
   const double x = 0.5 * (lo.x() + hi.x()), z = 0.5 * (lo.z() + hi.z());
-  std::uint64_t seq = 0;
-  v1::ControlRequest sq;
-  sq.set_schema_version(1);
-  sq.mutable_stats()->set_session_id(id);
   // one pose with the tip at height y (mm), answered without error; returns the reply
-  auto send = [&](double y) {
-    v1::PoseRequest p;
-    p.set_schema_version(1);
-    p.set_session_id(id);
-    p.set_seq(++seq);
-    p.set_client_time_s(1 + seq * 1e-3);
-    p.mutable_tip_mm()->set_x(x);
-    p.mutable_tip_mm()->set_y(y);
-    p.mutable_tip_mm()->set_z(z);
-    const auto r = test::exchange<v1::PoseReply>(pose, p, kReplyTimeoutMs);
-    REQUIRE(r.error().code() == v1::ERROR_NONE);
-    REQUIRE(r.seq() == seq);
-    return r;
-  };
+  auto send = [&](double y) { return session.send({x, y, z}); };
   if (hover) {
     const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
     bool primed = false;
     while (!primed && std::chrono::steady_clock::now() < until) {
       REQUIRE_FALSE(send(hi.y() + 5).contact());
-      const auto st = test::exchange<v1::ControlReply>(ctl, sq, kReplyTimeoutMs);
-      REQUIRE(st.has_stats());
-      primed = st.stats().session().deform().multigrid_primes() >= 1;
+      primed = session.stats().session().deform().multigrid_primes() >= 1;
       if (!primed) std::this_thread::sleep_for(std::chrono::milliseconds(2));
     }
     REQUIRE(primed);
@@ -102,13 +72,11 @@ Pressed press_and_wait(ServerProcess& server, bool hover = false) {
 
   // the worker ends on the last contact
   Pressed out;
-  out.last_seq = seq;
+  out.last_seq = session.seq;
   const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
   do {
-    const auto r = test::exchange<v1::ControlReply>(ctl, sq, kReplyTimeoutMs);
-    REQUIRE(r.has_stats());
-    out.stats = r.stats();
-    if (out.stats.session().deform().last_contact_seq() == seq) break;
+    out.stats = session.stats();
+    if (out.stats.session().deform().last_contact_seq() == session.seq) break;
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
   } while (std::chrono::steady_clock::now() < end);
   return out;

@@ -171,3 +171,27 @@ TEST_CASE("an empty scene file, a folder, a FIFO and a path holding a NUL are re
   // text that sets no field, as LoadScene's text
   CHECK_THAT(error_of("# nothing\n"), Catch::Contains("empty"));
 }
+
+TEST_CASE("haptics.force_model \"elastic\" needs the elastic step, and a scene without it is refused naming both fields") {
+  const std::string elastic_deform =
+      "phantom {} haptics { force_model: \"elastic\" } deform { relax_method: \"elastic\" grab_radius_mm: 5 } ";
+  const Scene s = parse_scene_text(elastic_deform + "effects { chainmail: true relaxation: true }", "x.textproto");
+  CHECK(s.haptics.force_model == ForceModel::kElastic);
+  CHECK(DeformConfig::from_scene(s).elastic_stiffness);
+  CHECK(parse_scene_text("phantom {}", "x.textproto").haptics.force_model == ForceModel::kProxy);
+  // another relaxation has no reaction force to render
+  for (const char* method : {"explicit", "multigrid"}) {
+    const std::string e = error_of(std::string("phantom {} haptics { force_model: \"elastic\" } deform { relax_method: \"") +
+                                   method + "\" } effects { chainmail: true relaxation: true }");
+    INFO(e);
+    CHECK(e.find("test.textproto") != std::string::npos);
+    CHECK(e.find("haptics.force_model") != std::string::npos);
+    CHECK(e.find("deform.relax_method") != std::string::npos);
+    CHECK(e.find(std::string("\"") + method + "\"") != std::string::npos);
+  }
+  // nor does a scene that builds no elastic step
+  const std::string e = error_of(elastic_deform + "effects { chainmail: true }");
+  CHECK(e.find("haptics.force_model") != std::string::npos);
+  CHECK(e.find("effects.relaxation") != std::string::npos);
+  CHECK(error_of(elastic_deform).find("effects.chainmail") != std::string::npos);
+}

@@ -355,7 +355,9 @@ class Session:
         """This session's counters and parameters, its stages, and its deformation
         (`.deform`, a DeformSessionStats: steps, dropped contacts, stage times in ms,
         moved elements, sweeps, converged, inversion residual, backend; unset when the
-        scene asks for no deformation: check `.HasField("deform")`)."""
+        scene asks for no deformation: check `.HasField("deform")`). With the elastic
+        model, `.deform.elastic` (ElasticForceStats) holds the latest step's force on the
+        fingertip and its stiffness, and the jumps the haptic thread saw rendering them."""
         return self.client._request("stats", wire.StatsRequest(session_id=self.id)).session
 
     def close(self) -> int:

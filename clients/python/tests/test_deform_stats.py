@@ -22,6 +22,13 @@ phantom { voxel_mm: 4.0 }
 deform { voi_edge: 32 relax_iterations: 10 backend: "cpu" }
 effects { haptics: true chainmail: true relaxation: true inversion: true }
 """
+ELASTIC = """
+name: "phantom 4 mm, elastic force (python stats test)"
+phantom { voxel_mm: 4.0 }
+haptics { force_model: "elastic" }
+deform { voi_edge: 32 relax_method: "elastic" grab_radius_mm: 8 backend: "cpu" }
+effects { haptics: true chainmail: true relaxation: true }
+"""
 HAPTICS_ONLY = """
 name: "phantom 4 mm, haptics only (python stats test)"
 phantom { voxel_mm: 4.0 }
@@ -98,5 +105,41 @@ def test_haptics_only_scene_builds_no_deformation(tmp_path):
                 for n in ("chainmail", "relaxation", "inversion"):
                     assert not g[n].built and g[n].bytes_allocated == 0 and g[n].runs == 0
             assert c.stats().server.deform_backend == ""
+    finally:
+        assert srv.stop() == 0
+
+
+def test_elastic_force_stats_come_through_the_client(tmp_path):
+    """A press held 8 mm under the body's top: once the worker has stepped on the held tip,
+    the pose reply's force is the step's force in the stats (the same doubles: 1e-9 N)."""
+    srv = _server(tmp_path, ELASTIC)
+    srv.start()
+    try:
+        with Client(srv.address) as c, c.open_session("elastic-stats") as s:
+            info = s.server_info
+            lo, hi = info.patient.body_min_mm, info.patient.body_max_mm
+            x, z = 0.5 * (lo.x + hi.x), 0.5 * (lo.z + hi.z)
+            y = hi.y - 8
+            t = 1.0
+            for i in range(201):
+                t += 1e-3
+                s.pose((x, hi.y + 5 - 13 * i / 200, z), client_time_s=t)
+            t += 1e-3
+            hold = s.pose((x, y, z), client_time_s=t)
+            deadline = time.monotonic() + WORKER_WAIT_S
+            e = s.stats().deform.elastic
+            while e.model_pose_seq < hold.seq and time.monotonic() < deadline:
+                time.sleep(0.02)
+                e = s.stats().deform.elastic
+            assert e.model_pose_seq >= hold.seq and e.contact
+            # a jump is taken in steps of 0.05 N (the default elastic_max_jump_n) a pose, and no
+            # force is above max_force_n = 3.3 N: 66 poses take any jump
+            for i in range(70):
+                t += 1e-3
+                r = s.pose((x, y, z), client_time_s=t)
+            e = s.stats().deform.elastic
+            assert r.contact and r.force_n[1] > 0 and e.stiffness_n_per_mm > 0
+            assert abs(r.force_n[1] - e.force_n.y) < 1e-9 and abs(r.force_n[0] - e.force_n.x) < 1e-9
+            assert e.models_taken >= 1 and e.models_published >= e.models_taken
     finally:
         assert srv.stop() == 0

@@ -171,3 +171,18 @@ TEST_CASE("an empty scene file, a folder, a FIFO and a path holding a NUL are re
   // text that sets no field, as LoadScene's text
   CHECK_THAT(error_of("# nothing\n"), Catch::Contains("empty"));
 }
+
+TEST_CASE("a scene's elastic modulus table is read point by point, each point range-checked at its location") {
+  const Scene s = parse_scene_text(
+      "phantom {}\ndeform {\n  elastic {\n    modulus { point { hu: -100 e_kpa: 3.5 } point { hu: 40 e_kpa: 11 } }\n  }\n}\n",
+      "test.textproto");
+  REQUIRE(s.deform.elastic.modulus.size() == 2);
+  CHECK(s.deform.elastic.modulus[0].hu == -100);
+  CHECK(s.deform.elastic.modulus[0].e_kpa == 3.5);
+  CHECK(s.deform.elastic.modulus[1].hu == 40);
+  CHECK(s.deform.elastic.modulus[1].e_kpa == 11);
+  // a point's hu beyond the schema's range [-1e6, 1e6] HU: the point, its line and column
+  const std::string e = error_of("phantom {}\ndeform { elastic { modulus {\n  point { hu: 0 e_kpa: 3 }\n  point { hu: 2e6 e_kpa: 4 }\n} } }\n");
+  CHECK_THAT(e, Catch::Contains("test.textproto:4:11") && Catch::Contains("deform.elastic.modulus.point[1].hu") &&
+                    Catch::Contains("out of range"));
+}

@@ -445,3 +445,28 @@ TEST_CASE("elastic settings are refused with the field named", "[elastic]") {
     CHECK(refused(c, "deform.grab_radius_mm"));
   }
 }
+
+TEST_CASE("the elastic model refuses a patient without a body mask or depth under the skin", "[elastic]") {
+  // a patient with intensity and bone only (what ChainMail and relaxation read): the elastic
+  // model reads the body mask (skin, air) and the depth under the skin (the skin layer) too
+  auto bare = std::make_shared<Patient>();
+  bare->grid.size = {16, 16, 16};
+  bare->intensity = Volume<float>(bare->grid, 40.0f);
+  bare->bone = Volume<std::uint8_t>(bare->grid, 0);
+  DeformConfig cfg;
+  cfg.settings.relax_method = "elastic";
+  cfg.settings.grab_radius_mm = 5;
+  cfg.settings.voi_edge = 16;
+  CpuDeformBackend b;
+  CHECK_THROWS_WITH(b.bind(bare, cfg), Catch::Contains("Patient::body"));
+  bare->body = Volume<std::uint8_t>(bare->grid, 1);
+  CHECK_THROWS_WITH(b.bind(bare, cfg), Catch::Contains("Patient::dist_skin_mm"));
+  bare->dist_skin_mm = Volume<float>(bare->grid, 10.0f);
+  CHECK_NOTHROW(b.bind(bare, cfg));
+  // the other models do without them
+  cfg.settings.relax_method = "multigrid";
+  auto plain = std::make_shared<Patient>(*bare);
+  plain->body = Volume<std::uint8_t>();
+  plain->dist_skin_mm = Volume<float>();
+  CHECK_NOTHROW(b.bind(plain, cfg));
+}

@@ -528,7 +528,8 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
     each_node(voi.size, [&](int i, int j, int kk) {
       const long long e = voi.index(i, j, kk);
       const int a = i + voi.lo.x - last.lo.x, b = j + voi.lo.y - last.lo.y, c = kk + voi.lo.z - last.lo.z;
-      const bool carry = had && last.contains(a, b, c);
+      // held nodes (the new VOI's faces, bone) stay at rest: the solve keeps what they hold
+      const bool carry = had && last.contains(a, b, c) && !(s.flags[std::size_t(e)] & kElasticHeld);
       s.u[std::size_t(e)] = carry ? s.tmp_u[std::size_t(last.index(a, b, c))] : Vec3f{0, 0, 0};
       if (carry) s.flags[std::size_t(e)] |= s.tmp_flags[std::size_t(last.index(a, b, c))] & kElasticContact;
     });

@@ -14,6 +14,13 @@
 
 namespace palpsim::deform {
 
+/// The elastic model's VOI holds the grabbed voxel (X's, on the skin under the finger) this
+/// many voxels from its faces (compute_voi's margin): its faces are held at rest, and a
+/// press deeper than half the VOI's edge, which centres on the tip, would otherwise hold
+/// the skin layer under the finger on a face, pressing nothing. Two: the skin's node and
+/// the one outside it are off the face.
+constexpr int kElasticVoiMarginVox = 2;
+
 /// The 24 x 24 stiffness of one box cell with edges `h_mm` (mm) for E = 1 kPa and
 /// Poisson ratio `nu`, by selective reduced integration (mu part 2x2x2 Gauss points, lambda
 /// part the centre), row-major, rows and columns 3 corner + component (elastic_corner()

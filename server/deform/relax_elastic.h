@@ -131,6 +131,11 @@ ElasticRun relax_elastic_cpu(const Patient& p, const Voi& voi, const Vec3& skin_
 /// A tip outside presses nothing, whatever the skin point.
 bool elastic_tip_inside(const Patient& p, const Vec3& tip_vox);
 
+/// The cells of a VOI's field `u_vox` (voxel, VOI-local, i fastest) whose deformation folds:
+/// det(I + grad u) <= 0 at a corner or the centre (deform_math.h's cell_min_det), among the
+/// cells with a moved corner (ElasticRun::inverted_cells).
+long long elastic_inverted_cells(const Voi& voi, const Vec3f* u_vox);
+
 /// The bytes an ElasticCpu holds (capacities).
 std::size_t elastic_cpu_bytes(const ElasticCpu& s);
 

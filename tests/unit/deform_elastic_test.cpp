@@ -10,6 +10,7 @@
 #include "core/error.h"
 #include "deform/cpu_backend.h"
 #include "deform/relax_elastic.h"
+#include "support/deform_fixtures.h"
 #include "support/synthetic_patient.h"
 
 using namespace palpsim;
@@ -495,14 +496,7 @@ TEST_CASE("a warm step whose VOI moved holds the new VOI's faces at rest", "[ela
   const Voi voi = b.voi();
   REQUIRE_FALSE(voi == before);
   const std::vector<Vec3f> u = b.displacement();
-  long long moved = 0;
-  for (int k = 0; k < voi.size.z; ++k)
-    for (int j = 0; j < voi.size.y; ++j)
-      for (int i = 0; i < voi.size.x; ++i) {
-        const bool face = i == 0 || j == 0 || k == 0 || i + 1 == voi.size.x || j + 1 == voi.size.y || k + 1 == voi.size.z;
-        moved += face && !(u[std::size_t(voi.index(i, j, k))] == Vec3f{0, 0, 0});
-      }
-  CHECK(moved == 0);
+  CHECK(moved_on_faces(voi, u) == 0);
   // and the warm step ends where a step from rest does: the same held faces and contact,
   // each solved to the tolerance (1e-3 of the residual of the contact's displacements;
   // measured 0.8 % of the largest displacement apart; 2 % bounds it)

@@ -50,23 +50,24 @@ float finger_r2(const DeformSettings& s, const Grid& g) {
   return float(r * r);
 }
 
-Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole) {
+Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole, int margin) {
   Voi v;
   if (whole) {
     v.size = grid_size;
     return v;
   }
+  const int m = std::clamp(margin, 0, (edge - 1) / 2);
   for (int a = 0; a < 3; ++a) {
     // centre on the tip
     int lo = tip[a] - edge / 2;
     int hi = lo + edge - 1;
-    // shift the least so that the grabbed voxel is inside
-    if (grabbed[a] < lo) {
-      hi -= lo - grabbed[a];
-      lo = grabbed[a];
-    } else if (grabbed[a] > hi) {
-      lo += grabbed[a] - hi;
-      hi = grabbed[a];
+    // shift the least so that the grabbed voxel is inside, m voxels from the faces
+    if (grabbed[a] - m < lo) {
+      hi -= lo - (grabbed[a] - m);
+      lo = grabbed[a] - m;
+    } else if (grabbed[a] + m > hi) {
+      lo += grabbed[a] + m - hi;
+      hi = grabbed[a] + m;
     }
     // clip at the volume border
     lo = std::max(lo, 0);
@@ -213,6 +214,13 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
   require(p.bone.grid.same_geometry(p.grid) && p.bone.data.size() == p.grid.count(),
           "Patient::bone does not match the patient grid");
   check_deform_config(config, "deform backend \"" + name_ + "\"");
+  // the elastic model also reads the body mask (skin and air) and the depth under the skin
+  if (config.relax && s.relax_method == "elastic") {
+    require(p.body.grid.same_geometry(p.grid) && p.body.data.size() == p.grid.count(),
+            "deform.relax_method \"elastic\" needs Patient::body (the body mask) on the patient grid");
+    require(p.dist_skin_mm.grid.same_geometry(p.grid) && p.dist_skin_mm.data.size() == p.grid.count(),
+            "deform.relax_method \"elastic\" needs Patient::dist_skin_mm (the depth under the skin) on the patient grid");
+  }
 
   patient_ = std::move(patient);
   config_ = config;
@@ -225,6 +233,7 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
     held_blocks_ = deform::HeldBlocks::of(patient_, float(config.bone_threshold), float(s.material_width));
   voi_hold_ = config.voi_hold && config.relax && !s.whole_volume &&
               ((config.relax_reuse && s.relax_method == "multigrid" && s.relax_cycles > 0) || s.relax_method == "elastic");
+  voi_margin_ = config.relax && s.relax_method == "elastic" ? deform::kElasticVoiMarginVox : 0;
   hold_voi_ = Voi{};
   voi_ = Voi{};
   setup_ = ChainMailStats{};
@@ -259,7 +268,7 @@ ChainMailStats DeformBackend::locate(const DeformContact& c, Vec3i* tip_vox) con
   st.tip_vox = x;
   st.grabbed_u_vox = Vec3f(float(x.x - e0.x), float(x.y - e0.y), float(x.z - e0.z));
   st.grabbed_in_bone = patient_->bone.data[grid.index(e0.x, e0.y, e0.z)] != 0;
-  st.voi = compute_voi(grid.size, e0, t, config_.settings.voi_edge, config_.settings.whole_volume);
+  st.voi = compute_voi(grid.size, e0, t, config_.settings.voi_edge, config_.settings.whole_volume, voi_margin_);
   if (tip_vox) *tip_vox = t;
   return st;
 }
@@ -271,13 +280,18 @@ ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
   const Vec3i& e0 = st.grabbed_vox;
   // a multigrid press keeps its VOI (and so its unit response) while the tip voxel stays
   // within edge / 8 voxels of the one it was placed around and it holds the grabbed voxel
-  // (DeformConfig::voi_hold)
+  // (DeformConfig::voi_hold; the elastic model's: as far from its faces as compute_voi
+  // puts it, where the face is not the grid's border)
   if (voi_hold_) {
     const int slack = std::max(1, config_.settings.voi_edge / 8);
+    const int m = std::clamp(voi_margin_, 0, (config_.settings.voi_edge - 1) / 2);
+    const Vec3i& g = patient_->grid.size;
     bool keep = hold_voi_.count() > 0;
-    for (int a = 0; a < 3; ++a)
-      keep = keep && std::abs(t[a] - hold_tip_[a]) <= slack && e0[a] >= hold_voi_.lo[a] &&
-             e0[a] < hold_voi_.lo[a] + hold_voi_.size[a];
+    for (int a = 0; a < 3; ++a) {
+      const int lo = hold_voi_.lo[a], hi = hold_voi_.lo[a] + hold_voi_.size[a] - 1;
+      keep = keep && std::abs(t[a] - hold_tip_[a]) <= slack && e0[a] >= lo + (lo > 0 ? m : 0) &&
+             e0[a] <= hi - (hi < g[a] - 1 ? m : 0);
+    }
     if (keep) {
       st.voi = hold_voi_;
     } else {

@@ -328,7 +328,8 @@ class DeformBackend {
   /// DeformConfig::skip_chainmail; null otherwise): steps whose VOI has none skip ChainMail.
   std::shared_ptr<const deform::HeldBlocks> held_blocks_;
   float finger_r2_ = 0;       // finger_r2() of the bound settings and patient (voxel^2)
-  bool voi_hold_ = false;     // DeformConfig::voi_hold applies (multigrid relaxation that reuses)
+  bool voi_hold_ = false;     // DeformConfig::voi_hold applies (multigrid relaxation that reuses, elastic)
+  int voi_margin_ = 0;        // compute_voi's margin around the grabbed voxel (voxel; the elastic model's)
   Voi hold_voi_;              // the VOI held since bind() or reset() (empty: none) ...
   Vec3i hold_tip_{0, 0, 0};   // ... and the tip voxel it was placed around
   int gpu_share_ = 1;         // set_gpu_share(): the 1/k of the device each persistent kernel may take
@@ -348,9 +349,10 @@ class DeformBackend {
 };
 
 /// The VOI of a step: a cube of edge `edge` centred on the tip voxel, shifted the
-/// least so that it holds the grabbed voxel, then clipped at the volume border; the
-/// whole grid when `whole`. Both backends use it.
-Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole);
+/// least so that it holds the grabbed voxel at least `margin` voxels (at most (edge - 1) /
+/// 2) from its faces, then clipped at the volume border; the whole grid when `whole`. Both
+/// backends use it; the elastic model asks for deform::kElasticVoiMarginVox.
+Voi compute_voi(const Vec3i& grid_size, const Vec3i& grabbed, const Vec3i& tip, int edge, bool whole, int margin = 0);
 
 /// The fingertip's radius squared in voxels^2 on grid `g` (deform.grab_radius_mm over the
 /// smallest voxel edge; 0: the grabbed element alone), as the multigrid solvers test it.

@@ -425,27 +425,6 @@ void coarsen_contact(const Levels& L) {
   }
 }
 
-// the cells of the field u (mm, VOI-local) whose deformation folds
-long long count_inverted(const Voi& voi, const Vec3& h, const Vec3f* u) {
-  auto load = [&](int i, int j, int k) {
-    const Vec3f& v = u[voi.index(i, j, k)];
-    return Vec3f{float(v.x / h.x), float(v.y / h.y), float(v.z / h.z)};
-  };
-  long long n = 0;
-  for (int k = 0; k + 1 < voi.size.z; ++k)
-    for (int j = 0; j + 1 < voi.size.y; ++j)
-      for (int i = 0; i + 1 < voi.size.x; ++i) {
-        bool moved = false;
-        for (int c = 0; c < 8 && !moved; ++c) {
-          const Vec3i o = elastic_corner(c);
-          const Vec3f& v = u[voi.index(i + o.x, j + o.y, k + o.z)];
-          moved = v.x != 0.0f || v.y != 0.0f || v.z != 0.0f;
-        }
-        if (moved && !(cell_min_det(load, i, j, k) > 0.0f)) ++n;
-      }
-  return n;
-}
-
 }  // namespace
 
 ElasticSolve elastic_solve_cpu(ElasticCpu& s, const Vec3f& nrm, Vec3f* u, int max_iterations, float tolerance) {
@@ -500,6 +479,23 @@ bool elastic_tip_inside(const Patient& p, const Vec3& tip_vox) {
   return c > 0.5f;
 }
 
+long long elastic_inverted_cells(const Voi& voi, const Vec3f* u_vox) {
+  auto load = [&](int i, int j, int k) { return u_vox[voi.index(i, j, k)]; };
+  long long n = 0;
+  for (int k = 0; k + 1 < voi.size.z; ++k)
+    for (int j = 0; j + 1 < voi.size.y; ++j)
+      for (int i = 0; i + 1 < voi.size.x; ++i) {
+        bool moved = false;
+        for (int c = 0; c < 8 && !moved; ++c) {
+          const Vec3i o = elastic_corner(c);
+          const Vec3f v = load(i + o.x, j + o.y, k + o.z);
+          moved = v.x != 0.0f || v.y != 0.0f || v.z != 0.0f;
+        }
+        if (moved && !(cell_min_det(load, i, j, k) > 0.0f)) ++n;
+      }
+  return n;
+}
+
 std::size_t elastic_cpu_bytes(const ElasticCpu& s) {
   auto b = [](const auto& v) { return v.capacity() * sizeof(v[0]); };
   return b(s.u) + b(s.u_unit) + b(s.r) + b(s.z) + b(s.p) + b(s.q) + b(s.ku) + b(s.flags) + b(s.cell_e) + b(s.push) +
@@ -528,7 +524,8 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
     each_node(voi.size, [&](int i, int j, int kk) {
       const long long e = voi.index(i, j, kk);
       const int a = i + voi.lo.x - last.lo.x, b = j + voi.lo.y - last.lo.y, c = kk + voi.lo.z - last.lo.z;
-      const bool carry = had && last.contains(a, b, c);
+      // held nodes (the new VOI's faces, bone) stay at rest: the solve keeps what they hold
+      const bool carry = had && last.contains(a, b, c) && !(s.flags[std::size_t(e)] & kElasticHeld);
       s.u[std::size_t(e)] = carry ? s.tmp_u[std::size_t(last.index(a, b, c))] : Vec3f{0, 0, 0};
       if (carry) s.flags[std::size_t(e)] |= s.tmp_flags[std::size_t(last.index(a, b, c))] & kElasticContact;
     });
@@ -645,7 +642,7 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   s.have_u = true;
   // the field in voxels for the backend's buffers, and the folds it holds
   for (long long e = 0; e < n; ++e) u_vox[e] = Vec3f{float(u[e].x / h.x), float(u[e].y / h.y), float(u[e].z / h.z)};
-  out.inverted_cells = count_inverted(voi, h, u);
+  out.inverted_cells = elastic_inverted_cells(voi, u_vox);
   return out;
 }
 

@@ -14,6 +14,13 @@
 
 namespace palpsim::deform {
 
+/// The elastic model's VOI holds the grabbed voxel (X's, on the skin under the finger) this
+/// many voxels from its faces (compute_voi's margin): its faces are held at rest, and a
+/// press deeper than half the VOI's edge, which centres on the tip, would otherwise hold
+/// the skin layer under the finger on a face, pressing nothing. Two: the skin's node and
+/// the one outside it are off the face.
+constexpr int kElasticVoiMarginVox = 2;
+
 /// The 24 x 24 stiffness of one box cell with edges `h_mm` (mm) for E = 1 kPa and
 /// Poisson ratio `nu`, by selective reduced integration (mu part 2x2x2 Gauss points, lambda
 /// part the centre), row-major, rows and columns 3 corner + component (elastic_corner()
@@ -123,6 +130,11 @@ ElasticRun relax_elastic_cpu(const Patient& p, const Voi& voi, const Vec3& skin_
 /// C, trilinear, above 1/2 there (the skin is its 1/2 level, where the haptic path puts X).
 /// A tip outside presses nothing, whatever the skin point.
 bool elastic_tip_inside(const Patient& p, const Vec3& tip_vox);
+
+/// The cells of a VOI's field `u_vox` (voxel, VOI-local, i fastest) whose deformation folds:
+/// det(I + grad u) <= 0 at a corner or the centre (deform_math.h's cell_min_det), among the
+/// cells with a moved corner (ElasticRun::inverted_cells).
+long long elastic_inverted_cells(const Voi& voi, const Vec3f* u_vox);
 
 /// The bytes an ElasticCpu holds (capacities).
 std::size_t elastic_cpu_bytes(const ElasticCpu& s);

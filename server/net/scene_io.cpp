@@ -85,7 +85,8 @@ std::string range_text(const gp::FieldDescriptor* f) {
   return s;
 }
 
-// checks every set numeric field of `m` (recursively) against its (min)/(max) options
+// checks every set numeric field of `m` (recursively, each element of a repeated message as
+// name[i]) against its (min)/(max) options
 void check_ranges(const gp::Message& m, const TextFormat::ParseInfoTree* tree, const std::string& origin,
                   const std::string& prefix) {
   const gp::Reflection* r = m.GetReflection();
@@ -93,12 +94,19 @@ void check_ranges(const gp::Message& m, const TextFormat::ParseInfoTree* tree, c
   r->ListFields(m, &fields);
   for (const gp::FieldDescriptor* f : fields) {
     const std::string name = prefix + f->name();
-    const TextFormat::ParseLocation loc = tree ? tree->GetLocation(f, -1) : TextFormat::ParseLocation();
-    if (f->cpp_type() == gp::FieldDescriptor::CPPTYPE_MESSAGE && !f->is_repeated()) {
-      check_ranges(r->GetMessage(m, f), tree ? tree->GetTreeForNested(f, -1) : nullptr, origin, name + ".");
+    if (f->cpp_type() == gp::FieldDescriptor::CPPTYPE_MESSAGE) {
+      if (!f->is_repeated()) {
+        check_ranges(r->GetMessage(m, f), tree ? tree->GetTreeForNested(f, -1) : nullptr, origin, name + ".");
+        continue;
+      }
+      for (int i = 0; i < r->FieldSize(m, f); ++i)
+        check_ranges(r->GetRepeatedMessage(m, f, i), tree ? tree->GetTreeForNested(f, i) : nullptr, origin,
+                     name + "[" + std::to_string(i) + "].");
       continue;
     }
     if (!is_numeric(f) || f->is_repeated()) continue;
+    // the location of a singular field (index -1; a repeated one's needs its index)
+    const TextFormat::ParseLocation loc = tree ? tree->GetLocation(f, -1) : TextFormat::ParseLocation();
     const auto& o = f->options();
     if (!o.HasExtension(v1::min) && !o.HasExtension(v1::max)) continue;
     const double v = numeric_value(m, f);

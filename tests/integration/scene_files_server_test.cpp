@@ -190,6 +190,39 @@ TEST_CASE("an empty scene, the scene folder itself and a path holding a NUL are 
   CHECK(c.info().scene_name() == "good");
 }
 
+TEST_CASE("a scene whose elastic model is bad is refused naming the field, and the server keeps serving",
+          "[integration][files]") {
+  Folders f;
+  auto server = start(f);
+  Control c(server->control());
+  auto elastic_scene = [](const std::string& elastic) {
+    return "name: \"elastic\"\nphantom { voxel_mm: 2 }\neffects { chainmail: true relaxation: true }\n"
+           "deform { relax_method: \"elastic\" grab_radius_mm: 5 backend: \"cpu\" elastic { " + elastic + " } }\n";
+  };
+  // E <= 0, nu outside (0, 0.5), an unsorted and an empty table: as text and as a file
+  refused(c, c.load_text(elastic_scene("modulus { point { hu: -100 e_kpa: 3 } point { hu: 20 e_kpa: 0 } }")),
+          {"LoadScene", "deform.elastic.modulus.point[1].e_kpa", "above 0"});
+  refused(c, c.load_text(elastic_scene("skin_e_kpa: -1")), {"deform.elastic.skin_e_kpa"});
+  refused(c, c.load_text(elastic_scene("poisson: 0.5")), {"deform.elastic.poisson", "(0, 0.5)"});
+  refused(c, c.load_text(elastic_scene("poisson: 0")), {"deform.elastic.poisson", "(0, 0.5)"});
+  refused(c, c.load_text(elastic_scene("modulus { point { hu: 20 e_kpa: 12 } point { hu: -100 e_kpa: 3 } }")),
+          {"deform.elastic.modulus.point[1].hu", "sorted"});
+  refused(c, c.load_path(f.scene("empty-table.textproto", elastic_scene("modulus { }"))),
+          {"empty-table.textproto", "deform.elastic.modulus is empty"});
+  // poses are answered all along: a session opened now is served
+  v1::ControlRequest open;
+  open.mutable_open()->set_client_name("after refusals");
+  const auto o = c.call(open);
+  REQUIRE(o);
+  CHECK(o->error().code() == v1::ERROR_NONE);
+  CHECK(o->open().session_id() != 0);
+  // and a good elastic scene loads
+  const v1::ControlReply r = c.load_text(elastic_scene("poisson: 0.49"));
+  INFO(r.ShortDebugString());
+  CHECK(r.error().code() == v1::ERROR_NONE);
+  CHECK(c.info().scene_name() == "elastic");
+}
+
 TEST_CASE("a CT scene inside --scene-dir loads, its patient cached in the operator's --cache-dir",
           "[integration][files]") {
   Folders f;

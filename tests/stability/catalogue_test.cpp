@@ -1,7 +1,8 @@
 // The stability catalogue of issue 8, section 5, on the CPU: one TEST_CASE per named
 // hard case, each running the force model's checks (stability_haptics.h) and the
 // deformation's on the "cpu" backend (stability_deform.h). The same deformation cases
-// run on "cuda" in catalogue_gpu_test.cpp (palpsim-gpu-stability-tests, label gpu).
+// run on "cuda" in catalogue_gpu_test.cpp (palpsim-gpu-stability-tests, label gpu), and
+// the elastic model's (stability_elastic.h, tag [elastic]) in both.
 // A failure prints the case, the backend and the seed; PALPSIM_STABILITY_SEED=<seed>
 // reruns the same draws.
 #include <catch2/catch.hpp>
@@ -15,6 +16,7 @@
 
 #include "deform/cpu_backend.h"
 #include "stability/stability_deform.h"
+#include "stability/stability_elastic.h"
 #include "stability/stability_haptics.h"
 
 using namespace palpsim;
@@ -595,4 +597,94 @@ TEST_CASE("ChainMail keeps its restrictions next to elements that stopped moving
 TEST_CASE("ChainMail keeps its restrictions where two neighbours' full boxes would not overlap (p2, clipped VOI) [issue 8]") {
   CHECK(p2_push_violation({40, 16, {34.475528833882343, 15.887227523706539, 34.74798598294349},
                            {42.939564058958211, 17.256031169232529, 24.767021691015621}}) <= kP2RestrictionTol);
+}
+
+// ---------------------------------------------------------------------------------
+// the elastic model (stability_elastic.h): the catalogue's cases where a fingertip
+// pressing the skin makes sense, with fewer random contacts than the fast models (a step
+// solves the VOI's elasticity: tens of ms on this CPU), and its own hard cases
+
+TEST_CASE("stability: tip inside bone (elastic)", "[elastic]") {
+  Case c = make_case("tip inside bone (elastic)");
+  elastic_tip_inside_bone(c);
+}
+
+TEST_CASE("stability: tip exactly on the skin (elastic)", "[elastic]") {
+  Case c = make_case("tip exactly on the skin (elastic)");
+  elastic_on_skin(c);
+}
+
+TEST_CASE("stability: tip on a voxel corner (elastic)", "[elastic]") {
+  Case c = make_case("tip on a voxel corner (elastic)");
+  elastic_voxel_corner(c);
+}
+
+TEST_CASE("stability: tip on the volume border (elastic)", "[elastic]") {
+  Case c = make_case("tip on the volume border (elastic)");
+  elastic_volume_border(c);
+}
+
+TEST_CASE("stability: flat plateaus of F (elastic)", "[elastic]") {
+  Case c = make_case("flat plateaus of F (elastic)");
+  elastic_flat_plateau(c);
+}
+
+TEST_CASE("stability: a 50 mm jump of the tip (elastic)", "[elastic]") {
+  Case c = make_case("a 50 mm jump of the tip (elastic)");
+  elastic_jump_50mm(c);
+}
+
+TEST_CASE("stability: a displacement larger than the VOI (elastic)", "[elastic]") {
+  Case c = make_case("a displacement larger than the VOI (elastic)");
+  elastic_displacement_larger_than_voi(c);
+}
+
+TEST_CASE("stability: a VOI crossing the volume border (elastic)", "[elastic]") {
+  Case c = make_case("a VOI crossing the volume border (elastic)");
+  elastic_voi_crossing_border(c);
+}
+
+TEST_CASE("stability: anisotropic input spacing (elastic)", "[elastic]") {
+  Case c = make_case("anisotropic input spacing (elastic)");
+  elastic_anisotropic(c);
+}
+
+TEST_CASE("stability: extreme HU (elastic)", "[elastic]") {
+  Case c = make_case("extreme HU (elastic)");
+  elastic_extreme_hu(c);
+}
+
+TEST_CASE("stability: one spot stepped again and again (elastic)", "[elastic]") {
+  Case c = make_case("one spot stepped again and again (elastic)");
+  elastic_one_spot_repeated(c, 20);
+}
+
+TEST_CASE("stability: random poses including NaN and Inf (elastic)", "[elastic]") {
+  Case c = make_case("random poses including NaN and Inf (elastic)");
+  elastic_random_poses(c, 150);
+}
+
+TEST_CASE("stability: the tip sweeping across a rib (elastic)", "[elastic]") {
+  Case c = make_case("the tip sweeping across a rib (elastic)");
+  elastic_rib_sweep(c);
+}
+
+TEST_CASE("stability: Poisson's ratio 0.49 (elastic)", "[elastic]") {
+  Case c = make_case("Poisson's ratio 0.49 (elastic)");
+  elastic_nu_049(c);
+}
+
+TEST_CASE("stability: 2 mm of tissue over bone (elastic)", "[elastic]") {
+  Case c = make_case("2 mm of tissue over bone (elastic)");
+  elastic_thin_tissue_over_bone(c);
+}
+
+TEST_CASE("stability: the sphere entering bone (elastic)", "[elastic]") {
+  Case c = make_case("the sphere entering bone (elastic)");
+  elastic_sphere_into_bone(c);
+}
+
+TEST_CASE("stability: a 40 mm indentation (elastic)", "[elastic]") {
+  Case c = make_case("a 40 mm indentation (elastic)");
+  elastic_indentation_40mm(c);
 }

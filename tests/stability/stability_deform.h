@@ -20,6 +20,11 @@
 // - J stays within the intensity range of the patient (trilinear blends of I);
 // - on a backend other than "cpu", ChainMail equals the CPU reference exactly and the
 //   relaxed field agrees within float rounding (the tolerances of deform_gpu_test.cpp).
+// A configuration with the elastic model (deform.relax_method "elastic") is stepped whole
+// (DeformRun::elastic_contact) and checked for its own invariants instead: bone never
+// moves, u = 0 on the VOI's faces, the skin under the fingertip lies on its sphere and none
+// goes into it, the force is zero with the tip outside the body and along -n inside, the
+// folded cells it reports are those of its field, everything finite, J as above.
 // Each case function takes a Case (name, backend, seed) and prints it on failure.
 #pragma once
 
@@ -58,6 +63,7 @@ struct Outcome {
   std::vector<float> j;      // J on the VOI (empty without inversion)
   InvertStats invert;
   UntangleStats untangle;    // all 0 without relaxation or untangling
+  deform::ElasticRun elastic;  // the elastic model's solve (all 0 for the other models)
 };
 
 inline float max_abs_component(const std::vector<Vec3f>& u) {
@@ -88,6 +94,21 @@ inline DeformConfig config(int preset, int voi_edge, int relax_iterations = 20) 
   c.relax = relax_iterations > 0;
   c.invert = true;
   c.settings.untangle = true;  // off in scenes by default; the catalogue runs it
+  return c;
+}
+
+/// The elastic model's configuration of the catalogue: a fingertip sphere of `radius_mm`,
+/// the scene's default materials and solver with Poisson's ratio `nu`, inversion with the
+/// cell search (as preset_config) and no untangling (it holds ChainMail's grabbed element,
+/// which the elastic solve does not have).
+inline DeformConfig elastic_config(int voi_edge, double nu = 0.45, double radius_mm = 5) {
+  DeformConfig c = preset_config(1);
+  c.settings.voi_edge = voi_edge;
+  c.settings.relax_method = "elastic";
+  c.settings.grab_radius_mm = radius_mm;
+  c.settings.elastic.poisson = nu;
+  c.relax = true;
+  c.invert = true;
   return c;
 }
 
@@ -130,13 +151,14 @@ class DeformRun {
     return solved;
   }
 
-  /// Runs contact `k` stage by stage and checks every invariant (see the file comment).
+  /// Runs contact `k` stage by stage and checks every invariant (see the file comment);
+  /// with the elastic model, elastic_contact().
   Outcome contact(const DeformContact& k, const Expect& e = {}) {
+    if (elastic()) return elastic_contact(k, e);
     INFO("contact " << contacts_ << ": X " << fmt(k.skin_point_mm) << " mm, x " << fmt(k.tip_mm) << " mm");
     const bool compare = ref_ && contacts_ % compare_every_ == 0;
     ++contacts_;
     Outcome o;
-    const Grid& g = p_->grid;
     // chainmail
     o.chainmail = b_->chainmail(k);
     const ChainMailStats& cm = o.chainmail;
@@ -145,11 +167,7 @@ class DeformRun {
                    << "," << voi.size.z << "; grabbed " << cm.grabbed_vox.x << "," << cm.grabbed_vox.y << ","
                    << cm.grabbed_vox.z << (cm.grabbed_in_bone ? " (bone)" : "") << "; sweeps " << cm.sweeps
                    << ", moved " << cm.moved);
-    bool voi_ok = true;
-    for (int a = 0; a < 3; ++a)
-      voi_ok = voi_ok && voi.lo[a] >= 0 && voi.size[a] > 0 && voi.lo[a] + voi.size[a] <= g.size[a] &&
-               cm.grabbed_vox[a] >= voi.lo[a] && cm.grabbed_vox[a] < voi.lo[a] + voi.size[a];
-    REQUIRE(voi_ok);
+    REQUIRE(voi_in_grid(cm));
     if (e.grabbed_bone >= 0) REQUIRE(cm.grabbed_in_bone == (e.grabbed_bone == 1));
     std::vector<Vec3f> u = b_->displacement();
     REQUIRE((long long)u.size() == voi.count());
@@ -266,6 +284,7 @@ class DeformRun {
     INFO("history independence at X " << fmt(k.skin_point_mm) << ", x " << fmt(k.tip_mm));
     auto fresh = make_deform_backend(case_.backend);
     fresh->bind(p_, cfg_);
+    if (elastic()) return elastic_same_as_fresh(*fresh, k, o);
     const ChainMailStats cm = fresh->chainmail(k);
     REQUIRE(cm.voi == o.chainmail.voi);
     REQUIRE(cm.moved == o.chainmail.moved);
@@ -286,7 +305,189 @@ class DeformRun {
     }
   }
 
+  /// Whether the configuration relaxes by the elastic model.
+  bool elastic() const { return cfg_.relax && cfg_.settings.relax_method == "elastic"; }
+
+  /// Runs contact `k` as one step of the elastic model and checks its invariants (see the
+  /// file comment). Each backend is checked on its own: the CPU reference's agreement with
+  /// a GPU backend on the same presses is tests/gpu's.
+  Outcome elastic_contact(const DeformContact& k, const Expect& e = {}) {
+    INFO("contact " << contacts_ << " (elastic): X " << fmt(k.skin_point_mm) << " mm, x " << fmt(k.tip_mm) << " mm");
+    ++contacts_;
+    Outcome o;
+    DeformStats st;
+    REQUIRE_NOTHROW(st = b_->step(k));
+    o.chainmail = st.chainmail;
+    o.elastic = st.elastic;
+    const ChainMailStats& cm = o.chainmail;
+    const deform::ElasticRun& el = o.elastic;
+    const Voi& voi = cm.voi;
+    const Grid& g = p_->grid;
+    const Vec3& h = g.spacing_mm;
+    INFO("VOI lo " << voi.lo.x << "," << voi.lo.y << "," << voi.lo.z << " size " << voi.size.x << "," << voi.size.y
+                   << "," << voi.size.z << "; elastic: contact " << el.contact << ", depth " << el.depth_mm << " mm, "
+                   << el.contact_nodes << " contact nodes, " << el.rounds << " rounds (settled " << el.contact_settled
+                   << "), " << el.iterations << " CG steps, residual " << el.residual << " (converged " << el.converged
+                   << ", warm " << el.warm << "), force " << fmt(el.force_n) << " N, " << el.inverted_cells
+                   << " inverted cells");
+    REQUIRE(voi_in_grid(cm));
+    if (e.grabbed_bone >= 0) REQUIRE(cm.grabbed_in_bone == (e.grabbed_bone == 1));
+    REQUIRE(cm.skipped);  // ChainMail's field is not the elastic solve's input
+    o.u = b_->displacement();
+    const std::vector<Vec3f>& u = o.u;
+    REQUIRE((long long)u.size() == voi.count());
+    REQUIRE(non_finite_count(u) == 0);
+    REQUIRE(moved_bone_count(*p_, voi, u) == 0);
+    // the VOI's faces are held: u = 0 there exactly
+    REQUIRE(moved_on_faces(voi, u) == 0);
+    // finite figures
+    REQUIRE(is_finite(el.force_n));
+    REQUIRE(is_finite(el.normal));
+    REQUIRE(std::isfinite(el.depth_mm));
+    REQUIRE(std::isfinite(el.residual));
+    REQUIRE(std::isfinite(el.stiffness_n_per_mm));
+    if (e.converged) REQUIRE(el.converged);
+    // the force: zero with the tip outside the body (C trilinear at most 1/2: the skin's
+    // level, where the haptic path puts X), along -n inside, where n points from X to x
+    const Vec3 d_mm{(cm.tip_vox.x - cm.skin_vox.x) * h.x, (cm.tip_vox.y - cm.skin_vox.y) * h.y,
+                    (cm.tip_vox.z - cm.skin_vox.z) * h.z};
+    const bool inside = body_fraction(cm.tip_vox) > 0.5;
+    INFO("tip " << (inside ? "inside" : "outside") << " the body, |x - X| " << norm(d_mm) << " mm");
+    if (!inside || !el.contact) {
+      REQUIRE_FALSE(el.contact);
+      REQUIRE(el.force_n == Vec3{0, 0, 0});
+      REQUIRE(el.contact_nodes == 0);
+      REQUIRE(max_abs_component(u) == 0.0f);
+      if (!inside) REQUIRE(el.depth_mm == 0.0);
+    } else {
+      // depth |x - X| in mm (the same double sums), n its unit direction (float)
+      REQUIRE(std::fabs(el.depth_mm - norm(d_mm)) <= 1e-12 * (1 + norm(d_mm)));
+      REQUIRE(std::fabs(norm(el.normal) - 1.0) <= 1e-6);
+      REQUIRE(norm(el.normal - d_mm * (1.0 / norm(d_mm))) <= 1e-6);
+      // along -n: its part across n is the rounding of a float n times the sum (1e-6)
+      const double along = dot(el.force_n, el.normal);
+      REQUIRE(norm(el.force_n - el.normal * along) <= 1e-6 * norm(el.force_n));
+      // a settled contact pulls no node (each contact node's reaction along n is >= 0)
+      if (el.contact_settled) REQUIRE(along <= 0.0);
+      check_sphere(cm, el, u);
+    }
+    // the folds it reports are those of the field it returns
+    const long long folded = deform::elastic_inverted_cells(voi, u.data());
+    INFO(folded << " cells of the field fold");
+    if (case_.backend == "cpu") REQUIRE(el.inverted_cells == folded);
+    else REQUIRE(std::llabs(el.inverted_cells - folded) <= std::max(2LL, folded / 100));  // det ~ 0 rounded otherwise
+    // J
+    if (cfg_.invert) {
+      o.invert.max_residual_vox = st.invert_residual_vox;
+      o.invert.unresolved = st.invert_unresolved;
+      INFO("inversion: max residual " << st.invert_residual_vox << " voxel, " << st.invert_unresolved << " unresolved, "
+                                      << st.invert_nonfinite << " non-finite");
+      REQUIRE(std::isfinite(st.invert_residual_vox));
+      REQUIRE(st.invert_nonfinite == 0);
+      // where nothing folds, every voxel resolves (issue 8, section 4's goal, as above)
+      if (folded == 0) {
+        REQUIRE(st.invert_unresolved == 0);
+        REQUIRE(st.invert_residual_vox < 0.05);
+      }
+      const float* brick = b_->deformed_brick();
+      o.j.assign(brick, brick + voi.count());
+      check_j(voi, o.u, o.j);
+    }
+    return o;
+  }
+
  private:
+  bool voi_in_grid(const ChainMailStats& cm) const {
+    const Voi& voi = cm.voi;
+    const Grid& g = p_->grid;
+    bool ok = true;
+    for (int a = 0; a < 3; ++a)
+      ok = ok && voi.lo[a] >= 0 && voi.size[a] > 0 && voi.lo[a] + voi.size[a] <= g.size[a] &&
+           cm.grabbed_vox[a] >= voi.lo[a] && cm.grabbed_vox[a] < voi.lo[a] + voi.size[a];
+    return ok;
+  }
+
+  // the body mask C sampled trilinearly at a continuous voxel index (0 beyond the grid)
+  double body_fraction(const Vec3& x) const {
+    const Grid& g = p_->grid;
+    const Vec3i i0{int(std::floor(x.x)), int(std::floor(x.y)), int(std::floor(x.z))};
+    double c = 0;
+    for (int corner = 0; corner < 8; ++corner) {
+      const Vec3i o = deform::elastic_corner(corner);
+      const Vec3i v = i0 + o;
+      double w = 1;
+      for (int a = 0; a < 3; ++a) w *= o[a] ? x[a] - i0[a] : 1 - (x[a] - i0[a]);
+      if (g.contains(v.x, v.y, v.z) && p_->body.at(v.x, v.y, v.z)) c += w;
+    }
+    return c;
+  }
+
+  // the skin under the fingertip lies on its sphere: at least as many skin nodes as the
+  // solve reports in contact sit on the sphere along n, and none lies inside it when the
+  // contact settled. A skin node is a body node (not bone) with a face neighbour outside
+  // the body (or the grid) off the VOI's faces; its push t (elastic_sphere_push: how far
+  // along n the sphere puts it) is computed as the solver does, from the same floats
+  void check_sphere(const ChainMailStats& cm, const deform::ElasticRun& el, const std::vector<Vec3f>& u) const {
+    const Voi& voi = cm.voi;
+    const Grid& g = p_->grid;
+    const Vec3& h = g.spacing_mm;
+    const float r_mm = float(cfg_.settings.grab_radius_mm);
+    const Vec3f n{float(el.normal.x), float(el.normal.y), float(el.normal.z)};
+    const Vec3f tip{float((cm.tip_vox.x - voi.lo.x) * h.x), float((cm.tip_vox.y - voi.lo.y) * h.y),
+                    float((cm.tip_vox.z - voi.lo.z) * h.z)};
+    const Vec3f centre = tip - n * r_mm;
+    auto body = [&](int i, int j, int k) { return g.contains(i, j, k) && p_->body.at(i, j, k) != 0; };
+    long long under = 0, on = 0, inside = 0;
+    double worst_in = 0;
+    for (int k = 1; k + 1 < voi.size.z; ++k)
+      for (int j = 1; j + 1 < voi.size.y; ++j)
+        for (int i = 1; i + 1 < voi.size.x; ++i) {
+          const int gi = voi.lo.x + i, gj = voi.lo.y + j, gk = voi.lo.z + k;
+          if (!body(gi, gj, gk) || p_->bone.at(gi, gj, gk)) continue;
+          bool skin = false;
+          for (int q = 0; q < 6 && !skin; ++q) {
+            const Vec3i o = deform::neighbour_offset(q);
+            skin = !body(gi + o.x, gj + o.y, gk + o.z);
+          }
+          if (!skin) continue;
+          const Vec3f rest{float(i * h.x), float(j * h.y), float(k * h.z)};
+          const float t = deform::elastic_sphere_push(rest, centre, n, r_mm);
+          if (!(t > 0)) continue;
+          ++under;
+          const Vec3f& uv = u[std::size_t(voi.index(i, j, k))];
+          const Vec3f um{float(uv.x * h.x), float(uv.y * h.y), float(uv.z * h.z)};
+          const float along = dot(um, n);
+          // float rounding of positions of tens of mm over the solve's projected updates:
+          // 1e-4 mm and 1e-5 of the distances involved
+          const float tol = 1e-4f + 1e-5f * (t + norm(um));
+          if (std::fabs(along - t) <= tol) ++on;
+          // the solver's margin for joining the contact (kElasticPenetrationVox of a voxel edge)
+          if (t - along > tol + deform::kElasticPenetrationVox * float(std::max({h.x, h.y, h.z}))) {
+            ++inside;
+            worst_in = std::max(worst_in, double(t - along));
+          }
+        }
+    INFO("skin nodes under the sphere " << under << ", on it " << on << ", inside it " << inside << " (deepest "
+                                        << worst_in << " mm)");
+    REQUIRE(on >= el.contact_nodes);
+    if (el.contact_settled) REQUIRE(inside == 0);
+  }
+
+  // the elastic model starts from its last field shifted onto the new VOI, so a step
+  // equals a fresh backend's, bit for bit, where the new VOI shares no node with the last
+  // one (a jump): the field starts at rest and every node under the sphere in contact
+  void elastic_same_as_fresh(DeformBackend& fresh, const DeformContact& k, const Outcome& o) {
+    const DeformStats st = fresh.step(k);
+    REQUIRE(st.chainmail.voi == o.chainmail.voi);
+    REQUIRE(fresh.displacement() == o.u);
+    REQUIRE(st.elastic.force_n == o.elastic.force_n);
+    REQUIRE(st.elastic.contact_nodes == o.elastic.contact_nodes);
+    if (cfg_.invert) {
+      const float* j = fresh.deformed_brick();
+      REQUIRE(std::vector<float>(j, j + o.j.size()) == o.j);
+    }
+  }
+
   void relax_and_check(std::vector<Vec3f>& u, const ChainMailStats& cm, bool compare) {
     if (cfg_.settings.relax_method == "multigrid") return multigrid_relax_and_check(u, cm, compare);
     const Voi& voi = cm.voi;
@@ -486,26 +687,35 @@ inline void deform_tip_inside_bone(Case& c) {
   }
 }
 
-/// X exactly on the skin (the slab's skin plane z = 39.5 mm lies on voxel faces, so
-/// rounding X to a voxel is a tie), and the contacts the force model makes for tips on
-/// and just under the skin.
-inline void deform_on_skin(Case& c) {
-  INFO(c.describe());
-  const HapticPatient h = slab();
-  DeformRun r(c, h.patient, config(1, 24));
-  for (int s = 0; s < 6; ++s) {
+/// `presses` contacts with X exactly on the slab's skin plane (z = 39.5 mm lies on voxel
+/// faces, so rounding X to a voxel is a tie) and the tip up to `depth_mm` under it, then
+/// the contacts the force model makes for `tips` tips on and a hair under the skin; returns
+/// the latter's outcomes.
+inline std::vector<Outcome> skin_contacts(Case& c, DeformRun& r, int presses, int tips, double depth_mm) {
+  for (int s = 0; s < presses; ++s) {
     const Vec3 X{std::floor(c.uniform(3, 56)) + (s % 2 ? 0.5 : c.uniform(0, 1)), c.uniform(3, 56), kSlabSkinZ};
-    r.contact({X, X + Vec3{c.uniform(-3, 3), c.uniform(-3, 3), -c.uniform(0, 10)}});
+    r.contact({X, X + Vec3{c.uniform(-3, 3), c.uniform(-3, 3), -c.uniform(0, depth_mm)}});
   }
-  for (int s = 0; s < 8; ++s) {
+  std::vector<Outcome> out;
+  for (int s = 0; s < tips; ++s) {
     // tips on the skin plane above voxel centres (C samples exactly 0.5: inside) and a
     // hair under it anywhere: the hand-over must accept the force model's X
     const Vec3 tip = s % 2 ? Vec3{double(c.integer(1, 58)), double(c.integer(1, 58)), kSlabSkinZ}
                            : Vec3{c.uniform(1, 58), c.uniform(1, 58), kSlabSkinZ - c.uniform(1e-6, 1e-3)};
     DeformContact k;
-    REQUIRE(haptic_contact(*h.patient, tip, k));
-    r.contact(k);
+    REQUIRE(haptic_contact(r.patient(), tip, k));
+    out.push_back(r.contact(k));
   }
+  return out;
+}
+
+/// X exactly on the skin and the contacts the force model makes for tips on and just
+/// under the skin (skin_contacts).
+inline void deform_on_skin(Case& c) {
+  INFO(c.describe());
+  const HapticPatient h = slab();
+  DeformRun r(c, h.patient, config(1, 24));
+  skin_contacts(c, r, 6, 8, 10);
 }
 
 /// X and x exactly on voxel corners (every rounding a tie, trilinear weights 1/2), on
@@ -578,6 +788,23 @@ inline void deform_flat_plateau(Case& c) {
   }
 }
 
+/// `count` pairs of contacts 50 mm apart on r's 64-voxel grid (a random push from X1,
+/// then the same from X2): the second must equal a fresh backend's (DeformRun::same_as_fresh).
+inline void jumps_50mm(Case& c, DeformRun& r, int count) {
+  for (int s = 0; s < count; ++s) {
+    Vec3 X1, X2;
+    do {
+      X1 = {c.uniform(2, 61), c.uniform(2, 61), c.uniform(2, 61)};
+      const Vec3 d{c.uniform(-1, 1), c.uniform(-1, 1), c.uniform(-1, 1)};
+      X2 = X1 + d * (50.0 / std::max(norm(d), 1e-9));
+    } while (!(X2.x > 0 && X2.x < 63 && X2.y > 0 && X2.y < 63 && X2.z > 0 && X2.z < 63));
+    const Vec3 push{c.uniform(-6, 6), c.uniform(-6, 6), c.uniform(-6, 6)};
+    r.contact({X1, X1 + push});
+    const DeformContact k2{X2, X2 + push};
+    r.same_as_fresh(k2, r.contact(k2));
+  }
+}
+
 /// A 50 mm jump between two contacts: the second step must not see the first (each
 /// step starts from undeformed: compared bit for bit with a fresh backend).
 inline void deform_jump_50mm(Case& c) {
@@ -586,18 +813,7 @@ inline void deform_jump_50mm(Case& c) {
   for (int preset = 1; preset <= 2; ++preset) {
     INFO("preset p" << preset);
     DeformRun r(c, p, config(preset, 24));
-    for (int s = 0; s < 4; ++s) {
-      Vec3 X1, X2;
-      do {
-        X1 = {c.uniform(2, 61), c.uniform(2, 61), c.uniform(2, 61)};
-        const Vec3 d{c.uniform(-1, 1), c.uniform(-1, 1), c.uniform(-1, 1)};
-        X2 = X1 + d * (50.0 / std::max(norm(d), 1e-9));
-      } while (!(X2.x > 0 && X2.x < 63 && X2.y > 0 && X2.y < 63 && X2.z > 0 && X2.z < 63));
-      const Vec3 push{c.uniform(-6, 6), c.uniform(-6, 6), c.uniform(-6, 6)};
-      r.contact({X1, X1 + push});
-      const DeformContact k2{X2, X2 + push};
-      r.same_as_fresh(k2, r.contact(k2));
-    }
+    jumps_50mm(c, r, 4);
   }
 }
 
@@ -911,11 +1127,11 @@ inline void deform_shipped_multigrid(Case& c, int count, int compare_every) {
 }
 
 /// The contacts of a tip sweeping across the rib at 1 m/s (the hand-over of every 16th
-/// pose of the haptic sweep: 16 mm apart).
-inline void deform_rib_sweep(Case& c) {
+/// pose of the haptic sweep: 16 mm apart), deformed with `cfg`.
+inline void deform_rib_sweep(Case& c, const DeformConfig& cfg = config(1, 24)) {
   INFO(c.describe());
   const HapticPatient h = rib();
-  DeformRun r(c, h.patient, config(1, 24));
+  DeformRun r(c, h.patient, cfg);
   for (double depth : {6.0, 11.0}) {
     ProxyState st{};
     for (int n = 0; n <= 56; ++n) {

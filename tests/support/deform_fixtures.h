@@ -102,6 +102,32 @@ inline PatientPtr with_body_mask(const PatientPtr& p) {
   return q;
 }
 
+/// A copy of `p` with its body mask C (as with_body_mask) and the depth under the skin B
+/// the elastic model reads for its skin layer: the distance (mm) from a body voxel's centre
+/// to the nearest centre of a voxel of the grid outside the body, exact up to `reach_vox`
+/// voxels along each axis and that window's least half-width (mm) beyond it (deeper than
+/// any skin layer of a test).
+inline PatientPtr with_skin(const PatientPtr& p, int reach_vox = 4) {
+  auto q = std::const_pointer_cast<Patient>(with_body_mask(p));
+  const Grid& g = q->grid;
+  const Vec3& h = g.spacing_mm;
+  const float beyond = float(reach_vox * std::min({h.x, h.y, h.z}));
+  q->dist_skin_mm = Volume<float>(g, 0.0f);
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i) {
+        if (!q->body.at(i, j, k)) continue;
+        float best = beyond;
+        for (int c = std::max(k - reach_vox, 0); c <= std::min(k + reach_vox, g.size.z - 1); ++c)
+          for (int b = std::max(j - reach_vox, 0); b <= std::min(j + reach_vox, g.size.y - 1); ++b)
+            for (int a = std::max(i - reach_vox, 0); a <= std::min(i + reach_vox, g.size.x - 1); ++a)
+              if (!q->body.at(a, b, c))
+                best = std::min(best, float(norm(Vec3{(a - i) * h.x, (b - j) * h.y, (c - k) * h.z})));
+        q->dist_skin_mm.at(i, j, k) = best;
+      }
+  return q;
+}
+
 /// The paper's ChainMail presets (voxel edge lengths).
 inline DeformConfig preset_config(int preset) {
   DeformConfig c;
@@ -328,6 +354,19 @@ inline long long moved_bone_count(const Patient& p, const Voi& voi, const std::v
     for (int j = 0; j < voi.size.y; ++j)
       for (int i = 0; i < voi.size.x; ++i)
         if (p.bone.at(voi.lo.x + i, voi.lo.y + j, voi.lo.z + k) && u[voi.index(i, j, k)] != Vec3f(0, 0, 0)) ++n;
+  return n;
+}
+
+/// Number of nodes on the VOI's faces whose displacement is not exactly zero (the elastic
+/// model holds them at rest).
+inline long long moved_on_faces(const Voi& voi, const std::vector<Vec3f>& u) {
+  long long n = 0;
+  for (int k = 0; k < voi.size.z; ++k)
+    for (int j = 0; j < voi.size.y; ++j)
+      for (int i = 0; i < voi.size.x; ++i) {
+        const bool face = i == 0 || j == 0 || k == 0 || i + 1 == voi.size.x || j + 1 == voi.size.y || k + 1 == voi.size.z;
+        n += face && !(u[std::size_t(voi.index(i, j, k))] == Vec3f{0, 0, 0});
+      }
   return n;
 }
 

@@ -10,6 +10,7 @@
 #include "core/error.h"
 #include "deform/cpu_backend.h"
 #include "deform/relax_elastic.h"
+#include "support/deform_fixtures.h"
 #include "support/synthetic_patient.h"
 
 using namespace palpsim;
@@ -89,6 +90,18 @@ std::vector<Vec3f> random_field(std::size_t n, unsigned seed) {
 // Hertz's force (N) of a rigid sphere of radius r pressed d (mm) into a half-space of E kPa
 double hertz_n(double e_kpa, double nu, double r, double d) {
   return 4.0 / 3.0 * (e_kpa * 1e-3) / (1 - nu * nu) * std::sqrt(r) * std::pow(d, 1.5);
+}
+
+// the elastic model as a scene asks for it: a 5 mm fingertip, a VOI of `voi_edge`,
+// relaxation, inversion as given
+DeformConfig elastic_scene(int voi_edge, bool invert) {
+  DeformConfig c;
+  c.settings.relax_method = "elastic";
+  c.settings.grab_radius_mm = 5;
+  c.settings.voi_edge = voi_edge;
+  c.relax = true;
+  c.invert = invert;
+  return c;
 }
 
 }  // namespace
@@ -351,11 +364,7 @@ TEST_CASE("the fingertip: Hertz's d^1.5, no locking at nu 0.49, the contact set 
 TEST_CASE("elastic steps through the backend: bone stays, warm steps are cheap, the tissue rests when released", "[elastic]") {
   // the slab with a bone block 14 mm under the skin (slab_patient), pressed at its centre
   auto p = slab_patient();
-  DeformConfig cfg;
-  cfg.settings.relax_method = "elastic";
-  cfg.settings.grab_radius_mm = 5;
-  cfg.settings.voi_edge = 32;
-  cfg.relax = cfg.invert = true;
+  const DeformConfig cfg = elastic_scene(32, true);
   CpuDeformBackend b;
   b.bind(p, cfg);
   const Vec3 skin{30, 30, kSlabSkinZ};
@@ -443,5 +452,87 @@ TEST_CASE("elastic settings are refused with the field named", "[elastic]") {
     DeformConfig c = cfg;
     c.settings.grab_radius_mm = 0;
     CHECK(refused(c, "deform.grab_radius_mm"));
+  }
+}
+
+TEST_CASE("the elastic model refuses a patient without a body mask or depth under the skin", "[elastic]") {
+  // a patient with intensity and bone only (what ChainMail and relaxation read): the elastic
+  // model reads the body mask (skin, air) and the depth under the skin (the skin layer) too
+  auto bare = std::make_shared<Patient>();
+  bare->grid.size = {16, 16, 16};
+  bare->intensity = Volume<float>(bare->grid, 40.0f);
+  bare->bone = Volume<std::uint8_t>(bare->grid, 0);
+  DeformConfig cfg = elastic_scene(16, true);
+  CpuDeformBackend b;
+  CHECK_THROWS_WITH(b.bind(bare, cfg), Catch::Contains("Patient::body"));
+  bare->body = Volume<std::uint8_t>(bare->grid, 1);
+  CHECK_THROWS_WITH(b.bind(bare, cfg), Catch::Contains("Patient::dist_skin_mm"));
+  bare->dist_skin_mm = Volume<float>(bare->grid, 10.0f);
+  CHECK_NOTHROW(b.bind(bare, cfg));
+  // the other models do without them
+  cfg.settings.relax_method = "multigrid";
+  auto plain = std::make_shared<Patient>(*bare);
+  plain->body = Volume<std::uint8_t>();
+  plain->dist_skin_mm = Volume<float>();
+  CHECK_NOTHROW(b.bind(plain, cfg));
+}
+
+TEST_CASE("a warm step whose VOI moved holds the new VOI's faces at rest", "[elastic]") {
+  // a press on the slab, then the tip 4 voxels aside: beyond the VOI's hold (edge / 8 = 3
+  // voxels), so the VOI moves and the step starts from the last field shifted onto it; the
+  // nodes on the new VOI's faces that were inside the old one must be held at u = 0, not at
+  // the value they carried
+  auto p = slab_patient();
+  const DeformConfig cfg = elastic_scene(24, false);
+  CpuDeformBackend b;
+  b.bind(p, cfg);
+  const Vec3 skin{20, 30, kSlabSkinZ};
+  const DeformStats first = b.step({skin, skin - Vec3{0, 0, 6}});
+  REQUIRE(first.elastic.contact);
+  const Voi before = b.voi();
+  const Vec3 aside = skin + Vec3{4, 0, 0};
+  const DeformStats next = b.step({aside, aside - Vec3{0, 0, 6}});
+  REQUIRE(next.elastic.warm);
+  const Voi voi = b.voi();
+  REQUIRE_FALSE(voi == before);
+  const std::vector<Vec3f> u = b.displacement();
+  CHECK(moved_on_faces(voi, u) == 0);
+  // and the warm step ends where a step from rest does: the same held faces and contact,
+  // each solved to the tolerance (1e-3 of the residual of the contact's displacements;
+  // measured 0.8 % of the largest displacement apart; 2 % bounds it)
+  CpuDeformBackend fresh;
+  fresh.bind(p, cfg);
+  fresh.step({aside, aside - Vec3{0, 0, 6}});
+  REQUIRE(fresh.voi() == voi);
+  const std::vector<Vec3f> uf = fresh.displacement();
+  float worst = 0, scale = 0;
+  for (std::size_t e = 0; e < u.size(); ++e) {
+    worst = std::max(worst, norm(u[e] - uf[e]));
+    scale = std::max(scale, norm(uf[e]));
+  }
+  INFO("max |u - u_fresh| " << worst << " of " << scale << " voxel");
+  CHECK(worst <= 0.02f * scale);
+}
+
+TEST_CASE("a press deeper than half the VOI keeps the skin under the finger off the VOI's held faces", "[elastic]") {
+  // tissue above the plane z = 4.5 mm (the skin faces -z, so X, on the plane, rounds to the
+  // body voxel z = 5), pressed along +z with a 32-voxel VOI: the VOI is centred on the tip
+  // and shifted to hold X's voxel; beyond 15 mm it would hold it on its face, the skin layer
+  // held at rest and nothing pressed. The force must keep growing with depth
+  auto p = make_patient(40, 1.0, [](const Vec3& x) { return 4.5 - x.z; }, [](const Vec3&) { return 1e9; });
+  const DeformConfig cfg = elastic_scene(32, false);
+  CpuDeformBackend b;
+  b.bind(p, cfg);
+  const Vec3 skin{20.2, 19.8, 4.5};
+  double last = 0;
+  for (double d : {12.0, 14.0, 16.0, 18.0, 20.0}) {
+    const DeformStats st = b.step({skin, skin + Vec3{0, 0, d}});
+    const Voi& v = b.voi();
+    INFO("depth " << d << " mm: VOI z " << v.lo.z << ".." << v.lo.z + v.size.z - 1 << ", " << st.elastic.contact_nodes
+                  << " contact nodes, force " << st.elastic.force_n.z << " N");
+    REQUIRE(st.elastic.contact);
+    CHECK(v.lo.z <= 5 - kElasticVoiMarginVox);
+    CHECK(-st.elastic.force_n.z > last);
+    last = -st.elastic.force_n.z;
   }
 }

@@ -195,3 +195,65 @@ TEST_CASE("haptics.force_model \"elastic\" needs the elastic step, and a scene w
   CHECK(e.find("effects.relaxation") != std::string::npos);
   CHECK(error_of(elastic_deform).find("effects.chainmail") != std::string::npos);
 }
+
+TEST_CASE("a scene's elastic modulus table is read point by point, each point range-checked at its location") {
+  const Scene s = parse_scene_text(
+      "phantom {}\ndeform {\n  elastic {\n    modulus { point { hu: -100 e_kpa: 3.5 } point { hu: 40 e_kpa: 11 } }\n  }\n}\n",
+      "test.textproto");
+  REQUIRE(s.deform.elastic.modulus.size() == 2);
+  CHECK(s.deform.elastic.modulus[0].hu == -100);
+  CHECK(s.deform.elastic.modulus[0].e_kpa == 3.5);
+  CHECK(s.deform.elastic.modulus[1].hu == 40);
+  CHECK(s.deform.elastic.modulus[1].e_kpa == 11);
+  // a point's hu beyond the schema's range [-1e6, 1e6] HU: the point, its line and column
+  const std::string e = error_of("phantom {}\ndeform { elastic { modulus {\n  point { hu: 0 e_kpa: 3 }\n  point { hu: 2e6 e_kpa: 4 }\n} } }\n");
+  CHECK_THAT(e, Catch::Contains("test.textproto:4:11") && Catch::Contains("deform.elastic.modulus.point[1].hu") &&
+                    Catch::Contains("out of range"));
+}
+
+TEST_CASE("bad elastic settings in a scene are refused with the field named") {
+  // what the server checks before serving a scene (LoadScene, and the worker at start):
+  // the text parsed, then the deformation settings of a scene with the elastic model
+  auto refusal = [](const std::string& elastic) -> std::string {
+    const std::string text =
+        "phantom {}\neffects { chainmail: true relaxation: true }\n"
+        "deform { relax_method: \"elastic\" grab_radius_mm: 5\n  elastic { " + elastic + " }\n}\n";
+    try {
+      const Scene s = parse_scene_text(text, "test.textproto");
+      check_deform_config(DeformConfig::from_scene(s), "test.textproto");
+    } catch (const Error& e) {
+      return e.what();
+    }
+    return "";
+  };
+  // the defaults and a good table of one point pass
+  CHECK(refusal("").empty());
+  CHECK(refusal("modulus { point { hu: 0 e_kpa: 10 } } poisson: 0.49").empty());
+  // E <= 0 (and beyond 1e7 kPa, and not a number) in the table and for the skin
+  for (const char* e : {"0", "-3", "inf", "nan"}) {
+    INFO("e_kpa " << e);
+    const std::string m = refusal(std::string("modulus { point { hu: -100 e_kpa: 3 } point { hu: 20 e_kpa: ") + e + " } }");
+    CHECK_THAT(m, Catch::Contains("test.textproto") && Catch::Contains("deform.elastic.modulus.point[1].e_kpa") &&
+                      Catch::Contains("above 0"));
+  }
+  CHECK_THAT(refusal("skin_e_kpa: 0"), Catch::Contains("deform.elastic.skin_e_kpa") && Catch::Contains("above 0"));
+  CHECK_THAT(refusal("skin_e_kpa: -35"), Catch::Contains("deform.elastic.skin_e_kpa"));
+  // nu outside (0, 0.5): both ends are refused (0.5 is incompressible)
+  for (const char* nu : {"0", "0.5", "-0.2", "0.7", "nan"}) {
+    INFO("poisson " << nu);
+    CHECK_THAT(refusal(std::string("poisson: ") + nu),
+               Catch::Contains("test.textproto") && Catch::Contains("deform.elastic.poisson") && Catch::Contains("(0, 0.5)"));
+  }
+  // an unsorted table (a point below the one before it, or equal to it) names the point
+  CHECK_THAT(refusal("modulus { point { hu: 20 e_kpa: 12 } point { hu: -100 e_kpa: 3 } }"),
+             Catch::Contains("deform.elastic.modulus.point[1].hu") && Catch::Contains("sorted"));
+  CHECK_THAT(refusal("modulus { point { hu: -100 e_kpa: 3 } point { hu: 20 e_kpa: 12 } point { hu: 20 e_kpa: 14 } }"),
+             Catch::Contains("deform.elastic.modulus.point[2].hu") && Catch::Contains("sorted"));
+  // a point's hu that is not a number: out of the schema's range, at its location
+  CHECK_THAT(refusal("modulus { point { hu: nan e_kpa: 3 } }"),
+             Catch::Contains("test.textproto:4:") && Catch::Contains("deform.elastic.modulus.point[0].hu"));
+  // an empty table: the message for `modulus { }` says what to give
+  CHECK_THAT(refusal("modulus { }"), Catch::Contains("test.textproto") && Catch::Contains("deform.elastic.modulus is empty"));
+  // every refusal is one line
+  CHECK(refusal("poisson: 0.5").find('\n') == std::string::npos);
+}

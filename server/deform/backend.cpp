@@ -136,6 +136,8 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
     if (!(s.grab_radius_mm > 0))
       bad("grab_radius_mm", s.grab_radius_mm, "must be above 0 with deform.relax_method \"elastic\" (the fingertip sphere's radius)");
     check_elastic_settings(s.elastic, who);
+    if (s.untangle) throw Error(who + ": deform.untangle is for the ChainMail family's relaxations; the elastic model's "
+                                "folds are counted (DeformStats::elastic.inverted_cells), not moved");
   }
   if (s.relax_iterations < 0) bad("relax_iterations", s.relax_iterations, "must not be negative");
   if (s.relax_cycles < 0 || s.relax_cycles > deform::kMultigridMaxCycles)

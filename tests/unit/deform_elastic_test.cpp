@@ -453,6 +453,11 @@ TEST_CASE("elastic settings are refused with the field named", "[elastic]") {
     c.settings.grab_radius_mm = 0;
     CHECK(refused(c, "deform.grab_radius_mm"));
   }
+  {
+    DeformConfig c = cfg;
+    c.settings.untangle = true;
+    CHECK(refused(c, "deform.untangle"));
+  }
 }
 
 TEST_CASE("the elastic model refuses a patient without a body mask or depth under the skin", "[elastic]") {

@@ -227,15 +227,14 @@ void vcycle(const Levels& L, int l, const std::array<float, 576>& k, const Vec3f
 }
 
 // the largest eigenvalue of D^-1 K on a level (held nodes out), by power iteration from a
-// fixed pseudo-random start; uses the level's x and r
+// fixed pseudo-random start (elastic_power_start); uses the level's x and r
 float estimate_lmax(const Level& v, const std::array<float, 576>& k) {
   const Vec3f none{0, 0, 0};
-  std::uint32_t seed = 12345u;
-  auto next = [&seed]() {
-    seed = seed * 1664525u + 1013904223u;
-    return float(seed >> 8) / float(1u << 24) - 0.5f;
-  };
-  for (long long e = 0; e < v.count(); ++e) v.x[e] = elastic_project(v.flags[e], none, Vec3f{next(), next(), next()});
+  for (long long e = 0; e < v.count(); ++e) {
+    const unsigned long long m = 3ull * (unsigned long long)e;
+    v.x[e] = elastic_project(v.flags[e], none,
+                             Vec3f{elastic_power_start(m), elastic_power_start(m + 1), elastic_power_start(m + 2)});
+  }
   double lambda = 0;
   for (int it = 0; it < kElasticPowerIterations; ++it) {
     const double xn = std::sqrt(dot_all(v.x, v.x, v.count()));

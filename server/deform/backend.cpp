@@ -213,6 +213,14 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
   require(p.bone.grid.same_geometry(p.grid) && p.bone.data.size() == p.grid.count(),
           "Patient::bone does not match the patient grid");
   check_deform_config(config, "deform backend \"" + name_ + "\"");
+  // the elastic model reads the body mask (skin, air's gel) and B (the skin layer)
+  if (s.relax_method == "elastic") {
+    require(p.body.grid.same_geometry(p.grid) && p.body.data.size() == p.grid.count(),
+            "deform.relax_method \"elastic\" needs the patient's body mask (Patient::body) on the patient grid");
+    require(p.dist_skin_mm.grid.same_geometry(p.grid) && p.dist_skin_mm.data.size() == p.grid.count(),
+            "deform.relax_method \"elastic\" needs the patient's depth under the skin (Patient::dist_skin_mm) on the "
+            "patient grid");
+  }
 
   patient_ = std::move(patient);
   config_ = config;

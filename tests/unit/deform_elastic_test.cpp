@@ -399,6 +399,25 @@ TEST_CASE("elastic steps through the backend: bone stays, warm steps are cheap, 
   CHECK_FALSE(b.step({skin, skin - Vec3{0, 0, 4}}).elastic.warm);
 }
 
+TEST_CASE("an elastic backend is not bound to a patient without a body mask or B", "[elastic]") {
+  // the model reads C (skin, air's gel) and B (the skin layer) for every VOI node: a patient
+  // made from an intensity volume alone (as the ChainMail tests make them) has neither, and
+  // a step would read past their empty buffers
+  DeformConfig cfg;
+  cfg.settings.relax_method = "elastic";
+  cfg.settings.grab_radius_mm = 5;
+  cfg.settings.voi_edge = 16;
+  auto full = slab(20, 14);
+  auto no_body = std::make_shared<Patient>(*full);
+  no_body->body = Volume<std::uint8_t>{};
+  auto no_b = std::make_shared<Patient>(*full);
+  no_b->dist_skin_mm = Volume<float>{};
+  CpuDeformBackend b;
+  CHECK_THROWS_WITH(b.bind(no_body, cfg), Catch::Contains("Patient::body"));
+  CHECK_THROWS_WITH(b.bind(no_b, cfg), Catch::Contains("Patient::dist_skin_mm"));
+  CHECK_NOTHROW(b.bind(full, cfg));
+}
+
 TEST_CASE("elastic settings are refused with the field named", "[elastic]") {
   DeformConfig cfg;
   cfg.settings.relax_method = "elastic";

@@ -35,6 +35,7 @@
 
 #include "core/hd.h"
 #include "core/vec3.h"
+#include "deform/deform_math.h"
 
 namespace palpsim::deform {
 
@@ -151,6 +152,41 @@ PALPSIM_HD float elastic_node_modulus(const ElasticMaterial& m, float hu, bool b
 
 /// Corner c of a cell (bit 0: +i, bit 1: +j, bit 2: +k; deform_math.h's cell_blend order).
 PALPSIM_HD Vec3i elastic_corner(int c) { return Vec3i{c & 1, (c >> 1) & 1, (c >> 2) & 1}; }
+
+/// A level-0 node's static flags: held where it is bone or on a VOI face (`face`), body
+/// where the body mask holds it and it is no bone, skin where such a node has a face
+/// neighbour outside the body; `in_body(gi, gj, gk)` reads the mask at patient voxel
+/// (gi, gj, gk), false outside the grid.
+template <typename InBody>
+PALPSIM_HD std::uint8_t elastic_static_flags(bool body, bool bone, bool face, const InBody& in_body, int gi, int gj,
+                                             int gk) {
+  std::uint8_t f = 0;
+  if (bone || face) f |= kElasticHeld;
+  if (body && !bone) {
+    f |= kElasticBody;
+    bool skin = false;
+    for (int q = 0; q < 6 && !skin; ++q) {
+      const Vec3i o = neighbour_offset(q);
+      skin = !in_body(gi + o.x, gj + o.y, gk + o.z);
+    }
+    if (skin) f |= kElasticSkin;
+  }
+  return f;
+}
+
+/// A level-0 cell's modulus (kPa): the mean of its corners' node moduli `node_e(c)` where
+/// all eight corners are in the body (`corner_body(c)`; bone counts), else `air_e_kpa`
+/// (air's gel), so that the tissue ends at the skin nodes; c in elastic_corner() order.
+template <typename NodeE, typename CornerBody>
+PALPSIM_HD float elastic_cell_modulus(const NodeE& node_e, const CornerBody& corner_body, float air_e_kpa) {
+  float sum = 0;
+  bool body = true;
+  for (int c = 0; c < 8; ++c) {
+    body = body && corner_body(c);
+    sum += node_e(c);
+  }
+  return body ? sum / 8 : air_e_kpa;
+}
 
 /// The row block of corner `a` of one cell's matrix times the cell's corner displacements
 /// `uc` (8 corners, mm): sum_b K[a][b] uc[b] (N per kPa of the cell's modulus). `k(r, c)`

@@ -1,8 +1,9 @@
 // palpsim-bench deform: the paper's Table 2 (ChainMail time and moved elements for
 // d = 3 ... 30, p1 and p2) and Table 1 (time per stage: reset, ChainMail, relax, untangle,
-// invert, upload, total) for VOI 32, 64, 96, 128 and the whole phantom volume, on
-// every backend this build and machine have, in one run. GPU figures are printed
-// next to the floor from ../shared/docs/DEVICE.md that bounds them.
+// invert, upload, total) for VOI 32, 64, 96, 128 and the whole phantom volume, and the
+// elastic model's step (from rest, while the tip moves, 16 sessions side by side) at VOI
+// 64, on every backend this build and machine have, in one run. GPU figures are printed
+// next to the floor from ../shared/docs/DEVICE.md or the goal that bounds them.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -22,6 +23,7 @@
 #include "deform/backend.h"
 #include "prep/phantom.h"
 #include "tests/support/deform_fixtures.h"
+#include "tests/support/phantom_press.h"
 
 using namespace palpsim;
 
@@ -38,6 +40,7 @@ struct Options {
   double voxel_mm = 340.0 / 255.0;  // the phantom at ~256 voxels across
   std::string only;      // --backend: run this backend alone (empty: every one there is)
   bool untangle = false; // --untangle: Table 1 with deform.untangle on (off in scenes by default)
+  bool elastic_only = false;  // --elastic: the elastic rows alone
 };
 
 struct Table2Row {
@@ -57,6 +60,20 @@ struct Table1Row {
   long long unresolved;
   long long folded_before, folded_after;  // untangling's folded cells
   Spread reset, chainmail, relax, untangle, invert, upload, total;
+};
+
+struct ElasticRow {
+  std::string backend, what;
+  int voi = 0;
+  int sessions = 1;             // stepped side by side
+  int iterations = 0;           // CG steps of the last step (contact rounds; the unit press apart)
+  int stiffness_iterations = 0; // ... of its unit press
+  int contact_nodes = 0;
+  double force_n = 0;           // |F| of the last step (N)
+  Spread relax, total;          // the elastic stage and the whole step (ms)
+  double steps_per_s = 0;       // side by side: steps a second, per session
+  double own_mb = 0;            // a session's own memory (DeformMemory::total, MiB)
+  double shared_mb = 0;         // the solver scratch its sessions share (MiB)
 };
 
 // one backend's Table 2: whole-volume soft domain big enough for the whole deformation
@@ -152,10 +169,121 @@ void table1(const std::string& name, const Options& o, const PatientPtr& patient
   }
 }
 
+// one backend's elastic rows, issue 25's goals: VOI 64 on the phantom (with its body mask
+// and B), the fingertip of 5 mm, the scenes' solver settings and the unit press that
+// haptics.force_model "elastic" asks for, pressing over L3. A step from rest (reset()
+// before each: the VOI set up and solved from zero), a step while the tip moves a voxel
+// (alternating between two depths a voxel apart: the VOI held, the last field the start),
+// and on cuda 16 sessions at 16 points along the spine begun together, each with 1/16 of
+// the device and a scratch of its own (as the server steps them)
+void elastic_rows(const std::string& name, const Options& o, const PatientPtr& phantom, const test::Press& press,
+                  std::vector<ElasticRow>& rows) {
+  const bool gpu = name == "cuda";
+  DeformConfig cfg = test::preset_config(1);
+  cfg.settings.relax_method = "elastic";
+  cfg.settings.grab_radius_mm = 5;
+  cfg.settings.voi_edge = 64;
+  cfg.settings.invert_search = false;  // as the scenes ship
+  cfg.elastic_stiffness = true;
+  const Vec3 X = press.contact.skin_point_mm, in = (press.contact.tip_mm - X) / press.press_mm;
+  const double depth = 6, h = phantom->grid.spacing_mm.x;
+  auto contact = [&](const Vec3& at, int s) { return DeformContact{at, at + in * (depth + (s & 1) * h)}; };
+  auto row = [&](const std::string& what, const std::vector<double>& relax, const std::vector<double>& total,
+                 const DeformStats& st, const DeformMemory& m) {
+    ElasticRow r;
+    r.backend = name;
+    r.what = what;
+    r.voi = 64;
+    r.iterations = st.elastic.iterations;
+    r.stiffness_iterations = st.elastic.stiffness_iterations;
+    r.contact_nodes = st.elastic.contact_nodes;
+    r.force_n = norm(st.elastic.force_n);
+    r.relax = spread(relax);
+    r.total = spread(total);
+    r.own_mb = m.total() / 1048576.0;
+    r.shared_mb = m.shared_scratch_bytes / 1048576.0;
+    return r;
+  };
+  auto b = make_deform_backend(name);
+  b->bind(phantom, cfg);
+  // from rest
+  {
+    const int reps = gpu ? (o.quick ? 10 : 50) : (o.quick ? 1 : 3);
+    std::vector<double> relax, total;
+    DeformStats st;
+    for (int r = -1; r < reps; ++r) {  // one warm-up run
+      b->reset();
+      st = b->step(contact(X, 0));
+      if (r < 0) continue;
+      relax.push_back(st.times.relax_ms);
+      total.push_back(st.times.total_ms);
+    }
+    rows.push_back(row("from rest", relax, total, st, b->memory()));
+  }
+  // while the tip moves a voxel
+  {
+    const int reps = gpu ? (o.quick ? 20 : 100) : (o.quick ? 2 : 6);
+    std::vector<double> relax, total;
+    DeformStats st;
+    for (int r = -2; r < reps; ++r) {
+      st = b->step(contact(X, r + 2));
+      if (r < 0) continue;
+      relax.push_back(st.times.relax_ms);
+      total.push_back(st.times.total_ms);
+    }
+    rows.push_back(row("tip moving a voxel", relax, total, st, b->memory()));
+  }
+  // 16 sessions side by side
+  if (gpu) {
+    const int n = 16, rounds = o.quick ? 10 : 50;
+    std::vector<std::unique_ptr<DeformBackend>> sessions;
+    for (int s = 0; s < n; ++s) {
+      sessions.push_back(make_deform_backend(name));
+      sessions.back()->bind(phantom, cfg);
+      sessions.back()->set_gpu_share(n);
+    }
+    auto at = [&](int s) { return X + Vec3{0, 0, 8.0 * (s - n / 2)}; };
+    std::vector<double> relax, total;
+    DeformStats st;
+    auto t0 = std::chrono::steady_clock::now();
+    for (int r = -2; r < rounds; ++r) {
+      if (r == 0) t0 = std::chrono::steady_clock::now();
+      for (int s = 0; s < n; ++s) sessions[s]->begin_step(contact(at(s), r + 2));
+      for (int s = 0; s < n; ++s) {
+        st = sessions[s]->end_step();
+        if (r < 0) continue;
+        relax.push_back(st.times.relax_ms);
+        total.push_back(st.times.total_ms);
+      }
+    }
+    const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    ElasticRow r = row("16 sessions side by side, tip moving a voxel", relax, total, st, sessions[0]->memory());
+    r.sessions = n;
+    r.steps_per_s = rounds / wall_s;
+    rows.push_back(r);
+  }
+  for (std::size_t i = rows.size() - (gpu ? 3 : 2); i < rows.size(); ++i) {
+    const ElasticRow& r = rows[i];
+    std::printf("elastic %-4s VOI %d %-45s median ms: relax %.3f (p10 %.3f, p90 %.3f)  total %.3f  CG steps %d + %d "
+                "(unit press), %d contact nodes, F %.3f N, own %.1f MiB, shared scratch %.1f MiB",
+                r.backend.c_str(), r.voi, r.what.c_str(), r.relax.median, r.relax.p10, r.relax.p90, r.total.median,
+                r.iterations, r.stiffness_iterations, r.contact_nodes, r.force_n, r.own_mb, r.shared_mb);
+    if (r.sessions > 1) std::printf(", %.0f steps/s per session", r.steps_per_s);
+    std::printf("\n");
+    if (gpu) {
+      if (r.what == "from rest") std::printf("       [goal: at most 2 ms from rest]\n");
+      if (r.what == "tip moving a voxel") std::printf("       [goal: at most 1 ms while the tip moves, aim 0.5 ms]\n");
+      if (r.sessions > 1)
+        std::printf("       [goal: 16 sessions at 300 steps/s or more each, at most 32 MB per session]\n");
+    }
+  }
+  std::fflush(stdout);
+}
+
 }  // namespace
 
-PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [--json FILE] [--quick] [--commit C] "
-                      "[--backend cpu|cuda] [--untangle]; "
+PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step on cpu and cuda [--json FILE] [--quick] "
+                      "[--commit C] [--backend cpu|cuda] [--untangle] [--elastic: the elastic rows alone]; "
                       "--accuracy [--ref-voi N] [--study KNOB] [--backend B]: accuracy vs time of relaxation, multigrid, "
                       "inversion and VOI (deform_accuracy.h)") {
   Options o;
@@ -169,6 +297,7 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
     else if (s == "--quick") o.quick = true;
     else if (s == "--backend" && a + 1 < argc) o.only = argv[++a];
     else if (s == "--untangle") o.untangle = true;
+    else if (s == "--elastic") o.elastic_only = true;
     else if (s == "--accuracy") accuracy = true;
     else if (s == "--ref-voi" && a + 1 < argc) ref_voi = std::atoi(argv[++a]);
     else if (s == "--study" && a + 1 < argc) study = argv[++a];
@@ -195,15 +324,27 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
     const std::vector<std::string> backends = bench::deform_backends(device, "deform bench", o.only);
 
     std::vector<Table2Row> t2;
-    for (const auto& b : backends) table2(b, o, t2);
+    if (!o.elastic_only)
+      for (const auto& b : backends) table2(b, o, t2);
 
-    const auto t0 = std::chrono::steady_clock::now();
-    const PatientPtr patient = test::patient_from_intensity(make_phantom(o.voxel_mm).hu, "phantom");
+    auto t0 = std::chrono::steady_clock::now();
+    PhantomCt ct = make_phantom(o.voxel_mm);
+    const test::Press press = test::spinous_press(ct.geometry);
+    const PatientPtr patient = test::patient_from_intensity(Volume<float>(ct.hu), "phantom");
     std::printf("phantom %d x %d x %d at %.3f mm (%.1f s to make)\n", patient->grid.size.x, patient->grid.size.y,
                 patient->grid.size.z, o.voxel_mm,
                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
     std::vector<Table1Row> t1;
-    for (const auto& b : backends) table1(b, o, patient, t1);
+    if (!o.elastic_only)
+      for (const auto& b : backends) table1(b, o, patient, t1);
+
+    // the elastic model needs the body mask and B as well
+    t0 = std::chrono::steady_clock::now();
+    const PatientPtr elastic_patient = test::elastic_phantom(std::move(ct));
+    std::printf("phantom's body mask and B (%.1f s)\n",
+                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+    std::vector<ElasticRow> el;
+    for (const auto& b : backends) elastic_rows(b, o, elastic_patient, press, el);
 
     if (!o.json.empty()) {
       std::ofstream f(o.json);
@@ -233,6 +374,18 @@ PALPSIM_BENCH(deform, "ChainMail Table 2 and per-stage Table 1 on cpu and cuda [
           << ", \"invert\": " << json_spread(r.invert)
           << ", \"upload\": " << json_spread(r.upload) << ", \"total\": " << json_spread(r.total) << "}"
           << (i + 1 < t1.size() ? "," : "") << "\n";
+      }
+      f << "  ],\n  \"elastic\": [\n";
+      for (std::size_t i = 0; i < el.size(); ++i) {
+        const auto& r = el[i];
+        f << "    {\"backend\": \"" << r.backend << "\", \"what\": \"" << r.what << "\", \"voi\": " << r.voi
+          << ", \"sessions\": " << r.sessions << ", \"iterations\": " << r.iterations
+          << ", \"stiffness_iterations\": " << r.stiffness_iterations << ", \"contact_nodes\": " << r.contact_nodes
+          << ", \"force_n\": " << bench::json_number(r.force_n) << ", \"relax\": " << json_spread(r.relax)
+          << ", \"total\": " << json_spread(r.total) << ", \"steps_per_s_per_session\": "
+          << bench::json_number(r.steps_per_s) << ", \"own_mib\": " << bench::json_number(r.own_mb)
+          << ", \"shared_scratch_mib\": " << bench::json_number(r.shared_mb) << "}" << (i + 1 < el.size() ? "," : "")
+          << "\n";
       }
       f << "  ]\n}\n";
       std::printf("wrote %s\n", o.json.c_str());

@@ -5,7 +5,6 @@
 #include <chrono>
 #include <cstring>
 
-#include "core/shared_cache.h"
 #include "cuda/check.h"
 
 namespace palpsim::cuda {
@@ -76,6 +75,11 @@ void CudaDeformBackend::release() {
   mg_ = MultigridBuffers{};
   mg_shared_.reset();
   mg_own_.reset();
+  // the elastic model's own buffers; its scratch and the body copy go with their last holders
+  elastic_.release();
+  el_shared_.reset();
+  el_own_.reset();
+  body_copy_.reset();
   cudaFreeHost(host_counters_);
   cudaFreeHost(host_j_);
   for (cudaEvent_t& e : ev_)
@@ -91,9 +95,6 @@ void CudaDeformBackend::release() {
 
 void CudaDeformBackend::bind_impl() {
   release();
-  if (config_.relax && config_.settings.relax_method == "elastic")
-    throw Error("deform backend \"cuda\": deform.relax_method \"elastic\" runs on the cpu backend only in this "
-                "build; set deform.backend \"cpu\"");
   const Patient& p = *patient_;
   const std::size_t nvol = p.grid.count();
   capacity_ = max_voi_count();
@@ -131,7 +132,8 @@ void CudaDeformBackend::bind_impl() {
   std::memset(host_counters_, 0, sizeof(Counters));
   full_shape_ = shape_ = persistent_launch_shape();
   if (config_.relax && config_.settings.relax_method == "multigrid") ensure_multigrid_buffers();
-  if (config_.relax && config_.settings.relax_method != "multigrid") ensure_relax_buffers();
+  if (config_.relax && config_.settings.relax_method == "explicit") ensure_relax_buffers();
+  if (config_.relax && config_.settings.relax_method == "elastic") ensure_elastic_buffers();
   if (config_.relax && config_.settings.untangle) ensure_untangle_buffers();
   // the inversion's search queue, slot map and the scatter's list, only for scenes that
   // ask for the search: the queue a 32nd of the VOI (a fold's searched voxels are a few
@@ -188,6 +190,24 @@ void CudaDeformBackend::ensure_multigrid_buffers() {
   full_mg_blocks_ = mg_blocks_ = relax_multigrid_blocks();
 }
 
+void CudaDeformBackend::ensure_elastic_buffers() {
+  if (elastic_.bound()) return;
+  body_copy_ = DeviceBody::acquire(patient_);
+  // the largest VOI along each axis (compute_voi clips at the border)
+  Vec3i most;
+  for (int a = 0; a < 3; ++a)
+    most[a] = config_.settings.whole_volume ? patient_->grid.size[a] : std::min(config_.settings.voi_edge, patient_->grid.size[a]);
+  elastic_.bind(*patient_, config_.elastic_params(), most);
+  el_shared_ = ElasticScratch::shared(elastic_.capacity(), elastic_.coarse_capacity());
+  full_el_blocks_ = el_blocks_ = relax_elastic_blocks();
+}
+
+ElasticScratch& CudaDeformBackend::step_elastic_scratch() {
+  if (gpu_share_ <= 1) return *el_shared_;
+  if (!el_own_) el_own_ = std::make_shared<ElasticScratch>(elastic_.capacity(), elastic_.coarse_capacity());
+  return *el_own_;
+}
+
 DeformMemory CudaDeformBackend::memory_impl() const {
   // what bind_impl allocated: both displacement fields and both sweep stamps serve
   // ChainMail (relaxation ping-pongs between the same two fields); J and its pinned host
@@ -210,6 +230,13 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   if (mg_.capacity > 0) m.relax_bytes += 2 * std::size_t(mg_.capacity) * sizeof(float) + 3 * sizeof(int);
   if (mg_own_) m.relax_bytes += mg_own_->bytes();
   if (mg_shared_) m.shared_scratch_bytes = mg_shared_->bytes();
+  // elastic: the session's field, flags and moduli of every level (and the unit press), a
+  // scratch of its own while steps run side by side; the shared scratch once per server,
+  // the body copy once per patient
+  m.relax_bytes += elastic_.bytes();
+  if (el_own_) m.relax_bytes += el_own_->bytes();
+  if (el_shared_) m.shared_scratch_bytes += el_shared_->bytes();
+  if (body_copy_) m.shared_patient_bytes += body_copy_->bytes();
   return m;
 }
 
@@ -224,12 +251,6 @@ MultigridScratch::MultigridScratch(long long n, long long nc) : capacity(n), coa
   PALPSIM_CUDA_CHECK(cudaEventCreateWithFlags(&done, cudaEventDisableTiming));
 }
 
-MultigridScratch::Turn::Turn(MultigridScratch& s, cudaStream_t stream) : s_(s), stream_(stream), lock_(s.mu) {
-  PALPSIM_CUDA_CHECK(cudaStreamWaitEvent(stream, s.done, 0));  // a no-op before the first record
-}
-
-MultigridScratch::Turn::~Turn() { cudaEventRecord(s_.done, stream_); }
-
 MultigridScratch::~MultigridScratch() {
   cudaEventDestroy(done);
   for (void* v : {(void*)r[0], (void*)r[1], (void*)z, (void*)p[0], (void*)p[1], (void*)q, (void*)res, (void*)held,
@@ -238,11 +259,7 @@ MultigridScratch::~MultigridScratch() {
 }
 
 std::shared_ptr<MultigridScratch> MultigridScratch::shared(long long n, long long nc) {
-  static SharedCache<MultigridScratch> scratches;
-  int dev = 0;
-  PALPSIM_CUDA_CHECK(cudaGetDevice(&dev));
-  return scratches.get([&](const MultigridScratch& s) { return s.device == dev && s.capacity == n && s.coarse_capacity == nc; },
-                       [&] { return std::make_shared<MultigridScratch>(n, nc); });
+  return shared_scratch<MultigridScratch>(n, nc);
 }
 
 void MultigridScratch::lend_to(MultigridBuffers& m) const {
@@ -348,6 +365,18 @@ void CudaDeformBackend::enqueue_chainmail() {
 
 void CudaDeformBackend::enqueue_relax() {
   const DeformSettings& s = config_.settings;
+  if (s.relax_method == "elastic") {
+    // every element of the VOI into the current buffer, which the reset and ChainMail's
+    // start left at 0 but for the grabbed element; with other steps in flight beside it, in
+    // a scratch of its own
+    ensure_elastic_buffers();
+    const ElasticPatient ep{patient_copy_->intensity(), patient_copy_->bone(), body_copy_->body(),
+                            body_copy_->dist_skin_mm()};
+    elastic_.enqueue(*patient_, ep, voi_, setup_.skin_vox, setup_.tip_vox, step_elastic_scratch(), el_blocks_,
+                     d_.u[cur_], &d_.counters->elastic, stream_);
+    field_extra_ = -1;
+    return;
+  }
   if (s.relax_method == "multigrid") {
     // in place on the current buffer; with other steps in flight beside it, in a scratch
     // of its own
@@ -427,8 +456,16 @@ void CudaDeformBackend::chainmail_impl(ChainMailStats& st) {
 
 void CudaDeformBackend::relax_impl() {
   enqueue_relax();
-  PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+  if (config_.settings.relax_method != "elastic") {
+    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
+    return;
+  }
+  // the elastic solve's counts, for what its next step starts from
+  finish(nullptr, nullptr);
+  elastic_.finish(host_counters_->elastic);
 }
+
+void CudaDeformBackend::forget_impl() { elastic_.forget(); }
 
 UntangleStats CudaDeformBackend::untangle_impl() {
   UntangleStats r;
@@ -515,6 +552,7 @@ DeformStats CudaDeformBackend::end_step_impl() {
   InvertStats inv;
   finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
   if (config_.relax && config_.settings.relax_method == "multigrid") take_multigrid_counts(out);
+  if (config_.relax && config_.settings.relax_method == "elastic") out.elastic = elastic_.finish(host_counters_->elastic);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
@@ -538,10 +576,13 @@ DeformStats CudaDeformBackend::end_step_impl() {
 bool CudaDeformBackend::batchable_with(const CudaDeformBackend& o) const {
   // the batched kernels take the settings once for all sessions; untangling has no batched
   // kernel (each session steps alone); multigrid sessions share the batch's other launches
-  // and its one wait, their solves one launch each on the batch's stream
+  // and its one wait, their solves one launch each on the batch's stream; elastic sessions
+  // step alone for now (no batched elastic solver: each step's solve is one cooperative
+  // launch of its own, run side by side with the others' at 1/k of the device each)
   const DeformSettings &a = config_.settings, &b = o.config_.settings;
   const bool mg = a.relax_method == "multigrid";
-  return config_.relax == o.config_.relax && config_.invert == o.config_.invert &&
+  const bool elastic = (config_.relax && a.relax_method == "elastic") || (o.config_.relax && b.relax_method == "elastic");
+  return !elastic && config_.relax == o.config_.relax && config_.invert == o.config_.invert &&
          config_.bone_threshold == o.config_.bone_threshold && a.relax_method == b.relax_method &&
          (!mg || (a.relax_cycles == b.relax_cycles && a.relax_warm_cycles == b.relax_warm_cycles &&
                   config_.relax_reuse == o.config_.relax_reuse && config_.skip_chainmail == o.config_.skip_chainmail)) &&
@@ -686,6 +727,7 @@ void CudaDeformBackend::launch_shape_for_share() {
   shape_.chainmail_blocks = std::max(1, full_shape_.chainmail_blocks / gpu_share_);
   shape_.relax_blocks = std::max(1, full_shape_.relax_blocks / gpu_share_);
   mg_blocks_ = std::max(1, full_mg_blocks_ / gpu_share_);
+  el_blocks_ = std::max(1, full_el_blocks_ / gpu_share_);
 }
 
 bool CudaDeformBackend::copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>& dst) const {

@@ -14,6 +14,8 @@
 #include "cuda/batch.h"
 #include "cuda/device_patient.h"
 #include "cuda/kernels.h"
+#include "cuda/relax_elastic.h"
+#include "cuda/shared_scratch.h"
 #include "deform/backend.h"
 
 namespace palpsim::cuda {
@@ -44,21 +46,8 @@ class CudaDeviceBytes final : public DeviceBytes {
 /// share one (their launches take turns: Turn); what a session keeps (its unit responses,
 /// flags) stays in its own buffers.
 struct MultigridScratch {
-  /// Held around a launch that uses the scratch: the launch waits on the device for the
-  /// last one that used it, on whatever stream that ran (no host wait), and the next waits
-  /// for this one.
-  class Turn {
-   public:
-    Turn(MultigridScratch& s, cudaStream_t stream);
-    ~Turn();
-    Turn(const Turn&) = delete;
-    Turn& operator=(const Turn&) = delete;
-
-   private:
-    MultigridScratch& s_;
-    cudaStream_t stream_;
-    std::lock_guard<std::mutex> lock_;
-  };
+  /// Held around a launch that uses the scratch (ScratchTurn).
+  using Turn = ScratchTurn<MultigridScratch>;
 
   MultigridScratch(long long capacity, long long coarse_capacity);
   ~MultigridScratch();
@@ -102,6 +91,7 @@ class CudaDeformBackend final : public DeformBackend {
   InvertStats invert_impl() override;
   void upload_impl() override;
   void reset_impl() override;
+  void forget_impl() override;
   DeformStats step_impl(const ChainMailStats& setup) override;
   void begin_step_impl(const ChainMailStats& setup) override;
   DeformStats end_step_impl() override;
@@ -122,6 +112,11 @@ class CudaDeformBackend final : public DeformBackend {
   void ensure_relax_buffers();
   // allocates untangling's buffers once (deform.untangle, or a call of untangle())
   void ensure_untangle_buffers();
+  // allocates the elastic model's buffers and the patient's body copy once (deform.relax_method "elastic")
+  void ensure_elastic_buffers();
+  // the scratch an elastic step takes: the shared one, or with other steps in flight beside
+  // it (set_gpu_share() above 1) its own, made on first use
+  ElasticScratch& step_elastic_scratch();
   StepGeometry geometry() const;
   // enqueue one stage on the stream
   void enqueue_reset();
@@ -163,6 +158,14 @@ class CudaDeformBackend final : public DeformBackend {
   // a finished multigrid step's solves and start, from the counters read back, into `out`;
   // forgets the kept G where the step solved three components (none kept)
   void take_multigrid_counts(DeformStats& out);
+  /// The elastic model (relax_elastic.cu): the session's solver, the patient's body mask
+  /// and B on the device (shared with the other sessions on it), the solver's scratch
+  /// (shared, or this session's own while steps run side by side, as the multigrid's)
+  ElasticSolver elastic_;
+  std::shared_ptr<const DeviceBody> body_copy_;
+  std::shared_ptr<ElasticScratch> el_shared_, el_own_;
+  int el_blocks_ = 0;                  // cooperative blocks of the elastic kernels, this step
+  int full_el_blocks_ = 0;             // ... that fit on the device
   bool mg_g_clean_ = false;  // the kept unit response was solved on a step that left ChainMail out (so it is a G)
   int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel, this step
   int full_mg_blocks_ = 0;             // ... that fit on the device

@@ -44,4 +44,36 @@ class DevicePatient {
   std::size_t bytes_ = 0;
 };
 
+/// A read-only device copy of a patient's body mask C (uint8) and depth under the skin B
+/// (float, mm), whole volume, on the device that was current when it was made: what the
+/// elastic model reads besides the intensity and bone mask, so made only for sessions
+/// whose scene asks for it, one per patient and device like DevicePatient.
+class DeviceBody {
+ public:
+  /// The copy of `patient`'s C and B on the current device (the one alive, or a new upload);
+  /// thread-safe. Throws palpsim::Error naming the CUDA call that failed, or saying that the
+  /// patient has no body mask or B on its grid.
+  static std::shared_ptr<const DeviceBody> acquire(const PatientPtr& patient);
+
+  ~DeviceBody();
+  DeviceBody(const DeviceBody&) = delete;
+  DeviceBody& operator=(const DeviceBody&) = delete;
+
+  /// The body mask on the device (patient grid, i fastest; nonzero = body).
+  const std::uint8_t* body() const { return body_; }
+  /// B on the device (patient grid, i fastest; mm).
+  const float* dist_skin_mm() const { return dist_skin_; }
+  /// Device bytes the copy holds.
+  std::size_t bytes() const { return bytes_; }
+
+ private:
+  DeviceBody(PatientPtr patient, int device);
+
+  PatientPtr patient_;  // held so that the patient's address, the cache key, is not reused while this lives
+  int device_ = 0;
+  std::uint8_t* body_ = nullptr;
+  float* dist_skin_ = nullptr;
+  std::size_t bytes_ = 0;
+};
+
 }  // namespace palpsim::cuda

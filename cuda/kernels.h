@@ -21,6 +21,23 @@ struct ScatterBounds {
   unsigned int hi_plus[3];    // the highest queued voxel's coordinate + 1 (0: none queued)
 };
 
+/// What the elastic step kernel leaves for the host (relax_elastic.cu); the rest of
+/// deform::ElasticRun the host knows.
+struct ElasticCounters {
+  int contact;               // the sphere covered skin nodes
+  int contact_nodes;         // contact nodes at the end
+  int rounds;                // contact rounds run
+  int settled;               // the last round changed no node's contact
+  int iterations;            // CG steps over the rounds
+  int converged;             // every solve reached the tolerance
+  int stiffness_iterations;  // CG steps of the unit press
+  int pad;
+  double residual;              // the last round's relative residual
+  double press_n;               // the finger's push along n, summed over the contact nodes (N)
+  double stiffness_n_per_mm;    // the unit press's force along n (N/mm), when asked
+  unsigned long long inverted;  // folded cells
+};
+
 /// Small results the kernels write on the device and the host reads once per step.
 struct Counters {
   int sweep_moved[3];              // elements moved per sweep, by sweep % 3
@@ -45,6 +62,7 @@ struct Counters {
   int search_spill;                // inversion: 1 when the scatter gave up (a full list, a huge cell): every queued voxel takes the ring search
   int relax_solves;                // multigrid: scalar solves run (0: the unit response was reused)
   int relax_warm;                  // multigrid: 1 when the solve started from the last unit response
+  ElasticCounters elastic;         // the elastic model's step (relax_method "elastic")
 };
 
 /// A voxel queued for the inversion's cell search (invert.cu): its VOI-local index,

@@ -37,6 +37,12 @@ command -v palpsim-test-render >/dev/null && step render-tests palpsim-test-rend
 command -v palpsim-test-net-stream >/dev/null && step net-stream-tests palpsim-test-net-stream
 if command -v compute-sanitizer >/dev/null; then
   step memcheck-render compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-render-tests
+  # the elastic kernels (cuda/relax_elastic.cu) on the case of clipped and small VOIs (every
+  # level layout, short under the sanitizer): reads and writes out of bounds, and races on
+  # shared memory
+  elastic_case="gpu elastic steps equal the cpu's on clipped*"
+  step memcheck-elastic compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
+  step racecheck-elastic compute-sanitizer --tool racecheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
 fi
 if [ -z "$quick" ]; then
   step bench-render palpsim-bench render --scene config/scenes/lumbar_phantom.textproto --rounds 5 --json "$out/render.json"

@@ -35,6 +35,7 @@
 
 #include "core/hd.h"
 #include "core/vec3.h"
+#include "deform/deform_math.h"
 
 namespace palpsim::deform {
 
@@ -60,6 +61,26 @@ constexpr float kElasticChebyshevRatio = 20.0f;
 constexpr float kElasticCoarsestRatio = 400.0f;  // the coarsest level's interval reaches further down
 constexpr float kElasticChebyshevMargin = 1.1f;  // the power estimate is a lower bound of lmax
 constexpr int kElasticPowerIterations = 12;
+
+/// The power iteration's start on a level (relax_elastic.cpp, estimate_lmax): component c of
+/// node e is elastic_power_start(3 e + c), the (3 e + c + 1)-th state of a linear
+/// congruential generator from kElasticPowerSeed mapped to [-0.5, 0.5). Computed by jumping
+/// ahead (O'Neill, PCG's advance), so that a GPU thread makes its own nodes' values and the
+/// two backends start from the same vector.
+constexpr std::uint32_t kElasticPowerSeed = 12345u;
+PALPSIM_HD float elastic_power_start(unsigned long long m) {
+  std::uint32_t mult = 1u, plus = 0u, cur_mult = 1664525u, cur_plus = 1013904223u;
+  for (unsigned long long steps = m + 1; steps > 0; steps >>= 1) {
+    if (steps & 1) {
+      mult *= cur_mult;
+      plus = plus * cur_mult + cur_plus;
+    }
+    cur_plus = (cur_mult + 1u) * cur_plus;
+    cur_mult *= cur_mult;
+  }
+  const std::uint32_t state = mult * kElasticPowerSeed + plus;
+  return float(state >> 8) / float(1u << 24) - 0.5f;
+}
 
 /// The Chebyshev smoother's recurrence for the interval [lo, hi]: step 0 is d = b[0] D^-1 r,
 /// step s > 0 is d = a[s] d + b[s] D^-1 r (r the residual after the last step), x += d each
@@ -132,6 +153,41 @@ PALPSIM_HD float elastic_node_modulus(const ElasticMaterial& m, float hu, bool b
 /// Corner c of a cell (bit 0: +i, bit 1: +j, bit 2: +k; deform_math.h's cell_blend order).
 PALPSIM_HD Vec3i elastic_corner(int c) { return Vec3i{c & 1, (c >> 1) & 1, (c >> 2) & 1}; }
 
+/// A level-0 node's static flags: held where it is bone or on a VOI face (`face`), body
+/// where the body mask holds it and it is no bone, skin where such a node has a face
+/// neighbour outside the body; `in_body(gi, gj, gk)` reads the mask at patient voxel
+/// (gi, gj, gk), false outside the grid.
+template <typename InBody>
+PALPSIM_HD std::uint8_t elastic_static_flags(bool body, bool bone, bool face, const InBody& in_body, int gi, int gj,
+                                             int gk) {
+  std::uint8_t f = 0;
+  if (bone || face) f |= kElasticHeld;
+  if (body && !bone) {
+    f |= kElasticBody;
+    bool skin = false;
+    for (int q = 0; q < 6 && !skin; ++q) {
+      const Vec3i o = neighbour_offset(q);
+      skin = !in_body(gi + o.x, gj + o.y, gk + o.z);
+    }
+    if (skin) f |= kElasticSkin;
+  }
+  return f;
+}
+
+/// A level-0 cell's modulus (kPa): the mean of its corners' node moduli `node_e(c)` where
+/// all eight corners are in the body (`corner_body(c)`; bone counts), else `air_e_kpa`
+/// (air's gel), so that the tissue ends at the skin nodes; c in elastic_corner() order.
+template <typename NodeE, typename CornerBody>
+PALPSIM_HD float elastic_cell_modulus(const NodeE& node_e, const CornerBody& corner_body, float air_e_kpa) {
+  float sum = 0;
+  bool body = true;
+  for (int c = 0; c < 8; ++c) {
+    body = body && corner_body(c);
+    sum += node_e(c);
+  }
+  return body ? sum / 8 : air_e_kpa;
+}
+
 /// The row block of corner `a` of one cell's matrix times the cell's corner displacements
 /// `uc` (8 corners, mm): sum_b K[a][b] uc[b] (N per kPa of the cell's modulus). `k(r, c)`
 /// reads the 24 x 24 cell matrix, row and column 3 corner + component.
@@ -154,29 +210,47 @@ PALPSIM_HD Vec3f elastic_cell_diag(const KMat& k, int a) {
   return Vec3f{k(3 * a, 3 * a), k(3 * a + 1, 3 * a + 1), k(3 * a + 2, 3 * a + 2)};
 }
 
-/// (K u) at node (i, j, k) of a level of `size` nodes: over the (up to) eight cells around
-/// it, each cell's modulus `cell_e(lowest corner)` (kPa) times its row block; `scale` is the
-/// level's cell edge over level 0's (2^level: the matrix grows with the edge). Cells lie
-/// between nodes 0 .. size - 1; `load_u(i, j, k)` gives a node's displacement (mm).
+/// Adds to `y` corner a's part of (K u) at node (i, j, k) of a level of `size` nodes: the
+/// row block of the cell in which the node is corner `a` (if that cell lies between nodes
+/// 0 .. size - 1) times the cell's corners, times the cell's modulus `cell_e(lowest
+/// corner)` (kPa) and `scale`, the level's cell edge over level 0's (2^level: the matrix
+/// grows with the edge); `load_u(i, j, k)` gives a node's displacement (mm). One term of
+/// elastic_apply_node(), for a backend that sums the eight cells on eight threads.
+template <typename KMat, typename CellE, typename LoadU>
+PALPSIM_HD void elastic_add_cell(const KMat& k, const CellE& cell_e, const LoadU& load_u, const Vec3i& size,
+                                 float scale, int i, int j, int kk, int a, Vec3f& y) {
+  const Vec3i o = elastic_corner(a);
+  const int ci = i - o.x, cj = j - o.y, ck = kk - o.z;
+  if (ci < 0 || cj < 0 || ck < 0 || ci + 1 >= size.x || cj + 1 >= size.y || ck + 1 >= size.z) return;
+  const float e = cell_e(ci, cj, ck);
+  if (e == 0.0f) return;
+  Vec3f uc[8];
+  for (int b = 0; b < 8; ++b) {
+    const Vec3i ob = elastic_corner(b);
+    uc[b] = load_u(ci + ob.x, cj + ob.y, ck + ob.z);
+  }
+  y += elastic_cell_row(k, a, uc) * (e * scale);
+}
+
+/// (K u) at node (i, j, k) of a level of `size` nodes (N): over the (up to) eight cells
+/// around it, elastic_add_cell() in corner order.
 template <typename KMat, typename CellE, typename LoadU>
 PALPSIM_HD Vec3f elastic_apply_node(const KMat& k, const CellE& cell_e, const LoadU& load_u, const Vec3i& size,
                                     float scale, int i, int j, int kk) {
   Vec3f y{0, 0, 0};
-  for (int a = 0; a < 8; ++a) {
-    // the cell in which this node is corner a
-    const Vec3i o = elastic_corner(a);
-    const int ci = i - o.x, cj = j - o.y, ck = kk - o.z;
-    if (ci < 0 || cj < 0 || ck < 0 || ci + 1 >= size.x || cj + 1 >= size.y || ck + 1 >= size.z) continue;
-    const float e = cell_e(ci, cj, ck);
-    if (e == 0.0f) continue;
-    Vec3f uc[8];
-    for (int b = 0; b < 8; ++b) {
-      const Vec3i ob = elastic_corner(b);
-      uc[b] = load_u(ci + ob.x, cj + ob.y, ck + ob.z);
-    }
-    y += elastic_cell_row(k, a, uc) * (e * scale);
-  }
+  for (int a = 0; a < 8; ++a) elastic_add_cell(k, cell_e, load_u, size, scale, i, j, kk, a, y);
   return y;
+}
+
+/// Adds to `d` what the cell in which node (i, j, k) is corner `a` gives the node's Jacobi
+/// diagonal (N/mm), as elastic_add_cell() applies it.
+template <typename KMat, typename CellE>
+PALPSIM_HD void elastic_add_cell_diag(const KMat& k, const CellE& cell_e, const Vec3i& size, float scale, int i,
+                                      int j, int kk, int a, Vec3f& d) {
+  const Vec3i o = elastic_corner(a);
+  const int ci = i - o.x, cj = j - o.y, ck = kk - o.z;
+  if (ci < 0 || cj < 0 || ck < 0 || ci + 1 >= size.x || cj + 1 >= size.y || ck + 1 >= size.z) return;
+  d += elastic_cell_diag(k, a) * (cell_e(ci, cj, ck) * scale);
 }
 
 /// The Jacobi diagonal (N/mm) of node (i, j, k), as elastic_apply_node() sums it.
@@ -184,12 +258,7 @@ template <typename KMat, typename CellE>
 PALPSIM_HD Vec3f elastic_diag_node(const KMat& k, const CellE& cell_e, const Vec3i& size, float scale, int i, int j,
                                    int kk) {
   Vec3f d{0, 0, 0};
-  for (int a = 0; a < 8; ++a) {
-    const Vec3i o = elastic_corner(a);
-    const int ci = i - o.x, cj = j - o.y, ck = kk - o.z;
-    if (ci < 0 || cj < 0 || ck < 0 || ci + 1 >= size.x || cj + 1 >= size.y || ck + 1 >= size.z) continue;
-    d += elastic_cell_diag(k, a) * (cell_e(ci, cj, ck) * scale);
-  }
+  for (int a = 0; a < 8; ++a) elastic_add_cell_diag(k, cell_e, size, scale, i, j, kk, a, d);
   return d;
 }
 

@@ -227,15 +227,14 @@ void vcycle(const Levels& L, int l, const std::array<float, 576>& k, const Vec3f
 }
 
 // the largest eigenvalue of D^-1 K on a level (held nodes out), by power iteration from a
-// fixed pseudo-random start; uses the level's x and r
+// fixed pseudo-random start (elastic_power_start); uses the level's x and r
 float estimate_lmax(const Level& v, const std::array<float, 576>& k) {
   const Vec3f none{0, 0, 0};
-  std::uint32_t seed = 12345u;
-  auto next = [&seed]() {
-    seed = seed * 1664525u + 1013904223u;
-    return float(seed >> 8) / float(1u << 24) - 0.5f;
-  };
-  for (long long e = 0; e < v.count(); ++e) v.x[e] = elastic_project(v.flags[e], none, Vec3f{next(), next(), next()});
+  for (long long e = 0; e < v.count(); ++e) {
+    const unsigned long long m = 3ull * (unsigned long long)e;
+    v.x[e] = elastic_project(v.flags[e], none,
+                             Vec3f{elastic_power_start(m), elastic_power_start(m + 1), elastic_power_start(m + 2)});
+  }
   double lambda = 0;
   for (int it = 0; it < kElasticPowerIterations; ++it) {
     const double xn = std::sqrt(dot_all(v.x, v.x, v.count()));
@@ -345,19 +344,8 @@ void elastic_set_up_cpu(const Patient& p, const Voi& voi, const ElasticParams& p
     const bool bone = p.bone.data[pi] != 0;
     const long long e = voi.index(i, j, k);
     s.push[e] = elastic_node_modulus(prm.material, p.intensity.data[pi], body, p.dist_skin_mm.data[pi]);
-    std::uint8_t f = 0;
     const bool face = i == 0 || j == 0 || k == 0 || i + 1 == voi.size.x || j + 1 == voi.size.y || k + 1 == voi.size.z;
-    if (bone || face) f |= kElasticHeld;
-    if (body && !bone) {
-      f |= kElasticBody;
-      bool skin = false;
-      for (int q = 0; q < 6 && !skin; ++q) {
-        const Vec3i o = neighbour_offset(q);
-        skin = !in_body(gi + o.x, gj + o.y, gk + o.z);
-      }
-      if (skin) f |= kElasticSkin;
-    }
-    s.flags[e] = f;
+    s.flags[e] = elastic_static_flags(body, bone, face, in_body, gi, gj, gk);
   });
   // cell moduli: the mean of the corners' where all eight are in the body (bone counts),
   // else air's gel, so that the tissue ends at the skin nodes (traction-free there, but for the gel)
@@ -367,15 +355,16 @@ void elastic_set_up_cpu(const Patient& p, const Voi& voi, const ElasticParams& p
       s.cell_e[e] = 0;
       return;
     }
-    float sum = 0;
-    bool body = true;
-    for (int c = 0; c < 8; ++c) {
-      const Vec3i o = elastic_corner(c);
-      const int gi = voi.lo.x + i + o.x, gj = voi.lo.y + j + o.y, gk = voi.lo.z + k + o.z;
-      body = body && p.body.data[g.index(gi, gj, gk)] != 0;
-      sum += s.push[voi.index(i + o.x, j + o.y, k + o.z)];
-    }
-    s.cell_e[e] = body ? sum / 8 : prm.material.air_e_kpa;
+    s.cell_e[e] = elastic_cell_modulus(
+        [&](int c) {
+          const Vec3i o = elastic_corner(c);
+          return s.push[voi.index(i + o.x, j + o.y, k + o.z)];
+        },
+        [&](int c) {
+          const Vec3i o = elastic_corner(c);
+          return p.body.data[g.index(voi.lo.x + i + o.x, voi.lo.y + j + o.y, voi.lo.z + k + o.z)] != 0;
+        },
+        prm.material.air_e_kpa);
   });
   std::fill_n(s.push.begin(), n0, -1.0f);
   s.voi = voi;

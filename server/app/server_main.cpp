@@ -11,9 +11,11 @@
 #include <pthread.h>
 #include <cstdlib>
 #include <string>
+#include <utility>
 
 #include "core/error.h"
 #include "net/curve_keys.h"
+#include "net/heap_trimmer.h"
 #include "net/path_policy.h"
 #include "net/scene_io.h"
 #include "net/server.h"
@@ -58,6 +60,9 @@ int fail(const std::string& what) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  // big blocks go back to the system when freed (net/heap_trimmer.h says why)
+  palpsim::net::configure_heap();
+
   // SIGINT and SIGTERM are taken by sigwait below; every thread started later inherits the mask
   sigset_t stop_signals;
   sigemptyset(&stop_signals);
@@ -170,8 +175,9 @@ int main(int argc, char** argv) {
 
   // serve
   try {
-    palpsim::net::Server server(scene, patient, [](const palpsim::Scene& s) { return palpsim::prepare_patient(s); },
-                                options);
+    // the server holds the only reference to the patient, so a LoadScene frees it
+    palpsim::net::Server server(scene, std::move(patient),
+                                [](const palpsim::Scene& s) { return palpsim::prepare_patient(s); }, options);
     server.start();
     const std::string stream = server.stream_endpoint();
     std::printf("palpsim-server: ready on %s poses %s%s%s (scene '%s')\n", server.control_endpoint().c_str(),

@@ -17,6 +17,7 @@
 #include "deform/backend.h"
 #include "net/curve_keys.h"
 #include "net/deform_worker.h"
+#include "net/heap_trimmer.h"
 #include "net/path_policy.h"
 #include "net/pose_service.h"
 #include "net/render_worker.h"
@@ -1088,6 +1089,7 @@ void Server::start() {
     name_this_thread("palpsim-patch");
     run_patch_worker(*shared_);
   });
+  heap_trimmer_ = std::make_unique<HeapTrimmer>();
 }
 
 void Server::stop() {
@@ -1095,6 +1097,7 @@ void Server::stop() {
   if (pose_thread_.joinable()) pose_thread_.join();
   if (control_thread_.joinable()) control_thread_.join();
   if (patch_thread_.joinable()) patch_thread_.join();
+  heap_trimmer_.reset();
   if (control_) {
     control_->stop_stream();
     control_->stop_deform();

@@ -28,7 +28,7 @@ const char* kUsage =
     "                      [--max-pose-distance-mm MM] [--background idle|nice] [--deform-concurrency K]\n"
     "                      [--deform-batch N]\n"
     "                      [--scene-dir DIR ...]\n"
-    "                      [--curve-secret FILE --allow FILE] [--insecure]\n"
+    "                      [--curve-secret FILE [--curve-public FILE] --allow FILE] [--insecure]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
     "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
     "  --bind ADDR        control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
@@ -45,9 +45,16 @@ const char* kUsage =
     "  --scene-dir DIR    a folder LoadScene requests may read scene files and CTs from and record\n"
     "                     frames into (repeatable; default: the folder of --scene, none without it)\n"
     "  --curve-secret FILE the server's secret key (palpsim-keys NAME makes NAME.key_secret): every\n"
-    "                     endpoint is CURVE-encrypted, and addresses beyond loopback are allowed\n"
+    "                     endpoint is CURVE-encrypted, and addresses beyond loopback are allowed;\n"
+    "                     a public key file here is refused, and so is a secret key that NAME.key\n"
+    "                     beside it does not match\n"
+    "  --curve-public FILE the server's public key file the clients were given (default: NAME.key\n"
+    "                     beside NAME.key_secret, when there is one): refused unless it matches\n"
     "  --allow FILE       the client public keys admitted with --curve-secret, one z85 key per line\n"
-    "                     ('# ' comments; cat alice.key bob.key > FILE makes one)\n"
+    "                     ('# ' comments; cat alice.key bob.key > FILE makes one); a secret key\n"
+    "                     in it is refused\n"
+    "                     Refused handshakes are logged with the peer's address and key, a line\n"
+    "                     at first and then one summary per 5 s at most\n"
     "  --insecure         allow addresses beyond loopback without keys: poses, frames and control\n"
     "                     travel in plain text, unauthenticated (a trusted network only)\n"
     "Prints 'ready on ADDR poses ADDR [stream ADDR]' when serving; stops cleanly on SIGINT or SIGTERM.\n";
@@ -74,7 +81,7 @@ int main(int argc, char** argv) {
   spdlog::set_default_logger(spdlog::stderr_color_mt("palpsim-server"));
 
   // command line
-  std::string scene_file, curve_secret_file, allow_file;
+  std::string scene_file, curve_secret_file, curve_public_file, allow_file;
   palpsim::net::ServerOptions options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -90,6 +97,8 @@ int main(int argc, char** argv) {
         scene_file = value("--scene");
       } else if (a == "--curve-secret") {
         curve_secret_file = value("--curve-secret");
+      } else if (a == "--curve-public") {
+        curve_public_file = value("--curve-public");
       } else if (a == "--allow") {
         allow_file = value("--allow");
       } else if (a == "--insecure") {
@@ -140,12 +149,20 @@ int main(int argc, char** argv) {
     if (curve_secret_file.empty() != allow_file.empty())
       throw palpsim::Error(curve_secret_file.empty() ? "--allow needs --curve-secret (the server's secret key)"
                                                      : "--curve-secret needs --allow (the client keys admitted)");
+    if (!curve_public_file.empty() && curve_secret_file.empty())
+      throw palpsim::Error("--curve-public needs --curve-secret (the public key is checked against it)");
     if (!curve_secret_file.empty()) {
       if (!palpsim::net::curve_available())
         throw palpsim::Error("--curve-secret: this libzmq has no CURVE (zmq_has(\"curve\") is false)");
-      const auto pair = palpsim::net::read_secret_key_file(curve_secret_file);
+      const auto pair = palpsim::net::read_secret_key_file(curve_secret_file, curve_public_file);
       options.curve_secret_key = pair.secret_key;
       options.curve_allowed_keys = palpsim::net::read_allow_list(allow_file);
+      // the server's own secret key on its list: it is no longer secret
+      for (const std::string& k : options.curve_allowed_keys)
+        if (k == pair.secret_key)
+          throw palpsim::Error(allow_file + ": holds the server's own secret key (" + curve_secret_file +
+                               "); an allow-list holds the clients' public keys, and this secret key is no longer " +
+                               "private: make the server a new pair");
       spdlog::info("CURVE on every endpoint: server public key {}, {} client key(s) allowed from {}", pair.public_key,
                    options.curve_allowed_keys.size(), allow_file);
     }

@@ -112,7 +112,7 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=2160)
     ap.add_argument("--subscribers", type=int, default=3, help="SUB sockets per watched session that never read")
     ap.add_argument("--every", type=int, default=5, help="a row after this many reloads or cycles")
-    ap.add_argument("--settle-s", type=float, default=5.0, help="seconds over which a row takes the least RSS")
+    ap.add_argument("--settle-s", type=float, default=10.0, help="seconds over which a row takes the least RSS")
     ap.add_argument("--json", help="write the rows here")
     args = ap.parse_args()
 

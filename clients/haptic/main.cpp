@@ -225,7 +225,7 @@ int main(int argc, char** argv) {
   try {
     // CURVE on both sockets when keys are given (the files are checked before anything is sent)
     if (curve) {
-      const std::string server_key = palpsim::net::read_key_file(server_key_file);
+      const std::string server_key = palpsim::net::read_public_key_file(server_key_file);
       const auto client_key = palpsim::net::read_secret_key_file(client_key_file);
       for (zmq::socket_t* s : {&ctl, &pose}) palpsim::net::make_curve_client(*s, server_key, client_key);
     }

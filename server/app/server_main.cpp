@@ -11,10 +11,12 @@
 #include <pthread.h>
 #include <cstdlib>
 #include <string>
+#include <utility>
 
 #include "core/error.h"
 #include "core/path_policy.h"
 #include "net/curve_keys.h"
+#include "net/heap_trimmer.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "prep/prepare.h"
@@ -26,7 +28,7 @@ const char* kUsage =
     "                      [--max-pose-distance-mm MM] [--background idle|nice] [--deform-concurrency K]\n"
     "                      [--deform-batch N] [--max-sessions-per-client N] [--idle-timeout-s S]\n"
     "                      [--scene-dir DIR ...] [--cache-dir DIR]\n"
-    "                      [--curve-secret FILE --allow FILE] [--insecure]\n"
+    "                      [--curve-secret FILE [--curve-public FILE] --allow FILE] [--insecure]\n"
     "                      [--log-level trace|debug|info|warn|error]\n"
     "  --scene FILE       scene (config/scenes/*.textproto); default: the built-in phantom scene\n"
     "  --bind ADDR        control address (default tcp://127.0.0.1:7420; tcp://127.0.0.1:* picks a free port)\n"
@@ -52,9 +54,16 @@ const char* kUsage =
     "                     --scene's prep.cache_dir, else $PALPSIM_CACHE, else ~/.cache/palpsim); a\n"
     "                     client's scene that sets prep.cache_dir is refused\n"
     "  --curve-secret FILE the server's secret key (palpsim-keys NAME makes NAME.key_secret): every\n"
-    "                     endpoint is CURVE-encrypted, and addresses beyond loopback are allowed\n"
+    "                     endpoint is CURVE-encrypted, and addresses beyond loopback are allowed;\n"
+    "                     a public key file here is refused, and so is a secret key that NAME.key\n"
+    "                     beside it does not match\n"
+    "  --curve-public FILE the server's public key file the clients were given (default: NAME.key\n"
+    "                     beside NAME.key_secret, when there is one): refused unless it matches\n"
     "  --allow FILE       the client public keys admitted with --curve-secret, one z85 key per line\n"
-    "                     ('# ' comments; cat alice.key bob.key > FILE makes one)\n"
+    "                     ('# ' comments; cat alice.key bob.key > FILE makes one); a secret key\n"
+    "                     in it is refused\n"
+    "                     Refused handshakes are logged with the peer's address and key, a line\n"
+    "                     at first and then one summary per 5 s at most\n"
     "  --insecure         allow addresses beyond loopback without keys: poses, frames and control\n"
     "                     travel in plain text, unauthenticated (a trusted network only)\n"
     "Prints 'ready on ADDR poses ADDR [stream ADDR]' when serving; stops cleanly on SIGINT or SIGTERM.\n";
@@ -67,6 +76,9 @@ int fail(const std::string& what) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  // big blocks go back to the system when freed (net/heap_trimmer.h says why)
+  palpsim::net::configure_heap();
+
   // SIGINT and SIGTERM are taken by sigwait below; every thread started later inherits the mask
   sigset_t stop_signals;
   sigemptyset(&stop_signals);
@@ -78,7 +90,7 @@ int main(int argc, char** argv) {
   spdlog::set_default_logger(spdlog::stderr_color_mt("palpsim-server"));
 
   // command line
-  std::string scene_file, curve_secret_file, allow_file, cache_dir;
+  std::string scene_file, curve_secret_file, curve_public_file, allow_file, cache_dir;
   palpsim::net::ServerOptions options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -103,6 +115,8 @@ int main(int argc, char** argv) {
         scene_file = value("--scene");
       } else if (a == "--curve-secret") {
         curve_secret_file = value("--curve-secret");
+      } else if (a == "--curve-public") {
+        curve_public_file = value("--curve-public");
       } else if (a == "--allow") {
         allow_file = value("--allow");
       } else if (a == "--insecure") {
@@ -154,12 +168,20 @@ int main(int argc, char** argv) {
     if (curve_secret_file.empty() != allow_file.empty())
       throw palpsim::Error(curve_secret_file.empty() ? "--allow needs --curve-secret (the server's secret key)"
                                                      : "--curve-secret needs --allow (the client keys admitted)");
+    if (!curve_public_file.empty() && curve_secret_file.empty())
+      throw palpsim::Error("--curve-public needs --curve-secret (the public key is checked against it)");
     if (!curve_secret_file.empty()) {
       if (!palpsim::net::curve_available())
         throw palpsim::Error("--curve-secret: this libzmq has no CURVE (zmq_has(\"curve\") is false)");
-      const auto pair = palpsim::net::read_secret_key_file(curve_secret_file);
+      const auto pair = palpsim::net::read_secret_key_file(curve_secret_file, curve_public_file);
       options.curve_secret_key = pair.secret_key;
       options.curve_allowed_keys = palpsim::net::read_allow_list(allow_file);
+      // the server's own secret key on its list: it is no longer secret
+      for (const std::string& k : options.curve_allowed_keys)
+        if (k == pair.secret_key)
+          throw palpsim::Error(allow_file + ": holds the server's own secret key (" + curve_secret_file +
+                               "); an allow-list holds the clients' public keys, and this secret key is no longer " +
+                               "private: make the server a new pair");
       spdlog::info("CURVE on every endpoint: server public key {}, {} client key(s) allowed from {}", pair.public_key,
                    options.curve_allowed_keys.size(), allow_file);
     }
@@ -192,13 +214,14 @@ int main(int argc, char** argv) {
 
   // serve
   try {
-    // LoadScene's patients: every CT file through the folders' resolver, the operator's cache
+    // LoadScene's patients: every CT file through the folders' resolver, the operator's cache;
+    // the server holds the only reference to the starting patient, so a LoadScene frees it
     auto loader = [files = palpsim::PathPolicy(options.scene_dirs), cache_dir](const palpsim::Scene& s) {
       palpsim::Scene operators = s;
       operators.prep.cache_dir = cache_dir;
       return palpsim::prepare_patient(operators, nullptr, &files);
     };
-    palpsim::net::Server server(scene, patient, loader, options);
+    palpsim::net::Server server(scene, std::move(patient), loader, options);
     server.start();
     const std::string stream = server.stream_endpoint();
     std::printf("palpsim-server: ready on %s poses %s%s%s (scene '%s')\n", server.control_endpoint().c_str(),

@@ -35,15 +35,79 @@ std::string key_of(const std::string& line) {
   return line.substr(b);
 }
 
-// the key lines of a file with their line numbers
-std::vector<std::pair<int, std::string>> key_lines(const std::string& path) {
+// what palpsim-keys writes in front of a key's kind in its comment
+constexpr const char* kCommentPrefix = "# palpsim CURVE ";
+
+// one key of a file: its line, and the kind palpsim-keys' comment above it gives (with
+// the line of that comment)
+struct KeyLine {
+  int line = 0;
+  std::string key;
+  KeyKind kind = KeyKind::unknown;
+  int kind_line = 0;
+};
+
+// the kind a comment line names, or unknown
+KeyKind comment_kind(const std::string& line) {
+  const auto b = line.find_first_not_of(" \t\r");
+  if (b == std::string::npos || line.compare(b, std::strlen(kCommentPrefix), kCommentPrefix) != 0)
+    return KeyKind::unknown;
+  const std::string rest = line.substr(b + std::strlen(kCommentPrefix));
+  if (rest.rfind("public key", 0) == 0) return KeyKind::public_key;
+  if (rest.rfind("secret key", 0) == 0) return KeyKind::secret_key;
+  return KeyKind::unknown;
+}
+
+// the key lines of a file, each with the kind palpsim-keys' comment right above it
+// (blank lines between them allowed) gives
+std::vector<KeyLine> key_lines(const std::string& path) {
   std::ifstream in(path);
   if (!in) throw Error(path + ": cannot read: " + std::strerror(errno));
-  std::vector<std::pair<int, std::string>> out;
+  std::vector<KeyLine> out;
   std::string line;
-  for (int n = 1; std::getline(in, line); ++n)
-    if (const std::string s = key_of(line); !s.empty()) out.emplace_back(n, s);
+  KeyKind marked = KeyKind::unknown;
+  int marked_line = 0;
+  for (int n = 1; std::getline(in, line); ++n) {
+    if (const KeyKind k = comment_kind(line); k != KeyKind::unknown) {
+      marked = k;
+      marked_line = n;
+    } else if (const std::string s = key_of(line); !s.empty()) {
+      out.push_back({n, s, marked, marked_line});
+      marked = KeyKind::unknown;
+    }
+  }
   return out;
+}
+
+bool ends_with(const std::string& s, const std::string& tail) {
+  return s.size() >= tail.size() && s.compare(s.size() - tail.size(), tail.size(), tail) == 0;
+}
+
+// the kind a file's name gives: NAME.key_secret secret, NAME.key public
+KeyKind name_kind(const std::string& path) {
+  if (ends_with(path, ".key_secret")) return KeyKind::secret_key;
+  if (ends_with(path, ".key")) return KeyKind::public_key;
+  return KeyKind::unknown;
+}
+
+// the one key of a key file, its kind (the comment's, else the name's) and why that kind
+KeyLine read_one_key(const std::string& path, std::string* why_kind) {
+  const auto lines = key_lines(path);
+  if (lines.empty()) throw Error(path + ": no key (expected one z85 key of 40 characters)");
+  if (lines.size() > 1)
+    throw Error(path + ":" + std::to_string(lines[1].line) + ": a second key; a key file holds one");
+  KeyLine k = lines[0];
+  const std::string why = check_z85_key(k.key);
+  if (!why.empty()) throw Error(path + ":" + std::to_string(k.line) + ": not a key: " + why);
+  if (k.kind != KeyKind::unknown) {
+    *why_kind = "palpsim-keys marked it so on line " + std::to_string(k.kind_line);
+  } else {
+    k.kind = name_kind(path);
+    *why_kind = k.kind == KeyKind::secret_key   ? "its name ends in .key_secret"
+                : k.kind == KeyKind::public_key ? "its name ends in .key"
+                                                : "";
+  }
+  return k;
 }
 
 // writes `text` to a new file of mode `mode`; O_EXCL unless `force` (then replaced)
@@ -89,33 +153,70 @@ std::string curve_public_of(const std::string& secret_z85) {
   return pub;
 }
 
-std::string read_key_file(const std::string& path) {
-  const auto lines = key_lines(path);
-  if (lines.empty()) throw Error(path + ": no key (expected one z85 key of 40 characters)");
-  if (lines.size() > 1)
-    throw Error(path + ":" + std::to_string(lines[1].first) + ": a second key; a key file holds one");
-  const std::string why = check_z85_key(lines[0].second);
-  if (!why.empty()) throw Error(path + ":" + std::to_string(lines[0].first) + ": not a key: " + why);
-  return lines[0].second;
+std::string key_comment(KeyKind kind, const std::string& name) {
+  if (kind == KeyKind::secret_key)
+    return std::string(kCommentPrefix) + "secret key '" + name + "': keep it private (mode 0600)";
+  return std::string(kCommentPrefix) + "public key '" + name + "'";
 }
 
-CurveKeyPair read_secret_key_file(const std::string& path) {
+std::string read_key_file(const std::string& path) {
+  std::string why;
+  return read_one_key(path, &why).key;
+}
+
+std::string read_public_key_file(const std::string& path) {
+  std::string why;
+  const KeyLine k = read_one_key(path, &why);
+  if (k.kind == KeyKind::secret_key)
+    throw Error(path + ": a secret key (" + why + "), not a public key: give the public half, the NAME.key that " +
+                "palpsim-keys wrote beside NAME.key_secret");
+  return k.key;
+}
+
+CurveKeyPair read_secret_key_file(const std::string& path, const std::string& public_path) {
+  std::string why;
+  const KeyLine k = read_one_key(path, &why);
+  if (k.kind == KeyKind::public_key)
+    throw Error(path + ": a public key (" + why + "), not a secret key: give NAME.key_secret, the file " +
+                "palpsim-keys wrote beside NAME.key (taken as a secret key it makes another key pair, which the " +
+                "other side never answers)");
   CurveKeyPair p;
-  p.secret_key = read_key_file(path);
+  p.secret_key = k.key;
   try {
     p.public_key = curve_public_of(p.secret_key);
   } catch (const Error& e) {
     throw Error(path + ": " + e.what());
   }
+  // the public half given, or palpsim-keys' NAME.key beside NAME.key_secret, must match
+  std::string pub_path = public_path;
+  if (pub_path.empty() && ends_with(path, ".key_secret")) {
+    const std::string beside = path.substr(0, path.size() - std::strlen("_secret"));
+    if (::access(beside.c_str(), F_OK) == 0) pub_path = beside;
+  }
+  if (!pub_path.empty()) {
+    const std::string pub = read_public_key_file(pub_path);
+    if (pub != p.public_key)
+      throw Error(path + " and " + pub_path + " are not a pair: the public half of " + path + " is " + p.public_key +
+                  ", " + pub_path + " holds " + pub + " (one of them was replaced: make a new pair with " +
+                  "palpsim-keys NAME --force and hand out the new NAME.key)");
+  }
   return p;
 }
 
 std::vector<std::string> read_allow_list(const std::string& path) {
+  if (name_kind(path) == KeyKind::secret_key)
+    throw Error(path + ": a secret key file (its name ends in .key_secret), not an allow-list: an allow-list " +
+                "holds the clients' public keys (cat alice.key bob.key > FILE)");
   std::vector<std::string> keys;
-  for (const auto& [n, s] : key_lines(path)) {
-    const std::string why = check_z85_key(s);
-    if (!why.empty()) throw Error(path + ":" + std::to_string(n) + ": not a client public key: " + why);
-    keys.push_back(s);
+  for (const KeyLine& k : key_lines(path)) {
+    const std::string where = path + ":" + std::to_string(k.line);
+    const std::string why = check_z85_key(k.key);
+    if (!why.empty()) throw Error(where + ": not a client public key: " + why);
+    if (k.kind == KeyKind::secret_key)
+      throw Error(where + ": a secret key (palpsim-keys marked it so on line " + std::to_string(k.kind_line) +
+                  "), not a client public key: an allow-list holds the clients' NAME.key files, and this secret " +
+                  "key is no longer private (make that client a new pair)");
+    keys.push_back(k.key);
   }
   if (keys.empty()) throw Error(path + ": no keys (one z85 client public key per line); no client could connect");
   return keys;
@@ -130,9 +231,8 @@ std::vector<std::string> write_key_pair(const CurveKeyPair& pair, const std::str
     for (const std::string& p : {pub, sec})
       if (::access(p.c_str(), F_OK) == 0)
         throw Error(p + ": exists; palpsim-keys replaces key files only with --force");
-  write_file(sec, "# palpsim CURVE secret key '" + name + "': keep it private (mode 0600)\n" + pair.secret_key + "\n",
-             0600, force);
-  write_file(pub, "# palpsim CURVE public key '" + name + "'\n" + pair.public_key + "\n", 0644, force);
+  write_file(sec, key_comment(KeyKind::secret_key, name) + "\n" + pair.secret_key + "\n", 0600, force);
+  write_file(pub, key_comment(KeyKind::public_key, name) + "\n" + pair.public_key + "\n", 0644, force);
   return {pub, sec};
 }
 

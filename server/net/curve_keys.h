@@ -31,18 +31,37 @@ CurveKeyPair make_curve_keypair();
 /// The public key of a z85 secret key (zmq_curve_public); throws palpsim::Error for a bad key.
 std::string curve_public_of(const std::string& secret_z85);
 
+/// Which half of a pair a key is. Nothing in a z85 key tells: any 32 bytes are a secret
+/// key whose public half is another 32 bytes. So it is told by the comment palpsim-keys
+/// writes above each key ("# palpsim CURVE public key 'NAME'" or "... secret key ..."),
+/// else by the file's name (NAME.key public, NAME.key_secret secret), else not at all.
+enum class KeyKind { unknown, public_key, secret_key };
+
+/// The comment palpsim-keys writes above a key of `kind` made for `name` (one line, no newline).
+std::string key_comment(KeyKind kind, const std::string& name);
+
 /// Reads a key file: blank lines, comments ('#' then a blank, at a line's start or after
-/// the key: z85 itself uses '#') and exactly one z85 key.
+/// the key: z85 itself uses '#') and exactly one z85 key, of either half.
 /// Throws palpsim::Error naming the file (and line) and what is wrong.
 std::string read_key_file(const std::string& path);
 
+/// Reads a public key file (the server's NAME.key, for a client's --server-key): as
+/// read_key_file, and refuses a key marked or named secret, naming the file.
+std::string read_public_key_file(const std::string& path);
+
 /// Reads a secret key file (NAME.key_secret) into a pair, its public half derived from
-/// the secret; throws palpsim::Error naming the file.
-CurveKeyPair read_secret_key_file(const std::string& path);
+/// the secret. Refuses a key marked or named public (a client's --client-key or the
+/// server's --curve-secret given NAME.key runs with another key, and is met with
+/// silence), and a pair that does not match: the public key file `public_path`, or
+/// without one NAME.key beside NAME.key_secret when there is one, must hold the public
+/// half of this secret. Throws palpsim::Error naming the file(s).
+CurveKeyPair read_secret_key_file(const std::string& path, const std::string& public_path = "");
 
 /// Reads an allow-list: one z85 public key per line, comments and blank lines as in a
-/// key file, so `cat a.key b.key > allowed` makes one.
-/// Throws palpsim::Error naming the file and line of the first bad entry, or an empty list.
+/// key file, so `cat a.key b.key > allowed` makes one. Refuses a file named
+/// NAME.key_secret and a key marked secret (a secret key on a list is no longer secret,
+/// and no client presents it). Throws palpsim::Error naming the file and line of the
+/// first bad entry, or an empty list.
 std::vector<std::string> read_allow_list(const std::string& path);
 
 /// Writes DIR/NAME.key (public, mode 0644) and DIR/NAME.key_secret (secret, mode 0600,

@@ -148,6 +148,17 @@ void RenderWorker::run() {
     const int batch = std::max(1, settings_.max_batch);
     for (std::size_t b = 0; b < due_.size() && !stop_.load(std::memory_order_relaxed); b += std::size_t(batch))
       draw_batch(due_.data() + b, int(std::min(due_.size() - b, std::size_t(batch))));
+    // nobody watches any more: the buffers sized for the last viewers' frames go
+    if (!any && drew_since_release_) {
+      drew_since_release_ = false;
+      try {
+        if (encoder_) encoder_->release_buffers();
+        if (renderer_) renderer_->release_frame_state();
+        report_bytes();
+      } catch (const std::exception& e) {
+        spdlog::warn("render thread: releasing the last frames' buffers: {}", e.what());
+      }
+    }
     if (due_.empty() && nap > 0)
       std::this_thread::sleep_for(std::chrono::duration<double>(std::min(nap, any ? kIdleSleepS : kUnwatchedSleepS)));
   }
@@ -358,6 +369,7 @@ void RenderWorker::draw_batch(const int* index, int n) {
       jobs_.push_back(render::EncodeJob{v.target, v.view.jpeg_quality, &f.jpeg, &f.times});
     }
     encoder_->encode_batch(*renderer_, jobs_);
+    drew_since_release_ = true;
     // each frame's total: its J and its share of the batch's drawing and encoding
     const double batch_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t1).count() / double(n);

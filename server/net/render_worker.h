@@ -93,6 +93,7 @@ class RenderWorker {
   std::vector<int> written_;  // the slot of each write
   std::vector<render::EncodeJob> jobs_;
   std::size_t reported_bytes_ = 0;  // the renderer's bytes as the stats have them
+  bool drew_since_release_ = false;  // frames were encoded since the encoder's buffers were last freed
 
   // start() waits for the first set-up
   SetupGate setup_;

@@ -20,6 +20,7 @@
 #include "net/client_text.h"
 #include "net/curve_keys.h"
 #include "net/deform_worker.h"
+#include "net/heap_trimmer.h"
 #include "net/pose_service.h"
 #include "net/render_worker.h"
 #include "net/scene_io.h"
@@ -1279,6 +1280,7 @@ void Server::start() {
     name_this_thread("palpsim-patch");
     run_patch_worker(*shared_);
   });
+  heap_trimmer_ = std::make_unique<HeapTrimmer>();
 }
 
 void Server::stop() {
@@ -1286,6 +1288,7 @@ void Server::stop() {
   if (pose_thread_.joinable()) pose_thread_.join();
   if (control_thread_.joinable()) control_thread_.join();
   if (patch_thread_.joinable()) patch_thread_.join();
+  heap_trimmer_.reset();
   if (control_) {
     control_->stop_stream();
     control_->stop_deform();

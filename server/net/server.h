@@ -21,6 +21,7 @@ namespace palpsim::net {
 
 struct ServerShared;
 struct World;
+class HeapTrimmer;
 
 /// Prepares the patient of a scene (palpsim::prepare_patient in the real server; tests
 /// may pass a synthetic one). Throws palpsim::Error for a scene that cannot be served.
@@ -118,6 +119,7 @@ class Server {
   std::unique_ptr<Control> control_;
   std::string control_endpoint_, pose_endpoint_;
   std::thread pose_thread_, control_thread_, patch_thread_;
+  std::unique_ptr<HeapTrimmer> heap_trimmer_;  // gives freed memory back to the system while serving
   bool started_ = false;
 };
 

@@ -126,6 +126,7 @@ struct StreamPublisher::Impl {
 
   // reused buffers: no allocation per message once they have grown
   v1::StreamMessage msg;
+  bool sent_since_release = false;  // a session was watched since the buffers were last freed
   std::string payload;
   std::vector<std::int16_t> i16;
   std::vector<char> packed;
@@ -135,6 +136,15 @@ struct StreamPublisher::Impl {
   ~Impl() { ZSTD_freeCCtx(zstd); }
 
   double now_s() const { return std::chrono::duration<double>(Clock::now() - start).count(); }
+
+  // frees the buffers reused from message to message (the next message makes them again)
+  void release_buffers() {
+    std::string().swap(payload);
+    std::vector<std::int16_t>().swap(i16);
+    std::vector<char>().swap(packed);
+    v1::StreamMessage().Swap(&msg);
+    sent_since_release = false;
+  }
 
   void send(const std::string& topic, const std::string& body) {
     try {
@@ -472,9 +482,9 @@ struct StreamPublisher::Impl {
       // a brick subscriber that came before this pass noticed the session is owed a key too
       p.key_pending = id != 0 && watched(brick_topic(id));
       p.key_id = p.brick_seq = 0;
-      p.last_voi_brick.clear();
+      std::string().swap(p.last_voi_brick);  // freed, not only emptied: a 4K frame is megabytes
       p.next_brick_s = 0;
-      p.last_frame.clear();
+      std::string().swap(p.last_frame);
       p.frame_resent = true;
       p.record_dir.clear();
       if (p.record_index.is_open()) p.record_index.close();
@@ -559,6 +569,9 @@ struct StreamPublisher::Impl {
         late.pop_back();
       }
       st.sessions_watched.store(count, std::memory_order_relaxed);
+      // nothing watched any more: the buffers sized for the largest key or frame go
+      if (count == 0 && sent_since_release) release_buffers();
+      sent_since_release = sent_since_release || count > 0;
       st.subscriptions.store(std::uint32_t(exact.size() + prefixes.size()), std::memory_order_relaxed);
     }
     // nobody is watched once the publisher is gone

@@ -50,6 +50,12 @@ class TjCompressor {
       throw Error(std::string("TurboJPEG: tjCompress2 failed: ") + tjGetErrorStr2(handle_));
     out.assign(buf_, buf_ + size);
   }
+  // frees the output buffer (the next frame makes it again)
+  void release() {
+    if (buf_) tjFree(buf_);
+    buf_ = nullptr;
+    cap_ = 0;
+  }
 
  private:
   tjhandle handle_;
@@ -70,6 +76,10 @@ class TurboJpegEncoder final : public FrameEncoder {
       tj_.encode(rgb_.data(), r.width(j.target), r.height(j.target), j.quality, *j.out);
       j.times->encode_ms += std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
     }
+  }
+  void release_buffers() override {
+    std::vector<std::uint8_t>().swap(rgb_);
+    tj_.release();
   }
 
  private:

@@ -33,6 +33,10 @@ class FrameEncoder {
   /// job's times get an equal share of the batch's readback and encode time. Throws
   /// palpsim::Error on failure; then no job's output is to be trusted.
   virtual void encode_batch(FrameRenderer& r, const std::vector<EncodeJob>& jobs) = 0;
+  /// Frees the host buffers kept from frame to frame (turbojpeg: the readback and the
+  /// JPEG output, 50 MB at 3840x2160), for the render thread to call when no session is
+  /// watched any more; the next frame makes them again. nvjpeg keeps its device buffers.
+  virtual void release_buffers() {}
   /// Encodes target 0's last frame at `quality` (1..100) into `out` (replaced); adds
   /// the readback and encode times to `times`.
   void encode(FrameRenderer& r, int quality, std::vector<std::uint8_t>& out, FrameTimes& times) {

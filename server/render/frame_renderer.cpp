@@ -585,6 +585,21 @@ void FrameRenderer::remove_target(TargetId t) {
   impl_->targets.erase(it);
 }
 
+void FrameRenderer::release_frame_state() {
+  Impl& m = *impl_;
+  // a draw's worth of state that references nothing big: a 1 x 1 framebuffer, no textures
+  Impl::Target& t = m.target(0);
+  m.resize(t, 1, 1);
+  for (GLuint unit : {kUnitCt, kUnitOverlay, kUnitBody, kUnitTf, kUnitBlock}) glBindTextureUnit(unit, 0);
+  if (!m.software) glBindImageTexture(0, 0, 0, GL_FALSE, 0, GL_WRITE_ONLY, GL_RGBA8);
+  glUseProgram(0);
+  glBindFramebuffer(GL_FRAMEBUFFER, t.fbo);
+  glViewport(0, 0, 1, 1);
+  glClear(GL_COLOR_BUFFER_BIT);
+  glFinish();
+  check_gl("releasing the last frame's state");
+}
+
 void FrameRenderer::Impl::resize(Target& t, int w, int h) {
   if (w == t.width && h == t.height && t.color_tex) return;
   // a new texture (immutable storage): interop users see a new name after a resize

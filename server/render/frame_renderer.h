@@ -113,6 +113,11 @@ class FrameRenderer {
   TargetId add_target();
   /// Frees a framebuffer (not target 0).
   void remove_target(TargetId t);
+  /// Lets the driver drop what it keeps of the frames drawn so far, for when nothing will
+  /// be drawn for a while: target 0 becomes 1 x 1, is cleared and left bound, and no
+  /// texture stays bound. Mesa's llvmpipe holds the last framebuffer's texture (33 MB at
+  /// 3840 x 2160) and the last textures sampled until the next draw, even once deleted.
+  void release_frame_state();
 
   /// Renders one frame of the session whose overlay is `id` at view.width x view.height
   /// into target 0; `view` must pass check_view. Adds the ray cast, slices and

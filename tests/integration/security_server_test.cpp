@@ -2,15 +2,21 @@
 // palpsim-haptic on loopback: CURVE admits only allow-listed keys and counts the others,
 // a wrong server key or a plain-text client gets no answer, and a session belongs to the
 // client that opened it (its key with CURVE; its token or control connection without).
+// Key files of the wrong half stop the server and name the file, and refusals are logged
+// with the peer's address and key, rate-limited (issue 26, finding 8).
 #include <catch2/catch.hpp>
 
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <chrono>
 #include <cmath>
 #include <fstream>
 #include <optional>
+#include <sstream>
 #include <string>
+#include <tuple>
+#include <vector>
 #include <zmq.hpp>
 
 #include "net/curve_keys.h"
@@ -170,6 +176,14 @@ std::unique_ptr<test::ServerProcess> start(const std::string& scene, const std::
   INFO("server stderr:\n" << s->child().err());
   REQUIRE(ready);
   return s;
+}
+
+// the server on `scene` with `extra` arguments, run until it exits (it is meant to refuse
+// to start): its exit status and stderr
+std::pair<int, std::string> run_to_exit(const std::string& scene, const std::vector<std::string>& extra) {
+  test::ServerProcess s(scene, extra);
+  const int rc = s.child().wait(120);
+  return std::make_pair(rc, s.child().err());
 }
 
 }  // namespace
@@ -354,19 +368,100 @@ TEST_CASE("bad key options stop the server at start, naming the file and line", 
   const std::string allow = dir + "/allowed";
   std::ofstream(allow) << "# the lab's stations\n" << slurp(dir + "/server.key") << "not-a-key\n";
   const std::string scene = test::temp_file("scene", bricks_scene_text());
-  auto run = [&](const std::vector<std::string>& extra) {
-    test::ServerProcess s(scene, extra);
-    const int rc = s.child().wait(120);
-    return std::make_pair(rc, s.child().err());
-  };
-  const auto [rc, err] = run({"--curve-secret", dir + "/server.key_secret", "--allow", allow});
+  const auto [rc, err] = run_to_exit(scene, {"--curve-secret", dir + "/server.key_secret", "--allow", allow});
   CHECK(rc == 1);
   CHECK(err.find(allow + ":4") != std::string::npos);  // line 4: the public file's comment and key are lines 2-3
-  const auto [rc2, err2] = run({"--curve-secret", dir + "/server.key_secret"});
+  const auto [rc2, err2] = run_to_exit(scene, {"--curve-secret", dir + "/server.key_secret"});
   CHECK(rc2 == 1);
   CHECK(err2.find("--curve-secret needs --allow") != std::string::npos);
-  const auto [rc3, err3] = run({"--bind", "tcp://0.0.0.0:*"});
+  const auto [rc3, err3] = run_to_exit(scene, {"--bind", "tcp://0.0.0.0:*"});
   CHECK(rc3 == 1);
   CHECK(err3.find("--curve-secret") != std::string::npos);  // the refusal names the way to bind beyond loopback
+  std::remove(scene.c_str());
+}
+
+TEST_CASE("a key of the wrong half, a pair that does not match or a secret key on the allow-list stop the server",
+          "[integration][security]") {
+  const std::string dir = temp_dir("halves");
+  make_keys(dir, "server");
+  make_keys(dir, "alice");
+  make_keys(dir, "other");
+  const std::string allow = dir + "/allowed";
+  std::ofstream(allow) << slurp(dir + "/alice.key");
+  const std::string scene = test::temp_file("scene", bricks_scene_text());
+  // the public key file as the secret: another key, and every client would get silence
+  auto [rc, err] = run_to_exit(scene, {"--curve-secret", dir + "/server.key", "--allow", allow});
+  CHECK(rc == 1);
+  CHECK(err.find(dir + "/server.key: a public key") != std::string::npos);
+  // a secret key file as the allow-list
+  std::tie(rc, err) =
+      run_to_exit(scene, {"--curve-secret", dir + "/server.key_secret", "--allow", dir + "/alice.key_secret"});
+  CHECK(rc == 1);
+  CHECK(err.find(dir + "/alice.key_secret: a secret key file") != std::string::npos);
+  // a secret key among the public ones (cat of the wrong file)
+  const std::string mixed = dir + "/mixed";
+  std::ofstream(mixed) << slurp(dir + "/alice.key") << slurp(dir + "/other.key_secret");
+  std::tie(rc, err) = run_to_exit(scene, {"--curve-secret", dir + "/server.key_secret", "--allow", mixed});
+  CHECK(rc == 1);
+  CHECK(err.find(mixed + ":4: a secret key") != std::string::npos);
+  // the public key given, or the one beside the secret, of another pair
+  std::tie(rc, err) = run_to_exit(scene, {"--curve-secret", dir + "/server.key_secret", "--curve-public",
+                                          dir + "/other.key", "--allow", allow});
+  CHECK(rc == 1);
+  CHECK(err.find("server.key_secret and " + dir + "/other.key are not a pair") != std::string::npos);
+  const std::string server_pub = slurp(dir + "/server.key");
+  std::ofstream(dir + "/server.key") << slurp(dir + "/other.key");
+  std::tie(rc, err) = run_to_exit(scene, {"--curve-secret", dir + "/server.key_secret", "--allow", allow});
+  CHECK(rc == 1);
+  CHECK(err.find("server.key_secret and " + dir + "/server.key are not a pair") != std::string::npos);
+  std::ofstream(dir + "/server.key") << server_pub;
+  // palpsim-keys --public and palpsim-haptic say the same of the wrong half
+  std::string keys_err;
+  CHECK(run_keys({"--public", dir + "/alice.key"}, &keys_err) == 1);
+  CHECK(keys_err.find("alice.key: a public key") != std::string::npos);
+  test::Child h({test::build_exe("palpsim-haptic"), "--connect", "tcp://127.0.0.1:9", "--seconds", "0.2",
+                 "--server-key", dir + "/server.key_secret", "--client-key", dir + "/alice.key_secret"});
+  CHECK(h.wait(60) == 1);
+  CHECK(h.err().find("server.key_secret: a secret key") != std::string::npos);
+  std::remove(scene.c_str());
+}
+
+TEST_CASE("refused handshakes are logged with the peer's address and key, a summary per period at most",
+          "[integration][security]") {
+  const std::string dir = temp_dir("refusals");
+  const CurveKeyPair server = make_keys(dir, "server"), mallory = make_keys(dir, "mallory");
+  make_keys(dir, "alice");
+  const std::string scene = test::temp_file("scene", bricks_scene_text());
+  auto srv = start(scene, {"--curve-secret", dir + "/server.key_secret", "--allow", dir + "/alice.key"});
+  const auto t0 = std::chrono::steady_clock::now();
+  // mallory tries 20 times (and ZeroMQ retries each refused connection by itself)
+  v1::ControlRequest info;
+  info.mutable_info();
+  for (int i = 0; i < 20; ++i) {
+    Peer m(srv->control(), &mallory, server.public_key);
+    CHECK_FALSE(m.call(info, 200));
+  }
+  // the summary of those after the first comes within the period (5 s) of the first line
+  auto lines = [&] {
+    std::vector<std::string> out;
+    std::istringstream in(srv->child().err());
+    for (std::string l; std::getline(in, l);)
+      if (l.find("CURVE: refused") != std::string::npos) out.push_back(l);
+    return out;
+  };
+  const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+  while (lines().size() < 2 && std::chrono::steady_clock::now() < end) ::usleep(100000);
+  const double elapsed_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const auto found = lines();
+  INFO("server stderr:\n" << srv->child().err());
+  REQUIRE(found.size() >= 2);
+  // the first at once: peer address and key; then a count per peer and key
+  CHECK(found[0].find("from 127.0.0.1, client key " + mallory.public_key + ": not on the allow-list") !=
+        std::string::npos);
+  CHECK(found[1].find("more connections in") != std::string::npos);
+  CHECK(found[1].find("127.0.0.1 key " + mallory.public_key + " x") != std::string::npos);
+  // at most one line per 5 s, however often mallory knocked (>= 20 times)
+  CHECK(double(found.size()) <= 1 + elapsed_s / 5 + 1);
+  CHECK(srv->stop() == 0);
   std::remove(scene.c_str());
 }

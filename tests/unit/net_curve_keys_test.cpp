@@ -14,6 +14,7 @@
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "net/session_table.h"
+#include "net/zap_handler.h"
 #include "support/net_client.h"
 #include "support/synthetic_patient.h"
 
@@ -82,6 +83,80 @@ TEST_CASE("a key pair is written 0600 / 0644 and never over an existing file", "
   CHECK(::access((dir + "/t.key").c_str(), F_OK) != 0);
   CHECK_NOTHROW(net::write_key_pair(net::make_curve_keypair(), dir, "s", true));
   CHECK(net::read_key_file(paths[0]) != pair.public_key);
+}
+
+TEST_CASE("a key of the wrong half, a pair that does not match and a secret key on an allow-list are refused",
+          "[net][security]") {
+  const std::string dir = temp_dir();
+  const net::CurveKeyPair pair = net::make_curve_keypair(), other = net::make_curve_keypair();
+  net::write_key_pair(pair, dir, "server", false);
+  const std::string pub = dir + "/server.key", sec = dir + "/server.key_secret";
+  // each half where the other is asked for: refused, the file named and how it was told
+  CHECK_THROWS_WITH(net::read_secret_key_file(pub), Catch::Contains(pub + ": a public key (palpsim-keys marked it so"));
+  CHECK_THROWS_WITH(net::read_public_key_file(sec), Catch::Contains(sec + ": a secret key (palpsim-keys marked it so"));
+  CHECK(net::read_public_key_file(pub) == pair.public_key);
+  CHECK(net::read_secret_key_file(sec).public_key == pair.public_key);  // server.key beside it matches
+  // without palpsim-keys' comment the name tells; a name that tells nothing is taken as asked
+  CHECK_THROWS_WITH(net::read_secret_key_file(write(dir, "bare.key", pair.public_key + "\n")),
+                    Catch::Contains("bare.key: a public key (its name ends in .key)"));
+  CHECK_THROWS_WITH(net::read_public_key_file(write(dir, "bare.key_secret", pair.secret_key + "\n")),
+                    Catch::Contains("bare.key_secret: a secret key (its name ends in .key_secret)"));
+  CHECK(net::read_secret_key_file(write(dir, "mounted", pair.secret_key + "\n")).public_key == pair.public_key);
+  // a comment outweighs the name
+  CHECK_THROWS_WITH(net::read_secret_key_file(write(dir, "renamed", "# palpsim CURVE public key 'x'\n" +
+                                                                       pair.public_key + "\n")),
+                    Catch::Contains("renamed: a public key (palpsim-keys marked it so on line 1)"));
+  // NAME.key beside NAME.key_secret replaced by another key: not a pair, both named
+  write(dir, "server.key", "# palpsim CURVE public key 'server'\n" + other.public_key + "\n");
+  CHECK_THROWS_WITH(net::read_secret_key_file(sec),
+                    Catch::Contains(sec + " and " + pub + " are not a pair") && Catch::Contains(other.public_key));
+  // a public file named explicitly: checked whatever lies beside
+  const std::string given = write(dir, "given.key", pair.public_key + "\n");
+  CHECK_THROWS_WITH(net::read_secret_key_file(sec, pub), Catch::Contains("are not a pair"));
+  write(dir, "server.key", pair.public_key + "\n");
+  CHECK(net::read_secret_key_file(sec, given).secret_key == pair.secret_key);
+  CHECK_THROWS_WITH(net::read_secret_key_file(sec, dir + "/missing.key"), Catch::Contains("missing.key: cannot read"));
+  // an allow-list: never a secret key file, never a key palpsim-keys marked secret
+  CHECK_THROWS_WITH(net::read_allow_list(sec), Catch::Contains(sec + ": a secret key file"));
+  net::write_key_pair(other, dir, "bob", false);
+  std::ifstream a(pub), b(dir + "/bob.key_secret");
+  const std::string list = std::string(std::istreambuf_iterator<char>(a), {}) +
+                           std::string(std::istreambuf_iterator<char>(b), {});
+  CHECK_THROWS_WITH(net::read_allow_list(write(dir, "allowed", list)),
+                    Catch::Contains("allowed:3: a secret key (palpsim-keys marked it so on line 2)"));
+}
+
+TEST_CASE("refused handshakes: a line at once, then one summary per period at most", "[net][security]") {
+  net::RefusalLog log(5.0, 2);
+  const std::string k1(40, 'a'), k2(40, 'b'), k3(40, 'c');
+  // the first: at once, with address, key and why
+  const std::string first = log.refused("10.0.0.7", k1, "not on the allow-list", 100.0);
+  CHECK(first.find("10.0.0.7") != std::string::npos);
+  CHECK(first.find("client key " + k1) != std::string::npos);
+  CHECK(first.find("not on the allow-list") != std::string::npos);
+  // a flood within the period: counted, no line
+  for (int i = 0; i < 1000; ++i) {
+    CHECK(log.refused("10.0.0.7", k1, "not on the allow-list", 100.0 + i * 0.004).empty());
+    CHECK(log.refused("10.0.0.8", k2, "not on the allow-list", 100.0 + i * 0.004).empty());
+    CHECK(log.refused("10.0.0.9", k3, "not on the allow-list", 100.0 + i * 0.004).empty());
+  }
+  CHECK(log.flush(104.9).empty());
+  // the period over: one summary, the first two peers named with their counts, the third counted
+  const std::string summary = log.flush(105.0);
+  INFO(summary);
+  CHECK(summary.find("refused 3000 more connections") != std::string::npos);
+  CHECK(summary.find("10.0.0.7 key " + k1 + " x1000") != std::string::npos);
+  CHECK(summary.find("10.0.0.8 key " + k2 + " x1000") != std::string::npos);
+  CHECK(summary.find("1000 from other peers") != std::string::npos);
+  CHECK(summary.find(k3) == std::string::npos);
+  CHECK(summary.size() < 400);
+  CHECK(log.flush(200.0).empty());  // nothing new
+  // quiet for a period: the next one at once again; one without a key says so
+  CHECK(log.refused("10.0.0.9", "", "malformed ZAP request", 200.0).find("10.0.0.9, no client key") !=
+        std::string::npos);
+  // counted ones are told at once when forced (the handler stopping)
+  CHECK(log.refused("10.0.0.9", k3, "not on the allow-list", 201.0).empty());
+  CHECK(log.flush(201.0, true).find("refused 1 more connection in") != std::string::npos);
 }
 
 TEST_CASE("a session's key check: any sender without CURVE, only the opener's key with it", "[net][security]") {

@@ -2,7 +2,8 @@
 palpsim-keys writes them, and the real palpsim-server (from $PALPSIM_BUILD_DIR) with CURVE:
 an allowed key opens a session and feels forces, its StreamClient gets the session's
 bricks, an unknown key and a client without keys time out with a sentence that says why,
-and another key's requests for the session are refused (ERROR_NOT_OWNER)."""
+and another key's requests for the session are refused (ERROR_NOT_OWNER). Key files of the
+wrong half and client pairs that do not match are refused, naming the file."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 from palpsim.client import Client, ServerError, ServerTimeout
-from palpsim.keys import CurveKeys, KeyFileError, read_key_file
+from palpsim.keys import CurveKeys, KeyFileError, read_key_file, read_secret_key_file
 from palpsim.proto import wire
 from palpsim.server import LocalServer
 from palpsim.stream import StreamClient
@@ -64,6 +65,29 @@ def test_key_files(tmp_path):
     two.write_text((tmp_path / "alice.key").read_text() * 2)
     with pytest.raises(KeyFileError, match="a second key on line 4"):
         read_key_file(two)
+
+
+def test_keys_of_the_wrong_half_and_pairs_that_do_not_match_are_refused(tmp_path):
+    _keys(tmp_path, "server", "alice", "other")
+    # the server's secret key as --server-key, a public key as --client-key: named and refused
+    with pytest.raises(KeyFileError, match=r"server\.key_secret: a secret key \(palpsim-keys marked it so"):
+        CurveKeys.from_files(tmp_path / "server.key_secret", tmp_path / "alice.key_secret")
+    with pytest.raises(KeyFileError, match=r"alice\.key: a public key \(palpsim-keys marked it so"):
+        CurveKeys.from_files(tmp_path / "server.key", tmp_path / "alice.key")
+    # without the comment the name tells; a name that tells nothing is taken as asked
+    bare = tmp_path / "bare.key"
+    bare.write_text(read_key_file(tmp_path / "alice.key").decode() + "\n")
+    with pytest.raises(KeyFileError, match=r"bare\.key: a public key \(its name ends in \.key\)"):
+        read_key_file(bare, half="secret")
+    mounted = tmp_path / "mounted"
+    mounted.write_text(read_key_file(tmp_path / "alice.key_secret").decode() + "\n")
+    assert read_secret_key_file(mounted)[1] == read_key_file(tmp_path / "alice.key")
+    # alice.key beside alice.key_secret replaced by another key: not a pair
+    (tmp_path / "alice.key").write_text((tmp_path / "other.key").read_text())
+    with pytest.raises(KeyFileError, match=r"alice\.key_secret and .*alice\.key are not a pair"):
+        CurveKeys.from_files(tmp_path / "server.key", tmp_path / "alice.key_secret")
+    with pytest.raises(KeyFileError, match="are not a pair"):
+        read_secret_key_file(mounted, public_path=tmp_path / "other.key")
 
 
 @pytest.fixture(scope="module")

@@ -157,7 +157,16 @@ def main() -> int:
                 row(f"{i} watch cycles")
         client.close()
     if args.json:
-        Path(args.json).write_text(json.dumps({"server": str(binary), "scene": str(scene), "rows": rows}, indent=1))
+        # what a committed result needs to be read again: when, where and which code
+        import platform
+        import subprocess
+        commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True).stdout.strip()
+        meta = {"date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "commit": commit,
+                "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f} at the end",
+                "args": vars(args)}
+        Path(args.json).write_text(json.dumps({**meta, "server": str(binary), "scene": str(scene), "rows": rows},
+                                              indent=1))
     return 0
 
 

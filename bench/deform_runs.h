@@ -142,6 +142,36 @@ inline Run run_first_contacts(const std::string& backend, const PatientPtr& pati
   return r;
 }
 
+/// Sessions' first steps on `contact` for several settings, timed round-robin (every repetition
+/// makes a new engine for each setting in turn, as run_settings() spreads a shared machine's
+/// load): the times are the first step's, set-up included; u and J are the last repetition's.
+inline std::vector<Run> run_first_contacts(const std::string& backend, const PatientPtr& patient,
+                                           const std::vector<DeformConfig>& cfgs, const DeformContact& contact,
+                                           int warmup, int reps) {
+  std::vector<Run> runs(cfgs.size());
+  std::vector<std::vector<double>> step(cfgs.size()), relax(cfgs.size());
+  for (int i = -warmup; i < reps; ++i)
+    for (std::size_t s = 0; s < cfgs.size(); ++s) {
+      auto b = make_deform_backend(backend);
+      b->bind(patient, cfgs[s]);
+      Run& r = runs[s];
+      r.last = b->step(contact);
+      if (i < 0) continue;
+      step[s].push_back(r.last.times.total_ms);
+      relax[s].push_back(r.last.times.relax_ms);
+      if (i + 1 == reps) {
+        r.u = b->displacement();
+        if (cfgs[s].invert) r.J.assign(b->deformed_brick(), b->deformed_brick() + b->voi().count());
+      }
+    }
+  for (std::size_t s = 0; s < cfgs.size(); ++s) {
+    runs[s].step_ms = spread(step[s]);
+    runs[s].stage_ms = spread(relax[s]);
+    runs[s].reps = reps;
+  }
+  return runs;
+}
+
 /// RMS and max of |a - b| over two fields on the same VOI (voxel).
 struct Diff {
   double rms = 0, max = 0;

@@ -413,16 +413,35 @@ std::vector<RowSpec> row_specs(const DeformConfig& shipped, bool quick) {
   return v;
 }
 
-// the mode's timed steps: "from rest" a new engine each (a session's first press), "tip
-// moving" the press reached a voxel a step, the others the press itself again and again
-Run run_row(const std::string& backend, const PatientPtr& patient, const RowSpec& r, const DeformContact& press,
-            bool gpu, bool quick) {
+// the rows' timed steps on one backend, each mode's settings round-robin (so that a shared
+// machine's load spreads over them): "from rest" a new engine each step (a session's first press),
+// "tip moving" the press reached a voxel a step, the others the press itself again and again
+std::vector<Run> run_rows(const std::string& backend, const PatientPtr& patient, const std::vector<RowSpec>& specs,
+                          const DeformContact& press, bool gpu, bool quick) {
   const int warmup = gpu ? 3 : 1;
-  if (r.mode == "from rest") return run_first_contacts(backend, patient, r.cfg, press, nullptr, warmup, gpu ? 10 : (quick ? 1 : 3));
   const int reps = gpu ? (quick ? 10 : 30) : (quick ? 2 : 8);
-  if (r.mode == "tip moving")
-    return run_settings(backend, patient, {r.cfg}, pressing(patient->grid, press, 6), warmup, reps + 4, Stage::relax).front();
-  return run_setting(backend, patient, r.cfg, press, warmup, reps, Stage::relax);
+  std::vector<Run> runs(specs.size());
+  for (const char* kind : {"from rest", "tip moving", "press"}) {
+    std::vector<std::size_t> at;
+    std::vector<DeformConfig> cfgs;
+    for (std::size_t i = 0; i < specs.size(); ++i) {
+      const std::string& m = specs[i].mode;
+      if (m == kind || (std::string(kind) == "press" && m != "from rest" && m != "tip moving")) {
+        at.push_back(i);
+        cfgs.push_back(specs[i].cfg);
+      }
+    }
+    if (cfgs.empty()) continue;
+    std::vector<Run> r;
+    if (std::string(kind) == "from rest")
+      r = run_first_contacts(backend, patient, cfgs, press, warmup, gpu ? 10 : (quick ? 1 : 4));
+    else if (std::string(kind) == "tip moving")
+      r = run_settings(backend, patient, cfgs, pressing(patient->grid, press, 6), warmup, reps + 4, Stage::relax);
+    else
+      r = run_settings(backend, patient, cfgs, press, warmup, reps, Stage::relax);
+    for (std::size_t k = 0; k < at.size(); ++k) runs[at[k]] = std::move(r[k]);
+  }
+  return runs;
 }
 
 }  // namespace
@@ -606,12 +625,15 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
   std::vector<RowResult> rows;
   for (const std::string& be : backends) {
     const bool gpu = be == "cuda";
-    for (RowSpec spec : row_specs(shipped, o.quick)) {
-      spec.cfg.settings.backend = be;
+    std::vector<RowSpec> specs = row_specs(shipped, o.quick);
+    for (RowSpec& spec : specs) spec.cfg.settings.backend = be;
+    const std::vector<Run> runs = run_rows(be, patient, specs, press, gpu, o.quick);
+    for (std::size_t i = 0; i < specs.size(); ++i) {
+      const RowSpec& spec = specs[i];
+      const Run& run = runs[i];
       RowResult r;
       r.spec = spec;
       r.backend = be;
-      const Run run = run_row(be, patient, spec, press, gpu, o.quick);
       r.step_ms = run.step_ms;
       r.relax_ms = run.stage_ms;
       r.reps = run.reps;

@@ -134,26 +134,17 @@ double rel_rms_pct(const std::vector<Vec3>& u, const std::vector<Vec3>& ref, con
   return den > 0 ? 100 * std::sqrt(num / den) : NAN;
 }
 
-// a field on box `voi` carried onto box `target` (0 where it does not reach), in mm
-std::vector<Vec3> on_box(const Voi& target, const Voi& voi, const std::vector<Vec3>& u) {
-  std::vector<Vec3> out(std::size_t(target.count()), Vec3{0, 0, 0});
-  for (int k = 0; k < voi.size.z; ++k)
-    for (int j = 0; j < voi.size.y; ++j)
-      for (int i = 0; i < voi.size.x; ++i) {
-        const Vec3i r = voi.lo + Vec3i{i, j, k} - target.lo;
-        if (target.contains(r.x, r.y, r.z)) out[std::size_t(target.index(r.x, r.y, r.z))] = u[std::size_t(voi.index(i, j, k))];
-      }
-  return out;
-}
-
+// a vector as a JSON array
 std::string json_vec3(const Vec3& v) { return "[" + json_number(v.x) + ", " + json_number(v.y) + ", " + json_number(v.z) + "]"; }
 
+// the deviation of v from ref in percent of ref
 double pct(double v, double ref) { return ref != 0 ? 100 * (v - ref) / ref : NAN; }
 
 // one solve of the elastic model on the CPU, kept for comparisons
 struct Solved {
   Voi voi;
-  std::vector<Vec3> u;  // mm
+  std::vector<Vec3f> u_vox;  // as the backend holds it (voxel)
+  std::vector<Vec3> u;       // mm
   deform::ElasticRun run;
   double seconds = 0;
 };
@@ -167,7 +158,8 @@ Solved solve_elastic(const PatientPtr& patient, const DeformConfig& cfg, const D
   Solved s;
   s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   s.voi = b->voi();
-  s.u = in_mm(b->displacement(), patient->grid.spacing_mm);
+  s.u_vox = b->displacement();
+  s.u = in_mm(s.u_vox, patient->grid.spacing_mm);
   s.run = st.elastic;
   if (!s.run.contact) throw Error("elastic accuracy: a reference press touched nothing");
   std::printf("  elastic solve: VOI %d x %d x %d, %d CG steps, %d rounds%s, %d contact nodes, force %.5g N, %.1f s\n",
@@ -192,6 +184,7 @@ std::vector<Vec3> coarse_of_fine(const Voi& voi, const Solved& fine) {
   return out;
 }
 
+// whether two files hold the same bytes (false when either cannot be read)
 bool same_bytes(const std::string& a, const std::string& b) {
   std::ifstream fa(a, std::ios::binary), fb(b, std::ios::binary);
   if (!fa || !fb) return false;
@@ -201,8 +194,10 @@ bool same_bytes(const std::string& a, const std::string& b) {
   return sa.str() == sb.str();
 }
 
+// whether a file exists
 bool exists(const std::string& path) { return access(path.c_str(), F_OK) == 0; }
 
+// writes the values as raw bytes (the FEM script's inputs)
 template <typename T>
 void write_raw(const std::string& path, const std::vector<T>& v) {
   std::ofstream f(path, std::ios::binary);
@@ -611,7 +606,9 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
     refs_json << ",\n    \"voi\": [";
     for (std::size_t i = 0; i < vr.size(); ++i) {
       const VoiRun& v = vr[i];
-      const std::vector<Vec3> a = on_box(ref.voi, v.s.voi, v.s.u), b = on_box(ref.voi, big.s.voi, big.s.u);
+      const Vec3& h = patient->grid.spacing_mm;
+      const std::vector<Vec3> a = in_mm(field_on(ref.voi, v.s.voi, v.s.u_vox, false), h),
+                              b = in_mm(field_on(ref.voi, big.s.voi, big.s.u_vox, false), h);
       refs_json << (i ? ",\n      " : "\n      ") << "{\"edge\": " << v.edge << ", \"force_n\": " << json_number(norm(v.s.run.force_n))
                 << ", \"force_pct\": " << json_number(pct(norm(v.s.run.force_n), norm(big.s.run.force_n)))
                 << ", \"u_pct\": " << json_number(rel_rms_pct(a, b, use)) << ", \"converged_iterations\": "
@@ -643,7 +640,7 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
         r.force_n = norm(run.last.elastic.force_n);
       }
       if (refs) {
-        const std::vector<Vec3> u = on_box(ref.voi, run.last.chainmail.voi, in_mm(run.u, patient->grid.spacing_mm));
+        const std::vector<Vec3> u = in_mm(field_on(ref.voi, run.last.chainmail.voi, run.u, false), patient->grid.spacing_mm);
         if (fem.ok) r.fem_u = rel_rms_pct(u, fem.u, use);
         r.fine_u = rel_rms_pct(u, fine_u, use);
         if (elastic) {

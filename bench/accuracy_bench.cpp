@@ -23,30 +23,51 @@ std::string find_python() {
 
 }  // namespace
 
-PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)-(d) -> bench/results/accuracy.md "
-                        "[--gpu-json H100.json] [--out-dir DIR] [--quick] [--commit C]; on a GPU machine: "
+PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)-(d), the elastic model against "
+                        "elasticity (--elastic) -> bench/results/accuracy.md [--gpu-json GPU.json] [--elastic-json E.json] "
+                        "[--out-dir DIR] [--quick] [--commit C]; --from-json CPU.json: the report only; on a GPU machine: "
                         "--json-only FILE") {
   palpsim::bench::ReportOptions o;
+  palpsim::bench::ElasticStudyOptions e;
   o.out_dir = std::string(PALPSIM_SOURCE_DIR) + "/bench/results";
+  bool elastic = false;
+  std::string from_json;
   for (int a = 1; a < argc; ++a) {
     const std::string s = argv[a];
     if (s == "--json-only" && a + 1 < argc) o.json_only = argv[++a];
     else if (s == "--gpu-json" && a + 1 < argc) o.gpu_json = argv[++a];
+    else if (s == "--elastic-json" && a + 1 < argc) o.elastic_json = argv[++a];
+    else if (s == "--elastic-gpu-json" && a + 1 < argc) o.elastic_gpu_json = argv[++a];
+    else if (s == "--from-json" && a + 1 < argc) from_json = argv[++a];
     else if (s == "--out-dir" && a + 1 < argc) o.out_dir = argv[++a];
     else if (s == "--commit" && a + 1 < argc) o.commit = argv[++a];
     else if (s == "--quick") o.quick = true;
     else if (s == "--backend" && a + 1 < argc) o.backend = argv[++a];
+    else if (s == "--elastic") elastic = true;
+    else if (s == "--work" && a + 1 < argc) e.work_dir = argv[++a];
+    else if (s == "--json" && a + 1 < argc) e.json = argv[++a];
     else {
       std::fprintf(stderr,
-                   "palpsim-bench accuracy: unknown argument '%s'\nusage: palpsim-bench accuracy [--gpu-json FILE] "
-                   "[--out-dir DIR] [--quick] [--commit C] [--backend cpu|cuda]\n       palpsim-bench accuracy --json-only FILE "
-                   "[--quick] [--commit C] [--backend cuda]   (GPU machine: the study's JSON only, no Python)\n",
+                   "palpsim-bench accuracy: unknown argument '%s'\n"
+                   "usage: palpsim-bench accuracy [--gpu-json FILE] [--elastic-json FILE] [--elastic-gpu-json FILE] "
+                   "[--out-dir DIR] [--quick] [--commit C] [--backend cpu|cuda]\n"
+                   "       palpsim-bench accuracy --from-json CPU.json [--gpu-json FILE] [--elastic-json FILE] "
+                   "[--elastic-gpu-json FILE] [--out-dir DIR]   (the report from recorded runs)\n"
+                   "       palpsim-bench accuracy --elastic [--json FILE | --json-only FILE] [--work DIR] [--quick] "
+                   "[--commit C] [--backend cpu|cuda]   (the elastic study; --json-only: times only, no Python)\n"
+                   "       palpsim-bench accuracy --json-only FILE [--quick] [--commit C] [--backend cuda]   "
+                   "(GPU machine: the study's JSON only, no Python)\n",
                    s.c_str());
       return 2;
     }
   }
-  // the report needs Python with the FEM and plotting packages: checked before minutes of work
-  if (o.json_only.empty()) {
+  if (elastic && !from_json.empty()) {
+    std::fprintf(stderr, "palpsim-bench accuracy: --elastic runs a study and --from-json reports recorded ones; give one\n");
+    return 2;
+  }
+  // the FEM references and the report need Python with their packages: checked before minutes of work
+  const bool needs_python = elastic ? o.json_only.empty() : (o.json_only.empty() || !from_json.empty());
+  if (needs_python) {
     o.python = find_python();
     const std::string probe = "'" + o.python + "' -c 'import numpy, scipy, skfem, pyamg, matplotlib' 2>/dev/null";
     if (access(o.python.c_str(), X_OK) != 0 || std::system(probe.c_str()) != 0) {
@@ -58,9 +79,20 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
     }
   }
   try {
+    if (!from_json.empty()) return palpsim::bench::write_accuracy_report(o, from_json);
+    if (elastic) {
+      if (!o.json_only.empty()) e.json = o.json_only;
+      if (e.json.empty()) e.json = o.out_dir + "/accuracy-elastic-cpu.json";
+      e.python = o.python;
+      e.commit = o.commit;
+      e.backend = o.backend;
+      e.quick = o.quick;
+      e.references = o.json_only.empty();
+      return palpsim::bench::run_elastic_accuracy(e);
+    }
     return palpsim::bench::run_accuracy_report(o);
-  } catch (const palpsim::Error& e) {
-    std::fprintf(stderr, "palpsim-bench accuracy: %s\n", e.what());
+  } catch (const palpsim::Error& err) {
+    std::fprintf(stderr, "palpsim-bench accuracy: %s\n", err.what());
     return 1;
   }
 }

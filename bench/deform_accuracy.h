@@ -51,6 +51,8 @@ namespace palpsim::bench {
 struct ReportOptions {
   std::string json_only;          // write the study's JSON here and stop (the GPU machine, no Python)
   std::string gpu_json;           // a GPU machine's --json-only output to merge into the report
+  std::string elastic_json;       // the elastic study's JSON (accuracy --elastic) for the report's elastic sections
+  std::string elastic_gpu_json;   // a GPU machine's elastic study (accuracy --elastic --json-only) for their GPU column
   std::string out_dir;            // report folder: accuracy.md, its PNGs and accuracy-cpu.json
   std::string python;             // interpreter with numpy, scikit-fem, pyamg, matplotlib (empty: not needed)
   std::string commit = "unknown"; // commit of the build, copied into the JSON
@@ -63,5 +65,28 @@ struct ReportOptions {
 /// through bench/accuracy_fem.py when `python` is set, writes the JSON and, unless
 /// json_only, bench/accuracy_report.py's report; returns the process exit code.
 int run_accuracy_report(const ReportOptions& options);
+
+/// Writes the report (accuracy.md and its plots in options.out_dir) through
+/// bench/accuracy_report.py from recorded JSON: `cpu_json` (the study of `palpsim-bench
+/// accuracy`) and the options' GPU and elastic JSON; returns the process exit code.
+int write_accuracy_report(const ReportOptions& options, const std::string& cpu_json);
+
+/// What `palpsim-bench accuracy --elastic` runs and where it writes (elastic_accuracy_bench.cpp):
+/// the elastic model and the ChainMail family on the shipped scene against references a correct
+/// elasticity solver can meet, and what each costs.
+struct ElasticStudyOptions {
+  std::string json;               // the study's JSON
+  std::string python;             // interpreter with numpy, scikit-fem and pyamg for the FEM references (empty: none)
+  std::string work_dir;           // where the FEM's inputs and results stay, reused while an input is unchanged
+                                  // (empty: a temporary folder, removed at the end)
+  std::string commit = "unknown"; // commit of the build, copied into the JSON
+  std::string backend;            // only this deformation backend ("" = every one this build and machine have)
+  bool quick = false;             // fewer settings, repetitions and references (a smoke run)
+  bool references = true;         // false: the rows' times only (a GPU machine; the errors come from the CPU run)
+};
+
+/// Runs the elastic study and writes its JSON; returns the process exit code (throws
+/// palpsim::Error on bad input).
+int run_elastic_accuracy(const ElasticStudyOptions& options);
 
 }  // namespace palpsim::bench

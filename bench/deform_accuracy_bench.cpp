@@ -37,6 +37,7 @@
 
 #include "bench/boussinesq.h"
 #include "bench/deform_accuracy.h"
+#include "bench/deform_runs.h"
 #include "core/error.h"
 #include "bench/stats.h"
 #include "deform/approach.h"
@@ -68,142 +69,6 @@ std::pair<PatientPtr, Press> phantom_press(double voxel_mm) {
   PhantomCt ct = make_phantom(voxel_mm);
   const Press press = spinous_press(ct.geometry);
   return {test::with_body_mask(test::patient_from_intensity(std::move(ct.hu), "phantom")), press};
-}
-
-// one setting run on one backend: times of whole steps and of one stage, and what the last step left
-enum class Stage { relax, invert, total };
-
-struct Run {
-  Spread step_ms, stage_ms;
-  int reps = 0;
-  DeformStats last;
-  std::vector<Vec3f> u;  // displacement after the last step (VOI, i fastest)
-  std::vector<float> J;  // J on the VOI (empty without inversion)
-};
-
-// the settings `cfgs` on one backend, one engine each, timed round-robin (every
-// repetition steps each setting once) so that load from other processes on a shared
-// machine spreads over all settings instead of skewing the ones that ran during it;
-// the repetitions take `contacts` in turn, backwards, so that the last one is contacts[0]
-// (two contacts a voxel apart: every step enters another voxel)
-std::vector<Run> run_settings(const std::string& backend, const PatientPtr& patient,
-                              const std::vector<DeformConfig>& cfgs, const std::vector<DeformContact>& contacts,
-                              int warmup, int reps, Stage stage) {
-  std::vector<std::unique_ptr<DeformBackend>> engines;
-  for (const DeformConfig& c : cfgs) {
-    engines.push_back(make_deform_backend(backend));
-    engines.back()->bind(patient, c);
-  }
-  std::vector<Run> runs(cfgs.size());
-  std::vector<std::vector<double>> step(cfgs.size()), part(cfgs.size());
-  const int n_contacts = int(contacts.size());
-  for (int i = -warmup; i < reps; ++i)
-    for (std::size_t s = 0; s < cfgs.size(); ++s) {
-      runs[s].last = engines[s]->step(contacts[(reps - 1 - i) % n_contacts]);
-      if (i < 0) continue;
-      const DeformTimes& t = runs[s].last.times;
-      step[s].push_back(t.total_ms);
-      part[s].push_back(stage == Stage::relax ? t.relax_ms : (stage == Stage::invert ? t.invert_ms : t.total_ms));
-    }
-  for (std::size_t s = 0; s < cfgs.size(); ++s) {
-    Run& r = runs[s];
-    r.step_ms = spread(step[s]);
-    r.stage_ms = spread(part[s]);
-    r.reps = reps;
-    r.u = engines[s]->displacement();
-    if (cfgs[s].invert) r.J.assign(engines[s]->deformed_brick(), engines[s]->deformed_brick() + engines[s]->voi().count());
-    if (!r.last.chainmail.converged) throw Error("deform accuracy: ChainMail hit deform.max_sweeps on " + backend);
-  }
-  return runs;
-}
-
-// the same, every repetition on one contact
-std::vector<Run> run_settings(const std::string& backend, const PatientPtr& patient,
-                              const std::vector<DeformConfig>& cfgs, const DeformContact& contact, int warmup,
-                              int reps, Stage stage) {
-  return run_settings(backend, patient, cfgs, std::vector<DeformContact>{contact}, warmup, reps, stage);
-}
-
-// `c` with the tip `k` voxels further along the press (its largest axis in voxel space;
-// k < 0: back towards the skin): each voxel on, the VOI moves (relax_warm_cycles' case)
-DeformContact tip_moved(const Grid& grid, const DeformContact& c, int k) {
-  const Vec3 t = grid.to_index(c.tip_mm), d = t - grid.to_index(c.skin_point_mm);
-  int a = 0;
-  for (int b = 1; b < 3; ++b)
-    if (std::fabs(d[b]) > std::fabs(d[a])) a = b;
-  Vec3 t2 = t;
-  t2[a] += d[a] < 0 ? -k : k;
-  return DeformContact{c.skin_point_mm, grid.to_physical(t2)};
-}
-
-// a press reached a voxel at a time: `c` and the tip 1..n-1 voxels short of it, which
-// run_settings takes from the shallowest to `c` (then back to the shallowest: a jump)
-std::vector<DeformContact> pressing(const Grid& grid, const DeformContact& c, int n) {
-  std::vector<DeformContact> v;
-  for (int k = 0; k < n; ++k) v.push_back(tip_moved(grid, c, -k));
-  return v;
-}
-
-// one setting, timed alone
-Run run_setting(const std::string& backend, const PatientPtr& patient, const DeformConfig& cfg,
-                const DeformContact& contact, int warmup, int reps, Stage stage) {
-  return run_settings(backend, patient, {cfg}, contact, warmup, reps, stage).front();
-}
-
-// a session's first step on `contact`: a new engine every repetition; with `hover_mm`, after
-// a prime where a tip hovering there expects to touch (deform::expected_skin_voxel, as the
-// server's worker guesses it), waited for before the step (in the server it runs while
-// the tip approaches): the times are the step's own. `prime_steps` gets the prime's steps.
-Run run_first_contacts(const std::string& backend, const PatientPtr& patient, const DeformConfig& cfg,
-                       const DeformContact& contact, const Vec3* hover_mm, int warmup, int reps, int* prime_steps = nullptr) {
-  std::vector<double> step, relax;
-  Run r;
-  const Vec3 centroid = deform::body_centroid_vox(*patient);
-  for (int i = -warmup; i < reps; ++i) {
-    auto b = make_deform_backend(backend);
-    b->bind(patient, cfg);
-    if (hover_mm) {
-      Vec3i v;
-      if (!deform::expected_skin_voxel(*patient, *hover_mm, cfg.settings.voi_edge / 2, centroid, v))
-        throw Error("deform accuracy: no skin voxel below the hovering tip");
-      const Vec3 V = patient->grid.to_physical(Vec3(v.x, v.y, v.z));
-      const DeformPrime pr = b->prime({V, V});
-      if (!pr.solved) throw Error("deform accuracy: the prime solved nothing");
-      if (prime_steps) *prime_steps = pr.steps;
-      b->wait();
-    }
-    r.last = b->step(contact);
-    if (hover_mm && !r.last.relax_warm) throw Error("deform accuracy: a first contact after a prime did not start warm");
-    if (i < 0) continue;
-    step.push_back(r.last.times.total_ms);
-    relax.push_back(r.last.times.relax_ms);
-    if (i + 1 == reps) {
-      r.u = b->displacement();
-      if (cfg.invert) r.J.assign(b->deformed_brick(), b->deformed_brick() + b->voi().count());
-    }
-  }
-  r.step_ms = spread(step);
-  r.stage_ms = spread(relax);
-  r.reps = reps;
-  return r;
-}
-
-// RMS and max of |a - b| over two fields on the same VOI (voxel)
-struct Diff {
-  double rms = 0, max = 0;
-};
-
-Diff field_diff(const std::vector<Vec3f>& a, const std::vector<Vec3f>& b) {
-  Diff d;
-  double sum = 0;
-  for (std::size_t e = 0; e < a.size(); ++e) {
-    const Vec3f v = a[e] - b[e];
-    const double n2 = double(v.x) * v.x + double(v.y) * v.y + double(v.z) * v.z;
-    sum += n2;
-    d.max = std::max(d.max, std::sqrt(n2));
-  }
-  d.rms = a.empty() ? 0 : std::sqrt(sum / double(a.size()));
-  return d;
 }
 
 // the inversion residual |p + u(p) - y| of every VOI voxel after `iterations`
@@ -260,23 +125,6 @@ double energy_outside(const Voi& ref_voi, const std::vector<Vec3f>& u_ref, const
   return all > 0 ? out / all : 0;
 }
 
-// the field `u` on box `voi` carried onto box `target` (patient voxel indices): 0 where
-// `voi` does not reach; with `strict`, a voxel of `voi` outside `target` throws
-std::vector<Vec3f> field_on(const Voi& target, const Voi& voi, const std::vector<Vec3f>& u, bool strict) {
-  std::vector<Vec3f> on(std::size_t(target.count()), Vec3f{0, 0, 0});
-  for (int k = 0; k < voi.size.z; ++k)
-    for (int j = 0; j < voi.size.y; ++j)
-      for (int i = 0; i < voi.size.x; ++i) {
-        const Vec3i r = voi.lo + Vec3i{i, j, k} - target.lo;
-        if (!target.contains(r.x, r.y, r.z)) {
-          if (strict) throw Error("deform accuracy: a VOI reaches outside the reference VOI");
-          continue;
-        }
-        on[target.index(r.x, r.y, r.z)] = u[voi.index(i, j, k)];
-      }
-  return on;
-}
-
 // RMS and max |u - u_ref| over the reference's VOI, u = 0 outside its own (smaller) VOI
 Diff diff_on_reference(const Voi& ref_voi, const std::vector<Vec3f>& u_ref, const Voi& voi, const std::vector<Vec3f>& u) {
   return field_diff(field_on(ref_voi, voi, u, true), u_ref);
@@ -331,28 +179,6 @@ void print_table(const std::vector<Row>& rows, const std::string& backend, const
     std::printf("\n");
   }
   std::fflush(stdout);
-}
-
-// the first "model name" of /proc/cpuinfo, for the JSON's machine description
-std::string cpu_model() {
-  std::ifstream f("/proc/cpuinfo");
-  std::string line;
-  while (std::getline(f, line))
-    if (line.rfind("model name", 0) == 0) {
-      const auto c = line.find(':');
-      if (c != std::string::npos) return line.substr(line.find_first_not_of(' ', c + 1));
-    }
-  return "unknown";
-}
-
-// escapes a string for JSON
-std::string json_str(const std::string& s) {
-  std::string o = "\"";
-  for (char c : s) {
-    if (c == '"' || c == '\\') o += '\\';
-    o += (unsigned char)c < 0x20 ? ' ' : c;
-  }
-  return o + "\"";
 }
 
 }  // namespace
@@ -902,20 +728,6 @@ void fem_errors(const RefC& c, const Voi& voi, const std::vector<Vec3f>& u, Erro
   e.c_corr = va > 0 && vb > 0 ? cov / std::sqrt(va * vb) : NAN;
 }
 
-// runs `command`; true when it exited 0
-bool run_command(const std::string& command) {
-  std::fflush(stdout);
-  const int rc = std::system(command.c_str());
-  return rc == 0;
-}
-
-// a string safe inside single quotes of /bin/sh
-std::string sh_quote(const std::string& s) {
-  std::string o = "'";
-  for (char ch : s) o += ch == '\'' ? std::string("'\\''") : std::string(1, ch);
-  return o + "'";
-}
-
 // reference (c): exports the base press's VOI, solves it with bench/accuracy_fem.py, reads the field
 RefC solve_fem(const std::string& python, const Patient& p, const Voi& voi, const Vec3i& grabbed, const Vec3f& grabbed_u,
                const std::string& work_dir) {
@@ -1288,13 +1100,7 @@ int run_accuracy_report(const ReportOptions& o) {
   // the JSON (temporary name, then rename)
   {
     std::ofstream f(json_path + ".tmp");
-    const std::time_t now = std::time(nullptr);
-    char date[32];
-    std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
-    f << "{\n  \"area\": \"accuracy\",\n  \"date\": \"" << date << "\",\n  \"device\": " << json_str(device)
-      << ",\n  \"host_cpu\": " << json_str(cpu_model()) << ",\n  \"host_threads\": " << std::thread::hardware_concurrency()
-      << ",\n  \"commit\": " << json_str(o.commit) << ",\n  \"quick\": " << (o.quick ? "true" : "false")
-      << ",\n  \"storage\": \"fp32\",\n  \"phantom\": {\"voxel_mm\": " << num(o.voxel_mm) << ", \"size\": ["
+    f << json_run_header("accuracy", device, o.commit, o.quick) << "\n  \"storage\": \"fp32\",\n  \"phantom\": {\"voxel_mm\": " << num(o.voxel_mm) << ", \"size\": ["
       << patient->grid.size.x << ", " << patient->grid.size.y << ", " << patient->grid.size.z << "]},\n"
       << "  \"press\": {\"landmark\": " << json_str(press.landmark) << ", \"X_mm\": " << json_vec(press.contact.skin_point_mm)
       << ", \"x_mm\": " << json_vec(press.contact.tip_mm) << ", \"press_mm\": " << num(press.press_mm)
@@ -1338,10 +1144,16 @@ int run_accuracy_report(const ReportOptions& o) {
   if (!report) return 0;
 
   // the report: markdown and plots from this JSON and the GPU machine's
+  return write_accuracy_report(o, json_path);
+}
+
+int write_accuracy_report(const ReportOptions& o, const std::string& cpu_json) {
   const std::string script = std::string(PALPSIM_SOURCE_DIR) + "/bench/accuracy_report.py";
-  std::string cmd = sh_quote(o.python) + " " + sh_quote(script) + " --cpu " + sh_quote(json_path) + " --out-dir " +
+  std::string cmd = sh_quote(o.python) + " " + sh_quote(script) + " --cpu " + sh_quote(cpu_json) + " --out-dir " +
                     sh_quote(o.out_dir);
   if (!o.gpu_json.empty()) cmd += " --gpu " + sh_quote(o.gpu_json);
+  if (!o.elastic_json.empty()) cmd += " --elastic " + sh_quote(o.elastic_json);
+  if (!o.elastic_gpu_json.empty()) cmd += " --elastic-gpu " + sh_quote(o.elastic_gpu_json);
   if (!run_command(cmd)) throw Error("accuracy: " + script + " failed");
   return 0;
 }

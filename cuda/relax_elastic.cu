@@ -844,12 +844,13 @@ __global__ void __launch_bounds__(kThreads, 1) elastic_setup_kernel(const __grid
       v.lmax[l] = dead || !(lambda > 0) ? 1.0f : float(lambda);
     }
   }
-  // the last field and contact set carried onto the new VOI (0 where it has none)
+  // the last field and contact set carried onto the new VOI (0 where it has none); held
+  // nodes (the new VOI's faces, bone) stay at rest: the solve keeps what they hold
   for (int e = all.first; e < L0.count; e += all.stride) {
     int i, j, k;
     L0.coords(e, i, j, k);
     const int pa = i + a.voi.lo.x - a.last.lo.x, pb = j + a.voi.lo.y - a.last.lo.y, pc = k + a.voi.lo.z - a.last.lo.z;
-    const bool carry = a.had && a.last.contains(pa, pb, pc);
+    const bool carry = a.had && a.last.contains(pa, pb, pc) && !(v.flags[e] & kElasticHeld);
     const int le = carry ? int(a.last.index(pa, pb, pc)) : 0;
     u.set(e, carry ? tmp_u.at(le) : Vec3f{0, 0, 0});
     if (carry) v.flags[e] |= v.tmp_flags[le];

@@ -1085,8 +1085,10 @@ struct ElasticTol {
 };
 
 // solves to 1e-6: rounding alone, drifting over 20-60 steps, bounded 10-100 times above
-// the ~1e-6 relative that float sums of this size reach
-constexpr ElasticTol kStrict{1e-4, 1e-3, 1e-4};
+// the ~1e-6 relative that float sums of this size reach; where one side takes a CG step more
+// (the residual crosses 1e-6 a step apart) the fields part by a few 1e-4 RMS (measured on the
+// H200: 1.65e-4 at 11 against 10 steps, the forces 2e-6 apart), so 5e-4 RMS
+constexpr ElasticTol kStrict{5e-4, 1e-3, 1e-4};
 // the scenes' 1e-3: one step more or fewer on one side (see above), a few times the tolerance
 constexpr ElasticTol kShipped{5e-3, 2e-2, 5e-3};
 

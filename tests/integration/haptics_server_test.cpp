@@ -496,18 +496,12 @@ TEST_CASE("the haptic client's watchdog takes the force to zero within 10 ms whe
   // the stall covers most of the 0.5 s stop
   const double t_reply = rows[best_first].t;  // the newest reply arrived at or before this step
   CHECK(rows[best_first + best_len].t - t_reply > 0.3);
-  bool force_before = false;
-  for (std::size_t i = best_first; i <= best_first + best_len; ++i) {
-    const double f = rows[i].force();
-    if (rows[i].t - t_reply < 0.001 && f > 0) force_before = true;
-    // 10 ms after the newest reply the force is exactly zero
-    if (rows[i].t - t_reply >= 0.010) {
-      INFO("t " << rows[i].t << " s, " << (rows[i].t - t_reply) * 1e3 << " ms after the last reply");
-      CHECK(f == 0.0);
-      CHECK(rows[i].scale == 0.0);
-    }
-  }
-  CHECK(force_before);  // the stall happened in contact, so there was a force to ramp down
+  // 10 ms after the newest reply the force is exactly zero
+  const test::WatchdogOverGap w = test::watchdog_over_gap(rows, best_first, best_len);
+  if (w.not_zero != std::string::npos)
+    FAIL_CHECK("force " << rows[w.not_zero].force() << " N at t " << rows[w.not_zero].t << " s, "
+                        << (rows[w.not_zero].t - t_reply) * 1e3 << " ms after the last reply");
+  CHECK(w.force_at_reply);  // the stall happened in contact, so there was a force to ramp down
   // and after the stall full force again: some step after it runs at scale 1 (not
   // necessarily the last: on a loaded machine a reply may be over 2 ms late at any time,
   // and the watchdog then rightly starts a ramp)
@@ -516,5 +510,54 @@ TEST_CASE("the haptic client's watchdog takes the force to zero within 10 ms whe
   CHECK(recovered);
   std::remove(log.c_str());
   CHECK(st.server->stop() == 0);
+  std::remove(st.scene.c_str());
+}
+
+TEST_CASE("the server killed with -9 and restarted: the client's force is zero within 10 ms and it reopens its session",
+          "[integration]") {
+  Started st = start_server(30.0);
+  const std::string control = st.server->control(), pose = st.server->pose();
+  const std::string log = test::temp_file("restart-log", "");
+  // remote mode, as in the watchdog test above: the 10 ms ramp of a fast link is under test
+  test::Child client({test::build_exe("palpsim-haptic"), "--connect", control, "--device", "press", "--log", log,
+                      "--mode", "remote"});
+  // the press (three of 4.5 s) reaches the skin after about 0.5 s and holds 40 mm deep from
+  // 2 s: killed in contact; the two presses after it leave time for the restart
+  std::this_thread::sleep_for(std::chrono::milliseconds(2500));
+  st.server->child().signal(SIGKILL);
+  REQUIRE(st.server->child().wait(10) == 128 + SIGKILL);
+  // a new server on the same addresses (the client knows only the control address; the
+  // OpenReply names the pose address again)
+  ServerProcess again(st.scene, {"--bind", control, "--pose-bind", pose});
+  const bool ready = again.wait_ready(300);
+  INFO("server stderr:\n" << again.child().err());
+  REQUIRE(ready);
+  const int rc = client.wait(60);
+  INFO("palpsim-haptic stdout:\n" << client.out() << "\nstderr:\n" << client.err());
+  CHECK(rc == 3);  // the poses sent while no server ran have no replies
+  CHECK(client.out().find("session reopened 1 times") != std::string::npos);
+  CHECK(client.err().find("reopened") != std::string::npos);
+
+  const std::vector<test::HapticLogRow> rows = test::read_haptic_log(log);
+  REQUIRE(rows.size() > 5000);
+  std::size_t first = 0, len = 0;
+  test::longest_reply_gap(rows, first, len);
+  // the gap is the restart: no new reply from the kill until the reopened session's first
+  const double t_reply = rows[first].t;  // the newest reply before the kill arrived at or before this step
+  CHECK(t_reply > 2.0);
+  // 10 ms after the newest reply the force is exactly zero, and stays zero until replies return
+  const test::WatchdogOverGap w = test::watchdog_over_gap(rows, first, len);
+  if (w.not_zero != std::string::npos)
+    FAIL_CHECK("force " << rows[w.not_zero].force() << " N at t " << rows[w.not_zero].t << " s, "
+                        << (rows[w.not_zero].t - t_reply) * 1e3 << " ms after the last reply");
+  CHECK(w.force_at_reply);  // killed in contact: there was a force to take to zero
+  // the reopened session serves the rest of the press: new replies, and force in the body again
+  REQUIRE(first + len + 1 < rows.size());
+  CHECK(rows.back().reply_seq > rows[first + len + 1].reply_seq);
+  double force_after = 0;
+  for (std::size_t i = first + len + 1; i < rows.size(); ++i) force_after = std::max(force_after, rows[i].force());
+  CHECK(force_after > 1.0);  // N; the press holds 40 mm deep, where the force is clamped near 3.3 N
+  std::remove(log.c_str());
+  CHECK(again.stop() == 0);
   std::remove(st.scene.c_str());
 }

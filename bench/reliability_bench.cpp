@@ -21,6 +21,7 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <google/protobuf/stubs/logging.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -66,6 +67,7 @@ struct Options {
   std::string scene = std::string(PALPSIM_SOURCE_DIR) + "/config/scenes/lumbar_phantom.textproto";
   std::vector<std::string> server_args;  // more palpsim-server options
   std::string server_exe = test::build_exe("palpsim-server");  // another build's, for comparisons
+  std::string haptic_exe = test::build_exe("palpsim-haptic");  // the same for the flood's honest client
   // flood
   int runs = 5;
   int flooders = 8;
@@ -624,7 +626,7 @@ void flood_phase(const Options& o, Report& rep) {
                            std::cref(stop), std::ref(counts));
     sleep_s(0.5);  // the flood is on before the honest client starts
     const auto t0 = Clock::now();
-    test::Child honest({test::build_exe("palpsim-haptic"), "--connect", server.control(), "--name", "honest"});
+    test::Child honest({o.haptic_exe, "--connect", server.control(), "--name", "honest"});
     std::map<std::string, SchedSampler::Summary> sched;
     {
       SchedSampler sampler({{"server", server.child().pid()}, {"honest", honest.pid()}, {"flooders", ::getpid()}}, 0.1);
@@ -1013,6 +1015,8 @@ bool has_phase(const Options& o, const std::string& p) {
 
 PALPSIM_BENCH(reliability, "hostile clients and faults: flood, soak, kill -9 (writes bench/results/reliability.md)") {
   Options o;
+  std::string command = "build/palpsim-bench reliability";  // as given, for the report
+  for (int i = 1; i < argc; ++i) command += std::string(" ") + argv[i];
   std::string role, role_control, role_token;
   bool role_stall = false;
   for (int i = 1; i < argc; ++i) {
@@ -1028,6 +1032,7 @@ PALPSIM_BENCH(reliability, "hostile clients and faults: flood, soak, kill -9 (wr
     else if (a == "--scene") o.scene = value();
     else if (a == "--server-arg") o.server_args.push_back(value());
     else if (a == "--server-exe") o.server_exe = value();
+    else if (a == "--haptic-exe") o.haptic_exe = value();
     else if (a == "--runs") o.runs = std::stoi(value());
     else if (a == "--flooders") o.flooders = std::stoi(value());
     else if (a == "--flood-rate") o.flood_rate_hz = std::stod(value());
@@ -1045,7 +1050,7 @@ PALPSIM_BENCH(reliability, "hostile clients and faults: flood, soak, kill -9 (wr
     else {
       std::fprintf(stderr,
                    "usage: palpsim-bench reliability [--phases flood,soak,faults] [--md FILE] [--json FILE] [--commit C]\n"
-                   "       [--scene FILE] [--server-arg ARG]... [--server-exe FILE]\n"
+                   "       [--scene FILE] [--server-arg ARG]... [--server-exe FILE] [--haptic-exe FILE]\n"
                    "       flood:  [--runs 5] [--flooders 8] [--flood-rate 18000] [--flood-reads] [--hogs 0]\n"
                    "       soak:   [--minutes 3] [--honest 16] [--fuzzers 4] [--fuzz-rate 2500]\n"
                    "       faults: [--restarts 3]\n");
@@ -1054,6 +1059,7 @@ PALPSIM_BENCH(reliability, "hostile clients and faults: flood, soak, kill -9 (wr
   }
   if (role == "viewer") return run_viewer(role_control, role_token, role_stall);
   spdlog::set_level(spdlog::level::warn);
+  google::protobuf::SetLogHandler(nullptr);  // mutated strings that are not UTF-8 would each log a line
   Report rep;
   {
     const std::time_t now = std::time(nullptr);
@@ -1077,8 +1083,7 @@ PALPSIM_BENCH(reliability, "hostile clients and faults: flood, soak, kill -9 (wr
        << "Taken " << rep.date << " on " << rep.machine << " at commit " << rep.commit
        << ", phases " << o.phases << ", " << std::lround(seconds_since(t0)) << " s in all. The machine is shared "
        << "with other engineers' builds and tests: load average " << rep.load_start << " at the start, "
-       << rep.load_end << " at the end. Command: `build/palpsim-bench reliability --phases " << o.phases << " --commit "
-       << rep.commit << "`.\n\n"
+       << rep.load_end << " at the end. Command: `" << command << "`.\n\n"
        << "| | result | goal |\n| --- | --- | --- |\n"
        << "| messages fuzzed | " << rep.fuzzed << " | 10^6 |\n"
        << "| faults injected | " << rep.faults << " | |\n"

@@ -4,7 +4,9 @@
 // watchdog ramps the force to zero when replies stop. Far from the server (a round trip
 // over 8 ms) it renders eq. 2 itself from patches of F the server sends (local_model.h).
 // Logs every step to CSV and prints round-trip percentiles, missed deadlines and the
-// rendered force against the server's at exit. Protocol: proto/PROTOCOL.md.
+// rendered force against the server's at exit. A session the server no longer knows (it
+// restarted) or a server silent for 2 s gets the session reopened, without stopping the
+// loop. Protocol: proto/PROTOCOL.md.
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
@@ -22,9 +24,11 @@
 #include <vector>
 #include <zmq.hpp>
 
+#include "control_link.h"
 #include "device.h"
 #include "endpoint.h"
 #include "local_model.h"
+#include "core/thread.h"
 #include "net/curve_keys.h"
 #include "palpsim/wire.pb.h"
 
@@ -40,7 +44,7 @@ const char* kUsage =
     "usage: palpsim-haptic --connect ADDR [--device press|press:X,Y,Z|csv:FILE|replay:FILE] [--rate HZ]\n"
     "                      [--seconds S] [--log FILE] [--name NAME] [--server-key FILE --client-key FILE]\n"
     "                      [--client-token TEXT] [--mode auto|local|remote] [--patch-edge N] [--patch-period S]\n"
-    "                      [--pose-via ADDR] [--warmup S]\n"
+    "                      [--pose-via ADDR] [--warmup S] [--priority N]\n"
     "  --connect ADDR  the server's control address (its 'ready on ADDR' line)\n"
     "  --device SPEC   the built-in press path (default), a CSV of t,x,y,z (s, mm), or a palpsim-haptic log to replay\n"
     "  --rate HZ       loop rate, 100 to 4000 (default 1000)\n"
@@ -55,7 +59,10 @@ const char* kUsage =
     "  --patch-period S  at most one patch per S seconds, 0.01..1 (default 0.05)\n"
     "  --pose-via ADDR send poses to ADDR instead of the server's pose endpoint (a tunnel or relay to it)\n"
     "  --warmup S      hold the device's path at its start until the link is up (the first reply; far:\n"
-    "                  local mode), at most S seconds (0..10, default 0); the comparison starts with the path\n";
+    "                  local mode), at most S seconds (0..10, default 0); the comparison starts with the path\n"
+    "  --priority N    the loop and its network thread under SCHED_FIFO at priority N (1..99, default 10)\n"
+    "                  where allowed (root or CAP_SYS_NICE), so that other programs cannot delay it; 0: the\n"
+    "                  normal policy\n";
 
 // the largest patch the client asks for (PoseRequest.local_model_edge's range is 4..16)
 constexpr int kMaxPatchEdge = 16;
@@ -72,25 +79,12 @@ double percentile(std::vector<double> v, double q) {
   return v[k];
 }
 
-// one control request on a REQ socket, with a timeout; throws std::runtime_error naming what failed
-v1::ControlReply control(zmq::socket_t& s, const v1::ControlRequest& req, const std::string& addr, int timeout_ms,
-                         bool curve) {
-  std::string out;
-  req.SerializeToString(&out);
-  s.send(zmq::buffer(out), zmq::send_flags::none);
-  zmq::pollitem_t items[] = {{s.handle(), 0, ZMQ_POLLIN, 0}};
-  zmq::poll(items, 1, std::chrono::milliseconds(timeout_ms));
-  if (!(items[0].revents & ZMQ_POLLIN))
-    throw std::runtime_error("no reply from a palpsim-server at " + addr + " within " + std::to_string(timeout_ms) +
-                             " ms" + (curve ? palpsim::net::kCurveSilenceHint : palpsim::net::kPlainSilenceHint));
-  zmq::message_t m;
-  (void)s.recv(m);
-  v1::ControlReply rep;
-  if (!rep.ParseFromArray(m.data(), int(m.size()))) throw std::runtime_error(addr + ": a control reply that does not parse");
-  if (rep.has_error() && rep.error().code() != v1::ERROR_NONE)
-    throw std::runtime_error(addr + ": " + v1::ErrorCode_Name(rep.error().code()) + ": " + rep.error().message());
-  return rep;
-}
+// a pose reply or none this long (s) and the session is reopened: far above any round trip
+// the client works with (local mode starts at 8 ms; a cold link's first reply takes about 4
+// round trips), so only a server that is gone, or serves poses elsewhere now, is left
+constexpr double kReopenAfterS = 2.0;
+// a reopen request without a reply is sent again, on a fresh connection, after this long (s)
+constexpr double kReopenRetryS = 1.0;
 
 // decodes a LocalForceModel into `out` (vectors resized within their reserved room);
 // false with `why` set for a patch that does not hold together
@@ -139,7 +133,7 @@ int main(int argc, char** argv) {
   std::string addr, device_spec = "press", log_path, name = "palpsim-haptic", server_key_file, client_key_file,
               client_token, mode_name = "auto", pose_via;
   double rate_hz = 1000, max_seconds = 0, patch_period_s = 0.05, warmup_s = 0;
-  int patch_edge = 12;
+  int patch_edge = 12, priority = 10;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&]() -> std::string {
@@ -167,6 +161,7 @@ int main(int argc, char** argv) {
       else if (a == "--patch-period") patch_period_s = std::stod(value());
       else if (a == "--pose-via") pose_via = value();
       else if (a == "--warmup") warmup_s = std::stod(value());
+      else if (a == "--priority") priority = std::stoi(value());
       else {
         std::fprintf(stderr, "palpsim-haptic: unknown argument '%s'\n%s", a.c_str(), kUsage);
         return 2;
@@ -204,6 +199,10 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "palpsim-haptic: --warmup %g: must be within 0..10 s\n", warmup_s);
     return 2;
   }
+  if (priority < 0 || priority > 99) {
+    std::fprintf(stderr, "palpsim-haptic: --priority %d: must be within 0..99 (0: the normal policy)\n", priority);
+    return 2;
+  }
   if (!(max_seconds >= 0)) {
     std::fprintf(stderr, "palpsim-haptic: --seconds %g: must be >= 0\n", max_seconds);
     return 2;
@@ -213,10 +212,31 @@ int main(int argc, char** argv) {
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
 
+  // the loop under SCHED_FIFO where allowed; ZeroMQ's I/O thread, started with the first
+  // socket, inherits the policy
+  if (priority > 0) {
+    if (palpsim::raise_this_thread(priority))
+      spdlog::info("the loop and its network thread under SCHED_FIFO, priority {}", priority);
+    else
+      spdlog::info("the loop under the normal policy: SCHED_FIFO is not allowed here (root or CAP_SYS_NICE needed; "
+                   "--priority 0 asks for the normal policy)");
+  }
+
   zmq::context_t ctx(1);
-  zmq::socket_t ctl(ctx, zmq::socket_type::req), pose(ctx, zmq::socket_type::dealer);
-  ctl.set(zmq::sockopt::linger, 0);
-  pose.set(zmq::sockopt::linger, 0);
+  std::function<void(zmq::socket_t&)> setup;  // every socket's CURVE keys (none without)
+  std::unique_ptr<palpsim::haptic::ControlLink> link;
+  std::unique_ptr<zmq::socket_t> pose;        // the session's pose socket (a fresh one per session)
+  std::string pose_addr;
+  // a DEALER to `endpoint` for a session's poses
+  auto make_pose_socket = [&](const std::string& endpoint) {
+    auto s = std::make_unique<zmq::socket_t>(ctx, zmq::socket_type::dealer);
+    s->set(zmq::sockopt::linger, 0);
+    if (setup) setup(*s);
+    s->connect(endpoint);
+    return s;
+  };
+  v1::ControlRequest open;  // the OpenSession request, sent again to reopen the session
+  std::uint64_t request_id = 0;
   std::uint64_t session = 0;
   std::unique_ptr<palpsim::haptic::Device> device;
   std::FILE* log = nullptr;
@@ -227,16 +247,15 @@ int main(int argc, char** argv) {
     if (curve) {
       const std::string server_key = palpsim::net::read_public_key_file(server_key_file);
       const auto client_key = palpsim::net::read_secret_key_file(client_key_file);
-      for (zmq::socket_t* s : {&ctl, &pose}) palpsim::net::make_curve_client(*s, server_key, client_key);
+      setup = [server_key, client_key](zmq::socket_t& s) { palpsim::net::make_curve_client(s, server_key, client_key); };
     }
     // open the session; the reply names the pose address and the patient's bounds
-    ctl.connect(addr);
-    v1::ControlRequest open;
+    link = std::make_unique<palpsim::haptic::ControlLink>(ctx, addr, setup, curve);
     open.set_schema_version(v1::VERSION_CURRENT);
-    open.set_request_id(1);
+    open.set_request_id(++request_id);
     open.set_client_token(client_token);
     open.mutable_open()->set_client_name(name);
-    const v1::ControlReply opened = control(ctl, open, addr, 5000, curve);
+    const v1::ControlReply opened = link->call(open, 5000);
     session = opened.open().session_id();
     const auto& pi = opened.open().server().patient();
     palpsim::haptic::PatientBox box;
@@ -249,9 +268,8 @@ int main(int argc, char** argv) {
     params.max_force_n = op.max_force_n();
     params.max_force_rate_n_per_s = op.max_force_rate_n_per_s();
     params.min_gradient_norm = op.min_gradient_norm();
-    const std::string pose_addr =
-        pose_via.empty() ? palpsim::haptic::resolve_endpoint(opened.open().pose_endpoint(), addr) : pose_via;
-    pose.connect(pose_addr);
+    pose_addr = pose_via.empty() ? palpsim::haptic::resolve_endpoint(opened.open().pose_endpoint(), addr) : pose_via;
+    pose = make_pose_socket(pose_addr);
     spdlog::info("session {:016x} on {} (poses {}), device: {}, {} Hz", session, addr, pose_addr,
                  device->describe(), rate_hz);
     if (!log_path.empty()) {
@@ -312,18 +330,25 @@ int main(int argc, char** argv) {
   double rtt_step = std::nan("");  // the newest round trip measured since the previous step
   std::uint64_t n = 0;              // the step being run (its pose's seq)
   double last_watchdog_log_t = -1, prev_t = 0;
+  // reopening the session: the server said it no longer knows it, when anything was last heard
+  // on the pose socket (loop time, s), when the open request went out (< 0: none), how often
+  bool session_unknown = false;
+  double last_heard_t = 0, reopen_sent_t = -1, first_reopen_t = -1, last_reopen_log_t = -1;
+  std::uint64_t reopens = 0;
 
   // takes every reply that has come back, timestamped on arrival: round trips, the newest
   // force, patches, and the server's force to compare with what was rendered for that pose
   auto take_replies = [&]() {
-    while (pose.recv(in, zmq::recv_flags::dontwait)) {
+    while (pose->recv(in, zmq::recv_flags::dontwait)) {
       const double now = seconds(Clock::now() - t0);
+      last_heard_t = now;
       if (!rep.ParseFromArray(in.data(), int(in.size()))) {
         ++errors;
         continue;
       }
       if (rep.has_error() && rep.error().code() != v1::ERROR_NONE) {
         if (first_error.empty()) first_error = v1::ErrorCode_Name(rep.error().code()) + ": " + rep.error().message();
+        if (rep.error().code() == v1::ERROR_UNKNOWN_SESSION && rep.session_id() == session) session_unknown = true;
         ++errors;
         continue;
       }
@@ -385,7 +410,56 @@ int main(int argc, char** argv) {
       energy_cursor = s;
     }
   };
-  const int pose_fd = pose.get(zmq::sockopt::fd);
+  int pose_fd = pose->get(zmq::sockopt::fd);
+  // the session, reopened when the server no longer knows it (it restarted, or the session
+  // timed out) or nothing came back on the pose socket for kReopenAfterS: the open request
+  // goes out and its reply is picked up step by step while the loop goes on (the watchdog
+  // has taken the force to zero); poses then go to the new session on a fresh socket
+  auto keep_session = [&](double t) {
+    v1::ControlReply r;
+    bool parsed = false;
+    if (link->waiting() && link->take(r, &parsed)) {
+      if (parsed && r.has_open() && r.open().session_id() != 0) {
+        const std::uint64_t old = session;
+        session = r.open().session_id();
+        req.set_session_id(session);
+        pose_addr = pose_via.empty() ? palpsim::haptic::resolve_endpoint(r.open().pose_endpoint(), addr) : pose_via;
+        pose = make_pose_socket(pose_addr);
+        pose_fd = pose->get(zmq::sockopt::fd);
+        renderer.reset_proxy();
+        ++reopens;
+        if (first_reopen_t < 0) first_reopen_t = t;
+        spdlog::info("session {:016x} reopened at t = {:.3f} s (poses {}), after {:016x} {}", session, t, pose_addr, old,
+                     session_unknown ? "was no longer known to the server" : "went unanswered");
+        // a server that was only slow still holds the old session: it is closed (the reply is not awaited)
+        if (!session_unknown) {
+          v1::ControlRequest close;
+          close.set_schema_version(v1::VERSION_CURRENT);
+          close.set_request_id(++request_id);
+          close.set_client_token(client_token);
+          close.mutable_close()->set_session_id(old);
+          link->start(close);
+        }
+        session_unknown = false;
+        last_heard_t = t;
+        reopen_sent_t = -1;
+        return;
+      }
+      if (reopen_sent_t >= 0 && (last_reopen_log_t < 0 || t - last_reopen_log_t >= 1.0)) {
+        spdlog::warn("reopening the session: {}",
+                     !parsed ? std::string("a reply that does not parse")
+                             : r.has_error() ? v1::ErrorCode_Name(r.error().code()) + ": " + r.error().message()
+                                             : std::string("a reply without a session"));
+        last_reopen_log_t = t;
+      }
+    }
+    const bool due = session_unknown || t - last_heard_t > kReopenAfterS;
+    if (due && (reopen_sent_t < 0 || t - reopen_sent_t >= kReopenRetryS)) {
+      open.set_request_id(++request_id);
+      link->start(open);
+      reopen_sent_t = t;
+    }
+  };
 
   for (n = 1; !g_stop; ++n) {
     const Clock::time_point deadline = t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(n * period_s));
@@ -405,6 +479,7 @@ int main(int argc, char** argv) {
     V3 tip;
     if (!device->read_tip(t_dev, tip)) break;
     take_replies();
+    keep_session(t);
     const RenderMode mode = selector.mode();
 
     // send the newest pose; a full queue drops it rather than waiting. Patches are asked
@@ -422,7 +497,7 @@ int main(int argc, char** argv) {
     req.SerializeToString(&out);
     sent_at[n % ring] = seconds(Clock::now() - t0);
     tip_at[n % ring] = to_vec(tip);
-    (void)pose.send(zmq::buffer(out), zmq::send_flags::dontwait);
+    (void)pose->send(zmq::buffer(out), zmq::send_flags::dontwait);
 
     // watchdog: without replies the force ramps to zero (local_model.h says how fast per mode)
     const double age = t - (newest_seq ? last_reply_t : 0);
@@ -481,7 +556,7 @@ int main(int argc, char** argv) {
 
   // collect the replies still in flight (up to 1 s: a loaded machine may hold some back), then close the session
   const Clock::time_point drain_end = Clock::now() + std::chrono::milliseconds(1000);
-  zmq::pollitem_t items[] = {{pose.handle(), 0, ZMQ_POLLIN, 0}};
+  zmq::pollitem_t items[] = {{pose->handle(), 0, ZMQ_POLLIN, 0}};
   while (replies + errors < steps && Clock::now() < drain_end) {
     zmq::poll(items, 1, std::chrono::milliseconds(10));
     take_replies();
@@ -491,10 +566,10 @@ int main(int argc, char** argv) {
   try {
     v1::ControlRequest close;
     close.set_schema_version(v1::VERSION_CURRENT);
-    close.set_request_id(2);
     close.set_client_token(client_token);
+    close.set_request_id(++request_id);
     close.mutable_close()->set_session_id(session);
-    control(ctl, close, addr, 2000, curve);
+    link->call(close, 2000);
   } catch (const std::exception& e) {
     spdlog::warn("closing the session: {}", e.what());
   }
@@ -507,6 +582,10 @@ int main(int argc, char** argv) {
       (unsigned long long)lost, (unsigned long long)watchdog_trips, percentile(rtts_us, 0.5), percentile(rtts_us, 0.99),
       percentile(rtts_us, 0.999), (unsigned long long)missed, (unsigned long long)steps);
   if (!first_error.empty()) std::printf("palpsim-haptic: first error reply: %s\n", first_error.c_str());
+  if (reopens)
+    std::printf("palpsim-haptic: session reopened %llu times (the server restarted or stopped answering), the first "
+                "at t = %.3f s\n",
+                (unsigned long long)reopens, first_reopen_t);
   // the link's start: a cold TCP link takes round trips (handshakes, slow start) before any force
   std::printf("palpsim-haptic: first reply at %.3f s, first patch at %.3f s (-1: none); warm-up %.3f s, "
               "%llu watchdog trips in it\n",

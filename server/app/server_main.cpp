@@ -25,7 +25,8 @@ namespace {
 
 const char* kUsage =
     "usage: palpsim-server [--scene FILE] [--bind ADDR] [--pose-bind ADDR] [--stream-bind ADDR]\n"
-    "                      [--max-pose-distance-mm MM] [--background idle|nice] [--deform-concurrency K]\n"
+    "                      [--max-pose-distance-mm MM] [--pose-priority N] [--background idle|nice]\n"
+    "                      [--deform-concurrency K]\n"
     "                      [--deform-batch N] [--max-sessions-per-client N] [--idle-timeout-s S]\n"
     "                      [--scene-dir DIR ...] [--cache-dir DIR]\n"
     "                      [--curve-secret FILE [--curve-public FILE] --allow FILE] [--insecure]\n"
@@ -35,6 +36,9 @@ const char* kUsage =
     "  --pose-bind ADDR   pose address (default: the control port + 1; * stays *)\n"
     "  --stream-bind ADDR frames and bricks (XPUB) address, for scenes that ask for them\n"
     "                     (default: the control port + 2; * stays *)\n"
+    "  --pose-priority N  the pose thread and the pose socket's I/O thread under SCHED_FIFO at priority\n"
+    "                     N (default 10; 0: the normal policy), where the process may (root or\n"
+    "                     CAP_SYS_NICE; else the normal policy, and the log says so)\n"
     "  --background P     the deformation and render threads: idle (default: SCHED_IDLE and nice 19,\n"
     "                     any pose thread takes a core at once) or nice (nice 19 only)\n"
     "  --deform-concurrency K  sessions' deformation steps on the GPU at once, each with 1/K of it\n"
@@ -131,6 +135,13 @@ int main(int argc, char** argv) {
         options.pose_bind = value("--pose-bind");
       } else if (a == "--stream-bind") {
         options.stream_bind = value("--stream-bind");
+      } else if (a == "--pose-priority") {
+        const std::string v = value("--pose-priority");
+        char* end = nullptr;
+        const long k = std::strtol(v.c_str(), &end, 10);
+        if (end == v.c_str() || *end != '\0' || k < 0 || k > 99)
+          throw palpsim::Error("--pose-priority " + v + ": expected a whole number from 0 (the normal policy) to 99");
+        options.pose_priority = int(k);
       } else if (a == "--background") {
         const std::string p = value("--background");
         if (p != "idle" && p != "nice") throw palpsim::Error("--background " + p + ": expected idle or nice");

@@ -1,7 +1,9 @@
 // Thread attributes of the server's threads: names (Linux: at most 15 characters), so
 // that top -H, ps -L and debuggers tell them apart (pose, control, deform, render,
-// stream), and the low priority of the background ones.
+// stream), the low priority of the background ones and the real-time one of the pose path.
 #pragma once
+
+#include <thread>
 
 #ifdef __linux__
 #include <pthread.h>
@@ -48,6 +50,32 @@ inline void lower_this_thread(int nice, bool idle) {
   (void)nice;
   (void)idle;
 #endif
+}
+
+/// Puts the calling thread under SCHED_FIFO at `priority` (1..99), above every thread of
+/// the machine under the normal policy, as a haptic loop needs when other work shares the
+/// cores. False, and nothing changed, where the process may not (it needs root or
+/// CAP_SYS_NICE, or RLIMIT_RTPRIO of at least `priority`) or the platform has no such policy.
+inline bool raise_this_thread(int priority) {
+#ifdef __linux__
+  sched_param sp{};
+  sp.sched_priority = priority;
+  return priority >= 1 && priority <= 99 && pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp) == 0;
+#else
+  (void)priority;
+  return false;
+#endif
+}
+
+/// True when this process may put its threads under SCHED_FIFO at `priority`: tried on a
+/// short-lived thread of its own, so the caller's policy is untouched. For threads that
+/// others start with a policy set beforehand (libzmq's I/O threads abort when theirs
+/// cannot be applied).
+inline bool may_raise_threads(int priority) {
+  bool ok = false;
+  std::thread probe([&] { ok = raise_this_thread(priority); });
+  probe.join();
+  return ok;
 }
 
 }  // namespace palpsim

@@ -5,10 +5,12 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <random>
 #include <vector>
 
 #include "haptics/patch_cut.h"
 #include "net/curve_keys.h"
+#include "net/input_budget.h"
 #include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
 
@@ -29,7 +31,7 @@ double box_distance_mm(const Vec3& p, const Vec3& lo, const Vec3& hi) {
 class PoseService {
  public:
   PoseService(zmq::socket_t& s, ServerShared& sh, std::chrono::steady_clock::time_point start)
-      : sock_(s), sh_(sh), start_(start), out_(kMaxPoseReplyBytes) {}
+      : sock_(s), sh_(sh), start_(start), out_(kMaxPoseReplyBytes), budget_(random_seed()) {}
 
   void run(int idle_poll_ms) {
     zmq::pollitem_t items[] = {{sock_.handle(), 0, ZMQ_POLLIN, 0}};
@@ -58,6 +60,13 @@ class PoseService {
   std::size_t frame_full_len_[2] = {0, 0};   // bytes sent by the client
   char scrap_[64];
   std::vector<char> out_;                    // a serialized reply (room for the largest patch)
+  std::int64_t t_recv_ = 0;                  // when the message being answered came (ns since start_)
+  BadInputBudget budget_;                    // error replies each connection may still get
+
+  static std::uint64_t random_seed() {
+    std::random_device r;
+    return (std::uint64_t(r()) << 32) | r();
+  }
 
   // picks up the current world (one atomic load and store): a scene loaded before a pose
   // arrived serves that pose. Once its generation is published the control thread may
@@ -73,6 +82,7 @@ class PoseService {
       const auto r = sock_.recv(zmq::mutable_buffer(id_, sizeof id_), zmq::recv_flags::dontwait);
       if (!r) return;
       const std::int64_t t_recv = ns_since(start_);
+      t_recv_ = t_recv;
       pick_up_world();
       id_len_ = std::min(r->size, sizeof id_);
       has_user_ = false;
@@ -378,8 +388,14 @@ class PoseService {
     return n + len;
   }
 
-  // sends rep_ to the current routing id; never blocks (a vanished or slow client's reply is dropped)
+  // sends rep_ to the current routing id; never blocks (a vanished or slow client's reply is
+  // dropped); an error past its connection's allowance is not sent at all
   void send(bool req_envelope) {
+    if (rep_.has_error() && !budget_.answer(id_, id_len_, t_recv_)) {
+      sh_.counters.bad_input_unanswered.fetch_add(1, std::memory_order_relaxed);
+      patch_ = nullptr;
+      return;
+    }
     std::size_t n = rep_.ByteSizeLong();
     if (n > out_.size() || !rep_.SerializeToArray(out_.data(), int(n))) return;
     // a patch goes after the reply's other fields as field 13 (PoseReply.local_model):

@@ -223,16 +223,36 @@ bool is_loopback_endpoint(const std::string& e) {
          starts("tcp://[::1]:") || starts("tcp://lo:");
 }
 
+// the pose socket's context, with one I/O thread under SCHED_FIFO at `priority` where this
+// process may (probed first: libzmq aborts when it cannot apply the policy it was given);
+// `fifo` is set to the priority given, or 0 when the threads keep the normal policy
+zmq::context_t pose_context(int priority, int& fifo) {
+  zmq::context_t c(1);
+  fifo = priority > 0 && priority <= 99 && may_raise_threads(priority) ? priority : 0;
+  if (fifo) {
+    c.set(zmq::ctxopt::thread_sched_policy, SCHED_FIFO);
+    c.set(zmq::ctxopt::thread_priority, fifo);
+  }
+  return c;
+}
+
 // the control thread: sockets, world ownership, control requests, housekeeping
 class Server::Control {
  public:
   Control(ServerShared& sh, const Scene& scene, PatientPtr patient, PatientLoader loader, const ServerOptions& o)
       : sh_(sh), loader_(std::move(loader)), opt_(o), paths_(o.scene_dirs), ctx_(1),
-        control_(ctx_, zmq::socket_type::router),
-        pose_(ctx_, zmq::socket_type::router), load_done_rx_(ctx_, zmq::socket_type::pair),
+        pose_ctx_(pose_context(o.pose_priority, pose_fifo_)), control_(ctx_, zmq::socket_type::router),
+        pose_(pose_ctx_, zmq::socket_type::router), load_done_rx_(ctx_, zmq::socket_type::pair),
         load_done_tx_(ctx_, zmq::socket_type::pair), in_(kMaxControlBytes + 1) {
     start_ = Clock::now();
     sh_.max_pose_distance_mm = o.max_pose_distance_mm;
+    if (o.pose_priority < 0 || o.pose_priority > 99)
+      throw Error("--pose-priority " + std::to_string(o.pose_priority) + ": expected 0 (the normal policy) to 99");
+    if (pose_fifo_)
+      spdlog::info("poses: the pose thread and its I/O thread under SCHED_FIFO, priority {}", pose_fifo_);
+    else if (o.pose_priority > 0)
+      spdlog::info("poses: the pose thread under the normal policy: this process may not use SCHED_FIFO (it needs "
+                   "root or CAP_SYS_NICE; --pose-priority 0 asks for the normal policy)");
     if (o.max_sessions_per_client < 1 || o.max_sessions_per_client > kMaxSlots)
       throw Error("--max-sessions-per-client " + std::to_string(o.max_sessions_per_client) + ": expected 1.." +
                   std::to_string(kMaxSlots));
@@ -250,6 +270,8 @@ class Server::Control {
       curve_.secret_key = o.curve_secret_key;
       curve_.allowed = std::make_shared<const AllowList>(o.curve_allowed_keys.begin(), o.curve_allowed_keys.end());
       zap_ = std::make_unique<ZapHandler>(ctx_, curve_.allowed, sh_.counters.curve_refused, sh_.counters.curve_admitted);
+      pose_zap_ = std::make_unique<ZapHandler>(pose_ctx_, curve_.allowed, sh_.counters.curve_refused,
+                                               sh_.counters.curve_admitted);
       for (zmq::socket_t* s : {&control_, &pose_}) make_curve_server(*s, o.curve_secret_key);
       sh_.curve = true;
     } else if (!o.curve_allowed_keys.empty()) {
@@ -357,6 +379,8 @@ class Server::Control {
     return stream_endpoint_;
   }
   zmq::socket_t& pose_socket() { return pose_; }
+  // the SCHED_FIFO priority the pose thread is to take (0: the normal policy)
+  int pose_fifo() const { return pose_fifo_; }
   const std::string& control_endpoint() const { return control_endpoint_; }
   const std::string& pose_endpoint() const { return pose_endpoint_; }
 
@@ -391,11 +415,14 @@ class Server::Control {
   PatientLoader loader_;
   ServerOptions opt_;
   PathPolicy paths_;  // the folders LoadScene may touch
+  int pose_fifo_ = 0;  // SCHED_FIFO priority of the pose path's threads (0: the normal policy)
   zmq::context_t ctx_;
+  zmq::context_t pose_ctx_;  // the pose socket's alone: its I/O thread serves poses only
   zmq::socket_t control_, pose_;
   zmq::socket_t load_done_rx_, load_done_tx_;  // inproc PAIR: the loader thread (tx) wakes the control thread (rx)
   CurveServer curve_;                 // the server key and the allow-list ("" key: plain text)
   std::unique_ptr<ZapHandler> zap_;   // admits connections to ctx_'s sockets (CURVE only)
+  std::unique_ptr<ZapHandler> pose_zap_;  // and to pose_ctx_'s
   std::string requester_;             // who sent the control request being handled (see identity())
   zmq::message_t* requester_id_ = nullptr;  // its routing id, and whether it came in a REQ's envelope
   bool requester_req_ = false;
@@ -803,6 +830,7 @@ class Server::Control {
     s->set_sessions_idle_timed_out(c.sessions_idle_timed_out);
     s->set_session_quota(c.session_quota);
     s->set_load_running(c.load_running);
+    s->set_bad_input_unanswered(c.bad_input_unanswered);
     auto* l = s->mutable_pose_service();
     l->set_count(sh_.pose_service.count());
     l->set_p50_us(sh_.pose_service.quantile(0.5));
@@ -1237,9 +1265,11 @@ class Server::Control {
       if (bad != logged_bad_) {
         spdlog::warn(
             "bad input so far: {} malformed, {} wrong schema version, {} unknown session, {} NaN/Inf poses, {} absurd "
-            "poses, {} oversized, {} for another client's session, {} connections refused by key ({} new)",
+            "poses, {} oversized, {} for another client's session, {} connections refused by key ({} new; {} pose "
+            "messages left unanswered past their connection's allowance of error replies)",
             c.malformed.load(), c.wrong_schema_version.load(), c.unknown_session.load(), c.bad_pose.load(),
-            c.absurd_pose.load(), c.oversized.load(), c.not_owner.load(), c.curve_refused.load(), bad - logged_bad_);
+            c.absurd_pose.load(), c.oversized.load(), c.not_owner.load(), c.curve_refused.load(), bad - logged_bad_,
+            c.bad_input_unanswered.load());
         logged_bad_ = bad;
       }
     }
@@ -1269,6 +1299,7 @@ void Server::start() {
   }
   pose_thread_ = std::thread([this, t0] {
     name_this_thread("palpsim-pose");
+    if (const int p = control_->pose_fifo()) raise_this_thread(p);
     run_pose_service(control_->pose_socket(), *shared_, t0);
   });
   control_thread_ = std::thread([this] {

@@ -41,6 +41,11 @@ struct ServerOptions {
   // long is freed (s; 0 = never), beside the scene's server.session_timeout_s for silence
   double idle_timeout_s = 60;
   double bad_input_log_period_s = 5;                    // log a summary of new bad input at most this often
+  // the pose thread and the I/O thread of the pose socket (a ZeroMQ context of its own) run
+  // under SCHED_FIFO at this priority (1..99) where the process may (root or CAP_SYS_NICE),
+  // so that the haptic path keeps a core when clients, floods or other programs load the
+  // machine; 0, or where it may not, under the normal policy (the log says which)
+  int pose_priority = 10;
   int deform_nice = 19;                                 // the deformation and render threads' nice value (Linux; 0..19)
   bool background_idle = true;                          // and SCHED_IDLE for them (Linux; core/thread.h says why)
   // sessions' deformation steps in flight on the GPU at once, for steps that are not

@@ -168,7 +168,7 @@ struct Counters {
       wrong_schema_version{0}, unknown_session{0}, bad_pose{0}, absurd_pose{0}, oversized{0}, too_many_sessions{0},
       bad_parameter{0}, scene_loads{0}, scene_load_failures{0}, control_requests{0}, empty_request{0},
       internal_errors{0}, bad_view{0}, not_built{0}, not_owner{0}, curve_refused{0}, curve_admitted{0},
-      sessions_idle_timed_out{0}, session_quota{0}, load_running{0};
+      sessions_idle_timed_out{0}, session_quota{0}, load_running{0}, bad_input_unanswered{0};
 };
 
 /// A log-binned histogram of service times that one thread fills (relaxed atomics, no

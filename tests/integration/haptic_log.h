@@ -61,4 +61,26 @@ inline void longest_reply_gap(const std::vector<HapticLogRow>& rows, std::size_t
   }
 }
 
+/// The watchdog over a stretch without new replies, rows[first .. first + length] (the
+/// newest reply arrived at or before rows[first]): whether a force was applied within a
+/// step of that reply, and the first row `zero_after_s` or more after it whose force or
+/// watchdog scale is not zero (npos: none).
+struct WatchdogOverGap {
+  bool force_at_reply = false;
+  std::size_t not_zero = std::string::npos;
+};
+
+inline WatchdogOverGap watchdog_over_gap(const std::vector<HapticLogRow>& rows, std::size_t first, std::size_t length,
+                                         double zero_after_s = 0.010) {
+  WatchdogOverGap w;
+  const double t_reply = rows[first].t;
+  for (std::size_t i = first; i <= first + length && i < rows.size(); ++i) {
+    if (rows[i].t - t_reply < 0.001 && rows[i].force() > 0) w.force_at_reply = true;
+    if (rows[i].t - t_reply >= zero_after_s && (rows[i].force() != 0.0 || rows[i].scale != 0.0) &&
+        w.not_zero == std::string::npos)
+      w.not_zero = i;
+  }
+  return w;
+}
+
 }  // namespace palpsim::test

@@ -95,10 +95,11 @@ class Child {
 /// palpsim-server on free loopback ports with a scene file; start() waits for "ready on".
 class ServerProcess {
  public:
-  explicit ServerProcess(const std::string& scene_file, std::vector<std::string> extra = {})
+  /// `exe`: another palpsim-server (an older build, for comparisons); default this build's.
+  explicit ServerProcess(const std::string& scene_file, std::vector<std::string> extra = {},
+                         const std::string& exe = build_exe("palpsim-server"))
       : child_([&] {
-          std::vector<std::string> a{build_exe("palpsim-server"), "--bind", "tcp://127.0.0.1:*", "--pose-bind",
-                                     "tcp://127.0.0.1:*"};
+          std::vector<std::string> a{exe, "--bind", "tcp://127.0.0.1:*", "--pose-bind", "tcp://127.0.0.1:*"};
           if (!scene_file.empty()) {
             a.push_back("--scene");
             a.push_back(scene_file);

@@ -76,6 +76,9 @@ std::uint64_t topic_session(const std::string& t) {
 
 
 // the publisher's own state of one session slot
+// a session whose frames cannot be recorded logs at most one line per this many seconds
+constexpr double kRecordLogPeriodS = 10.0;
+
 struct PubSlot {
   std::uint64_t session = 0;        // the open session in the slot (0: none)
   bool frames = false, bricks = false;  // watched at the last pass
@@ -90,6 +93,10 @@ struct PubSlot {
   // recording (render.record_dir): the session's folder and index
   fs::path record_dir;
   std::ofstream record_index;
+  // frames that could not be recorded since the last log line about it, and when that line
+  // was written (server clock, s): a full disk logs a line per 10 s, not one per frame
+  std::uint64_t record_unlogged = 0;
+  double record_logged_s = -1e9;
 };
 
 struct StreamPublisher::Impl {
@@ -455,7 +462,15 @@ struct StreamPublisher::Impl {
     } catch (const std::exception& e) {
       std::lock_guard<std::mutex> lock(st.info_mu);
       const std::string m = std::string("recording frames: ") + e.what();
-      if (st.info.last_error != m) spdlog::error("{}", m);
+      ++p.record_unlogged;
+      if (now - p.record_logged_s >= kRecordLogPeriodS) {
+        if (p.record_unlogged > 1)
+          spdlog::error("{} ({} frames of this session not recorded since the last line)", m, p.record_unlogged);
+        else
+          spdlog::error("{}", m);
+        p.record_unlogged = 0;
+        p.record_logged_s = now;
+      }
       st.info.last_error = m;
     }
   }
@@ -488,6 +503,8 @@ struct StreamPublisher::Impl {
       p.frame_resent = true;
       p.record_dir.clear();
       if (p.record_index.is_open()) p.record_index.close();
+      p.record_unlogged = 0;
+      p.record_logged_s = -1e9;
     }
     if (id == 0) {
       // (stored only on a change: the pass touches as few cache lines as it can)

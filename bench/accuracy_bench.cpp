@@ -24,13 +24,13 @@ std::string find_python() {
 }  // namespace
 
 PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)-(d), the elastic model against "
-                        "elasticity (--elastic) -> bench/results/accuracy.md [--gpu-json GPU.json] [--elastic-json E.json] "
+                        "elasticity (--elastic), the two force models (--forces) -> bench/results/accuracy.md [--gpu-json GPU.json] [--elastic-json E.json] "
                         "[--out-dir DIR] [--quick] [--commit C]; --from-json CPU.json: the report only; on a GPU machine: "
                         "--json-only FILE") {
   palpsim::bench::ReportOptions o;
   palpsim::bench::ElasticStudyOptions e;
   o.out_dir = std::string(PALPSIM_SOURCE_DIR) + "/bench/results";
-  bool elastic = false;
+  bool elastic = false, forces = false;
   std::string from_json;
   for (int a = 1; a < argc; ++a) {
     const std::string s = argv[a];
@@ -38,12 +38,14 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
     else if (s == "--gpu-json" && a + 1 < argc) o.gpu_json = argv[++a];
     else if (s == "--elastic-json" && a + 1 < argc) o.elastic_json = argv[++a];
     else if (s == "--elastic-gpu-json" && a + 1 < argc) o.elastic_gpu_json = argv[++a];
+    else if (s == "--forces-json" && a + 1 < argc) o.forces_json = argv[++a];
     else if (s == "--from-json" && a + 1 < argc) from_json = argv[++a];
     else if (s == "--out-dir" && a + 1 < argc) o.out_dir = argv[++a];
     else if (s == "--commit" && a + 1 < argc) o.commit = argv[++a];
     else if (s == "--quick") o.quick = true;
     else if (s == "--backend" && a + 1 < argc) o.backend = argv[++a];
     else if (s == "--elastic") elastic = true;
+    else if (s == "--forces") forces = true;
     else if (s == "--work" && a + 1 < argc) e.work_dir = argv[++a];
     else if (s == "--json" && a + 1 < argc) e.json = argv[++a];
     else {
@@ -52,21 +54,26 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
                    "usage: palpsim-bench accuracy [--gpu-json FILE] [--elastic-json FILE] [--elastic-gpu-json FILE] "
                    "[--out-dir DIR] [--quick] [--commit C] [--backend cpu|cuda]\n"
                    "       palpsim-bench accuracy --from-json CPU.json [--gpu-json FILE] [--elastic-json FILE] "
-                   "[--elastic-gpu-json FILE] [--out-dir DIR]   (the report from recorded runs)\n"
+                   "[--elastic-gpu-json FILE] [--forces-json FILE] [--out-dir DIR]   (the report from recorded runs)\n"
                    "       palpsim-bench accuracy --elastic [--json FILE | --json-only FILE] [--work DIR] [--quick] "
                    "[--commit C] [--backend cpu|cuda]   (the elastic study; --json-only: times only, no Python)\n"
+                   "       palpsim-bench accuracy --forces [--json FILE] [--commit C] [--backend cpu|cuda]   "
+                   "(eq. 2's force and the elastic model's for the same presses)\n"
                    "       palpsim-bench accuracy --json-only FILE [--quick] [--commit C] [--backend cuda]   "
                    "(GPU machine: the study's JSON only, no Python)\n",
                    s.c_str());
       return 2;
     }
   }
-  if (elastic && !from_json.empty()) {
-    std::fprintf(stderr, "palpsim-bench accuracy: --elastic runs a study and --from-json reports recorded ones; give one\n");
+  if (int(elastic) + int(forces) + int(!from_json.empty()) > 1) {
+    std::fprintf(stderr,
+                 "palpsim-bench accuracy: --elastic and --forces run a study each and --from-json reports recorded "
+                 "ones; give one\n");
     return 2;
   }
   // the FEM references and the report need Python with their packages: checked before minutes of work
-  const bool needs_python = elastic ? o.json_only.empty() : (o.json_only.empty() || !from_json.empty());
+  const bool needs_python =
+      forces ? false : elastic ? o.json_only.empty() : (o.json_only.empty() || !from_json.empty());
   if (needs_python) {
     o.python = find_python();
     const std::string probe = "'" + o.python + "' -c 'import numpy, scipy, skfem, pyamg, matplotlib' 2>/dev/null";
@@ -80,6 +87,13 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
   }
   try {
     if (!from_json.empty()) return palpsim::bench::write_accuracy_report(o, from_json);
+    if (forces) {
+      palpsim::bench::ForceModelsOptions f;
+      f.json = !e.json.empty() ? e.json : !o.json_only.empty() ? o.json_only : o.out_dir + "/accuracy-forces-cpu.json";
+      f.commit = o.commit;
+      f.backend = o.backend;
+      return palpsim::bench::run_force_models(f);
+    }
     if (elastic) {
       if (!o.json_only.empty()) e.json = o.json_only;
       if (e.json.empty()) e.json = o.out_dir + "/accuracy-elastic-cpu.json";

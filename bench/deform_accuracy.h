@@ -53,6 +53,7 @@ struct ReportOptions {
   std::string gpu_json;           // a GPU machine's --json-only output to merge into the report
   std::string elastic_json;       // the elastic study's JSON (accuracy --elastic) for the report's elastic sections
   std::string elastic_gpu_json;   // a GPU machine's elastic study (accuracy --elastic --json-only) for their GPU column
+  std::string forces_json;        // the force models' comparison (accuracy --forces) for the report's force section
   std::string out_dir;            // report folder: accuracy.md, its PNGs and accuracy-cpu.json
   std::string python;             // interpreter with numpy, scikit-fem, pyamg, matplotlib (empty: not needed)
   std::string commit = "unknown"; // commit of the build, copied into the JSON
@@ -88,5 +89,18 @@ struct ElasticStudyOptions {
 /// Runs the elastic study and writes its JSON; returns the process exit code (throws
 /// palpsim::Error on bad input).
 int run_elastic_accuracy(const ElasticStudyOptions& options);
+
+/// What `palpsim-bench accuracy --forces` runs and where it writes (force_models_bench.cpp): eq. 2's
+/// force and the elastic model's, as the server reports each, for the same presses of the shipped
+/// scene on the elastic study's block (beside Hertz) and on the phantom.
+struct ForceModelsOptions {
+  std::string json;               // the study's JSON
+  std::string commit = "unknown"; // commit of the build, copied into the JSON
+  std::string backend;            // the elastic step's backend ("" = cpu)
+};
+
+/// Runs the force-model comparison and writes its JSON; returns the process exit code (throws
+/// palpsim::Error on bad input).
+int run_force_models(const ForceModelsOptions& options);
 
 }  // namespace palpsim::bench

@@ -1154,6 +1154,7 @@ int write_accuracy_report(const ReportOptions& o, const std::string& cpu_json) {
   if (!o.gpu_json.empty()) cmd += " --gpu " + sh_quote(o.gpu_json);
   if (!o.elastic_json.empty()) cmd += " --elastic " + sh_quote(o.elastic_json);
   if (!o.elastic_gpu_json.empty()) cmd += " --elastic-gpu " + sh_quote(o.elastic_gpu_json);
+  if (!o.forces_json.empty()) cmd += " --forces " + sh_quote(o.forces_json);
   if (!run_command(cmd)) throw Error("accuracy: " + script + " failed");
   return 0;
 }

@@ -220,6 +220,44 @@ def test_a_file_that_is_not_the_elastic_json_is_refused(tmp_path):
         rep.load_elastic(str(bad))
 
 
+def _forces_doc():
+    def row(where, d, proxy, elastic, f0, hertz):
+        return {"where": where, "depth_mm": d, "contact": True, "haptic_depth_mm": d + 0.5, "proxy_n": [0, proxy, 0],
+                "elastic_n": [0, elastic, 0], "elastic_f0_n": [0, f0, 0], "stiffness_n_per_mm": 0.07,
+                "contact_nodes": 21, "cg_steps": 9, "converged": True, "step_ms": 1203.1, "hertz_n": hertz}
+    return {"area": "accuracy-forces", "date": "2026-12-05T03:52:58Z", "device": "cpu only, backend cpu",
+            "host_cpu": "AMD EPYC", "host_threads": 2, "commit": "abc1234", "quick": False,
+            "scene": "config/scenes/lumbar_phantom.textproto", "finger_radius_mm": 5, "poisson": 0.45,
+            "block": {"size": [96, 72, 96], "hu": 40},
+            "haptics": {"stiffness_n_per_mm": 0.25, "max_force_n": 3.3, "elastic_max_jump_n": 0.05},
+            "landmark": "spinous_tip_L3",
+            # the block beside Hertz; the phantom without a reference, its elastic force clamped
+            "rows": [row("block", 1, 0.008, 0.0472, 0.0472, 0.04486),
+                     row("phantom above L3", 10, 1.12, 3.3, 4.1, float("nan"))]}
+
+
+def test_the_force_section_compares_both_models_with_hertz(tmp_path):
+    cpu, fm = tmp_path / "cpu.json", tmp_path / "forces.json"
+    cpu.write_text(json.dumps(_doc(CPU_ROWS)))
+    fm.write_text(json.dumps(_forces_doc()))
+    sys.argv = ["accuracy_report.py", "--cpu", str(cpu), "--forces", str(fm), "--out-dir", str(tmp_path)]
+    rep.main()
+    md = (tmp_path / "accuracy.md").read_text()
+    assert md.index("## The force each model reports") < md.index("## The ChainMail knobs")
+    # ratios to Hertz: 0.008 / 0.04486 = 0.178, 0.0472 / 0.04486 = 1.05 (3 digits)
+    assert "| block | 1 | 0.008 | 0.0472 | 0.0472 | 0.0449 | 0.178 | 1.05 | 0.07 | 21 | 9 | 1203 |" in md
+    # no reference on the phantom: dashes, and the clamped force beside the unclamped one
+    assert "| phantom above L3 | 10 | 1.12 | 3.3 | 4.1 | - | - | - | 0.07 | 21 | 9 | 1203 |" in md
+    assert f"--forces-json {fm}" in md
+
+
+def test_a_file_that_is_not_the_forces_json_is_refused(tmp_path):
+    bad = tmp_path / "x.json"
+    bad.write_text(json.dumps(_elastic_doc(ELASTIC_ROWS)))
+    with pytest.raises(SystemExit):
+        rep.load_forces(str(bad))
+
+
 def _bench():
     d = os.environ.get("PALPSIM_BUILD_DIR")
     root = os.path.join(os.path.dirname(__file__), "..", "..", "..")

@@ -265,6 +265,57 @@ v1::ServerStats server_stats(const std::string& control) {
   return control_call(ctx, control, q, r) ? r.stats().server() : v1::ServerStats{};
 }
 
+// the server's RSS beside what its stages say they hold (ServerStats.stages' bytes_allocated: the
+// sessions' deformation engines, frames, bricks and the spares) and its open sessions, every
+// `period_s`: RSS minus that is the memory no open session accounts for, which must stay flat
+// while sessions come and go within their quotas
+struct MemorySample {
+  double t_s = 0, rss_mb = 0, held_mb = 0;
+  int sessions = 0;
+  bool answered = false;  // the stats request got its reply
+};
+class MemorySampler {
+ public:
+  MemorySampler(pid_t pid, std::string control, double period_s)
+      : pid_(pid), control_(std::move(control)), period_s_(period_s), t0_(Clock::now()) {
+    thread_ = std::thread([this] {
+      while (!stop_) {
+        MemorySample m;
+        m.t_s = seconds_since(t0_);
+        m.rss_mb = rss_mb(pid_);
+        const v1::ServerStats st = server_stats(control_);
+        m.answered = st.stages_size() > 0;
+        for (const auto& g : st.stages()) m.held_mb += double(g.bytes_allocated()) / (1024.0 * 1024.0);
+        m.sessions = int(st.sessions_open());
+        {
+          std::lock_guard<std::mutex> lock(mu_);
+          samples_.push_back(m);
+        }
+        for (int i = 0; i < 10 && !stop_; ++i) sleep_s(period_s_ / 10);
+      }
+    });
+  }
+  ~MemorySampler() { stop(); }
+  void stop() {
+    stop_ = true;
+    if (thread_.joinable()) thread_.join();
+  }
+  std::vector<MemorySample> samples() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    return samples_;
+  }
+
+ private:
+  pid_t pid_;
+  std::string control_;
+  double period_s_;
+  Clock::time_point t0_;
+  std::vector<MemorySample> samples_;
+  mutable std::mutex mu_;
+  std::atomic<bool> stop_{false};
+  std::thread thread_;
+};
+
 // a pose of `session` at `tip`
 v1::PoseRequest pose_request(std::uint64_t session, std::uint64_t seq, double x, double y, double z) {
   v1::PoseRequest q;
@@ -689,7 +740,7 @@ void soak_phase(const Options& o, Report& rep) {
     if (!control_call(ctx, server.control(), q, info)) throw Error("palpsim-bench reliability: no Info from the server");
   }
   const double rss0 = rss_mb(server.child().pid());
-  RssSampler rss(server.child().pid(), 2.0);
+  MemorySampler rss(server.child().pid(), server.control(), 2.0);
   const auto t0 = Clock::now();
   // the honest clients, each on its own lane; the first two watched by the viewers
   std::vector<std::unique_ptr<test::Child>> honest;
@@ -778,14 +829,26 @@ void soak_phase(const Options& o, Report& rep) {
   }
   rep.honest_lost += std::uint64_t(lost);
   rep.honest_errors += std::uint64_t(errors);
-  // memory: the plateau after the first fifth against the end
-  double plateau = 0, end = 0, peak = 0;
-  for (const auto& [t, mb] : samples) {
-    if (plateau == 0 && t >= 0.2 * seconds) plateau = mb;
-    peak = std::max(peak, mb);
-    end = mb;
+  // memory: the plateau after the first fifth against the end, of RSS and of RSS less what the
+  // open sessions' stages hold (the fuzzers open sessions within their quota, and each that
+  // deforms holds an engine; that is bounded by the quotas, not a leak)
+  double plateau = 0, end = 0, peak = 0, free_plateau = 0, free_end = 0;
+  int sessions_min = 1 << 30, sessions_max = 0;
+  double held_max = 0;
+  for (const MemorySample& m : samples) {
+    if (!m.answered) continue;
+    if (plateau == 0 && m.t_s >= 0.2 * seconds) {
+      plateau = m.rss_mb;
+      free_plateau = m.rss_mb - m.held_mb;
+    }
+    peak = std::max(peak, m.rss_mb);
+    end = m.rss_mb;
+    free_end = m.rss_mb - m.held_mb;
+    sessions_min = std::min(sessions_min, m.sessions);
+    sessions_max = std::max(sessions_max, m.sessions);
+    held_max = std::max(held_max, m.held_mb);
   }
-  const bool flat = plateau > 0 && end <= 1.1 * plateau;
+  const bool flat = free_plateau > 0 && free_end <= 1.1 * free_plateau;
   rep.memory_flat = rep.memory_flat && flat;
   std::sort(p99.begin(), p99.end());
   char line[1024];
@@ -821,14 +884,17 @@ void soak_phase(const Options& o, Report& rep) {
          << ")\n"
          << "- LoadScene of a scene asking for the cuda backend (no GPU here), at half time: `" << cuda_reply << "`\n";
   std::snprintf(line, sizeof line,
-                "- server: %s; RSS %.0f MB at start, %.0f MB after the first fifth, %.0f MB at the end, peak %.0f MB "
-                "(%s)\n",
+                "- server: %s; RSS %.0f MB at start, %.0f MB after the first fifth, %.0f MB at the end, peak %.0f MB; "
+                "%d-%d sessions open (the fuzzers' within their quota), their stages holding up to %.0f MB; RSS less "
+                "what the stages hold %.0f MB after the first fifth, %.0f MB at the end (%s)\n",
                 server_died ? "**died**" : rc == 0 ? "stopped cleanly at the end" : "did not stop cleanly", rss0, plateau,
-                end, peak, flat ? "flat: the end within 10 % of the plateau" : "**not flat**");
-  rep.md << line << "\nRSS over time (s, MB):";
+                end, peak, sessions_max ? sessions_min : 0, sessions_max, held_max, free_plateau, free_end,
+                flat ? "flat: the end within 10 % of the plateau" : "**not flat**");
+  rep.md << line << "\nOver time (s: RSS MB, held by the stages MB, sessions):";
   const std::size_t stride = std::max<std::size_t>(1, samples.size() / 20);
   for (std::size_t i = 0; i < samples.size(); i += stride) {
-    std::snprintf(line, sizeof line, " %.0f: %.0f;", samples[i].first, samples[i].second);
+    std::snprintf(line, sizeof line, " %.0f: %.0f, %.0f, %d;", samples[i].t_s, samples[i].rss_mb, samples[i].held_mb,
+                  samples[i].sessions);
     rep.md << line;
   }
   rep.md << "\n\n";
@@ -840,7 +906,11 @@ void soak_phase(const Options& o, Report& rep) {
      << "\", \"server_died\": " << (server_died ? "true" : "false") << ", \"server_exit\": " << rc
      << ", \"rss_mb\": [";
   for (std::size_t i = 0; i < samples.size(); ++i)
-    js << (i ? ", " : "") << "[" << json_number(samples[i].first) << ", " << json_number(samples[i].second) << "]";
+    js << (i ? ", " : "") << "[" << json_number(samples[i].t_s) << ", " << json_number(samples[i].rss_mb) << "]";
+  js << "], \"held_mb\": [";
+  for (std::size_t i = 0; i < samples.size(); ++i) js << (i ? ", " : "") << json_number(samples[i].held_mb);
+  js << "], \"sessions\": [";
+  for (std::size_t i = 0; i < samples.size(); ++i) js << (i ? ", " : "") << samples[i].sessions;
   js << "], \"memory_flat\": " << (flat ? "true" : "false") << "}";
   rep.json_sections.push_back(js.str());
   for (const auto& p : paths) std::remove(p.c_str());

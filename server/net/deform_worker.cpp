@@ -451,10 +451,9 @@ bool DeformWorker::prime(Session& s, int index, const Vec3& tip_mm) {
     s.engine->backend().set_gpu_share(gpu_share_);
     const Vec3 X = patient_->grid.to_physical(Vec3(v.x, v.y, v.z));
     const DeformPrime pr = s.engine->prime(DeformContact{X, X});
-    if (pr.solved) {
-      ++s.report.multigrid_primes;
-      publish(s, index);
-    }
+    if (pr.solved) ++s.report.multigrid_primes;
+    // published either way: the engine just taken holds memory the stats must show
+    publish(s, index);
   } catch (const std::exception& e) {
     // a prime only prepares: its failure costs the next contact a solve from zero
     s.report.last_error = std::string("prime: ") + e.what();

@@ -206,24 +206,36 @@ inline void elastic_extreme_hu(Case& c) {
 }
 
 /// One spot, many steps: the same contact stepped again and again starts each step from
-/// the last one's field, already the solution (no CG step runs), and only puts the contact
-/// nodes back on the sphere, which rounds: the field must not drift, each step within a few
-/// ulps of the largest displacement of the first step's (8 FLT_EPSILON; measured 1 ulp).
+/// the last one's field, already the solution, and only puts the contact nodes back on the
+/// sphere, which rounds. The field must not drift:
+/// - each step stays within the solve's own accuracy of the first one's (the tolerance times
+///   its largest displacement): where rounding puts the warm start's residual a hair over the
+///   tolerance a CG step runs (the GPU's sums run in another order: seen on the H200, 1.2e-5
+///   voxel of 4.3), which moves the field by less than the tolerance allows;
+/// - over the second half of the steps consecutive fields agree within a few ulps of the
+///   largest displacement (8 FLT_EPSILON; the CPU measured 1 ulp): once settled, a repeated
+///   step changes nothing but rounding, so nothing accumulates.
 inline void elastic_one_spot_repeated(Case& c, int steps) {
   INFO(c.describe());
   const PatientPtr p = with_skin(make_torso_patient(48));
-  DeformRun r(c, p, elastic_config(24));
+  const DeformConfig cfg = elastic_config(24);
+  DeformRun r(c, p, cfg);
   const DeformContact k{{24.3, 40.4, 23.7}, {25.1, 35.6, 22.9}};
   const Outcome first = r.contact(k);
   REQUIRE(first.elastic.contact);
   const float scale = max_abs_component(first.u);
-  float worst = 0;
+  float worst = 0, settled = 0;
+  std::vector<Vec3f> last = first.u;
   for (int s = 0; s < steps; ++s) {
     const Outcome o = r.contact(k);
     worst = std::max(worst, max_abs_diff(o.u, first.u));
+    if (s >= steps / 2) settled = std::max(settled, max_abs_diff(o.u, last));
+    last = o.u;
   }
-  INFO("over " << steps << " steps the field moved by " << worst << " voxel at most, of " << scale);
-  REQUIRE(worst <= 8 * FLT_EPSILON * scale);
+  INFO("over " << steps << " steps the field moved by " << worst << " voxel at most from the first, "
+               << settled << " from one step to the next over the second half, of " << scale);
+  CHECK(worst <= cfg.settings.elastic.tolerance * scale);
+  CHECK(settled <= 8 * FLT_EPSILON * scale);
 }
 
 /// Random presses over the torso, a tenth of them corrupt (NaN, +-Inf, X outside the grid,

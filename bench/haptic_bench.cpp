@@ -2,7 +2,7 @@
 // loopback round trip of palpsim-server's pose path paced at 1 kHz for 1, 4 and 16
 // clients (p50, p99, p99.9), next to a bare ZeroMQ DEALER/ROUTER ping-pong with the
 // same message sizes, pacing and client counts, and next to the same server with CURVE
-// on every socket (README, "Security"), in the same run. Goal: palpsim's round trip at
+// on every socket (docs/security.md), in the same run. Goal: palpsim's round trip at
 // most 1.3 times the bare one at p50 and p99.
 #include <algorithm>
 #include <atomic>

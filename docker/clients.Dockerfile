@@ -6,7 +6,7 @@
 # Build from the repository root with BuildKit (Docker 23+ with buildx; on Debian 12's
 # docker.io 20.10: DOCKER_BUILDKIT=1), as scripts/docker-test.sh does:
 #   docker build -f docker/clients.Dockerfile -t palpsim-clients .
-# Run against a server with this station's keys (README, "Containers"):
+# Run against a server with this station's keys (docs/containers.md):
 #   docker run --rm -v "$PWD/keys:/keys:ro" palpsim-clients palpsim-haptic --connect tcp://HOST:7420 \
 #     --server-key /keys/server.key --client-key /keys/station1.key_secret --device press --seconds 5
 #   docker run --rm -v "$PWD/keys:/keys:ro" -v "$PWD/out:/out" palpsim-clients palpsim-batch PLAN \

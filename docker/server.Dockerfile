@@ -9,7 +9,7 @@
 # docker.io 20.10: DOCKER_BUILDKIT=1), as scripts/docker-test.sh does:
 #   docker build -f docker/server.Dockerfile -t palpsim-server:gpu .
 #   docker build -f docker/server.Dockerfile --build-arg VARIANT=cpu -t palpsim-server:cpu .
-# Run with keys/ made by palpsim-keys (README, "Containers"):
+# Run with keys/ made by palpsim-keys (docs/containers.md):
 #   docker run --rm --gpus all -p 7420-7422:7420-7422 -v "$PWD/keys:/keys:ro" palpsim-server:gpu
 # Build args: VARIANT (gpu|cpu), CUDA_ARCHITECTURES (default 90, the H100), JOBS
 # (compile jobs, default: all cores), EXTRA_CA_CERTS (PEM text of CAs that pip must trust
@@ -95,6 +95,6 @@ WORKDIR /opt/palpsim
 EXPOSE 7420 7421 7422
 ENTRYPOINT ["palpsim-server"]
 # the phantom scene (deformation, frames and bricks), on every interface, which needs CURVE:
-# keys/ from palpsim-keys mounted at /keys (README, "Security")
+# keys/ from palpsim-keys mounted at /keys (docs/security.md)
 CMD ["--scene", "/opt/palpsim/config/scenes/lumbar_phantom.textproto", "--bind", "tcp://0.0.0.0:7420", \
      "--curve-secret", "/keys/server.key_secret", "--allow", "/keys/allowed"]

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Builds palpsim's container images and palpates from one container to another over a
-# container network with CURVE keys (README, "Containers"). Not part of scripts/test.sh:
+# container network with CURVE keys (docs/containers.md). Not part of scripts/test.sh:
 # it needs root, Docker's engine and a quarter of an hour of builds.
 #
 #   bash scripts/docker-test.sh [--no-gpu-build] [--keep]

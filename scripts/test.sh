@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Sets up (Debian packages, CMake and Python packages, build) and runs every test
 # that runs without a GPU: the C++ suites through CTest (label gpu excluded: those
-# run on the GPU machine, see tests/gpu/README.md), the Python package's tests, and the
+# run on the GPU machine, see docs/gpu-tests.md), the Python package's tests, and the
 # fuzzers for a bounded time (scripts/fuzz.sh; PALPSIM_FUZZ_SECONDS each, default 30).
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)

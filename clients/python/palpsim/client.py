@@ -11,7 +11,7 @@ are not thread-safe: use one Client per thread. Refused requests raise ServerErr
 with the server's code and sentence; a server that does not answer within the
 timeout raises ServerTimeout. Units: mm, N, s; points in the CT's physical space (LPS).
 
-A server with keys (README, "Security") needs `curve=CurveKeys.from_files(server_key,
+A server with keys (docs/security.md) needs `curve=CurveKeys.from_files(server_key,
 client_key)`. A session belongs to the client that opened it: its CURVE key, else its
 `client_token`, else its control connection (PROTOCOL.md, "Who may connect").
 """

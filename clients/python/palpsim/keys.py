@@ -1,5 +1,5 @@
 """CURVE keys and client identity for talking to a palpsim-server that encrypts
-(palpsim-server --curve-secret, --allow; README "Security").
+(palpsim-server --curve-secret, --allow; docs/security.md).
 
     keys = CurveKeys.from_files("server.key", "alice.key_secret")
     with Client("tcp://host:7420", curve=keys) as c: ...

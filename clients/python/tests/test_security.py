@@ -1,4 +1,4 @@
-"""Keys and identity through the Python client (README "Security"): key files as
+"""Keys and identity through the Python client (docs/security.md): key files as
 palpsim-keys writes them, and the real palpsim-server (from $PALPSIM_BUILD_DIR) with CURVE:
 an allowed key opens a session and feels forces, its StreamClient gets the session's
 bricks, an unknown key and a client without keys time out with a sentence that says why,

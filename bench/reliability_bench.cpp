@@ -202,41 +202,6 @@ class SchedSampler {
   }
 };
 
-// the server's RSS every `period_s` (s since start, MB)
-class RssSampler {
- public:
-  RssSampler(pid_t pid, double period_s) : pid_(pid), period_s_(period_s), t0_(Clock::now()) {
-    thread_ = std::thread([this] {
-      while (!stop_) {
-        const double mb = rss_mb(pid_);
-        {
-          std::lock_guard<std::mutex> lock(mu_);
-          samples_.emplace_back(seconds_since(t0_), mb);
-        }
-        for (int i = 0; i < 10 && !stop_; ++i) sleep_s(period_s_ / 10);
-      }
-    });
-  }
-  ~RssSampler() { stop(); }
-  void stop() {
-    stop_ = true;
-    if (thread_.joinable()) thread_.join();
-  }
-  std::vector<std::pair<double, double>> samples() const {
-    std::lock_guard<std::mutex> lock(mu_);
-    return samples_;
-  }
-
- private:
-  pid_t pid_;
-  double period_s_;
-  Clock::time_point t0_;
-  std::vector<std::pair<double, double>> samples_;
-  mutable std::mutex mu_;
-  std::atomic<bool> stop_{false};
-  std::thread thread_;
-};
-
 // --- clients ------------------------------------------------------------------------------
 
 // one control request on a fresh REQ socket; false when no reply came within `timeout_ms`
@@ -1017,7 +982,7 @@ void faults_phase(const Options& o, Report& rep) {
       }
       test::ServerProcess server(dir + "/scene.textproto", o.server_args, o.server_exe);
       const bool ready = server.wait_ready(600);
-      RssSampler rss(server.child().pid(), 1.0);
+      MemorySampler rss(server.child().pid(), server.control(), 1.0);
       test::Child client({test::build_exe("palpsim-haptic"), "--connect", server.control(), "--name", "beside-full-disk"});
       client.wait(60);
       rss.stop();
@@ -1044,8 +1009,8 @@ void faults_phase(const Options& o, Report& rep) {
                     alive && rc == 0 ? "kept serving and stopped cleanly" : "**died or did not stop cleanly**",
                     h.parsed ? h.lost : -1, h.errors,
                     (unsigned long long)(st.has_stream() ? st.stream().frames_rendered() : 0), error_lines,
-                    first.substr(0, 300).c_str(), samples.empty() ? 0 : samples.front().second,
-                    samples.empty() ? 0 : samples.back().second);
+                    first.substr(0, 300).c_str(), samples.empty() ? 0 : samples.front().rss_mb,
+                    samples.empty() ? 0 : samples.back().rss_mb);
       rep.md << line;
       js << ", \"full_disk\": {\"server_ok\": " << (alive && rc == 0 ? "true" : "false") << ", \"lost\": " << h.lost
          << ", \"error_lines\": " << error_lines << "}";

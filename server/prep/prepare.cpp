@@ -68,11 +68,14 @@ std::string settings_text(const Scene& s) {
   return o.str();
 }
 
+// the scene's settings for prep.json; a bone threshold the scene leaves unset is "auto" (the
+// thresholds prep chose stand in the report's bone section)
 std::string settings_json(const Scene& s) {
   const PrepSettings& p = s.prep;
   const ForceImageSettings& f = s.force_image;
   return "{\"prep\": {\"spacing_mm\": " + jnum(p.spacing_mm) + ", \"air_threshold\": " + jnum(p.air_threshold) +
-         ", \"bone_threshold\": " + jnum(p.bone_threshold) + ", \"bone_min_volume_ml\": " +
+         ", \"bone_threshold\": " + (p.bone_threshold_set ? jnum(p.bone_threshold) : std::string("\"auto\"")) +
+         ", \"bone_min_volume_ml\": " +
          jnum(p.bone_min_volume_ml) + ", \"bone_closing_mm\": " + jnum(p.bone_closing_mm) +
          ", \"bone_fill_holes\": " + (p.bone_fill_holes ? "true" : "false") + ", \"body_opening_mm\": " +
          jnum(p.body_opening_mm) + ", \"body_min_part_ml\": " + jnum(p.body_min_part_ml) + ", \"max_memory_mb\": " +

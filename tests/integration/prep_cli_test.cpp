@@ -59,6 +59,9 @@ TEST_CASE("palpsim-prep writes every output for a CT file") {
                        Catch::Contains("\"regions_ml\": {\"spine\": ") && Catch::Contains("\"spine_found\": true") &&
                        Catch::Contains("\"warnings\": []"));
   CHECK_THAT(r.output, Catch::Contains("bone auto: "));
+  // the settings say the bone threshold was automatic, not the unused default of 200 HU
+  CHECK_THAT(json, Catch::Contains("\"bone_threshold\": \"auto\""));
+  CHECK_THAT(json, !Catch::Contains("\"bone_threshold\": 200"));
 }
 
 TEST_CASE("palpsim-prep on bad input exits non-zero, names the problem and writes nothing") {

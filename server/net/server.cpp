@@ -962,8 +962,14 @@ class Server::Control {
       }
       if (id == 0)
         return refuse(v1::ERROR_NO_SESSION_OPEN, sh_.counters.unknown_session,
-                      "WatchSession.session_id: 0 (any session of this client) but none of this client's "
-                      "sessions is open");
+                      std::string("WatchSession.session_id: 0 (any session of this client) but none of this "
+                                  "client's sessions is open; this client is known by its ") +
+                          requester_kind() +
+                          (sh_.curve ? ": watch with the haptic client's keys"
+                           : requester_.rfind("token ", 0) == 0
+                               ? ": give the haptic client the same client token"
+                               : ", which opened no session: give the haptic client and this viewer the same "
+                                 "--client-token (ControlRequest.client_token), or name the session"));
     }
     // a watch acts on the session (its idle clock), but is no message naming it for the
     // scene's session_timeout_s: only the session's poses and requests naming it are

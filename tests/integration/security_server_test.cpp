@@ -334,6 +334,8 @@ TEST_CASE("without keys a session belongs to its control connection or client to
   const auto none = other.call(any);
   REQUIRE(none);
   CHECK(none->error().code() == v1::ERROR_NO_SESSION_OPEN);
+  // the refusal says how to watch another connection's session: a shared client token
+  CHECK_THAT(none->error().message(), Catch::Contains("--client-token"));
 
   // a session opened with a token: the same token on another connection may act on it
   // (a viewer beside a haptic client), another token may not

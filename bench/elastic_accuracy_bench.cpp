@@ -58,17 +58,13 @@ DeformConfig converged(DeformConfig c) {
 }
 
 // the shipped press: X where the haptic path puts it, on the skin (trilinear C = 1/2) straight
-// above L3's spinous tip, x kPressMm anterior of it (into the body, towards the bone)
+// above L3's spinous tip (kPressLandmark), x kPressMm anterior of it (into the body, towards the bone)
 constexpr double kPressMm = 10;
-const char* const kLandmark = "spinous_tip_L3";
 
 // the block of the shipped configuration: 1 mm voxels, a sphere of the scene's radius pressed
 // kBlockPressRatio of it (R / 5, Hertz's range) at the centre of the skin; the VOI as the scene
 // sets it (centred on the tip: the tissue reaches about voi_edge / 2 below the skin)
 constexpr double kBlockPressRatio = 0.2;
-const Vec3i kBlockSize{96, 72, 96};
-constexpr int kBlockSkinJ = 68;
-constexpr float kBlockHu = 40;
 
 // Hertz's block (iii): n^3 voxels of 1 mm, the whole block the VOI (held faces), the skin node
 // layer kHertzAir - 1 below the top, a sphere of kHertzR mm
@@ -134,8 +130,6 @@ double rel_rms_pct(const std::vector<Vec3>& u, const std::vector<Vec3>& ref, con
   return den > 0 ? 100 * std::sqrt(num / den) : NAN;
 }
 
-// a vector as a JSON array
-std::string json_vec3(const Vec3& v) { return "[" + json_number(v.x) + ", " + json_number(v.y) + ", " + json_number(v.z) + "]"; }
 
 // the deviation of v from ref in percent of ref
 double pct(double v, double ref) { return ref != 0 ? 100 * (v - ref) / ref : NAN; }
@@ -467,13 +461,13 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
   el.settings.relax_method = "elastic";
   el.settings.backend = "cpu";
   const PhantomGeometry geo;
-  const Vec3 X = skin_point_along(*patient, geo.landmark(kLandmark), Vec3{0, 1, 0});
+  const Vec3 X = skin_point_along(*patient, geo.landmark(kPressLandmark), Vec3{0, 1, 0});
   const DeformContact press{X, X - Vec3{0, kPressMm, 0}};
   const double R = shipped.settings.grab_radius_mm, nu = el.settings.elastic.poisson;
   std::printf("accuracy --elastic: %s, phantom %.3g mm, VOI %d, fingertip %g mm; press %g mm at X = (%.2f, %.2f, %.2f) mm "
               "above %s\n",
               scene_file.c_str(), patient->grid.spacing_mm.x, shipped.settings.voi_edge, R, kPressMm, X.x, X.y, X.z,
-              kLandmark);
+              kPressLandmark);
 
   // the block of the shipped configuration: homogeneous (no skin layer), pressed R / 5
   const PatientPtr block = elastic_block(kBlockSize, 1.0, kBlockSkinJ, kBlockHu);
@@ -679,7 +673,7 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
       << ",\n  \"poisson\": " << json_number(nu) << ",\n  \"elastic_defaults\": {\"tolerance\": "
       << json_number(ElasticSettings{}.tolerance) << ", \"max_iterations\": " << ElasticSettings{}.max_iterations
       << ", \"contact_rounds\": " << ElasticSettings{}.contact_rounds << "},\n  \"press\": {\"landmark\": "
-      << json_str(kLandmark) << ", \"X_mm\": " << json_vec3(press.skin_point_mm) << ", \"x_mm\": "
+      << json_str(kPressLandmark) << ", \"X_mm\": " << json_vec3(press.skin_point_mm) << ", \"x_mm\": "
       << json_vec3(press.tip_mm) << ", \"press_mm\": " << json_number(kPressMm) << "},\n  \"block\": {\"size\": ["
       << kBlockSize.x << ", " << kBlockSize.y << ", " << kBlockSize.z << "], \"skin_j\": " << kBlockSkinJ
       << ", \"hu\": " << json_number(kBlockHu) << ", \"e_kpa\": " << json_number(block_e) << ", \"radius_mm\": "

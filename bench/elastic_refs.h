@@ -13,6 +13,16 @@
 
 namespace palpsim::bench {
 
+/// The landmark the shipped press goes over: X on the skin straight above it (the phantom's
+/// PhantomGeometry names it).
+inline constexpr const char* kPressLandmark = "spinous_tip_L3";
+
+/// The homogeneous block of the shipped configuration's Hertz press (elastic_block()): 96 x
+/// 72 x 96 voxels of 1 mm, the skin the node layer j = 68, soft tissue of 40 HU.
+inline const Vec3i kBlockSize{96, 72, 96};
+inline constexpr int kBlockSkinJ = 68;
+inline constexpr float kBlockHu = 40;
+
 /// Hertz's force (N) of a rigid sphere of radius r_mm pressed d_mm into an elastic half-space
 /// of Young's modulus e_kpa and Poisson ratio nu: 4/3 E / (1 - nu^2) sqrt(R) d^(3/2).
 inline double hertz_force_n(double e_kpa, double nu, double r_mm, double d_mm) {

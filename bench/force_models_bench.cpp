@@ -33,16 +33,11 @@ namespace {
 constexpr double kApproachMm = 10;
 constexpr int kApproachPoses = 100;
 
-// the elastic study's block (elastic_accuracy_bench.cpp): 1 mm voxels, skin node layer at j = 68
-const Vec3i kBlockSize{96, 72, 96};
-constexpr int kBlockSkinJ = 68;
-constexpr float kBlockHu = 40;
 // depths (mm) under the skin: on the block in units of the fingertip's radius R (Hertz's range
 // is d << R; 0.8 R is past it), on the phantom in mm (towards L3, whose spinous tip lies about
 // 15 mm under the skin there)
 const double kBlockDepthsR[] = {0.05, 0.1, 0.2, 0.4, 0.8};
 const double kPhantomDepthsMm[] = {2, 4, 6, 8, 10};
-const char* const kLandmark = "spinous_tip_L3";
 
 // the block as prep would finish it: no bone (A = +inf), F and grad F from the scene's eq. 1
 PatientPtr block_patient(const Scene& scene) {
@@ -54,18 +49,13 @@ PatientPtr block_patient(const Scene& scene) {
   return p;
 }
 
-// a vector as a JSON array
-std::string json_vec3_of(const Vec3& v) {
-  return "[" + json_number(v.x) + ", " + json_number(v.y) + ", " + json_number(v.z) + "]";
-}
-
 // one press as a JSON row
 std::string row_json(const std::string& where, double depth_mm, const PressForces& f, double hertz_n) {
   std::ostringstream j;
   j << "    {\"where\": " << json_str(where) << ", \"depth_mm\": " << json_number(depth_mm)
     << ", \"contact\": " << (f.contact ? "true" : "false") << ", \"haptic_depth_mm\": " << json_number(f.depth_mm)
-    << ", \"proxy_n\": " << json_vec3_of(f.proxy_n) << ", \"elastic_n\": " << json_vec3_of(f.elastic_n)
-    << ", \"elastic_f0_n\": " << json_vec3_of(f.model.f0_n) << ", \"stiffness_n_per_mm\": "
+    << ", \"proxy_n\": " << json_vec3(f.proxy_n) << ", \"elastic_n\": " << json_vec3(f.elastic_n)
+    << ", \"elastic_f0_n\": " << json_vec3(f.model.f0_n) << ", \"stiffness_n_per_mm\": "
     << json_number(f.model.stiffness_n_per_mm) << ", \"contact_nodes\": " << f.model.contact_nodes
     << ", \"cg_steps\": " << f.run.iterations << ", \"converged\": " << (f.run.converged ? "true" : "false")
     << ", \"step_ms\": " << json_number(f.step_ms) << ", \"hertz_n\": " << json_number(hertz_n) << "}";
@@ -111,7 +101,7 @@ int run_force_models(const ForceModelsOptions& o) {
   {
     const PatientPtr patient = prepare_patient(scene);
     const PhantomGeometry geo;
-    const Vec3 X = skin_point_along(*patient, geo.landmark(kLandmark), Vec3{0, 1, 0});
+    const Vec3 X = skin_point_along(*patient, geo.landmark(kPressLandmark), Vec3{0, 1, 0});
     for (const double d : kPhantomDepthsMm) {
       const Vec3 tip = X - Vec3{0, d, 0};
       const PressForces f = press_forces(patient, scene, X + Vec3{0, kApproachMm, 0}, tip, kApproachPoses, backend);
@@ -131,7 +121,7 @@ int run_force_models(const ForceModelsOptions& o) {
       << kBlockSize.y << ", " << kBlockSize.z << "], \"hu\": " << json_number(kBlockHu)
       << "},\n  \"haptics\": {\"stiffness_n_per_mm\": " << json_number(h.stiffness_n_per_mm)
       << ", \"max_force_n\": " << json_number(h.max_force_n) << ", \"elastic_max_jump_n\": "
-      << json_number(h.elastic_max_jump_n) << "},\n  \"landmark\": " << json_str(kLandmark) << ",\n  \"rows\": [\n";
+      << json_number(h.elastic_max_jump_n) << "},\n  \"landmark\": " << json_str(kPressLandmark) << ",\n  \"rows\": [\n";
     for (std::size_t i = 0; i < rows.size(); ++i) f << rows[i] << (i + 1 < rows.size() ? ",\n" : "\n");
     f << "  ]\n}\n";
     if (!f) throw Error("accuracy --forces: writing " + o.json + " failed");

@@ -47,6 +47,12 @@ inline std::string json_number(double v) {
   return o.str();
 }
 
+/// A vector (anything with x, y and z) as a JSON array of three numbers.
+template <typename V>
+std::string json_vec3(const V& v) {
+  return "[" + json_number(v.x) + ", " + json_number(v.y) + ", " + json_number(v.z) + "]";
+}
+
 /// {"median_ms": ..., "p10_ms": ..., "p90_ms": ...}
 inline std::string json_spread(const Spread& s) {
   return "{\"median_ms\": " + json_number(s.median) + ", \"p10_ms\": " + json_number(s.p10) +

@@ -1,7 +1,8 @@
 """palpsim: client library, batch palpation runner and demo for palpsim-server.
 
 Modules: `client` (sessions, poses, control requests), `plan` (plan files and their
-expansion into presses), `batch` (palpsim-batch), `results` (tidy table and summary),
+expansion into presses), `runner` (a plan's presses over parallel sessions), `batch`
+(palpsim-batch), `study` (plans x patients x a grid), `results` (tidy table and summary),
 `plots` (PNG figures), `server` (start and stop a local palpsim-server), `demo`
 (palpsim-demo, the lumbar spine palpation).
 """
@@ -19,7 +20,7 @@ __path__.append(_os.path.join(_os.path.dirname(__file__), "_proto", "palpsim"))
 # modules; plans, tables and plots do not)
 _LAZY = {"Client": "client", "Session": "client", "ServerError": "client",
          "ServerTimeout": "client", "PalpsimError": "client", "load_plan": "plan",
-         "parse_plan": "plan", "PlanError": "plan", "run_plan": "batch", "LocalServer": "server"}
+         "parse_plan": "plan", "PlanError": "plan", "run_plan": "runner", "LocalServer": "server"}
 
 
 def __getattr__(name: str):

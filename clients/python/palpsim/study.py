@@ -60,6 +60,7 @@ from .client import PalpsimError
 from .plan import Plan, PlanError, load_plan
 from .results import (COLUMNS, TIMING_COLUMNS, TableError, digest_columns, finish_table,
                       write_atomically)
+from .runner import run_plan
 
 # the grid's parameter columns are named PARAM_PREFIX + name
 PARAM_PREFIX = "param_"
@@ -468,7 +469,6 @@ def run_task(servers: PatientServer, task: Task, sessions: int = 1,
              timeout_s: float = 10.0) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Runs one task on a server for its patient; returns its table (key columns first)
     and how it ran (prep event, wall time)."""
-    from .batch import run_plan
     address, prep = servers.address_for(task.patient)
     t0 = time.perf_counter()
     result = run_plan(task.run_plan(), address, sessions=sessions, timeout_s=timeout_s,

@@ -368,9 +368,17 @@ void check_deform_config(const DeformConfig& config, const std::string& who);
 /// (0, 0.5); throws palpsim::Error starting with `who` and naming the field.
 void check_elastic_settings(const ElasticSettings& elastic, const std::string& who);
 
-/// Makes a backend by name: "cpu", "cuda" or "auto" (cuda where a device and a CUDA
-/// build exist, else cpu). Unknown names and an unavailable "cuda" throw
-/// palpsim::Error saying why; `note`, when given, says what "auto" chose and why.
+/// Makes the backend a scene's deform.backend asks for: cpu, cuda, or auto (cuda where a
+/// device and a CUDA build exist, else cpu). An unavailable cuda throws palpsim::Error
+/// saying why; `note`, when given, says what was chosen and why.
+std::unique_ptr<DeformBackend> make_deform_backend(DeformBackendChoice choice, std::string* note = nullptr);
+
+/// The deform.backend a name spells ("auto", "cpu" or "cuda", core/setting_names.h), for
+/// benchmarks and tests that take a backend from the command line; an unknown name
+/// throws palpsim::Error listing the allowed ones.
+DeformBackendChoice deform_backend_choice(const std::string& name);
+
+/// make_deform_backend() by the setting's name (deform_backend_choice()).
 std::unique_ptr<DeformBackend> make_deform_backend(const std::string& name, std::string* note = nullptr);
 
 /// True when this build has the CUDA backend and a CUDA device can be used;

@@ -26,7 +26,7 @@ std::string error_of(const std::function<void()>& f) {
 
 TEST_CASE("backends are chosen by name; an unavailable cuda says why") {
   CHECK(make_deform_backend("cpu")->name() == "cpu");
-  CHECK(error_of([] { make_deform_backend("gpu"); }).find("\"auto\", \"cpu\" or \"cuda\"") != std::string::npos);
+  CHECK(error_of([] { make_deform_backend("gpu"); }).find("\"auto\", \"cpu\", \"cuda\"") != std::string::npos);
   std::string why, note;
   const bool have_cuda = cuda_deform_available(&why);
   CHECK_FALSE(why.empty());

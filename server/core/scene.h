@@ -46,11 +46,13 @@ enum class ForceModel {
   kElastic,  // the elastic model's reaction on the fingertip, from the deformation worker's local linear model
 };
 
-/// Force model parameters.
+/// Force model parameters. These defaults are the server's one source (a session slot
+/// starts with them); scene.proto's [default]s, which a scene without the field gets, must
+/// equal them (tests/unit/scene_io_test.cpp checks).
 struct HapticsSettings {
-  double stiffness_n_per_mm = 0.25;
+  double stiffness_n_per_mm = 0.25;      // N/mm
   double friction = 0.2;                 // 0 = none, towards 1 = proxy sticks
-  double max_force_n = 3.3;
+  double max_force_n = 3.3;              // N (a Phantom Omni / Touch's largest)
   double max_force_rate_n_per_s = 2000;
   double min_gradient_norm = 1e-4;       // |grad F| below this keeps the last direction
   SkinPointRule skin_point = SkinPointRule::kNormal;  // scene-wide (not a session parameter)

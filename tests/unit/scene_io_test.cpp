@@ -7,6 +7,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <tuple>
 
 #include "core/error.h"
 #include "deform/backend.h"
@@ -154,6 +155,17 @@ TEST_CASE("each named setting is read by its spelling and a misspelt one is refu
   // the same names outside a scene (a benchmark's --backend), refused the same way
   CHECK(deform_backend_choice("cuda") == DeformBackendChoice::kCuda);
   CHECK_THROWS_WITH(deform_backend_choice("Cuda"), "deform.backend = \"Cuda\"; allowed: \"auto\", \"cpu\", \"cuda\"");
+}
+
+TEST_CASE("a scene without a haptics block has HapticsSettings' defaults (the schema's equal core/scene.h's)") {
+  const HapticsSettings h = parse_scene_text("phantom {}", "x.textproto").haptics, d;
+  const auto fields = [](const HapticsSettings& s) {
+    return std::tie(s.stiffness_n_per_mm, s.friction, s.max_force_n, s.max_force_rate_n_per_s, s.min_gradient_norm,
+                    s.skin_point, s.force_model, s.elastic_max_jump_n);
+  };
+  CHECK(fields(h) == fields(d));
+  CHECK(d.stiffness_n_per_mm == 0.25);  // the documented defaults (README, scene.proto)
+  CHECK(d.max_force_n == 3.3);
 }
 
 TEST_CASE("haptics.skin_point is read, checked and defaults as HapticsSettings does") {

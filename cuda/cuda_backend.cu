@@ -574,28 +574,6 @@ DeformStats CudaDeformBackend::end_step_impl() {
   return out;
 }
 
-bool CudaDeformBackend::batchable_with(const CudaDeformBackend& o) const {
-  // the batched kernels take the settings once for all sessions; untangling has no batched
-  // kernel (each session steps alone); multigrid sessions share the batch's other launches
-  // and its one wait, their solves one launch each on the batch's stream; elastic sessions
-  // step alone for now (no batched elastic solver: each step's solve is one cooperative
-  // launch of its own, run side by side with the others' at 1/k of the device each)
-  const DeformSettings &a = config_.settings, &b = o.config_.settings;
-  const bool mg = a.relax_method == RelaxMethod::kMultigrid;
-  const bool elastic = (config_.relax && a.relax_method == RelaxMethod::kElastic) ||
-                       (o.config_.relax && b.relax_method == RelaxMethod::kElastic);
-  return !elastic && config_.relax == o.config_.relax && config_.invert == o.config_.invert &&
-         config_.bone_threshold == o.config_.bone_threshold && a.relax_method == b.relax_method &&
-         (!mg || (a.relax_cycles == b.relax_cycles && a.relax_warm_cycles == b.relax_warm_cycles &&
-                  config_.relax_reuse == o.config_.relax_reuse && config_.skip_chainmail == o.config_.skip_chainmail)) &&
-         !(config_.relax && a.untangle) && !(o.config_.relax && b.untangle) &&
-         a.max_sweeps == b.max_sweeps && a.relax_iterations == b.relax_iterations && a.relax_step == b.relax_step &&
-         a.material_width == b.material_width && a.invert_iterations == b.invert_iterations &&
-         a.invert_search == b.invert_search &&
-         limits_.axial_lo == o.limits_.axial_lo && limits_.axial_hi == o.limits_.axial_hi &&
-         limits_.sheer == o.limits_.sheer;
-}
-
 bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& group) {
   const int n = int(group.size());
   if (n < 2 || n > kMaxBatch) return false;
@@ -603,7 +581,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   unsigned long long max_count = 0;
   for (DeformBackend* b : group) {
     auto* c = dynamic_cast<CudaDeformBackend*>(b);
-    if (!c || !batchable_with(*c)) return false;
+    if (!c || !deform_batchable(config_, c->config_)) return false;
     m.push_back(c);
     max_count = std::max<unsigned long long>(max_count, (unsigned long long)c->capacity_);
   }

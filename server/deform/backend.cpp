@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <tuple>
 #include <sstream>
 
 #include "core/error.h"
@@ -181,6 +182,39 @@ deform::ElasticParams DeformConfig::elastic_params() const {
   p.contact_rounds = e.contact_rounds;
   p.stiffness = elastic_stiffness;
   return p;
+}
+
+bool DeformBatchKey::operator==(const DeformBatchKey& o) const {
+  const auto& [a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16] = *this;
+  const auto& [b0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15, b16] = o;
+  return std::tie(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16) ==
+         std::tie(b0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15, b16);
+}
+
+std::optional<DeformBatchKey> deform_batch_key(const DeformConfig& config) {
+  // every member by name: the session's own ones are left out of the key below
+  [[maybe_unused]] const auto& [settings, bone_threshold, relax, invert, relax_reuse, skip_chainmail, voi_hold,
+                                elastic_stiffness] = config;
+  [[maybe_unused]] const auto& [min_dist, max_dist, max_sheer, voi_edge, whole_volume, max_sweeps, relax_method,
+                                relax_iterations, relax_step, relax_cycles, relax_warm_cycles, grab_radius_mm,
+                                material_width, invert_iterations, untangle, invert_search, backend, elastic] = settings;
+  // the session's own: its VOI (voi_edge, whole_volume, voi_hold), its multigrid fingertip
+  // (grab_radius_mm: multigrid sessions share the batch's other launches and its one wait,
+  // their solves one launch each), its backend; the elastic model (elastic,
+  // elastic_stiffness) steps alone, each solve one cooperative launch, as untangling does
+  if (relax && (relax_method == RelaxMethod::kElastic || untangle)) return std::nullopt;
+  const deform::ChainMailLimits limits = deform::chainmail_limits(min_dist, max_dist, max_sheer);
+  const bool mg = relax_method == RelaxMethod::kMultigrid;
+  // in DeformBatchKey's order
+  return DeformBatchKey{relax, invert, bone_threshold, relax_method, max_sweeps, relax_iterations, relax_step,
+                        material_width, invert_iterations, invert_search, limits.axial_lo, limits.axial_hi,
+                        limits.sheer, mg ? relax_cycles : 0, mg ? relax_warm_cycles : 0, mg && relax_reuse,
+                        mg && skip_chainmail};
+}
+
+bool deform_batchable(const DeformConfig& a, const DeformConfig& b) {
+  const std::optional<DeformBatchKey> ka = deform_batch_key(a), kb = deform_batch_key(b);
+  return ka && kb && *ka == *kb;
 }
 
 void DeformBackend::set_relax_counts(DeformStats& out) const {

@@ -27,6 +27,7 @@
 #include "bench/registry.h"
 #include "bench/stats.h"
 #include "core/error.h"
+#include "core/setting_names.h"
 #include "deform/backend.h"
 #include "haptics/force_model.h"
 #include "net/scene_io.h"
@@ -234,12 +235,12 @@ int run(int argc, char** argv) {
 
   // the three models on the scene's deformation settings
   DeformConfig base = DeformConfig::from_scene(scene, patient.get());
-  base.settings.backend = "cpu";
+  base.settings.backend = DeformBackendChoice::kCpu;
   std::vector<Model> models(3);
   models[0].key = "explicit";
   models[0].label = "paper: explicit relaxation, 20 iterations";
   models[0].cfg = base;
-  models[0].cfg.settings.relax_method = "explicit";
+  models[0].cfg.settings.relax_method = RelaxMethod::kExplicit;
   models[0].cfg.settings.relax_iterations = 20;
   models[0].cfg.settings.grab_radius_mm = 0;
   models[1].key = "multigrid";
@@ -248,7 +249,7 @@ int run(int argc, char** argv) {
   models[2].key = "elastic";
   models[2].label = "elastic, 5 mm fingertip sphere";
   models[2].cfg = base;
-  models[2].cfg.settings.relax_method = "elastic";
+  models[2].cfg.settings.relax_method = RelaxMethod::kElastic;
   models[2].cfg.settings.grab_radius_mm = 5;
 
   const Vec3& h = g.spacing_mm;
@@ -288,7 +289,9 @@ int run(int argc, char** argv) {
                 "bone moved %lld, J unresolved %lld%s\n",
                 m.label.c_str(), m.press_ms.median, m.press_relax_ms.median, m.press_invert_ms.median, m.rest_ms.median,
                 m.max_u_mm, m.bone_moved, m.last.invert_unresolved,
-                m.key == "elastic" ? (", force " + std::to_string(norm(m.last.elastic.force_n)) + " N").c_str() : "");
+                m.cfg.settings.relax_method == RelaxMethod::kElastic
+                    ? (", force " + std::to_string(norm(m.last.elastic.force_n)) + " N").c_str()
+                    : "");
   }
 
   const double load_after = load_average();
@@ -355,7 +358,7 @@ int run(int argc, char** argv) {
     const DeformSettings& s = m.cfg.settings;
     const deform::ElasticRun& el = m.last.elastic;
     js << (i ? "," : "") << "\n    {\"key\": " << quoted(m.key) << ", \"label\": " << quoted(m.label)
-       << ", \"relax_method\": " << quoted(s.relax_method) << ", \"relax_iterations\": " << s.relax_iterations
+       << ", \"relax_method\": " << quoted(setting_name(s.relax_method)) << ", \"relax_iterations\": " << s.relax_iterations
        << ", \"relax_cycles\": " << s.relax_cycles << ", \"grab_radius_mm\": " << json_number(s.grab_radius_mm)
        << ", \"voi_edge\": " << s.voi_edge << ", \"invert_search\": " << (s.invert_search ? "true" : "false")
        << ",\n     \"step_while_pressing\": " << json_spread(m.press_ms) << ", \"relax_while_pressing\": "
@@ -366,7 +369,7 @@ int run(int argc, char** argv) {
        << ", \"invert_residual_vox\": " << json_number(m.last.invert_residual_vox)
        << ", \"invert_unresolved\": " << m.last.invert_unresolved << ", \"invert_nonfinite\": " << m.last.invert_nonfinite
        << ", \"chainmail_skipped\": " << (m.last.chainmail.skipped ? "true" : "false");
-    if (s.relax_method == "elastic")
+    if (s.relax_method == RelaxMethod::kElastic)
       js << ",\n     \"elastic\": {\"force_n\": " << json_vec(el.force_n) << ", \"force_norm_n\": "
          << json_number(norm(el.force_n)) << ", \"contact_nodes\": " << el.contact_nodes << ", \"rounds\": " << el.rounds
          << ", \"iterations\": " << el.iterations << ", \"residual\": " << json_number(el.residual)

@@ -245,7 +245,7 @@ int run_deform_accuracy(const AccuracyOptions& o) {
     const int warmup = gpu ? 3 : 1;
     const int reps = gpu ? (o.quick ? 10 : 30) : (o.quick ? 2 : 10);
     DeformConfig cfg = base;
-    cfg.settings.backend = be;
+    cfg.settings.backend = deform_backend_choice(be);
 
     // relaxation iterations against relaxation to ref_relax_iterations on the same VOI
     if (wanted("relax_iterations")) {
@@ -284,7 +284,7 @@ int run_deform_accuracy(const AccuracyOptions& o) {
     // a homogeneous block (VOI 64, centre grabbed and pushed 4 voxels) at 6 voxels.
     if (wanted("relax_cycles")) {
       DeformConfig c = cfg;
-      c.settings.relax_method = "multigrid";
+      c.settings.relax_method = palpsim::RelaxMethod::kMultigrid;
       c.settings.relax_cycles = o.ref_multigrid_cycles;
       const Run ref = run_setting(be, patient, c, press.contact, 0, 1, Stage::relax);
       const Voi& voi = ref.last.chainmail.voi;
@@ -567,14 +567,14 @@ bool moves_tip(const std::string& method) { return method == "multigrid warm"; }
 // sets relaxation method `method` with `n` iterations (diffusion) or steps (multigrid)
 void apply_relax_method(DeformConfig& cfg, const std::string& method, int n) {
   if (method == "diffusion") {
-    cfg.settings.relax_method = "explicit";
+    cfg.settings.relax_method = palpsim::RelaxMethod::kExplicit;
     cfg.settings.relax_iterations = n;
   } else if (method == "multigrid" || method == "multigrid reused") {
-    cfg.settings.relax_method = "multigrid";
+    cfg.settings.relax_method = palpsim::RelaxMethod::kMultigrid;
     cfg.settings.relax_cycles = n;
     cfg.relax_reuse = method == "multigrid reused";
   } else if (method == "multigrid warm" || method == "multigrid primed") {
-    cfg.settings.relax_method = "multigrid";
+    cfg.settings.relax_method = palpsim::RelaxMethod::kMultigrid;
     cfg.settings.relax_cycles = DeformSettings{}.relax_cycles;
     cfg.settings.relax_warm_cycles = n;
     cfg.relax_reuse = true;
@@ -1031,7 +1031,7 @@ int run_accuracy_report(const ReportOptions& o) {
       RefA ref;
       if (grp.has_ref) {
         DeformConfig rc = grp.ref;
-        rc.settings.backend = be;
+        rc.settings.backend = deform_backend_choice(be);
         const Run ra = run_setting(be, patient, rc, press.contact, 0, 1, Stage::total);
         ref.voi = ra.last.chainmail.voi;
         ref.u = ra.u;
@@ -1043,7 +1043,7 @@ int run_accuracy_report(const ReportOptions& o) {
       std::vector<DeformConfig> cfgs;
       for (const Setting& s : group) {
         cfgs.push_back(s.cfg);
-        cfgs.back().settings.backend = be;
+        cfgs.back().settings.backend = deform_backend_choice(be);
       }
       // the press itself, or reached a voxel a step from 5 voxels short (the last step on it)
       const std::vector<DeformContact> contacts =

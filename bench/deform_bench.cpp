@@ -180,7 +180,7 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
                   std::vector<ElasticRow>& rows) {
   const bool gpu = name == "cuda";
   DeformConfig cfg = test::preset_config(1);
-  cfg.settings.relax_method = "elastic";
+  cfg.settings.relax_method = RelaxMethod::kElastic;
   cfg.settings.grab_radius_mm = 5;
   cfg.settings.voi_edge = 64;
   cfg.settings.invert_search = false;  // as the scenes ship

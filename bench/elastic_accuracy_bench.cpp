@@ -363,7 +363,7 @@ std::vector<RowSpec> row_specs(const DeformConfig& shipped, bool quick) {
   // the paper: explicit diffusion, one grabbed element (its grab radius is 0), relax_iterations
   for (int it : quick ? std::vector<int>{20} : std::vector<int>{20, 80, 320}) {
     DeformConfig c = shipped;
-    c.settings.relax_method = "explicit";
+    c.settings.relax_method = RelaxMethod::kExplicit;
     c.settings.grab_radius_mm = 0;
     c.settings.relax_iterations = it;
     v.push_back({"explicit (paper)", "every step", std::to_string(it) + " iterations", c});
@@ -381,7 +381,7 @@ std::vector<RowSpec> row_specs(const DeformConfig& shipped, bool quick) {
   v.push_back({"multigrid (shipped)", "press repeated", "as shipped", shipped});
   // the elastic model: tolerance at the default cap, and caps at the default tolerance
   DeformConfig el = shipped;
-  el.settings.relax_method = "elastic";
+  el.settings.relax_method = RelaxMethod::kElastic;
   const ElasticSettings def;
   auto elastic = [&](const std::string& mode, double tol, int cap) {
     DeformConfig c = el;
@@ -458,8 +458,8 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
   const PatientPtr patient = prepare_patient(scene);
   DeformConfig shipped = DeformConfig::from_scene(scene, patient.get());
   DeformConfig el = shipped;
-  el.settings.relax_method = "elastic";
-  el.settings.backend = "cpu";
+  el.settings.relax_method = RelaxMethod::kElastic;
+  el.settings.backend = DeformBackendChoice::kCpu;
   const PhantomGeometry geo;
   const Vec3 X = skin_point_along(*patient, geo.landmark(kPressLandmark), Vec3{0, 1, 0});
   const DeformContact press{X, X - Vec3{0, kPressMm, 0}};
@@ -617,7 +617,7 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
   for (const std::string& be : backends) {
     const bool gpu = be == "cuda";
     std::vector<RowSpec> specs = row_specs(shipped, o.quick);
-    for (RowSpec& spec : specs) spec.cfg.settings.backend = be;
+    for (RowSpec& spec : specs) spec.cfg.settings.backend = deform_backend_choice(be);
     const std::vector<Run> runs = run_rows(be, patient, specs, press, gpu, o.quick);
     for (std::size_t i = 0; i < specs.size(); ++i) {
       const RowSpec& spec = specs[i];

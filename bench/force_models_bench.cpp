@@ -73,7 +73,7 @@ int run_force_models(const ForceModelsOptions& o) {
   // the shipped scene with the elastic step (its haptics as shipped: eq. 2's k and clamps)
   const std::string scene_file = "config/scenes/lumbar_phantom.textproto";
   Scene scene = load_scene_file(std::string(PALPSIM_SOURCE_DIR) + "/" + scene_file);
-  scene.deform.relax_method = "elastic";
+  scene.deform.relax_method = RelaxMethod::kElastic;
   const double R = scene.deform.grab_radius_mm, nu = scene.deform.elastic.poisson;
   std::vector<std::string> rows;
 

@@ -9,6 +9,7 @@
 #include <string>
 
 #include "core/error.h"
+#include "core/setting_names.h"
 #include "core/patient.h"
 #include "core/scene.h"
 #include "deform/backend.h"
@@ -44,8 +45,9 @@ struct PressForces {
 /// Throws palpsim::Error naming the field for a scene whose elastic step cannot run.
 inline PressForces press_forces(const PatientPtr& patient, const Scene& scene, const Vec3& from_mm,
                                 const Vec3& tip_mm, int approach_poses = 100, const std::string& backend = "cpu") {
-  if (scene.deform.relax_method != "elastic")
-    throw Error("press_forces: scene '" + scene.name + "': deform.relax_method = \"" + scene.deform.relax_method +
+  if (scene.deform.relax_method != RelaxMethod::kElastic)
+    throw Error("press_forces: scene '" + scene.name + "': deform.relax_method = \"" +
+                setting_name(scene.deform.relax_method) +
                 "\"; the elastic force needs \"elastic\"");
   constexpr double kPeriodS = 1e-3;  // 1 kHz, on the client's clock
   // enough held poses for friction's proxy to settle (0.2 of the gap left a pose) and for any
@@ -72,7 +74,7 @@ inline PressForces press_forces(const PatientPtr& patient, const Scene& scene, c
   cfg.relax = true;
   cfg.invert = false;  // J does not change the force
   cfg.elastic_stiffness = true;
-  if (!backend.empty()) cfg.settings.backend = backend;
+  if (!backend.empty()) cfg.settings.backend = deform_backend_choice(backend);
   check_deform_config(cfg, "press_forces: scene '" + scene.name + "'");
   DeformEngine engine(patient, cfg);
   const DeformStats st = engine.step(DeformContact{held.skin_point_mm, tip_mm});

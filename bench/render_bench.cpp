@@ -121,7 +121,7 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
   software = ctx->software();
   std::printf("GL: %s\n", gl.c_str());
   DeformConfig dc = DeformConfig::from_scene(scene, patient.get());
-  dc.settings.backend = "auto";
+  dc.settings.backend = DeformBackendChoice::kAuto;
   dc.settings.voi_edge = 64;
   DeformEngine engine(patient, dc);
   std::printf("deformation between frames: %s, VOI 64\n", engine.backend_note().c_str());

@@ -22,6 +22,7 @@
 #include "bench/registry.h"
 #include "bench/stats.h"
 #include "core/error.h"
+#include "deform/backend.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
@@ -124,7 +125,7 @@ int run(int argc, char** argv) {
   deform.effects.chainmail = deform.effects.relaxation = deform.effects.inversion = true;
   deform.effects.frames = deform.effects.bricks = false;
   deform.deform.voi_edge = o.voi_edge;
-  if (!o.backend.empty()) deform.deform.backend = o.backend;
+  if (!o.backend.empty()) deform.deform.backend = deform_backend_choice(o.backend);
   const int most = *std::max_element(o.sessions.begin(), o.sessions.end());
   deform.server.max_sessions = std::max(deform.server.max_sessions, most);
   Scene plain = deform;

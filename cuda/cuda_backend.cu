@@ -131,9 +131,9 @@ void CudaDeformBackend::bind_impl() {
   PALPSIM_CUDA_CHECK(cudaMallocHost(&host_j_, n * sizeof(float)));
   std::memset(host_counters_, 0, sizeof(Counters));
   full_shape_ = shape_ = persistent_launch_shape();
-  if (config_.relax && config_.settings.relax_method == "multigrid") ensure_multigrid_buffers();
-  if (config_.relax && config_.settings.relax_method == "explicit") ensure_relax_buffers();
-  if (config_.relax && config_.settings.relax_method == "elastic") ensure_elastic_buffers();
+  if (config_.relax && config_.settings.relax_method == RelaxMethod::kMultigrid) ensure_multigrid_buffers();
+  if (config_.relax && config_.settings.relax_method == RelaxMethod::kExplicit) ensure_relax_buffers();
+  if (config_.relax && config_.settings.relax_method == RelaxMethod::kElastic) ensure_elastic_buffers();
   if (config_.relax && config_.settings.untangle) ensure_untangle_buffers();
   // the inversion's search queue, slot map and the scatter's list, only for scenes that
   // ask for the search: the queue a 32nd of the VOI (a fold's searched voxels are a few
@@ -365,7 +365,7 @@ void CudaDeformBackend::enqueue_chainmail() {
 
 void CudaDeformBackend::enqueue_relax() {
   const DeformSettings& s = config_.settings;
-  if (s.relax_method == "elastic") {
+  if (s.relax_method == RelaxMethod::kElastic) {
     // every element of the VOI into the current buffer, which the reset and ChainMail's
     // start left at 0 but for the grabbed element; with other steps in flight beside it, in
     // a scratch of its own
@@ -377,7 +377,7 @@ void CudaDeformBackend::enqueue_relax() {
     field_extra_ = -1;
     return;
   }
-  if (s.relax_method == "multigrid") {
+  if (s.relax_method == RelaxMethod::kMultigrid) {
     // in place on the current buffer; with other steps in flight beside it, in a scratch
     // of its own
     ensure_multigrid_buffers();
@@ -456,7 +456,7 @@ void CudaDeformBackend::chainmail_impl(ChainMailStats& st) {
 
 void CudaDeformBackend::relax_impl() {
   enqueue_relax();
-  if (config_.settings.relax_method != "elastic") {
+  if (config_.settings.relax_method != RelaxMethod::kElastic) {
     PALPSIM_CUDA_CHECK(cudaStreamSynchronize(stream_));
     return;
   }
@@ -551,8 +551,9 @@ DeformStats CudaDeformBackend::end_step_impl() {
   const bool untangle = config_.relax && config_.settings.untangle;
   InvertStats inv;
   finish(&out.chainmail, &inv, untangle ? &out.untangle : nullptr);
-  if (config_.relax && config_.settings.relax_method == "multigrid") take_multigrid_counts(out);
-  if (config_.relax && config_.settings.relax_method == "elastic") out.elastic = elastic_.finish(host_counters_->elastic);
+  if (config_.relax && config_.settings.relax_method == RelaxMethod::kMultigrid) take_multigrid_counts(out);
+  if (config_.relax && config_.settings.relax_method == RelaxMethod::kElastic)
+    out.elastic = elastic_.finish(host_counters_->elastic);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;
@@ -573,27 +574,6 @@ DeformStats CudaDeformBackend::end_step_impl() {
   return out;
 }
 
-bool CudaDeformBackend::batchable_with(const CudaDeformBackend& o) const {
-  // the batched kernels take the settings once for all sessions; untangling has no batched
-  // kernel (each session steps alone); multigrid sessions share the batch's other launches
-  // and its one wait, their solves one launch each on the batch's stream; elastic sessions
-  // step alone for now (no batched elastic solver: each step's solve is one cooperative
-  // launch of its own, run side by side with the others' at 1/k of the device each)
-  const DeformSettings &a = config_.settings, &b = o.config_.settings;
-  const bool mg = a.relax_method == "multigrid";
-  const bool elastic = (config_.relax && a.relax_method == "elastic") || (o.config_.relax && b.relax_method == "elastic");
-  return !elastic && config_.relax == o.config_.relax && config_.invert == o.config_.invert &&
-         config_.bone_threshold == o.config_.bone_threshold && a.relax_method == b.relax_method &&
-         (!mg || (a.relax_cycles == b.relax_cycles && a.relax_warm_cycles == b.relax_warm_cycles &&
-                  config_.relax_reuse == o.config_.relax_reuse && config_.skip_chainmail == o.config_.skip_chainmail)) &&
-         !(config_.relax && a.untangle) && !(o.config_.relax && b.untangle) &&
-         a.max_sweeps == b.max_sweeps && a.relax_iterations == b.relax_iterations && a.relax_step == b.relax_step &&
-         a.material_width == b.material_width && a.invert_iterations == b.invert_iterations &&
-         a.invert_search == b.invert_search &&
-         limits_.axial_lo == o.limits_.axial_lo && limits_.axial_hi == o.limits_.axial_hi &&
-         limits_.sheer == o.limits_.sheer;
-}
-
 bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& group) {
   const int n = int(group.size());
   if (n < 2 || n > kMaxBatch) return false;
@@ -601,7 +581,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   unsigned long long max_count = 0;
   for (DeformBackend* b : group) {
     auto* c = dynamic_cast<CudaDeformBackend*>(b);
-    if (!c || !batchable_with(*c)) return false;
+    if (!c || !deform_batchable(config_, c->config_)) return false;
     m.push_back(c);
     max_count = std::max<unsigned long long>(max_count, (unsigned long long)c->capacity_);
   }
@@ -612,7 +592,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   CudaBatch& bt = *batch_;
   bt.wait();  // the last use of the items is over
   const DeformSettings& s = config_.settings;
-  const bool mg = config_.relax && s.relax_method == "multigrid";
+  const bool mg = config_.relax && s.relax_method == RelaxMethod::kMultigrid;
   unsigned max_reset = 0, max_voi = 0;
   Vec3i most{0, 0, 0};  // the largest VOI size along each axis
   bool any_chainmail = false;
@@ -700,7 +680,7 @@ DeformStats CudaDeformBackend::end_batched_step() {
   DeformStats out = step_out_;
   InvertStats inv;
   read_counters(&out.chainmail, &inv, nullptr);
-  if (config_.relax && config_.settings.relax_method == "multigrid") take_multigrid_counts(out);
+  if (config_.relax && config_.settings.relax_method == RelaxMethod::kMultigrid) take_multigrid_counts(out);
   if (config_.invert) {
     out.invert_residual_vox = inv.max_residual_vox;
     out.invert_unresolved = inv.unresolved;

@@ -129,9 +129,6 @@ class CudaDeformBackend final : public DeformBackend {
   void finish(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt = nullptr);
   // read the counters the device wrote into host_counters_
   void read_counters(ChainMailStats* stats, InvertStats* inv, UntangleStats* unt);
-  // whether this backend's steps can share launches with `o`'s (same settings, explicit
-  // relaxation, no untangling)
-  bool batchable_with(const CudaDeformBackend& o) const;
   // begin_step_impl()'s part of the stats, before any stage
   void prepare_stats(const ChainMailStats& setup);
   // end_step_impl() of a step begun in a batch

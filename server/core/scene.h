@@ -46,11 +46,13 @@ enum class ForceModel {
   kElastic,  // the elastic model's reaction on the fingertip, from the deformation worker's local linear model
 };
 
-/// Force model parameters.
+/// Force model parameters. These defaults are the server's one source (a session slot
+/// starts with them); scene.proto's [default]s, which a scene without the field gets, must
+/// equal them (tests/unit/scene_io_test.cpp checks).
 struct HapticsSettings {
-  double stiffness_n_per_mm = 0.25;
+  double stiffness_n_per_mm = 0.25;      // N/mm
   double friction = 0.2;                 // 0 = none, towards 1 = proxy sticks
-  double max_force_n = 3.3;
+  double max_force_n = 3.3;              // N (a Phantom Omni / Touch's largest)
   double max_force_rate_n_per_s = 2000;
   double min_gradient_norm = 1e-4;       // |grad F| below this keeps the last direction
   SkinPointRule skin_point = SkinPointRule::kNormal;  // scene-wide (not a session parameter)
@@ -77,6 +79,20 @@ struct ElasticSettings {
   int contact_rounds = 4;          // contact set updates per step
 };
 
+/// How relaxation follows ChainMail (deform.relax_method; names in core/setting_names.h).
+enum class RelaxMethod {
+  kExplicit,   // the paper's: relax_iterations explicit diffusion steps
+  kMultigrid,  // relax_cycles multigrid-preconditioned steps towards the steady state
+  kElastic,    // static linear elasticity pressed by a fingertip sphere (ElasticSettings)
+};
+
+/// Which deformation backend a scene asks for (deform.backend; names in core/setting_names.h).
+enum class DeformBackendChoice {
+  kAuto,  // cuda where a device and a CUDA build exist, else cpu
+  kCpu,   // the CPU reference
+  kCuda,  // the CUDA backend, refused where it is unavailable
+};
+
 /// ChainMail, relaxation and inversion parameters (voxel edge lengths where noted).
 struct DeformSettings {
   double min_dist = 0.5;        // voxel
@@ -85,7 +101,7 @@ struct DeformSettings {
   int voi_edge = 64;            // voxel
   bool whole_volume = false;
   int max_sweeps = 2048;
-  std::string relax_method = "explicit";  // "explicit" (the paper's, relax_iterations), "multigrid" (steady state) or "elastic"
+  RelaxMethod relax_method = RelaxMethod::kExplicit;
   int relax_iterations = 20;    // explicit steps
   double relax_step = 0.15;     // explicit diffusion step, stable below 1/6
   int relax_cycles = 4;         // multigrid steps (one V-cycle each) from zero
@@ -96,8 +112,8 @@ struct DeformSettings {
   int invert_iterations = 8;
   bool untangle = false;        // untangle relaxation's folds before the inversion (server/deform/README.md)
   bool invert_search = false;   // search the cells where Newton stalls: every voxel resolved (server/deform/README.md)
-  std::string backend = "auto"; // "auto", "cpu" or "cuda"
-  ElasticSettings elastic;      // relax_method "elastic"
+  DeformBackendChoice backend = DeformBackendChoice::kAuto;
+  ElasticSettings elastic;      // RelaxMethod::kElastic
 };
 
 /// Effects a scene calls for; only these stages are built.

@@ -4,9 +4,11 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <tuple>
 #include <sstream>
 
 #include "core/error.h"
+#include "core/setting_names.h"
 #include "deform/cpu_backend.h"
 #include "deform/relax_multigrid.h"
 
@@ -125,14 +127,11 @@ void check_deform_config(const DeformConfig& config, const std::string& who) {
     bad("voi_edge", s.voi_edge, "must lie in [3, 1024] voxel");
   // the CUDA sweeps keep a flag above the sweep number in their stamps (bit 30)
   if (!(s.max_sweeps >= 1 && s.max_sweeps <= (1 << 24))) bad("max_sweeps", s.max_sweeps, "must lie in [1, 16777216]");
-  if (s.relax_method != "explicit" && s.relax_method != "multigrid" && s.relax_method != "elastic")
-    throw Error(who + ": deform.relax_method = \"" + s.relax_method +
-                "\" is unknown; use \"explicit\", \"multigrid\" or \"elastic\"");
   if (!(s.grab_radius_mm >= 0 && s.grab_radius_mm <= 20)) bad("grab_radius_mm", s.grab_radius_mm, "must lie in [0, 20] mm");
-  if (s.grab_radius_mm > 0 && s.relax_method == "explicit")
+  if (s.grab_radius_mm > 0 && s.relax_method == RelaxMethod::kExplicit)
     bad("grab_radius_mm", s.grab_radius_mm,
         "needs deform.relax_method \"multigrid\" or \"elastic\" (the explicit relaxation grabs one element)");
-  if (s.relax_method == "elastic") {
+  if (s.relax_method == RelaxMethod::kElastic) {
     if (!(s.grab_radius_mm > 0))
       bad("grab_radius_mm", s.grab_radius_mm, "must be above 0 with deform.relax_method \"elastic\" (the fingertip sphere's radius)");
     check_elastic_settings(s.elastic, who);
@@ -185,9 +184,43 @@ deform::ElasticParams DeformConfig::elastic_params() const {
   return p;
 }
 
+bool DeformBatchKey::operator==(const DeformBatchKey& o) const {
+  const auto& [a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16] = *this;
+  const auto& [b0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15, b16] = o;
+  return std::tie(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16) ==
+         std::tie(b0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15, b16);
+}
+
+std::optional<DeformBatchKey> deform_batch_key(const DeformConfig& config) {
+  // every member by name: the session's own ones are left out of the key below
+  [[maybe_unused]] const auto& [settings, bone_threshold, relax, invert, relax_reuse, skip_chainmail, voi_hold,
+                                elastic_stiffness] = config;
+  [[maybe_unused]] const auto& [min_dist, max_dist, max_sheer, voi_edge, whole_volume, max_sweeps, relax_method,
+                                relax_iterations, relax_step, relax_cycles, relax_warm_cycles, grab_radius_mm,
+                                material_width, invert_iterations, untangle, invert_search, backend, elastic] = settings;
+  // the session's own: its VOI (voi_edge, whole_volume, voi_hold), its multigrid fingertip
+  // (grab_radius_mm: multigrid sessions share the batch's other launches and its one wait,
+  // their solves one launch each), its backend; the elastic model (elastic,
+  // elastic_stiffness) steps alone, each solve one cooperative launch, as untangling does
+  if (relax && (relax_method == RelaxMethod::kElastic || untangle)) return std::nullopt;
+  const deform::ChainMailLimits limits = deform::chainmail_limits(min_dist, max_dist, max_sheer);
+  const bool mg = relax_method == RelaxMethod::kMultigrid;
+  // in DeformBatchKey's order
+  return DeformBatchKey{relax, invert, bone_threshold, relax_method, max_sweeps, relax_iterations, relax_step,
+                        material_width, invert_iterations, invert_search, limits.axial_lo, limits.axial_hi,
+                        limits.sheer, mg ? relax_cycles : 0, mg ? relax_warm_cycles : 0, mg && relax_reuse,
+                        mg && skip_chainmail};
+}
+
+bool deform_batchable(const DeformConfig& a, const DeformConfig& b) {
+  const std::optional<DeformBatchKey> ka = deform_batch_key(a), kb = deform_batch_key(b);
+  return ka && kb && *ka == *kb;
+}
+
 void DeformBackend::set_relax_counts(DeformStats& out) const {
-  const bool mg = config_.settings.relax_method == "multigrid";
-  out.relax_iterations = mg || config_.settings.relax_method == "elastic" ? 0 : config_.settings.relax_iterations;
+  const RelaxMethod method = config_.settings.relax_method;
+  const bool mg = method == RelaxMethod::kMultigrid;
+  out.relax_iterations = mg || method == RelaxMethod::kElastic ? 0 : config_.settings.relax_iterations;
   out.relax_cycles = mg ? config_.settings.relax_cycles : 0;
 }
 
@@ -217,7 +250,7 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
           "Patient::bone does not match the patient grid");
   check_deform_config(config, "deform backend \"" + name_ + "\"");
   // the elastic model also reads the body mask (skin and air) and the depth under the skin
-  if (config.relax && s.relax_method == "elastic") {
+  if (config.relax && s.relax_method == RelaxMethod::kElastic) {
     require(p.body.grid.same_geometry(p.grid) && p.body.data.size() == p.grid.count(),
             "deform.relax_method \"elastic\" needs Patient::body (the body mask) on the patient grid");
     require(p.dist_skin_mm.grid.same_geometry(p.grid) && p.dist_skin_mm.data.size() == p.grid.count(),
@@ -231,11 +264,12 @@ void DeformBackend::bind(PatientPtr patient, const DeformConfig& config) {
   // a multigrid relaxation that runs (and so overwrites every free element) may do without
   // ChainMail where nothing ChainMail moves is held
   held_blocks_.reset();
-  if (config.skip_chainmail && config.relax && s.relax_method == "multigrid" && s.relax_cycles > 0)
+  if (config.skip_chainmail && config.relax && s.relax_method == RelaxMethod::kMultigrid && s.relax_cycles > 0)
     held_blocks_ = deform::HeldBlocks::of(patient_, float(config.bone_threshold), float(s.material_width));
   voi_hold_ = config.voi_hold && config.relax && !s.whole_volume &&
-              ((config.relax_reuse && s.relax_method == "multigrid" && s.relax_cycles > 0) || s.relax_method == "elastic");
-  voi_margin_ = config.relax && s.relax_method == "elastic" ? deform::kElasticVoiMarginVox : 0;
+              ((config.relax_reuse && s.relax_method == RelaxMethod::kMultigrid && s.relax_cycles > 0) ||
+               s.relax_method == RelaxMethod::kElastic);
+  voi_margin_ = config.relax && s.relax_method == RelaxMethod::kElastic ? deform::kElasticVoiMarginVox : 0;
   hold_voi_ = Voi{};
   voi_ = Voi{};
   setup_ = ChainMailStats{};
@@ -303,7 +337,7 @@ ChainMailStats DeformBackend::setup_step(const DeformContact& c) {
   }
   // the elastic solve sets every element itself (ChainMail's field is not its input)
   st.skipped = (held_blocks_ && !st.grabbed_in_bone && !held_blocks_->any_in(st.voi)) ||
-               (config_.relax && config_.settings.relax_method == "elastic");
+               (config_.relax && config_.settings.relax_method == RelaxMethod::kElastic);
   return st;
 }
 
@@ -433,7 +467,7 @@ std::vector<std::exception_ptr> DeformBackend::begin_steps(const std::vector<Def
 }
 
 bool DeformConfig::primes() const {
-  return relax && relax_reuse && settings.relax_method == "multigrid" && settings.relax_cycles > 0 &&
+  return relax && relax_reuse && settings.relax_method == RelaxMethod::kMultigrid && settings.relax_cycles > 0 &&
          settings.relax_warm_cycles > 0;
 }
 
@@ -512,24 +546,32 @@ bool cuda_deform_available(std::string* why) {
 #endif
 }
 
-std::unique_ptr<DeformBackend> make_deform_backend(const std::string& name, std::string* note) {
-  if (name == "cpu") {
+std::unique_ptr<DeformBackend> make_deform_backend(DeformBackendChoice choice, std::string* note) {
+  if (choice == DeformBackendChoice::kCpu) {
     if (note) *note = "deform backend \"cpu\" (asked for by name)";
     return std::make_unique<CpuDeformBackend>();
   }
-  if (name == "cuda" || name == "auto") {
-    std::string why;
-    if (cuda_deform_available(&why)) {
+  const bool automatic = choice == DeformBackendChoice::kAuto;
+  std::string why;
+  if (cuda_deform_available(&why)) {
 #ifdef PALPSIM_HAVE_CUDA
-      if (note) *note = "deform backend \"cuda\" (" + std::string(name == "auto" ? "auto: " : "") + why + ")";
-      return cuda::make_cuda_deform_backend();
+    if (note) *note = "deform backend \"cuda\" (" + std::string(automatic ? "auto: " : "") + why + ")";
+    return cuda::make_cuda_deform_backend();
 #endif
-    }
-    if (name == "cuda") throw Error("deform backend \"cuda\" is unavailable: " + why + "; use \"cpu\" or \"auto\"");
-    if (note) *note = "deform backend \"cpu\" (auto: cuda unavailable: " + why + ")";
-    return std::make_unique<CpuDeformBackend>();
   }
-  throw Error("deform.backend = \"" + name + "\" is unknown; use \"auto\", \"cpu\" or \"cuda\"");
+  if (!automatic) throw Error("deform backend \"cuda\" is unavailable: " + why + "; use \"cpu\" or \"auto\"");
+  if (note) *note = "deform backend \"cpu\" (auto: cuda unavailable: " + why + ")";
+  return std::make_unique<CpuDeformBackend>();
+}
+
+DeformBackendChoice deform_backend_choice(const std::string& name) {
+  DeformBackendChoice choice{};
+  if (!parse_setting(name, &choice)) throw Error(unknown_setting_message<DeformBackendChoice>(name));
+  return choice;
+}
+
+std::unique_ptr<DeformBackend> make_deform_backend(const std::string& name, std::string* note) {
+  return make_deform_backend(deform_backend_choice(name), note);
 }
 
 }  // namespace palpsim

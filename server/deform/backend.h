@@ -7,6 +7,7 @@
 
 #include <exception>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -74,6 +75,43 @@ struct DeformConfig {
   /// (Patient::bone_threshold_hu), so that relaxation steps at the bone mask's own edge.
   static DeformConfig from_scene(const Scene& scene, const Patient* patient = nullptr);
 };
+
+/// The settings that sessions stepped together in one batch must share: the batched
+/// kernels take them once for all (cuda/, CudaDeformBackend::begin_batch_impl). Built by
+/// deform_batch_key() alone; operator== names every member, so that a member added here
+/// fails to compile until it is compared.
+struct DeformBatchKey {
+  bool relax = false;
+  bool invert = false;
+  double bone_threshold = 0;     // HU
+  RelaxMethod relax_method = RelaxMethod::kExplicit;
+  int max_sweeps = 0;
+  int relax_iterations = 0;
+  double relax_step = 0;
+  double material_width = 0;     // HU
+  int invert_iterations = 0;
+  bool invert_search = false;
+  float axial_lo = 0, axial_hi = 0, sheer = 0;  // ChainMail's limits (voxel; deform::chainmail_limits)
+  // multigrid's (0 and false with the other methods)
+  int relax_cycles = 0;
+  int relax_warm_cycles = 0;
+  bool relax_reuse = false;
+  bool skip_chainmail = false;
+
+  /// True when every member is equal.
+  bool operator==(const DeformBatchKey& o) const;
+  /// Not operator==.
+  bool operator!=(const DeformBatchKey& o) const { return !(*this == o); }
+};
+
+/// The batch key of a configuration, or nothing where its steps cannot share launches:
+/// the elastic model (one cooperative solve a session) and untangling (no batched kernel).
+/// Lists every DeformConfig and DeformSettings member, so that a new one fails to compile
+/// until it is put in the key or said to be the session's own.
+std::optional<DeformBatchKey> deform_batch_key(const DeformConfig& config);
+
+/// Whether sessions configured by `a` and `b` can be stepped in one batch (equal keys).
+bool deform_batchable(const DeformConfig& a, const DeformConfig& b);
 
 /// What ChainMail did in one step.
 struct ChainMailStats {
@@ -368,9 +406,17 @@ void check_deform_config(const DeformConfig& config, const std::string& who);
 /// (0, 0.5); throws palpsim::Error starting with `who` and naming the field.
 void check_elastic_settings(const ElasticSettings& elastic, const std::string& who);
 
-/// Makes a backend by name: "cpu", "cuda" or "auto" (cuda where a device and a CUDA
-/// build exist, else cpu). Unknown names and an unavailable "cuda" throw
-/// palpsim::Error saying why; `note`, when given, says what "auto" chose and why.
+/// Makes the backend a scene's deform.backend asks for: cpu, cuda, or auto (cuda where a
+/// device and a CUDA build exist, else cpu). An unavailable cuda throws palpsim::Error
+/// saying why; `note`, when given, says what was chosen and why.
+std::unique_ptr<DeformBackend> make_deform_backend(DeformBackendChoice choice, std::string* note = nullptr);
+
+/// The deform.backend a name spells ("auto", "cpu" or "cuda", core/setting_names.h), for
+/// benchmarks and tests that take a backend from the command line; an unknown name
+/// throws palpsim::Error listing the allowed ones.
+DeformBackendChoice deform_backend_choice(const std::string& name);
+
+/// make_deform_backend() by the setting's name (deform_backend_choice()).
 std::unique_ptr<DeformBackend> make_deform_backend(const std::string& name, std::string* note = nullptr);
 
 /// True when this build has the CUDA backend and a CUDA device can be used;

@@ -31,7 +31,7 @@ void CpuDeformBackend::bind_impl() {
   std::vector<std::uint8_t>().swap(s_.untangle_flags);
   s_.elastic = deform::ElasticCpu{};
   // explicit relaxation's buffers (untangling keeps the relaxed field in u_next too)
-  if (config_.relax && (config_.settings.relax_method == "explicit" || config_.settings.untangle)) grow_relax_buffers();
+  if (config_.relax && (config_.settings.relax_method == RelaxMethod::kExplicit || config_.settings.untangle)) grow_relax_buffers();
   if (config_.relax && config_.settings.untangle) grow_untangle_buffers();
   if (config_.invert) s_.j.assign(n, 0.0f);
   dirty_ = Voi{};
@@ -92,14 +92,14 @@ void CpuDeformBackend::chainmail_impl(ChainMailStats& st) {
 
 void CpuDeformBackend::relax_impl() {
   const DeformSettings& d = config_.settings;
-  if (d.relax_method == "elastic") {
+  if (d.relax_method == RelaxMethod::kElastic) {
     // its buffers grow on first use; it writes every element of the VOI
     elastic_run_ = deform::relax_elastic_cpu(*patient_, setup_.voi, setup_.skin_vox, setup_.tip_vox,
                                              config_.elastic_params(), s_.elastic, s_.u.data());
     s_.reach = -1;
     return;
   }
-  if (d.relax_method == "multigrid") {
+  if (d.relax_method == RelaxMethod::kMultigrid) {
     // its buffers grow on first use
     relax_run_ = deform::relax_multigrid_cpu(*patient_, setup_, d.relax_cycles, d.relax_warm_cycles,
                                              float(config_.bone_threshold), float(d.material_width),
@@ -126,7 +126,7 @@ InvertStats CpuDeformBackend::invert_impl() {
 
 DeformPrime CpuDeformBackend::prime_impl(const ChainMailStats& expected) {
   const DeformSettings& d = config_.settings;
-  if (d.relax_method != "multigrid") return DeformPrime{};
+  if (d.relax_method != RelaxMethod::kMultigrid) return DeformPrime{};
   const deform::MultigridRun r =
       deform::prime_multigrid_cpu(*patient_, expected.voi, expected.grabbed_vox, d.relax_cycles, d.relax_warm_cycles,
                                   float(config_.bone_threshold), float(d.material_width), finger_r2_, s_);
@@ -164,8 +164,8 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
     t0 = clock::now();
     relax_impl();
     set_relax_counts(out);
-    if (config_.settings.relax_method == "multigrid") set_multigrid_counts(out, relax_run_.solves, relax_run_.warm, relax_run_.warm_steps);
-    if (config_.settings.relax_method == "elastic") out.elastic = elastic_run_;
+    if (config_.settings.relax_method == RelaxMethod::kMultigrid) set_multigrid_counts(out, relax_run_.solves, relax_run_.warm, relax_run_.warm_steps);
+    if (config_.settings.relax_method == RelaxMethod::kElastic) out.elastic = elastic_run_;
     out.times.relax_ms = ms_since(t0);
     // untangling, with relaxation when the configuration asks for it
     if (config_.settings.untangle) {

@@ -321,7 +321,7 @@ bool DeformWorker::serve_deformation(int index) {
       s.resets_seen = slot.reset_requests.load(std::memory_order_acquire);
       s.pose_resets_seen = slot.pose_resets.load(std::memory_order_acquire);
       s.report.session_id = id;
-      s.report.elastic.built = config_.relax && config_.settings.relax_method == "elastic";
+      s.report.elastic.built = config_.relax && config_.settings.relax_method == RelaxMethod::kElastic;
     }
     if (had || id != 0) publish(s, index);
   }

@@ -11,6 +11,7 @@
 
 #include "core/error.h"
 #include "core/path_policy.h"
+#include "core/setting_names.h"
 #include "palpsim/options.pb.h"
 #include "palpsim/scene.pb.h"
 
@@ -42,6 +43,15 @@ std::string where(const std::string& origin, const TextFormat::ParseLocation& lo
   std::ostringstream s;
   s << (origin.empty() ? "<scene>" : origin) << ":" << (loc.line + 1) << ":" << (loc.column + 1);
   return s.str();
+}
+
+// the setting a scene names by one of its spellings (core/setting_names.h), or the one
+// line that refuses the name with the file and the allowed ones
+template <class E>
+E named_setting(const std::string& origin, const std::string& text) {
+  E value{};
+  if (!parse_setting(text, &value)) throw Error(origin + ": " + unknown_setting_message<E>(text));
+  return value;
 }
 
 std::string fmt(double v) {
@@ -179,18 +189,8 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.haptics.max_force_n = h.max_force_n();
   out.haptics.max_force_rate_n_per_s = h.max_force_rate_n_per_s();
   out.haptics.min_gradient_norm = h.min_gradient_norm();
-  if (h.skin_point() == "normal")
-    out.haptics.skin_point = SkinPointRule::kNormal;
-  else if (h.skin_point() == "line")
-    out.haptics.skin_point = SkinPointRule::kLine;
-  else
-    throw Error(origin + ": haptics.skin_point = \"" + h.skin_point() + "\"; allowed: \"normal\", \"line\"");
-  if (h.force_model() == "proxy")
-    out.haptics.force_model = ForceModel::kProxy;
-  else if (h.force_model() == "elastic")
-    out.haptics.force_model = ForceModel::kElastic;
-  else
-    throw Error(origin + ": haptics.force_model = \"" + h.force_model() + "\"; allowed: \"proxy\", \"elastic\"");
+  out.haptics.skin_point = named_setting<SkinPointRule>(origin, h.skin_point());
+  out.haptics.force_model = named_setting<ForceModel>(origin, h.force_model());
   out.haptics.elastic_max_jump_n = h.elastic_max_jump_n();
 
   const auto& d = s.deform();
@@ -210,11 +210,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.max_sweeps = d.max_sweeps();
   out.deform.relax_iterations = d.relax_iterations();
   out.deform.relax_step = d.relax_step();
-  out.deform.relax_method = d.relax_method();
-  if (out.deform.relax_method != "explicit" && out.deform.relax_method != "multigrid" &&
-      out.deform.relax_method != "elastic")
-    throw Error(origin + ": deform.relax_method = \"" + out.deform.relax_method +
-                "\"; allowed: \"explicit\", \"multigrid\", \"elastic\"");
+  out.deform.relax_method = named_setting<RelaxMethod>(origin, d.relax_method());
   out.deform.relax_cycles = d.relax_cycles();
   out.deform.relax_warm_cycles = d.relax_warm_cycles();
   out.deform.grab_radius_mm = d.grab_radius_mm();
@@ -222,7 +218,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.invert_iterations = d.invert_iterations();
   out.deform.untangle = d.untangle();
   out.deform.invert_search = d.invert_search();
-  out.deform.backend = d.backend();
+  out.deform.backend = named_setting<DeformBackendChoice>(origin, d.backend());
   // the elastic model's settings: the table as given (checked with the rest of deform by
   // check_deform_config, which names the field), the defaults where it is left out
   const auto& el = d.elastic();
@@ -236,8 +232,6 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.elastic.max_iterations = el.max_iterations();
   out.deform.elastic.tolerance = el.tolerance();
   out.deform.elastic.contact_rounds = el.contact_rounds();
-  if (out.deform.backend != "auto" && out.deform.backend != "cpu" && out.deform.backend != "cuda")
-    throw Error(origin + ": deform.backend = \"" + out.deform.backend + "\"; allowed: \"auto\", \"cpu\", \"cuda\"");
 
   const auto& e = s.effects();
   out.effects.haptics = e.haptics();
@@ -250,9 +244,9 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
     throw Error(origin + ": effects.relaxation and effects.inversion need effects.chainmail: true");
   // the elastic force is the elastic step's reaction: without that step there is none to render
   if (out.haptics.force_model == ForceModel::kElastic) {
-    if (out.deform.relax_method != "elastic")
+    if (out.deform.relax_method != RelaxMethod::kElastic)
       throw Error(origin + ": haptics.force_model = \"elastic\" needs deform.relax_method = \"elastic\" (got \"" +
-                  out.deform.relax_method + "\"): the force is the elastic step's reaction on the fingertip");
+                  d.relax_method() + "\"): the force is the elastic step's reaction on the fingertip");
     if (!out.effects.chainmail || !out.effects.relaxation)
       throw Error(origin +
                   ": haptics.force_model = \"elastic\" needs effects.chainmail: true and effects.relaxation: true "

@@ -1161,7 +1161,7 @@ class Server::Control {
       if (scene.effects.chainmail) {
         check_deform_config(DeformConfig::from_scene(scene), "LoadScene: " + what);
         std::string why;
-        if (scene.deform.backend == "cuda" && !cuda_deform_available(&why))
+        if (scene.deform.backend == DeformBackendChoice::kCuda && !cuda_deform_available(&why))
           throw Error("LoadScene: " + what + ": deform.backend = \"cuda\" is not available here: " + why);
       }
       spdlog::info("loading scene '{}' from {} (poses and control requests keep being served on the old one)",

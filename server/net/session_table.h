@@ -77,9 +77,11 @@ struct SessionSlot {
                                                 // (not Stats): the idle timeout's clock
   std::atomic<std::uint32_t> reset_requests{0}; // (control) grows by one per ResetSession
   std::atomic<std::uint32_t> pose_resets{0};    // (pose) grows by one per PoseRequest.reset_proxy, for the deformation worker
-  // haptics parameters (control), read by the pose thread at every pose
-  std::atomic<double> stiffness_n_per_mm{0.25}, friction{0.2}, max_force_n{3.3}, max_force_rate_n_per_s{2000},
-      min_gradient_norm{1e-4};
+  // haptics parameters (control), read by the pose thread at every pose; HapticsSettings'
+  // defaults (core/scene.h) until a session opens with the scene's
+  std::atomic<double> stiffness_n_per_mm{HapticsSettings{}.stiffness_n_per_mm}, friction{HapticsSettings{}.friction},
+      max_force_n{HapticsSettings{}.max_force_n}, max_force_rate_n_per_s{HapticsSettings{}.max_force_rate_n_per_s},
+      min_gradient_norm{HapticsSettings{}.min_gradient_norm};
   // statistics (pose)
   std::atomic<std::uint64_t> poses{0}, errors{0}, last_seq{0}, clamps{0};
   std::atomic<bool> contact{false};

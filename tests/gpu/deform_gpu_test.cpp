@@ -481,9 +481,9 @@ TEST_CASE("a whole gpu step equals the cpu step, and reset restores I") {
   auto torso = make_torso_patient(96);
   DeformConfig cfg = preset_config(2);
   cfg.settings.voi_edge = 64;
-  cfg.settings.backend = "cuda";
+  cfg.settings.backend = DeformBackendChoice::kCuda;
   DeformEngine g(torso, cfg);
-  cfg.settings.backend = "cpu";
+  cfg.settings.backend = DeformBackendChoice::kCpu;
   DeformEngine c(torso, cfg);
   CHECK(g.backend_name() == "cuda");
   for (int s = 0; s < 3; ++s) {
@@ -604,7 +604,7 @@ TEST_CASE("gpu multigrid relaxation matches the cpu on the phantom press and wit
     for (int steps : {1, 6, 20}) {
       DeformConfig cfg = preset_config(1);
       cfg.settings.voi_edge = 64;
-      cfg.settings.relax_method = "multigrid";
+      cfg.settings.relax_method = RelaxMethod::kMultigrid;
       cfg.settings.relax_cycles = steps;
       cfg.settings.grab_radius_mm = radius;
       Pair b(k.p, cfg);
@@ -793,7 +793,7 @@ TEST_CASE("steps of several sessions in flight at once, each with a share of the
   auto torso = make_torso_patient(96);
   DeformConfig cfg = preset_config(2);
   cfg.settings.voi_edge = 48;
-  cfg.settings.backend = "cuda";
+  cfg.settings.backend = DeformBackendChoice::kCuda;
   // four sessions pressing at different points, and one session stepping them in turn
   const std::vector<DeformContact> k = four_presses();
   DeformEngine alone(torso, cfg);
@@ -837,8 +837,8 @@ TEST_CASE("multigrid sessions share one solver scratch, in turns when in flight 
   auto torso = make_torso_patient(96);
   DeformConfig cfg = preset_config(2);
   cfg.settings.voi_edge = 48;
-  cfg.settings.backend = "cuda";
-  cfg.settings.relax_method = "multigrid";
+  cfg.settings.backend = DeformBackendChoice::kCuda;
+  cfg.settings.relax_method = RelaxMethod::kMultigrid;
   const std::vector<DeformContact> k = four_presses();
   std::vector<std::unique_ptr<DeformEngine>> sessions, twins;
   for (int s = 0; s < 4; ++s) {
@@ -886,7 +886,7 @@ TEST_CASE("a batch of sessions stepped by shared launches equals each session st
   for (int max_sweeps : {DeformSettings{}.max_sweeps, 7}) {
     DeformConfig cfg = preset_config(2);
     cfg.settings.voi_edge = 48;
-    cfg.settings.backend = "cuda";
+    cfg.settings.backend = DeformBackendChoice::kCuda;
     cfg.settings.max_sweeps = max_sweeps;
     DeformEngine alone(torso, cfg);
     std::vector<std::unique_ptr<DeformEngine>> sessions;
@@ -947,8 +947,8 @@ TEST_CASE("a batch of multigrid sessions equals each session stepping alone, bit
   pushes[7] = voxel_contact({6, 48, 48}, {5.0, 1.0, 0.0});
   DeformConfig cfg = preset_config(2);
   cfg.settings.voi_edge = 48;
-  cfg.settings.backend = "cuda";
-  cfg.settings.relax_method = "multigrid";
+  cfg.settings.backend = DeformBackendChoice::kCuda;
+  cfg.settings.relax_method = RelaxMethod::kMultigrid;
   cfg.settings.relax_warm_cycles = DeformSettings{}.relax_warm_cycles;
   // the grabbed element alone, a fingertip, and (-1) sessions alternating between the two
   // in one batch: each session's fingertip travels with its batch item
@@ -1008,7 +1008,7 @@ TEST_CASE("a batch of sessions with the inversion's cell search equals each sess
   const PatientPtr& phantom = sp.phantom;
   const Vec3 X0 = sp.X;
   DeformConfig cfg = sp.cfg;
-  cfg.settings.backend = "cuda";
+  cfg.settings.backend = DeformBackendChoice::kCuda;
   const int n = 16;
   std::vector<DeformContact> k;
   for (int s = 0; s < n; ++s) {
@@ -1067,7 +1067,7 @@ namespace {
 // and the unit press for the stiffness when asked
 DeformConfig elastic_config(int edge, double tolerance, bool stiffness) {
   DeformConfig cfg = preset_config(1);
-  cfg.settings.relax_method = "elastic";
+  cfg.settings.relax_method = RelaxMethod::kElastic;
   cfg.settings.grab_radius_mm = 5;
   cfg.settings.voi_edge = edge;
   cfg.settings.elastic.tolerance = tolerance;
@@ -1243,7 +1243,7 @@ TEST_CASE("gpu elastic steps equal the cpu's on the lumbar phantom as the scenes
   const Press press = spinous_press(ct.geometry);
   const PatientPtr phantom = elastic_phantom(std::move(ct));
   DeformConfig cfg = preset_config(1);
-  cfg.settings.relax_method = "elastic";
+  cfg.settings.relax_method = RelaxMethod::kElastic;
   cfg.settings.grab_radius_mm = 5;
   cfg.settings.voi_edge = 64;
   cfg.elastic_stiffness = true;
@@ -1268,7 +1268,7 @@ TEST_CASE("gpu elastic sessions side by side equal sessions alone; they step unb
   // the field bounds what such a change would leave after a solve to 1e-6
   auto slab = slab_patient();
   DeformConfig cfg = elastic_config(32, 1e-6, true);
-  cfg.settings.backend = "cuda";
+  cfg.settings.backend = DeformBackendChoice::kCuda;
   std::vector<DeformContact> k;
   for (const Vec3& at : {Vec3{24, 24, 0}, Vec3{36, 24, 0}, Vec3{24, 36, 0}, Vec3{36, 36, 0}}) {
     const Vec3 skin{at.x, at.y, kSlabSkinZ};

@@ -70,7 +70,7 @@ PatientPtr render_patient() {
 DeformConfig cuda_config(int voi_edge) {
   DeformConfig c = preset_config(1);
   c.settings.voi_edge = voi_edge;
-  c.settings.backend = "cuda";
+  c.settings.backend = DeformBackendChoice::kCuda;
   return c;
 }
 
@@ -331,7 +331,7 @@ TEST_CASE("copy_brick_to_device of a cuda step equals its host brick bit for bit
   CHECK_FALSE(eng.copy_brick_to_device(d));
   // the cpu backend keeps no J on a GPU
   DeformConfig cpu = cuda_config(64);
-  cpu.settings.backend = "cpu";
+  cpu.settings.backend = DeformBackendChoice::kCpu;
   DeformEngine c(patient, cpu);
   c.step(press(0));
   std::unique_ptr<DeviceBytes> none;

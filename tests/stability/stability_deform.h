@@ -104,7 +104,7 @@ inline DeformConfig config(int preset, int voi_edge, int relax_iterations = 20) 
 inline DeformConfig elastic_config(int voi_edge, double nu = 0.45, double radius_mm = 5) {
   DeformConfig c = preset_config(1);
   c.settings.voi_edge = voi_edge;
-  c.settings.relax_method = "elastic";
+  c.settings.relax_method = RelaxMethod::kElastic;
   c.settings.grab_radius_mm = radius_mm;
   c.settings.elastic.poisson = nu;
   c.relax = true;
@@ -306,7 +306,7 @@ class DeformRun {
   }
 
   /// Whether the configuration relaxes by the elastic model.
-  bool elastic() const { return cfg_.relax && cfg_.settings.relax_method == "elastic"; }
+  bool elastic() const { return cfg_.relax && cfg_.settings.relax_method == RelaxMethod::kElastic; }
 
   /// Runs contact `k` as one step of the elastic model and checks its invariants (see the
   /// file comment). Each backend is checked on its own: the CPU reference's agreement with
@@ -489,7 +489,7 @@ class DeformRun {
   }
 
   void relax_and_check(std::vector<Vec3f>& u, const ChainMailStats& cm, bool compare) {
-    if (cfg_.settings.relax_method == "multigrid") return multigrid_relax_and_check(u, cm, compare);
+    if (cfg_.settings.relax_method == RelaxMethod::kMultigrid) return multigrid_relax_and_check(u, cm, compare);
     const Voi& voi = cm.voi;
     const float before = max_abs_component(u);
     b_->relax();
@@ -1083,7 +1083,7 @@ inline void deform_shipped_multigrid(Case& c, int count, int compare_every) {
   auto p = make_torso_patient(48);
   DeformConfig cfg = config(1, 24, 0);
   cfg.relax = true;
-  cfg.settings.relax_method = "multigrid";
+  cfg.settings.relax_method = RelaxMethod::kMultigrid;
   cfg.settings.grab_radius_mm = 5;
   cfg.settings.invert_search = true;
   cfg.settings.untangle = false;

@@ -135,7 +135,7 @@ inline DeformConfig preset_config(int preset) {
   c.settings.min_dist = preset == 1 ? 0.5 : 0.25;
   c.settings.max_dist = 1.5;
   c.settings.max_sheer = preset == 1 ? 0.5 : 1.0;
-  c.settings.backend = "cpu";
+  c.settings.backend = DeformBackendChoice::kCpu;
   // the tests and the deform bench check the inversion that resolves every voxel (off in scenes)
   c.settings.invert_search = true;
   return c;
@@ -160,7 +160,7 @@ inline ReusePress reuse_press() {
   ReusePress r;
   r.cfg = preset_config(1);
   r.cfg.settings.voi_edge = 40;
-  r.cfg.settings.relax_method = "multigrid";
+  r.cfg.settings.relax_method = RelaxMethod::kMultigrid;
   r.cfg.settings.relax_warm_cycles = 0;  // a new VOI solves from zero, as the fresh solve it is compared with
   r.cfg.voi_hold = false;                // the VOI follows the tip every step (these tests move it)
   const Vec3i g{32, 10, 32};

@@ -15,10 +15,10 @@ namespace {
 Scene elastic_scene() {
   Scene s;
   s.name = "press_forces test";
-  s.deform.relax_method = "elastic";
+  s.deform.relax_method = RelaxMethod::kElastic;
   s.deform.grab_radius_mm = 5;
   s.deform.voi_edge = 32;
-  s.deform.backend = "cpu";
+  s.deform.backend = DeformBackendChoice::kCpu;
   s.effects.chainmail = true;
   s.effects.relaxation = true;
   return s;
@@ -60,7 +60,7 @@ TEST_CASE("press_forces gives eq. 2's force and the elastic model's as a server 
   CHECK(out.elastic_n == Vec3{0, 0, 0});
   // another relaxation has no elastic force
   Scene mg = scene;
-  mg.deform.relax_method = "multigrid";
+  mg.deform.relax_method = RelaxMethod::kMultigrid;
   try {
     bench::press_forces(p, mg, from, {12, 12, test::kSlabSkinZ - 2});
     FAIL("a multigrid scene was not refused");

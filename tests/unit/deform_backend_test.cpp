@@ -3,7 +3,9 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <functional>
 #include <limits>
+#include <vector>
 
 #include "core/error.h"
 #include "deform/cpu_backend.h"
@@ -26,7 +28,7 @@ std::string error_of(const std::function<void()>& f) {
 
 TEST_CASE("backends are chosen by name; an unavailable cuda says why") {
   CHECK(make_deform_backend("cpu")->name() == "cpu");
-  CHECK(error_of([] { make_deform_backend("gpu"); }).find("\"auto\", \"cpu\" or \"cuda\"") != std::string::npos);
+  CHECK(error_of([] { make_deform_backend("gpu"); }).find("\"auto\", \"cpu\", \"cuda\"") != std::string::npos);
   std::string why, note;
   const bool have_cuda = cuda_deform_available(&why);
   CHECK_FALSE(why.empty());
@@ -38,6 +40,88 @@ TEST_CASE("backends are chosen by name; an unavailable cuda says why") {
     CHECK(e.find("unavailable") != std::string::npos);
     CHECK(e.find(why) != std::string::npos);
   }
+}
+
+TEST_CASE("sessions are batched only when every setting the batched kernels share is equal") {
+  using Change = std::function<void(DeformConfig&)>;
+  struct Named {
+    const char* name;
+    Change change;
+  };
+  // each key member changed alone, from an explicit and from a multigrid configuration
+  const std::vector<Named> shared = {
+      {"relax", [](DeformConfig& c) { c.relax = !c.relax; }},
+      {"invert", [](DeformConfig& c) { c.invert = !c.invert; }},
+      {"bone_threshold", [](DeformConfig& c) { c.bone_threshold += 1; }},
+      {"relax_method", [](DeformConfig& c) {
+         c.settings.relax_method = c.settings.relax_method == RelaxMethod::kExplicit ? RelaxMethod::kMultigrid
+                                                                                      : RelaxMethod::kExplicit;
+       }},
+      {"max_sweeps", [](DeformConfig& c) { c.settings.max_sweeps += 1; }},
+      {"relax_iterations", [](DeformConfig& c) { c.settings.relax_iterations += 1; }},
+      {"relax_step", [](DeformConfig& c) { c.settings.relax_step *= 0.5; }},
+      {"material_width", [](DeformConfig& c) { c.settings.material_width += 1; }},
+      {"invert_iterations", [](DeformConfig& c) { c.settings.invert_iterations += 1; }},
+      {"invert_search", [](DeformConfig& c) { c.settings.invert_search = !c.settings.invert_search; }},
+      {"min_dist", [](DeformConfig& c) { c.settings.min_dist = 0.25; }},
+      {"max_dist", [](DeformConfig& c) { c.settings.max_dist = 2; }},
+      {"max_sheer", [](DeformConfig& c) { c.settings.max_sheer = 1; }},
+  };
+  // multigrid's: key members with multigrid only
+  const std::vector<Named> multigrid = {
+      {"relax_cycles", [](DeformConfig& c) { c.settings.relax_cycles += 1; }},
+      {"relax_warm_cycles", [](DeformConfig& c) { c.settings.relax_warm_cycles += 1; }},
+      {"relax_reuse", [](DeformConfig& c) { c.relax_reuse = !c.relax_reuse; }},
+      {"skip_chainmail", [](DeformConfig& c) { c.skip_chainmail = !c.skip_chainmail; }},
+  };
+  // the session's own
+  const std::vector<Named> own = {
+      {"voi_edge", [](DeformConfig& c) { c.settings.voi_edge = 48; }},
+      {"whole_volume", [](DeformConfig& c) { c.settings.whole_volume = true; }},
+      {"grab_radius_mm", [](DeformConfig& c) { c.settings.grab_radius_mm = 3; }},
+      {"backend", [](DeformConfig& c) { c.settings.backend = DeformBackendChoice::kAuto; }},
+      {"voi_hold", [](DeformConfig& c) { c.voi_hold = !c.voi_hold; }},
+      {"elastic_stiffness", [](DeformConfig& c) { c.elastic_stiffness = !c.elastic_stiffness; }},
+  };
+  DeformConfig ex = preset_config(1), mg = preset_config(1);
+  mg.settings.relax_method = RelaxMethod::kMultigrid;
+  for (const DeformConfig& base : {ex, mg}) {
+    const bool is_mg = base.settings.relax_method == RelaxMethod::kMultigrid;
+    INFO((is_mg ? "multigrid" : "explicit"));
+    CHECK(deform_batchable(base, base));
+    for (const Named& n : shared) {
+      INFO(n.name);
+      DeformConfig c = base;
+      n.change(c);
+      CHECK_FALSE(deform_batchable(base, c));
+      CHECK_FALSE(deform_batchable(c, base));
+    }
+    // multigrid's settings do not part explicit sessions
+    for (const Named& n : multigrid) {
+      INFO(n.name);
+      DeformConfig c = base;
+      n.change(c);
+      CHECK(deform_batchable(base, c) == !is_mg);
+    }
+    for (const Named& n : own) {
+      INFO(n.name);
+      DeformConfig c = base;
+      n.change(c);
+      CHECK(deform_batchable(base, c));
+    }
+  }
+  // the elastic model and untangling step alone, even beside their own kind
+  DeformConfig el = preset_config(1), un = preset_config(1);
+  el.settings.relax_method = RelaxMethod::kElastic;
+  un.settings.untangle = true;
+  CHECK_FALSE(deform_batch_key(el));
+  CHECK_FALSE(deform_batchable(un, un));
+  CHECK_FALSE(deform_batchable(ex, un));
+  // without relaxation neither matters
+  DeformConfig still = ex;
+  el.relax = un.relax = still.relax = false;
+  CHECK(deform_batchable(el, el));
+  CHECK(deform_batchable(un, still));
 }
 
 TEST_CASE("bad settings and contacts are refused with the field named") {

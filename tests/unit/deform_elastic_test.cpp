@@ -96,7 +96,7 @@ double hertz_n(double e_kpa, double nu, double r, double d) {
 // relaxation, inversion as given
 DeformConfig elastic_scene(int voi_edge, bool invert) {
   DeformConfig c;
-  c.settings.relax_method = "elastic";
+  c.settings.relax_method = RelaxMethod::kElastic;
   c.settings.grab_radius_mm = 5;
   c.settings.voi_edge = voi_edge;
   c.relax = true;
@@ -410,7 +410,7 @@ TEST_CASE("elastic steps through the backend: bone stays, warm steps are cheap, 
 
 TEST_CASE("elastic settings are refused with the field named", "[elastic]") {
   DeformConfig cfg;
-  cfg.settings.relax_method = "elastic";
+  cfg.settings.relax_method = RelaxMethod::kElastic;
   cfg.settings.grab_radius_mm = 5;
   CHECK_NOTHROW(check_deform_config(cfg, "test"));
   auto refused = [&](DeformConfig c, const std::string& field) {
@@ -475,7 +475,7 @@ TEST_CASE("the elastic model refuses a patient without a body mask or depth unde
   bare->dist_skin_mm = Volume<float>(bare->grid, 10.0f);
   CHECK_NOTHROW(b.bind(bare, cfg));
   // the other models do without them
-  cfg.settings.relax_method = "multigrid";
+  cfg.settings.relax_method = RelaxMethod::kMultigrid;
   auto plain = std::make_shared<Patient>(*bare);
   plain->body = Volume<std::uint8_t>();
   plain->dist_skin_mm = Volume<float>();

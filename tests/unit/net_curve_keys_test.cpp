@@ -159,6 +159,15 @@ TEST_CASE("refused handshakes: a line at once, then one summary per period at mo
   CHECK(log.flush(201.0, true).find("refused 1 more connection in") != std::string::npos);
 }
 
+TEST_CASE("a session slot's haptics parameters start as HapticsSettings' defaults", "[net]") {
+  const HapticsSettings p = net::SessionSlot{}.params(), d;
+  CHECK(p.stiffness_n_per_mm == d.stiffness_n_per_mm);
+  CHECK(p.friction == d.friction);
+  CHECK(p.max_force_n == d.max_force_n);
+  CHECK(p.max_force_rate_n_per_s == d.max_force_rate_n_per_s);
+  CHECK(p.min_gradient_norm == d.min_gradient_norm);
+}
+
 TEST_CASE("a session's key check: any sender without CURVE, only the opener's key with it", "[net][security]") {
   net::SessionSlot slot;
   const std::string a = net::make_curve_keypair().public_key, b = net::make_curve_keypair().public_key;

@@ -83,7 +83,7 @@ net::ServerOptions loopback() {
 Scene deform_scene() {
   Scene s = default_scene();
   s.effects.chainmail = s.effects.relaxation = s.effects.inversion = true;
-  s.deform.backend = "cpu";
+  s.deform.backend = DeformBackendChoice::kCpu;
   s.deform.voi_edge = 32;
   return s;
 }
@@ -572,7 +572,7 @@ TEST_CASE("a reloaded scene whose deformation cannot be served is refused and th
 
 TEST_CASE("with backend auto the worker prefers cuda where a GPU exists and says which it uses", "[net][deform]") {
   Scene scene = deform_scene();
-  scene.deform.backend = "auto";
+  scene.deform.backend = DeformBackendChoice::kAuto;
   std::string why;
   const bool cuda = cuda_deform_available(&why);
   std::printf("backend auto: %s (%s)\n", cuda ? "cuda" : "cpu", why.c_str());

@@ -75,7 +75,7 @@ Scene stream_scene(bool deform) {
   s.effects.frames = s.effects.bricks = true;
   if (deform) {
     s.effects.chainmail = s.effects.relaxation = s.effects.inversion = true;
-    s.deform.backend = "cpu";
+    s.deform.backend = DeformBackendChoice::kCpu;
     s.deform.voi_edge = 32;
   }
   s.render.width = 192;
@@ -115,7 +115,7 @@ TEST_CASE("a scene without frames and bricks builds no stream, no render thread 
           "[net][stream]") {
   Scene s = default_scene();
   s.effects.chainmail = true;
-  s.deform.backend = "cpu";
+  s.deform.backend = DeformBackendChoice::kCpu;
   s.deform.voi_edge = 32;
   net::Server server(s, test::slab_patient(), nullptr, loopback());
   server.start();

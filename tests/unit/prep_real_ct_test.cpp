@@ -119,9 +119,9 @@ TEST_CASE("abdomen CT: table outside C, bowel gas inside, spinous processes and 
   CHECK(p->body.data[pg.index(v.x, v.y + 1, v.z)] == 0);  // on the skin: air in front of it
   CHECK(std::abs(v.x - mi) + std::abs(v.y - skin_j) + std::abs(v.z - mk) <= 2);
   DeformConfig cfg;
-  cfg.settings.backend = "cpu";
+  cfg.settings.backend = DeformBackendChoice::kCpu;
   cfg.settings.voi_edge = 64;
-  cfg.settings.relax_method = "multigrid";
+  cfg.settings.relax_method = RelaxMethod::kMultigrid;
   cfg.settings.grab_radius_mm = 5;
   cfg.bone_threshold = p->bone_threshold_hu;
   cfg.invert = false;

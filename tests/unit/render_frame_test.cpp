@@ -119,7 +119,7 @@ DeformContact l3_press(const Patient& p, double depth_mm) {
 // the CPU deformation with a VOI of 32 voxels (64 mm on the 2 mm phantom)
 DeformConfig cpu_voi32() {
   DeformConfig dc;
-  dc.settings.backend = "cpu";
+  dc.settings.backend = DeformBackendChoice::kCpu;
   dc.settings.voi_edge = 32;
   return dc;
 }
@@ -710,7 +710,7 @@ TEST_CASE("snapshot PNGs of the 1 mm phantom", "[.snapshot]") {
   }
   // a 10 mm press over L3 with the CPU deformation (VOI 64), skin and bone
   DeformConfig dc;
-  dc.settings.backend = "cpu";
+  dc.settings.backend = DeformBackendChoice::kCpu;
   DeformEngine engine(p, dc);
   const DeformContact press = l3_press(*p, 10);
   engine.step(press);

@@ -7,6 +7,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <tuple>
 
 #include "core/error.h"
 #include "deform/backend.h"
@@ -126,10 +127,45 @@ TEST_CASE("deform.relax_method and relax_cycles are read, checked and default as
   CHECK(d.deform.relax_method == DeformSettings{}.relax_method);
   CHECK(d.deform.relax_cycles == DeformSettings{}.relax_cycles);
   const Scene s = parse_scene_text("phantom {} deform { relax_method: \"multigrid\" relax_cycles: 7 }", "x.textproto");
-  CHECK(s.deform.relax_method == "multigrid");
+  CHECK(s.deform.relax_method == RelaxMethod::kMultigrid);
   CHECK(s.deform.relax_cycles == 7);
   CHECK(error_of("phantom {} deform { relax_method: \"sor\" }").find("deform.relax_method") != std::string::npos);
   CHECK(error_of("phantom {} deform { relax_cycles: 101 }").find("deform.relax_cycles") != std::string::npos);
+}
+
+TEST_CASE("each named setting is read by its spelling and a misspelt one is refused in one line listing the allowed") {
+  const Scene s = parse_scene_text(
+      "phantom {} deform { relax_method: \"elastic\" grab_radius_mm: 5 backend: \"cpu\" } "
+      "haptics { force_model: \"elastic\" skin_point: \"line\" } effects { chainmail: true relaxation: true }",
+      "x.textproto");
+  CHECK(s.deform.relax_method == RelaxMethod::kElastic);
+  CHECK(s.deform.backend == DeformBackendChoice::kCpu);
+  CHECK(s.haptics.force_model == ForceModel::kElastic);
+  CHECK(s.haptics.skin_point == SkinPointRule::kLine);
+  CHECK(parse_scene_text("phantom {} deform { relax_method: \"explicit\" backend: \"cuda\" }", "x.textproto")
+            .deform.backend == DeformBackendChoice::kCuda);
+  CHECK(DeformSettings{}.relax_method == RelaxMethod::kExplicit);
+  CHECK(DeformSettings{}.backend == DeformBackendChoice::kAuto);
+  CHECK(error_of("phantom {} deform { relax_method: \"multigird\" }") ==
+        "test.textproto: deform.relax_method = \"multigird\"; allowed: \"explicit\", \"multigrid\", \"elastic\"");
+  CHECK(error_of("phantom {} deform { backend: \"gpu\" }") ==
+        "test.textproto: deform.backend = \"gpu\"; allowed: \"auto\", \"cpu\", \"cuda\"");
+  CHECK(error_of("phantom {} haptics { force_model: \"spring\" }") ==
+        "test.textproto: haptics.force_model = \"spring\"; allowed: \"proxy\", \"elastic\"");
+  // the same names outside a scene (a benchmark's --backend), refused the same way
+  CHECK(deform_backend_choice("cuda") == DeformBackendChoice::kCuda);
+  CHECK_THROWS_WITH(deform_backend_choice("Cuda"), "deform.backend = \"Cuda\"; allowed: \"auto\", \"cpu\", \"cuda\"");
+}
+
+TEST_CASE("a scene without a haptics block has HapticsSettings' defaults (the schema's equal core/scene.h's)") {
+  const HapticsSettings h = parse_scene_text("phantom {}", "x.textproto").haptics, d;
+  const auto fields = [](const HapticsSettings& s) {
+    return std::tie(s.stiffness_n_per_mm, s.friction, s.max_force_n, s.max_force_rate_n_per_s, s.min_gradient_norm,
+                    s.skin_point, s.force_model, s.elastic_max_jump_n);
+  };
+  CHECK(fields(h) == fields(d));
+  CHECK(d.stiffness_n_per_mm == 0.25);  // the documented defaults (README, scene.proto)
+  CHECK(d.max_force_n == 3.3);
 }
 
 TEST_CASE("haptics.skin_point is read, checked and defaults as HapticsSettings does") {

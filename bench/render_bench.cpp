@@ -31,6 +31,7 @@
 #include "bench/registry.h"
 #include "bench/stats.h"
 #include "core/error.h"
+#include "core/setting_names.h"
 #include "core/thread.h"
 #include "deform/engine.h"
 #include "net/scene_io.h"
@@ -129,17 +130,18 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
   std::unique_ptr<DeviceBytes> device_j;
 
   // every writer and encoder this build and context can use
-  std::vector<std::string> writers{"upload"}, encoders{"cpu"};
+  std::vector<OverlayWriterChoice> writers{OverlayWriterChoice::kUpload};
+  std::vector<JpegEncoderChoice> encoders{JpegEncoderChoice::kCpu};
   std::string note;
   try {
-    render::make_overlay_writer("cuda-gl", *ctx, &note);
-    writers.push_back("cuda-gl");
+    render::make_overlay_writer(OverlayWriterChoice::kCudaGl, *ctx, &note);
+    writers.push_back(OverlayWriterChoice::kCudaGl);
   } catch (const std::exception& e) {
     std::printf("overlay writer cuda-gl: not here (%s)\n", e.what());
   }
   try {
-    render::make_frame_encoder("nvjpeg", *ctx, &note);
-    encoders.push_back("nvjpeg");
+    render::make_frame_encoder(JpegEncoderChoice::kNvjpeg, *ctx, &note);
+    encoders.push_back(JpegEncoderChoice::kNvjpeg);
   } catch (const std::exception& e) {
     std::printf("jpeg encoder nvjpeg: not here (%s)\n", e.what());
   }
@@ -150,10 +152,10 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
   std::vector<StageRow> rows;
   // one configuration: `frames` frames after `warmup`, the deformation stepping between them
   auto measure = [&](render::FrameRenderer& renderer, render::FrameRenderer::OverlayId overlay, int w, int h,
-                     const std::string& wname, const std::string& ename, render::Preset preset,
+                     OverlayWriterChoice wchoice, JpegEncoderChoice echoice, render::Preset preset,
                      const std::string& label) {
-        auto writer = render::make_overlay_writer(wname, *ctx);
-        auto encoder = render::make_frame_encoder(ename, *ctx);
+        auto writer = render::make_overlay_writer(wchoice, *ctx);
+        auto encoder = render::make_frame_encoder(echoice, *ctx);
         render::ViewSettings view;
         view.width = w;
         view.height = h;
@@ -172,7 +174,7 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
           render::OverlaySource src;
           src.voi = engine.voi();
           src.host_j = engine.deformed_brick();
-          if (wname == "cuda-gl" && engine.copy_brick_to_device(device_j)) src.device_j = device_j.get();
+          if (wchoice == OverlayWriterChoice::kCudaGl && engine.copy_brick_to_device(device_j)) src.device_j = device_j.get();
           render::FrameMarks marks;
           marks.has_tip = true;
           marks.tip_mm = c.tip_mm;
@@ -199,9 +201,9 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
         StageRow r;
         r.width = w;
         r.height = h;
-        r.writer = wname;
+        r.writer = setting_name(wchoice);
         r.encoder = encoder->name();
-        r.preset = render::preset_name(view.preset);
+        r.preset = setting_name(view.preset);
         r.frames = frames;
         r.j_to_texture = spread(jt);
         r.raycast = spread(rc);
@@ -216,7 +218,7 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
         std::printf(
             "%4dx%-4d %-7s %-9s %-11s %-22s J->tex %6.3f  raycast %7.3f  slices %6.3f  composite %6.3f  readback %6.3f"
             "  encode %6.3f | render+encode %7.3f ms (p90 %7.3f)  %zu KB\n",
-            w, h, wname.c_str(), r.encoder.c_str(), r.preset.c_str(), label.c_str(), r.j_to_texture.median,
+            w, h, r.writer.c_str(), r.encoder.c_str(), r.preset.c_str(), label.c_str(), r.j_to_texture.median,
             r.raycast.median, r.slices.median, r.composite.median, r.readback.median, r.encode.median,
             r.render_encode.median, r.render_encode.p90, bytes / 1024);
         rows.push_back(r);
@@ -225,9 +227,9 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
   render::FrameRenderer renderer(patient, quality_of(scene));
   const auto overlay = renderer.add_overlay(voi);
   for (const auto& [w, h] : o.sizes)
-    for (const std::string& wname : writers)
-      for (const std::string& ename : encoders)
-        measure(renderer, overlay, w, h, wname, ename, render::Preset::Bone, "scene quality");
+    for (const OverlayWriterChoice wchoice : writers)
+      for (const JpegEncoderChoice echoice : encoders)
+        measure(renderer, overlay, w, h, wchoice, echoice, render::Preset::kBone, "scene quality");
   renderer.remove_overlay(overlay);
   // what the ray step and the CT texture's precision cost, per preset, at the first size
   // with the fastest writer and encoder here
@@ -241,7 +243,7 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
         const auto ov = r.add_overlay(voi);
         char label[64];
         std::snprintf(label, sizeof label, "step %.1f vox, CT %s", step, half ? "fp16" : "fp32");
-        for (render::Preset pr : {render::Preset::Bone, render::Preset::Skin, render::Preset::SoftTissue})
+        for (render::Preset pr : {render::Preset::kBone, render::Preset::kSkin, render::Preset::kSoftTissue})
           measure(r, ov, o.sizes.front().first, o.sizes.front().second, writers.back(), encoders.back(), pr, label);
         r.remove_overlay(ov);
       }
@@ -360,8 +362,8 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
   scene.deform.voi_edge = 64;
   scene.render.max_fps = 30;
   scene.server.max_sessions = 64;
-  if (!o.writer.empty()) scene.render.overlay_writer = o.writer;
-  if (!o.encoder.empty()) scene.render.jpeg_encoder = o.encoder;
+  if (!o.writer.empty()) scene.render.overlay_writer = setting_by_name<OverlayWriterChoice>(o.writer);
+  if (!o.encoder.empty()) scene.render.jpeg_encoder = setting_by_name<JpegEncoderChoice>(o.encoder);
   net::ServerOptions so;
   so.control_bind = "tcp://127.0.0.1:*";
   so.pose_bind = "tcp://127.0.0.1:*";

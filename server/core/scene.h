@@ -132,12 +132,35 @@ struct ServerSettings {
   int max_sessions = 64;
 };
 
+/// The 3D view's transfer-function preset, and the slices' window (render.preset, a
+/// viewer's ViewSettings.preset; names in core/setting_names.h).
+enum class RenderPreset {
+  kSkin,        // the skin surface, opaque, skin-coloured, with gradient shading
+  kBone,        // bone opaque and ivory, soft tissue faint; slices in a bone window
+  kSoftTissue,  // muscle and organs translucent in a soft-tissue window, fat faint, bone white
+};
+
+/// Which JPEG encoder the render thread uses (render.jpeg_encoder; names in core/setting_names.h).
+enum class JpegEncoderChoice {
+  kAuto,    // nvjpeg where it can be used, else cpu
+  kCpu,     // libjpeg-turbo
+  kNvjpeg,  // nvJPEG through CUDA-GL interop, refused where it is unavailable
+};
+
+/// How the render thread writes J into the overlay textures (render.overlay_writer; names
+/// in core/setting_names.h).
+enum class OverlayWriterChoice {
+  kAuto,    // cuda-gl where it can be used, else upload
+  kUpload,  // a glTexSubImage3D upload from the host
+  kCudaGl,  // CUDA-GL interop from the device copy, refused where it is unavailable
+};
+
 /// Frames and bricks (Render in the schema): every session's default view, the frame
 /// rate and the encoders. View fields mirror render::ViewSettings (server/render/view.h).
 struct RenderSettings {
   int width = 1280;                     // pixels
   int height = 720;                     // pixels
-  std::string preset = "bone";          // "skin", "bone" or "soft_tissue"
+  RenderPreset preset = RenderPreset::kBone;
   double azimuth_deg = 35;
   double elevation_deg = 25;
   double zoom = 1;
@@ -145,8 +168,8 @@ struct RenderSettings {
   double slice_fov_mm = 120;
   bool show_proxy = false;
   double max_fps = 30;                  // frames per second per session, at most
-  std::string jpeg_encoder = "auto";    // "auto", "cpu" or "nvjpeg"
-  std::string overlay_writer = "auto";  // "auto", "upload" or "cuda-gl"
+  JpegEncoderChoice jpeg_encoder = JpegEncoderChoice::kAuto;
+  OverlayWriterChoice overlay_writer = OverlayWriterChoice::kAuto;
   std::string record_dir;               // resolved; "" = render only watched sessions
   double ray_step_vox = 1;              // the 3D view's ray step (voxel)
   int max_batch = 2;                    // frames drawn, then encoded together (render thread)

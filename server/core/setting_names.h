@@ -1,11 +1,13 @@
 // The scene's spellings of the settings that take one of a few names (deform.relax_method,
-// deform.backend, haptics.skin_point, haptics.force_model): one table per setting, the
-// only place those names are listed, so that the parser, its messages and the code that
-// needs a name (make_deform_backend by name) agree.
+// deform.backend, haptics.skin_point, haptics.force_model, render.preset,
+// render.jpeg_encoder, render.overlay_writer): one table per setting, the only place those
+// names are listed, so that the parser, its messages and the code that needs a name
+// (make_deform_backend by name, the wire's ViewSettings.preset) agree.
 #pragma once
 
 #include <string>
 
+#include "core/error.h"
 #include "core/scene.h"
 
 namespace palpsim {
@@ -49,6 +51,28 @@ struct SettingNames<ForceModel> {
   static constexpr SettingName<ForceModel> values[] = {{ForceModel::kProxy, "proxy"}, {ForceModel::kElastic, "elastic"}};
 };
 
+template <>
+struct SettingNames<RenderPreset> {
+  static constexpr const char* field = "render.preset";
+  static constexpr SettingName<RenderPreset> values[] = {
+      {RenderPreset::kSkin, "skin"}, {RenderPreset::kBone, "bone"}, {RenderPreset::kSoftTissue, "soft_tissue"}};
+};
+
+template <>
+struct SettingNames<JpegEncoderChoice> {
+  static constexpr const char* field = "render.jpeg_encoder";
+  static constexpr SettingName<JpegEncoderChoice> values[] = {
+      {JpegEncoderChoice::kAuto, "auto"}, {JpegEncoderChoice::kCpu, "cpu"}, {JpegEncoderChoice::kNvjpeg, "nvjpeg"}};
+};
+
+template <>
+struct SettingNames<OverlayWriterChoice> {
+  static constexpr const char* field = "render.overlay_writer";
+  static constexpr SettingName<OverlayWriterChoice> values[] = {{OverlayWriterChoice::kAuto, "auto"},
+                                                                {OverlayWriterChoice::kUpload, "upload"},
+                                                                {OverlayWriterChoice::kCudaGl, "cuda-gl"}};
+};
+
 /// The scene's spelling of `v` ("" for a value outside the table, which a cast can make).
 template <class E>
 const char* setting_name(E v) {
@@ -68,6 +92,14 @@ bool parse_setting(const std::string& text, E* out) {
   return false;
 }
 
+/// The setting's names in table order, for messages outside a scene ("skin, bone, soft_tissue").
+template <class E>
+std::string setting_names_listed() {
+  std::string m;
+  for (const auto& n : SettingNames<E>::values) m += (m.empty() ? "" : ", ") + std::string(n.name);
+  return m;
+}
+
 /// The one line that refuses a name the setting does not have, e.g.
 /// `deform.relax_method = "multigird"; allowed: "explicit", "multigrid", "elastic"`.
 template <class E>
@@ -79,6 +111,15 @@ std::string unknown_setting_message(const std::string& text) {
     first = false;
   }
   return m;
+}
+
+/// The value `text` names, for names outside a scene (a benchmark's command line); an
+/// unknown name throws palpsim::Error with unknown_setting_message().
+template <class E>
+E setting_by_name(const std::string& text) {
+  E value{};
+  if (!parse_setting(text, &value)) throw Error(unknown_setting_message<E>(text));
+  return value;
 }
 
 }  // namespace palpsim

@@ -565,9 +565,7 @@ std::unique_ptr<DeformBackend> make_deform_backend(DeformBackendChoice choice, s
 }
 
 DeformBackendChoice deform_backend_choice(const std::string& name) {
-  DeformBackendChoice choice{};
-  if (!parse_setting(name, &choice)) throw Error(unknown_setting_message<DeformBackendChoice>(name));
-  return choice;
+  return setting_by_name<DeformBackendChoice>(name);
 }
 
 std::unique_ptr<DeformBackend> make_deform_backend(const std::string& name, std::string* note) {

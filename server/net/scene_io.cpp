@@ -257,13 +257,10 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.server.max_sessions = s.server().max_sessions();
 
   // frames and bricks: names checked here so a bad scene is refused with its file
-  // (the preset names are render::preset_names(), server/render/view.h)
   const auto& r = s.render();
   out.render.width = r.width();
   out.render.height = r.height();
-  out.render.preset = r.preset();
-  if (out.render.preset != "skin" && out.render.preset != "bone" && out.render.preset != "soft_tissue")
-    throw Error(origin + ": render.preset = \"" + out.render.preset + "\"; allowed: \"skin\", \"bone\", \"soft_tissue\"");
+  out.render.preset = named_setting<RenderPreset>(origin, r.preset());
   out.render.azimuth_deg = r.azimuth_deg();
   out.render.elevation_deg = r.elevation_deg();
   out.render.zoom = r.zoom();
@@ -273,15 +270,8 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.render.max_fps = r.max_fps();
   out.render.ray_step_vox = r.ray_step_vox();
   out.render.max_batch = r.max_batch();
-  out.render.jpeg_encoder = r.jpeg_encoder();
-  if (out.render.jpeg_encoder != "auto" && out.render.jpeg_encoder != "cpu" && out.render.jpeg_encoder != "nvjpeg")
-    throw Error(origin + ": render.jpeg_encoder = \"" + out.render.jpeg_encoder +
-                "\"; allowed: \"auto\", \"cpu\", \"nvjpeg\"");
-  out.render.overlay_writer = r.overlay_writer();
-  if (out.render.overlay_writer != "auto" && out.render.overlay_writer != "upload" &&
-      out.render.overlay_writer != "cuda-gl")
-    throw Error(origin + ": render.overlay_writer = \"" + out.render.overlay_writer +
-                "\"; allowed: \"auto\", \"upload\", \"cuda-gl\"");
+  out.render.jpeg_encoder = named_setting<JpegEncoderChoice>(origin, r.jpeg_encoder());
+  out.render.overlay_writer = named_setting<OverlayWriterChoice>(origin, r.overlay_writer());
   if (!r.record_dir().empty()) {
     const fs::path dir(r.record_dir());
     const fs::path base = origin.empty() ? fs::current_path() : fs::absolute(origin).parent_path();

@@ -15,6 +15,7 @@
 
 #include "core/error.h"
 #include "core/path_policy.h"
+#include "core/setting_names.h"
 #include "core/thread.h"
 #include "deform/backend.h"
 #include "net/client_text.h"
@@ -76,8 +77,8 @@ std::vector<std::string> stages_of(const Scene& s, const DeformServerReport* d, 
 std::string apply_view(const v1::ViewSettings& in, render::ViewSettings& v) {
   if (in.has_width()) v.width = int(std::min<std::uint32_t>(in.width(), 1u << 30));
   if (in.has_height()) v.height = int(std::min<std::uint32_t>(in.height(), 1u << 30));
-  if (in.has_preset() && !render::parse_preset(in.preset(), &v.preset))
-    return "preset '" + client_text(in.preset()) + "' is not one of " + render::preset_names();
+  if (in.has_preset() && !parse_setting(in.preset(), &v.preset))
+    return "preset '" + client_text(in.preset()) + "' is not one of " + setting_names_listed<render::Preset>();
   if (in.has_azimuth_deg()) v.azimuth_deg = in.azimuth_deg();
   if (in.has_elevation_deg()) v.elevation_deg = in.elevation_deg();
   if (in.has_zoom()) v.zoom = in.zoom();

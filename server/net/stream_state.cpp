@@ -20,7 +20,7 @@ render::ViewSettings default_view(const RenderSettings& r) {
   render::ViewSettings v;
   v.width = r.width;
   v.height = r.height;
-  render::parse_preset(r.preset, &v.preset);  // the scene loader checked the name
+  v.preset = r.preset;
   v.azimuth_deg = r.azimuth_deg;
   v.elevation_deg = r.elevation_deg;
   v.zoom = r.zoom;

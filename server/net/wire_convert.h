@@ -2,6 +2,7 @@
 // view settings, shared by the control thread, the pose thread and the stream publisher.
 #pragma once
 
+#include "core/setting_names.h"
 #include "core/vec3.h"
 #include "palpsim/wire.pb.h"
 #include "render/frame_renderer.h"
@@ -20,7 +21,7 @@ inline void set_vec(::palpsim::v1::Vec3* out, const Vec3& v) {
 inline void fill_view(::palpsim::v1::ViewSettings* o, const render::ViewSettings& v) {
   o->set_width(v.width);
   o->set_height(v.height);
-  o->set_preset(render::preset_name(v.preset));
+  o->set_preset(setting_name(v.preset));
   o->set_azimuth_deg(v.azimuth_deg);
   o->set_elevation_deg(v.elevation_deg);
   o->set_zoom(v.zoom);

@@ -89,13 +89,14 @@ class TurboJpegEncoder final : public FrameEncoder {
 
 }  // namespace
 
-std::unique_ptr<FrameEncoder> make_frame_encoder(const std::string& name, const EglContext& ctx, std::string* note) {
-  BackendChoice<FrameEncoder> c{"jpeg encoder", "cpu", "turbojpeg", "nvjpeg", "turbojpeg", nullptr,
-                                [] { return std::make_unique<TurboJpegEncoder>(); }};
+std::unique_ptr<FrameEncoder> make_frame_encoder(JpegEncoderChoice choice, const EglContext& ctx, std::string* note) {
+  BackendChoice<FrameEncoder, JpegEncoderChoice> c{"jpeg encoder", JpegEncoderChoice::kCpu, JpegEncoderChoice::kNvjpeg,
+                                                   "turbojpeg", nullptr,
+                                                   [] { return std::make_unique<TurboJpegEncoder>(); }};
 #ifdef PALPSIM_HAVE_CUDA
   c.make_gpu = [] { return cuda::make_nvjpeg_frame_encoder(); };
 #endif
-  return choose_backend(c, name, ctx, note);
+  return choose_backend(c, choice, ctx, note);
 }
 
 void encode_jpeg_rgb(const std::uint8_t* rgb, int width, int height, int quality, std::vector<std::uint8_t>& out) {

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "core/scene.h"
 #include "render/egl_context.h"
 #include "render/frame_renderer.h"
 
@@ -44,11 +45,11 @@ class FrameEncoder {
   }
 };
 
-/// Makes an encoder by name: "cpu" (libjpeg-turbo), "nvjpeg" (this build has CUDA and
-/// the context is on an NVIDIA GPU) or "auto" (nvjpeg where it can be used, else cpu).
-/// Throws palpsim::Error for an unknown name or an unusable "nvjpeg"; `note`, when
-/// given, says what was chosen and why.
-std::unique_ptr<FrameEncoder> make_frame_encoder(const std::string& name, const EglContext& ctx,
+/// Makes the encoder render.jpeg_encoder asks for: cpu (libjpeg-turbo), nvjpeg (this
+/// build has CUDA and the context is on an NVIDIA GPU) or auto (nvjpeg where it can be
+/// used, else cpu). Throws palpsim::Error for an unusable nvjpeg; `note`, when given,
+/// says what was chosen and why.
+std::unique_ptr<FrameEncoder> make_frame_encoder(JpegEncoderChoice choice, const EglContext& ctx,
                                                  std::string* note = nullptr);
 
 /// Encodes an RGB8 image (rows top-down) with libjpeg-turbo at `quality` (1..100).

@@ -433,7 +433,7 @@ void FrameRenderer::Impl::upload_volumes() {
   body_center_mm = g.to_physical((Vec3(lo) + Vec3(hi)) * 0.5);
   // the pre-integrated transfer functions, for steps of ray_step_vox voxels (mean voxel edge)
   const double voxel_mm = std::cbrt(g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z);
-  for (Preset pr : {Preset::Skin, Preset::Bone, Preset::SoftTissue}) {
+  for (Preset pr : {Preset::kSkin, Preset::kBone, Preset::kSoftTissue}) {
     const std::vector<float> table = preintegrate(make_transfer_function(pr), quality.ray_step_vox * voxel_mm);
     GLuint& t = tf_tex[int(pr)];
     glCreateTextures(GL_TEXTURE_2D, 1, &t);

@@ -34,13 +34,15 @@ class UploadWriter final : public OverlayWriter {
 
 }  // namespace
 
-std::unique_ptr<OverlayWriter> make_overlay_writer(const std::string& name, const EglContext& ctx, std::string* note) {
-  BackendChoice<OverlayWriter> c{"overlay writer", "upload", "", "cuda-gl", "upload", nullptr,
-                                 [] { return std::make_unique<UploadWriter>(); }};
+std::unique_ptr<OverlayWriter> make_overlay_writer(OverlayWriterChoice choice, const EglContext& ctx,
+                                                   std::string* note) {
+  BackendChoice<OverlayWriter, OverlayWriterChoice> c{"overlay writer", OverlayWriterChoice::kUpload,
+                                                      OverlayWriterChoice::kCudaGl, "upload", nullptr,
+                                                      [] { return std::make_unique<UploadWriter>(); }};
 #ifdef PALPSIM_HAVE_CUDA
   c.make_gpu = [] { return cuda::make_cuda_overlay_writer(); };
 #endif
-  return choose_backend(c, name, ctx, note);
+  return choose_backend(c, choice, ctx, note);
 }
 
 }  // namespace palpsim::render

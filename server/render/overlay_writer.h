@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "core/device_bytes.h"
+#include "core/scene.h"
 #include "render/egl_context.h"
 #include "render/frame_renderer.h"
 
@@ -44,10 +45,11 @@ class OverlayWriter {
   }
 };
 
-/// "upload", "cuda-gl" (this build has CUDA and the context is on an NVIDIA GPU) or
-/// "auto" (cuda-gl where it can be used, else upload). Throws palpsim::Error for an
-/// unknown name or an unusable "cuda-gl"; `note` says what was chosen and why.
-std::unique_ptr<OverlayWriter> make_overlay_writer(const std::string& name, const EglContext& ctx,
+/// Makes the writer render.overlay_writer asks for: upload, cuda-gl (this build has CUDA
+/// and the context is on an NVIDIA GPU) or auto (cuda-gl where it can be used, else
+/// upload). Throws palpsim::Error for an unusable cuda-gl; `note` says what was chosen
+/// and why.
+std::unique_ptr<OverlayWriter> make_overlay_writer(OverlayWriterChoice choice, const EglContext& ctx,
                                                    std::string* note = nullptr);
 
 }  // namespace palpsim::render

@@ -36,13 +36,13 @@ TransferFunction from_points(const std::vector<Point>& pts) {
 
 TransferFunction make_transfer_function(Preset p) {
   switch (p) {
-    case Preset::Skin:
+    case Preset::kSkin:
       // an opaque skin-coloured surface where air turns into tissue (about -300 HU)
       return from_points({{-1024, 0.90f, 0.70f, 0.58f, 0},
                           {-450, 0.90f, 0.70f, 0.58f, 0},
                           {-250, 0.92f, 0.72f, 0.60f, 8.0f},
                           {3000, 0.92f, 0.72f, 0.60f, 8.0f}});
-    case Preset::Bone:
+    case Preset::kBone:
       // soft tissue a faint reddish haze that gives the body's outline; bone (above
       // about 200 HU) opaque ivory, so a ray's first step into the cortex takes nearly
       // all of its opacity (no rings where the samples fall)
@@ -54,7 +54,7 @@ TransferFunction make_transfer_function(Preset p) {
                           {200, 0.90f, 0.82f, 0.66f, 0.3f},
                           {300, 0.94f, 0.89f, 0.76f, 4.0f},
                           {1000, 1.00f, 0.97f, 0.90f, 8.0f}});
-    case Preset::SoftTissue:
+    case Preset::kSoftTissue:
       // the soft-tissue window (W400/L40) in translucent warm colours: fat a faint
       // yellow, fluid and organs pink, muscle red and denser, bone white and opaque
       return from_points({{-1024, 0.8f, 0.7f, 0.4f, 0},
@@ -70,7 +70,7 @@ TransferFunction make_transfer_function(Preset p) {
                           {300, 1.00f, 1.00f, 1.00f, 6.0f},
                           {1000, 1.00f, 1.00f, 1.00f, 8.0f}});
   }
-  return make_transfer_function(Preset::Bone);
+  return make_transfer_function(Preset::kBone);
 }
 
 std::vector<float> preintegrate(const TransferFunction& tf, double step_mm) {
@@ -111,8 +111,8 @@ std::vector<float> preintegrate(const TransferFunction& tf, double step_mm) {
   return out;
 }
 
-float surface_hu(Preset p) { return p == Preset::Skin ? -350.f : p == Preset::Bone ? 240.f : 200.f; }
+float surface_hu(Preset p) { return p == Preset::kSkin ? -350.f : p == Preset::kBone ? 240.f : 200.f; }
 
-Window slice_window(Preset p) { return p == Preset::Bone ? Window{300, 1500} : Window{40, 400}; }
+Window slice_window(Preset p) { return p == Preset::kBone ? Window{300, 1500} : Window{40, 400}; }
 
 }  // namespace palpsim::render

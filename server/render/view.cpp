@@ -3,30 +3,9 @@
 #include <cmath>
 #include <sstream>
 
+#include "core/setting_names.h"
+
 namespace palpsim::render {
-
-const char* preset_name(Preset p) {
-  switch (p) {
-    case Preset::Skin:
-      return "skin";
-    case Preset::Bone:
-      return "bone";
-    case Preset::SoftTissue:
-      return "soft_tissue";
-  }
-  return "unknown";
-}
-
-bool parse_preset(const std::string& name, Preset* out) {
-  for (Preset p : {Preset::Skin, Preset::Bone, Preset::SoftTissue})
-    if (name == preset_name(p)) {
-      if (out) *out = p;
-      return true;
-    }
-  return false;
-}
-
-const char* preset_names() { return "skin, bone, soft_tissue"; }
 
 namespace {
 
@@ -57,9 +36,9 @@ std::string check_view(const ViewSettings& v) {
   if (v.height < kMinFrameEdge || v.height > kMaxFrameHeight)
     return outside("height", v.height, kMinFrameEdge, kMaxFrameHeight, "pixels");
   // the preset must be one of the enum's values (a cast integer may not be)
-  if (v.preset != Preset::Skin && v.preset != Preset::Bone && v.preset != Preset::SoftTissue) {
+  if (!*setting_name(v.preset)) {
     std::ostringstream s;
-    s << "preset = " << int(v.preset) << " is not one of " << preset_names();
+    s << "preset = " << int(v.preset) << " is not one of " << setting_names_listed<Preset>();
     return s.str();
   }
   // camera

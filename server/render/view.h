@@ -6,23 +6,14 @@
 
 #include <string>
 
+#include "core/scene.h"
 #include "core/vec3.h"
 
 namespace palpsim::render {
 
-/// Transfer-function presets of the 3D view (and the window of the slices).
-enum class Preset {
-  Skin,        // the skin surface, opaque, skin-coloured, with gradient shading
-  Bone,        // bone opaque and ivory, soft tissue faint; slices in a bone window
-  SoftTissue,  // muscle and organs translucent in a soft-tissue window, fat faint, bone white
-};
-
-/// "skin", "bone" or "soft_tissue".
-const char* preset_name(Preset p);
-/// Parses a preset name; false for an unknown one.
-bool parse_preset(const std::string& name, Preset* out);
-/// The allowed preset names, for error messages ("skin, bone, soft_tissue").
-const char* preset_names();
+/// Transfer-function presets of the 3D view (and the window of the slices): the scene's
+/// render.preset, its names in core/setting_names.h.
+using Preset = RenderPreset;
 
 /// Limits of the view settings (checked by check_view).
 constexpr int kMinFrameEdge = 64;          // pixels
@@ -39,7 +30,7 @@ constexpr double kMinSliceFovMm = 10, kMaxSliceFovMm = 2000;
 struct ViewSettings {
   int width = 1280;             // frame width (pixels), kMinFrameEdge..kMaxFrameWidth
   int height = 720;             // frame height (pixels), kMinFrameEdge..kMaxFrameHeight
-  Preset preset = Preset::Bone;
+  Preset preset = Preset::kBone;
   double azimuth_deg = 35;      // any finite value (taken modulo 360)
   double elevation_deg = 25;    // -89..89
   double zoom = 1;              // kMinZoom..kMaxZoom; 1 frames the patient grid's bounding sphere

@@ -91,7 +91,7 @@ render::ViewSettings view_of(int w, int h) {
   render::ViewSettings v;
   v.width = w;
   v.height = h;
-  v.preset = render::Preset::Bone;
+  v.preset = render::Preset::kBone;
   REQUIRE(render::check_view(v).empty());
   return v;
 }
@@ -225,7 +225,7 @@ TEST_CASE("the cuda-gl writer fills the overlay bit for bit as the upload writer
   // two overlays the size of this VOI (so that every texel is written), one per writer
   render::FrameRenderer r(patient);
   const auto ov_upload = r.add_overlay(voi.size), ov_cuda = r.add_overlay(voi.size);
-  auto upload = render::make_overlay_writer("upload", *ctx);
+  auto upload = render::make_overlay_writer(OverlayWriterChoice::kUpload, *ctx);
   auto cudagl = cuda::make_cuda_overlay_writer();
   CHECK(std::string(upload->name()) == "upload");
   CHECK(std::string(cudagl->name()) == "cuda-gl");
@@ -348,8 +348,8 @@ TEST_CASE("the nvjpeg encoder's JPEG decodes to the frame within JPEG error and 
 
   // the factories pick the GPU paths on an NVIDIA context of a CUDA build
   std::string enc_note, writer_note;
-  auto enc_auto = render::make_frame_encoder("auto", *ctx, &enc_note);
-  auto writer_auto = render::make_overlay_writer("auto", *ctx, &writer_note);
+  auto enc_auto = render::make_frame_encoder(JpegEncoderChoice::kAuto, *ctx, &enc_note);
+  auto writer_auto = render::make_overlay_writer(OverlayWriterChoice::kAuto, *ctx, &writer_note);
   std::printf("auto: %s; %s\n", enc_note.c_str(), writer_note.c_str());
   CHECK(std::string(enc_auto->name()) == "nvjpeg");
   CHECK(std::string(writer_auto->name()) == "cuda-gl");
@@ -364,7 +364,7 @@ TEST_CASE("the nvjpeg encoder's JPEG decodes to the frame within JPEG error and 
   REQUIRE(frame.size() == std::size_t(1280) * 720 * 3);
 
   auto nv = cuda::make_nvjpeg_frame_encoder();
-  auto tj = render::make_frame_encoder("cpu", *ctx);
+  auto tj = render::make_frame_encoder(JpegEncoderChoice::kCpu, *ctx);
   CHECK(std::string(nv->name()) == "nvjpeg");
   std::vector<std::uint8_t> j_nv, j_tj, j_nv30;
   render::FrameTimes tn, tt;
@@ -540,7 +540,7 @@ TEST_CASE("time per call: nvjpeg and turbojpeg at 1280x720, cuda-gl and upload w
 
   // writers: wall time per write
   auto cudagl = cuda::make_cuda_overlay_writer();
-  auto upload = render::make_overlay_writer("upload", *ctx);
+  auto upload = render::make_overlay_writer(OverlayWriterChoice::kUpload, *ctx);
   render::OverlaySource dsrc, hsrc;
   dsrc.voi = hsrc.voi = voi;
   dsrc.device_j = &dj;
@@ -563,7 +563,7 @@ TEST_CASE("time per call: nvjpeg and turbojpeg at 1280x720, cuda-gl and upload w
   render::FrameTimes t;
   r.render(ov, view_of(1280, 720), marks_at(press(0)), t);
   auto nv = cuda::make_nvjpeg_frame_encoder();
-  auto tj = render::make_frame_encoder("cpu", *ctx);
+  auto tj = render::make_frame_encoder(JpegEncoderChoice::kCpu, *ctx);
   struct Med {
     double readback, encode, total;
     std::size_t bytes;

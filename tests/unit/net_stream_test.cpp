@@ -81,8 +81,8 @@ Scene stream_scene(bool deform) {
   s.render.width = 192;
   s.render.height = 108;
   s.render.max_fps = 100;
-  s.render.jpeg_encoder = "cpu";
-  s.render.overlay_writer = "upload";
+  s.render.jpeg_encoder = JpegEncoderChoice::kCpu;
+  s.render.overlay_writer = OverlayWriterChoice::kUpload;
   return s;
 }
 

@@ -18,6 +18,7 @@
 #include <vector>
 
 #include "core/error.h"
+#include "core/setting_names.h"
 #include "deform/engine.h"
 #include "prep/phantom.h"
 #include "render/egl_context.h"
@@ -191,7 +192,7 @@ TEST_CASE("PALPSIM_EGL_DEVICE naming no device is refused with the range", "[ren
 TEST_CASE("a phantom frame is not blank: body in the 3D view, tissue in the slices", "[render][frame]") {
   FrameRenderer& r = renderer_2mm();
   const auto id = r.add_overlay({32, 32, 32});
-  for (Preset preset : {Preset::Skin, Preset::Bone, Preset::SoftTissue}) {
+  for (Preset preset : {Preset::kSkin, Preset::kBone, Preset::kSoftTissue}) {
     const ViewSettings v = small_view(preset);
     const Rgb rgb = frame(r, id, v, FrameMarks{});
     REQUIRE(rgb.size() == std::size_t(320 * 180 * 3));
@@ -202,7 +203,7 @@ TEST_CASE("a phantom frame is not blank: body in the 3D view, tissue in the slic
     for (int y = 0; y < 180; ++y)
       for (int x = 0; x < vw; ++x)
         if (test::mean_luma(rgb, 320, x, y, x + 1, y + 1) > 70) ++lit;
-    INFO(preset_name(preset) << ": " << lit << " bright pixels in the 3D view");
+    INFO(setting_name(preset) << ": " << lit << " bright pixels in the 3D view");
     CHECK(lit > vw * 180 / 20);
     // each slice shows tissue (grey, not black) somewhere
     for (int s = 0; s < 3; ++s) CHECK(test::mean_luma(rgb, 320, vw + 2, s * 60 + 2, 318, s * 60 + 58) > 20);
@@ -216,7 +217,7 @@ TEST_CASE("bone preset: the spine is brighter than the soft tissue beside it", "
   const auto id = r.add_overlay({32, 32, 32});
   const PhantomGeometry geo;
   // from straight behind (posterior), centred in the spinous process of L3
-  ViewSettings v = small_view(Preset::Bone);
+  ViewSettings v = small_view(Preset::kBone);
   v.azimuth_deg = 0;
   v.elevation_deg = 0;
   v.zoom = 2;
@@ -258,10 +259,10 @@ TEST_CASE("a deformed overlay changes the frame near the tip only; clearing it r
   const Voi voi = engine.voi();
   const auto id = r.add_overlay({32, 32, 32});
 
-  ViewSettings v = small_view(Preset::Skin);
+  ViewSettings v = small_view(Preset::kSkin);
   const FrameMarks m = marks_of(press);
   const Rgb before = frame(r, id, v, m);
-  auto writer = make_overlay_writer("upload", test::render_context());
+  auto writer = make_overlay_writer(OverlayWriterChoice::kUpload, test::render_context());
   OverlaySource src;
   src.voi = voi;
   src.host_j = engine.deformed_brick();
@@ -350,7 +351,7 @@ TEST_CASE("the overlay texture holds what was uploaded", "[render][overlay]") {
 TEST_CASE("the framebuffer follows the frame size; bad views are refused", "[render][frame]") {
   FrameRenderer& r = renderer_2mm();
   const auto id = r.add_overlay({8, 8, 8});
-  ViewSettings v = small_view(Preset::Bone);
+  ViewSettings v = small_view(Preset::kBone);
   Rgb a = frame(r, id, v, FrameMarks{});
   CHECK(r.width() == 320);
   CHECK(r.height() == 180);
@@ -385,20 +386,20 @@ TEST_CASE("frames drawn into several targets, then encoded and written in batche
   REQUIRE(engine.deformed_brick() != nullptr);
   const auto pressed = r.add_overlay({32, 32, 32}), plain = r.add_overlay({32, 32, 32});
   const FrameMarks m = marks_of(press);
-  ViewSettings va = small_view(Preset::Skin), vb = small_view(Preset::Bone);
+  ViewSettings va = small_view(Preset::kSkin), vb = small_view(Preset::kBone);
   vb.width = 256;
   vb.height = 144;
   vb.azimuth_deg = -60;
 
   // the reference: each frame alone, its overlay written alone, in target 0
-  auto writer = make_overlay_writer("upload", test::render_context());
+  auto writer = make_overlay_writer(OverlayWriterChoice::kUpload, test::render_context());
   OverlaySource src;
   src.voi = engine.voi();
   src.host_j = engine.deformed_brick();
   writer->write(r, pressed, src);
   writer->write(r, plain, OverlaySource{});
   const Rgb ref_a = frame(r, pressed, va, m), ref_b = frame(r, plain, vb, FrameMarks{});
-  auto enc = make_frame_encoder("cpu", test::render_context());
+  auto enc = make_frame_encoder(JpegEncoderChoice::kCpu, test::render_context());
   std::vector<std::uint8_t> jpeg_a, jpeg_b;
   FrameTimes t;
   r.render(pressed, va, m, t);
@@ -453,13 +454,13 @@ TEST_CASE("with no viewer left the renderer and encoder let go of the last frame
           "[render][frame]") {
   FrameRenderer& r = renderer_2mm();
   const auto id = r.add_overlay({8, 8, 8});
-  const Rgb before = frame(r, id, small_view(Preset::Bone), FrameMarks{});
+  const Rgb before = frame(r, id, small_view(Preset::kBone), FrameMarks{});
   // a 3840x2160 frame drawn into a target of its own and encoded, the target then removed
-  ViewSettings big = small_view(Preset::Bone);
+  ViewSettings big = small_view(Preset::kBone);
   big.width = 3840;
   big.height = 2160;
   big.zoom = 0.25;
-  auto enc = make_frame_encoder("cpu", test::render_context());
+  auto enc = make_frame_encoder(JpegEncoderChoice::kCpu, test::render_context());
   const auto t = r.add_target();
   r.draw(id, t, big, FrameMarks{});
   std::vector<std::uint8_t> jpeg;
@@ -489,7 +490,7 @@ TEST_CASE("with no viewer left the renderer and encoder let go of the last frame
     CHECK(held - released >= 30.0 * 1048576);
   }
   // the next frames are drawn as before, the encoder makes its buffers again
-  CHECK(frame(r, id, small_view(Preset::Bone), FrameMarks{}) == before);
+  CHECK(frame(r, id, small_view(Preset::kBone), FrameMarks{}) == before);
   std::vector<std::uint8_t> again;
   enc->encode(r, 80, again, times);
   CHECK_FALSE(again.empty());
@@ -500,7 +501,7 @@ TEST_CASE("frame stage times are measured", "[render][frame]") {
   FrameRenderer& r = renderer_2mm();
   const auto id = r.add_overlay({8, 8, 8});
   FrameTimes t;
-  r.render(id, small_view(Preset::Bone), FrameMarks{}, t);
+  r.render(id, small_view(Preset::kBone), FrameMarks{}, t);
   CHECK(t.raycast_ms > 0);
   CHECK(t.slices_ms > 0);
   CHECK(t.composite_ms > 0);
@@ -538,7 +539,7 @@ TEST_CASE("a rotated patient grid renders the same 3D view as an axis-aligned on
   REQUIRE(norm(turned->grid.to_physical({3, 5, 7}) - straight->grid.to_physical({5, double(n - 1 - 3), 7})) < 1e-9);
   FrameRenderer ra(straight), rb(turned);
   const auto ia = ra.add_overlay({4, 4, 4}), ib = rb.add_overlay({4, 4, 4});
-  for (Preset preset : {Preset::Skin, Preset::Bone}) {
+  for (Preset preset : {Preset::kSkin, Preset::kBone}) {
     ViewSettings v = small_view(preset);
     v.azimuth_deg = 50;
     v.elevation_deg = 20;
@@ -549,10 +550,10 @@ TEST_CASE("a rotated patient grid renders the same 3D view as an axis-aligned on
     // the same physical samples along the same rays: equal up to float rounding in the
     // index-space ray set-up (a few grey levels on a handful of silhouette pixels)
     const long off = differing(a, bb, 320, 0, 0, 260, 180, 3);
-    INFO(preset_name(preset) << ": " << off << " of 46800 pixels differ by more than 3 levels");
+    INFO(setting_name(preset) << ": " << off << " of 46800 pixels differ by more than 3 levels");
     CHECK(off < 100);
     // and the view is not empty (the skin-coloured ball is there)
-    if (preset == Preset::Skin) CHECK(test::mean_luma(a, 320, 100, 60, 160, 120) > 60);
+    if (preset == Preset::kSkin) CHECK(test::mean_luma(a, 320, 100, 60, 160, 120) > 60);
   }
 }
 
@@ -578,7 +579,7 @@ TEST_CASE("a grid larger than GL_MAX_3D_TEXTURE_SIZE is refused by name", "[rend
 TEST_CASE("JPEG encode and decode round-trip a frame", "[render][jpeg]") {
   FrameRenderer& r = renderer_2mm();
   const auto id = r.add_overlay({8, 8, 8});
-  const Rgb rgb = frame(r, id, small_view(Preset::Bone), FrameMarks{});
+  const Rgb rgb = frame(r, id, small_view(Preset::kBone), FrameMarks{});
   std::vector<std::uint8_t> jpeg;
   encode_jpeg_rgb(rgb.data(), 320, 180, 90, jpeg);
   REQUIRE(jpeg.size() > 100);
@@ -604,7 +605,7 @@ TEST_CASE("JPEG encode and decode round-trip a frame", "[render][jpeg]") {
 
   // the CPU encoder: readback and TurboJPEG, the same bytes as encoding the readback
   std::string note;
-  auto enc = make_frame_encoder("cpu", test::render_context(), &note);
+  auto enc = make_frame_encoder(JpegEncoderChoice::kCpu, test::render_context(), &note);
   CHECK(std::string(enc->name()) == "turbojpeg");
   CHECK_FALSE(note.empty());
   FrameTimes t;
@@ -620,24 +621,24 @@ TEST_CASE("JPEG encode and decode round-trip a frame", "[render][jpeg]") {
 TEST_CASE("encoder and writer factories: names, auto, and what this machine lacks", "[render][jpeg][overlay]") {
   EglContext& ctx = test::render_context();
   std::string note;
-  CHECK_THROWS_AS(make_frame_encoder("png", ctx), Error);
-  CHECK_THROWS_AS(make_overlay_writer("memcpy", ctx), Error);
-  CHECK(std::string(make_frame_encoder("turbojpeg", ctx)->name()) == "turbojpeg");
-  CHECK(std::string(make_overlay_writer("upload", ctx, &note)->name()) == "upload");
+  CHECK_THROWS_AS(make_frame_encoder(static_cast<JpegEncoderChoice>(7), ctx), Error);
+  CHECK_THROWS_AS(make_overlay_writer(static_cast<OverlayWriterChoice>(7), ctx), Error);
+  CHECK(std::string(make_frame_encoder(JpegEncoderChoice::kCpu, ctx)->name()) == "turbojpeg");
+  CHECK(std::string(make_overlay_writer(OverlayWriterChoice::kUpload, ctx, &note)->name()) == "upload");
   if (!ctx.nvidia()) {
     // no NVIDIA GL device (or no CUDA in this build): auto takes the CPU paths, and the
     // GPU ones are refused with the reason
-    CHECK(std::string(make_frame_encoder("auto", ctx, &note)->name()) == "turbojpeg");
+    CHECK(std::string(make_frame_encoder(JpegEncoderChoice::kAuto, ctx, &note)->name()) == "turbojpeg");
     CHECK(note.find("auto") != std::string::npos);
-    CHECK(std::string(make_overlay_writer("auto", ctx, &note)->name()) == "upload");
+    CHECK(std::string(make_overlay_writer(OverlayWriterChoice::kAuto, ctx, &note)->name()) == "upload");
     try {
-      make_frame_encoder("nvjpeg", ctx);
+      make_frame_encoder(JpegEncoderChoice::kNvjpeg, ctx);
       FAIL("nvjpeg without an NVIDIA GPU");
     } catch (const Error& e) {
       CHECK(std::string(e.what()).find("not available") != std::string::npos);
     }
     try {
-      make_overlay_writer("cuda-gl", ctx);
+      make_overlay_writer(OverlayWriterChoice::kCudaGl, ctx);
       FAIL("cuda-gl without an NVIDIA GPU");
     } catch (const Error& e) {
       CHECK(std::string(e.what()).find("not available") != std::string::npos);
@@ -646,7 +647,7 @@ TEST_CASE("encoder and writer factories: names, auto, and what this machine lack
   // the upload writer needs J in host memory for a deformed VOI
   FrameRenderer& r = renderer_2mm();
   const auto id = r.add_overlay({8, 8, 8});
-  auto w = make_overlay_writer("upload", ctx);
+  auto w = make_overlay_writer(OverlayWriterChoice::kUpload, ctx);
   OverlaySource src;
   src.voi = Voi{{10, 10, 10}, {8, 8, 8}};
   CHECK_THROWS_AS(w->write(r, id, src), Error);
@@ -688,7 +689,7 @@ TEST_CASE("snapshot PNGs of the 1 mm phantom", "[.snapshot]") {
     r.read_rgb(rgb, t);
     std::vector<std::uint8_t> jpeg;
     FrameTimes e;
-    auto enc = make_frame_encoder("cpu", ctx);
+    auto enc = make_frame_encoder(JpegEncoderChoice::kCpu, ctx);
     enc->encode(r, v.jpeg_quality, jpeg, e);
     t.encode_ms = e.encode_ms;
     std::printf("%-44s %4dx%-4d raycast %7.1f  slices %5.1f  composite %5.1f  readback %5.1f  encode %5.1f ms"
@@ -697,16 +698,16 @@ TEST_CASE("snapshot PNGs of the 1 mm phantom", "[.snapshot]") {
                 cpu_ms);
     if (!name.empty()) test::write_png(out + "/" + name, rgb, v.width, v.height);
   };
-  for (Preset preset : {Preset::Bone, Preset::Skin, Preset::SoftTissue}) {
+  for (Preset preset : {Preset::kBone, Preset::kSkin, Preset::kSoftTissue}) {
     ViewSettings v;
     v.preset = preset;
     if (const char* z = std::getenv("PALPSIM_RENDER_ZOOM")) v.zoom = std::atof(z);
     v.width = 320;
     v.height = 180;
-    shoot(v, std::string("render_phantom_") + preset_name(preset) + "_small.png");
+    shoot(v, std::string("render_phantom_") + setting_name(preset) + "_small.png");
     v.width = 1280;
     v.height = 720;
-    shoot(v, std::string("render_phantom_") + preset_name(preset) + ".png");
+    shoot(v, std::string("render_phantom_") + setting_name(preset) + ".png");
   }
   // a 10 mm press over L3 with the CPU deformation (VOI 64), skin and bone
   DeformConfig dc;
@@ -718,11 +719,11 @@ TEST_CASE("snapshot PNGs of the 1 mm phantom", "[.snapshot]") {
   marks.tip_mm = press.tip_mm;
   marks.proxy_mm = press.skin_point_mm;
   marks.contact = true;
-  for (Preset preset : {Preset::Skin, Preset::Bone}) {
+  for (Preset preset : {Preset::kSkin, Preset::kBone}) {
     ViewSettings v;
     v.preset = preset;
     v.zoom = 3;
     v.show_proxy = true;
-    shoot(v, std::string("render_phantom_pressed_") + preset_name(preset) + ".png");
+    shoot(v, std::string("render_phantom_pressed_") + setting_name(preset) + ".png");
   }
 }

@@ -6,6 +6,7 @@
 #include <limits>
 #include <string>
 
+#include "core/setting_names.h"
 #include "render/transfer_function.h"
 #include "render/view.h"
 
@@ -20,17 +21,18 @@ bool has(const std::string& text, const std::string& part) { return text.find(pa
 }  // namespace
 
 TEST_CASE("preset names round-trip and unknown names are refused", "[render][view]") {
-  for (Preset p : {Preset::Skin, Preset::Bone, Preset::SoftTissue}) {
-    Preset q = Preset::Skin;
-    REQUIRE(parse_preset(preset_name(p), &q));
+  for (Preset p : {Preset::kSkin, Preset::kBone, Preset::kSoftTissue}) {
+    Preset q = Preset::kSkin;
+    REQUIRE(parse_setting(setting_name(p), &q));
     CHECK(q == p);
-    CHECK(has(preset_names(), preset_name(p)));
+    CHECK(has(setting_names_listed<Preset>(), setting_name(p)));
   }
-  Preset q = Preset::SoftTissue;
-  CHECK_FALSE(parse_preset("bones", &q));
-  CHECK_FALSE(parse_preset("", &q));
-  CHECK_FALSE(parse_preset("Bone", &q));  // names are lower case
-  CHECK(q == Preset::SoftTissue);         // untouched on failure
+  CHECK(setting_names_listed<Preset>() == "skin, bone, soft_tissue");
+  Preset q = Preset::kSoftTissue;
+  CHECK_FALSE(parse_setting("bones", &q));
+  CHECK_FALSE(parse_setting("", &q));
+  CHECK_FALSE(parse_setting("Bone", &q));  // names are lower case
+  CHECK(q == Preset::kSoftTissue);         // untouched on failure
 }
 
 TEST_CASE("check_view accepts the defaults and the ends of every range", "[render][view]") {
@@ -107,12 +109,12 @@ TEST_CASE("check_view names the first bad field, its value and the range", "[ren
   SECTION("an unknown preset") {
     v.preset = static_cast<Preset>(7);
     CHECK(has(check_view(v), "preset = 7"));
-    CHECK(has(check_view(v), preset_names()));
+    CHECK(has(check_view(v), setting_names_listed<Preset>()));
   }
 }
 
 TEST_CASE("pre-integrated transfer functions: constant steps and thin ramps", "[render][tf]") {
-  const TransferFunction tf = make_transfer_function(Preset::Skin);
+  const TransferFunction tf = make_transfer_function(Preset::kSkin);
   const double step_mm = 1.0;
   const std::vector<float> t = preintegrate(tf, step_mm);
   REQUIRE(t.size() == std::size_t(4) * kTfSize * kTfSize);
@@ -134,8 +136,8 @@ TEST_CASE("pre-integrated transfer functions: constant steps and thin ramps", "[
   CHECK(into > 0.9f);
   CHECK(out_of == Approx(into).margin(1e-6));
   // the presets' windows of the slices
-  CHECK(slice_window(Preset::Bone).width_hu == 1500);
-  CHECK(slice_window(Preset::Bone).level_hu == 300);
-  CHECK(slice_window(Preset::SoftTissue).width_hu == 400);
-  CHECK(slice_window(Preset::Skin).level_hu == 40);
+  CHECK(slice_window(Preset::kBone).width_hu == 1500);
+  CHECK(slice_window(Preset::kBone).level_hu == 300);
+  CHECK(slice_window(Preset::kSoftTissue).width_hu == 400);
+  CHECK(slice_window(Preset::kSkin).level_hu == 40);
 }

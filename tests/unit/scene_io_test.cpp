@@ -10,6 +10,7 @@
 #include <tuple>
 
 #include "core/error.h"
+#include "core/setting_names.h"
 #include "deform/backend.h"
 #include "net/scene_io.h"
 #include "unit/prep_files.h"
@@ -166,6 +167,36 @@ TEST_CASE("a scene without a haptics block has HapticsSettings' defaults (the sc
   CHECK(fields(h) == fields(d));
   CHECK(d.stiffness_n_per_mm == 0.25);  // the documented defaults (README, scene.proto)
   CHECK(d.max_force_n == 3.3);
+}
+
+TEST_CASE("render.preset, jpeg_encoder and overlay_writer: every name is read, a misspelt one refused in one line") {
+  // every name in each table parses to its value, and that value's name is the same
+  for (const auto& n : SettingNames<RenderPreset>::values)
+    CHECK(parse_scene_text(std::string("phantom {} render { preset: \"") + n.name + "\" }", "x.textproto")
+              .render.preset == n.value);
+  for (const auto& n : SettingNames<JpegEncoderChoice>::values)
+    CHECK(parse_scene_text(std::string("phantom {} render { jpeg_encoder: \"") + n.name + "\" }", "x.textproto")
+              .render.jpeg_encoder == n.value);
+  for (const auto& n : SettingNames<OverlayWriterChoice>::values)
+    CHECK(parse_scene_text(std::string("phantom {} render { overlay_writer: \"") + n.name + "\" }", "x.textproto")
+              .render.overlay_writer == n.value);
+  CHECK(std::string(setting_name(RenderPreset::kSoftTissue)) == "soft_tissue");
+  CHECK(std::string(setting_name(OverlayWriterChoice::kCudaGl)) == "cuda-gl");
+  // a scene without them gets RenderSettings' defaults
+  const Scene d = parse_scene_text("phantom {}", "x.textproto");
+  CHECK(d.render.preset == RenderPreset::kBone);
+  CHECK(d.render.jpeg_encoder == JpegEncoderChoice::kAuto);
+  CHECK(d.render.overlay_writer == OverlayWriterChoice::kAuto);
+  CHECK(error_of("phantom {} render { preset: \"bones\" }") ==
+        "test.textproto: render.preset = \"bones\"; allowed: \"skin\", \"bone\", \"soft_tissue\"");
+  CHECK(error_of("phantom {} render { jpeg_encoder: \"turbojpeg\" }") ==
+        "test.textproto: render.jpeg_encoder = \"turbojpeg\"; allowed: \"auto\", \"cpu\", \"nvjpeg\"");
+  CHECK(error_of("phantom {} render { overlay_writer: \"cuda_gl\" }") ==
+        "test.textproto: render.overlay_writer = \"cuda_gl\"; allowed: \"auto\", \"upload\", \"cuda-gl\"");
+  // the same names outside a scene (render_bench's --jpeg-encoder), refused the same way
+  CHECK(setting_by_name<JpegEncoderChoice>("nvjpeg") == JpegEncoderChoice::kNvjpeg);
+  CHECK_THROWS_WITH(setting_by_name<OverlayWriterChoice>("Upload"),
+                    "render.overlay_writer = \"Upload\"; allowed: \"auto\", \"upload\", \"cuda-gl\"");
 }
 
 TEST_CASE("haptics.skin_point is read, checked and defaults as HapticsSettings does") {

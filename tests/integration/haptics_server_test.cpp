@@ -602,30 +602,35 @@ std::vector<std::pair<int, int>> thread_policies(pid_t pid, const std::string& n
   return out;
 }
 
+// thread_policies(pid, name) once `done` accepts it, or its last reading after 10 s: each
+// thread names itself and takes its policy as it starts, which on a loaded machine may come
+// after the ready line (the first look usually sees it)
+template <typename Done>
+std::vector<std::pair<int, int>> thread_policies_when(pid_t pid, const std::string& name, Done&& done) {
+  auto t = thread_policies(pid, name);
+  for (int i = 0; i < 1000 && !done(t); ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    t = thread_policies(pid, name);
+  }
+  return t;
+}
+
 }  // namespace
 
 TEST_CASE("the pose thread and its I/O thread run under SCHED_FIFO where allowed, the rest under the normal policy",
           "[integration]") {
   Started st = start_server(5.0);
   const pid_t pid = st.server->child().pid();
-  // each thread names itself and takes its policy as it starts, which on a loaded machine may
-  // come after the ready line: wait for both names (at most 10 s; the first look usually sees them)
-  std::vector<std::pair<int, int>> pose, control;
-  for (int i = 0; i < 1000 && (pose.size() != 1 || control.size() != 1); ++i) {
-    if (i) std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    pose = thread_policies(pid, "palpsim-pose");
-    control = thread_policies(pid, "palpsim-control");
-  }
-  if (may_raise_threads(10))
-    for (int i = 0; i < 1000 && !(pose.size() == 1 && pose[0].first == 1); ++i) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(10));
-      pose = thread_policies(pid, "palpsim-pose");
-    }
+  const bool fifo = may_raise_threads(10);
+  const auto pose = thread_policies_when(pid, "palpsim-pose", [&](const auto& t) {
+    return t.size() == 1 && (!fifo || t[0].first == 1);
+  });
+  const auto control = thread_policies_when(pid, "palpsim-control", [](const auto& t) { return t.size() == 1; });
   const auto io = thread_policies(pid, "ZMQbg/IO/0");
   REQUIRE(pose.size() == 1);
   REQUIRE(control.size() == 1);
   CHECK(control[0].first == 0);
-  if (may_raise_threads(10)) {
+  if (fifo) {
     // (root or CAP_SYS_NICE, as in CI) the default --pose-priority 10
     CHECK(pose[0] == std::make_pair(1, 10));
     // the pose socket's own I/O thread too, not the control socket's
@@ -640,11 +645,8 @@ TEST_CASE("the pose thread and its I/O thread run under SCHED_FIFO where allowed
   // --pose-priority 0: the normal policy for every thread
   ServerProcess plain(st.scene, {"--pose-priority", "0"});
   REQUIRE(plain.wait_ready(300));
-  auto plain_pose = thread_policies(plain.child().pid(), "palpsim-pose");
-  for (int i = 0; i < 1000 && plain_pose.size() != 1; ++i) {  // named as it starts (above)
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    plain_pose = thread_policies(plain.child().pid(), "palpsim-pose");
-  }
+  const auto plain_pose =
+      thread_policies_when(plain.child().pid(), "palpsim-pose", [](const auto& t) { return t.size() == 1; });
   REQUIRE(plain_pose.size() == 1);
   CHECK(plain_pose[0].first == 0);
   for (const auto& t : thread_policies(plain.child().pid(), "ZMQbg/IO/0")) CHECK(t.first == 0);

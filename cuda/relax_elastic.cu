@@ -38,6 +38,7 @@ namespace {
 
 using deform::ElasticMaterial;
 using deform::ElasticPlan;
+using deform::ElasticPredict;
 using deform::kElasticContact;
 using deform::kElasticHeld;
 using deform::kElasticMaxDegree;
@@ -227,6 +228,8 @@ struct StepArgs {
   int pressing;        // the tip lies below the skin (depth above 1e-6 mm)
   int had;             // the field and contact set came from the last step
   int unit_warm;       // the unit press starts from the last one
+  int predict;         // the warm start's prediction (deform::ElasticPredict) and its factor
+  float predict_factor;
   int stiffness;       // solve the unit press
   int max_iterations;
   float tolerance;
@@ -564,8 +567,9 @@ __global__ void __launch_bounds__(kThreads, 1) elastic_step_kernel(const __grid_
   out.settled = 1;
   out.converged = 1;
 
-  // the contact set: last step's nodes still under the sphere, nodes the last field leaves
-  // inside it, every node under it on a fresh start (the field and contact set zeroed first)
+  // the contact set: last step's nodes still under the sphere, nodes the last field (as the
+  // prediction moves it) leaves inside it, every node under it on a fresh start (the field
+  // and contact set zeroed first)
   double under = 0;
   for (int e = all.first; e < L0.count; e += all.stride) {
     int i, j, k;
@@ -576,6 +580,11 @@ __global__ void __launch_bounds__(kThreads, 1) elastic_step_kernel(const __grid_
       ue = Vec3f{0, 0, 0};
       u.set(e, ue);
       fl = std::uint8_t(fl & ~kElasticContact);
+    } else if (a.predict != int(ElasticPredict::kNone)) {
+      const ElasticPredict kind = ElasticPredict(a.predict);
+      ue = deform::elastic_predicted(kind, a.predict_factor, ue,
+                                     kind == ElasticPredict::kUnit ? unit.at(e) : Vec3f{0, 0, 0});
+      u.set(e, ue);
     }
     const float t = st.push(fl, i, j, k);
     if (t > 0) under += 1;
@@ -1029,6 +1038,12 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   pending_.depth_mm = depth;
   pending_.normal = Vec3(nrm);
   pending_normal_ = nrm;
+  // the warm start's prediction of this press from the last one (elastic_prediction)
+  const Vec3 tip_mm{tip_vox.x * h.x, tip_vox.y * h.y, tip_vox.z * h.z};
+  const deform::ElasticPrediction pred = deform::elastic_prediction(
+      last_press_, had && params_.predict, have_unit_ && u_unit_ != nullptr && dot(unit_normal_, nrm) > 0.999f, tip_mm, depth, nrm);
+  pending_.prediction = pred.kind;
+  last_press_ = deform::ElasticLastPress{depth > 1e-6, tip_mm, depth, nrm};
 
   StepArgs s;
   std::copy(k_.begin(), k_.end(), s.k);
@@ -1045,6 +1060,8 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.pressing = depth > 1e-6;
   s.had = had;
   s.unit_warm = have_unit_ && unit_normal_ == nrm;
+  s.predict = int(pred.kind);
+  s.predict_factor = pred.factor;
   s.stiffness = params_.stiffness && u_unit_ != nullptr;
   s.max_iterations = params_.max_iterations;
   s.tolerance = params_.tolerance;

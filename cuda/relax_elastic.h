@@ -115,6 +115,7 @@ class ElasticSolver {
   bool have_u_ = false;
   bool have_unit_ = false;
   Vec3f unit_normal_{0, 0, 0};
+  deform::ElasticLastPress last_press_;  // the last step's press, for the warm start's prediction
   // what the enqueued step's run has from the host
   deform::ElasticRun pending_;
   Vec3f pending_normal_{0, 0, 0};

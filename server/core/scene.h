@@ -77,6 +77,7 @@ struct ElasticSettings {
   int max_iterations = 60;         // conjugate-gradient steps per contact round
   double tolerance = 1e-3;         // relative residual of a round
   int contact_rounds = 4;          // contact set updates per step
+  bool predict = false;            // a warm step starts from the last press's field moved to this one
 };
 
 /// How relaxation follows ChainMail (deform.relax_method; names in core/setting_names.h).

@@ -180,6 +180,7 @@ deform::ElasticParams DeformConfig::elastic_params() const {
   p.max_iterations = e.max_iterations;
   p.tolerance = float(e.tolerance);
   p.contact_rounds = e.contact_rounds;
+  p.predict = e.predict;
   p.stiffness = elastic_stiffness;
   return p;
 }

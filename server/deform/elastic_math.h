@@ -283,6 +283,62 @@ PALPSIM_HD float elastic_sphere_push(const Vec3f& p, const Vec3f& c, const Vec3f
   return sqrtf(h2) - along;
 }
 
+/// How a step's solve starts from the last step's field when the tip pressed along the same n
+/// then and now (the warm start's prediction): the contact nodes are placed on the sphere
+/// anyway, so the prediction is what the free nodes start from. kUnit adds the last unit
+/// press (the field of every contact node moved 1 mm along n, the set held: the exact
+/// change for a sphere moved along n while the set stays) times the tip's move along n;
+/// kScale scales the field by the depth's ratio (the field of a press grows about in
+/// proportion to its depth). Either leaves CG the contact set's change at the contact's
+/// edge, where the last field alone leaves it the whole press's change (palpsim-bench
+/// deform --elastic measures both, and how far each ends from the converged field).
+enum class ElasticPredict : int { kNone = 0, kUnit = 1, kScale = 2 };
+
+/// The prediction of one step (elastic_prediction) and its factor: mm of tip motion along n
+/// for kUnit, the depth's ratio for kScale.
+struct ElasticPrediction {
+  ElasticPredict kind = ElasticPredict::kNone;
+  float factor = 0.0f;
+};
+
+/// The press a step predicts from (the last one) as the backends keep it.
+struct ElasticLastPress {
+  bool pressing = false;       // the last step's tip lay below the skin
+  Vec3 tip_mm{0, 0, 0};        // its tip (mm along the grid axes from voxel 0)
+  double depth_mm = 0;         // its depth along normal
+  Vec3f normal{0, 0, 0};
+};
+
+/// The prediction of a step that presses `depth_mm` along `n` with its tip at `tip_mm` (mm
+/// from voxel 0), after `last`: none unless the field is the last step's (`warm`) and both
+/// pressed along n within 2.6 degrees (cos 0.999); kUnit when the last unit press is there
+/// along that n as well (`unit_along_n`), else kScale, its ratio held to [0, 2] so that a
+/// field of a first graze (a few hundredths of a mm) is not blown up into a guess worse
+/// than none.
+inline ElasticPrediction elastic_prediction(const ElasticLastPress& last, bool warm, bool unit_along_n,
+                                            const Vec3& tip_mm, double depth_mm, const Vec3f& n) {
+  ElasticPrediction p;
+  if (!warm || !last.pressing || !(depth_mm > 1e-6) || !(last.depth_mm > 1e-6) || dot(n, last.normal) <= 0.999f)
+    return p;
+  if (unit_along_n) {
+    p.kind = ElasticPredict::kUnit;
+    p.factor = float(dot(tip_mm - last.tip_mm, Vec3(n)));
+  } else {
+    p.kind = ElasticPredict::kScale;
+    const double ratio = depth_mm / last.depth_mm;
+    p.factor = float(ratio < 2.0 ? ratio : 2.0);
+  }
+  return p;
+}
+
+/// A node's start value under a prediction: its last value `u`, and its last unit press
+/// `unit` (read only for kUnit).
+PALPSIM_HD Vec3f elastic_predicted(ElasticPredict kind, float factor, const Vec3f& u, const Vec3f& unit) {
+  if (kind == ElasticPredict::kUnit) return u + unit * factor;
+  if (kind == ElasticPredict::kScale) return u * factor;
+  return u;
+}
+
 /// Nodes of the next coarser level along one axis of `fine` nodes: its node I lies on fine
 /// node 2 I; an even count gets one more node, 2 I = fine, just beyond the fine grid (held:
 /// it stands for the fine level's held face one fine spacing before it).

@@ -536,6 +536,16 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   const Vec3f tip_local{float((tip_vox.x - voi.lo.x) * h.x), float((tip_vox.y - voi.lo.y) * h.y),
                         float((tip_vox.z - voi.lo.z) * h.z)};
   const Vec3f centre = tip_local - nrm * R;
+  // the warm start's prediction of this press from the last one (elastic_prediction)
+  const Vec3 tip_mm{tip_vox.x * h.x, tip_vox.y * h.y, tip_vox.z * h.z};
+  const ElasticPrediction pred = elastic_prediction(s.last_press, had && prm.predict, s.have_unit && dot(s.unit_normal, nrm) > 0.999f,
+                                                    tip_mm, depth, nrm);
+  if (pred.kind != ElasticPredict::kNone)
+    for (long long e = 0; e < n; ++e)
+      u[e] = elastic_predicted(pred.kind, pred.factor, u[e],
+                               pred.kind == ElasticPredict::kUnit ? s.u_unit[std::size_t(e)] : Vec3f{0, 0, 0});
+  out.prediction = pred.kind;
+  s.last_press = ElasticLastPress{depth > 1e-6, tip_mm, depth, nrm};
   // the pushes of skin nodes under the sphere; the contact set: last step's nodes still
   // under it, nodes the last field leaves inside it, and every node under it on a fresh start
   long long under = 0;

@@ -36,6 +36,7 @@ struct ElasticParams {
   int max_iterations = 60;      // CG steps per contact round at most
   float tolerance = 1e-3f;      // relative residual at which a round stops
   int contact_rounds = 4;       // contact set updates per step at most
+  bool predict = false;         // predict a warm step's start from the last press (elastic_prediction)
   bool stiffness = false;       // also solve the unit press for the contact's stiffness (haptics.force_model "elastic")
 };
 
@@ -55,6 +56,7 @@ struct ElasticRun {
   double depth_mm = 0;           // the tip's depth along n below the skin point X (mm)
   Vec3 normal{0, 0, 0};          // n: the press direction, unit, along the grid axes
   long long inverted_cells = 0;  // cells whose deformation folds (det(I + grad u) <= 0 somewhere in them)
+  ElasticPredict prediction = ElasticPredict::kNone;  // how the warm start predicted this press (elastic_prediction)
 };
 
 /// The CPU elastic solver's buffers for one session, sized for the largest VOI (grown on
@@ -85,6 +87,7 @@ struct ElasticCpu {
   bool have_u = false;            // u holds the last step's field on `voi` (a warm start)
   bool have_unit = false;         // u_unit holds the unit press of the current contact set
   Vec3f unit_normal{0, 0, 0};     // ... along this n
+  ElasticLastPress last_press;    // the last step's press, for the warm start's prediction
 };
 
 /// A fingerprint of a material (its bytes): the set-up is redone when it changes.

@@ -232,6 +232,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.elastic.max_iterations = el.max_iterations();
   out.deform.elastic.tolerance = el.tolerance();
   out.deform.elastic.contact_rounds = el.contact_rounds();
+  out.deform.elastic.predict = el.predict();
 
   const auto& e = s.effects();
   out.effects.haptics = e.haptics();

@@ -233,6 +233,8 @@ struct StepArgs {
   int stiffness;       // solve the unit press
   int max_iterations;
   float tolerance;
+  int reciprocal;             // the unit press stops at stiffness_tolerance; force and stiffness by reciprocity
+  float stiffness_tolerance;
   int contact_rounds;
   float* out[3];       // u in voxels (the displacement buffer the inversion reads)
   ElasticCounters* result;
@@ -436,7 +438,7 @@ struct Step {
   // elastic_solve_cpu(): K w = 0 on the free components of w (level 0, the flags as they
   // are), held nodes keeping their value and contact nodes their part along n; conjugate
   // gradients preconditioned by the V-cycle, to the tolerance or max_iterations steps
-  __device__ Solve solve(const Field& w) const {
+  __device__ Solve solve(const Field& w, float tolerance) const {
     const Lvl& L0 = sh.lv[0];
     const View& v = a.v;
     const Field r = f(), kp = res(), p = level0(v.p, v), z = x(final_buffer(0));
@@ -483,7 +485,7 @@ struct Step {
     const double rref = sqrt(sums[0]);
     double rn = sqrt(sums[1]);
     out.residual = rref > 0 ? rn / rref : 0;
-    if (rref <= 0 || rn <= double(a.tolerance) * rref) return out;
+    if (rref <= 0 || rn <= double(tolerance) * rref) return out;
     // the V-cycle before the first step, then after each (but the last allowed)
     double rz = 0;
     float beta = 0;
@@ -516,14 +518,14 @@ struct Step {
         rn = sqrt(reduce1(ring, part, g));
         out.iterations = it + 1;
         out.residual = rn / rref;
-        if (rn <= double(a.tolerance) * rref) return out;
+        if (rn <= double(tolerance) * rref) return out;
         if (it + 1 == a.max_iterations) break;
       }
       const double rz_new = reduce1(ring, vcycle(), g);
       if (it >= 0) beta = float(rz_new / rz);
       rz = rz_new;
     }
-    out.converged = out.residual <= double(a.tolerance);
+    out.converged = out.residual <= double(tolerance);
     return out;
   }
 };
@@ -634,7 +636,7 @@ __global__ void __launch_bounds__(kThreads, 1) elastic_step_kernel(const __grid_
       }
     }
     g.sync();
-    const Step::Solve sr = st.solve(w);
+    const Step::Solve sr = st.solve(w, job == kUnit && a.reciprocal ? a.stiffness_tolerance : a.tolerance);
     if (job == kUnit) {
       out.stiffness_iterations = sr.iterations;
     } else {
@@ -643,18 +645,28 @@ __global__ void __launch_bounds__(kThreads, 1) elastic_step_kernel(const __grid_
       out.converged = out.converged && sr.converged;
       if (job == kRound) out.rounds = round + 1;
     }
-    // the contact nodes' forces along n and their count; after a round, the set's update
-    double sums[3] = {0, 0, 0};
+    // the contact nodes' forces along n and their count; after a round, the set's update;
+    // after the unit press by reciprocity (elastic_math.h) the push sum of u . K w and w's
+    // residual's part of w . K w
+    const bool reciprocal = job == kUnit && a.reciprocal;
+    const Field rw = st.f();
+    double sums[4] = {0, 0, 0, 0};
     for (int e = all.first; e < L0.count; e += all.stride) {
       const std::uint8_t fl = v.flags[e];
       int i, j, k;
       L0.coords(e, i, j, k);
+      if (reciprocal) {
+        const Vec3f re = rw.at(e);
+        sums[2] -= dot_d(u.at(e), re);
+        sums[3] += dot_d(w.at(e), re);
+      }
       if (fl & kElasticContact) {
         const float fn = dot(deform::elastic_apply_node(st.km(), CellModuli{v.cell_e, L0}, Load{w, L0}, L0.n, 1.0f, i,
                                                         j, k),
                              a.nrm);
         sums[0] += double(fn);
         sums[1] += 1;
+        if (reciprocal) sums[2] += double(fn) * double(dot(u.at(e), a.nrm));
         if (job == kRound && fn < 0.0f) {
           v.flags[e] = std::uint8_t(fl & ~kElasticContact);
           sums[2] += 1;
@@ -677,7 +689,8 @@ __global__ void __launch_bounds__(kThreads, 1) elastic_step_kernel(const __grid_
       }
     }
     if (job == kUnit) {
-      out.stiffness_n_per_mm = sums[0];
+      out.stiffness_n_per_mm = reciprocal ? sums[0] - sums[3] : sums[0];
+      if (reciprocal) out.press_n = sums[2];
       job = kDone;
     } else {
       out.press_n = sums[0];
@@ -1065,6 +1078,8 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.stiffness = params_.stiffness && u_unit_ != nullptr;
   s.max_iterations = params_.max_iterations;
   s.tolerance = params_.tolerance;
+  s.reciprocal = params_.stiffness_tolerance > 0;
+  s.stiffness_tolerance = params_.stiffness_tolerance;
   s.contact_rounds = params_.contact_rounds;
   s.result = result;
   launch(elastic_step_kernel, s, blocks, voi.count(), stream);

@@ -110,6 +110,8 @@ void check_elastic_settings(const ElasticSettings& e, const std::string& who) {
   if (e.max_iterations < 1) bad("max_iterations", e.max_iterations, "must be at least 1");
   if (!(e.tolerance > 0 && e.tolerance < 1)) bad("tolerance", e.tolerance, "must lie in (0, 1)");
   if (e.contact_rounds < 1) bad("contact_rounds", e.contact_rounds, "must be at least 1");
+  if (!(e.stiffness_tolerance >= 0 && e.stiffness_tolerance < 1))
+    bad("stiffness_tolerance", e.stiffness_tolerance, "must lie in [0, 1) (0: the unit press stops at tolerance)");
 }
 
 void check_deform_config(const DeformConfig& config, const std::string& who) {
@@ -181,6 +183,7 @@ deform::ElasticParams DeformConfig::elastic_params() const {
   p.tolerance = float(e.tolerance);
   p.contact_rounds = e.contact_rounds;
   p.predict = e.predict;
+  p.stiffness_tolerance = float(e.stiffness_tolerance);
   p.stiffness = elastic_stiffness;
   return p;
 }

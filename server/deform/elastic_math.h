@@ -339,6 +339,19 @@ PALPSIM_HD Vec3f elastic_predicted(ElasticPredict kind, float factor, const Vec3
   return u;
 }
 
+// The force and stiffness by reciprocity (deform.elastic.stiffness_tolerance above 0). Let
+// w be the unit press (every contact node 1 mm along n, the same set) and u the press. At
+// the exact solutions K u and K w vanish on the free components, so Betti's theorem gives
+// the finger's push F = sum over contact nodes of (K u) . n = w . K u = u . K w = sum of
+// push_i (K w)_i . n, and the stiffness k = sum of (K w)_i . n = w . K w. Written with the
+// residual r of an inexact w (K w = -r on the free components), F = sum push_i (K w)_i . n
+// - u . r and k = sum (K w)_i . n - w . r are the bilinear and quadratic forms themselves:
+// with u and w each off their solution by an error in the free components, F is off by the
+// product of the two errors (the first-order terms pair a free-only error with a residual
+// that vanishes there), and k by w's error squared in the energy norm (k >= the exact one).
+// So the unit press may stop ten times earlier than the press for the same accuracy of
+// both, and the force no longer depends on how far u's solve went.
+
 /// Nodes of the next coarser level along one axis of `fine` nodes: its node I lies on fine
 /// node 2 I; an even count gets one more node, 2 I = fine, just beyond the fine grid (held:
 /// it stands for the fine level's held face one fine spacing before it).

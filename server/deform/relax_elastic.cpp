@@ -628,12 +628,30 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
       const std::uint8_t f = s.flags[std::size_t(e)];
       if (f & kElasticContact) w[e] = w[e] - nrm * dot(w[e], nrm) + nrm;
     }
-    const ElasticSolve sr = elastic_solve_cpu(s, nrm, w, prm.max_iterations, prm.tolerance);
+    const bool reciprocal = prm.stiffness_tolerance > 0;
+    const ElasticSolve sr =
+        elastic_solve_cpu(s, nrm, w, prm.max_iterations, reciprocal ? prm.stiffness_tolerance : prm.tolerance);
     out.stiffness_iterations = sr.iterations;
-    double k_n = 0;
+    double k_n = 0, push_k = 0;
     each_node(voi.size, [&](int i, int j, int kk) {
-      if (s.flags[std::size_t(voi.index(i, j, kk))] & kElasticContact) k_n += dot(elastic_node_force_cpu(s, w, i, j, kk), nrm);
+      const long long e = voi.index(i, j, kk);
+      if (!(s.flags[std::size_t(e)] & kElasticContact)) return;
+      const double kn = dot(elastic_node_force_cpu(s, w, i, j, kk), nrm);
+      k_n += kn;
+      push_k += kn * dot(u[e], nrm);
     });
+    if (reciprocal) {
+      // the force and stiffness by reciprocity (elastic_math.h, ElasticParams::stiffness_tolerance):
+      // w.K.u and w.K.w, with the free components of K w as the unit press's residual r
+      // leaves them (K w = -r there)
+      double wr = 0, ur = 0;
+      for (long long e = 0; e < n; ++e) {
+        wr += double(dot(w[e], s.r[std::size_t(e)]));
+        ur += double(dot(u[e], s.r[std::size_t(e)]));
+      }
+      out.force_n = Vec3(nrm) * -(push_k - ur);
+      k_n -= wr;
+    }
     out.stiffness_n_per_mm = k_n;
     s.have_unit = true;
     s.unit_normal = nrm;

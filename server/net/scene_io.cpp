@@ -233,6 +233,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.deform.elastic.tolerance = el.tolerance();
   out.deform.elastic.contact_rounds = el.contact_rounds();
   out.deform.elastic.predict = el.predict();
+  out.deform.elastic.stiffness_tolerance = el.stiffness_tolerance();
 
   const auto& e = s.effects();
   out.effects.haptics = e.haptics();

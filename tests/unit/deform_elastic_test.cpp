@@ -585,3 +585,45 @@ TEST_CASE("the warm start predicts a press along the same n: fewer CG steps to t
     CHECK(pr.force_n.z == Approx(last.force_n.z).epsilon(0.01));
   }
 }
+
+TEST_CASE("the force and stiffness by reciprocity: accurate from an inexact unit press and press", "[elastic]") {
+  // the slab of the fingertip's test, a 5 mm finger pressed 3 mm at the centre with the unit
+  // press: converged (tolerance 1e-7) as the reference, then the press and the unit press
+  // stopped early (1e-2) with the force as the contact's reactions summed and by reciprocity
+  const int n = 32, top = 30;
+  auto p = slab(n, top);
+  const Voi voi{{0, 0, 0}, {n, n, n}};
+  const Vec3 x_skin{15.5, 15.5, double(top)};
+  auto press = [&](float tol, float unit_tol) {
+    ElasticParams prm = homogeneous(12, 0.45);
+    prm.finger_radius_mm = 5;
+    prm.stiffness = true;
+    prm.tolerance = tol;
+    prm.stiffness_tolerance = unit_tol;
+    prm.max_iterations = 400;
+    prm.contact_rounds = 12;
+    ElasticCpu s;
+    std::vector<Vec3f> u(std::size_t(voi.count()));
+    return relax_elastic_cpu(*p, voi, x_skin, x_skin - Vec3{0, 0, 3}, prm, s, u.data());
+  };
+  const ElasticRun ref = press(1e-7f, 0), summed = press(1e-2f, 0), recip = press(1e-2f, 1e-2f);
+  const double f_ref = ref.force_n.z, k_ref = ref.stiffness_n_per_mm;
+  INFO("converged F " << f_ref << " N, k " << k_ref << " N/mm; at 1e-2 summed F " << summed.force_n.z << ", k "
+                      << summed.stiffness_n_per_mm << "; reciprocal F " << recip.force_n.z << ", k "
+                      << recip.stiffness_n_per_mm << " (" << recip.stiffness_iterations << " unit CG steps against "
+                      << summed.stiffness_iterations << ")");
+  REQUIRE(ref.converged);
+  REQUIRE(recip.contact_nodes == ref.contact_nodes);
+  // the reciprocal force's error is the product of two solves' errors of order 1e-2 each: it
+  // lies within 0.5 % of the converged force (and closer than the summed reactions, whose
+  // error is first order in the press's)
+  CHECK(std::fabs(recip.force_n.z / f_ref - 1) <= 0.005);
+  CHECK(std::fabs(recip.force_n.z - f_ref) < std::fabs(summed.force_n.z - f_ref));
+  // the energy w . K w bounds the stiffness from above (a minimum over the admissible unit
+  // presses), by w's error squared: within 2 %, float rounding allowed below
+  CHECK(recip.stiffness_n_per_mm >= k_ref * (1 - 1e-5));
+  CHECK(recip.stiffness_n_per_mm <= k_ref * 1.02);
+  // the force pushes the finger out, along +z alone
+  CHECK(recip.force_n.z > 0);
+  CHECK(recip.force_n.x == 0.0);
+}

@@ -211,6 +211,15 @@ TEST_CASE("haptics.skin_point is read, checked and defaults as HapticsSettings d
   CHECK(e.find("\"nearest\"") != std::string::npos);
 }
 
+TEST_CASE("prep.cut_faces is read, checked and defaults as PrepSettings does") {
+  CHECK(PrepSettings{}.cut_faces == CutFaces::kSkin);
+  CHECK(parse_scene_text("phantom {}", "x.textproto").prep.cut_faces == CutFaces::kSkin);
+  CHECK(parse_scene_text("phantom {} prep { cut_faces: \"open\" }", "x.textproto").prep.cut_faces == CutFaces::kOpen);
+  CHECK(parse_scene_text("phantom {} prep { cut_faces: \"skin\" }", "x.textproto").prep.cut_faces == CutFaces::kSkin);
+  CHECK(error_of("phantom {} prep { cut_faces: \"closed\" }") ==
+        "test.textproto: prep.cut_faces = \"closed\"; allowed: \"skin\", \"open\"");
+}
+
 TEST_CASE("an empty scene file, a folder, a FIFO and a path holding a NUL are refused, naming them") {
   test::TempDir d;
   auto error_of_file = [](const std::string& path) {

@@ -141,6 +141,59 @@ void derive_force(Patient& p, const Scene& scene, PrepReport& r) {
   p.grad_force = timed(r, "gradient", [&] { return gradient_physical(p.force); });
 }
 
+// a cached patient's report: volumes, thresholds, bone per region, field of view and body
+// check measured again; the units the first run found, from its report (a header cannot tell)
+void measure_cached(Patient& p, const PrepSettings& prep, const std::string& core, PrepReport& r) {
+  const double voxel_ml = p.grid.spacing_mm.x * p.grid.spacing_mm.y * p.grid.spacing_mm.z / 1000.0;
+  r.body_ml = double(count_nonzero(p.body)) * voxel_ml;
+  r.bone_ml = double(count_nonzero(p.bone)) * voxel_ml;
+  r.bone_thresholds = choose_bone_thresholds(p.intensity, p.body, prep);
+  p.bone_threshold_hu = r.bone_thresholds.low;
+  r.bone_summary = summarize_bone(p.body, p.bone);
+  r.field_of_view = find_cut_faces(p.body, prep.cut_faces);
+  r.units = core.find("\"units\": \"image units\"") != std::string::npos ? "image units" : "HU";
+  r.body_check = check_body(p.body, prep.air_threshold, r.units);
+}
+
+// "HU", or "image units" where the image failed the HU check and the scene's thresholds let it pass
+std::string image_units(const std::string& what, const CtInfo& info, const PrepSettings& prep) {
+  PrepSettings strict = prep;
+  strict.air_threshold_set = strict.bone_threshold_set = false;
+  try {
+    check_hounsfield(what, info.pixel_type, info.min_value, info.max_value, strict);
+  } catch (const Error&) {
+    return "image units";
+  }
+  return "HU";
+}
+
+// the report's core (what the cache keeps): input, grid, settings, volumes, field of
+// view, body check, bone, stage times
+std::string report_core(const Scene& scene, const std::string& source, const CtInfo& info, const Patient& p,
+                        const PrepReport& r) {
+  const PrepSettings& prep = scene.prep;
+  std::size_t patient_bytes = p.intensity.bytes() + p.body.bytes() + p.bone.bytes() + p.dist_bone_mm.bytes() +
+                              p.dist_skin_mm.bytes() + p.force.bytes() + p.grad_force.bytes();
+  float fmax = 0;
+  for (float v : p.force.data) fmax = std::max(fmax, v);
+  std::ostringstream s;
+  s << "\n  \"format_version\": " << kPrepFormatVersion << ",\n  \"source\": " << jstr(source)
+    << ",\n  \"input\": {\"path\": " << jstr(info.path) << ", \"format\": " << jstr(info.format)
+    << ", \"pixel_type\": " << jstr(info.pixel_type) << ", \"stored_pixel_type\": " << jstr(info.stored_pixel_type)
+    << ", \"series_uid\": " << jstr(info.series_uid)
+    << ", \"files\": " << info.files.size() << ", \"grid\": " << jgrid(info.grid) << "},\n  \"value_range\": {\"min\": "
+    << jnum(info.min_value) << ", \"max\": " << jnum(info.max_value) << ", \"units\": "
+    << jstr(r.units) << "},\n  \"grid\": " << jgrid(p.grid) << ",\n  \"settings\": "
+    << settings_json(scene) << ",\n  \"body_ml\": " << jnum(r.body_ml) << ",\n  \"bone_ml\": " << jnum(r.bone_ml)
+    << ",\n  \"field_of_view\": " << field_of_view_json(r.field_of_view, prep.cut_faces)
+    << ",\n  \"body_check\": " << body_check_json(r.body_check)
+    << ",\n  \"has_bone\": " << (p.has_bone ? "true" : "false")
+    << ",\n  \"bone\": " << bone_json(r.bone_thresholds, r.bone_summary, r.units) << ",\n  \"force_max_mm\": " << jnum(fmax)
+    << ",\n  \"patient_mb\": " << jnum(double(patient_bytes) / (1024.0 * 1024.0))
+    << ",\n  \"stages_s\": " << stages_json(r);
+  return s.str();
+}
+
 }  // namespace
 
 void check_hounsfield(const std::string& what, const std::string& pixel_type, double min_value, double max_value,
@@ -290,16 +343,7 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report, const PathPol
       derive_force(*p, scene, r);
       r.from_cache = true;
       r.cache_path = entry;
-      const double voxel_ml = p->grid.spacing_mm.x * p->grid.spacing_mm.y * p->grid.spacing_mm.z / 1000.0;
-      r.body_ml = double(count_nonzero(p->body)) * voxel_ml;
-      r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
-      r.bone_thresholds = choose_bone_thresholds(p->intensity, p->body, prep);
-      p->bone_threshold_hu = r.bone_thresholds.low;
-      r.bone_summary = summarize_bone(p->body, p->bone);
-      r.field_of_view = find_cut_faces(p->body, prep.cut_faces);
-      // the units the first run found, from its report (the header alone cannot tell)
-      r.units = core.find("\"units\": \"image units\"") != std::string::npos ? "image units" : "HU";
-      r.body_check = check_body(p->body, prep.air_threshold, r.units);
+      measure_cached(*p, prep, core, r);
       r.total_s = seconds_since(t0);
       r.json = "{" + core + ",\n  \"cache\": {\"hit\": true, \"key\": " + jstr(r.cache_key) + ", \"path\": " +
                jstr(entry) + ", \"this_run_stages_s\": " + stages_json(r) + "},\n  \"total_s\": " +
@@ -317,43 +361,12 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report, const PathPol
   }
   const std::string what = scene.use_phantom ? std::string("the phantom") : "CT '" + source + "'";
   check_hounsfield(what, info.pixel_type, info.min_value, info.max_value, prep);
-  // units: HU unless the image failed the HU check and the scene's thresholds let it pass
-  bool hu = true;
-  try {
-    PrepSettings strict = prep;
-    strict.air_threshold_set = strict.bone_threshold_set = false;
-    check_hounsfield(what, info.pixel_type, info.min_value, info.max_value, strict);
-  } catch (const Error&) {
-    hu = false;
-  }
-  r.units = hu ? "HU" : "image units";
+  r.units = image_units(what, info, prep);
   PatientPtr p = build_patient(phantom, scene, what, &r);
   phantom = Volume<float>();
 
   // the report (the cache keeps its core)
-  std::size_t patient_bytes = p->intensity.bytes() + p->body.bytes() + p->bone.bytes() + p->dist_bone_mm.bytes() +
-                              p->dist_skin_mm.bytes() + p->force.bytes() + p->grad_force.bytes();
-  float fmax = 0;
-  for (float v : p->force.data) fmax = std::max(fmax, v);
-  std::string core;
-  {
-    std::ostringstream s;
-    s << "\n  \"format_version\": " << kPrepFormatVersion << ",\n  \"source\": " << jstr(source)
-      << ",\n  \"input\": {\"path\": " << jstr(info.path) << ", \"format\": " << jstr(info.format)
-      << ", \"pixel_type\": " << jstr(info.pixel_type) << ", \"stored_pixel_type\": " << jstr(info.stored_pixel_type)
-      << ", \"series_uid\": " << jstr(info.series_uid)
-      << ", \"files\": " << info.files.size() << ", \"grid\": " << jgrid(info.grid) << "},\n  \"value_range\": {\"min\": "
-      << jnum(info.min_value) << ", \"max\": " << jnum(info.max_value) << ", \"units\": "
-      << jstr(r.units) << "},\n  \"grid\": " << jgrid(p->grid) << ",\n  \"settings\": "
-      << settings_json(scene) << ",\n  \"body_ml\": " << jnum(r.body_ml) << ",\n  \"bone_ml\": " << jnum(r.bone_ml)
-      << ",\n  \"field_of_view\": " << field_of_view_json(r.field_of_view, prep.cut_faces)
-      << ",\n  \"body_check\": " << body_check_json(r.body_check)
-      << ",\n  \"has_bone\": " << (p->has_bone ? "true" : "false")
-      << ",\n  \"bone\": " << bone_json(r.bone_thresholds, r.bone_summary, r.units) << ",\n  \"force_max_mm\": " << jnum(fmax)
-      << ",\n  \"patient_mb\": " << jnum(double(patient_bytes) / (1024.0 * 1024.0))
-      << ",\n  \"stages_s\": " << stages_json(r);
-    core = s.str();
-  }
+  const std::string core = report_core(scene, source, info, *p, r);
 
   // store in the cache; a cache that cannot be written costs only the reuse
   if (prep.use_cache) {

@@ -150,5 +150,7 @@ TEST_CASE("palpsim-prep --air-threshold and --bone-threshold process an 8-bit im
                        Catch::Contains("\"units\": \"image units\", \"low_hu\": 166") &&
                        Catch::Contains("\"min\": 0, \"max\": 242, \"units\": \"image units\""));
   CHECK_THAT(r.output, Catch::Contains("bone threshold 166 image units") && !Catch::Contains(" HU"));
+  // the scene is named with its file and its CT (the default scene's name is the phantom's)
+  CHECK_THAT(r.output, Catch::Contains("(built-in, CT " + (d / "chest8.nrrd") + ")"));
 }
 

@@ -1,13 +1,15 @@
 // The field of view: which faces of the image cut the body (named in patient terms
-// from the grid's direction), the depth under the skin (B) at a cut face with
-// prep.cut_faces "skin" and "open", and the body mask's plausibility warnings; on a
-// cropped phantom and on crops of the shared abdomen (cropped here, never copied).
+// from the grid's direction), the depth under the skin (B) and a press at a cut face
+// with prep.cut_faces "skin" and "open", the body mask's plausibility warnings and the
+// landmarks; on a cropped phantom and on crops of the shared abdomen (cropped here,
+// never copied).
 #include <catch2/catch.hpp>
 
 #include <algorithm>
 #include <cmath>
 #include <string>
 
+#include "haptics/force_model.h"
 #include "prep/ct_io.h"
 #include "prep/field_of_view.h"
 #include "prep/landmarks.h"
@@ -252,5 +254,42 @@ TEST_CASE("landmarks on the phantom: each spinous process tip and iliac crest to
         ++hits;
     INFO(side);
     CHECK(hits == 1);
+  }
+}
+
+TEST_CASE("a press into a cut face meets skin at the face with \"skin\", deep under it with \"open\"") {
+  // the cropped phantom of above (anterior face at y = -10 mm); a tip moving along +y
+  // (anterior to posterior) 60 mm left of the spine, from 5 mm outside the grid to 25 mm in
+  const PhantomCt ph = make_phantom(3.0);
+  const Vec3i n = ph.hu.grid.size;
+  const Volume<float> img = crop(ph.hu, {0, n.y / 2, 0}, n);
+  const double face_y = img.grid.origin_mm.y, h = 3.0;
+  for (const CutFaces mode : {CutFaces::kSkin, CutFaces::kOpen}) {
+    const PatientPtr p = build_patient(img, scene_at(h, mode), "cropped phantom");
+    ProxyState state;
+    double first = -1, previous = 0;
+    bool monotone = true;
+    for (double y = face_y - 0.5 * h - 5; y <= face_y + 25; y += 0.25) {
+      const ForceSample f = compute_force(*p, HapticsSettings{}, {60, y, 0}, 0.001, state);
+      if (!f.contact) continue;
+      if (first < 0) first = f.depth_mm;
+      monotone = monotone && f.depth_mm >= previous - 1e-6;
+      previous = f.depth_mm;
+    }
+    INFO((mode == CutFaces::kSkin ? "skin" : "open") << ": depth at first contact " << first << " mm, at 25 mm in "
+                                                     << previous << " mm");
+    REQUIRE(first >= 0);
+    if (mode == CutFaces::kSkin) {
+      // the grid's face lies half a voxel beyond the face voxels' centres, which the
+      // sampling replicates out to it: contact starts there with a skin voxel's depth,
+      // B - h/2 = 1.5 mm (1e-9: rounding), and grows with the press (25 mm in: at least
+      // 25 - 1.5 mm, the half voxel again)
+      CHECK(first <= 0.5 * h + 1e-9);
+      CHECK(monotone);
+      CHECK(previous >= 25 - 0.5 * h);
+    } else {
+      // open: the first contact is already deep (the issue's 27.7 mm), the real skin being far
+      CHECK(first > 20);
+    }
   }
 }

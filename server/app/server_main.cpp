@@ -206,7 +206,7 @@ int main(int argc, char** argv) {
   try {
     scene = scene_file.empty() ? palpsim::default_scene() : palpsim::load_scene_file(scene_file);
     if (!cache_dir.empty()) scene.prep.cache_dir = cache_dir;
-    spdlog::info("scene '{}' from {}", scene.name, scene_file.empty() ? std::string("the built-in default") : scene_file);
+    spdlog::info("scene {}", palpsim::scene_label(scene));
     palpsim::PrepReport report;
     patient = palpsim::prepare_patient(scene, &report);
     spdlog::info("patient {}: {}x{}x{} voxels at {} mm ({} in {:.2f} s)", patient->source, patient->grid.size.x,
@@ -235,8 +235,9 @@ int main(int argc, char** argv) {
     palpsim::net::Server server(scene, std::move(patient), loader, options);
     server.start();
     const std::string stream = server.stream_endpoint();
-    std::printf("palpsim-server: ready on %s poses %s%s%s (scene '%s')\n", server.control_endpoint().c_str(),
-                server.pose_endpoint().c_str(), stream.empty() ? "" : " stream ", stream.c_str(), scene.name.c_str());
+    std::printf("palpsim-server: ready on %s poses %s%s%s (scene %s)\n", server.control_endpoint().c_str(),
+                server.pose_endpoint().c_str(), stream.empty() ? "" : " stream ", stream.c_str(),
+                palpsim::scene_label(scene).c_str());
     std::fflush(stdout);
     int sig = 0;
     sigwait(&stop_signals, &sig);

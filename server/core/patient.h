@@ -19,7 +19,8 @@ struct Patient {
   Volume<std::uint8_t> body;       // C: 1 inside the patient, 0 outside air, table and border air
   Volume<std::uint8_t> bone;       // 1 where rigid bone is
   Volume<float> dist_bone_mm;      // A: Euclidean distance to the nearest bone voxel (mm)
-  Volume<float> dist_skin_mm;      // B: depth under the skin, distance to the nearest outside voxel (mm), 0 outside
+  Volume<float> dist_skin_mm;      // B: depth under the skin, distance to the nearest outside voxel (mm), 0 outside;
+                                   // beyond the grid's faces counts as outside with prep.cut_faces "skin"
   Volume<float> force;             // F = alpha*C/(beta+A) + gamma*B (mm), eq. 1
   Volume<Vec3f> grad_force;        // grad F in physical axes (mm/mm), central differences
   bool has_bone = false;           // false when the bone mask is empty (A is then +inf)

@@ -7,6 +7,12 @@
 
 namespace palpsim {
 
+/// How prep treats the faces where the image's border cuts the body (prep.cut_faces).
+enum class CutFaces {
+  kSkin,  // a cut face counts as skin: the depth under the skin (B) measures to it, so a press into it meets skin
+  kOpen,  // a cut face is missing data, not skin: B measures only to the outside air within the image
+};
+
 /// Preprocessing settings (Prep in the schema).
 struct PrepSettings {
   double spacing_mm = 0;            // 0 = smallest input spacing clamped to [0.5, 2] mm
@@ -24,6 +30,7 @@ struct PrepSettings {
   bool use_cache = true;
   double body_opening_mm = 5.0;     // opening radius that cuts the table's thin shell off the body
   double body_min_part_ml = 20;     // body parts apart from the largest are kept from this size up
+  CutFaces cut_faces = CutFaces::kSkin;  // whether the faces where the image cuts the body count as skin
 };
 
 /// Eq. 1 parameters; A, B and F in mm.
@@ -193,5 +200,13 @@ struct Scene {
   ServerSettings server;
   RenderSettings render;
 };
+
+/// The scene as log lines name it: its name with its file and its CT ("'lumbar CT'
+/// (scenes/a.textproto, CT /data/ct.nii.gz)"), since a scene copied to another CT
+/// keeps its name.
+inline std::string scene_label(const Scene& s) {
+  return "'" + s.name + "' (" + (s.file.empty() ? std::string("built-in") : s.file) + ", " +
+         (s.use_phantom ? std::string("phantom") : "CT " + s.ct_path) + ")";
+}
 
 }  // namespace palpsim

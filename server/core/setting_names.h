@@ -1,6 +1,6 @@
 // The scene's spellings of the settings that take one of a few names (deform.relax_method,
 // deform.backend, haptics.skin_point, haptics.force_model, render.preset,
-// render.jpeg_encoder, render.overlay_writer): one table per setting, the only place those
+// render.jpeg_encoder, render.overlay_writer, prep.cut_faces): one table per setting, the only place those
 // names are listed, so that the parser, its messages and the code that needs a name
 // (make_deform_backend by name, the wire's ViewSettings.preset) agree.
 #pragma once
@@ -71,6 +71,12 @@ struct SettingNames<OverlayWriterChoice> {
   static constexpr SettingName<OverlayWriterChoice> values[] = {{OverlayWriterChoice::kAuto, "auto"},
                                                                 {OverlayWriterChoice::kUpload, "upload"},
                                                                 {OverlayWriterChoice::kCudaGl, "cuda-gl"}};
+};
+
+template <>
+struct SettingNames<CutFaces> {
+  static constexpr const char* field = "prep.cut_faces";
+  static constexpr SettingName<CutFaces> values[] = {{CutFaces::kSkin, "skin"}, {CutFaces::kOpen, "open"}};
 };
 
 /// The scene's spelling of `v` ("" for a value outside the table, which a cast can make).

@@ -1200,7 +1200,7 @@ class Server::Control {
     retired_.push_back(std::move(current_));
     current_ = std::move(next);
     sh_.counters.scene_loads.fetch_add(1);
-    spdlog::info("now serving scene '{}' (generation {})", current_->scene.name, current_->generation);
+    spdlog::info("now serving scene {} (generation {})", scene_label(current_->scene), current_->generation);
     warn_quota();
     // a running worker picks the new scene up itself; the first scene that asks for
     // deformation starts one (settings were checked above; a failure past them, such as
@@ -1208,13 +1208,13 @@ class Server::Control {
     try {
       start_deform();
     } catch (const std::exception& e) {
-      spdlog::error("scene '{}': {}; serving haptics only", current_->scene.name, e.what());
+      spdlog::error("scene {}: {}; serving haptics only", scene_label(current_->scene), e.what());
     }
     // frames and bricks likewise: a render thread that cannot start leaves the scene without frames
     try {
       sync_stream();
     } catch (const std::exception& e) {
-      spdlog::error("scene '{}': {}; no frames are served", current_->scene.name, e.what());
+      spdlog::error("scene {}: {}; no frames are served", scene_label(current_->scene), e.what());
     }
     fill_info(rep_.mutable_load_scene()->mutable_server());
     send_reply(l->routing_id, l->req_envelope);

@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <iomanip>
 #include <limits>
 #include <random>
 #include <sstream>
@@ -209,6 +210,54 @@ std::vector<std::string> wrap(const std::string& line, std::size_t max_chars) {
   return out;
 }
 
+// "-400" or "0.25": a threshold as the histogram's label shows it
+std::string short_number(double v) {
+  std::ostringstream s;
+  s << std::setprecision(4) << v;
+  return s.str();
+}
+
+// the histogram of every voxel's value (log counts; the 0.1 to 99.9 percentile, widened
+// to the thresholds) in a strip of `bars_h` pixels from row `y0`, the thresholds as
+// vertical lines (air cyan, bone low yellow, seeds orange) and up to two lines of text under it
+void draw_histogram(std::vector<Rgb>& img, int width, int height, int y0, int bars_h, int fs, const Patient& p,
+                    const PreviewOptions& o) {
+  std::vector<float> v;
+  v.reserve(p.intensity.data.size() / 3 + 1);
+  for (std::size_t i = 0; i < p.intensity.data.size(); i += 3) v.push_back(p.intensity.data[i]);
+  if (v.empty()) return;
+  std::sort(v.begin(), v.end());
+  double lo = v[std::size_t(0.001 * (v.size() - 1))], hi = v[std::size_t(0.999 * (v.size() - 1))];
+  for (double t : {o.air_threshold, o.bone_low, o.bone_high})
+    if (std::isfinite(t)) lo = std::min(lo, t), hi = std::max(hi, t);
+  if (!(hi > lo)) hi = lo + 1;
+  const int x0 = 4, bins = std::max(16, width - 8);
+  const auto column = [&](double value) { return x0 + int(std::lround((value - lo) / (hi - lo) * (bins - 1))); };
+  std::vector<double> count(std::size_t(bins), 0);
+  for (float f : v)
+    if (f >= lo && f <= hi) count[std::size_t(column(f) - x0)] += 1;
+  const double top = std::log1p(*std::max_element(count.begin(), count.end()));
+  const auto put = [&](int x, int y, Rgb c) {
+    if (x >= 0 && y >= 0 && x < width && y < height) img[std::size_t(y) * width + x] = c;
+  };
+  for (int b = 0; b < bins; ++b) {
+    const int bar = top > 0 ? int(std::lround(std::log1p(count[std::size_t(b)]) / top * bars_h)) : 0;
+    for (int y = 0; y < bars_h; ++y) put(x0 + b, y0 + y, y >= bars_h - bar ? Rgb{170, 170, 190} : Rgb{40, 40, 64});
+  }
+  const Rgb air{0, 220, 255}, low{255, 210, 0}, seeds{255, 150, 40};
+  // seeds first, so a plain threshold (low = seeds) shows in yellow
+  const std::pair<double, Rgb> marks[3] = {{o.bone_high, seeds}, {o.bone_low, low}, {o.air_threshold, air}};
+  for (const auto& [t, c] : marks)
+    if (std::isfinite(t))
+      for (int y = 0; y < bars_h; ++y) put(column(t), y0 + y, c);
+  std::string text = short_number(lo) + ".." + short_number(hi) + " " + o.units + " (log count): air " +
+                     short_number(o.air_threshold) + ", bone " + short_number(o.bone_low);
+  if (std::isfinite(o.bone_high) && o.bone_high != o.bone_low) text += ", seeds " + short_number(o.bone_high);
+  const std::vector<std::string> rows = wrap(text, std::size_t(std::max(10, (width - 8) / (6 * fs))));
+  for (std::size_t r = 0; r < rows.size() && r < 2; ++r)
+    draw_text(img, width, height, x0, y0 + bars_h + 2 * fs + int(r) * 9 * fs, rows[r], fs, Rgb{230, 230, 230});
+}
+
 }  // namespace
 
 void write_nrrd(const std::string& path, const Volume<float>& v) { write_nrrd_any(path, v, "float"); }
@@ -229,8 +278,9 @@ Vec3 preview_centre_mm(const Patient& p) {
   return g.to_physical(Vec3{(lo.x + hi.x) / 2.0, (lo.y + hi.y) / 2.0, (lo.z + hi.z) / 2.0});
 }
 
-void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm,
-                       const std::vector<std::string>& caption) {
+void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm, const PreviewOptions& o) {
+  const std::vector<std::string>& caption = o.caption;
+  const bool border_is_skin = o.border_is_skin;
   const Grid& g = p.grid;
   const double px = g.spacing_mm.x;  // isotropic grid: one pixel per voxel edge
   Vec3 lo, hi;
@@ -273,6 +323,11 @@ void write_preview_png(const std::string& path, const Patient& p, const Vec3& ce
       lines.emplace_back(piece, warning);
   }
   const int slices_h = height;
+  // the histogram's strip: bars, then a line of text
+  const bool histogram = std::isfinite(o.air_threshold) || std::isfinite(o.bone_low);
+  const int hist_bars_h = histogram ? std::max(40, slices_h / 4) : 0;
+  const int hist_h = histogram ? hist_bars_h + 2 * line_h + 2 * fs + 6 : 0;
+  height += hist_h;
   if (!lines.empty()) height += int(lines.size()) * line_h + 2 * fs + 4;
   std::vector<std::array<std::uint8_t, 3>> img(std::size_t(width) * height, {24, 24, 48});
   int x0 = 0;
@@ -287,10 +342,12 @@ void write_preview_png(const std::string& path, const Patient& p, const Vec3& ce
         q[w.down] = w.down_sign > 0 ? lo[w.down] + y * px : hi[w.down] - y * px;
         vox[std::size_t(y) * sw + x] = nearest_voxel(g, q);
       }
+    // beyond the image (or the grid) is outside the body where the border counts as skin,
+    // and body otherwise, so that no contour is drawn along a cut
     const auto in_body = [&](int x, int y) {
-      if (x < 0 || y < 0 || x >= sw || y >= sh) return false;
+      if (x < 0 || y < 0 || x >= sw || y >= sh) return !border_is_skin;
       const long long i = vox[std::size_t(y) * sw + x];
-      return i >= 0 && p.body.data[std::size_t(i)] != 0;
+      return i >= 0 ? p.body.data[std::size_t(i)] != 0 : !border_is_skin;
     };
     const auto in_bone = [&](int x, int y) {
       if (x < 0 || y < 0 || x >= sw || y >= sh) return false;
@@ -316,16 +373,17 @@ void write_preview_png(const std::string& path, const Patient& p, const Vec3& ce
       }
     x0 += sw + gap;
   }
+  if (histogram) draw_histogram(img, width, height, slices_h + 4, hist_bars_h, fs, p, o);
   // the caption
   for (std::size_t n = 0; n < lines.size(); ++n)
-    draw_text(img, width, height, 4, slices_h + 2 * fs + 2 + int(n) * line_h, lines[n].first, fs,
+    draw_text(img, width, height, 4, slices_h + hist_h + 2 * fs + 2 + int(n) * line_h, lines[n].first, fs,
               lines[n].second ? Rgb{255, 150, 40} : Rgb{230, 230, 230});
 
   write_rgb_png(path, img, width, height, scale);
 }
 
 void write_patient_outputs(const std::string& out_dir, const Patient& p, const std::string& prep_json,
-                           const std::vector<std::string>& caption) {
+                           const PreviewOptions& preview) {
   const fs::path out = fs::absolute(fs::path(out_dir)).lexically_normal();
   const fs::path parent = out.has_filename() ? out.parent_path() : out.parent_path().parent_path();
   const std::string name = (out.has_filename() ? out : out.parent_path()).filename().string();
@@ -346,7 +404,7 @@ void write_patient_outputs(const std::string& out_dir, const Patient& p, const s
     write_nrrd((tmp / "bone.nrrd").string(), p.bone);
     write_nrrd((tmp / "dist_bone.nrrd").string(), p.dist_bone_mm);
     write_nrrd((tmp / "dist_skin.nrrd").string(), p.dist_skin_mm);
-    write_preview_png((tmp / "preview.png").string(), p, preview_centre_mm(p), caption);
+    write_preview_png((tmp / "preview.png").string(), p, preview_centre_mm(p), preview);
     {
       std::ofstream j(tmp / "prep.json");
       j << prep_json << "\n";

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -18,13 +19,29 @@ void write_nrrd(const std::string& path, const Volume<float>& v);
 /// Writes a 0/1 mask as an unsigned 8-bit NRRD file (same geometry fields).
 void write_nrrd(const std::string& path, const Volume<std::uint8_t>& v);
 
+/// What the preview shows beside F's slices.
+struct PreviewOptions {
+  std::vector<std::string> caption;  // lines under the slices (PrepReport::summary_lines)
+  bool border_is_skin = true;        // prep.cut_faces = "skin": the skin contour follows the image's border
+  /// Thresholds drawn on the intensity histogram under the slices (NaN: not drawn), in `units`.
+  double air_threshold = std::numeric_limits<double>::quiet_NaN();
+  double bone_low = std::numeric_limits<double>::quiet_NaN();
+  double bone_high = std::numeric_limits<double>::quiet_NaN();
+  std::string units = "HU";          // "HU", or "image units" for an image not in HU
+};
+
 /// Writes preview.png: axial, coronal and sagittal slices of F through `centre_mm`
 /// (grey: the square root of F over its 99th percentile in the body), skin contour (the border of
 /// C) in red, bone contour in yellow; patient's right on the image's left, anterior and
 /// superior up; below them the `caption` lines (PrepReport::summary_lines: thresholds,
-/// bone per region), those starting with "warning" in orange.
+/// bone per region), those starting with "warning" in orange. Where the image's border
+/// cuts the body the skin contour follows the border when `o.border_is_skin`
+/// (prep.cut_faces = "skin") and is left open there otherwise. Between slices and
+/// caption, when a threshold is set, the histogram of every voxel's value (log counts)
+/// with the air threshold in cyan and the bone thresholds in yellow (low) and orange
+/// (seeds), so a user of an image not in HU sees where the chosen values fall.
 void write_preview_png(const std::string& path, const Patient& p, const Vec3& centre_mm,
-                       const std::vector<std::string>& caption = {});
+                       const PreviewOptions& o = {});
 
 /// A good place for the preview's slices: the centre of the bone mask's bounding
 /// box (the spine and pelvis), else the centre of the body.
@@ -34,8 +51,8 @@ Vec3 preview_centre_mm(const Patient& p);
 /// dist_bone.nrrd, dist_skin.nrrd, preview.png, prep.json) into a temporary
 /// sibling folder of `out_dir` and renames it to `out_dir` at the end (an existing
 /// `out_dir` is replaced only then); on any error nothing half-written is left.
-/// `caption` goes under the preview's slices.
+/// `preview` says what the preview shows beside the slices.
 void write_patient_outputs(const std::string& out_dir, const Patient& p, const std::string& prep_json,
-                           const std::vector<std::string>& caption = {});
+                           const PreviewOptions& preview = {});
 
 }  // namespace palpsim

@@ -173,6 +173,13 @@ int remove_small_components(Volume<std::uint8_t>& mask, std::size_t min_voxels) 
   return kept;
 }
 
+std::vector<std::size_t> component_sizes(const Volume<std::uint8_t>& mask) {
+  std::vector<std::size_t> sizes = label_components(mask, true).size;
+  if (!sizes.empty()) sizes.erase(sizes.begin());  // label 0: the background
+  std::sort(sizes.rbegin(), sizes.rend());
+  return sizes;
+}
+
 void fill_holes_3d(Volume<std::uint8_t>& mask) {
   const Components c = label_components(mask, false);
   for (std::size_t i = 0; i < mask.data.size(); ++i)
@@ -432,7 +439,7 @@ BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<s
   if (prep.bone_threshold_set) {
     t.low = t.high = prep.bone_threshold;
     t.cancellous = t.cancellous_axial = cancellous_level(prep);
-    t.reason = "prep.bone_threshold set in the scene";
+    t.reason = "prep.bone_threshold set (scene or palpsim-prep --bone-threshold)";
     return t;
   }
   t.automatic = true;

@@ -165,6 +165,9 @@ BoneSummary summarize_bone(const Volume<std::uint8_t>& body, const Volume<std::u
 /// `min_voxels`; returns the number of components kept.
 int remove_small_components(Volume<std::uint8_t>& mask, std::size_t min_voxels);
 
+/// The voxel counts of the 6-connected components of `mask`, largest first.
+std::vector<std::size_t> component_sizes(const Volume<std::uint8_t>& mask);
+
 /// Sets to 1 every 0-voxel of `mask` that no 6-connected path of 0-voxels links
 /// to the volume's border (fills enclosed cavities in 3D).
 void fill_holes_3d(Volume<std::uint8_t>& mask);

@@ -11,6 +11,7 @@
 #include <sstream>
 
 #include "core/error.h"
+#include "core/setting_names.h"
 #include "prep/cache.h"
 #include "prep/ct_io.h"
 #include "prep/distance.h"
@@ -63,7 +64,7 @@ std::string settings_text(const Scene& s) {
     << " bone_threshold_set=" << p.bone_threshold_set << " bone_min_volume_ml=" << p.bone_min_volume_ml
     << " bone_closing_mm=" << p.bone_closing_mm << " bone_fill_holes=" << p.bone_fill_holes
     << " dicom_series_uid=" << p.dicom_series_uid << " body_opening_mm=" << p.body_opening_mm
-    << " body_min_part_ml=" << p.body_min_part_ml << " alpha=" << f.alpha << " beta=" << f.beta
+    << " body_min_part_ml=" << p.body_min_part_ml << " cut_faces=" << setting_name(p.cut_faces) << " alpha=" << f.alpha << " beta=" << f.beta
     << " gamma=" << f.gamma;
   return o.str();
 }
@@ -78,7 +79,7 @@ std::string settings_json(const Scene& s) {
          ", \"bone_min_volume_ml\": " +
          jnum(p.bone_min_volume_ml) + ", \"bone_closing_mm\": " + jnum(p.bone_closing_mm) +
          ", \"bone_fill_holes\": " + (p.bone_fill_holes ? "true" : "false") + ", \"body_opening_mm\": " +
-         jnum(p.body_opening_mm) + ", \"body_min_part_ml\": " + jnum(p.body_min_part_ml) + ", \"max_memory_mb\": " +
+         jnum(p.body_opening_mm) + ", \"body_min_part_ml\": " + jnum(p.body_min_part_ml) + ", \"cut_faces\": " + jstr(setting_name(p.cut_faces)) + ", \"max_memory_mb\": " +
          jnum(p.max_memory_mb) + "}, \"force_image\": {\"alpha\": " + jnum(f.alpha) + ", \"beta\": " +
          jnum(f.beta) + ", \"gamma\": " + jnum(f.gamma) + "}}";
 }
@@ -104,12 +105,24 @@ std::string stages_json(const PrepReport& r) {
   return s + "}";
 }
 
-// the bone section of the report: thresholds and why, volume per region, warnings
-std::string bone_json(const BoneThresholds& t, const BoneSummary& b) {
+std::string jstrings(const std::vector<std::string>& v) {
   std::string w = "[";
-  for (std::size_t i = 0; i < b.warnings.size(); ++i) w += (i ? ", " : "") + jstr(b.warnings[i]);
-  w += "]";
-  return "{\"thresholds\": {\"automatic\": " + std::string(t.automatic ? "true" : "false") + ", \"low_hu\": " +
+  for (std::size_t i = 0; i < v.size(); ++i) w += (i ? ", " : "") + jstr(v[i]);
+  return w + "]";
+}
+
+// the body mask's check: pieces, cross-section, warnings
+std::string body_check_json(const BodyCheck& c) {
+  return "{\"pieces\": " + std::to_string(c.pieces) + ", \"largest_piece_fraction\": " + jnum(c.largest_fraction) +
+         ", \"mean_cross_section_cm2\": " + jnum(c.cross_section_cm2) + ", \"warnings\": " + jstrings(c.warnings) +
+         "}";
+}
+
+// the bone section of the report: thresholds (the *_hu keys in `units`) and why, volume per region, warnings
+std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::string& units) {
+  const std::string w = jstrings(b.warnings);
+  return "{\"thresholds\": {\"automatic\": " + std::string(t.automatic ? "true" : "false") + ", \"units\": " +
+         jstr(units) + ", \"low_hu\": " +
          jnum(t.low) + ", \"high_hu\": " + jnum(t.high) + ", \"cancellous_hu\": " + jnum(t.cancellous) +
          ", \"cancellous_axial_hu\": " + jnum(t.cancellous_axial) + ", \"grow_mm\": " + jnum(t.grow_mm) +
          (t.automatic ? ", \"soft_tissue_hu\": " + jnum(t.soft_tissue_hu) + ", \"soft_tissue_sigma_hu\": " +
@@ -128,6 +141,59 @@ void derive_force(Patient& p, const Scene& scene, PrepReport& r) {
   p.grad_force = timed(r, "gradient", [&] { return gradient_physical(p.force); });
 }
 
+// a cached patient's report: volumes, thresholds, bone per region, field of view and body
+// check measured again; the units the first run found, from its report (a header cannot tell)
+void measure_cached(Patient& p, const PrepSettings& prep, const std::string& core, PrepReport& r) {
+  const double voxel_ml = p.grid.spacing_mm.x * p.grid.spacing_mm.y * p.grid.spacing_mm.z / 1000.0;
+  r.body_ml = double(count_nonzero(p.body)) * voxel_ml;
+  r.bone_ml = double(count_nonzero(p.bone)) * voxel_ml;
+  r.bone_thresholds = choose_bone_thresholds(p.intensity, p.body, prep);
+  p.bone_threshold_hu = r.bone_thresholds.low;
+  r.bone_summary = summarize_bone(p.body, p.bone);
+  r.field_of_view = find_cut_faces(p.body, prep.cut_faces);
+  r.units = core.find("\"units\": \"image units\"") != std::string::npos ? "image units" : "HU";
+  r.body_check = check_body(p.body, prep.air_threshold, r.units);
+}
+
+// "HU", or "image units" where the image failed the HU check and the scene's thresholds let it pass
+std::string image_units(const std::string& what, const CtInfo& info, const PrepSettings& prep) {
+  PrepSettings strict = prep;
+  strict.air_threshold_set = strict.bone_threshold_set = false;
+  try {
+    check_hounsfield(what, info.pixel_type, info.min_value, info.max_value, strict);
+  } catch (const Error&) {
+    return "image units";
+  }
+  return "HU";
+}
+
+// the report's core (what the cache keeps): input, grid, settings, volumes, field of
+// view, body check, bone, stage times
+std::string report_core(const Scene& scene, const std::string& source, const CtInfo& info, const Patient& p,
+                        const PrepReport& r) {
+  const PrepSettings& prep = scene.prep;
+  std::size_t patient_bytes = p.intensity.bytes() + p.body.bytes() + p.bone.bytes() + p.dist_bone_mm.bytes() +
+                              p.dist_skin_mm.bytes() + p.force.bytes() + p.grad_force.bytes();
+  float fmax = 0;
+  for (float v : p.force.data) fmax = std::max(fmax, v);
+  std::ostringstream s;
+  s << "\n  \"format_version\": " << kPrepFormatVersion << ",\n  \"source\": " << jstr(source)
+    << ",\n  \"input\": {\"path\": " << jstr(info.path) << ", \"format\": " << jstr(info.format)
+    << ", \"pixel_type\": " << jstr(info.pixel_type) << ", \"stored_pixel_type\": " << jstr(info.stored_pixel_type)
+    << ", \"series_uid\": " << jstr(info.series_uid)
+    << ", \"files\": " << info.files.size() << ", \"grid\": " << jgrid(info.grid) << "},\n  \"value_range\": {\"min\": "
+    << jnum(info.min_value) << ", \"max\": " << jnum(info.max_value) << ", \"units\": "
+    << jstr(r.units) << "},\n  \"grid\": " << jgrid(p.grid) << ",\n  \"settings\": "
+    << settings_json(scene) << ",\n  \"body_ml\": " << jnum(r.body_ml) << ",\n  \"bone_ml\": " << jnum(r.bone_ml)
+    << ",\n  \"field_of_view\": " << field_of_view_json(r.field_of_view, prep.cut_faces)
+    << ",\n  \"body_check\": " << body_check_json(r.body_check)
+    << ",\n  \"has_bone\": " << (p.has_bone ? "true" : "false")
+    << ",\n  \"bone\": " << bone_json(r.bone_thresholds, r.bone_summary, r.units) << ",\n  \"force_max_mm\": " << jnum(fmax)
+    << ",\n  \"patient_mb\": " << jnum(double(patient_bytes) / (1024.0 * 1024.0))
+    << ",\n  \"stages_s\": " << stages_json(r);
+  return s.str();
+}
+
 }  // namespace
 
 void check_hounsfield(const std::string& what, const std::string& pixel_type, double min_value, double max_value,
@@ -144,9 +210,14 @@ void check_hounsfield(const std::string& what, const std::string& pixel_type, do
     why = s.str();
   }
   if (why.empty() || (prep.air_threshold_set && prep.bone_threshold_set)) return;
+  // a hint: where -400 HU (air) and 200 HU (bone) fall when -1000..1000 HU span the image's range
+  const double span = max_value - min_value;
   throw Error(what + " does not look like Hounsfield units: " + why +
               ". To process it anyway, set both scene fields prep.air_threshold and prep.bone_threshold "
-              "in the image's own units");
+              "(palpsim-prep: --air-threshold V --bone-threshold V) in the image's own units; where the image "
+              "maps -1000..1000 HU linearly onto its range " + jnum(min_value) + ".." + jnum(max_value) +
+              ", the default -400 and 200 HU are about " + jnum(std::round(min_value + 0.3 * span)) + " and " +
+              jnum(std::round(min_value + 0.6 * span)));
 }
 
 PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const std::string& source,
@@ -186,6 +257,10 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
   if (r.body_ml == 0)
     throw Error(source + ": no body found (only thin structures above prep.air_threshold = " +
                 jnum(prep.air_threshold) + ", e.g. a table or noise)");
+  r.field_of_view = find_cut_faces(p->body, prep.cut_faces);
+  if (!r.field_of_view.warning.empty()) spdlog::warn("prep: {}: {}", source, r.field_of_view.warning);
+  r.body_check = check_body(p->body, prep.air_threshold, r.units);
+  for (const std::string& w : r.body_check.warnings) spdlog::warn("prep: {}: {}", source, w);
   // cavities are looked for after a closing of twice the input's coarsest spacing
   const double coarsest = std::max({image.grid.spacing_mm.x, image.grid.spacing_mm.y, image.grid.spacing_mm.z});
   p->bone = timed(r, "bone_mask", [&] {
@@ -200,7 +275,7 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
 
   // distance maps: A to bone (inf without bone), B depth under the skin
   p->dist_bone_mm = timed(r, "dist_bone", [&] { return distance_to_mask_mm(p->bone); });
-  p->dist_skin_mm = timed(r, "dist_skin", [&] { return distance_to_background_mm(p->body); });
+  p->dist_skin_mm = timed(r, "dist_skin", [&] { return depth_under_skin_mm(p->body, prep.cut_faces); });
   derive_force(*p, scene, r);
   return p;
 }
@@ -268,12 +343,7 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report, const PathPol
       derive_force(*p, scene, r);
       r.from_cache = true;
       r.cache_path = entry;
-      const double voxel_ml = p->grid.spacing_mm.x * p->grid.spacing_mm.y * p->grid.spacing_mm.z / 1000.0;
-      r.body_ml = double(count_nonzero(p->body)) * voxel_ml;
-      r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
-      r.bone_thresholds = choose_bone_thresholds(p->intensity, p->body, prep);
-      p->bone_threshold_hu = r.bone_thresholds.low;
-      r.bone_summary = summarize_bone(p->body, p->bone);
+      measure_cached(*p, prep, core, r);
       r.total_s = seconds_since(t0);
       r.json = "{" + core + ",\n  \"cache\": {\"hit\": true, \"key\": " + jstr(r.cache_key) + ", \"path\": " +
                jstr(entry) + ", \"this_run_stages_s\": " + stages_json(r) + "},\n  \"total_s\": " +
@@ -291,40 +361,12 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report, const PathPol
   }
   const std::string what = scene.use_phantom ? std::string("the phantom") : "CT '" + source + "'";
   check_hounsfield(what, info.pixel_type, info.min_value, info.max_value, prep);
+  r.units = image_units(what, info, prep);
   PatientPtr p = build_patient(phantom, scene, what, &r);
   phantom = Volume<float>();
 
   // the report (the cache keeps its core)
-  std::size_t patient_bytes = p->intensity.bytes() + p->body.bytes() + p->bone.bytes() + p->dist_bone_mm.bytes() +
-                              p->dist_skin_mm.bytes() + p->force.bytes() + p->grad_force.bytes();
-  float fmax = 0;
-  for (float v : p->force.data) fmax = std::max(fmax, v);
-  // units: HU unless the image failed the HU check and the scene's thresholds let it pass
-  bool hu = true;
-  try {
-    PrepSettings strict = prep;
-    strict.air_threshold_set = strict.bone_threshold_set = false;
-    check_hounsfield(what, info.pixel_type, info.min_value, info.max_value, strict);
-  } catch (const Error&) {
-    hu = false;
-  }
-  std::string core;
-  {
-    std::ostringstream s;
-    s << "\n  \"format_version\": " << kPrepFormatVersion << ",\n  \"source\": " << jstr(source)
-      << ",\n  \"input\": {\"path\": " << jstr(info.path) << ", \"format\": " << jstr(info.format)
-      << ", \"pixel_type\": " << jstr(info.pixel_type) << ", \"stored_pixel_type\": " << jstr(info.stored_pixel_type)
-      << ", \"series_uid\": " << jstr(info.series_uid)
-      << ", \"files\": " << info.files.size() << ", \"grid\": " << jgrid(info.grid) << "},\n  \"value_range\": {\"min\": "
-      << jnum(info.min_value) << ", \"max\": " << jnum(info.max_value) << ", \"units\": "
-      << jstr(hu ? "HU" : "image units") << "},\n  \"grid\": " << jgrid(p->grid) << ",\n  \"settings\": "
-      << settings_json(scene) << ",\n  \"body_ml\": " << jnum(r.body_ml) << ",\n  \"bone_ml\": " << jnum(r.bone_ml)
-      << ",\n  \"has_bone\": " << (p->has_bone ? "true" : "false")
-      << ",\n  \"bone\": " << bone_json(r.bone_thresholds, r.bone_summary) << ",\n  \"force_max_mm\": " << jnum(fmax)
-      << ",\n  \"patient_mb\": " << jnum(double(patient_bytes) / (1024.0 * 1024.0))
-      << ",\n  \"stages_s\": " << stages_json(r);
-    core = s.str();
-  }
+  const std::string core = report_core(scene, source, info, *p, r);
 
   // store in the cache; a cache that cannot be written costs only the reuse
   if (prep.use_cache) {
@@ -350,18 +392,21 @@ std::vector<std::string> PrepReport::summary_lines() const {
   const BoneSummary& b = bone_summary;
   std::vector<std::string> lines;
   std::ostringstream s;
+  const std::string u = " " + units;
   s << std::fixed << std::setprecision(0);
   if (t.automatic && t.high > t.low)
-    s << "bone auto: " << t.low << " HU grown from seeds " << t.high << " HU (soft tissue " << t.soft_tissue_hu
-      << " HU), cavities from " << t.cancellous << " HU";
+    s << "bone auto: " << t.low << u << " grown from seeds " << t.high << u << " (soft tissue " << t.soft_tissue_hu
+      << u << "), cavities from " << t.cancellous << u;
   else
-    s << "bone threshold " << t.low << " HU (" << t.reason << "), cavities from " << t.cancellous << " HU";
+    s << "bone threshold " << t.low << u << " (" << t.reason << "), cavities from " << t.cancellous << u;
   lines.push_back(s.str());
   s.str("");
   s << "bone " << b.bone_ml << " ml (" << std::setprecision(1) << 100 * b.bone_fraction << std::setprecision(0)
     << "% of body " << b.body_ml << " ml): spine " << b.spine_ml << ", left " << b.left_ml << ", right " << b.right_ml
     << ", anterior " << b.anterior_ml << " ml";
   lines.push_back(s.str());
+  if (!field_of_view.warning.empty()) lines.push_back("warning: " + field_of_view.warning);
+  for (const std::string& w : body_check.warnings) lines.push_back("warning: " + w);
   for (const std::string& w : b.warnings) lines.push_back("warning: " + w);
   return lines;
 }

@@ -5,6 +5,9 @@
 #include <sys/wait.h>
 
 #include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -112,3 +115,42 @@ TEST_CASE("palpsim-prep refuses a NaN spacing and a data file outside the CT's f
   CHECK(std::count(r.output.begin(), r.output.end(), '\n') == 1);
   CHECK_FALSE(fs::exists(d.path / "out"));
 }
+
+TEST_CASE("palpsim-prep --air-threshold and --bone-threshold process an 8-bit image, naming image units, not HU") {
+  TempDir d;
+  // the synthetic torso as an 8-bit image mapping -1000..1000 HU onto 0..255: air 0,
+  // soft tissue 133, marrow 147, cortex 242
+  const palpsim::Volume<float> hu = synthetic_torso({70, 50, 16}, {1.5, 1.5, 2.5});
+  std::vector<std::uint8_t> u8(hu.data.size());
+  for (std::size_t i = 0; i < u8.size(); ++i)
+    u8[i] = std::uint8_t(std::lround(std::clamp((hu.data[i] + 1000.0) / 2000.0 * 255.0, 0.0, 255.0)));
+  write_nrrd_file(d / "chest8.nrrd", "uchar", {70, 50, 16}, {1.5, 1.5, 2.5}, u8.data(), u8.size());
+  const std::string io = "'" + (d / "chest8.nrrd") + "' --no-cache --out '" + (d / "out") + "'";
+
+  // without the flags: refused in one line that names them and where the defaults would fall
+  Run r = prep(io);
+  CHECK(r.code == 1);
+  CHECK_THAT(r.output, Catch::Contains("--air-threshold V --bone-threshold V") &&
+                           Catch::Contains("the default -400 and 200 HU are about"));
+  // a bad value: one line naming the flag and the value
+  r = prep(io + " --air-threshold 7x --bone-threshold 166");
+  CHECK(r.code == 2);
+  CHECK(r.output == "palpsim-prep: --air-threshold '7x' is not a number in -1e6..1e6 (a threshold in the image's "
+                    "units)\n");
+  CHECK(prep(io + " --air-threshold 76 --bone-threshold inf").code == 2);
+  CHECK_FALSE(fs::exists(d.path / "out"));
+
+  // with both: prepared; the thresholds used and the units are recorded, and nothing says HU
+  r = prep(io + " --air-threshold 76 --bone-threshold 166");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  std::ifstream j(d / "out/prep.json");
+  const std::string json((std::istreambuf_iterator<char>(j)), {});
+  CHECK_THAT(json, Catch::Contains("\"air_threshold\": 76, \"bone_threshold\": 166") &&
+                       Catch::Contains("\"units\": \"image units\", \"low_hu\": 166") &&
+                       Catch::Contains("\"min\": 0, \"max\": 242, \"units\": \"image units\""));
+  CHECK_THAT(r.output, Catch::Contains("bone threshold 166 image units") && !Catch::Contains(" HU"));
+  // the scene is named with its file and its CT (the default scene's name is the phantom's)
+  CHECK_THAT(r.output, Catch::Contains("(built-in, CT " + (d / "chest8.nrrd") + ")"));
+}
+

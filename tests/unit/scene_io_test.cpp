@@ -211,6 +211,23 @@ TEST_CASE("haptics.skin_point is read, checked and defaults as HapticsSettings d
   CHECK(e.find("\"nearest\"") != std::string::npos);
 }
 
+TEST_CASE("prep.cut_faces is read, checked and defaults as PrepSettings does") {
+  CHECK(PrepSettings{}.cut_faces == CutFaces::kSkin);
+  CHECK(parse_scene_text("phantom {}", "x.textproto").prep.cut_faces == CutFaces::kSkin);
+  CHECK(parse_scene_text("phantom {} prep { cut_faces: \"open\" }", "x.textproto").prep.cut_faces == CutFaces::kOpen);
+  CHECK(parse_scene_text("phantom {} prep { cut_faces: \"skin\" }", "x.textproto").prep.cut_faces == CutFaces::kSkin);
+  CHECK(error_of("phantom {} prep { cut_faces: \"closed\" }") ==
+        "test.textproto: prep.cut_faces = \"closed\"; allowed: \"skin\", \"open\"");
+}
+
+TEST_CASE("a scene's label for the logs names its file and its CT, so a copied scene is told apart") {
+  test::TempDir d;
+  std::ofstream(d / "copy.textproto") << "name: \"lumbar CT\"\nct_path: \"other.nii.gz\"\n";
+  const Scene s = load_scene_file(d / "copy.textproto");
+  CHECK(scene_label(s) == "'lumbar CT' (" + (d / "copy.textproto") + ", CT " + (d / "other.nii.gz") + ")");
+  CHECK(scene_label(parse_scene_text("name: \"p\" phantom {}", "")) == "'p' (built-in, phantom)");
+}
+
 TEST_CASE("an empty scene file, a folder, a FIFO and a path holding a NUL are refused, naming them") {
   test::TempDir d;
   auto error_of_file = [](const std::string& path) {

@@ -87,7 +87,7 @@ inline PressPath press_through_middle(const Patient& p, const Vec3& dir, double 
 }
 
 /// One run of the press: fresh session state, poses at 1 kHz; `limit` as haptics.passivity.
-/// The controller's cut goes into the proxy state's force, as the pose service does.
+/// The controller's cut goes into the proxy state's force, as in the pose service.
 inline PressRun run_press(const Patient& p, const HapticsSettings& params, const PressPath& path, bool limit) {
   PressRun r;
   ProxyState state{};
@@ -102,8 +102,7 @@ inline PressRun run_press(const Patient& p, const HapticsSettings& params, const
     running -= dot(prev_f, tip - prev_tip);
     r.min_running_mj = std::min(r.min_running_mj, running);
     ForceSample f = compute_force(p, params, tip, i == 0 ? 0.0 : dt, state);
-    const PassivityStep s = observer.pose(tip, f.contact, f.force_n, limit);
-    if (s.limited) state.force_n = f.force_n;
+    const PassivityStep s = observer.pose(tip, f.contact, f.force_n, limit, &state.force_n);
     r.limited += s.limited;
     r.removed_mj += s.removed_mj;
     r.contact_poses += f.contact;

@@ -93,13 +93,16 @@ class PassivityObserver {
   /// One pose: the tip is at `tip_mm`, in contact or not (`contact`, the force model's), and
   /// the model says `f_n` (N), which the controller may lower in place when `limit` is set
   /// (with `limit` false it only observes). Outside the body f is zero and stays zero.
-  PassivityStep pose(const Vec3& tip_mm, bool contact, Vec3& f_n, bool limit) {
+  /// `held_n`: the force model's record of the force sent (its rate clamp starts from it),
+  /// set to the lowered force when the controller acts; may be null.
+  PassivityStep pose(const Vec3& tip_mm, bool contact, Vec3& f_n, bool limit, Vec3* held_n = nullptr) {
     PassivityStep out;
     const Vec3 dx = has_previous_ ? tip_mm - tip_mm_ : Vec3{0, 0, 0};
     meter_.move(dx);
     if (limit) {
       out.removed_mj = limit_to_energy(f_n, dx, meter_.energy_mj());
       out.limited = out.removed_mj > 0;
+      if (out.limited && held_n) *held_n = f_n;
     }
     const std::uint64_t cycles = meter_.cycles();
     meter_.set_force(f_n, contact);

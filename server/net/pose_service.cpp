@@ -315,8 +315,8 @@ class PoseService {
   // controller lowers a force that would give back more than the press put in, and the
   // force model's state then holds the force sent (its rate clamp starts from it)
   void observe_passivity(SessionSlot& slot, const Vec3& tip, bool elastic, ForceSample& f) {
-    const PassivityStep p = slot.passivity.pose(tip, f.contact, f.force_n, world_->scene.haptics.passivity);
-    if (p.limited) (elastic ? slot.elastic.force_n : slot.proxy.force_n) = f.force_n;
+    const PassivityStep p = slot.passivity.pose(tip, f.contact, f.force_n, world_->scene.haptics.passivity,
+                                                elastic ? &slot.elastic.force_n : &slot.proxy.force_n);
     slot.passivity_counters.add(slot.passivity, p);
   }
 

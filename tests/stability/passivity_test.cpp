@@ -1,18 +1,20 @@
 // The stability catalogue's passivity checks (issue 29): on every shipped scene
 // (config/scenes), the phantom, the shared CTs (../shared/data; skipped with a printed
-// reason where absent) and a cropped CT (the shared abdomen cut in this test, so that the
-// body meets the grid's faces as a crop's does), a closed press, out of the body, in and
-// back out, does no positive work on the hand as the server's pose path renders it
-// (eq. 2 and the session's passivity controller, bench/press_energy.h).
+// reason where absent) and a cropped CT (the shared abdomen cut in memory by
+// bench/passivity_cases.h, so that the body meets the grid's faces as a crop's does), a
+// closed press, out of the body, in and back out, does no positive work on the hand as the
+// server's pose path renders it (eq. 2 and the session's passivity controller,
+// bench/press_energy.h).
 //
 // The tolerance: the controller keeps each step's energy from going below zero over the
 // next step guessed as the last one, so what a press can still give the hand is the
 // guesses' misses, sum |f| |dx_{n+1} - dx_n|. The press is smooth (depth along a cosine
-// over 2 s, up to 45 mm: steps of at most 0.071 mm that change by at most 2.2e-4 mm a
-// pose), so with forces up to the 3.3 N clamp a step misses by at most 7.3e-4 mJ, and the
-// energy is near zero only over the last few dozen steps of the release: 0.01 mJ, as the
-// client's controller is held to (tests/unit/haptic_local_model_test.cpp). The figures of
-// eq. 2 alone are printed beside them (palpsim-bench passivity writes them to a file).
+// over 2 s at 1 kHz, up to 122 mm on the DICOM series from the back: steps of at most
+// 0.096 mm that change by at most 6.1e-4 mm a pose), so with forces up to the 3.3 N clamp
+// a step misses by at most 2e-3 mJ, and the energy is near zero only over the last steps
+// of the release: 0.01 mJ, as the client's controller is held to
+// (tests/unit/haptic_local_model_test.cpp). The figures of eq. 2 alone are printed beside
+// them (palpsim-bench passivity writes them to a file).
 #include <catch2/catch.hpp>
 
 #include <vector>

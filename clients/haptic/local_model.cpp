@@ -25,21 +25,6 @@ bool ModeSelector::add_round_trip(double rtt_s, double t_s) {
   return true;
 }
 
-void EnergyMeter::set_force(const Vec3& f_n, bool active) {
-  const Vec3 zero{0, 0, 0};
-  if (active || f_n != zero) {
-    in_episode_ = true;
-  } else if (in_episode_ && force_n_ == zero) {
-    // released: no field, and a zero force twice in a row
-    in_episode_ = false;
-    last_cycle_mj_ = energy_mj_;
-    min_cycle_mj_ = cycles_ == 0 ? energy_mj_ : std::min(min_cycle_mj_, energy_mj_);
-    ++cycles_;
-    energy_mj_ = 0;
-  }
-  force_n_ = f_n;
-}
-
 LocalRenderer::LocalRenderer(const HapticsSettings& params, int max_edge) : params_(params) {
   // every slot can hold the largest patch, so decoding one never allocates
   const std::size_t n = std::size_t(max_edge) * max_edge * max_edge;
@@ -102,19 +87,11 @@ RenderStep LocalRenderer::step(double t_s, double dt_s, const Vec3& tip_mm, cons
   // passivity observer: the energy (mJ) the device put in with the previous step's force
   const Vec3 dx = has_last_ ? tip_mm - last_tip_ : Vec3{0, 0, 0};
   energy_.move(dx);
-  // passivity controller: where this step's force, over a displacement like the last one,
-  // would take the energy below zero, the part of the force along the motion is cut to what
-  // the energy allows (to zero when none is left: never turned into a push against the hand)
-  const double dn = norm(dx);
-  if (dn > 1e-9) {
-    const Vec3 u = dx * (1.0 / dn);
-    const double along = dot(f, u);
-    const double allowed = std::max(energy_.energy_mj(), 0.0) / dn;
-    if (along > allowed) {
-      f -= u * (along - allowed);
-      r.passivity = true;
-      ++passivity_steps_;
-    }
+  // passivity controller (haptics/passivity.h): the part of the force along the motion is
+  // cut to what the energy allows over a displacement like the last one
+  if (limit_to_energy(f, dx, energy_.energy_mj()) > 0) {
+    r.passivity = true;
+    ++passivity_steps_;
   }
 
   // the magnitude bound, the watchdog's scale, then the force-rate bound on what is rendered

@@ -10,6 +10,7 @@
 #include <cstdint>
 
 #include "haptics/force_patch.h"
+#include "haptics/passivity.h"
 
 namespace palpsim::haptic {
 
@@ -64,36 +65,6 @@ class ModeSelector {
   bool patch_available_ = false;
 };
 
-/// The energy (mJ = N mm) a force has put into the environment along a path, -sum f . dx,
-/// per contact episode (one runs from the first force to the release; a press cycle): >= 0 for a
-/// passive rendering, which may store and dissipate energy but never gives more back.
-class EnergyMeter {
- public:
-  /// The tip moved by `dx_mm` while the force last set was held.
-  void move(const Vec3& dx_mm) {
-    energy_mj_ -= dot(force_n_, dx_mm);
-    if (in_episode_) min_running_mj_ = std::min(min_running_mj_, energy_mj_);
-  }
-  /// The force from now on (N). `active`: a force field acts on the tip (the force before
-  /// the watchdog and the bounds is not zero). An episode ends when no field acts and the
-  /// force is zero now and was zero before (a watchdog stop in contact does not end one).
-  void set_force(const Vec3& f_n, bool active);
-  /// The current episode's energy so far (mJ).
-  double energy_mj() const { return energy_mj_; }
-  /// Completed episodes, the last one's and the smallest energy, and the smallest running
-  /// energy seen inside any episode (mJ).
-  std::uint64_t cycles() const { return cycles_; }
-  double last_cycle_mj() const { return last_cycle_mj_; }
-  double min_cycle_mj() const { return min_cycle_mj_; }
-  double min_running_mj() const { return min_running_mj_; }
-
- private:
-  Vec3 force_n_{0, 0, 0};
-  double energy_mj_ = 0, last_cycle_mj_ = 0, min_cycle_mj_ = 0, min_running_mj_ = 0;
-  bool in_episode_ = false;
-  std::uint64_t cycles_ = 0;
-};
-
 /// What one step of the renderer did (for logs and counters).
 struct RenderStep {
   Vec3 force_n{0, 0, 0};     // the force to apply (N), after every bound
@@ -134,7 +105,7 @@ class LocalRenderer {
   RenderStep step(double t_s, double dt_s, const Vec3& tip_mm, const Vec3& remote_force_n, RenderMode mode,
                   double watchdog_scale);
 
-  /// The rendered force's energy, per contact episode (passivity observer).
+  /// The rendered force's energy, per contact episode (passivity observer, haptics/passivity.h).
   const EnergyMeter& energy() const { return energy_; }
   /// Steps in which the passivity controller acted.
   std::uint64_t passivity_steps() const { return passivity_steps_; }

@@ -267,7 +267,7 @@ struct Loop {
   // first reply and the first patch arrived (s), and the watchdog trips before the path
   std::uint64_t path_seq = 0, warmup_trips = 0;
   double first_reply_s = -1, first_patch_s = -1, path_t0 = 0;
-  palpsim::haptic::EnergyMeter server_energy;
+  palpsim::EnergyMeter server_energy;
 
   double period_s;
   Clock::time_point t0;

@@ -65,6 +65,8 @@ struct HapticsSettings {
   SkinPointRule skin_point = SkinPointRule::kNormal;  // scene-wide (not a session parameter)
   ForceModel force_model = ForceModel::kProxy;         // scene-wide
   double elastic_max_jump_n = 0.05;      // elastic: the most a new local model may move the force at once (N)
+  bool passivity = true;                 // scene-wide: the pose path's passivity controller limits the force
+                                         // (haptics/passivity.h); its observer runs either way
 };
 
 /// One point of the elastic model's table from intensity to Young's modulus.

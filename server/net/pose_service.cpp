@@ -232,6 +232,7 @@ class PoseService {
       slot->proxy = ProxyState{};
       slot->elastic = ElasticRenderState{};
       slot->elastic.left_s = t_recv * 1e-9;  // models of poses before the reset are not taken
+      slot->passivity = PassivityObserver{};
       slot->last_client_time_s = 0;
       slot->last_server_time_s = 0;
       // the deformation worker resets the session's deformation too
@@ -251,7 +252,9 @@ class PoseService {
     HapticsSettings params = slot->params();
     params.skin_point = world_->scene.haptics.skin_point;  // scene-wide, not a session parameter
     ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
-    if (world_->scene.haptics.force_model == ForceModel::kElastic) render_elastic_force(*slot, params, tip, dt, now_s, f);
+    const bool elastic = world_->scene.haptics.force_model == ForceModel::kElastic;
+    if (elastic) render_elastic_force(*slot, params, tip, dt, now_s, f);
+    observe_passivity(*slot, tip, elastic, f);
     if (edge != 0) serve_patches(*slot, params, tip, edge, period, now_s, tc);
     slot->renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);
     if (req_.renders_locally()) slot->local_poses.fetch_add(1, std::memory_order_relaxed);
@@ -306,6 +309,15 @@ class PoseService {
     f.force_n = e.force_n;
     f.clamped = e.clamped;
     f.reset = f.reset || e.reset;
+  }
+
+  // the passivity observer follows the energy of the force sent; with haptics.passivity its
+  // controller lowers a force that would give back more than the press put in, and the
+  // force model's state then holds the force sent (its rate clamp starts from it)
+  void observe_passivity(SessionSlot& slot, const Vec3& tip, bool elastic, ForceSample& f) {
+    const PassivityStep p = slot.passivity.pose(tip, f.contact, f.force_n, world_->scene.haptics.passivity,
+                                                elastic ? &slot.elastic.force_n : &slot.proxy.force_n);
+    slot.passivity_counters.add(slot.passivity, p);
   }
 
   // a patch is due once per period, and sooner (a quarter period) when the tip comes within

@@ -193,6 +193,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.haptics.skin_point = named_setting<SkinPointRule>(origin, h.skin_point());
   out.haptics.force_model = named_setting<ForceModel>(origin, h.force_model());
   out.haptics.elastic_max_jump_n = h.elastic_max_jump_n();
+  out.haptics.passivity = h.passivity();
 
   const auto& d = s.deform();
   if (d.preset() == v1::Deform::P2) {

@@ -126,6 +126,17 @@ void fill_elastic(v1::ElasticForceStats* out, const ElasticForceReport& r, const
   out->set_passivity_limited(c.passivity_limited.load(std::memory_order_relaxed));
 }
 
+// the pose path's passivity observer and controller for one session
+void fill_passivity(v1::PassivityStats* out, const PassivityCounters& c, bool limiting) {
+  out->set_limiting(limiting);
+  out->set_energy_mj(c.energy_mj.load(std::memory_order_relaxed));
+  out->set_last_press_mj(c.last_press_mj.load(std::memory_order_relaxed));
+  out->set_min_energy_mj(c.min_energy_mj.load(std::memory_order_relaxed));
+  out->set_dissipated_mj(c.dissipated_mj.load(std::memory_order_relaxed));
+  out->set_limited_poses(c.limited_poses.load(std::memory_order_relaxed));
+  out->set_presses(c.presses.load(std::memory_order_relaxed));
+}
+
 void add_stage(google::protobuf::RepeatedPtrField<v1::StageInfo>* out, const char* name, bool built,
                std::uint64_t bytes, double mean_ms, std::uint64_t runs) {
   auto* st = out->Add();
@@ -707,6 +718,7 @@ class Server::Control {
     s.local_models_sent = 0;
     s.local_poses = 0;
     s.elastic_counters.clear();
+    s.passivity_counters.clear();
     s.renders_locally = false;
     s.contact = false;
     s.depth_mm = 0;
@@ -886,6 +898,7 @@ class Server::Control {
       fill_session_stream(ss, id);
       if (has) fill_deform(ss->mutable_deform(), r);
       if (has && r.elastic.built) fill_elastic(ss->mutable_deform()->mutable_elastic(), r.elastic, slot->elastic_counters);
+      fill_passivity(ss->mutable_passivity(), slot->passivity_counters, w.scene.haptics.passivity);
     }
   }
 

@@ -17,6 +17,7 @@
 #include "haptics/contact_slot.h"
 #include "haptics/elastic_force.h"
 #include "haptics/force_model.h"
+#include "haptics/passivity.h"
 #include "net/patch_worker.h"
 
 namespace palpsim::net {
@@ -68,6 +69,44 @@ struct ElasticRenderCounters {
   }
 };
 
+/// What the pose path's passivity observer saw and did for a session (haptics.passivity;
+/// PassivityStats in wire.proto): energies in mJ (N mm), the energy the hand put into the
+/// force field, so that a negative value is energy the field gave the hand. The pose thread
+/// writes, anyone reads, the control thread clears when a session opens.
+struct PassivityCounters {
+  std::atomic<double> energy_mj{0};       // the current press's energy so far (0 between presses)
+  std::atomic<double> last_press_mj{0};   // the last completed press's
+  std::atomic<double> min_energy_mj{0};   // the lowest running energy any press reached
+  std::atomic<double> dissipated_mj{0};   // energy the controller took out (over its guessed steps)
+  std::atomic<std::uint64_t> limited_poses{0};  // poses whose force the controller lowered
+  std::atomic<std::uint64_t> presses{0};        // completed presses (contact to release)
+
+  /// Adds one pose (pose thread only: one writer).
+  void add(const PassivityObserver& o, const PassivityStep& p) {
+    const EnergyMeter& m = o.meter();
+    energy_mj.store(m.energy_mj(), std::memory_order_relaxed);
+    if (m.energy_mj() < min_energy_mj.load(std::memory_order_relaxed))
+      min_energy_mj.store(m.energy_mj(), std::memory_order_relaxed);
+    if (p.limited) {
+      limited_poses.fetch_add(1, std::memory_order_relaxed);
+      dissipated_mj.store(dissipated_mj.load(std::memory_order_relaxed) + p.removed_mj, std::memory_order_relaxed);
+    }
+    if (p.released) {
+      last_press_mj.store(m.last_cycle_mj(), std::memory_order_relaxed);
+      presses.fetch_add(1, std::memory_order_relaxed);
+    }
+  }
+  /// Zeroes them (control thread, before the session's id is published).
+  void clear() {
+    energy_mj = 0;
+    last_press_mj = 0;
+    min_energy_mj = 0;
+    dissipated_mj = 0;
+    limited_poses = 0;
+    presses = 0;
+  }
+};
+
 /// One session's slot. Fields marked (control) are written by the control thread only,
 /// (pose) by the pose thread only; atomics may be read by either.
 struct SessionSlot {
@@ -96,6 +135,9 @@ struct SessionSlot {
   Latest<ElasticModel> elastic_model;
   ElasticRenderState elastic;          // (pose)
   ElasticRenderCounters elastic_counters;
+  // the passivity observer and controller of the replies' force (haptics.passivity)
+  PassivityObserver passivity;         // (pose)
+  PassivityCounters passivity_counters;
   // (pose) the proxy state and what it belongs to
   std::uint64_t state_id = 0;          // the session id the state below belongs to
   std::uint32_t resets_seen = 0;       // reset_requests already applied

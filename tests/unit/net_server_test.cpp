@@ -17,6 +17,7 @@
 
 #include "core/error.h"
 #include "haptics/force_model.h"
+#include "haptics/passivity.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
@@ -96,6 +97,13 @@ TEST_CASE("over the wire a session gets exactly the force model's answers", "[ne
   Client c(server);
   HapticsSettings params = scene.haptics;
   ProxyState st{};
+  PassivityObserver passivity;  // the session's controller (haptics.passivity, on by default) acts on the replies
+  // the force model's answer as the pose path serves it: compute_force, then the controller
+  auto served = [&](const Vec3& x, double dt) {
+    ForceSample f = compute_force(*patient, params, x, dt, st);
+    passivity.pose(x, f.contact, f.force_n, scene.haptics.passivity, &st.force_n);
+    return f;
+  };
 
   // a press into the slab beside the bone block and out again, at 1 ms of client time per
   // pose (the server takes dt from the client's clock, so the rate clamp is reproducible)
@@ -107,7 +115,7 @@ TEST_CASE("over the wire a session gets exactly the force model's answers", "[ne
     const v1::PoseReply r = c.send_pose(seq, x, t);
     INFO("pose " << seq);
     CHECK(r.seq() == seq);
-    check_same(r, compute_force(*patient, params, x, t - t_prev, st));
+    check_same(r, served(x, t - t_prev));
     t_prev = t;
   };
   for (int n = 0; n < 300; ++n) step({27, 30, test::kSlabSkinZ + 2 - 0.1 * n});
@@ -132,13 +140,14 @@ TEST_CASE("over the wire a session gets exactly the force model's answers", "[ne
     q.mutable_reset()->set_session_id(c.id);
     REQUIRE(c.call(q).has_reset());
     st = ProxyState{};
+    passivity = PassivityObserver{};
     step({30, 30, 20});
     step({30.5, 30, 20});
     // and the reset flag of a pose does the same, ordered with the poses
     st = ProxyState{};
+    passivity = PassivityObserver{};
     ++seq;
-    check_same(c.send_pose(seq, {31, 30, 21}, 1.0 + seq * 1e-3, true),
-               compute_force(*patient, params, {31, 30, 21}, 0, st));
+    check_same(c.send_pose(seq, {31, 30, 21}, 1.0 + seq * 1e-3, true), served({31, 30, 21}, 0));
   }
   SECTION("a parameter change applies from the next pose on") {
     v1::ControlRequest q;

@@ -162,11 +162,13 @@ TEST_CASE("a scene without a haptics block has HapticsSettings' defaults (the sc
   const HapticsSettings h = parse_scene_text("phantom {}", "x.textproto").haptics, d;
   const auto fields = [](const HapticsSettings& s) {
     return std::tie(s.stiffness_n_per_mm, s.friction, s.max_force_n, s.max_force_rate_n_per_s, s.min_gradient_norm,
-                    s.skin_point, s.force_model, s.elastic_max_jump_n);
+                    s.skin_point, s.force_model, s.elastic_max_jump_n, s.passivity);
   };
   CHECK(fields(h) == fields(d));
   CHECK(d.stiffness_n_per_mm == 0.25);  // the documented defaults (README, scene.proto)
   CHECK(d.max_force_n == 3.3);
+  CHECK(d.passivity);  // on by default (server/haptics/README.md says why)
+  CHECK_FALSE(parse_scene_text("phantom {} haptics { passivity: false }", "x.textproto").haptics.passivity);
 }
 
 TEST_CASE("render.preset, jpeg_encoder and overlay_writer: every name is read, a misspelt one refused in one line") {

@@ -6,18 +6,20 @@ palpsim-server (stream_fakes.start_stream_server)."""
 
 from __future__ import annotations
 
+import gzip
 import re
 import signal
 import socket
 import subprocess
 import sys
+import struct
 import threading
 import time
 from typing import Any
 
 import numpy as np
 import pytest
-from stream_fakes import start_stream_server
+from stream_fakes import ROOT, start_stream_server
 
 from palpsim import igtl
 from palpsim.client import Client
@@ -176,6 +178,69 @@ def test_image_geometry_is_the_patients_space_in_ras(server):
     assert img.image.dtype == np.int16
     assert img.image.min() <= -900 and img.image.max() >= 300
     assert re.search(r"\d+ images", out) and "volume " in out, out
+
+
+CT = ROOT.parent / "shared" / "data" / "ct" / "abdomen-lumbar-3mm.nii.gz"
+
+# the CT on its own 3 mm grid (no resampling), thresholds as config/scenes/lumbar_ct.textproto
+CT_SCENE = """
+name: "abdomen CT 3 mm, bricks (palpsim-igtl test)"
+ct_path: "{ct}"
+prep {{ spacing_mm: 3.0 air_threshold: -400 bone_threshold: 180 bone_min_volume_ml: 0.5 }}
+effects {{ haptics: true chainmail: true relaxation: true inversion: true bricks: true }}
+deform {{ backend: "cpu" }}
+"""
+
+
+def read_nifti(path) -> tuple[np.ndarray, np.ndarray]:
+    """A NIfTI-1 file's voxels as (k, j, i) and its sform (voxel index to RAS mm, 4x4): the
+    CT's physical space as the file states it, read without the server's code."""
+    data = gzip.open(path).read()
+    dims = struct.unpack("<8h", data[40:56])
+    dtype = {4: "<i2", 16: "<f4", 512: "<u2", 8: "<i4"}[struct.unpack("<h", data[70:72])[0]]
+    offset = int(struct.unpack("<f", data[108:112])[0])
+    slope, inter = struct.unpack("<2f", data[112:120])
+    assert struct.unpack("<h", data[254:256])[0] > 0, "the test reads the sform only"
+    sform = np.eye(4)
+    sform[:3] = np.array(struct.unpack("<12f", data[280:328])).reshape(3, 4)
+    n = dims[1] * dims[2] * dims[3]
+    voxels = np.frombuffer(data, dtype=dtype, count=n, offset=offset).astype(float)
+    if slope:
+        voxels = voxels * slope + inter
+    return voxels.reshape(dims[3], dims[2], dims[1]), sform
+
+
+@pytest.fixture(scope="module")
+def ct_server(tmp_path_factory):
+    if not CT.is_file():
+        pytest.skip(f"{CT} is not there (the real CT comes with ../shared/data)")
+    yield from start_stream_server(tmp_path_factory.mktemp("igtl-ct"),
+                                   CT_SCENE.format(ct=CT))
+
+
+def test_image_of_a_ct_is_the_cts_space_in_ras(ct_server):
+    """On the real CT, whose LPS directions are not the identity (its NIfTI sform is RAS
+    +x, +y, +z): the IMAGE's directions and spacing are the sform's, its origin is a voxel
+    of the CT (the prepared grid is a crop of it), and each of its voxels holds the HU of
+    the CT voxel its matrix puts it on."""
+    voxels, sform = read_nifti(CT)
+    b = Bridge(ct_server.address)
+    try:
+        img = b.wait_for(igtl.VOLUME, timeout_s=120)
+    finally:
+        b.stop()
+    m = np.asarray(img.ijk_to_world_matrix, dtype=float)
+    np.testing.assert_allclose(np.linalg.norm(m[:3, :3], axis=0), np.linalg.norm(sform[:3, :3], axis=0),
+                               atol=F32_MM / 100)
+    np.testing.assert_allclose(m[:3, :3], sform[:3, :3], atol=1e-5)
+    lo = np.linalg.solve(sform, m[:, 3])[:3]             # the CT voxel of IMAGE voxel (0, 0, 0)
+    np.testing.assert_allclose(lo, np.round(lo), atol=F32_MM / 3.0)
+    i0, j0, k0 = np.round(lo).astype(int)
+    nk, nj, ni = img.image.shape
+    assert min(i0, j0, k0) >= 0 and k0 + nk <= voxels.shape[0] and j0 + nj <= voxels.shape[1] \
+        and i0 + ni <= voxels.shape[2]
+    # int16 bricks round J to the nearest HU: 0.5 HU is that rounding
+    np.testing.assert_allclose(img.image, voxels[k0:k0 + nk, j0:j0 + nj, i0:i0 + ni], atol=0.5)
 
 
 def test_transforms_arrive_at_rate(server):

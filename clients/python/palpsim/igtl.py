@@ -64,9 +64,10 @@ SKIN_POINT = "PalpsimSkinPoint"
 FORCE = "PalpsimForce"
 POSE = "PalpsimDevice"
 
-# a Slicer that takes no part of a message for this long is dropped (s); the bridge
-# itself never waits for it (pyigtl sends on its own thread)
-SEND_TIMEOUT_S = 5.0
+# a message that takes longer than this to go out drops the connection (s): 41 MB (the
+# 1 mm phantom's image) needs 1.4 MB/s; the bridge itself never waits for Slicer
+# (pyigtl sends on its own thread)
+SEND_TIMEOUT_S = 30.0
 
 # watching another client's session: the newest tip and proxy go again after this long
 # without a new one (s)
@@ -161,6 +162,13 @@ class Outlet:
     def connected(self) -> bool:
         return bool(self.igtl.is_connected())
 
+    @property
+    def connection(self) -> int:
+        """Which connection this is: serving, it grows by one with each Slicer that
+        connects (a reconnection can come faster than `connected` is looked at); as a
+        client of Slicer's server connector, 0."""
+        return int(getattr(self.igtl, "connections", 0))
+
     def send(self, message: Any) -> bool:
         if not self.connected:
             return False
@@ -227,7 +235,7 @@ class StreamWorker(threading.Thread):
             self.done.set()
 
     def _loop(self) -> None:
-        changed, was_connected, last_image_s = False, False, -math.inf
+        changed, was_connected, last_connection, last_image_s = False, False, 0, -math.inf
         pose: tuple[np.ndarray, np.ndarray] | None = None   # the newest tip and proxy seen
         pose_sent_s = -math.inf
         while not self.done.is_set():
@@ -248,10 +256,10 @@ class StreamWorker(threading.Thread):
             if pose is not None and time.monotonic() - pose_sent_s >= HEARTBEAT_S:
                 self.outlet.tip_and_proxy(*pose)
                 pose_sent_s = time.monotonic()
-            connected = self.outlet.connected
-            if connected and not was_connected:
+            connected, connection = self.outlet.connected, self.outlet.connection
+            if connected and (not was_connected or connection != last_connection):
                 changed = True  # a Slicer that just connected gets the volume at once
-            was_connected = connected
+            was_connected, last_connection = connected, connection
             now = time.monotonic()
             if (changed and self.volume.complete and connected
                     and now - last_image_s >= self.image_period_s):
@@ -373,10 +381,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class _WholeSends:
-    """Mixin for pyigtl's server and client: each message is sent with a timeout of
-    SEND_TIMEOUT_S. pyigtl polls its socket with a 10 ms timeout, and Python applies a
-    socket's timeout to a whole sendall, so without this an image of a few MB (which
-    takes longer than 10 ms to go out) fails and drops the connection."""
+    """Mixin for pyigtl's server and client: each message may take SEND_TIMEOUT_S to go
+    out. pyigtl polls its socket with a 10 ms timeout, and Python applies a socket's
+    timeout to a whole sendall, so without this an image of a few MB (which takes longer
+    than 10 ms to go out) fails and drops the connection."""
 
     def _send_queued_message_from_socket(self, sock: Any) -> bool:
         poll_s = sock.gettimeout()
@@ -399,7 +407,13 @@ def open_igtl(args: argparse.Namespace) -> tuple[Any, str]:
         return Client(host=host, port=port), f"connecting to {host}:{port}"
 
     class Server(_WholeSends, pyigtl.OpenIGTLinkServer):
-        pass
+        """pyigtl's server (one Slicer at a time) that counts the connections it took."""
+
+        connections = 0
+
+        def process_request(self, request: Any, client_address: Any) -> None:
+            self.connections += 1
+            super().process_request(request, client_address)
 
     server = Server(port=args.port, local_server=True)
     host, port = server.server_address[:2]

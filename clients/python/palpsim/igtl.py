@@ -69,10 +69,6 @@ POSE = "PalpsimDevice"
 # (pyigtl sends on its own thread)
 SEND_TIMEOUT_S = 30.0
 
-# watching another client's session: the newest tip and proxy go again after this long
-# without a new one (s)
-HEARTBEAT_S = 0.1
-
 # where the tip waits until Slicer sends a pose: this far behind the body's back (+y, LPS)
 PARK_MM = 20.0
 
@@ -237,7 +233,6 @@ class StreamWorker(threading.Thread):
     def _loop(self) -> None:
         changed, was_connected, last_connection, last_image_s = False, False, 0, -math.inf
         pose: tuple[np.ndarray, np.ndarray] | None = None   # the newest tip and proxy seen
-        pose_sent_s = -math.inf
         while not self.done.is_set():
             update = self.stream.receive(0.02)
             for b in (update.bricks if update else []):
@@ -245,20 +240,18 @@ class StreamWorker(threading.Thread):
                 changed = True
                 if self.watch_pose and not b.key and b.deformed:
                     pose = (_xyz(b.tip_mm), _xyz(b.proxy_mm))
-                    pose_sent_s = -math.inf
+                    self.outlet.tip_and_proxy(*pose)
             if update is not None and update.frame is not None and self.watch_pose:
                 f = update.frame
                 if f.pose_seq:
                     pose = (_xyz(f.tip_mm), _xyz(f.proxy_mm))
-                    pose_sent_s = -math.inf
-            # a new tip and proxy at once; the newest again every HEARTBEAT_S, so that a
-            # Slicer that went away is noticed (pyigtl learns it only by sending)
-            if pose is not None and time.monotonic() - pose_sent_s >= HEARTBEAT_S:
-                self.outlet.tip_and_proxy(*pose)
-                pose_sent_s = time.monotonic()
+                    self.outlet.tip_and_proxy(*pose)
             connected, connection = self.outlet.connected, self.outlet.connection
             if connected and (not was_connected or connection != last_connection):
-                changed = True  # a Slicer that just connected gets the volume at once
+                # a Slicer that just connected gets the volume and the newest tip at once
+                changed = True
+                if pose is not None:
+                    self.outlet.tip_and_proxy(*pose)
             was_connected, last_connection = connected, connection
             now = time.monotonic()
             if (changed and self.volume.complete and connected
@@ -380,11 +373,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-class _WholeSends:
-    """Mixin for pyigtl's server and client: each message may take SEND_TIMEOUT_S to go
-    out. pyigtl polls its socket with a 10 ms timeout, and Python applies a socket's
+class _Connection:
+    """Mixin for pyigtl's server and client. Each message may take SEND_TIMEOUT_S to go
+    out: pyigtl polls its socket with a 10 ms timeout, and Python applies a socket's
     timeout to a whole sendall, so without this an image of a few MB (which takes longer
-    than 10 ms to go out) fails and drops the connection."""
+    than 10 ms to go out) fails and drops the connection. And a Slicer that closed the
+    connection is noticed on the receiving side: pyigtl reads the end of the stream as
+    "nothing yet" and would notice only when a send fails, so with nothing to send (a
+    quiet watched session) its server would spin on the dead socket and never take the
+    next Slicer."""
+
+    def _receive_message_from_socket(self, sock: Any) -> bool:
+        import socket
+
+        try:
+            if not sock.recv(1, socket.MSG_PEEK):
+                raise ConnectionResetError("Slicer closed the OpenIGTLink connection")
+        except socket.timeout:
+            return False  # nothing came within pyigtl's poll
+        return super()._receive_message_from_socket(sock)  # type: ignore[misc]
 
     def _send_queued_message_from_socket(self, sock: Any) -> bool:
         poll_s = sock.gettimeout()
@@ -400,13 +407,13 @@ def open_igtl(args: argparse.Namespace) -> tuple[Any, str]:
     import pyigtl
 
     if args.igtl_connect:
-        class Client(_WholeSends, pyigtl.OpenIGTLinkClient):
+        class IgtlClient(_Connection, pyigtl.OpenIGTLinkClient):
             pass
 
         host, port = args.igtl_connect
-        return Client(host=host, port=port), f"connecting to {host}:{port}"
+        return IgtlClient(host=host, port=port), f"connecting to {host}:{port}"
 
-    class Server(_WholeSends, pyigtl.OpenIGTLinkServer):
+    class IgtlServer(_Connection, pyigtl.OpenIGTLinkServer):
         """pyigtl's server (one Slicer at a time) that counts the connections it took."""
 
         connections = 0
@@ -415,7 +422,7 @@ def open_igtl(args: argparse.Namespace) -> tuple[Any, str]:
             self.connections += 1
             super().process_request(request, client_address)
 
-    server = Server(port=args.port, local_server=True)
+    server = IgtlServer(port=args.port, local_server=True)
     host, port = server.server_address[:2]
     return server, f"serving OpenIGTLink on {host}:{port}"
 

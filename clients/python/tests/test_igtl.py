@@ -136,6 +136,19 @@ class Bridge:
         raise AssertionError(f"no {name} within {timeout_s:g} s; bridge stderr so far: "
                              f"{self.stop()[1]}")
 
+    def connect_again(self, timeout_s: float) -> Recorder:
+        """Disconnects the stand-in and connects a new one at once; what the new one got
+        until its first image came or `timeout_s` passed."""
+        self.slicer.stop()
+        again = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=self.port, start_now=False)
+        again.incoming_messages = received = Recorder()
+        again.start()
+        deadline = time.monotonic() + timeout_s
+        while not received.of(igtl.VOLUME) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        again.stop()
+        return received
+
     def stop(self) -> tuple[str, str]:
         """SIGTERM (a clean stop), then its output."""
         self.slicer.stop()
@@ -319,16 +332,9 @@ def test_a_slicer_that_connects_again_gets_the_volume_again(server):
     b = Bridge(server.address)
     try:
         b.wait_for(igtl.VOLUME)
-        # at once: the new connection waits until the bridge's next send fails on the old
-        # one, then it is taken straight away (no moment without a Slicer in between)
-        b.slicer.stop()
-        again = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=b.port, start_now=False)
-        again.incoming_messages = received = Recorder()
-        again.start()
-        deadline = time.monotonic() + 30
-        while not received.of(igtl.VOLUME) and time.monotonic() < deadline:
-            time.sleep(0.01)
-        again.stop()
+        # at once: the new connection waits until the bridge notices the old one's end,
+        # then it is taken straight away (no moment without a Slicer in between)
+        received = b.connect_again(timeout_s=30)
     finally:
         out, err = b.stop()
     assert received.of(igtl.VOLUME), f"no image on the second connection: {out} {err}"
@@ -392,6 +398,33 @@ def test_watching_a_haptic_clients_session(server):
     assert f"watching session {s.id:016x}" in out, out
     assert "session ended" in err, err
     assert not b.received.of(igtl.FORCE) and not b.received.of(igtl.SKIN_POINT)
+
+
+def test_a_slicer_that_leaves_a_quiet_session_is_noticed(server):
+    """Watching a session that does nothing, the bridge has nothing to send; a Slicer that
+    disconnects must still be noticed (pyigtl serves one connection at a time), so the
+    next Slicer is served and gets the volume."""
+    with Client(server.address, client_token="igtl-quiet") as c:
+        s = c.open_session("haptic")
+        # the same pose out of contact every 50 ms: the session stays open (the scene's
+        # session timeout) and nothing in it changes, so nothing is streamed
+        stop = threading.Event()
+
+        def hold() -> None:
+            while not stop.wait(0.05):
+                s.pose((0.0, 130.0, -38.0))
+        s.pose((0.0, 130.0, -38.0))
+        holder = threading.Thread(target=hold)
+        holder.start()
+        b = Bridge(server.address, "--any", "--client-token", "igtl-quiet")
+        try:
+            b.wait_for(igtl.VOLUME)
+            received = b.connect_again(timeout_s=10)
+        finally:
+            out, err = b.stop()
+            stop.set()
+            holder.join()
+    assert received.of(igtl.VOLUME), f"the second Slicer got nothing: {out} {err[-2000:]}"
 
 
 def test_refusals_and_bad_command_lines(server):

@@ -147,6 +147,19 @@ def _int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
 
 
+def add_watch_arguments(p: argparse.ArgumentParser, any_help: str) -> None:
+    """Adds --connect, --session / --any (`any_help` says what --any picks) and the keys
+    (keys.add_arguments): how a watching tool (palpsim-view, palpsim-igtl) names the
+    server and the session."""
+    p.add_argument("--connect", metavar="ADDR", required=True,
+                   help="control address the server printed (e.g. tcp://127.0.0.1:7420)")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--session", metavar="ID", type=_session,
+                       help="session id (decimal, 0x hex, or the 16 hex digits of its topic)")
+    which.add_argument("--any", action="store_true", help=any_help)
+    keys.add_arguments(p)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
@@ -156,15 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Keys in the live window: arrows orbit (10 deg), + and - zoom, p cycles presets, "
                "q quits. Exit status: 0 done, 1 no answer / silent stream / malformed message, "
                "2 bad command line or refused by the server.")
-    p.add_argument("--connect", metavar="ADDR", required=True,
-                   help="control address the server printed (e.g. tcp://127.0.0.1:7420)")
-    which = p.add_mutually_exclusive_group()
-    which.add_argument("--session", metavar="ID", type=_session,
-                       help="session id (decimal, 0x hex, or the 16 hex digits of its topic)")
-    which.add_argument("--any", action="store_true",
-                       help="the newest open session of this client (its key or --client-token; "
-                            "the default)")
-    keys.add_arguments(p)
+    add_watch_arguments(p, any_help="the newest open session of this client (its key or "
+                                    "--client-token; the default)")
     out = p.add_argument_group("output")
     out.add_argument("--out", metavar="DIR", type=Path,
                      help="write PNG files here: frame_000001.png ... (bricks_000001.png ... "

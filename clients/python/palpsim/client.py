@@ -156,6 +156,9 @@ class Client:
         self.client_token = client_token.encode() if isinstance(client_token, str) else bytes(client_token)
         self._ctx = context or zmq.Context.instance()
         self._sock = self.socket(zmq.DEALER)
+        # a DEALER without a peer (the server away, or its CURVE handshake refused and the
+        # pipe torn down) blocks in send: bound it by the timeout as the reply is
+        self._sock.setsockopt(zmq.SNDTIMEO, max(1, int(timeout_s * 1000)))
         self._sock.connect(address)
         self._ids = itertools.count(1)
         self._sessions: list[Session] = []
@@ -181,7 +184,10 @@ class Client:
         req = wire.ControlRequest(schema_version=SCHEMA_VERSION, request_id=rid,
                                   client_token=self.client_token)
         getattr(req, field).CopyFrom(body)
-        self._sock.send(req.SerializeToString())
+        try:
+            self._sock.send(req.SerializeToString())
+        except zmq.Again:
+            raise ServerTimeout(self.silence(field)) from None
         deadline = time.monotonic() + self.timeout_s
         while True:
             left_ms = int(max(0.0, deadline - time.monotonic()) * 1000)
@@ -284,6 +290,7 @@ class Session:
         self.params: "wire.HapticsParams" = reply.params
         self.server_info: "wire.ServerInfo" = reply.server
         self._sock = client.socket(zmq.DEALER)
+        self._sock.setsockopt(zmq.SNDTIMEO, max(1, int(client.timeout_s * 1000)))  # as the control socket's
         self._sock.connect(self.pose_endpoint)
         self._seq = 0
         self._sent: dict[int, float] = {}  # seq -> perf_counter at send, for round trips
@@ -305,7 +312,12 @@ class Session:
                                tip_mm=_vec(tip_mm), client_time_s=client_time_s,
                                reset_proxy=reset_proxy)
         self._sent[seq] = time.perf_counter()
-        self._sock.send(req.SerializeToString())
+        try:
+            self._sock.send(req.SerializeToString())
+        except zmq.Again:
+            self._sent.pop(seq, None)
+            raise ServerTimeout(f"pose {seq} could not be sent to {self.pose_endpoint} within "
+                                f"{self.client.timeout_s:g} s{silence_hint(self.client.curve)}") from None
         return seq
 
     def recv_reply(self, timeout_s: float | None = None) -> PoseReply:

@@ -30,7 +30,7 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
   palpsim::bench::ReportOptions o;
   palpsim::bench::ElasticStudyOptions e;
   o.out_dir = std::string(PALPSIM_SOURCE_DIR) + "/bench/results";
-  bool elastic = false, forces = false;
+  bool elastic = false, forces = false, halfspace = false;
   std::string from_json;
   for (int a = 1; a < argc; ++a) {
     const std::string s = argv[a];
@@ -39,6 +39,7 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
     else if (s == "--elastic-json" && a + 1 < argc) o.elastic_json = argv[++a];
     else if (s == "--elastic-gpu-json" && a + 1 < argc) o.elastic_gpu_json = argv[++a];
     else if (s == "--forces-json" && a + 1 < argc) o.forces_json = argv[++a];
+    else if (s == "--halfspace-json" && a + 1 < argc) o.halfspace_json = argv[++a];
     else if (s == "--from-json" && a + 1 < argc) from_json = argv[++a];
     else if (s == "--out-dir" && a + 1 < argc) o.out_dir = argv[++a];
     else if (s == "--commit" && a + 1 < argc) o.commit = argv[++a];
@@ -46,6 +47,7 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
     else if (s == "--backend" && a + 1 < argc) o.backend = argv[++a];
     else if (s == "--elastic") elastic = true;
     else if (s == "--forces") forces = true;
+    else if (s == "--halfspace") halfspace = true;
     else if (s == "--work" && a + 1 < argc) e.work_dir = argv[++a];
     else if (s == "--json" && a + 1 < argc) e.json = argv[++a];
     else {
@@ -54,26 +56,29 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
                    "usage: palpsim-bench accuracy [--gpu-json FILE] [--elastic-json FILE] [--elastic-gpu-json FILE] "
                    "[--out-dir DIR] [--quick] [--commit C] [--backend cpu|cuda]\n"
                    "       palpsim-bench accuracy --from-json CPU.json [--gpu-json FILE] [--elastic-json FILE] "
-                   "[--elastic-gpu-json FILE] [--forces-json FILE] [--out-dir DIR]   (the report from recorded runs)\n"
+                   "[--elastic-gpu-json FILE] [--forces-json FILE] [--halfspace-json FILE] [--out-dir DIR]   (the report from "
+                   "recorded runs)\n"
                    "       palpsim-bench accuracy --elastic [--json FILE | --json-only FILE] [--work DIR] [--quick] "
                    "[--commit C] [--backend cpu|cuda]   (the elastic study; --json-only: times only, no Python)\n"
                    "       palpsim-bench accuracy --forces [--json FILE] [--commit C] [--backend cpu|cuda]   "
                    "(eq. 2's force and the elastic model's for the same presses)\n"
+                   "       palpsim-bench accuracy --halfspace [--json FILE] [--commit C] [--quick]   (Hertz's blocks with "
+                   "their faces on the half-space)\n"
                    "       palpsim-bench accuracy --json-only FILE [--quick] [--commit C] [--backend cuda]   "
                    "(GPU machine: the study's JSON only, no Python)\n",
                    s.c_str());
       return 2;
     }
   }
-  if (int(elastic) + int(forces) + int(!from_json.empty()) > 1) {
+  if (int(elastic) + int(forces) + int(halfspace) + int(!from_json.empty()) > 1) {
     std::fprintf(stderr,
-                 "palpsim-bench accuracy: --elastic and --forces run a study each and --from-json reports recorded "
-                 "ones; give one\n");
+                 "palpsim-bench accuracy: --elastic, --forces and --halfspace run a study each and --from-json reports "
+                 "recorded ones; give one\n");
     return 2;
   }
   // the FEM references and the report need Python with their packages: checked before minutes of work
   const bool needs_python =
-      forces ? false : elastic ? o.json_only.empty() : (o.json_only.empty() || !from_json.empty());
+      (forces || halfspace) ? false : elastic ? o.json_only.empty() : (o.json_only.empty() || !from_json.empty());
   if (needs_python) {
     o.python = find_python();
     const std::string probe = "'" + o.python + "' -c 'import numpy, scipy, skfem, pyamg, matplotlib' 2>/dev/null";
@@ -93,6 +98,13 @@ PALPSIM_BENCH(accuracy, "every deformation and force knob against references (a)
       f.commit = o.commit;
       f.backend = o.backend;
       return palpsim::bench::run_force_models(f);
+    }
+    if (halfspace) {
+      palpsim::bench::HalfspaceOptions h;
+      h.json = !e.json.empty() ? e.json : o.out_dir + "/accuracy-halfspace-cpu.json";
+      h.commit = o.commit;
+      h.quick = o.quick;
+      return palpsim::bench::run_hertz_halfspace(h);
     }
     if (elastic) {
       if (!o.json_only.empty()) e.json = o.json_only;

@@ -32,6 +32,9 @@ import math
 import os
 import sys
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from accuracy_halfspace import halfspace_markdown  # noqa: E402 (beside this script)
+
 # error thresholds (%) of the "fastest within" table
 THRESHOLDS = (1.0, 5.0, 10.0)
 
@@ -698,7 +701,7 @@ def forces_markdown(fm):
 
 
 def markdown(cpu, gpu, rows, plots, elastic=None, elastic_gpu=None, elastic_rows=(), elastic_plots=(), sheets=(),
-             command=None, forces=None):
+             command=None, forces=None, halfspace=None):
     """The report's markdown text: the elastic study's section (when given), the force models' (when
     given) and the ChainMail knobs'."""
     L = ["# What accuracy costs in time", ""]
@@ -708,6 +711,8 @@ def markdown(cpu, gpu, rows, plots, elastic=None, elastic_gpu=None, elastic_rows
     L.append("")
     if elastic:
         L += elastic_markdown(elastic, elastic_gpu, list(elastic_rows), list(elastic_plots), list(sheets))
+    if halfspace:
+        L += halfspace_markdown(halfspace, elastic, _fmt, _met, band_for)
     if forces:
         L += forces_markdown(forces)
     L += chainmail_markdown(cpu, gpu, rows, plots)
@@ -796,7 +801,7 @@ def _command(a):
 
     cmd = f"build/palpsim-bench accuracy --from-json {rel(a.cpu)}"
     for flag, value in (("--gpu-json", a.gpu), ("--elastic-json", a.elastic), ("--elastic-gpu-json", a.elastic_gpu),
-                        ("--forces-json", a.forces)):
+                        ("--forces-json", a.forces), ("--halfspace-json", a.halfspace)):
         if value:
             cmd += f" {flag} {rel(value)}"
     return cmd
@@ -809,6 +814,7 @@ def main():
     ap.add_argument("--elastic", help="JSON of `palpsim-bench accuracy --elastic` on this machine")
     ap.add_argument("--elastic-gpu", help="JSON of `palpsim-bench accuracy --elastic --json-only` on the GPU machine")
     ap.add_argument("--forces", help="JSON of `palpsim-bench accuracy --forces` (the two force models)")
+    ap.add_argument("--halfspace", help="JSON of `palpsim-bench accuracy --halfspace` (Hertz's blocks on the half-space)")
     ap.add_argument("--out-dir", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
     a = ap.parse_args()
     cpu = load(a.cpu)
@@ -839,7 +845,9 @@ def main():
     md = os.path.join(a.out_dir, "accuracy.md")
     with open(md, "w") as f:
         f.write(markdown(cpu, gpu, rows, plots, el, el_gpu, el_rows, el_plots, sheets, _command(a),
-                         load_forces(a.forces) if a.forces else None))
+                         load_forces(a.forces) if a.forces else None,
+                         load_json(a.halfspace, "accuracy-halfspace", "palpsim-bench accuracy --halfspace")
+                         if a.halfspace else None))
     print(f"wrote {md} and {', '.join(p for _, p in plots + el_plots)}")
 
 

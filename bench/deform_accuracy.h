@@ -54,6 +54,7 @@ struct ReportOptions {
   std::string elastic_json;       // the elastic study's JSON (accuracy --elastic) for the report's elastic sections
   std::string elastic_gpu_json;   // a GPU machine's elastic study (accuracy --elastic --json-only) for their GPU column
   std::string forces_json;        // the force models' comparison (accuracy --forces) for the report's force section
+  std::string halfspace_json;     // Hertz's blocks on the half-space (accuracy --halfspace) for the report's table
   std::string out_dir;            // report folder: accuracy.md, its PNGs and accuracy-cpu.json
   std::string python;             // interpreter with numpy, scikit-fem, pyamg, matplotlib (empty: not needed)
   std::string commit = "unknown"; // commit of the build, copied into the JSON
@@ -102,5 +103,18 @@ struct ForceModelsOptions {
 /// Runs the force-model comparison and writes its JSON; returns the process exit code (throws
 /// palpsim::Error on bad input).
 int run_force_models(const ForceModelsOptions& options);
+
+/// What `palpsim-bench accuracy --halfspace` runs and where it writes (hertz_halfspace_bench.cpp):
+/// Hertz's blocks with their faces at rest and on the half-space (Boussinesq's field of the
+/// finger's force), on the CPU.
+struct HalfspaceOptions {
+  std::string json;               // the study's JSON
+  std::string commit = "unknown"; // commit of the build, copied into the JSON
+  bool quick = false;             // the 64^3 block at R / 5 only
+};
+
+/// Runs the half-space study and writes its JSON; returns the process exit code (throws
+/// palpsim::Error on bad input).
+int run_hertz_halfspace(const HalfspaceOptions& options);
 
 }  // namespace palpsim::bench

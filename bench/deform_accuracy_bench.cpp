@@ -1155,6 +1155,7 @@ int write_accuracy_report(const ReportOptions& o, const std::string& cpu_json) {
   if (!o.elastic_json.empty()) cmd += " --elastic " + sh_quote(o.elastic_json);
   if (!o.elastic_gpu_json.empty()) cmd += " --elastic-gpu " + sh_quote(o.elastic_gpu_json);
   if (!o.forces_json.empty()) cmd += " --forces " + sh_quote(o.forces_json);
+  if (!o.halfspace_json.empty()) cmd += " --halfspace " + sh_quote(o.halfspace_json);
   if (!run_command(cmd)) throw Error("accuracy: " + script + " failed");
   return 0;
 }

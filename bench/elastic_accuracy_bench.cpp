@@ -66,16 +66,6 @@ constexpr double kPressMm = 10;
 // sets it (centred on the tip: the tissue reaches about voi_edge / 2 below the skin)
 constexpr double kBlockPressRatio = 0.2;
 
-// Hertz's block (iii): n^3 voxels of 1 mm, the whole block the VOI (held faces), the skin node
-// layer kHertzAir - 1 below the top, a sphere of kHertzR mm
-constexpr double kHertzR = 8;
-constexpr int kHertzAir = 3;
-const double kHertzDepths[] = {kHertzR / 20, kHertzR / 10, kHertzR / 5};
-const double kHertzNus[] = {0.45, 0.49};
-
-// the profile compares skin nodes within this many contact radii a = sqrt(R d) of the axis
-constexpr double kProfileRadii = 3;
-
 // the FEM of Hertz's block (accuracy_fem.py hertz_case, axisymmetric): cells of kHertzFemH0 mm at the
 // contact (converged: 0.05 mm moves the force by 1e-4), doubling out to kHertzFemExtent mm, where
 // its faces are held; and cells of the voxels' 1 mm, where the fully integrated element shows locking
@@ -314,32 +304,6 @@ std::string solve_fem_hertz(const std::string& python, const std::string& work, 
   std::string s = ss.str();
   while (!s.empty() && (s.back() == '\n' || s.back() == ' ')) s.pop_back();
   return s;
-}
-
-// a block press: X on the skin node at the centre of the top, x d_mm below it (along -y)
-DeformContact block_press(const Patient& b, int skin_j, double d_mm) {
-  const Vec3 X = b.grid.to_physical(Vec3(b.grid.size.x / 2, skin_j, b.grid.size.z / 2));
-  return {X, X - Vec3{0, d_mm, 0}};
-}
-
-// Hertz's surface profile against a field on a block pressed by block_press(): relative RMS (%)
-// of the displacement into the block (-u_y) over the skin nodes within kProfileRadii contact
-// radii of the axis, against hertz_surface_mm()
-double profile_error(const Patient& b, int skin_j, const Voi& voi, const std::vector<Vec3>& u_mm, double R, double d) {
-  const double a = std::sqrt(R * d), h = b.grid.spacing_mm.x;
-  const int ci = b.grid.size.x / 2, ck = b.grid.size.z / 2, reach = int(std::ceil(kProfileRadii * a / h));
-  double num = 0, den = 0;
-  for (int dk = -reach; dk <= reach; ++dk)
-    for (int di = -reach; di <= reach; ++di) {
-      const double r = h * std::hypot(di, dk);
-      if (r > kProfileRadii * a) continue;
-      const Vec3i l = Vec3i{ci + di, skin_j, ck + dk} - voi.lo;
-      const double w = voi.contains(l.x, l.y, l.z) ? -u_mm[std::size_t(voi.index(l.x, l.y, l.z))].y : 0.0;
-      const double wh = hertz_surface_mm(r, R, d);
-      num += (w - wh) * (w - wh);
-      den += wh * wh;
-    }
-  return den > 0 ? 100 * std::sqrt(num / den) : NAN;
 }
 
 // the displacement into the block along +x from the axis on the skin (r mm, w mm), for the report's plot

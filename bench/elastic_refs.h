@@ -6,9 +6,12 @@
 
 #include <cmath>
 #include <memory>
+#include <utility>
+#include <vector>
 
 #include "core/error.h"
 #include "core/patient.h"
+#include "deform/backend.h"
 #include "deform/deform_math.h"
 
 namespace palpsim::bench {
@@ -37,6 +40,31 @@ inline double hertz_surface_mm(double r_mm, double R_mm, double d_mm) {
   const double a = std::sqrt(R_mm * d_mm), r = std::fabs(r_mm);
   if (r <= a) return d_mm - r * r / (2 * R_mm);
   return ((2 * a * a - r * r) * std::asin(a / r) + a * std::sqrt(r * r - a * a)) / (M_PI * R_mm);
+}
+
+/// Hertz's blocks (accuracy --elastic (iii), accuracy --halfspace): n^3 voxels of 1 mm, the
+/// whole block the VOI, the skin node layer kHertzAir - 1 below the top, a sphere of kHertzR
+/// mm pressed kHertzDepths at Poisson ratios kHertzNus.
+inline constexpr double kHertzR = 8;
+inline constexpr int kHertzAir = 3;
+inline const double kHertzDepths[] = {kHertzR / 20, kHertzR / 10, kHertzR / 5};
+inline const double kHertzNus[] = {0.45, 0.49};
+
+/// The profile compares skin nodes within this many contact radii a = sqrt(R d) of the axis.
+inline constexpr double kProfileRadii = 3;
+
+/// The displacement (mm) of an elastic half-space (Young's modulus e_kpa, Poisson ratio nu)
+/// under a normal point load of p_n N on its surface, at r_mm from the load's axis and z_mm
+/// (>= 0) below the surface: {radial, positive away from the axis; along the load, into the
+/// body} (Boussinesq; Johnson, Contact Mechanics, eq. 3.22). On the surface: -(1 - 2 nu)(1 +
+/// nu) P / (2 pi E r) and (1 - nu^2) P / (pi E r).
+inline std::pair<double, double> boussinesq_mm(double p_n, double e_kpa, double nu, double r_mm, double z_mm) {
+  const double e = e_kpa * 1e-3;  // N/mm^2
+  const double rho = std::hypot(r_mm, z_mm);
+  const double c = (1 + nu) * p_n / (2 * M_PI * e);
+  const double ur = c * (r_mm * z_mm / (rho * rho * rho) - (1 - 2 * nu) * r_mm / (rho * (rho + z_mm)));
+  const double uz = c * (z_mm * z_mm / (rho * rho * rho) + 2 * (1 - nu) / rho);
+  return {ur, uz};
 }
 
 /// The patient refined 2x over the box `voi`: a grid of 2 (n - 1) + 1 nodes per axis at half
@@ -132,6 +160,32 @@ inline std::shared_ptr<Patient> elastic_block(const Vec3i& size, double h_mm, in
       }
   p->source = "block";
   return p;
+}
+
+/// A block press: X on the skin node at the centre of the top, x d_mm below it (along -y)
+inline DeformContact block_press(const Patient& b, int skin_j, double d_mm) {
+  const Vec3 X = b.grid.to_physical(Vec3(b.grid.size.x / 2, skin_j, b.grid.size.z / 2));
+  return {X, X - Vec3{0, d_mm, 0}};
+}
+
+/// Hertz's surface profile against a field on a block pressed by block_press(): relative RMS (%)
+/// of the displacement into the block (-u_y) over the skin nodes within kProfileRadii contact
+/// radii of the axis, against hertz_surface_mm()
+inline double profile_error(const Patient& b, int skin_j, const deform::Voi& voi, const std::vector<Vec3>& u_mm, double R, double d) {
+  const double a = std::sqrt(R * d), h = b.grid.spacing_mm.x;
+  const int ci = b.grid.size.x / 2, ck = b.grid.size.z / 2, reach = int(std::ceil(kProfileRadii * a / h));
+  double num = 0, den = 0;
+  for (int dk = -reach; dk <= reach; ++dk)
+    for (int di = -reach; di <= reach; ++di) {
+      const double r = h * std::hypot(di, dk);
+      if (r > kProfileRadii * a) continue;
+      const Vec3i l = Vec3i{ci + di, skin_j, ck + dk} - voi.lo;
+      const double w = voi.contains(l.x, l.y, l.z) ? -u_mm[std::size_t(voi.index(l.x, l.y, l.z))].y : 0.0;
+      const double wh = hertz_surface_mm(r, R, d);
+      num += (w - wh) * (w - wh);
+      den += wh * wh;
+    }
+  return den > 0 ? 100 * std::sqrt(num / den) : NAN;
 }
 
 }  // namespace palpsim::bench

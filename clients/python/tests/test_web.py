@@ -288,3 +288,66 @@ def test_browser_sees_frames_and_palpates(server, gateway):
               f"{[round(x) for x in latencies]} ms; screenshots in {SCREENSHOTS}")
     finally:
         driver.quit()
+
+
+def test_watch_only_station_shows_the_haptic_clients_session(server):
+    """With --watch the page watches the newest session of the gateway's client token
+    (a haptic client's), gets its frames, and palpation is refused naming the mode."""
+    import aiohttp
+
+    g = Gateway(server.address, "--watch")
+    try:
+        with Client(server.address, client_token=TOKEN) as c, c.open_session("haptic client") as s:
+            p = c.info().patient
+            s.pose((p.body_max_mm.x + 20, p.body_max_mm.y + 20, p.body_max_mm.z + 20))
+
+            async def page():
+                async with aiohttp.ClientSession() as http, http.ws_connect(g.url + "/ws") as ws:
+                    hello = await ws.receive_json(timeout=30)
+                    assert hello["mode"] == "watch" and hello["session"] == f"{s.id:016x}"
+                    frame = await ws.receive(timeout=30)
+                    assert frame.type == aiohttp.WSMsgType.BINARY
+                    await ws.send_str(json.dumps({"type": "pick", "x": 10, "y": 10}))
+                    while True:
+                        m = await ws.receive_json(timeout=10)
+                        if m["type"] == "error":
+                            assert "palpation is off" in m["message"]
+                            break
+
+            asyncio.run(page())
+    finally:
+        g.stop()
+
+
+def test_station_token_login(server, tmp_path):
+    """With a station token the page, its scripts and the WebSocket need the login; a
+    wrong token is refused, the right one sets a cookie that is not the token."""
+    import aiohttp
+
+    token = "a-station-token-of-some-length"
+    f = tmp_path / "token"
+    f.write_text(token + "\n")
+    g = Gateway(server.address, "--station-token-file", str(f))
+    try:
+        async def page():
+            # unsafe: keep cookies of an IP address host, as browsers do
+            async with aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as http:
+                r = await http.get(g.url + "/")
+                assert r.url.path == "/login" and "Station token" in await r.text()
+                assert (await http.get(g.url + "/static/app.js")).status == 401
+                assert (await http.get(g.url + "/ws")).status == 401
+                r = await http.post(g.url + "/login", data={"token": "wrong"})
+                assert r.status == 403
+                r = await http.post(g.url + "/login", data={"token": token})
+                assert r.status == 200 and r.url.path == "/"
+                cookies = [c.value for c in http.cookie_jar]
+                assert cookies and token not in cookies
+                async with http.ws_connect(g.url + "/ws") as ws:
+                    assert (await ws.receive_json(timeout=30))["type"] == "hello"
+                # a form past its size limit is refused
+                r = await http.post(g.url + "/login", data={"token": "x" * (web.MAX_FORM_BYTES + 10)})
+                assert r.status == 413
+
+        asyncio.run(page())
+    finally:
+        g.stop()

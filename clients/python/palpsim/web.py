@@ -21,7 +21,11 @@ MAX_WS_MESSAGE_BYTES; bad ones get an error message naming the field. A browser 
 disconnects ends its session after --idle-s seconds.
 
 Wire format to the page: text messages are JSON ({"type": ...}); a binary message is a
-frame: 4 bytes big-endian header length, the header as JSON, then the JPEG.
+frame: 4 bytes big-endian header length, the header as JSON, then the JPEG. The header
+names the frame and the pose it shows, the server's and the gateway's pose-to-frame
+latency, the wall-clock time the gateway sent that pose (pose_sent_unix_ms: a page on
+the same machine measures pose to frame against performance.timeOrigin + now) and the
+newest page input that pose reflects.
 """
 
 from __future__ import annotations
@@ -179,6 +183,7 @@ class Station:
         self.pending_input = 0
         self.inputs: collections.deque[tuple[int, int]] = collections.deque(maxlen=64)  # (first seq, input)
         self.sent_at = np.zeros(4096)           # gateway clock (s) of pose seq % 4096
+        self.sent_unix = np.zeros(4096)         # and wall clock (s), for the page's clock on one machine
         self.state: dict[str, Any] = {}          # newest pose reply, for the page
         self.poses = 0
         self.errors: collections.deque[str] = collections.deque(maxlen=8)  # for the page
@@ -280,8 +285,9 @@ class Station:
                 f = update.frame
                 now = time.monotonic()
                 seq = f.pose_seq
-                gateway_ms = ((now - self.sent_at[seq % 4096]) * 1e3
-                              if seq and self.session is not None and seq > self.poses - 4096 else None)
+                ours = bool(seq) and self.session is not None and seq > self.poses - 4096
+                gateway_ms = (now - self.sent_at[seq % 4096]) * 1e3 if ours else None
+                sent_unix_ms = self.sent_unix[seq % 4096] * 1e3 if ours else None
                 input_id = 0
                 for first_seq, k in reversed(self.inputs):
                     if seq >= first_seq:
@@ -289,7 +295,8 @@ class Station:
                         break
                 header = {"frame_seq": f.frame_seq, "pose_seq": seq, "width": f.width,
                           "height": f.height, "pose_to_frame_ms": f.pose_to_frame_ms,
-                          "gateway_pose_to_frame_ms": gateway_ms, "input": input_id,
+                          "gateway_pose_to_frame_ms": gateway_ms, "pose_sent_unix_ms": sent_unix_ms,
+                          "input": input_id,
                           "contact": f.contact, "deformed": f.deformed, "tip_mm": _vec(f.tip_mm),
                           "view": view_dict(f.view)}
                 head = json.dumps(header).encode()
@@ -327,6 +334,7 @@ class Station:
             last = now
             seq = s.send_pose(tip, client_time_s=now)
             self.sent_at[seq % 4096] = now
+            self.sent_unix[seq % 4096] = time.time()
             if self.pending_input:
                 self.inputs.append((seq, self.pending_input))
                 self.pending_input = 0
@@ -547,6 +555,29 @@ class Gateway:
                 last_poses, last_t = st.poses, now
                 await ws.send_json({"type": "state", **st.state, "depth_goal_mm": st.depth_mm,
                                     "poses_per_s": rate, "frames_skipped": st.frames_skipped})
+
+
+def headless_chromium(width: int = 1100, height: int = 800):
+    """A selenium WebDriver of Debian's headless chromium through chromium-driver, for the
+    browser test and the benchmark; raises RuntimeError naming what is missing."""
+    import shutil
+
+    try:
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+    except ImportError:
+        raise RuntimeError("selenium is not installed (pip install selenium; scripts/setup.sh "
+                           "installs it)") from None
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    driver = shutil.which("chromedriver")
+    if not browser or not driver:
+        raise RuntimeError("Debian's chromium and chromium-driver are not installed (apt-get install "
+                           "chromium chromium-driver; scripts/setup.sh installs them)")
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = browser
+    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", f"--window-size={width},{height}"):
+        opts.add_argument(a)
+    return webdriver.Chrome(service=Service(driver), options=opts)
 
 
 def _refusal(e: Exception) -> str:

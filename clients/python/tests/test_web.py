@@ -12,7 +12,6 @@ import asyncio
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 import time
@@ -215,20 +214,9 @@ def test_page_messages_errors_secrets_and_idle_end(server, gateway):
 def chromium_driver():
     """A headless chromium driven by selenium, or a skip naming what is missing."""
     try:
-        from selenium import webdriver
-        from selenium.webdriver.chrome.service import Service
-    except ImportError:
-        skip("selenium is not installed (pip install selenium; scripts/setup.sh installs it)")
-    browser = shutil.which("chromium") or shutil.which("chromium-browser")
-    driver = shutil.which("chromedriver")
-    if not browser or not driver:
-        skip("Debian's chromium and chromium-driver are not installed (apt-get install chromium "
-             "chromium-driver; scripts/setup.sh installs them)")
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = browser
-    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1100,800"):
-        opts.add_argument(a)
-    return webdriver.Chrome(service=Service(driver), options=opts)
+        return web.headless_chromium()
+    except RuntimeError as e:
+        skip(str(e))
 
 
 def canvas_png(driver) -> np.ndarray:

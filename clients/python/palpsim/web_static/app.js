@@ -9,7 +9,7 @@ const canvas = $("frame");
 // what the page measured, for the status line, tests and the benchmark
 const stats = {
   frames: 0, lastSeq: 0, firstShownAt: 0, lastShownAt: 0, fps: 0,
-  inputLatencies: [], lastPick: null, force: 0, maxForce: 0, contact: false, errors: [],
+  inputLatencies: [], poseToFrame: [], recent: [], lastPick: null, force: 0, maxForce: 0, contact: false, errors: [],
   mode: "", hello: null,
 };
 window.palpsimStats = stats;
@@ -61,6 +61,15 @@ const sink = new FrameSink(canvas, (h, now) => {
   }
   $("p2f").textContent = h.pose_to_frame_ms ? h.pose_to_frame_ms.toFixed(1) : "–";
   $("gp2f").textContent = h.gateway_pose_to_frame_ms != null ? h.gateway_pose_to_frame_ms.toFixed(1) : "–";
+  // pose to frame shown, on this machine's wall clock (the gateway's pose time is one)
+  if (h.pose_sent_unix_ms != null) {
+    const ms = performance.timeOrigin + now - h.pose_sent_unix_ms;
+    stats.poseToFrame.push(ms);
+    if (stats.poseToFrame.length > 2000) stats.poseToFrame.shift();
+    $("bp2f").textContent = median(stats.poseToFrame.slice(-30)).toFixed(1);
+  }
+  stats.recent.push([now, h.frame_seq, h.pose_seq, h.pose_to_frame_ms]);
+  if (stats.recent.length > 2000) stats.recent.shift();
   // the first frame showing a pose sent after an input: input-to-frame latency
   for (const [id, t] of inputSentAt) {
     if (h.input >= id) {
@@ -207,3 +216,9 @@ function connect() {
   };
 }
 connect();
+
+// for scripts that drive the page (the browser test, bench/web_bench.py)
+window.palpsim = {
+  setDepth,
+  pick: (x, y) => send({ type: "pick", x, y, input: newInput() }),
+};

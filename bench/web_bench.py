@@ -130,6 +130,7 @@ def main() -> int:
             "machine": machine(), "platform": platform.platform(), "commit": commit,
             "gl_renderer": st.gl_renderer, "jpeg_encoder": st.jpeg_encoder,
             "size": [w, h], "seconds": args.seconds,
+            "load_average_1min": os.getloadavg()[0],  # other work on this machine meanwhile
             "frames_in_browser": len(recent),
             "frames_per_s": (len(recent) - 1) / elapsed_s if len(recent) > 1 else 0.0,
             "pose_to_frame_browser_ms": {"p50": quantile(p2f, 0.5), "p90": quantile(p2f, 0.9),
@@ -138,8 +139,8 @@ def main() -> int:
             "input_to_frame_ms": {"p50": quantile(inputs, 0.5), "p90": quantile(inputs, 0.9), "n": len(inputs)},
         }
         print(json.dumps(result, indent=2))
-        label = args.label or ("gpu" if "llvmpipe" not in st.gl_renderer.lower() else
-                               f"cpu-{os.cpu_count()}core")
+        label = args.label or (("gpu" if "llvmpipe" not in st.gl_renderer.lower() else f"cpu-{os.cpu_count()}core")
+                               + f"-{w}x{h}")
         args.out.mkdir(parents=True, exist_ok=True)
         out = args.out / f"web-{datetime.date.today().isoformat()}-{label}-{commit}.json"
         out.write_text(json.dumps(result, indent=2) + "\n")

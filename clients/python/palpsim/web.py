@@ -180,6 +180,7 @@ class Station:
         self.path_start: np.ndarray | None = None  # where the first press starts (hovering)
         self.ray_dir: np.ndarray | None = None
         self.depth_mm = DEFAULT_DEPTH_MM
+        self.hovering = True                    # before the first click the tip waits outside
         self.pending_input = 0
         self.inputs: collections.deque[tuple[int, int]] = collections.deque(maxlen=64)  # (first seq, input)
         self.sent_at = np.zeros(4096)           # gateway clock (s) of pose seq % 4096
@@ -212,12 +213,29 @@ class Station:
         p = self.client.info().patient
         self._start(self._frames, "palpsim-web-frames")
         if self.session is not None:
+            self._park(p)
             self._start(self._device, "palpsim-web-device")
         return {"type": "hello", "mode": "watch" if self.gw.watch_only else "palpate",
                 "session": f"{self.session_id:016x}", "view": view_dict(self.watch_reply.view),
                 "body_min_mm": _vec(p.body_min_mm), "body_max_mm": _vec(p.body_max_mm),
                 "max_force_n": self.max_force_n, "depth_range_mm": list(DEPTH_RANGE_MM),
                 "depth_mm": self.depth_mm}
+
+    def _park(self, patient: "wire.PatientInfo") -> None:
+        """Where the tip waits for the first click: HOVER_MM outside the skin under the
+        centre of the 3D view, so the device's poses flow from the start (a session
+        without poses would be freed by the server's idle timeout)."""
+        v = self.watch_reply.view
+        view_w = v.width - min(v.height // 3, v.width)
+        r = self.client.pick(self.session_id, view_w / 2, v.height / 2)
+        if r.hit:
+            self.ray_dir = np.array(_vec(r.ray_direction))
+            self.skin_mm = np.array(_vec(r.point_mm))
+        else:  # the centre misses the body: wait on the ray's side of the body's bounding box
+            lo, hi = np.array(_vec(patient.body_min_mm)), np.array(_vec(patient.body_max_mm))
+            self.ray_dir = np.array(_vec(r.ray_direction))
+            self.skin_mm = (lo + hi) / 2 - self.ray_dir * (np.linalg.norm(hi - lo) / 2)
+        self.path_start = self.skin_mm - self.ray_dir * HOVER_MM
 
     def set_view(self, changes: dict[str, Any]) -> dict[str, Any]:
         """Sends view changes to the server (WatchSession); the view it now renders."""
@@ -232,10 +250,8 @@ class Station:
         if r.hit:
             skin = np.array(_vec(r.point_mm))
             d = np.array(_vec(r.ray_direction))
-            if self.skin_mm is None:
-                # the first press starts hovering outside the skin on the ray
-                self.path_start = skin - d * HOVER_MM
             self.ray_dir, self.skin_mm = d, skin
+            self.hovering = False
             self.pending_input = input_id
             out["point_mm"] = skin.tolist()
         return out
@@ -323,13 +339,11 @@ class Station:
                 now = time.monotonic()
             # a late loop catches up by at most one period (it never bursts)
             next_t = max(next_t + period, now)
-            if self.skin_mm is None:
-                last = now
-                continue
             if path is None:
                 path = TipPath(self.path_start)
             lo, hi = DEPTH_RANGE_MM
-            path.goal = self.skin_mm + self.ray_dir * min(max(self.depth_mm, lo), hi)
+            depth = -HOVER_MM if self.hovering else min(max(self.depth_mm, lo), hi)
+            path.goal = self.skin_mm + self.ray_dir * depth
             tip = path.step(min(now - last, 0.01))
             last = now
             seq = s.send_pose(tip, client_time_s=now)
@@ -392,12 +406,12 @@ class Gateway:
     async def static(self, request):
         from aiohttp import web
 
+        if not self._logged_in(request):
+            raise web.HTTPUnauthorized(text=f"{PROG}: log in first (/login)")
         name = request.match_info["name"]
         path = STATIC / name
         if "/" in name or name.startswith(".") or not path.is_file() or name == "index.html":
             raise web.HTTPNotFound(text=f"{PROG}: no file {name!r} here (the page is at /)")
-        if not self._logged_in(request):
-            raise web.HTTPUnauthorized(text=f"{PROG}: log in first (/login)")
         return web.FileResponse(path, headers=_NO_STORE)
 
     async def login_page(self, request):

@@ -245,6 +245,7 @@ def test_browser_sees_frames_and_palpates(server, gateway):
     above 0 while the frames change; screenshots go to $PALPSIM_WEB_SHOTS."""
     from PIL import Image
     from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.actions.wheel_input import ScrollOrigin
 
     driver = chromium_driver()
     SCREENSHOTS.mkdir(parents=True, exist_ok=True)
@@ -282,6 +283,14 @@ def test_browser_sees_frames_and_palpates(server, gateway):
         page1, page2 = (np.asarray(Image.open(SCREENSHOTS / n).convert("RGB")).astype(float)
                         for n in ("1-first-frame.png", "2-pressed.png"))
         assert page2.std() > 10 and np.abs(page2 - page1).max(axis=2).sum() > 0
+        # three wheel notches down push 3 mm deeper (6 -> 9 mm): the tip's depth under the
+        # skin follows (more than 2 mm deeper: the depth is measured to the skin's nearest
+        # point, within a voxel of the path's ray)
+        depth_before = stats()["depth"]
+        for _ in range(3):
+            ActionChains(driver).scroll_from_origin(ScrollOrigin.from_element(canvas), 0, 100).perform()
+        wait_for(lambda: stats()["depthGoal"] == 9, 30, "depth goal of 9 mm after 3 wheel notches")
+        wait_for(lambda: stats()["depth"] > depth_before + 2, 30, "a deeper tip after the wheel")
         latencies = stats()["inputLatencies"]
         print(f"browser: {stats()['frames']} frames, {stats()['fps']:.1f} frames/s, input-to-frame "
               f"{[round(x) for x in latencies]} ms; screenshots in {SCREENSHOTS}")

@@ -91,6 +91,8 @@ function setContact(contact, depth) {
 function onState(s) {
   const f = Math.hypot(...s.force_n);
   stats.force = f;
+  stats.depth = s.depth_mm;
+  stats.depthGoal = s.depth_goal_mm;
   stats.maxForce = Math.max(stats.maxForce, f);
   $("force").textContent = f.toFixed(2);
   $("forcefill").style.width = `${Math.min(100, (100 * f) / maxForceN)}%`;
@@ -186,7 +188,7 @@ canvas.addEventListener("pointerup", (e) => {
 });
 canvas.addEventListener("wheel", (e) => {
   e.preventDefault();
-  if (stats.mode === "palpate" && stats.lastPick) setDepth(depthGoal - Math.sign(e.deltaY));  // 1 mm a notch
+  if (stats.mode === "palpate" && stats.lastPick) setDepth(depthGoal + Math.sign(e.deltaY));  // down: 1 mm deeper a notch
 }, { passive: false });
 
 // -- connection --------------------------------------------------------------------------

@@ -30,6 +30,7 @@
 #include "net/stream_state.h"
 #include "net/wire_convert.h"
 #include "net/zap_handler.h"
+#include "render/camera.h"
 #include "render/view.h"
 #include "palpsim/options.pb.h"
 #include "palpsim/scene.pb.h"
@@ -198,6 +199,7 @@ std::unique_ptr<World> make_world(const Scene& scene, PatientPtr patient, std::u
     w->body_min_mm = a;
     w->body_max_mm = b;
   }
+  w->body_center_mm = render::body_center(g, bl, bh);
   return w;
 }
 
@@ -608,9 +610,11 @@ class Server::Control {
         case v1::ControlRequest::kLoadScene: return load_scene();
         case v1::ControlRequest::kInfo: return fill_info(rep_.mutable_info());
         case v1::ControlRequest::kWatch: return watch();
+        case v1::ControlRequest::kPick: return pick();
         case v1::ControlRequest::BODY_NOT_SET:
           return refuse(v1::ERROR_EMPTY_REQUEST, sh_.counters.empty_request,
-                        "ControlRequest: no body set (open, close, reset, set_parameter, stats, load_scene, info or watch)");
+                        "ControlRequest: no body set (open, close, reset, set_parameter, stats, load_scene, info, watch "
+                        "or pick)");
       }
     } catch (const std::exception& e) {
       return refuse(v1::ERROR_INTERNAL, sh_.counters.internal_errors, std::string("ControlRequest: ") + e.what());
@@ -1034,6 +1038,47 @@ class Server::Control {
     fill_view(o->mutable_view(), v);
     o->set_brick_encoding(ss.watch.brick_float32 ? v1::BRICK_FLOAT32 : v1::BRICK_INT16);
     o->set_brick_compression(ss.watch.brick_zstd ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE);
+  }
+
+  // the skin point under a pixel of a session's frame: its view's ray, first body hit
+  void pick() {
+    const auto& r = req_.pick();
+    SessionSlot* s = session_or_refuse(r.session_id(), "PickRequest.session_id");
+    if (!s) return;
+    const World& w = world();
+    const std::uint64_t id = r.session_id();
+    // the view its frames are rendered with: the watched one, else the scene's
+    render::ViewSettings v = default_view(w.scene.render);
+    if (stream_) {
+      StreamSlot& ss = stream_->slot(id);
+      std::lock_guard<std::mutex> lock(ss.mu);
+      if (ss.watch.session_id == id) v = ss.watch.view;
+    }
+    const render::Camera cam = [&] {
+      Contact c;
+      s->latest.read(c);
+      const bool has_tip = c.session_id == id && c.seq != 0;
+      return render::orbit_camera(w.patient->grid, v, render::frame_target(v, has_tip, c.tip_mm, w.body_center_mm));
+    }();
+    const auto dir = render::pixel_ray(cam, r.x_px(), r.y_px());
+    if (!dir) {
+      char b[320];
+      std::snprintf(b, sizeof b,
+                    "PickRequest.x_px, y_px: (%g, %g) is outside the frame's 3D view, pixels 0..%d x 0..%d of a "
+                    "%d x %d frame (the slice column starts at x = %d)",
+                    r.x_px(), r.y_px(), cam.view_w, v.height, v.width, v.height, cam.view_w);
+      return refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, b);
+    }
+    auto* o = rep_.mutable_pick();
+    o->set_session_id(id);
+    set_vec(o->mutable_ray_origin_mm(), cam.eye);
+    set_vec(o->mutable_ray_direction(), *dir);
+    fill_view(o->mutable_view(), v);
+    if (const auto hit = render::first_body_hit(*w.patient, cam.eye, *dir)) {
+      o->set_hit(true);
+      set_vec(o->mutable_point_mm(), *hit);
+      o->set_distance_mm(norm(*hit - cam.eye));
+    }
   }
 
   // frames and bricks in the stats: server-wide, and one session's

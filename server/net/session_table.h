@@ -33,6 +33,7 @@ struct World {
   Vec3 bounds_max_mm{0, 0, 0};
   Vec3 body_min_mm{0, 0, 0};     // bounding box of the body mask's voxel centres
   Vec3 body_max_mm{0, 0, 0};
+  Vec3 body_center_mm{0, 0, 0};  // the body's centre as frames take it (render/camera.h's body_center)
 };
 
 /// Builds a World (bounds included) from a scene and its patient.

@@ -11,6 +11,7 @@
 #include <unordered_map>
 
 #include "core/error.h"
+#include "render/camera.h"
 #include "render/shaders.h"
 #include "render/transfer_function.h"
 
@@ -20,7 +21,6 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 constexpr float kAirHu = -1024;       // what voxels outside the body mask become
-constexpr double kHalfFovDeg = 15;    // half the vertical field of view at zoom 1
 constexpr int kCtSlab = 8;            // k-slices per chunk of the CT upload
 constexpr int kBlockVox = 8;          // edge of the blocks for skipping faint space (voxel)
 constexpr float kShellMaxHu = -450;   // the shell around the body keeps its CT value up to this
@@ -74,11 +74,6 @@ float faint_below_hu(Preset p) {
 enum Unit { kUnitCt = 0, kUnitOverlay = 1, kUnitBody = 2, kUnitTf = 3, kUnitBlock = 4 };
 
 double ms_since(Clock::time_point t0) { return std::chrono::duration<double, std::milli>(Clock::now() - t0).count(); }
-
-Vec3 normalized(const Vec3& v) {
-  const double n = norm(v);
-  return n > 0 ? v / n : v;
-}
 
 // a GL error as text, or "" when there is none (clears the pending errors)
 std::string gl_errors() {
@@ -430,7 +425,7 @@ void FrameRenderer::Impl::upload_volumes() {
   }
   box_lo = Vec3(lo.x - 0.5, lo.y - 0.5, lo.z - 0.5);
   box_hi = Vec3(hi.x + 0.5, hi.y + 0.5, hi.z + 0.5);
-  body_center_mm = g.to_physical((Vec3(lo) + Vec3(hi)) * 0.5);
+  body_center_mm = body_center(g, lo, hi);
   // the pre-integrated transfer functions, for steps of ray_step_vox voxels (mean voxel edge)
   const double voxel_mm = std::cbrt(g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z);
   for (Preset pr : {Preset::kSkin, Preset::kBone, Preset::kSoftTissue}) {
@@ -659,11 +654,9 @@ void FrameRenderer::draw(OverlayId id, TargetId t, const ViewSettings& view, con
   m.resize(tg, view.width, view.height);
 
   // layout: the 3D view on the left, slices of edge s stacked on the right
-  const int W = view.width, H = view.height, s = std::min(H / 3, W), view_w = W - s;
+  const int W = view.width, H = view.height, view_w = view_width(W, H), s = W - view_w;
   // the look-at point and slice centre (mm)
-  const Vec3 target = (view.look_at_tip && marks.has_tip) ? marks.tip_mm
-                      : view.center_set                   ? view.center_mm
-                                                          : m.body_center_mm;
+  const Vec3 target = frame_target(view, marks.has_tip, marks.tip_mm, m.body_center_mm);
   // index-space image of a physical direction (voxel per mm)
   auto to_idx_dir = [&](const Vec3& v) {
     const Vec3 a = g.physical_to_axes(v);
@@ -681,19 +674,9 @@ void FrameRenderer::draw(OverlayId id, TargetId t, const ViewSettings& view, con
 
   // 1. the 3D view: camera on its orbit about the target (view.h), zoom narrows the field
   m.mark(tg, 0);
-  const double pi = 3.14159265358979323846;
-  const double az = view.azimuth_deg * pi / 180, el = view.elevation_deg * pi / 180;
-  const Vec3 extent{g.size.x * g.spacing_mm.x, g.size.y * g.spacing_mm.y, g.size.z * g.spacing_mm.z};
-  const double radius_mm = 0.5 * norm(extent);
-  const double half_fov = kHalfFovDeg * pi / 180;
-  const double dist_mm = radius_mm / std::sin(half_fov);
-  const double tan_h = std::tan(half_fov) / view.zoom;
-  const Vec3 to_eye{std::sin(az) * std::cos(el), std::cos(az) * std::cos(el), std::sin(el)};
-  const Vec3 eye = target + to_eye * dist_mm;
-  const Vec3 fwd = -to_eye;
-  const Vec3 right = normalized(cross(fwd, Vec3{0, 0, 1}));
-  const Vec3 up = cross(right, fwd);
-  const double aspect = double(view_w) / H;
+  const Camera cam = orbit_camera(g, view, target);
+  const Vec3 &eye = cam.eye, &fwd = cam.fwd, &right = cam.right, &up = cam.up;
+  const double dist_mm = cam.dist_mm, tan_h = cam.tan_h, aspect = cam.aspect;
   const Vec3 light = normalized(-fwd + up * 0.45 - right * 0.35);
   const double mm_per_px = 2 * dist_mm * tan_h / H;  // at the target's distance
   // the ray caster's uniforms, the same for both programs

@@ -21,6 +21,7 @@
 #include "core/setting_names.h"
 #include "deform/engine.h"
 #include "prep/phantom.h"
+#include "render/camera.h"
 #include "render/egl_context.h"
 #include "render/frame_encoder.h"
 #include "render/frame_renderer.h"
@@ -209,6 +210,51 @@ TEST_CASE("a phantom frame is not blank: body in the 3D view, tissue in the slic
     for (int s = 0; s < 3; ++s) CHECK(test::mean_luma(rgb, 320, vw + 2, s * 60 + 2, 318, s * 60 + 58) > 20);
   }
   r.remove_overlay(id);
+}
+
+TEST_CASE("a pixel's pick ray hits the body exactly where the frame shows it", "[render][frame][pick]") {
+  // PickRequest's camera (render/camera.h) against the drawn frame: off-centre pixels of
+  // an oblique view, so a mirrored or shifted pixel mapping lands on the wrong side of
+  // the silhouette somewhere
+  FrameRenderer& r = renderer_2mm();
+  const Patient& p = *phantom_2mm();
+  const auto id = r.add_overlay({32, 32, 32});
+  ViewSettings v = small_view(Preset::kSkin);
+  v.azimuth_deg = 35;
+  v.elevation_deg = 25;
+  v.zoom = 1.6;
+  const Rgb rgb = frame(r, id, v, FrameMarks{});
+  r.remove_overlay(id);
+  const Vec3 lo = p.grid.to_physical({0, 0, 0});
+  const Camera cam = orbit_camera(p.grid, v, frame_target(v, false, lo, body_center(p)));
+  auto hits = [&](double x, double y) { return bool(first_body_hit(p, cam.eye, *pixel_ray(cam, x, y))); };
+  // pixels 3 px or more inside or outside the silhouette on both axes (the skin is drawn
+  // from the CT's partial-volume shell around the mask, which may reach a voxel, about
+  // 1.5 px here, beyond it); the background is a grey gradient below luma 55
+  long inside = 0, outside = 0, lit_inside = 0, dark_outside = 0;
+  for (int y = 4; y < v.height - 4; y += 2)
+    for (int x = 4; x < cam.view_w - 4; x += 2) {
+      const double cx = x + 0.5, cy = y + 0.5;
+      const bool h = hits(cx, cy);
+      if (hits(cx - 3, cy) != h || hits(cx + 3, cy) != h || hits(cx, cy - 3) != h || hits(cx, cy + 3) != h) continue;
+      // the orientation triad in the bottom left corner (6 px from the edges, edge H/7 but at least 32 px)
+      if (x < 6 + 32 + 2 && y > v.height - 6 - 32 - 2) continue;
+      const double luma = test::mean_luma(rgb, v.width, x, y, x + 1, y + 1);
+      if (h) {
+        ++inside;
+        lit_inside += luma > 60;
+      } else {
+        ++outside;
+        dark_outside += luma < 60;
+      }
+    }
+  INFO(inside << " pixels inside (" << lit_inside << " lit), " << outside << " outside (" << dark_outside << " dark)");
+  REQUIRE(inside > 200);
+  REQUIRE(outside > 200);
+  // every pixel the pick calls background is background; of the body's, all but a few
+  // in the skin's own shadow (the light comes from above right) are lit
+  CHECK(dark_outside == outside);
+  CHECK(lit_inside >= inside * 95 / 100);
 }
 
 TEST_CASE("bone preset: the spine is brighter than the soft tissue beside it", "[render][frame]") {

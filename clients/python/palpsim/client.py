@@ -257,6 +257,16 @@ class Client:
             body.view.CopyFrom(view if isinstance(view, wire.ViewSettings) else view_settings(view))
         return self._request("watch", body)
 
+    def pick(self, session_id: int, x_px: float, y_px: float) -> "wire.PickReply":
+        """The skin point under pixel (x_px, y_px) of a session's frame (x from the left
+        edge, y from the top, pixel centres at .5): the server casts that pixel's ray with
+        the session's current view and answers with its first point in the body
+        (`.hit`, `.point_mm`), the ray (`.ray_origin_mm`, unit `.ray_direction`) and the view
+        it used. A pixel outside the frame's 3D view raises ServerError
+        (ERROR_BAD_PARAMETER); a session that is not this client's, ERROR_NOT_OWNER."""
+        return self._request("pick", wire.PickRequest(session_id=int(session_id), x_px=float(x_px),
+                                                      y_px=float(y_px)))
+
     def open_session(self, client_name: str | None = None) -> "Session":
         """Opens a session with its own proxy state and the scene's haptics parameters."""
         reply = self._request("open", wire.OpenSession(client_name=client_name or self.name))

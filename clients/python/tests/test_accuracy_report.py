@@ -279,3 +279,29 @@ def test_the_committed_report_is_regenerated_by_palpsim_bench_from_the_committed
     args = m.group(1).split()
     subprocess.run([_bench()] + args + ["--out-dir", str(tmp_path)], cwd=root, check=True, capture_output=True)
     assert (tmp_path / "accuracy.md").read_text() == committed
+
+
+def test_the_half_space_table_judges_force_and_profile_against_their_bands():
+    # one row that meets both (3 % soft, profile 3 % where the converged FEM's 2.3 % gives the
+    # 5 % band) and one that misses the force (8 % soft) and the converged FEM's 1 % band but
+    # meets the 1 mm FEM's 10 % band (its 7.9 %)
+    hs = {"date": "2026-12-05T00:00:00Z", "host_cpu": "test cpu", "host_threads": 2, "commit": "abc1234",
+          "radius_mm": 8, "hu": 40, "force_settled": 1e-4,
+          "rows": [{"block_n": 64, "nu": 0.45, "depth_mm": 1.6, "hertz_n": 0.1148, "held_ratio": 1.085,
+                    "halfspace_ratio": 0.97, "held_profile_pct": 17.0, "halfspace_profile_pct": 3.0,
+                    "face_updates": 5, "settled": True, "iterations": 71, "seconds": 20.0},
+                   {"block_n": 64, "nu": 0.45, "depth_mm": 0.4, "hertz_n": 0.01436, "held_ratio": 0.97,
+                    "halfspace_ratio": 0.92, "held_profile_pct": 14.0, "halfspace_profile_pct": 8.3,
+                    "face_updates": 4, "settled": False, "iterations": 59, "seconds": 20.0}]}
+    el = {"references": {"hertz": [
+        {"nu": 0.45, "depth_mm": 1.6, "fem": {"ratio": 0.984, "profile_pct": 2.34},
+         "fem_voxel": {"ratio": 0.985, "profile_pct": 3.45}},
+        {"nu": 0.45, "depth_mm": 0.4, "fem": {"ratio": 0.997, "profile_pct": 0.81},
+         "fem_voxel": {"ratio": 0.96, "profile_pct": 7.9}}]}}
+    rows = [l for l in rep.halfspace_markdown(hs, el, rep._fmt, rep._met, rep.band_for) if l.startswith("| 64^3")]
+    assert len(rows) == 2
+    cells = [[c.strip() for c in r.strip("|").split("|")] for r in rows]
+    # columns: ..., goal 5 % (7), ..., converged band (11), within it (12), within the 1 mm FEM's (13), updates (14)
+    assert cells[0][7] == "yes" and cells[0][11] == "2.34 (5)" and cells[0][12] == "yes" and cells[0][13] == "yes"
+    assert cells[1][7] == "no" and cells[1][11] == "0.81 (1)" and cells[1][12] == "no" and cells[1][13] == "yes"
+    assert cells[1][14] == "4 (not settled)"

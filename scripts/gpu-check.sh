@@ -47,6 +47,9 @@ fi
 if [ -z "$quick" ]; then
   step bench-render palpsim-bench render --scene config/scenes/lumbar_phantom.textproto --rounds 5 --json "$out/render.json"
   step bench-deform palpsim-bench deform --json "$out/deform.json"
+  # the elastic study's GPU column for bench/results/accuracy.md (--elastic-gpu-json)
+  step accuracy-elastic palpsim-bench accuracy --elastic --json-only "$out/accuracy-elastic.json" --backend cuda \
+    --commit "$commit"
 fi
 # the tail of each: what passed, what the benchmarks measured
 for f in "$out"/*.txt; do

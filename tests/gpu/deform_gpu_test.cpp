@@ -1118,6 +1118,7 @@ deform::ElasticRun check_elastic_step(Pair& b, const DeformContact& c, const Ela
   CHECK(eg.depth_mm == ec.depth_mm);
   CHECK(eg.normal == ec.normal);
   CHECK(eg.warm == ec.warm);
+  CHECK(eg.prediction == ec.prediction);
   REQUIRE(eg.contact == ec.contact);
   const std::vector<Vec3f> uc = b.cpu->displacement(), ug = b.gpu->displacement();
   REQUIRE(uc.size() == ug.size());
@@ -1257,6 +1258,36 @@ TEST_CASE("gpu elastic steps equal the cpu's on the lumbar phantom as the scenes
   const Vec3 along{0, 0, 12};
   check_elastic_step(b, {X + along, press.contact.tip_mm + along}, kShipped, "phantom, the VOI moved 12 mm");
   check_elastic_step(b, {X + along, X + along - in * 3.0}, kShipped, "phantom released");
+}
+
+TEST_CASE("gpu elastic steps equal the cpu's with the warm start predicted and the force by reciprocity", "[elastic]") {
+  if (!have_gpu()) return;
+  // the phantom's press over L3 as above, the tip moving a voxel in and out along n: with
+  // the unit press (predicted from it, the unit press to 0.01 and the force by reciprocity)
+  // and without (predicted by the depths' ratio)
+  PhantomCt ct = make_phantom(340.0 / 255.0);
+  const Press press = spinous_press(ct.geometry);
+  const PatientPtr phantom = elastic_phantom(std::move(ct));
+  const Vec3 X = press.contact.skin_point_mm, in = (press.contact.tip_mm - X) / press.press_mm;
+  const double h = phantom->grid.spacing_mm.x;
+  for (const bool stiffness : {true, false}) {
+    DeformConfig cfg = preset_config(1);
+    cfg.settings.relax_method = RelaxMethod::kElastic;
+    cfg.settings.grab_radius_mm = 5;
+    cfg.settings.voi_edge = 64;
+    cfg.settings.elastic.predict = true;
+    cfg.settings.elastic.stiffness_tolerance = stiffness ? 0.01 : 0.0;
+    cfg.elastic_stiffness = stiffness;
+    Pair b(phantom, cfg);
+    const std::string with = stiffness ? "with the unit press" : "without the unit press";
+    const deform::ElasticRun first = check_elastic_step(b, {X, X + in * 6.0}, kShipped, "predicted, from rest, " + with);
+    CHECK(first.prediction == deform::ElasticPredict::kNone);
+    for (int s = 1; s <= 4; ++s) {
+      const deform::ElasticRun r = check_elastic_step(b, {X, X + in * (6.0 + (s & 1) * h)}, kShipped,
+                                                      "predicted, step " + std::to_string(s) + ", " + with);
+      CHECK(r.prediction == (stiffness ? deform::ElasticPredict::kUnit : deform::ElasticPredict::kScale));
+    }
+  }
 }
 
 TEST_CASE("gpu elastic sessions side by side equal sessions alone; they step unbatched; their own memory", "[elastic]") {

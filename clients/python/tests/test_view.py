@@ -14,9 +14,12 @@ from __future__ import annotations
 
 import os
 import re
+import select
+import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from typing import Any, Iterator
 
@@ -26,7 +29,7 @@ import zmq
 from stream_fakes import (SID, OTHER_SID, FakeServer, GridSpec, Script, brick_parts,
                           frame_parts, jpeg, key_bricks, make_brick, notice_parts, read_mp4,
                           read_png, read_seq, seq_image, skip, start_stream_server,
-                          stream_message)
+                          start_xvfb, stream_message)
 
 from palpsim import view as view_mod
 from palpsim.client import Client
@@ -432,9 +435,9 @@ def test_live_window_shows_frames_and_sends_keys(capsys):
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         skip("no display ($DISPLAY unset; run under xvfb-run -a for the live window test)")
     backend = matplotlib.get_backend()   # palpsim.plots picks Agg for the other tests
-    if not view_mod.gui_available():
-        skip(f"$DISPLAY={os.environ.get('DISPLAY')} but no GUI matplotlib backend opens a "
-             "figure (tkinter or Qt missing?)")
+    problem = view_mod.gui_problem()
+    if problem is not None:
+        skip(f"no live window here: {problem}")
     try:
         _live_window(capsys)
     finally:
@@ -468,6 +471,57 @@ def _live_window(capsys):
     assert sent_keys == ["left", "p"]
     views = [w.view for w in fake.watches[1:]]
     assert [v.azimuth_deg for v in views[:1]] == [25.0] and views[1].preset == "soft_tissue"
+
+
+@pytest.fixture(scope="module")
+def xvfb():
+    """An X display of this module's own (":N"), or a skip with the reason."""
+    yield from start_xvfb()
+
+
+def _view_without_window(tmp_path, env: dict[str, str], block: tuple[str, ...] = ()) -> str:
+    """palpsim-view in a process of its own with `env` over this one's (and the modules in
+    `block` made unimportable, as in a Python without them), on a fake server, without
+    --out or --mp4 until one frame is written; returns its stderr."""
+    with FakeServer(script=frames_forever(fps=30)) as fake:
+        code = ("import sys\n"
+                f"for m in {block!r}: sys.modules[m] = None\n"
+                "from palpsim import view\n"
+                f"sys.exit(view.main(['--connect', {fake.address!r}, '--frames', '1', "
+                "'--size', '320x180', '--timeout', '10']))")
+        full_env = {k: v for k, v in os.environ.items()
+                    if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MPLBACKEND")}
+        full_env.update(env)
+        proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=full_env,
+                              capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert len(list((tmp_path / "out" / "view").glob("frame_*.png"))) == 1, proc.stderr
+    return proc.stderr
+
+
+def test_without_a_display_the_viewer_says_so(tmp_path):
+    err = _view_without_window(tmp_path, {})
+    assert ("no live window: no display ($DISPLAY and $WAYLAND_DISPLAY are unset); writing "
+            "PNG files into out/view") in err
+
+
+def test_a_display_without_a_toolkit_names_the_toolkit(tmp_path, xvfb):
+    """A display is there but this Python has no GUI toolkit for matplotlib (a Debian
+    python3 without python3-tk): the message names tkinter and how to install it."""
+    toolkits = ("_tkinter", "PyQt6", "PySide6", "PyQt5", "PySide2", "gi", "wx")
+    err = _view_without_window(tmp_path, {"DISPLAY": xvfb}, block=toolkits)
+    assert "no display" not in err
+    assert f"no live window: $DISPLAY={xvfb} is there, but matplotlib has no GUI toolkit" in err
+    assert "has no tkinter" in err and "PyQt6" in err
+    if os.path.realpath(sys.base_prefix) == "/usr" and os.path.isfile("/etc/debian_version"):
+        assert "apt-get install python3-tk" in err
+
+
+def test_a_display_that_cannot_be_reached_is_named(tmp_path):
+    """$DISPLAY names a display with no X server behind it (:65000, far above the numbers
+    X servers take): the message says the window cannot open there."""
+    err = _view_without_window(tmp_path, {"DISPLAY": ":65000"})
+    assert "no live window: cannot open a window on $DISPLAY=:65000" in err
 
 
 # ---------------------------------------------------------------------------------------

@@ -14,12 +14,10 @@ from __future__ import annotations
 
 import os
 import re
-import select
 import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from typing import Any, Iterator
 
@@ -682,3 +680,118 @@ def test_end_to_end_bricks_rebuild_the_volume(bricks_server):
     assert vol.grid.spacing_mm == pytest.approx(patient.spacing_mm)
     np.testing.assert_allclose(vol.grid.origin_mm, (patient.origin_mm.x, patient.origin_mm.y,
                                                     patient.origin_mm.z), atol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------
+# The live window on a real X display (Xvfb): keys typed into it turn the server's frame
+
+
+def _xdotool(display: str, *args: str) -> str:
+    proc = subprocess.run(["xdotool", *args], env={**os.environ, "DISPLAY": display},
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0, f"xdotool {' '.join(args)}: {proc.stderr}"
+    return proc.stdout
+
+
+def _window_frame(display: str, window: str) -> np.ndarray:
+    """A screenshot of the window's picture (the X server's pixels, through Pillow's XCB
+    grab) as (h, w, 3) uint8: its title line (frame numbers, latency) and matplotlib's
+    toolbar at the bottom are cut off, so only the rendered frame is compared."""
+    from PIL import ImageGrab
+
+    geo = dict(line.split("=", 1) for line in
+               _xdotool(display, "getwindowgeometry", "--shell", window).split())
+    x, y, w, h = (int(geo[k]) for k in ("X", "Y", "WIDTH", "HEIGHT"))
+    shot = np.asarray(ImageGrab.grab(xdisplay=display).convert("RGB"))
+    window_px = shot[y:y + h, x:x + w]
+    return window_px[int(0.1 * h):int(0.85 * h)]
+
+
+# screenshots of the same view and pose: the server renders the same JPEG, so the window
+# shows the same pixels (a mean difference of 0); 1 grey level is far below any change
+# of the picture. A 10 degree orbit moves the spine, ribs and pelvis across many pixels:
+# 6.9 grey levels of mean difference on the 2 mm phantom at 320x180 here, so 3 tells a
+# turned frame from the same one with room on both sides.
+SAME_PICTURE = 1.0
+TURNED = 3.0
+
+
+def _diff(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean absolute difference per channel, grey levels (0..255)."""
+    return float(np.abs(a.astype(np.int16) - b.astype(np.int16)).mean())
+
+
+def _find_window(display: str, proc: subprocess.Popen, timeout_s: float = 20.0) -> str:
+    """The X id of palpsim-view's window once it is shown; fails with the viewer's
+    messages (why it opened none) when none appears within `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while proc.poll() is None and time.monotonic() < deadline:
+        found = subprocess.run(["xdotool", "search", "--onlyvisible", "--name", "^palpsim-view "],
+                               env={**os.environ, "DISPLAY": display}, capture_output=True,
+                               text=True, timeout=30)
+        if found.stdout.split():
+            return found.stdout.split()[0]
+        time.sleep(0.2)
+    if proc.poll() is None:
+        proc.kill()
+    err = proc.communicate()[1]
+    pytest.fail(f"no palpsim-view window on {display} within {timeout_s:g} s:\n{err}")
+
+
+def test_live_window_on_xvfb_turns_the_frame_with_the_arrow_keys(stream_server, xvfb, tmp_path):
+    """The real server renders a session watched by palpsim-view's window on Xvfb; the
+    Right arrow typed into the window (xdotool) orbits the camera, and Left brings it
+    back: screenshots of the window show the frame turn and return. The tip stays at one
+    pose out of the body, so nothing but the view changes the picture."""
+    from PIL import Image
+
+    if shutil.which("xdotool") is None:
+        skip("no xdotool on $PATH (Debian's xdotool package; scripts/setup.sh installs it)")
+    env = {k: v for k, v in os.environ.items() if k not in ("WAYLAND_DISPLAY", "MPLBACKEND")}
+    env["DISPLAY"] = xvfb
+    with Client(stream_server.address, client_token="e2e-window") as c, \
+            c.open_session("view-e2e-window") as s:
+        s.pose((0.0, 130.0, -38.0))                      # above the back, out of contact
+        proc = subprocess.Popen(_view_cmd(stream_server.address, "--session", f"{s.id:016x}",
+                                          "--client-token", "e2e-window", "--size", "320x180",
+                                          "--azimuth", "0", "--timeout", "60"),
+                                env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            window = _find_window(xvfb, proc)
+
+            def settle(name: str, until) -> np.ndarray:
+                """Screenshots every 0.2 s until `until(shot)` holds for two in a row that
+                are the same picture (the newest frame drawn); kept as name.png."""
+                deadline = time.monotonic() + 20
+                last = None
+                while time.monotonic() < deadline:
+                    assert proc.poll() is None, proc.communicate()
+                    s.pose((0.0, 130.0, -38.0))
+                    shot = _window_frame(xvfb, window)
+                    if last is not None and until(shot) and _diff(shot, last) < SAME_PICTURE:
+                        Image.fromarray(shot).save(tmp_path / f"{name}.png")
+                        return shot
+                    last = shot
+                    time.sleep(0.2)
+                pytest.fail(f"the window did not show {name} within 20 s")
+
+            # a picture first (the blank canvas is one colour, std 0; the phantom's frame
+            # measured std 40 here), then one turned by Right, then Left's
+            first = settle("first", lambda shot: shot.std() > 20.0)
+            # keys as a person types them (XTEST) into the focused window
+            _xdotool(xvfb, "windowfocus", "--sync", window)
+            _xdotool(xvfb, "key", "Right")
+            turned = settle("right", lambda shot: _diff(shot, first) > TURNED)
+            _xdotool(xvfb, "key", "Left")
+            back = settle("left", lambda shot: _diff(shot, first) < SAME_PICTURE)
+            _xdotool(xvfb, "key", "q")
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, f"{err}\n{stream_server.tail()}"
+    assert "no live window" not in err
+    assert _diff(turned, first) > TURNED and _diff(back, first) < SAME_PICTURE
+    assert summary_numbers(out)["shown"] >= 3

@@ -424,14 +424,15 @@ def test_keys_send_views():
         assert fake.views[SID].elevation_deg == 89
 
 
-def test_live_window_shows_frames_and_sends_keys(capsys):
-    """Under a display (e.g. xvfb-run): the window opens (no --out/--mp4), key events on
-    its canvas reach the server as WatchSession views, and --frames ends it."""
+def test_live_window_shows_frames_and_sends_keys(capsys, xvfb, monkeypatch):
+    """On the module's Xvfb: the window opens (no --out/--mp4), key events on its canvas
+    reach the server as WatchSession views, and --frames ends it."""
     import matplotlib
     import matplotlib.pyplot as plt
 
-    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        skip("no display ($DISPLAY unset; run under xvfb-run -a for the live window test)")
+    monkeypatch.setenv("DISPLAY", xvfb)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.delenv("MPLBACKEND", raising=False)
     backend = matplotlib.get_backend()   # palpsim.plots picks Agg for the other tests
     problem = view_mod.gui_problem()
     if problem is not None:

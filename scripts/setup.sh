@@ -18,11 +18,14 @@ say() { printf '[setup] %s\n' "$*"; }
 # debian packages: compilers, ITK (with GDCM), ZeroMQ, protobuf, Catch2, spdlog, EGL and
 # OpenGL (Mesa's llvmpipe renders where there is no GPU), libjpeg-turbo, zstd; clang and
 # libFuzzer for the fuzzers (scripts/fuzz.sh); chromium and its driver for palpsim-web's
-# browser test (clients/python/tests/test_web.py)
+# browser test (clients/python/tests/test_web.py); Tk for palpsim-view's live window
+# (matplotlib's TkAgg: python3-tk gives Debian's python3, hence the .venv made from it
+# below, its _tkinter), and Xvfb with xdotool for the window's test (test_view.py)
 debs=(build-essential ninja-build ccache git pkg-config python3 python3-venv python3-dev clang-14 libfuzzer-14-dev
       libinsighttoolkit5-dev libgdcm-dev libzmq3-dev cppzmq-dev libprotobuf-dev protobuf-compiler
       catch2 libspdlog-dev libpng-dev libjpeg-dev libturbojpeg0-dev libzstd-dev zlib1g-dev
-      libegl-dev libgl-dev libopengl-dev libegl1-mesa libgl1-mesa-dri chromium chromium-driver)
+      libegl-dev libgl-dev libopengl-dev libegl1-mesa libgl1-mesa-dri chromium chromium-driver
+      python3-tk xvfb xdotool)
 missing=()
 for p in "${debs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' || missing+=("$p")

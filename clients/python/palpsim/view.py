@@ -7,13 +7,14 @@ and shown as three slices through the tip.
     palpsim-view --connect ADDR --mp4 press.mp4 --size 960x540 --preset skin
     palpsim-view --connect ADDR --bricks --zstd --out out/bricks --frames 10
 
-Where a display exists ($DISPLAY or $WAYLAND_DISPLAY and a GUI matplotlib backend) and
-neither --out nor --mp4 is given, it opens a window: arrows orbit the camera (azimuth,
-elevation, 10 degrees a key), + and - zoom, p cycles the presets, q quits; each key sends
-the session a new view (WatchSession). Otherwise it writes PNG files (--out DIR:
-frame_000001.png ..., or bricks_000001.png ... with --bricks; out/view when neither
---out nor --mp4 is given) and/or an MP4 (--mp4 FILE: h264, yuv420p, at the frame rate
-measured on the server's clock, else 30 fps), until --frames N frames (or VOI bricks)
+Where a display exists ($DISPLAY or $WAYLAND_DISPLAY) with a GUI toolkit for matplotlib
+(tkinter, or a Qt binding) and neither --out nor --mp4 is given, it opens a window: arrows
+orbit the camera (azimuth, elevation, 10 degrees a key), + and - zoom, p cycles the
+presets, q quits; each key sends the session a new view (WatchSession). Otherwise it says
+what is missing (the display, or the toolkit and how to install it) and writes PNG files
+(--out DIR: frame_000001.png ..., or bricks_000001.png ... with --bricks; out/view when
+neither --out nor --mp4 is given) and/or an MP4 (--mp4 FILE: h264, yuv420p, at the frame
+rate measured on the server's clock, else 30 fps), until --frames N frames (or VOI bricks)
 are written, the session ends, or Ctrl-C. At exit it prints one summary line.
 
 Exit status: 0 when done (N frames, the session closed, q or Ctrl-C); 1 when the server
@@ -385,16 +386,58 @@ def slices_image(slices: Slices, preset: str = "bone", min_edge_px: int = 256,
 
 
 # interactive matplotlib backends to try when the current one draws no window (another
-# module may have picked Agg), in matplotlib's own order of preference
-GUI_BACKENDS = ("qtagg", "gtk4agg", "gtk3agg", "tkagg", "wxagg")
+# module may have picked Agg): Tk first, the toolkit scripts/setup.sh installs (a Qt
+# wheel whose xcb plugin lacks a system library aborts the process instead of raising)
+GUI_BACKENDS = ("tkagg", "qtagg", "gtk4agg", "gtk3agg", "wxagg")
+
+# what Qt's xcb platform plugin (PyQt6's wheel) needs from Debian besides the wheel
+QT_XCB_DEBS = "libxcb-cursor0 libxcb-icccm4 libxcb-keysyms1 libxkbcommon-x11-0"
+
+# the Python modules of those backends' toolkits: one of them must import for a window
+GUI_TOOLKIT_MODULES = ("_tkinter", "PyQt6", "PySide6", "PyQt5", "PySide2", "gi", "wx")
 
 
-def gui_available() -> bool:
-    """A display exists and matplotlib has an interactive backend that opens a figure.
-    The current backend is kept when it is interactive; otherwise GUI_BACKENDS are tried
-    (unless $MPLBACKEND names a non-interactive one: the user's choice is respected)."""
-    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+def _display_name() -> str:
+    """$DISPLAY (or $WAYLAND_DISPLAY) as the messages name it."""
+    if os.environ.get("DISPLAY"):
+        return f"$DISPLAY={os.environ['DISPLAY']}"
+    return f"$WAYLAND_DISPLAY={os.environ.get('WAYLAND_DISPLAY', '')}"
+
+
+def _toolkit_present(module: str) -> bool:
+    """Whether the toolkit module `module` imports in this interpreter."""
+    import importlib
+
+    try:
+        importlib.import_module(module)
+        return True
+    except Exception:  # ImportError, or a broken binding that fails while loading
         return False
+
+
+def missing_toolkit_hint() -> str:
+    """How to give this interpreter a GUI toolkit for matplotlib: Debian's python3-tk for
+    Debian's python3 (and the venvs made from it, as scripts/setup.sh makes .venv), else a
+    Python built with Tk; or PyQt6 from PyPI (its wheels bring Qt) with the few X
+    libraries its xcb plugin loads."""
+    exe = sys.executable or "python"
+    qt = (f"or '{exe} -m pip install PyQt6' for matplotlib's QtAgg (with "
+          f"'apt-get install {QT_XCB_DEBS}' for its xcb plugin)")
+    if os.path.realpath(sys.base_prefix) == "/usr" and os.path.isfile("/etc/debian_version"):
+        return (f"{exe} (Debian's python3) has no tkinter: install it with "
+                f"'apt-get install python3-tk' (scripts/setup.sh does), {qt}")
+    return (f"{exe} has no tkinter (a Python built without Tk: with pyenv, "
+            f"'apt-get install tk-dev' and install the version again), {qt}")
+
+
+def gui_problem() -> str | None:
+    """None where the live window can open: a display exists and matplotlib has an
+    interactive backend that opens a figure on it. Otherwise the sentence saying what is
+    missing: the display, a GUI toolkit (with how to install one), or the display's
+    refusal. The current backend is kept when it is interactive; otherwise GUI_BACKENDS
+    are tried ($MPLBACKEND naming a non-interactive one is the user's choice)."""
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return "no display ($DISPLAY and $WAYLAND_DISPLAY are unset)"
     try:
         import matplotlib
         import matplotlib.pyplot as plt
@@ -405,11 +448,12 @@ def gui_available() -> bool:
         except ImportError:  # matplotlib < 3.9
             from matplotlib import rcsetup
             interactive = {b.lower() for b in rcsetup.interactive_bk}
-    except Exception:
-        return False
+    except Exception as e:
+        return f"matplotlib cannot be imported: {e}"
     env = os.environ.get("MPLBACKEND", "").lower()
     if env and env not in interactive:
-        return False
+        return f"$MPLBACKEND={env} is a matplotlib backend that draws no window"
+    failures = []
     for backend in (matplotlib.get_backend().lower(), *GUI_BACKENDS):
         if backend not in interactive:
             continue
@@ -418,10 +462,14 @@ def gui_available() -> bool:
                 plt.switch_backend(backend)
             fig = plt.figure()
             plt.close(fig)
-            return True
-        except Exception:  # the toolkit is missing or cannot reach the display
-            continue
-    return False
+            return None
+        except Exception as e:  # the toolkit is missing or cannot reach the display
+            failures.append(f"{backend}: {e}")
+    if not any(_toolkit_present(m) for m in GUI_TOOLKIT_MODULES):
+        return (f"{_display_name()} is there, but matplotlib has no GUI toolkit: "
+                f"{missing_toolkit_hint()}")
+    return (f"cannot open a window on {_display_name()} (is its X server or compositor "
+            f"running and open to this user?): {'; '.join(failures) or 'no backend tried'}")
 
 
 class ViewController:
@@ -673,10 +721,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _watch(args: argparse.Namespace) -> int:
     session_id = args.session or 0
-    live = args.out is None and args.mp4 is None and gui_available()
-    if not live and args.out is None and args.mp4 is None:
+    problem = gui_problem() if args.out is None and args.mp4 is None else None
+    live = args.out is None and args.mp4 is None and problem is None
+    if problem is not None:
         args.out = Path("out/view")
-        _say(f"no display: writing PNG files into {args.out} (give --out or --mp4)")
+        _say(f"no live window: {problem}; writing PNG files into {args.out} "
+             "(give --out or --mp4)")
     view = view_changes(args)
     control_timeout_s = args.timeout or DEFAULT_CONTROL_TIMEOUT_S
     try:

@@ -487,3 +487,47 @@ def start_stream_server(tmp: Path, scene_text: str) -> Iterator[Any]:
     finally:
         status = srv.stop()
     assert status == 0, f"the server did not stop cleanly:\n{srv.tail()}"
+
+
+def start_xvfb(timeout_s: float = 20.0) -> Iterator[str]:
+    """An X display of its own: Xvfb (Debian's xvfb, which scripts/setup.sh installs) on
+    a free display number with a 1280x800 24-bit screen; yields ":N". Skips with the
+    reason where Xvfb is missing or does not start."""
+    import select
+    import shutil
+    import subprocess
+
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        skip("no Xvfb on $PATH (Debian's xvfb package; scripts/setup.sh installs it)")
+    r, w = os.pipe()
+    proc = subprocess.Popen([exe, "-displayfd", str(w), "-screen", "0", "1280x800x24",
+                             "-nolisten", "tcp", "-noreset"], pass_fds=(w,),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    os.close(w)
+    try:
+        # Xvfb writes the display number it took to -displayfd once it accepts clients
+        number = b""
+        deadline = time.monotonic() + timeout_s
+        while not number.endswith(b"\n") and time.monotonic() < deadline:
+            ready, _, _ = select.select([r], [], [], 0.1)
+            if ready:
+                chunk = os.read(r, 16)
+                if not chunk:
+                    break
+                number += chunk
+        if not number.strip().isdigit():
+            proc.kill()
+            err = proc.communicate(timeout=10)[1].decode(errors="replace").strip()
+            skip(f"Xvfb did not start within {timeout_s:g} s: "
+                 f"{(err.splitlines() or ['(no output)'])[-1]}")
+        yield f":{number.strip().decode()}"
+    finally:
+        os.close(r)
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()

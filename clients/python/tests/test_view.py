@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -26,7 +27,7 @@ import zmq
 from stream_fakes import (SID, OTHER_SID, FakeServer, GridSpec, Script, brick_parts,
                           frame_parts, jpeg, key_bricks, make_brick, notice_parts, read_mp4,
                           read_png, read_seq, seq_image, skip, start_stream_server,
-                          stream_message)
+                          start_xvfb, stream_message)
 
 from palpsim import view as view_mod
 from palpsim.client import Client
@@ -423,18 +424,19 @@ def test_keys_send_views():
         assert fake.views[SID].elevation_deg == 89
 
 
-def test_live_window_shows_frames_and_sends_keys(capsys):
-    """Under a display (e.g. xvfb-run): the window opens (no --out/--mp4), key events on
-    its canvas reach the server as WatchSession views, and --frames ends it."""
+def test_live_window_shows_frames_and_sends_keys(capsys, xvfb, monkeypatch):
+    """On the module's Xvfb: the window opens (no --out/--mp4), key events on its canvas
+    reach the server as WatchSession views, and --frames ends it."""
     import matplotlib
     import matplotlib.pyplot as plt
 
-    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        skip("no display ($DISPLAY unset; run under xvfb-run -a for the live window test)")
+    monkeypatch.setenv("DISPLAY", xvfb)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.delenv("MPLBACKEND", raising=False)
     backend = matplotlib.get_backend()   # palpsim.plots picks Agg for the other tests
-    if not view_mod.gui_available():
-        skip(f"$DISPLAY={os.environ.get('DISPLAY')} but no GUI matplotlib backend opens a "
-             "figure (tkinter or Qt missing?)")
+    problem = view_mod.gui_problem()
+    if problem is not None:
+        skip(f"no live window here: {problem}")
     try:
         _live_window(capsys)
     finally:
@@ -468,6 +470,57 @@ def _live_window(capsys):
     assert sent_keys == ["left", "p"]
     views = [w.view for w in fake.watches[1:]]
     assert [v.azimuth_deg for v in views[:1]] == [25.0] and views[1].preset == "soft_tissue"
+
+
+@pytest.fixture(scope="module")
+def xvfb():
+    """An X display of this module's own (":N"), or a skip with the reason."""
+    yield from start_xvfb()
+
+
+def _view_without_window(tmp_path, env: dict[str, str], block: tuple[str, ...] = ()) -> str:
+    """palpsim-view in a process of its own with `env` over this one's (and the modules in
+    `block` made unimportable, as in a Python without them), on a fake server, without
+    --out or --mp4 until one frame is written; returns its stderr."""
+    with FakeServer(script=frames_forever(fps=30)) as fake:
+        code = ("import sys\n"
+                f"for m in {block!r}: sys.modules[m] = None\n"
+                "from palpsim import view\n"
+                f"sys.exit(view.main(['--connect', {fake.address!r}, '--frames', '1', "
+                "'--size', '320x180', '--timeout', '10']))")
+        full_env = {k: v for k, v in os.environ.items()
+                    if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MPLBACKEND")}
+        full_env.update(env)
+        proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=full_env,
+                              capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert len(list((tmp_path / "out" / "view").glob("frame_*.png"))) == 1, proc.stderr
+    return proc.stderr
+
+
+def test_without_a_display_the_viewer_says_so(tmp_path):
+    err = _view_without_window(tmp_path, {})
+    assert ("no live window: no display ($DISPLAY and $WAYLAND_DISPLAY are unset); writing "
+            "PNG files into out/view") in err
+
+
+def test_a_display_without_a_toolkit_names_the_toolkit(tmp_path, xvfb):
+    """A display is there but this Python has no GUI toolkit for matplotlib (a Debian
+    python3 without python3-tk): the message names tkinter and how to install it."""
+    toolkits = ("_tkinter", "PyQt6", "PySide6", "PyQt5", "PySide2", "gi", "wx")
+    err = _view_without_window(tmp_path, {"DISPLAY": xvfb}, block=toolkits)
+    assert "no display" not in err
+    assert f"no live window: $DISPLAY={xvfb} is there, but matplotlib has no GUI toolkit" in err
+    assert "has no tkinter" in err and "PyQt6" in err
+    if os.path.realpath(sys.base_prefix) == "/usr" and os.path.isfile("/etc/debian_version"):
+        assert "apt-get install python3-tk" in err
+
+
+def test_a_display_that_cannot_be_reached_is_named(tmp_path):
+    """$DISPLAY names a display with no X server behind it (:65000, far above the numbers
+    X servers take): the message says the window cannot open there."""
+    err = _view_without_window(tmp_path, {"DISPLAY": ":65000"})
+    assert "no live window: cannot open a window on $DISPLAY=:65000" in err
 
 
 # ---------------------------------------------------------------------------------------
@@ -628,3 +681,118 @@ def test_end_to_end_bricks_rebuild_the_volume(bricks_server):
     assert vol.grid.spacing_mm == pytest.approx(patient.spacing_mm)
     np.testing.assert_allclose(vol.grid.origin_mm, (patient.origin_mm.x, patient.origin_mm.y,
                                                     patient.origin_mm.z), atol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------
+# The live window on a real X display (Xvfb): keys typed into it turn the server's frame
+
+
+def _xdotool(display: str, *args: str) -> str:
+    proc = subprocess.run(["xdotool", *args], env={**os.environ, "DISPLAY": display},
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0, f"xdotool {' '.join(args)}: {proc.stderr}"
+    return proc.stdout
+
+
+def _window_frame(display: str, window: str) -> np.ndarray:
+    """A screenshot of the window's picture (the X server's pixels, through Pillow's XCB
+    grab) as (h, w, 3) uint8: its title line (frame numbers, latency) and matplotlib's
+    toolbar at the bottom are cut off, so only the rendered frame is compared."""
+    from PIL import ImageGrab
+
+    geo = dict(line.split("=", 1) for line in
+               _xdotool(display, "getwindowgeometry", "--shell", window).split())
+    x, y, w, h = (int(geo[k]) for k in ("X", "Y", "WIDTH", "HEIGHT"))
+    shot = np.asarray(ImageGrab.grab(xdisplay=display).convert("RGB"))
+    window_px = shot[y:y + h, x:x + w]
+    return window_px[int(0.1 * h):int(0.85 * h)]
+
+
+# screenshots of the same view and pose: the server renders the same JPEG, so the window
+# shows the same pixels (a mean difference of 0); 1 grey level is far below any change
+# of the picture. A 10 degree orbit moves the spine, ribs and pelvis across many pixels:
+# 6.9 grey levels of mean difference on the 2 mm phantom at 320x180 here, so 3 tells a
+# turned frame from the same one with room on both sides.
+SAME_PICTURE = 1.0
+TURNED = 3.0
+
+
+def _diff(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean absolute difference per channel, grey levels (0..255)."""
+    return float(np.abs(a.astype(np.int16) - b.astype(np.int16)).mean())
+
+
+def _find_window(display: str, proc: subprocess.Popen, timeout_s: float = 20.0) -> str:
+    """The X id of palpsim-view's window once it is shown; fails with the viewer's
+    messages (why it opened none) when none appears within `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while proc.poll() is None and time.monotonic() < deadline:
+        found = subprocess.run(["xdotool", "search", "--onlyvisible", "--name", "^palpsim-view "],
+                               env={**os.environ, "DISPLAY": display}, capture_output=True,
+                               text=True, timeout=30)
+        if found.stdout.split():
+            return found.stdout.split()[0]
+        time.sleep(0.2)
+    if proc.poll() is None:
+        proc.kill()
+    err = proc.communicate()[1]
+    pytest.fail(f"no palpsim-view window on {display} within {timeout_s:g} s:\n{err}")
+
+
+def test_live_window_on_xvfb_turns_the_frame_with_the_arrow_keys(stream_server, xvfb, tmp_path):
+    """The real server renders a session watched by palpsim-view's window on Xvfb; the
+    Right arrow typed into the window (xdotool) orbits the camera, and Left brings it
+    back: screenshots of the window show the frame turn and return. The tip stays at one
+    pose out of the body, so nothing but the view changes the picture."""
+    from PIL import Image
+
+    if shutil.which("xdotool") is None:
+        skip("no xdotool on $PATH (Debian's xdotool package; scripts/setup.sh installs it)")
+    env = {k: v for k, v in os.environ.items() if k not in ("WAYLAND_DISPLAY", "MPLBACKEND")}
+    env["DISPLAY"] = xvfb
+    with Client(stream_server.address, client_token="e2e-window") as c, \
+            c.open_session("view-e2e-window") as s:
+        s.pose((0.0, 130.0, -38.0))                      # above the back, out of contact
+        proc = subprocess.Popen(_view_cmd(stream_server.address, "--session", f"{s.id:016x}",
+                                          "--client-token", "e2e-window", "--size", "320x180",
+                                          "--azimuth", "0", "--timeout", "60"),
+                                env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            window = _find_window(xvfb, proc)
+
+            def settle(name: str, until) -> np.ndarray:
+                """Screenshots every 0.2 s until `until(shot)` holds for two in a row that
+                are the same picture (the newest frame drawn); kept as name.png."""
+                deadline = time.monotonic() + 20
+                last = None
+                while time.monotonic() < deadline:
+                    assert proc.poll() is None, proc.communicate()
+                    s.pose((0.0, 130.0, -38.0))
+                    shot = _window_frame(xvfb, window)
+                    if last is not None and until(shot) and _diff(shot, last) < SAME_PICTURE:
+                        Image.fromarray(shot).save(tmp_path / f"{name}.png")
+                        return shot
+                    last = shot
+                    time.sleep(0.2)
+                pytest.fail(f"the window did not show {name} within 20 s")
+
+            # a picture first (the blank canvas is one colour, std 0; the phantom's frame
+            # measured std 40 here), then one turned by Right, then Left's
+            first = settle("first", lambda shot: shot.std() > 20.0)
+            # keys as a person types them (XTEST) into the focused window
+            _xdotool(xvfb, "windowfocus", "--sync", window)
+            _xdotool(xvfb, "key", "Right")
+            turned = settle("right", lambda shot: _diff(shot, first) > TURNED)
+            _xdotool(xvfb, "key", "Left")
+            back = settle("left", lambda shot: _diff(shot, first) < SAME_PICTURE)
+            _xdotool(xvfb, "key", "q")
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, f"{err}\n{stream_server.tail()}"
+    assert "no live window" not in err
+    assert _diff(turned, first) > TURNED and _diff(back, first) < SAME_PICTURE
+    assert summary_numbers(out)["shown"] >= 3

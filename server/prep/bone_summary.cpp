@@ -135,23 +135,27 @@ SpineColumn judge_column(const std::vector<SliceSpine>& sl, int first, int last,
   c.slices = last - first + 1;
   c.from_mm = std::min(sl[first].z, sl[last].z), c.to_mm = std::max(sl[first].z, sl[last].z);
   c.length_mm = c.to_mm - c.from_mm;
-  std::vector<double> areas;
   double wsum = 0;
   for (int s = first; s <= last; ++s) {
     const SliceSpine& x = sl[s];
-    if (x.area_mm2 >= kSpineMinAreaMm2) ++c.bone_slices, areas.push_back(x.area_mm2);
+    if (x.area_mm2 >= kSpineMinAreaMm2) ++c.bone_slices;
     c.canal_slices += x.canal;
     c.centroid_mm += Vec3{x.x, x.y, x.z} * x.area_mm2, wsum += x.area_mm2;
   }
   if (wsum > 0) c.centroid_mm = c.centroid_mm * (1.0 / wsum);
-  // segments: runs of at least kMinSegmentMm of slices at a vertebra's level between
-  // thinner (disc) levels
-  std::nth_element(areas.begin(), areas.begin() + std::ptrdiff_t(areas.size() / 2), areas.end());
-  const double level = kSegmentLevel * areas[areas.size() / 2];
+  // segments: runs of at least kMinSegmentMm of slices between disc levels, where the
+  // area falls below kSegmentLevel of the largest within kMaxDiscGapMm on both sides
   const double spacing = c.slices > 1 ? c.length_mm / double(c.slices - 1) : 1.0;
+  const int reach = std::max(1, int(std::lround(kMaxDiscGapMm / spacing)));
+  const auto peak = [&](int from, int to) {
+    double m = 0;
+    for (int s = std::max(from, first); s <= std::min(to, last); ++s) m = std::max(m, sl[s].area_mm2);
+    return m;
+  };
   int run = 0;
   for (int s = first; s <= last + 1; ++s) {
-    if (s <= last && sl[s].area_mm2 >= level) {
+    const bool disc = s > last || sl[s].area_mm2 < kSegmentLevel * std::min(peak(s - reach, s - 1), peak(s + 1, s + reach));
+    if (!disc) {
       ++run;
       continue;
     }
@@ -162,12 +166,14 @@ SpineColumn judge_column(const std::vector<SliceSpine>& sl, int first, int last,
   std::ostringstream why;
   const bool long_enough = 2 * c.slices >= body_slices;
   const bool canal = double(c.canal_slices) >= kCanalMinFraction * double(c.slices) && c.canal_slices >= 2;
-  c.found = long_enough && (c.segments >= 2 || canal);
+  const bool vertebrae = c.segments >= 2 || c.length_mm < kTwoVertebraeMm;
+  c.found = long_enough && canal && vertebrae;
   why << "bone near the posterior midline over " << std::lround(c.length_mm) << " mm (" << c.slices << " of "
       << body_slices << " axial slices) with " << c.segments << " vertebra-like segment" << (c.segments == 1 ? "" : "s")
       << " and a spinal canal in " << c.canal_slices << " slices";
   if (!long_enough) why << ": shorter than half the body";
-  else if (!c.found) why << ": no vertebrae (bodies between discs) and no canal";
+  else if (!canal) why << ": no spinal canal enclosed by its bone";
+  else if (!vertebrae) why << ": no vertebrae (bodies between discs)";
   c.reason = why.str();
   return c;
 }

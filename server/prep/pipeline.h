@@ -132,14 +132,14 @@ double cancellous_level(const PrepSettings& prep);
 /// (see BoneSummary) of consecutive axial slices, joined slice to slice across gaps
 /// no longer than a disc (kMaxDiscGapMm) where its centroid moves left or right less
 /// than kMaxColumnShiftMm; of those chains the longest. It is a spine when it crosses at
-/// least half the body's axial slices and shows vertebrae: at least two vertebra-like
-/// segments (runs of kMinSegmentMm or more of slices with at least kSegmentLevel of
-/// the column's median area, between thinner disc levels), or a spinal canal (an unfilled hole of
-/// kCanalMinMm2..kCanalMaxMm2 enclosed by the column's bone) in at least
-/// kCanalMinFraction of its slices. A contrast-filled heart or aorta is a column
-/// without gaps or canal.
+/// least half the body's axial slices, its bone encloses a spinal canal (an unfilled
+/// hole of kCanalMinMm2..kCanalMaxMm2) in at least kCanalMinFraction of its slices and
+/// two of them, and it shows vertebrae: at least two segments (runs of kMinSegmentMm or
+/// more between disc levels, slices whose bone area falls below kSegmentLevel of the
+/// largest within kMaxDiscGapMm on both sides), unless it is shorter than
+/// kTwoVertebraeMm. A contrast-filled heart or aorta is a column without canal.
 struct SpineColumn {
-  bool found = false;       // a spine: long enough, with segments or a canal
+  bool found = false;       // a spine: long enough, with a canal and segments
   int slices = 0;           // axial slices from its first to its last (gaps included)
   int bone_slices = 0;      // of those, slices holding at least kSpineMinAreaMm2 of its bone
   int segments = 0;         // vertebra-like segments
@@ -156,17 +156,19 @@ constexpr double kMaxDiscGapMm = 20;
 /// more is another structure (antero-posterior shifts are allowed: a sloping
 /// spinous process alone meets the next vertebral body).
 constexpr double kMaxColumnShiftMm = 20;
-/// A slice belongs to a segment when its bone area reaches this fraction of the
-/// column's median area (a vertebra's level); disc levels hold only the posterior
-/// elements, about half of it or less (0.4-0.6 in the shared abdomen).
-constexpr double kSegmentLevel = 0.6;
+/// A slice is at a disc's level when its bone area falls below this fraction of the
+/// largest within kMaxDiscGapMm above and below: a disc's level holds only the posterior
+/// elements (0.4-0.7 of a vertebral body's level in the shared abdomen).
+constexpr double kSegmentLevel = 0.75;
+/// A column shorter than this (mm) may show a single vertebra and no disc.
+constexpr double kTwoVertebraeMm = 60;
 /// A segment is at least this long (mm): a vertebral body is 20-30 mm tall.
 constexpr double kMinSegmentMm = 10;
 /// Spinal canal size (mm^2) in an axial slice: a lumbar canal is 150-300 mm^2, a
 /// thoracic one 100-200 mm^2.
 constexpr double kCanalMinMm2 = 40, kCanalMaxMm2 = 700;
 /// Fraction of the column's slices that must show the canal (at pedicle levels,
-/// a third to half of a vertebra's height) when there are fewer than two segments.
+/// a third to half of a vertebra's height; 0.36-0.49 in the shared scans).
 constexpr double kCanalMinFraction = 0.15;
 
 /// What a user needs to judge a bone mask at a glance: bone volume per region and

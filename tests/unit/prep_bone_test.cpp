@@ -211,7 +211,7 @@ TEST_CASE("bone summary: volume per region, a missing spine and too much bone ar
   CHECK_THAT(s.warnings[0], Catch::Contains("no bone found"));
 }
 
-TEST_CASE("bone summary: a bright tube behind the centre without vertebrae or canal is no spine") {
+TEST_CASE("bone summary: a bright tube behind the centre, without canal or without vertebrae, is no spine") {
   // a contrast-filled aorta or heart taken as bone: a solid 20 mm tube at the spine's
   // place through every slice, as long as the body, without gaps and without a canal
   const Grid g = cube_grid({100, 80, 60}, 2.0);
@@ -226,7 +226,20 @@ TEST_CASE("bone summary: a bright tube behind the centre without vertebrae or ca
   CHECK(s.column.segments == 1);
   CHECK(s.column.canal_slices == 0);
   REQUIRE(s.warnings.size() == 1);
-  CHECK_THAT(s.warnings[0], Catch::Contains("no spine found") && Catch::Contains("no vertebrae"));
+  CHECK_THAT(s.warnings[0], Catch::Contains("no spine found") && Catch::Contains("no spinal canal"));
+
+  // the same tube with a ring around a canal behind it in every slice: a canal, but
+  // 118 mm without a disc's dip is no column of vertebrae
+  for (int k = 0; k < 60; ++k)
+    for (int j = 60; j < 68; ++j)
+      for (int i = 44; i < 56; ++i)
+        if (j >= 66 || i < 46 || i >= 54) bone.at(i, j, k) = 1;
+  const BoneSummary t = summarize_bone(body, bone);
+  CHECK(t.column.canal_slices == 60);
+  CHECK(t.column.segments == 1);
+  CHECK_FALSE(t.spine_found);
+  REQUIRE(t.warnings.size() == 1);
+  CHECK_THAT(t.warnings[0], Catch::Contains("no spine found") && Catch::Contains("no vertebrae"));
 }
 
 TEST_CASE("the phantom with automatic thresholds: between discs and vertebral bodies, spine found, volumes per region") {

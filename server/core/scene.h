@@ -13,6 +13,13 @@ enum class CutFaces {
   kOpen,  // a cut face is missing data, not skin: B measures only to the outside air within the image
 };
 
+/// What prep makes of large smooth bright regions inside soft tissue, contrast-filled
+/// chambers and vessels (prep.contrast).
+enum class ContrastAs {
+  kBone,    // they stay in the bone mask where its thresholds put them (the report names them)
+  kTissue,  // they are left out of the bone mask: soft tissue that the finger can press
+};
+
 /// Preprocessing settings (Prep in the schema).
 struct PrepSettings {
   double spacing_mm = 0;            // 0 = smallest input spacing clamped to [0.5, 2] mm
@@ -31,6 +38,7 @@ struct PrepSettings {
   double body_opening_mm = 5.0;     // opening radius that cuts the table's thin shell off the body
   double body_min_part_ml = 20;     // body parts apart from the largest are kept from this size up
   CutFaces cut_faces = CutFaces::kSkin;  // whether the faces where the image cuts the body count as skin
+  ContrastAs contrast = ContrastAs::kBone;  // whether contrast-filled chambers and vessels may be bone
 };
 
 /// Eq. 1 parameters; A, B and F in mm.

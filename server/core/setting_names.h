@@ -1,6 +1,6 @@
 // The scene's spellings of the settings that take one of a few names (deform.relax_method,
 // deform.backend, haptics.skin_point, haptics.force_model, render.preset,
-// render.jpeg_encoder, render.overlay_writer, prep.cut_faces): one table per setting, the only place those
+// render.jpeg_encoder, render.overlay_writer, prep.cut_faces, prep.contrast): one table per setting, the only place those
 // names are listed, so that the parser, its messages and the code that needs a name
 // (make_deform_backend by name, the wire's ViewSettings.preset) agree.
 #pragma once
@@ -77,6 +77,12 @@ template <>
 struct SettingNames<CutFaces> {
   static constexpr const char* field = "prep.cut_faces";
   static constexpr SettingName<CutFaces> values[] = {{CutFaces::kSkin, "skin"}, {CutFaces::kOpen, "open"}};
+};
+
+template <>
+struct SettingNames<ContrastAs> {
+  static constexpr const char* field = "prep.contrast";
+  static constexpr SettingName<ContrastAs> values[] = {{ContrastAs::kBone, "bone"}, {ContrastAs::kTissue, "tissue"}};
 };
 
 /// The scene's spelling of `v` ("" for a value outside the table, which a cast can make).

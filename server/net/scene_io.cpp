@@ -178,6 +178,7 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
   out.prep.body_opening_mm = p.body_opening_mm();
   out.prep.body_min_part_ml = p.body_min_part_ml();
   out.prep.cut_faces = named_setting<CutFaces>(origin, p.cut_faces());
+  out.prep.contrast = named_setting<ContrastAs>(origin, p.contrast());
 
   const auto& f = s.force_image();
   out.force_image.alpha = f.alpha();

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <limits>
 #include <numeric>
+#include <utility>
 #include <sstream>
 #include <vector>
 
@@ -171,6 +172,12 @@ int remove_small_components(Volume<std::uint8_t>& mask, std::size_t min_voxels) 
   for (std::size_t i = 0; i < mask.data.size(); ++i)
     if (c.label[i] && c.size[c.label[i]] < min_voxels) mask.data[i] = 0;
   return kept;
+}
+
+std::uint32_t component_labels(const Volume<std::uint8_t>& mask, std::vector<std::uint32_t>& labels) {
+  Components c = label_components(mask, true);
+  labels = std::move(c.label);
+  return std::uint32_t(c.size.size() - 1);
 }
 
 std::vector<std::size_t> component_sizes(const Volume<std::uint8_t>& mask) {
@@ -563,80 +570,6 @@ Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uin
                           fill_closing_mm, threads),
         lo, bone);
   return bone;
-}
-
-BoneSummary summarize_bone(const Volume<std::uint8_t>& body, const Volume<std::uint8_t>& bone) {
-  const Grid& g = body.grid;
-  if (!(bone.grid.size == g.size)) throw Error("summarize_bone: the body and bone masks are on different grids");
-  BoneSummary s;
-  const double voxel_ml = g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z / 1000.0;
-  const int ax = axial_axis(g), u = ax == 0 ? 1 : 0, v = ax == 2 ? 1 : 2;
-  const int n[3] = {g.size.x, g.size.y, g.size.z};
-  // area (mm^2) of one voxel in an axial slice
-  const double sp[3] = {g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z};
-  const double pixel_mm2 = sp[u] * sp[v];
-  std::size_t body_n = 0, bone_n = 0, spine_n = 0, left_n = 0, right_n = 0, anterior_n = 0;
-  for (int s_ = 0; s_ < n[ax]; ++s_) {
-    // the body's centroid in this slice (physical x and y)
-    double cx = 0, cy = 0;
-    std::size_t cn = 0;
-    int ijk[3];
-    ijk[ax] = s_;
-    for (int b = 0; b < n[v]; ++b)
-      for (int a = 0; a < n[u]; ++a) {
-        ijk[u] = a, ijk[v] = b;
-        if (!body.at(ijk[0], ijk[1], ijk[2])) continue;
-        const Vec3 p = g.to_physical(Vec3{double(ijk[0]), double(ijk[1]), double(ijk[2])});
-        cx += p.x, cy += p.y, ++cn;
-      }
-    if (cn == 0) continue;
-    ++s.body_slices;
-    body_n += cn;
-    cx /= double(cn), cy /= double(cn);
-    // each bone voxel to its region
-    std::size_t slice_spine = 0;
-    for (int b = 0; b < n[v]; ++b)
-      for (int a = 0; a < n[u]; ++a) {
-        ijk[u] = a, ijk[v] = b;
-        if (!bone.at(ijk[0], ijk[1], ijk[2])) continue;
-        ++bone_n;
-        const Vec3 p = g.to_physical(Vec3{double(ijk[0]), double(ijk[1]), double(ijk[2])});
-        if (p.x > cx + kSpineHalfWidthMm) ++left_n;
-        else if (p.x < cx - kSpineHalfWidthMm) ++right_n;
-        else if (p.y >= cy - kSpineAnteriorMm) ++slice_spine;
-        else ++anterior_n;
-      }
-    spine_n += slice_spine;
-    if (double(slice_spine) * pixel_mm2 >= kSpineMinAreaMm2) ++s.spine_slices;
-  }
-  s.body_ml = double(body_n) * voxel_ml;
-  s.bone_ml = double(bone_n) * voxel_ml;
-  s.spine_ml = double(spine_n) * voxel_ml;
-  s.left_ml = double(left_n) * voxel_ml;
-  s.right_ml = double(right_n) * voxel_ml;
-  s.anterior_ml = double(anterior_n) * voxel_ml;
-  s.bone_fraction = s.body_ml > 0 ? s.bone_ml / s.body_ml : 0;
-  s.spine_found = s.body_slices > 0 && 2 * s.spine_slices >= s.body_slices;
-
-  // the warnings
-  std::ostringstream w;
-  if (s.bone_ml == 0) {
-    s.warnings.push_back("no bone found: the force image has no bone term; check prep.bone_threshold and the CT");
-  } else if (!s.spine_found) {
-    w << "no spine found: only " << s.spine_slices << " of " << s.body_slices
-      << " axial slices hold bone behind the body's centre near its midline; check the bone mask (bone.nrrd) "
-         "and prep.bone_threshold";
-    s.warnings.push_back(w.str());
-    w.str("");
-  }
-  if (s.bone_fraction > kMaxBoneFraction) {
-    w << "bone is " << std::lround(100 * s.bone_fraction) << "% of the body, above the plausible "
-      << std::lround(100 * kMaxBoneFraction)
-      << "%: contrast, metal or a bone threshold too low; check prep.bone_threshold (left out, it is "
-         "chosen from the image)";
-    s.warnings.push_back(w.str());
-  }
-  return s;
 }
 
 Volume<float> force_image(const Patient& p, const ForceImageSettings& f, int threads) {

@@ -128,19 +128,64 @@ Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uin
 /// below the cortex).
 double cancellous_level(const PrepSettings& prep);
 
+/// The vertebral column as prep finds it in a bone mask: bone in the spine region
+/// (see BoneSummary) of consecutive axial slices, joined slice to slice across gaps
+/// no longer than a disc (kMaxDiscGapMm) where its centroid moves left or right less
+/// than kMaxColumnShiftMm; of those chains the longest. It is a spine when it crosses at
+/// least half the body's axial slices, its bone encloses a spinal canal (an unfilled
+/// hole of kCanalMinMm2..kCanalMaxMm2) in at least kCanalMinFraction of its slices and
+/// two of them, and it shows vertebrae: at least two segments (runs of kMinSegmentMm or
+/// more between disc levels, slices whose bone area falls below kSegmentLevel of the
+/// largest within kMaxDiscGapMm on both sides), unless it is shorter than
+/// kTwoVertebraeMm. A contrast-filled heart or aorta is a column without canal.
+struct SpineColumn {
+  bool found = false;       // a spine: long enough, with a canal and segments
+  int slices = 0;           // axial slices from its first to its last (gaps included)
+  int bone_slices = 0;      // of those, slices holding at least kSpineMinAreaMm2 of its bone
+  int segments = 0;         // vertebra-like segments
+  int canal_slices = 0;     // slices where its bone encloses a canal-sized hole
+  double from_mm = 0, to_mm = 0;  // its ends along the superior axis (mm, physical z of the first and last slice)
+  double length_mm = 0;     // to_mm - from_mm
+  Vec3 centroid_mm;         // centroid of its bone (LPS, mm)
+  std::string reason;       // one sentence: why it is, or is not, a spine
+};
+/// Gap (mm) between slices of bone that a column bridges: a lumbar disc with the
+/// end plates' partial volume.
+constexpr double kMaxDiscGapMm = 20;
+/// Left-right shift (mm) of the spine region's bone centroid between joined slices:
+/// more is another structure (antero-posterior shifts are allowed: a sloping
+/// spinous process alone meets the next vertebral body).
+constexpr double kMaxColumnShiftMm = 20;
+/// A slice is at a disc's level when its bone area falls below this fraction of the
+/// largest within kMaxDiscGapMm above and below: a disc's level holds only the posterior
+/// elements (0.4-0.7 of a vertebral body's level in the shared abdomen).
+constexpr double kSegmentLevel = 0.75;
+/// A column shorter than this (mm) may show a single vertebra and no disc.
+constexpr double kTwoVertebraeMm = 60;
+/// A segment is at least this long (mm): a vertebral body is 20-30 mm tall.
+constexpr double kMinSegmentMm = 10;
+/// Spinal canal size (mm^2) in an axial slice: a lumbar canal is 150-300 mm^2, a
+/// thoracic one 100-200 mm^2.
+constexpr double kCanalMinMm2 = 40, kCanalMaxMm2 = 700;
+/// Fraction of the column's slices that must show the canal (at pedicle levels,
+/// a third to half of a vertebra's height; 0.36-0.49 in the shared scans).
+constexpr double kCanalMinFraction = 0.15;
+
 /// What a user needs to judge a bone mask at a glance: bone volume per region and
 /// warnings where it looks implausible. Regions, per axial slice, relative to the
 /// body in that slice: "spine" (within kSpineHalfWidthMm of the body's left-right
 /// centre and posterior of its antero-posterior centre less kSpineAnteriorMm),
 /// "left" and "right" (beyond kSpineHalfWidthMm on the patient's left, +x, or
-/// right: ribs, pelvis, arms), "anterior" (the rest: sternum, pubis).
+/// right: ribs, pelvis, arms), "anterior" (the rest: sternum, pubis). Whether
+/// there is a spine is the column's (SpineColumn), not the region's.
 struct BoneSummary {
   double body_ml = 0;            // volume of the body mask (ml)
   double bone_ml = 0;            // volume of the bone mask (ml)
   double spine_ml = 0, left_ml = 0, right_ml = 0, anterior_ml = 0;  // bone per region (ml)
   int body_slices = 0;           // axial slices holding body
   int spine_slices = 0;          // of those, slices with at least kSpineMinAreaMm2 of bone in the spine region
-  bool spine_found = false;      // spine_slices reach half of body_slices
+  SpineColumn column;            // the vertebral column found in the spine region
+  bool spine_found = false;      // column.found
   double bone_fraction = 0;      // bone_ml / body_ml
   std::vector<std::string> warnings;  // one sentence each; empty when the mask looks plausible
 };
@@ -164,6 +209,10 @@ BoneSummary summarize_bone(const Volume<std::uint8_t>& body, const Volume<std::u
 /// Labels 6-connected components of `mask` and clears those smaller than
 /// `min_voxels`; returns the number of components kept.
 int remove_small_components(Volume<std::uint8_t>& mask, std::size_t min_voxels);
+
+/// The 6-connected components of `mask`'s non-zero voxels: `labels` gets 1..n for
+/// them (0 elsewhere); returns n.
+std::uint32_t component_labels(const Volume<std::uint8_t>& mask, std::vector<std::uint32_t>& labels);
 
 /// The voxel counts of the 6-connected components of `mask`, largest first.
 std::vector<std::size_t> component_sizes(const Volume<std::uint8_t>& mask);

@@ -5,6 +5,7 @@
 #include <chrono>
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
 #include <iomanip>
 #include <limits>
@@ -64,7 +65,8 @@ std::string settings_text(const Scene& s) {
     << " bone_threshold_set=" << p.bone_threshold_set << " bone_min_volume_ml=" << p.bone_min_volume_ml
     << " bone_closing_mm=" << p.bone_closing_mm << " bone_fill_holes=" << p.bone_fill_holes
     << " dicom_series_uid=" << p.dicom_series_uid << " body_opening_mm=" << p.body_opening_mm
-    << " body_min_part_ml=" << p.body_min_part_ml << " cut_faces=" << setting_name(p.cut_faces) << " alpha=" << f.alpha << " beta=" << f.beta
+    << " body_min_part_ml=" << p.body_min_part_ml << " cut_faces=" << setting_name(p.cut_faces)
+    << " contrast=" << setting_name(p.contrast) << " alpha=" << f.alpha << " beta=" << f.beta
     << " gamma=" << f.gamma;
   return o.str();
 }
@@ -79,7 +81,8 @@ std::string settings_json(const Scene& s) {
          ", \"bone_min_volume_ml\": " +
          jnum(p.bone_min_volume_ml) + ", \"bone_closing_mm\": " + jnum(p.bone_closing_mm) +
          ", \"bone_fill_holes\": " + (p.bone_fill_holes ? "true" : "false") + ", \"body_opening_mm\": " +
-         jnum(p.body_opening_mm) + ", \"body_min_part_ml\": " + jnum(p.body_min_part_ml) + ", \"cut_faces\": " + jstr(setting_name(p.cut_faces)) + ", \"max_memory_mb\": " +
+         jnum(p.body_opening_mm) + ", \"body_min_part_ml\": " + jnum(p.body_min_part_ml) + ", \"cut_faces\": " + jstr(setting_name(p.cut_faces)) +
+         ", \"contrast\": " + jstr(setting_name(p.contrast)) + ", \"max_memory_mb\": " +
          jnum(p.max_memory_mb) + "}, \"force_image\": {\"alpha\": " + jnum(f.alpha) + ", \"beta\": " +
          jnum(f.beta) + ", \"gamma\": " + jnum(f.gamma) + "}}";
 }
@@ -118,8 +121,18 @@ std::string body_check_json(const BodyCheck& c) {
          "}";
 }
 
+// the vertebral column: extent along the superior axis, segments, canal, verdict
+std::string spine_json(const SpineColumn& c) {
+  return "{\"found\": " + std::string(c.found ? "true" : "false") + ", \"from_mm\": " + jnum(c.from_mm) +
+         ", \"to_mm\": " + jnum(c.to_mm) + ", \"length_mm\": " + jnum(c.length_mm) + ", \"slices\": " +
+         std::to_string(c.slices) + ", \"bone_slices\": " + std::to_string(c.bone_slices) + ", \"segments\": " +
+         std::to_string(c.segments) + ", \"canal_slices\": " + std::to_string(c.canal_slices) +
+         ", \"centroid_mm\": " + jvec(c.centroid_mm) + ", \"reason\": " + jstr(c.reason) + "}";
+}
+
 // the bone section of the report: thresholds (the *_hu keys in `units`) and why, volume per region, warnings
-std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::string& units) {
+std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::string& units,
+                      const std::vector<ContrastRegion>& contrast, double contrast_removed_ml) {
   const std::string w = jstrings(b.warnings);
   return "{\"thresholds\": {\"automatic\": " + std::string(t.automatic ? "true" : "false") + ", \"units\": " +
          jstr(units) + ", \"low_hu\": " +
@@ -132,6 +145,8 @@ std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::
          ", \"left\": " + jnum(b.left_ml) + ", \"right\": " + jnum(b.right_ml) + ", \"anterior\": " +
          jnum(b.anterior_ml) + "}, \"fraction_of_body\": " + jnum(b.bone_fraction) + ", \"spine_found\": " +
          (b.spine_found ? "true" : "false") + ", \"spine_slices\": " + std::to_string(b.spine_slices) +
+         ", \"spine\": " + spine_json(b.column) + ", \"contrast_regions\": " + contrast_regions_json(contrast) +
+         ", \"contrast_removed_ml\": " + jnum(contrast_removed_ml) +
          ", \"body_slices\": " + std::to_string(b.body_slices) + ", \"warnings\": " + w + "}";
 }
 
@@ -150,6 +165,9 @@ void measure_cached(Patient& p, const PrepSettings& prep, const std::string& cor
   r.bone_thresholds = choose_bone_thresholds(p.intensity, p.body, prep);
   p.bone_threshold_hu = r.bone_thresholds.low;
   r.bone_summary = summarize_bone(p.body, p.bone);
+  r.contrast_regions = find_contrast_regions(p.intensity, p.body, p.bone, r.bone_thresholds, r.bone_summary.column);
+  const std::size_t at = core.find("\"contrast_removed_ml\": ");
+  if (at != std::string::npos) r.contrast_removed_ml = std::atof(core.c_str() + at + 23);
   r.field_of_view = find_cut_faces(p.body, prep.cut_faces);
   r.units = core.find("\"units\": \"image units\"") != std::string::npos ? "image units" : "HU";
   r.body_check = check_body(p.body, prep.air_threshold, r.units);
@@ -188,10 +206,32 @@ std::string report_core(const Scene& scene, const std::string& source, const CtI
     << ",\n  \"field_of_view\": " << field_of_view_json(r.field_of_view, prep.cut_faces)
     << ",\n  \"body_check\": " << body_check_json(r.body_check)
     << ",\n  \"has_bone\": " << (p.has_bone ? "true" : "false")
-    << ",\n  \"bone\": " << bone_json(r.bone_thresholds, r.bone_summary, r.units) << ",\n  \"force_max_mm\": " << jnum(fmax)
+    << ",\n  \"bone\": " << bone_json(r.bone_thresholds, r.bone_summary, r.units, r.contrast_regions, r.contrast_removed_ml) << ",\n  \"force_max_mm\": " << jnum(fmax)
     << ",\n  \"patient_mb\": " << jnum(double(patient_bytes) / (1024.0 * 1024.0))
     << ",\n  \"stages_s\": " << stages_json(r);
   return s.str();
+}
+
+// the contrast-filled regions: found, logged, and with prep.contrast = "tissue" left
+// out of the bone mask (small pieces of bone left beside them go too; the summary is
+// measured again)
+void find_contrast(Patient& p, const PrepSettings& prep, const std::string& source, PrepReport& r) {
+  Volume<std::uint8_t> regions;
+  r.contrast_regions = timed(r, "contrast", [&] {
+    return find_contrast_regions(p.intensity, p.body, p.bone, r.bone_thresholds, r.bone_summary.column, &regions);
+  });
+  for (const ContrastRegion& c : r.contrast_regions)
+    spdlog::info("prep: {}: contrast-filled region of {:.0f} ml at ({:.0f}, {:.0f}, {:.0f}) mm LPS, mean {:.0f} {}, "
+                 "{:.0f} ml of it in the bone mask",
+                 source, c.volume_ml, c.centroid_mm.x, c.centroid_mm.y, c.centroid_mm.z, c.mean_hu, r.units, c.bone_ml);
+  if (prep.contrast != ContrastAs::kTissue || r.contrast_regions.empty()) return;
+  const double voxel_ml = p.grid.spacing_mm.x * p.grid.spacing_mm.y * p.grid.spacing_mm.z / 1000.0;
+  const std::size_t before = count_nonzero(p.bone);
+  for (std::size_t i = 0; i < p.bone.data.size(); ++i)
+    if (regions.data[i]) p.bone.data[i] = 0;
+  remove_small_components(p.bone, std::size_t(std::ceil(prep.bone_min_volume_ml / voxel_ml)));
+  r.contrast_removed_ml = double(before - count_nonzero(p.bone)) * voxel_ml;
+  r.bone_summary = summarize_bone(p.body, p.bone);
 }
 
 }  // namespace
@@ -267,9 +307,10 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
     r.bone_thresholds = choose_bone_thresholds(p->intensity, p->body, prep);
     return bone_mask(p->intensity, p->body, r.bone_thresholds, prep, 2 * coarsest);
   });
-  r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
   p->bone_threshold_hu = r.bone_thresholds.low;
   r.bone_summary = summarize_bone(p->body, p->bone);
+  find_contrast(*p, prep, source, r);
+  r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
   for (const std::string& w : r.bone_summary.warnings) spdlog::warn("prep: {}: {}", source, w);
   p->has_bone = r.bone_ml > 0;
 
@@ -405,6 +446,29 @@ std::vector<std::string> PrepReport::summary_lines() const {
     << "% of body " << b.body_ml << " ml): spine " << b.spine_ml << ", left " << b.left_ml << ", right " << b.right_ml
     << ", anterior " << b.anterior_ml << " ml";
   lines.push_back(s.str());
+  s.str("");
+  const SpineColumn& c = b.column;
+  if (c.found)
+    s << "spine: " << c.length_mm << " mm along the axis (z " << c.from_mm << " .. " << c.to_mm << " mm), "
+      << c.segments << " vertebra-like segments, canal in " << c.canal_slices << " slices";
+  else
+    s << "no spine: " << c.reason;
+  lines.push_back(s.str());
+  if (!contrast_regions.empty()) {
+    s.str("");
+    double total = 0;
+    for (const ContrastRegion& r : contrast_regions) total += r.volume_ml;
+    s << "contrast-filled regions: " << total << " ml in " << contrast_regions.size() << " (";
+    for (std::size_t i = 0; i < contrast_regions.size() && i < 3; ++i) {
+      const ContrastRegion& r = contrast_regions[i];
+      s << (i ? "; " : "") << r.volume_ml << " ml at " << r.centroid_mm.x << ", " << r.centroid_mm.y << ", "
+        << r.centroid_mm.z << " mm";
+    }
+    s << (contrast_regions.size() > 3 ? "; ..." : "") << "), "
+      << (contrast_removed_ml > 0 ? "left out of the bone mask (prep.contrast = \"tissue\")"
+                                  : "bone where the thresholds put them (prep.contrast = \"bone\")");
+    lines.push_back(s.str());
+  }
   if (!field_of_view.warning.empty()) lines.push_back("warning: " + field_of_view.warning);
   for (const std::string& w : body_check.warnings) lines.push_back("warning: " + w);
   for (const std::string& w : b.warnings) lines.push_back("warning: " + w);

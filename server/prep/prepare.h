@@ -9,6 +9,7 @@
 #include "core/path_policy.h"
 #include "core/patient.h"
 #include "core/scene.h"
+#include "prep/contrast.h"
 #include "prep/field_of_view.h"
 #include "prep/pipeline.h"
 
@@ -26,6 +27,8 @@ struct PrepReport {
   double bone_ml = 0;        // volume of the bone mask
   BoneThresholds bone_thresholds;  // the bone mask's thresholds and why
   BoneSummary bone_summary;  // bone volume per region, whether a spine was found, warnings
+  std::vector<ContrastRegion> contrast_regions;  // contrast-filled chambers and vessels, largest first
+  double contrast_removed_ml = 0;  // bone left out of the mask in them (prep.contrast = "tissue")
   FieldOfView field_of_view;  // the faces where the image's border cuts the body
   BodyCheck body_check;      // the body mask's pieces and cross-section, warnings where it looks like no body
   std::string units = "HU";  // the image's values: "HU", or "image units" for an image not in HU
@@ -41,7 +44,8 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report = nullptr, con
 /// Builds a patient from an image already in memory (HU, or image units with
 /// both prep thresholds set): resampling, masks, distance maps, F and grad F.
 /// No cache, no file I/O; `source` names it. Appends stage times to
-/// report->stage_s and sets body_ml, bone_ml, bone_thresholds, bone_summary, field_of_view and
+/// report->stage_s and sets body_ml, bone_ml, bone_thresholds, bone_summary, contrast_regions,
+/// contrast_removed_ml, field_of_view and
 /// body_check (naming values in report->units). Throws palpsim::Error for an
 /// all-air image or one without a body.
 PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const std::string& source,

@@ -54,14 +54,16 @@ TEST_CASE("palpsim-prep writes every output for a CT file") {
   CHECK_THAT(json, Catch::Contains("\"body_ml\"") && Catch::Contains("\"bone_ml\"") &&
                        Catch::Contains("\"stages_s\"") && Catch::Contains("\"value_range\"") &&
                        Catch::Contains("\"spacing_mm\": [1.5, 1.5, 2.5]"));
-  // the bone section: automatic thresholds and why, volume per region, warnings (the
-  // torso's bone tube lies behind its centre, on the midline: a spine, so none); the
-  // thresholds are printed too
+  // the bone section: automatic thresholds and why, volume per region, the column and
+  // warnings (the torso's bone tube lies behind its centre, on the midline, but has
+  // neither vertebrae between discs nor a canal: no spine, warned); the thresholds and
+  // the verdict are printed too
   CHECK_THAT(json, Catch::Contains("\"bone\": {\"thresholds\": {\"automatic\": true") &&
                        Catch::Contains("\"reason\": \"automatic from the body's histogram") &&
-                       Catch::Contains("\"regions_ml\": {\"spine\": ") && Catch::Contains("\"spine_found\": true") &&
-                       Catch::Contains("\"warnings\": []"));
-  CHECK_THAT(r.output, Catch::Contains("bone auto: "));
+                       Catch::Contains("\"regions_ml\": {\"spine\": ") && Catch::Contains("\"spine_found\": false") &&
+                       Catch::Contains("\"spine\": {\"found\": false") && Catch::Contains("\"segments\": 1") &&
+                       Catch::Contains("\"warnings\": [\"no spine found: "));
+  CHECK_THAT(r.output, Catch::Contains("bone auto: ") && Catch::Contains("no spine: "));
   // the settings say the bone threshold was automatic, not the unused default of 200 HU
   CHECK_THAT(json, Catch::Contains("\"bone_threshold\": \"auto\""));
   CHECK_THAT(json, !Catch::Contains("\"bone_threshold\": 200"));

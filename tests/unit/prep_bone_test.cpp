@@ -18,6 +18,7 @@
 #include "prep/pipeline.h"
 #include "prep/prepare.h"
 #include "support/data.h"
+#include "unit/bone_agreement.h"
 #include "unit/prep_files.h"
 
 using namespace palpsim;
@@ -39,28 +40,6 @@ Volume<float> noisy_tissue(const Grid& g, double sigma) {
   std::normal_distribution<float> noise(40.0f, float(sigma));
   for (float& x : v.data) x = noise(rng);
   return v;
-}
-
-// recall and precision of a bone mask against reference bone, each within `tol_mm`
-struct Agreement {
-  std::size_t ref = 0, ref_hit = 0, pred = 0, pred_hit = 0;
-  double recall() const { return ref ? double(ref_hit) / double(ref) : 0; }
-  double precision() const { return pred ? double(pred_hit) / double(pred) : 0; }
-};
-
-// `ref` and `pred` on one grid; `ignore` voxels (neither bone nor not) count for neither
-Agreement agreement(const Volume<std::uint8_t>& ref, const Volume<std::uint8_t>& pred,
-                    const Volume<std::uint8_t>& ignore, double tol_mm) {
-  const Volume<float> to_pred = distance_to_mask_mm(pred);
-  Volume<std::uint8_t> ref_or_ignored = ref;
-  for (std::size_t i = 0; i < ref.data.size(); ++i) ref_or_ignored.data[i] |= ignore.data[i];
-  const Volume<float> to_ref = distance_to_mask_mm(ref_or_ignored);
-  Agreement a;
-  for (std::size_t i = 0; i < ref.data.size(); ++i) {
-    if (ref.data[i]) ++a.ref, a.ref_hit += to_pred.data[i] <= tol_mm;
-    if (pred.data[i] && !ignore.data[i]) ++a.pred, a.pred_hit += to_ref.data[i] <= tol_mm;
-  }
-  return a;
 }
 
 }  // namespace
@@ -158,44 +137,68 @@ TEST_CASE("hysteresis: a 150 HU bone joined to cortex is bone, a 150 HU organ ap
   CHECK(old.at(80, 29, 20) == 1);
 }
 
-TEST_CASE("bone summary: volume per region, a missing spine and too much bone are warned about") {
-  // a 200 x 160 mm body in 2 mm voxels, 20 slices; +x is the patient's left, +y posterior
-  const Grid g = cube_grid({100, 80, 20}, 2.0);
-  Volume<std::uint8_t> body(g, 0), bone(g, 0);
-  for (int k = 0; k < 20; ++k)
-    for (int j = 0; j < 80; ++j)
-      for (int i = 0; i < 100; ++i) body.at(i, j, k) = 1;
-  // centroid x = 99 mm, y = 79 mm; a spine block posterior (y >= 100 mm) at the midline,
-  // a rib at x = 170 mm (left), one at x = 20 mm (right), a sternum anterior (y = 10 mm)
-  for (int k = 0; k < 20; ++k) {
+namespace {
+
+// a synthetic lumbar column in a 200 x 160 mm body of 2 mm voxels and `slices` slices
+// (+x the patient's left, +y posterior; body centroid x = 99, y = 79 mm): vertebral
+// bodies 20 x 20 mm, 24 mm tall, between 8 mm discs, each with a ring of posterior
+// elements around an 8 x 8 mm canal over its upper 12 mm
+void add_column(Volume<std::uint8_t>& bone, int slices) {
+  for (int k = 0; k < slices; ++k) {
+    const int level = k % 16;  // 12 slices of vertebra, then 4 of disc
+    if (level >= 12) continue;
     for (int j = 50; j < 60; ++j)
       for (int i = 45; i < 55; ++i) bone.at(i, j, k) = 1;
+    if (level < 6) continue;
+    for (int j = 60; j < 68; ++j)
+      for (int i = 44; i < 56; ++i)
+        if (j >= 66 || i < 46 || i >= 54) bone.at(i, j, k) = 1;
+  }
+}
+
+}  // namespace
+
+TEST_CASE("bone summary: volume per region, a missing spine and too much bone are warned about") {
+  const Grid g = cube_grid({100, 80, 60}, 2.0);
+  Volume<std::uint8_t> body(g, 1), bone(g, 0);
+  add_column(bone, 60);
+  // a rib at x = 170 mm (left), one at x = 20 mm (right), a sternum anterior (y = 10 mm)
+  for (int k = 0; k < 60; ++k) {
     for (int j = 40; j < 45; ++j) bone.at(85, j, k) = 1, bone.at(10, j, k) = 1;
     for (int i = 48; i < 52; ++i) bone.at(i, 5, k) = 1;
   }
   const double voxel_ml = 8.0 / 1000.0;
+  const std::size_t column_voxels = count_nonzero(bone) - (5 + 5 + 4) * 60;
   BoneSummary s = summarize_bone(body, bone);
-  CHECK(s.body_slices == 20);
-  CHECK(s.spine_slices == 20);
-  CHECK(s.spine_found);
-  CHECK(s.spine_ml == Approx(100 * 20 * voxel_ml));
-  CHECK(s.left_ml == Approx(5 * 20 * voxel_ml));
-  CHECK(s.right_ml == Approx(5 * 20 * voxel_ml));
-  CHECK(s.anterior_ml == Approx(4 * 20 * voxel_ml));
+  CHECK(s.body_slices == 60);
+  CHECK(s.spine_ml == Approx(double(column_voxels) * voxel_ml));
+  CHECK(s.left_ml == Approx(5 * 60 * voxel_ml));
+  CHECK(s.right_ml == Approx(5 * 60 * voxel_ml));
+  CHECK(s.anterior_ml == Approx(4 * 60 * voxel_ml));
   CHECK(s.bone_ml == Approx(s.spine_ml + s.left_ml + s.right_ml + s.anterior_ml));
+  // the column: 4 vertebrae (60 slices = 3 whole levels of 16 and 12 slices of a fourth),
+  // the canal in the upper half of each (6 slices each), from the first to the last bone slice
+  CHECK(s.spine_found);
+  CHECK(s.column.found);
+  CHECK(s.column.segments == 4);
+  CHECK(s.column.canal_slices == 24);
+  CHECK(s.column.slices == 60);
+  CHECK(s.column.length_mm == Approx(59 * 2.0));
+  CHECK(s.column.centroid_mm.x == Approx(99).margin(1));
   CHECK(s.warnings.empty());
 
-  // the spine in only 8 of 20 slices: warned
-  for (int k = 8; k < 20; ++k)
-    for (int j = 50; j < 60; ++j)
-      for (int i = 45; i < 55; ++i) bone.at(i, j, k) = 0;
+  // the spine in only 24 of 60 slices: warned
+  for (int k = 24; k < 60; ++k)
+    for (int j = 50; j < 68; ++j)
+      for (int i = 44; i < 56; ++i) bone.at(i, j, k) = 0;
   s = summarize_bone(body, bone);
   CHECK_FALSE(s.spine_found);
   REQUIRE(s.warnings.size() == 1);
-  CHECK_THAT(s.warnings[0], Catch::Contains("no spine found") && Catch::Contains("8 of 20"));
+  CHECK_THAT(s.warnings[0], Catch::Contains("no spine found") && Catch::Contains("24 of 60") &&
+                                Catch::Contains("shorter than half the body"));
 
   // bone in 30% of the body: warned too
-  for (int k = 0; k < 20; ++k)
+  for (int k = 0; k < 60; ++k)
     for (int j = 0; j < 24; ++j)
       for (int i = 0; i < 100; ++i) bone.at(i, j, k) = 1;
   s = summarize_bone(body, bone);
@@ -206,6 +209,37 @@ TEST_CASE("bone summary: volume per region, a missing spine and too much bone ar
   s = summarize_bone(body, Volume<std::uint8_t>(g, 0));
   REQUIRE(s.warnings.size() == 1);
   CHECK_THAT(s.warnings[0], Catch::Contains("no bone found"));
+}
+
+TEST_CASE("bone summary: a bright tube behind the centre, without canal or without vertebrae, is no spine") {
+  // a contrast-filled aorta or heart taken as bone: a solid 20 mm tube at the spine's
+  // place through every slice, as long as the body, without gaps and without a canal
+  const Grid g = cube_grid({100, 80, 60}, 2.0);
+  Volume<std::uint8_t> body(g, 1), bone(g, 0);
+  for (int k = 0; k < 60; ++k)
+    for (int j = 50; j < 60; ++j)
+      for (int i = 45; i < 55; ++i) bone.at(i, j, k) = 1;
+  const BoneSummary s = summarize_bone(body, bone);
+  CHECK(s.spine_slices == 60);  // the spine region holds bone in every slice
+  CHECK_FALSE(s.spine_found);
+  CHECK(s.column.slices == 60);
+  CHECK(s.column.segments == 1);
+  CHECK(s.column.canal_slices == 0);
+  REQUIRE(s.warnings.size() == 1);
+  CHECK_THAT(s.warnings[0], Catch::Contains("no spine found") && Catch::Contains("no spinal canal"));
+
+  // the same tube with a ring around a canal behind it in every slice: a canal, but
+  // 118 mm without a disc's dip is no column of vertebrae
+  for (int k = 0; k < 60; ++k)
+    for (int j = 60; j < 68; ++j)
+      for (int i = 44; i < 56; ++i)
+        if (j >= 66 || i < 46 || i >= 54) bone.at(i, j, k) = 1;
+  const BoneSummary t = summarize_bone(body, bone);
+  CHECK(t.column.canal_slices == 60);
+  CHECK(t.column.segments == 1);
+  CHECK_FALSE(t.spine_found);
+  REQUIRE(t.warnings.size() == 1);
+  CHECK_THAT(t.warnings[0], Catch::Contains("no spine found") && Catch::Contains("no vertebrae"));
 }
 
 TEST_CASE("the phantom with automatic thresholds: between discs and vertebral bodies, spine found, volumes per region") {
@@ -268,26 +302,8 @@ TEST_CASE("DICOM series: the automatic bone mask against TotalSegmentator's labe
   const CtImage labels = read_ct(labels_path, PrepSettings{});
   REQUIRE(labels.image.grid.size == Vec3i{512, 512, 20});
 
-  // the labels on the patient grid (nearest label voxel of each patient voxel centre):
-  // bone = T11, T12 (33, 32), humeri (69, 70), ribs 6-12 (97-103, 109-115); costal
-  // cartilage (117) calcifies with age and is as rigid, so it is neither counted as
-  // missed bone nor as a false one
-  const std::set<int> bone_ids = {32, 33, 69, 70, 97, 98, 99, 100, 101, 102, 103,
-                                  109, 110, 111, 112, 113, 114, 115};
-  const Grid& g = p->grid;
-  const Grid& lg = labels.image.grid;
-  Volume<std::uint8_t> ref(g, 0), cartilage(g, 0), spine_ref(g, 0);
-  for (int k = 0; k < g.size.z; ++k)
-    for (int j = 0; j < g.size.y; ++j)
-      for (int i = 0; i < g.size.x; ++i) {
-        const Vec3 c = lg.to_index(g.to_physical({double(i), double(j), double(k)}));
-        const int li = int(std::lround(c.x)), lj = int(std::lround(c.y)), lk = int(std::lround(c.z));
-        if (!lg.contains(li, lj, lk)) continue;
-        const int id = int(std::lround(labels.image.at(li, lj, lk)));
-        ref.at(i, j, k) = bone_ids.count(id) > 0;
-        cartilage.at(i, j, k) = id == 117;
-        spine_ref.at(i, j, k) = id == 32 || id == 33;
-      }
+  const LabelReference lr = dicom_label_reference(p->grid, labels.image);
+  const Volume<std::uint8_t>&ref = lr.bone, &cartilage = lr.cartilage, &spine_ref = lr.spine;
   REQUIRE(count_nonzero(ref) > 10000);
 
   // within 3 mm (the issue's tolerance): TotalSegmentator's outlines are drawn on

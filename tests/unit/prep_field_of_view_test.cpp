@@ -16,23 +16,12 @@
 #include "prep/phantom.h"
 #include "prep/prepare.h"
 #include "support/data.h"
+#include "unit/prep_files.h"
 
 using namespace palpsim;
 using namespace palpsim::test;
 
 namespace {
-
-// voxels lo..hi-1 of `v` on a grid that keeps their physical place
-Volume<float> crop(const Volume<float>& v, Vec3i lo, Vec3i hi) {
-  Grid g = v.grid;
-  g.size = {hi.x - lo.x, hi.y - lo.y, hi.z - lo.z};
-  g.origin_mm = v.grid.to_physical(Vec3{double(lo.x), double(lo.y), double(lo.z)});
-  Volume<float> out(g);
-  for (int k = 0; k < g.size.z; ++k)
-    for (int j = 0; j < g.size.y; ++j)
-      for (int i = 0; i < g.size.x; ++i) out.at(i, j, k) = v.at(lo.x + i, lo.y + j, lo.z + k);
-  return out;
-}
 
 std::vector<std::string> names(const FieldOfView& f) {
   std::vector<std::string> n;

@@ -129,6 +129,18 @@ inline Volume<float> synthetic_torso(Vec3i size, Vec3 spacing_mm) {
   return v;
 }
 
+/// Voxels lo..hi-1 of `v` on a grid that keeps their physical place (a cropped field of view).
+inline Volume<float> crop(const Volume<float>& v, Vec3i lo, Vec3i hi) {
+  Grid g = v.grid;
+  g.size = {hi.x - lo.x, hi.y - lo.y, hi.z - lo.z};
+  g.origin_mm = v.grid.to_physical(Vec3{double(lo.x), double(lo.y), double(lo.z)});
+  Volume<float> out(g);
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i) out.at(i, j, k) = v.at(lo.x + i, lo.y + j, lo.z + k);
+  return out;
+}
+
 /// A scene for a CT file with the cache in `cache_dir` ("" = cache off).
 inline Scene ct_scene(const std::string& ct, const std::string& cache_dir) {
   Scene s;

@@ -222,6 +222,16 @@ TEST_CASE("prep.cut_faces is read, checked and defaults as PrepSettings does") {
         "test.textproto: prep.cut_faces = \"closed\"; allowed: \"skin\", \"open\"");
 }
 
+TEST_CASE("prep.contrast is read, checked and defaults as PrepSettings does") {
+  CHECK(PrepSettings{}.contrast == ContrastAs::kBone);
+  CHECK(parse_scene_text("phantom {}", "x.textproto").prep.contrast == ContrastAs::kBone);
+  CHECK(parse_scene_text("phantom {} prep { contrast: \"tissue\" }", "x.textproto").prep.contrast ==
+        ContrastAs::kTissue);
+  CHECK(parse_scene_text("phantom {} prep { contrast: \"bone\" }", "x.textproto").prep.contrast == ContrastAs::kBone);
+  CHECK(error_of("phantom {} prep { contrast: \"vessel\" }") ==
+        "test.textproto: prep.contrast = \"vessel\"; allowed: \"bone\", \"tissue\"");
+}
+
 TEST_CASE("a scene's label for the logs names its file and its CT, so a copied scene is told apart") {
   test::TempDir d;
   std::ofstream(d / "copy.textproto") << "name: \"lumbar CT\"\nct_path: \"other.nii.gz\"\n";

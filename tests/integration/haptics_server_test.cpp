@@ -261,7 +261,10 @@ TEST_CASE("several sessions at once: every reply matches its pose and none is lo
 }
 
 TEST_CASE("bad input is answered and counted, and a session beside it keeps being served", "[integration]") {
-  Started st = start_server(0.5);
+  // sessions time out after 2 s: long enough that a session posing every 50 ms outlives a
+  // loaded 2-core machine's stalls while a scene reloads beside it (0.5 s did not, at a load
+  // of 17), short enough for the vanishing client's section to wait it out
+  Started st = start_server(2.0);
   zmq::context_t ctx(1);
   Control ctl(ctx, st.server->control());
 
@@ -414,10 +417,10 @@ TEST_CASE("bad input is answered and counted, and a session beside it keeps bein
     // still served
     CHECK(bad.call(sid, 1, 0, 0, 0).error().code() == v1::ERROR_NONE);
     // a good scene replaces it; open sessions continue on it. The load runs on the server's
-    // loader thread and the scene's 0.5 s timeout goes on meanwhile, so the session poses
+    // loader thread and the scene's 2 s timeout goes on meanwhile, so the session poses
     // every 50 ms until the reply comes (20 s at most: a bound against a stalled machine)
     q.mutable_load_scene()->Clear();
-    q.mutable_load_scene()->set_text(test::fast_scene_text("reloaded", 0.5));
+    q.mutable_load_scene()->set_text(test::fast_scene_text("reloaded", 2.0));
     const std::uint64_t load_id = ctl.send(q);
     std::uint64_t seq = 1;
     bool answered = false;
@@ -447,8 +450,8 @@ TEST_CASE("bad input is answered and counted, and a session beside it keeps bein
       Poses p(other, o.pose_endpoint());
       CHECK(p.call(gone, 1, 0, 0, 0).error().code() == v1::ERROR_NONE);
     }  // sockets and context gone without a CloseSession
-    // 0.5 s timeout + 0.1 s housekeeping period; 1.5 s leaves room for a loaded machine
-    std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+    // 2 s timeout + 0.1 s housekeeping period; 3 s leaves room for a loaded machine
+    std::this_thread::sleep_for(std::chrono::milliseconds(3000));
     const v1::ServerStats after = ctl.stats();
     CHECK(after.sessions_timed_out() - before.sessions_timed_out() >= 1);
     CHECK(bad.call(gone, 2, 0, 0, 0).error().code() == v1::ERROR_UNKNOWN_SESSION);

@@ -216,14 +216,8 @@ int run(int argc, char** argv) {
               machine().c_str());
 
   // the press: x at the middle of the body's box, 10 mm above its top (the demo's)
-  Vec3i bl{g.size.x, g.size.y, g.size.z}, bh{-1, -1, -1};
-  for (int k = 0; k < g.size.z; ++k)
-    for (int j = 0; j < g.size.y; ++j)
-      for (int i = 0; i < g.size.x; ++i)
-        if (p.body.data[g.index(i, j, k)]) {
-          bl = {std::min(bl.x, i), std::min(bl.y, j), std::min(bl.z, k)};
-          bh = {std::max(bh.x, i), std::max(bh.y, j), std::max(bh.z, k)};
-        }
+  const IndexBox box = mask_box(p.body);
+  const Vec3i bl = box.lo, bh = box.hi;
   const Vec3 body_lo = g.to_physical(Vec3(bl.x, bl.y, bl.z)), body_hi = g.to_physical(Vec3(bh.x, bh.y, bh.z));
   const Vec3 top{0.5 * (body_lo.x + body_hi.x), body_hi.y + 10, o.z_mm};
   const Press press = press_over(p, scene.haptics, top, o.depth_mm);

@@ -140,4 +140,24 @@ double sample_trilinear(const Volume<T>& v, const Vec3& ijk) {
   return acc;
 }
 
+/// The index box of a mask's nonzero voxels: lo and hi inclusive, hi.x < 0 when there is none.
+struct IndexBox {
+  Vec3i lo{0, 0, 0}, hi{-1, -1, -1};
+  bool empty() const { return hi.x < 0; }
+};
+
+/// The index box of the voxels of `m` that are not 0 (the body's or bone's extent).
+inline IndexBox mask_box(const Volume<std::uint8_t>& m) {
+  const Grid& g = m.grid;
+  IndexBox b{{g.size.x, g.size.y, g.size.z}, {-1, -1, -1}};
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i)
+        if (m.data[g.index(i, j, k)]) {
+          b.lo = {std::min(b.lo.x, i), std::min(b.lo.y, j), std::min(b.lo.z, k)};
+          b.hi = {std::max(b.hi.x, i), std::max(b.hi.y, j), std::max(b.hi.z, k)};
+        }
+  return b;
+}
+
 }  // namespace palpsim

@@ -183,15 +183,9 @@ std::unique_ptr<World> make_world(const Scene& scene, PatientPtr patient, std::u
   w->bounds_min_mm = lo;
   w->bounds_max_mm = hi;
   // body bounds: index box of the body voxels, then its corners in physical space
-  Vec3i bl{g.size.x, g.size.y, g.size.z}, bh{-1, -1, -1};
-  for (int k = 0; k < g.size.z; ++k)
-    for (int j = 0; j < g.size.y; ++j)
-      for (int i = 0; i < g.size.x; ++i)
-        if (w->patient->body.data[g.index(i, j, k)]) {
-          bl = {std::min(bl.x, i), std::min(bl.y, j), std::min(bl.z, k)};
-          bh = {std::max(bh.x, i), std::max(bh.y, j), std::max(bh.z, k)};
-        }
-  if (bh.x >= 0) {
+  const IndexBox box = mask_box(w->patient->body);
+  const Vec3i bl = box.lo, bh = box.hi;
+  if (!box.empty()) {
     Vec3 a{1e300, 1e300, 1e300}, b{-1e300, -1e300, -1e300};
     for (int c = 0; c < 8; ++c)
       grow(a, b, g.to_physical(Vec3{double((c & 1) ? bh.x : bl.x), double((c & 2) ? bh.y : bl.y),

@@ -265,16 +265,9 @@ void write_nrrd(const std::string& path, const Volume<std::uint8_t>& v) { write_
 
 Vec3 preview_centre_mm(const Patient& p) {
   const Grid& g = p.grid;
-  const auto& m = p.has_bone ? p.bone : p.body;
-  Vec3i lo{g.size.x, g.size.y, g.size.z}, hi{-1, -1, -1};
-  for (int k = 0; k < g.size.z; ++k)
-    for (int j = 0; j < g.size.y; ++j)
-      for (int i = 0; i < g.size.x; ++i)
-        if (m.data[g.index(i, j, k)]) {
-          lo = {std::min(lo.x, i), std::min(lo.y, j), std::min(lo.z, k)};
-          hi = {std::max(hi.x, i), std::max(hi.y, j), std::max(hi.z, k)};
-        }
-  if (hi.x < 0) return g.to_physical(Vec3{(g.size.x - 1) / 2.0, (g.size.y - 1) / 2.0, (g.size.z - 1) / 2.0});
+  const IndexBox b = mask_box(p.has_bone ? p.bone : p.body);
+  const Vec3i lo = b.lo, hi = b.hi;
+  if (b.empty()) return g.to_physical(Vec3{(g.size.x - 1) / 2.0, (g.size.y - 1) / 2.0, (g.size.z - 1) / 2.0});
   return g.to_physical(Vec3{(lo.x + hi.x) / 2.0, (lo.y + hi.y) / 2.0, (lo.z + hi.z) / 2.0});
 }
 

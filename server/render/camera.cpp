@@ -51,16 +51,8 @@ Vec3 body_center(const Grid& g, const Vec3i& body_lo, const Vec3i& body_hi) {
 }
 
 Vec3 body_center(const Patient& p) {
-  const Grid& g = p.grid;
-  Vec3i lo{g.size.x, g.size.y, g.size.z}, hi{-1, -1, -1};
-  for (int k = 0; k < g.size.z; ++k)
-    for (int j = 0; j < g.size.y; ++j)
-      for (int i = 0; i < g.size.x; ++i)
-        if (p.body.data[g.index(i, j, k)]) {
-          lo = {std::min(lo.x, i), std::min(lo.y, j), std::min(lo.z, k)};
-          hi = {std::max(hi.x, i), std::max(hi.y, j), std::max(hi.z, k)};
-        }
-  return body_center(g, lo, hi);
+  const IndexBox b = mask_box(p.body);
+  return body_center(p.grid, b.lo, b.hi);
 }
 
 std::optional<Vec3> pixel_ray(const Camera& c, double x_px, double y_px) {

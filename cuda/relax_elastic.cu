@@ -11,7 +11,9 @@
 // Every pass covers a level's nodes with the whole grid; coarse levels of at most
 // kBlockNodes nodes run in block 0 alone between __syncthreads(), since a grid-wide pass
 // costs a grid barrier (2.2-2.5 us at VOI 64 on the H100, relax_multigrid.cu) whatever its
-// size. Level 0 takes a thread a node (elastic_apply_node: 576 multiply-adds); the coarse
+// size. Level 0 takes a thread a node in tiles of a block's nodes held in shared memory
+// with their neighbours (elastic_apply_interior: 576 multiply-adds, every load one register
+// and a constant apart; held nodes skipped); the coarse
 // levels eight lanes a node, one cell each (elastic_add_cell), summed by shuffles, so that
 // a small level's pass waits for one cell's products rather than a node's. The cell matrix
 // is a kernel argument (__grid_constant__): every thread of a warp reads the same entry, as
@@ -26,6 +28,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
+#include <string>
 
 #include "deform/deform_math.h"
 #include "deform/elastic_math.h"
@@ -144,22 +148,84 @@ __device__ double dot_d(const Vec3f& a, const Vec3f& b) {
   return double(a.x) * b.x + double(a.y) * b.y + double(a.z) * b.z;
 }
 
+// level 0's node tiles: kTile nodes along i, j and k, read with a layer of neighbours
+// around them into shared memory (kHalo), the cells' moduli likewise
+constexpr int kTileX = 32, kTileY = 4, kTileZ = 4;
+static_assert(kTileX * kTileY * kTileZ == kThreads, "a tile holds a node per thread");
+constexpr int kHaloX = kTileX + 2, kHaloY = kTileY + 2, kHaloZ = kTileZ + 2;
+constexpr int kHalo = kHaloX * kHaloY * kHaloZ;
+
+// one tile's shared memory for every gather of a kernel (one function, so one array: each
+// instantiation of a template declaring it would have its own)
+__device__ float* tile_memory() {
+  __shared__ float t[4 * kHalo];
+  return t;
+}
+
+// calls fn(e, i, j, k, kx, dg) for every node of level 0 (L), the whole grid taking a tile
+// of kThreads nodes a block at a time: the tile's nodes and their neighbours' displacements
+// x and the cells' moduli go to shared memory, then each thread sums its node's cells from
+// there (elastic_apply_interior: every load one register and a constant apart). Held nodes
+// get kx = dg = 0 (every caller projects them to 0); a free node on the level's faces
+// (none: the VOI's faces are held) would take elastic_apply_node from global memory.
+// Every thread of a block runs every tile of the block (the tile's barriers).
+template <typename Fn>
+__device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const Lvl& L,
+                             const Field& x, Fn& fn) {
+  float* const tu = tile_memory();  // tu[c * kHalo + h]: component c at halo node h
+  float* const te = tu + 3 * kHalo;
+  const int tx = (L.n.x + kTileX - 1) / kTileX, ty = (L.n.y + kTileY - 1) / kTileY,
+            tz = (L.n.z + kTileZ - 1) / kTileZ;
+  const int tiles = tx * ty * tz;
+  const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
+  for (int tile = blockIdx.x; tile < tiles; tile += gridDim.x) {
+    const int i0 = (tile % tx) * kTileX, j0 = ((tile / tx) % ty) * kTileY, k0 = (tile / (tx * ty)) * kTileZ;
+    // the halo: nodes (i0 - 1 .. i0 + kTileX) etc., 0 outside the level; the cell at halo
+    // position h has its lowest corner there (cells beyond the last node: 0)
+    for (int h = threadIdx.x; h < kHalo; h += blockDim.x) {
+      const int hi = h % kHaloX, hj = (h / kHaloX) % kHaloY, hk = h / (kHaloX * kHaloY);
+      const int i = i0 - 1 + hi, j = j0 - 1 + hj, k = k0 - 1 + hk;
+      const bool in = i >= 0 && j >= 0 && k >= 0 && i < L.n.x && j < L.n.y && k < L.n.z;
+      const Vec3f u = in ? x.at(L.at(i, j, k)) : Vec3f{0, 0, 0};
+      tu[h] = u.x;
+      tu[kHalo + h] = u.y;
+      tu[2 * kHalo + h] = u.z;
+      te[h] = in && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z ? cell_e[L.at(i, j, k)] : 0.0f;
+    }
+    __syncthreads();
+    const int i = i0 + li, j = j0 + lj, k = k0 + lk;
+    if (i < L.n.x && j < L.n.y && k < L.n.z) {
+      const int e = L.at(i, j, k);
+      Vec3f kx{0, 0, 0}, dg{0, 0, 0};
+      if (!(flags[e] & kElasticHeld)) {
+        if (i > 0 && j > 0 && k > 0 && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z) {
+          const int h = ((lk + 1) * kHaloY + lj + 1) * kHaloX + li + 1;
+          deform::elastic_apply_interior(
+              km, [&](int o) { return te[h + o]; },
+              [&](int o) { return Vec3f{tu[h + o], tu[kHalo + h + o], tu[2 * kHalo + h + o]}; }, kHaloX, kHaloX * kHaloY,
+              L.scale, kx, dg);
+        } else {
+          kx = deform::elastic_apply_node(km, CellModuli{cell_e, L}, Load{x, L}, L.n, L.scale, i, j, k);
+          dg = deform::elastic_diag_node(km, CellModuli{cell_e, L}, L.n, L.scale, i, j, k);
+        }
+      }
+      fn(e, i, j, k, kx, dg);
+    }
+    __syncthreads();
+  }
+}
+
 // calls fn(e, i, j, k, kx, dg) for the nodes of level L that team t covers: kx = (K x) at
 // the node (N), dg its Jacobi diagonal (N/mm). Level 0: a thread a node; a coarse level:
 // eight lanes a node, lane a adding the cell in which the node is corner a, summed by
 // shuffles (whole warps run each round, so that every lane takes part in them)
 template <typename Fn>
-__device__ void gather(const CellMatrix& km, const float* cell_e, const Lvl& L, Team t, const Field& x, Fn&& fn) {
+__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const Lvl& L, Team t,
+                       const Field& x, Fn&& fn) {
   const CellModuli ce{cell_e, L};
   const Load load{x, L};
   if (!L.coarse) {
-    for (int q = t.first; q < L.count; q += t.stride) {
-      int i, j, k;
-      L.coords(q, i, j, k);
-      const Vec3f kx = deform::elastic_apply_node(km, ce, load, L.n, L.scale, i, j, k);
-      const Vec3f dg = deform::elastic_diag_node(km, ce, L.n, L.scale, i, j, k);
-      fn(L.off + q, i, j, k, kx, dg);
-    }
+    gather_tiles(km, cell_e, flags, L, x, fn);
     return;
   }
   const int lane = threadIdx.x & 31;
@@ -316,7 +382,7 @@ struct Step {
     const float ca = sh.ca[l][s], cb = sh.cb[l][s];
     const Field xf = x(from), xt = x(to), fv = f(), dv = d();
     double part = 0;
-    gather(km(), a.v.cell_e, sh.lv[l], t, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+    gather(km(), a.v.cell_e, a.v.flags, sh.lv[l], t, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
       const Vec3f fe = fv.at(e);
       const Vec3f r = project(e, fe - kx);
       const Vec3f z = project(e, mul(inverse(dg), r));
@@ -332,7 +398,7 @@ struct Step {
   // the residual of level l by team t: res = Pi (f - K x[from])
   __device__ void residual(int l, Team t, int from) const {
     const Field fv = f(), rv = res();
-    gather(km(), a.v.cell_e, sh.lv[l], t, x(from), [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
+    gather(km(), a.v.cell_e, a.v.flags, sh.lv[l], t, x(from), [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
       rv.set(e, project(e, fv.at(e) - kx));
     });
   }
@@ -496,7 +562,7 @@ struct Step {
         g.sync();
         // q = Pi K p, and p . q
         double part = 0;
-        gather(km(), v.cell_e, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
+        gather(km(), v.cell_e, v.flags, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
           const Vec3f qe = project(e, kx);
           kp.set(e, qe);
           part += dot_d(p.at(e), qe);
@@ -534,7 +600,8 @@ struct Step {
 // with the set still changing, the unit press
 enum Job { kRound, kLast, kUnit, kDone };
 
-__global__ void __launch_bounds__(kThreads, 1) elastic_step_kernel(const __grid_constant__ StepArgs a) {
+template <int MinBlocks>
+__global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const __grid_constant__ StepArgs a) {
   cg::grid_group g = cg::this_grid();
   // the shared table as raw bytes (__shared__ allows no initialisers, which Vec3i has)
   __shared__ alignas(16) unsigned char shared_bytes[sizeof(StepShared)];
@@ -739,7 +806,8 @@ struct SetupArgs {
   int had;                 // carry the last field and contact set over
 };
 
-__global__ void __launch_bounds__(kThreads, 1) elastic_setup_kernel(const __grid_constant__ SetupArgs a) {
+template <int MinBlocks>
+__global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(const __grid_constant__ SetupArgs a) {
   cg::grid_group g = cg::this_grid();
   __shared__ alignas(16) unsigned char level_bytes[kElasticMaxLevels * sizeof(Lvl)];  // raw: Vec3i has initialisers
   Lvl* lv = reinterpret_cast<Lvl*>(level_bytes);
@@ -839,7 +907,7 @@ __global__ void __launch_bounds__(kThreads, 1) elastic_setup_kernel(const __grid
     const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
     for (int l = 0; l < levels; ++l) {
       double part[2] = {0, 0};
-      gather(km, v.cell_e, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+      gather(km, v.cell_e, v.flags, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
         const Vec3f xe = xf.at(e);
         const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
         xt.set(e, re);
@@ -892,16 +960,39 @@ void launch(void (*kernel)(Args), Args& args, int blocks, long long nodes, cudaS
                                                  dim3(kThreads), p, 0, stream));
 }
 
+// blocks of the elastic kernels per multiprocessor: 1 (a thread may use 128 registers) or 2
+// (64 registers a thread, the rest spilled to local memory, twice the warps to hide
+// latency, twice the blocks at each grid barrier); PALPSIM_ELASTIC_BLOCKS_PER_SM=2 picks 2
+// for a measurement (palpsim-bench deform --elastic)
+int elastic_blocks_per_sm() {
+  static const int n = [] {
+    const char* s = std::getenv("PALPSIM_ELASTIC_BLOCKS_PER_SM");
+    return s && std::string(s) == "2" ? 2 : 1;
+  }();
+  return n;
+}
+
+// the cooperative launch of the kernel instantiated for elastic_blocks_per_sm()
+template <typename Args>
+void launch_chosen(void (*one)(Args), void (*two)(Args), Args& args, int blocks, long long nodes,
+                   cudaStream_t stream) {
+  launch(elastic_blocks_per_sm() == 2 ? two : one, args, blocks, nodes, stream);
+}
+
 }  // namespace
 
 int relax_elastic_blocks() {
   int dev = 0, sms = 0, per_sm_step = 0, per_sm_setup = 0;
+  const int per_sm = elastic_blocks_per_sm();
   PALPSIM_CUDA_CHECK(cudaGetDevice(&dev));
   PALPSIM_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, dev));
-  PALPSIM_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm_step, elastic_step_kernel, kThreads, 0));
-  PALPSIM_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm_setup, elastic_setup_kernel, kThreads, 0));
-  // one block per multiprocessor, as the other persistent kernels: a grid barrier costs about one atomic per block
-  const int blocks = sms * std::min({per_sm_step, per_sm_setup, kPersistentBlocksPerSm});
+  PALPSIM_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(
+      &per_sm_step, per_sm == 2 ? elastic_step_kernel<2> : elastic_step_kernel<1>, kThreads, 0));
+  PALPSIM_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(
+      &per_sm_setup, per_sm == 2 ? elastic_setup_kernel<2> : elastic_setup_kernel<1>, kThreads, 0));
+  // blocks a multiprocessor as chosen (the other persistent kernels take 1): a grid barrier
+  // costs about one atomic per block
+  const int blocks = sms * std::min({per_sm_step, per_sm_setup, per_sm});
   if (blocks < 1) throw Error("CUDA: the elastic kernels do not fit on the device");
   return blocks;
 }
@@ -1033,7 +1124,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
     s.material = params_.material;
     s.patient = patient;
     s.had = had && set_up_;
-    launch(elastic_setup_kernel, s, blocks, voi.count(), stream);
+    launch_chosen(elastic_setup_kernel<1>, elastic_setup_kernel<2>, s, blocks, voi.count(), stream);
     voi_ = voi;
     set_up_ = true;
     have_unit_ = false;
@@ -1082,7 +1173,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.stiffness_tolerance = params_.stiffness_tolerance;
   s.contact_rounds = params_.contact_rounds;
   s.result = result;
-  launch(elastic_step_kernel, s, blocks, voi.count(), stream);
+  launch_chosen(elastic_step_kernel<1>, elastic_step_kernel<2>, s, blocks, voi.count(), stream);
   have_u_ = true;
 }
 

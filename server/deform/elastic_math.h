@@ -193,11 +193,15 @@ PALPSIM_HD float elastic_cell_modulus(const NodeE& node_e, const CornerBody& cor
 /// reads the 24 x 24 cell matrix, row and column 3 corner + component.
 template <typename KMat>
 PALPSIM_HD Vec3f elastic_cell_row(const KMat& k, int a, const Vec3f uc[8]) {
+  // one running sum a row, a product at a time: a compiler that fuses multiply-adds makes
+  // each term one instruction
   Vec3f y{0, 0, 0};
   for (int b = 0; b < 8; ++b) {
     for (int r = 0; r < 3; ++r) {
       const int row = 3 * a + r;
-      y[r] += k(row, 3 * b) * uc[b].x + k(row, 3 * b + 1) * uc[b].y + k(row, 3 * b + 2) * uc[b].z;
+      y[r] += k(row, 3 * b) * uc[b].x;
+      y[r] += k(row, 3 * b + 1) * uc[b].y;
+      y[r] += k(row, 3 * b + 2) * uc[b].z;
     }
   }
   return y;
@@ -260,6 +264,34 @@ PALPSIM_HD Vec3f elastic_diag_node(const KMat& k, const CellE& cell_e, const Vec
   Vec3f d{0, 0, 0};
   for (int a = 0; a < 8; ++a) elastic_add_cell_diag(k, cell_e, size, scale, i, j, kk, a, d);
   return d;
+}
+
+/// (K u) at an interior node (all eight cells around it lie in the level) into `kx` (N) and
+/// its Jacobi diagonal into `dg` (N/mm), in one pass over its cells: the same products in
+/// the same order as elastic_apply_node() and elastic_diag_node(), so the same sums to the
+/// bit. Nodes are read by flat offset from the node: `load_u(o)` gives the displacement (mm)
+/// of the node at offset o, `cell_e(o)` the modulus (kPa) of the cell whose lowest corner
+/// is at offset o, with strides 1, `sy` and `sz` along i, j and k. A backend whose strides
+/// are constants (a shared-memory tile) addresses every load by one register and a constant.
+template <typename KMat, typename CellAt, typename LoadAt>
+PALPSIM_HD void elastic_apply_interior(const KMat& k, const CellAt& cell_e, const LoadAt& load_u, int sy, int sz,
+                                       float scale, Vec3f& kx, Vec3f& dg) {
+  kx = Vec3f{0, 0, 0};
+  dg = Vec3f{0, 0, 0};
+  for (int a = 0; a < 8; ++a) {
+    const Vec3i o = elastic_corner(a);
+    const int c = -(o.x + o.y * sy + o.z * sz);
+    const float es = cell_e(c) * scale;
+    // a cell of modulus 0 adds nothing (elastic_add_cell skips it; its diagonal adds +0)
+    if (es == 0.0f) continue;
+    Vec3f uc[8];
+    for (int b = 0; b < 8; ++b) {
+      const Vec3i ob = elastic_corner(b);
+      uc[b] = load_u(c + ob.x + ob.y * sy + ob.z * sz);
+    }
+    kx += elastic_cell_row(k, a, uc) * es;
+    dg += elastic_cell_diag(k, a) * es;
+  }
 }
 
 /// v with the components a node's constraint holds taken out: 0 at a held node, v minus its

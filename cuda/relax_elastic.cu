@@ -51,7 +51,7 @@ using deform::kElasticSkin;
 using deform::Voi;
 
 constexpr int kThreads = 512;      // threads per block of both kernels
-constexpr int kBlockNodes = 512;   // coarse levels of at most this many nodes run in block 0 alone
+constexpr int kBlockNodes = 512;   // coarse levels of at most this many nodes run in block 0 alone (the default)
 constexpr int kSlot = 4;           // sums a reduction slot holds
 constexpr int kRing = 32;          // the step's reduction slots, reused in turn
 constexpr int kSetupSums = deform::kElasticPowerIterations * kElasticMaxLevels;  // the set-up's slots
@@ -302,6 +302,7 @@ struct StepArgs {
   int reciprocal;             // the unit press stops at stiffness_tolerance; force and stiffness by reciprocity
   float stiffness_tolerance;
   int contact_rounds;
+  int block_nodes;     // coarse levels of at most this many nodes run in block 0 alone
   float* out[3];       // u in voxels (the displacement buffer the inversion reads)
   ElasticCounters* result;
 };
@@ -612,7 +613,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     sh.levels = a.plan.levels;
     sh.split = a.plan.levels;
     for (int l = 1; l < a.plan.levels; ++l)
-      if (sh.lv[l].count <= kBlockNodes) {
+      if (sh.lv[l].count <= a.block_nodes) {
         sh.split = l;
         break;
       }
@@ -972,6 +973,16 @@ int elastic_blocks_per_sm() {
   return n;
 }
 
+// coarse levels of at most this many nodes run in block 0 alone: kBlockNodes, or
+// PALPSIM_ELASTIC_BLOCK_NODES for a measurement
+int elastic_block_nodes() {
+  static const int n = [] {
+    const char* s = std::getenv("PALPSIM_ELASTIC_BLOCK_NODES");
+    return s && std::atoi(s) > 0 ? std::atoi(s) : kBlockNodes;
+  }();
+  return n;
+}
+
 // the cooperative launch of the kernel instantiated for elastic_blocks_per_sm()
 template <typename Args>
 void launch_chosen(void (*one)(Args), void (*two)(Args), Args& args, int blocks, long long nodes,
@@ -1172,6 +1183,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.reciprocal = params_.stiffness_tolerance > 0;
   s.stiffness_tolerance = params_.stiffness_tolerance;
   s.contact_rounds = params_.contact_rounds;
+  s.block_nodes = elastic_block_nodes();
   s.result = result;
   launch_chosen(elastic_step_kernel<1>, elastic_step_kernel<2>, s, blocks, voi.count(), stream);
   have_u_ = true;

@@ -179,7 +179,7 @@ void table1(const std::string& name, const Options& o, const PatientPtr& patient
 // before each: the VOI set up and solved from zero), a step while the tip moves a voxel
 // (alternating between two depths a voxel apart: the VOI held, the last field the start),
 // and on cuda 16 sessions at 16 points along the spine begun together, each with 1/16 of
-// the device and a scratch of its own (as the server steps them)
+// the device and a scratch of its own (as the server steps them), or the whole device in turn
 void elastic_rows(const std::string& name, const Options& o, const PatientPtr& phantom, const test::Press& press,
                   std::vector<ElasticRow>& rows) {
   const bool gpu = name == "cuda";
@@ -277,16 +277,18 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
         r.stiffness_err_pct = 100 * (st.elastic.stiffness_n_per_mm / ref_st.elastic.stiffness_n_per_mm - 1);
       rows.push_back(r);
     }
-  // 16 sessions side by side, from the last field alone and predicted
-  for (int predict = 0; gpu && predict < 2; ++predict) {
-    const int n = 16, rounds = o.quick ? 10 : 50;
+  // 16 sessions side by side, from the last field alone and predicted, each with 1/16 of
+  // the device (as the server steps them); predicted, each with the whole device in turn
+  // (one shared scratch)
+  for (int variant = 0; gpu && variant < 3; ++variant) {
+    const int n = 16, rounds = o.quick ? 10 : 50, predict = variant > 0, share = variant < 2 ? n : 1;
     std::vector<std::unique_ptr<DeformBackend>> sessions;
     for (int s = 0; s < n; ++s) {
       sessions.push_back(make_deform_backend(name));
       DeformConfig c = cfg;
       c.settings.elastic.predict = predict != 0;
       sessions.back()->bind(phantom, c);
-      sessions.back()->set_gpu_share(n);
+      sessions.back()->set_gpu_share(share);
     }
     auto at = [&](int s) { return X + Vec3{0, 0, 8.0 * (s - n / 2)}; };
     std::vector<double> relax, total;
@@ -303,12 +305,14 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
       }
     }
     const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    ElasticRow r = row(std::string("16 sessions side by side, tip moving a voxel") + (predict ? ", predicted" : ""), relax, total, st, sessions[0]->memory());
+    ElasticRow r = row(std::string("16 sessions side by side, tip moving a voxel") + (predict ? ", predicted" : "") +
+                           (share == 1 ? ", whole device in turn" : ""),
+                       relax, total, st, sessions[0]->memory());
     r.sessions = n;
     r.steps_per_s = rounds / wall_s;
     rows.push_back(r);
   }
-  for (std::size_t i = rows.size() - (gpu ? 8 : 6); i < rows.size(); ++i) {
+  for (std::size_t i = rows.size() - (gpu ? 9 : 6); i < rows.size(); ++i) {
     const ElasticRow& r = rows[i];
     std::printf("elastic %-4s VOI %d %-45s median ms: relax %.3f (p10 %.3f, p90 %.3f)  total %.3f  CG steps %d + %d "
                 "(unit press), %d contact nodes, F %.3f N, own %.1f MiB, shared scratch %.1f MiB",

@@ -14,6 +14,7 @@
 #include <utility>
 
 #include "core/error.h"
+#include "core/linked_backends.h"
 #include "core/path_policy.h"
 #include "net/curve_keys.h"
 #include "net/heap_trimmer.h"
@@ -82,6 +83,8 @@ int fail(const std::string& what) {
 int main(int argc, char** argv) {
   // big blocks go back to the system when freed (net/heap_trimmer.h says why)
   palpsim::net::configure_heap();
+  // cuda's deformation backend, nvJPEG encoder and overlay writer, in a CUDA build
+  palpsim::register_linked_backends();
 
   // SIGINT and SIGTERM are taken by sigwait below; every thread started later inherits the mask
   sigset_t stop_signals;

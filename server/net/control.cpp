@@ -1,3 +1,5 @@
+// The control thread's dispatcher (net/control.h): its sockets, the request loop, the
+// refusals, ServerInfo, the workers it starts and housekeeping.
 #include "net/control.h"
 
 #include <spdlog/spdlog.h>
@@ -124,8 +126,6 @@ Server::Control::Control(ServerShared& sh, const Scene& scene, PatientPtr patien
                         "--pose-bind");
 }
 
-// starts the deformation worker when the scene being served asks for chainmail
-// (throws the worker's set-up error); with none asked for, nothing is built
 void Server::Control::start_deform() {
   if (current_->scene.effects.chainmail && !deform_) {
     auto w = std::make_unique<DeformWorker>(sh_, start_, opt_.deform_nice, opt_.background_idle,
@@ -136,14 +136,10 @@ void Server::Control::start_deform() {
   }
 }
 
-// stops it (its engines are destroyed on its own thread)
 void Server::Control::stop_deform() {
   if (deform_) deform_->stop();
 }
 
-// the publisher and the render thread as the scene being served asks: started for
-// frames or bricks (the render thread for frames only), stopped for a scene without
-// them. Throws when they cannot be started (the start of the server refuses the scene).
 void Server::Control::sync_stream() {
   const Scene& sc = current_->scene;
   if (!sc.effects.frames && render_) {
@@ -175,7 +171,6 @@ void Server::Control::sync_stream() {
   }
 }
 
-// stops both (GL objects are destroyed on the render thread)
 void Server::Control::stop_stream() {
   if (render_) render_->stop();
   render_.reset();
@@ -268,7 +263,6 @@ void Server::Control::drain() {
   }
 }
 
-// sends rep_ to `routing_id` (after an empty delimiter for a REQ); never blocks
 void Server::Control::send_reply(const zmq::message_t& routing_id, bool req_envelope) {
   rep_.SerializeToString(&out_);
   try {
@@ -281,8 +275,6 @@ void Server::Control::send_reply(const zmq::message_t& routing_id, bool req_enve
   }
 }
 
-// who sent the request being handled: its CURVE key (the ZAP handler's user id), else
-// its client token, else its control connection (the ROUTER's routing id)
 std::string Server::Control::identity(const zmq::message_t& routing_id, const std::string& user) {
   requester_key_.clear();
   if (sh_.curve) {
@@ -293,7 +285,6 @@ std::string Server::Control::identity(const zmq::message_t& routing_id, const st
   return "connection " + routing_id.to_string();
 }
 
-// true when the requester opened session `s`; else refuses with ERROR_NOT_OWNER
 bool Server::Control::owned(const SessionSlot& s, std::uint64_t id, const std::string& field) {
   if (s.owner == requester_) return true;
   refuse(v1::ERROR_NOT_OWNER, sh_.counters.not_owner,
@@ -345,8 +336,6 @@ void Server::Control::handle() {
   }
 }
 
-// the slot of an open session the requester owns, or nullptr after refusing; its last
-// message time is updated, and with `use` (a request acting on it, not Stats) its idle clock
 SessionSlot* Server::Control::session_or_refuse(std::uint64_t id, const char* field, bool use) {
   SessionSlot* s = find(id);
   if (!s) {
@@ -397,12 +386,10 @@ void Server::Control::fill_info(v1::ServerInfo* info) {
   info->set_scene_loading(load_ ? load_->what : "");
 }
 
-// how the requester is known, for messages (its key, token or connection is not echoed)
 const char* Server::Control::requester_kind() const {
   return sh_.curve ? "CURVE key" : requester_.rfind("token ", 0) == 0 ? "client token" : "control connection";
 }
 
-// says so when one client may hold every session of the scene being served
 void Server::Control::warn_quota() const {
   const int most = current_->scene.server.max_sessions;
   if (most > 1 && opt_.max_sessions_per_client >= most)

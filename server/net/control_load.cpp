@@ -14,16 +14,11 @@
 
 namespace palpsim::net {
 
-// waits for a running LoadScene's loader thread (after the control thread has ended);
-// its reply is not sent
 void Server::Control::end_load() {
   if (load_ && load_->thread.joinable()) load_->thread.join();
   load_.reset();
 }
 
-// LoadScene: refused at once while another runs; else the scene is read, checked and its
-// patient prepared on a loader thread (prepare_world) and the request answered when that
-// ends (finish_load), so that every other control request is answered meanwhile
 void Server::Control::load_scene() {
   const auto& r = req_.load_scene();
   if (load_) {
@@ -45,8 +40,6 @@ void Server::Control::load_scene() {
   deferred_ = true;
 }
 
-// (loader thread) the world of a LoadScene's scene, or why it is refused, into `l`; then
-// wakes the control thread. Reads only what no other thread writes (options, folders, loader).
 void Server::Control::prepare_world(Load& l, const std::string& path, const std::string& text) {
   // at the control thread's own priority: a background (SCHED_IDLE or nice 19) loader
   // would starve on a busy host, and a scene load is an operator's request that must end
@@ -89,8 +82,6 @@ void Server::Control::prepare_world(Load& l, const std::string& path, const std:
   (void)load_done_tx_.send(zmq::const_buffer(nullptr, 0), zmq::send_flags::dontwait);
 }
 
-// answers the LoadScene whose loader thread has ended: its world is served from now on,
-// or the refusal is sent and the old one kept
 void Server::Control::finish_load() {
   zmq::message_t done;
   (void)load_done_rx_.recv(done, zmq::recv_flags::dontwait);

@@ -82,7 +82,6 @@ void Server::Control::open() {
                open_count());
 }
 
-// "; deformation: ..." for a session's close or timeout log line ("" without deformation)
 std::string Server::Control::deform_summary(std::uint64_t id) const {
   DeformSessionReport r;
   if (!deform_ || !deform_->session_report(id, r)) return "";

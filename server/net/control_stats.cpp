@@ -15,6 +15,7 @@ using runtime::PassivityCounters;
 using runtime::SessionStreamReport;
 using runtime::StreamInfo;
 using runtime::StreamSlot;
+
 namespace {
 
 void fill_times(v1::DeformTimes* out, const DeformTimes& t, double scale) {
@@ -210,7 +211,6 @@ void Server::Control::fill_deform(v1::DeformSessionStats* o, const DeformSession
   o->set_bytes_allocated(r.memory.total());
 }
 
-// frames and bricks in the stats: server-wide, and one session's
 void Server::Control::fill_stream(v1::ServerStats* s, google::protobuf::RepeatedPtrField<v1::StageInfo>* stages) {
   const bool frames = frames_served(), bricks = bricks_served();
   StreamInfo info;

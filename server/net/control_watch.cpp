@@ -19,6 +19,7 @@ using runtime::default_view;
 using runtime::frame_topic;
 using runtime::StreamSlot;
 using runtime::WatchSettings;
+
 namespace {
 
 // applies the fields a WatchSession sets to `v`; "" or the first bad field and why
@@ -144,7 +145,6 @@ void Server::Control::watch() {
   o->set_brick_compression(ss.watch.brick_zstd ? v1::COMPRESSION_ZSTD : v1::COMPRESSION_NONE);
 }
 
-// the skin point under a pixel of a session's frame: its view's ray, first body hit
 void Server::Control::pick() {
   const auto& r = req_.pick();
   SessionSlot* s = session_or_refuse(r.session_id(), "PickRequest.session_id");

@@ -1,3 +1,5 @@
+// The server's threads (control, pose, patch) and the addresses it derives; the control
+// thread itself is net/control.h.
 #include "net/server.h"
 
 #include <string>

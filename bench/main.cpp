@@ -5,10 +5,13 @@
 #include <string>
 
 #include "bench/registry.h"
+#include "core/linked_backends.h"
 
 int main(int argc, char** argv) {
   // line by line, so that a log cut short (a crash, a timeout on the GPU machine) keeps what was measured
   std::setvbuf(stdout, nullptr, _IOLBF, 0);
+  // cuda's deformation backend, nvJPEG encoder and overlay writer, in a CUDA build
+  palpsim::register_linked_backends();
   const auto& entries = palpsim::bench::registry();
   if (argc < 2 || std::strcmp(argv[1], "--help") == 0 || std::strcmp(argv[1], "-h") == 0) {
     std::printf("usage: palpsim-bench AREA [--json FILE] [options]\nareas:\n");

@@ -6,6 +6,7 @@
 #include <cstring>
 
 #include "cuda/check.h"
+#include "cuda/register_backends.h"
 
 namespace palpsim::cuda {
 
@@ -47,6 +48,10 @@ bool cuda_device_usable(std::string* why) {
   }
   if (why) *why = std::string("device 0: ") + prop.name;
   return true;
+}
+
+void register_deform_backend() {
+  deform_backends().add(DeformBackendChoice::kCuda, {cuda_device_usable, make_cuda_deform_backend});
 }
 
 CudaDeformBackend::CudaDeformBackend() : DeformBackend("cuda") {}

@@ -26,6 +26,7 @@
 
 #include "core/error.h"
 #include "cuda/check.h"
+#include "cuda/register_backends.h"
 #include "cuda/render_interop.h"
 
 namespace palpsim::cuda {
@@ -580,6 +581,11 @@ bool cuda_render_available(std::string* why) {
   }
   if (why) *why = "CUDA device " + std::to_string(dev) + ": " + prop.name;
   return true;
+}
+
+void register_render_backends() {
+  render::frame_encoders().add(JpegEncoderChoice::kNvjpeg, {cuda_render_available, make_nvjpeg_frame_encoder});
+  render::overlay_writers().add(OverlayWriterChoice::kCudaGl, {cuda_render_available, make_cuda_overlay_writer});
 }
 
 }  // namespace palpsim::cuda

@@ -2,8 +2,8 @@
 // encoding of a rendered frame straight from its GL colour texture, and writing a
 // session's J from device memory into its overlay texture, both through CUDA-GL
 // interop on the render thread. Built only with PALPSIM_CUDA (cuda/render_interop.cu);
-// server/render and server/net reach it through make_frame_encoder("nvjpeg") and
-// make_overlay_writer("cuda").
+// register_render_backends() (cuda/register_backends.h) puts it in server/render's
+// registries, which make_frame_encoder(kNvjpeg) and make_overlay_writer(kCudaGl) look up.
 #pragma once
 
 #include <memory>

@@ -14,9 +14,10 @@
 #include <utility>
 
 #include "core/error.h"
+#include "core/linked_backends.h"
 #include "core/path_policy.h"
 #include "net/curve_keys.h"
-#include "net/heap_trimmer.h"
+#include "runtime/heap_trimmer.h"
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "prep/prepare.h"
@@ -80,8 +81,10 @@ int fail(const std::string& what) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  // big blocks go back to the system when freed (net/heap_trimmer.h says why)
-  palpsim::net::configure_heap();
+  // big blocks go back to the system when freed (runtime/heap_trimmer.h says why)
+  palpsim::runtime::configure_heap();
+  // cuda's deformation backend, nvJPEG encoder and overlay writer, in a CUDA build
+  palpsim::register_linked_backends();
 
   // SIGINT and SIGTERM are taken by sigwait below; every thread started later inherits the mask
   sigset_t stop_signals;

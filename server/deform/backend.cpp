@@ -12,13 +12,6 @@
 #include "deform/cpu_backend.h"
 #include "deform/relax_multigrid.h"
 
-#ifdef PALPSIM_HAVE_CUDA
-namespace palpsim::cuda {
-// defined in cuda/cuda_backend.cu
-std::unique_ptr<DeformBackend> make_cuda_deform_backend();
-bool cuda_device_usable(std::string* why);
-}  // namespace palpsim::cuda
-#endif
 
 namespace palpsim {
 
@@ -541,13 +534,18 @@ bool DeformBackend::copy_brick_to_device(std::unique_ptr<DeviceBytes>& dst) cons
   return copy_brick_to_device_impl(dst);
 }
 
+DeformBackendRegistry& deform_backends() {
+  static DeformBackendRegistry registry;
+  return registry;
+}
+
 bool cuda_deform_available(std::string* why) {
-#ifdef PALPSIM_HAVE_CUDA
-  return cuda::cuda_device_usable(why);
-#else
-  if (why) *why = "this build has no CUDA backend (configured with PALPSIM_CUDA=OFF or without nvcc)";
-  return false;
-#endif
+  const std::optional<DeformBackendRegistry::Factory> cuda = deform_backends().find(DeformBackendChoice::kCuda);
+  if (!cuda) {
+    if (why) *why = "this build has no CUDA backend (configured with PALPSIM_CUDA=OFF or without nvcc)";
+    return false;
+  }
+  return cuda->usable(why);
 }
 
 std::unique_ptr<DeformBackend> make_deform_backend(DeformBackendChoice choice, std::string* note) {
@@ -558,10 +556,8 @@ std::unique_ptr<DeformBackend> make_deform_backend(DeformBackendChoice choice, s
   const bool automatic = choice == DeformBackendChoice::kAuto;
   std::string why;
   if (cuda_deform_available(&why)) {
-#ifdef PALPSIM_HAVE_CUDA
     if (note) *note = "deform backend \"cuda\" (" + std::string(automatic ? "auto: " : "") + why + ")";
-    return cuda::make_cuda_deform_backend();
-#endif
+    return deform_backends().find(DeformBackendChoice::kCuda)->make();
   }
   if (!automatic) throw Error("deform backend \"cuda\" is unavailable: " + why + "; use \"cpu\" or \"auto\"");
   if (note) *note = "deform backend \"cpu\" (auto: cuda unavailable: " + why + ")";

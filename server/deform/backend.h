@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "core/backend_registry.h"
 #include "core/device_bytes.h"
 #include "core/patient.h"
 #include "core/scene.h"
@@ -406,6 +407,13 @@ void check_deform_config(const DeformConfig& config, const std::string& who);
 /// (0, 0.5); throws palpsim::Error starting with `who` and naming the field.
 void check_elastic_settings(const ElasticSettings& elastic, const std::string& who);
 
+/// The deformation backends outside server/deform, by the deform.backend value that asks
+/// for them: cuda/ registers "cuda" (register_linked_backends(), core/linked_backends.h).
+using DeformBackendRegistry = BackendRegistry<DeformBackend, DeformBackendChoice>;
+
+/// The one registry make_deform_backend() and cuda_deform_available() look "cuda" up in.
+DeformBackendRegistry& deform_backends();
+
 /// Makes the backend a scene's deform.backend asks for: cpu, cuda, or auto (cuda where a
 /// device and a CUDA build exist, else cpu). An unavailable cuda throws palpsim::Error
 /// saying why; `note`, when given, says what was chosen and why.
@@ -419,8 +427,8 @@ DeformBackendChoice deform_backend_choice(const std::string& name);
 /// make_deform_backend() by the setting's name (deform_backend_choice()).
 std::unique_ptr<DeformBackend> make_deform_backend(const std::string& name, std::string* note = nullptr);
 
-/// True when this build has the CUDA backend and a CUDA device can be used;
-/// otherwise `why` says what is missing.
+/// True when a "cuda" backend is registered (a CUDA build) and a CUDA device can be
+/// used; otherwise `why` says what is missing.
 bool cuda_deform_available(std::string* why = nullptr);
 
 }  // namespace palpsim

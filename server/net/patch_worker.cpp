@@ -4,8 +4,9 @@
 #include <thread>
 
 #include "haptics/patch_cut.h"
-#include "net/session_table.h"
+#include "runtime/session_table.h"
 #include "net/wire_convert.h"
+#include "net/wire_limits.h"
 #include "palpsim/wire.pb.h"
 
 namespace palpsim::net {
@@ -24,7 +25,7 @@ class PatchCutter {
   }
 
   // cuts the patch `q` asks for out of `world`'s patient and serializes it into `out`
-  void cut(const World& world, const PatchRequest& q, PatchBytes& out) {
+  void cut(const runtime::World& world, const runtime::PatchRequest& q, runtime::PatchBytes& out) {
     const Patient& p = *world.patient;
     Vec3i size;
     const Vec3i lo = patch_box(p.grid, q.tip_mm, q.edge, size);
@@ -71,11 +72,11 @@ class PatchCutter {
 
 }  // namespace
 
-void run_patch_worker(ServerShared& sh) {
+void run_patch_worker(runtime::ServerShared& sh) {
   PatchCutter cutter;
   while (!sh.stop.load(std::memory_order_relaxed)) {
     // the current world: once its generation is published here, older ones may be freed
-    const World* world = sh.world.load(std::memory_order_acquire);
+    const runtime::World* world = sh.world.load(std::memory_order_acquire);
     sh.patch_seen_generation.store(world ? world->generation : 0, std::memory_order_release);
     if (!sh.patches_asked.load(std::memory_order_acquire) || !world) {
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
@@ -83,15 +84,15 @@ void run_patch_worker(ServerShared& sh) {
     }
     const int used = sh.slots_used.load(std::memory_order_acquire);
     for (int i = 0; i < used; ++i) {
-      SessionSlot& slot = sh.slots[std::size_t(i)];
+      runtime::SessionSlot& slot = sh.slots[std::size_t(i)];
       // a channel for a slot whose session asked, made here so that the pose thread never allocates
       if (slot.patch_asked.load(std::memory_order_acquire) && !slot.patch_storage) {
-        slot.patch_storage = std::make_unique<PatchChannel>();
+        slot.patch_storage = std::make_unique<runtime::PatchChannel>();
         slot.patch_channel.store(slot.patch_storage.get(), std::memory_order_release);
       }
-      PatchChannel* ch = slot.patch_channel.load(std::memory_order_acquire);
+      runtime::PatchChannel* ch = slot.patch_channel.load(std::memory_order_acquire);
       if (!ch || !ch->request.take()) continue;
-      const PatchRequest& q = ch->request.front();
+      const runtime::PatchRequest& q = ch->request.front();
       // a request of another world is stale: the session's next pose asks again
       if (q.generation != world->generation) continue;
       cutter.cut(*world, q, ch->patch.back());

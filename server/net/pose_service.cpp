@@ -12,9 +12,19 @@
 #include "net/curve_keys.h"
 #include "net/input_budget.h"
 #include "net/wire_convert.h"
+#include "net/wire_limits.h"
 #include "palpsim/wire.pb.h"
 
 namespace palpsim::net {
+
+using runtime::kMaxSlots;
+using runtime::PatchBytes;
+using runtime::PatchChannel;
+using runtime::PatchRequest;
+using runtime::ServerShared;
+using runtime::SessionSlot;
+using runtime::World;
+
 namespace {
 
 namespace v1 = ::palpsim::v1;

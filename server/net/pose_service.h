@@ -8,7 +8,7 @@
 #include <cstdint>
 #include <zmq.hpp>
 
-#include "net/session_table.h"
+#include "runtime/session_table.h"
 
 namespace palpsim::net {
 
@@ -19,7 +19,7 @@ inline std::int64_t ns_since(std::chrono::steady_clock::time_point start) {
 
 /// Serves the pose socket (a bound ROUTER) until shared.stop is set; wakes at least
 /// every `idle_poll_ms` to pick up a new world and to see the stop flag.
-void run_pose_service(zmq::socket_t& socket, ServerShared& shared, std::chrono::steady_clock::time_point start,
+void run_pose_service(zmq::socket_t& socket, runtime::ServerShared& shared, std::chrono::steady_clock::time_point start,
                       int idle_poll_ms = 50);
 
 }  // namespace palpsim::net

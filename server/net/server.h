@@ -17,11 +17,12 @@
 #include "core/volume.h"
 #include "haptics/contact_slot.h"
 
-namespace palpsim::net {
-
+namespace palpsim::runtime {
 struct ServerShared;
-struct World;
 class HeapTrimmer;
+}  // namespace palpsim::runtime
+
+namespace palpsim::net {
 
 /// Prepares the patient of a scene (palpsim::prepare_patient in the real server; tests
 /// may pass a synthetic one). Throws palpsim::Error for a scene that cannot be served.
@@ -120,11 +121,11 @@ class Server {
 
  private:
   class Control;
-  std::unique_ptr<ServerShared> shared_;
+  std::unique_ptr<runtime::ServerShared> shared_;
   std::unique_ptr<Control> control_;
   std::string control_endpoint_, pose_endpoint_;
   std::thread pose_thread_, control_thread_, patch_thread_;
-  std::unique_ptr<HeapTrimmer> heap_trimmer_;  // gives freed memory back to the system while serving
+  std::unique_ptr<runtime::HeapTrimmer> heap_trimmer_;  // gives freed memory back to the system while serving
   bool started_ = false;
 };
 

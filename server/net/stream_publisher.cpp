@@ -22,6 +22,20 @@
 #include "palpsim/wire.pb.h"
 
 namespace palpsim::net {
+
+using deform::Voi;
+using runtime::brick_topic;
+using runtime::EncodedFrame;
+using runtime::frame_topic;
+using runtime::hex_id;
+using runtime::JSnapshot;
+using runtime::kMaxSlots;
+using runtime::ServerShared;
+using runtime::SessionStreamReport;
+using runtime::StreamSlot;
+using runtime::StreamState;
+using runtime::World;
+
 namespace {
 
 namespace v1 = ::palpsim::v1;
@@ -49,12 +63,6 @@ constexpr std::size_t kTopicLength = 6 + 16;
 // session that went quiet, and every "closed" notice, are sent again once, by when a
 // viewer that drains its socket has room again.
 constexpr double kResendAfterS = 0.25;
-
-std::string hex_id(std::uint64_t id) {
-  char b[32];
-  std::snprintf(b, sizeof b, "%016" PRIx64, id);
-  return b;
-}
 
 
 // the session id of a full topic ("frame.<16 hex>"), or 0

@@ -11,8 +11,8 @@
 #include <string>
 #include <thread>
 
-#include "net/session_table.h"
-#include "net/stream_state.h"
+#include "runtime/session_table.h"
+#include "runtime/stream_state.h"
 #include "net/zap_handler.h"
 
 namespace palpsim::net {
@@ -24,7 +24,7 @@ class StreamPublisher {
   /// cannot); `start` is the server clock's zero. With a CURVE key in `curve` the socket
   /// is a CURVE server with a ZAP handler of its own (its context is its own) and admits
   /// a subscription to a session's topics only from the key that opened the session.
-  StreamPublisher(ServerShared& shared, StreamState& stream, const std::string& bind,
+  StreamPublisher(runtime::ServerShared& shared, runtime::StreamState& stream, const std::string& bind,
                   std::chrono::steady_clock::time_point start, const CurveServer& curve = {});
   ~StreamPublisher();
   StreamPublisher(const StreamPublisher&) = delete;

@@ -8,10 +8,6 @@
 #include "core/error.h"
 #include "render/backend_choice.h"
 
-#ifdef PALPSIM_HAVE_CUDA
-#include "cuda/render_interop.h"
-#endif
-
 namespace palpsim::render {
 namespace {
 
@@ -89,13 +85,15 @@ class TurboJpegEncoder final : public FrameEncoder {
 
 }  // namespace
 
+FrameEncoderRegistry& frame_encoders() {
+  static FrameEncoderRegistry registry;
+  return registry;
+}
+
 std::unique_ptr<FrameEncoder> make_frame_encoder(JpegEncoderChoice choice, const EglContext& ctx, std::string* note) {
-  BackendChoice<FrameEncoder, JpegEncoderChoice> c{"jpeg encoder", JpegEncoderChoice::kCpu, JpegEncoderChoice::kNvjpeg,
-                                                   "turbojpeg", nullptr,
-                                                   [] { return std::make_unique<TurboJpegEncoder>(); }};
-#ifdef PALPSIM_HAVE_CUDA
-  c.make_gpu = [] { return cuda::make_nvjpeg_frame_encoder(); };
-#endif
+  const BackendChoice<FrameEncoder, JpegEncoderChoice> c{
+      "jpeg encoder", JpegEncoderChoice::kCpu, JpegEncoderChoice::kNvjpeg, "turbojpeg",
+      [] { return std::make_unique<TurboJpegEncoder>(); }, &frame_encoders()};
   return choose_backend(c, choice, ctx, note);
 }
 

@@ -1,5 +1,5 @@
 // JPEG encoding of rendered frames: libjpeg-turbo on the CPU (glReadPixels, then
-// TurboJPEG), nvJPEG on the GPU (cuda/frame_encoder_nvjpeg.cu: the frame's colour
+// TurboJPEG), nvJPEG on the GPU (registered by cuda/render_interop.cu: the frame's colour
 // texture through CUDA-GL interop, no pixel readback). Chosen by name at run time.
 #pragma once
 
@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "core/backend_registry.h"
 #include "core/scene.h"
 #include "render/egl_context.h"
 #include "render/frame_renderer.h"
@@ -45,8 +46,15 @@ class FrameEncoder {
   }
 };
 
-/// Makes the encoder render.jpeg_encoder asks for: cpu (libjpeg-turbo), nvjpeg (this
-/// build has CUDA and the context is on an NVIDIA GPU) or auto (nvjpeg where it can be
+/// The encoders outside server/render, by the render.jpeg_encoder value that asks for
+/// them: cuda/ registers nvjpeg (register_linked_backends(), core/linked_backends.h).
+using FrameEncoderRegistry = BackendRegistry<FrameEncoder, JpegEncoderChoice>;
+
+/// The one registry make_frame_encoder() looks nvjpeg up in.
+FrameEncoderRegistry& frame_encoders();
+
+/// Makes the encoder render.jpeg_encoder asks for: cpu (libjpeg-turbo), nvjpeg (registered
+/// by a CUDA build and the context is on an NVIDIA GPU) or auto (nvjpeg where it can be
 /// used, else cpu). Throws palpsim::Error for an unusable nvjpeg; `note`, when given,
 /// says what was chosen and why.
 std::unique_ptr<FrameEncoder> make_frame_encoder(JpegEncoderChoice choice, const EglContext& ctx,

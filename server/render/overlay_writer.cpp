@@ -5,10 +5,6 @@
 #include "core/error.h"
 #include "render/backend_choice.h"
 
-#ifdef PALPSIM_HAVE_CUDA
-#include "cuda/render_interop.h"
-#endif
-
 namespace palpsim::render {
 namespace {
 
@@ -34,14 +30,16 @@ class UploadWriter final : public OverlayWriter {
 
 }  // namespace
 
+OverlayWriterRegistry& overlay_writers() {
+  static OverlayWriterRegistry registry;
+  return registry;
+}
+
 std::unique_ptr<OverlayWriter> make_overlay_writer(OverlayWriterChoice choice, const EglContext& ctx,
                                                    std::string* note) {
-  BackendChoice<OverlayWriter, OverlayWriterChoice> c{"overlay writer", OverlayWriterChoice::kUpload,
-                                                      OverlayWriterChoice::kCudaGl, "upload", nullptr,
-                                                      [] { return std::make_unique<UploadWriter>(); }};
-#ifdef PALPSIM_HAVE_CUDA
-  c.make_gpu = [] { return cuda::make_cuda_overlay_writer(); };
-#endif
+  const BackendChoice<OverlayWriter, OverlayWriterChoice> c{
+      "overlay writer", OverlayWriterChoice::kUpload, OverlayWriterChoice::kCudaGl, "upload",
+      [] { return std::make_unique<UploadWriter>(); }, &overlay_writers()};
   return choose_backend(c, choice, ctx, note);
 }
 

@@ -1,12 +1,13 @@
 // How a session's deformed VOI (J) reaches its overlay texture: a sub-box upload from
 // host memory (the cpu deformation backend), or CUDA-GL interop from device memory (the
-// cuda backend: cuda/render_interop.h), chosen once per render thread.
+// cuda backend; registered by cuda/render_interop.cu), chosen once per render thread.
 #pragma once
 
 #include <memory>
 #include <string>
 #include <vector>
 
+#include "core/backend_registry.h"
 #include "core/device_bytes.h"
 #include "core/scene.h"
 #include "render/egl_context.h"
@@ -45,8 +46,15 @@ class OverlayWriter {
   }
 };
 
-/// Makes the writer render.overlay_writer asks for: upload, cuda-gl (this build has CUDA
-/// and the context is on an NVIDIA GPU) or auto (cuda-gl where it can be used, else
+/// The overlay writers outside server/render, by the render.overlay_writer value that
+/// asks for them: cuda/ registers cuda-gl (register_linked_backends(), core/linked_backends.h).
+using OverlayWriterRegistry = BackendRegistry<OverlayWriter, OverlayWriterChoice>;
+
+/// The one registry make_overlay_writer() looks cuda-gl up in.
+OverlayWriterRegistry& overlay_writers();
+
+/// Makes the writer render.overlay_writer asks for: upload, cuda-gl (registered by a CUDA
+/// build, and the context is on an NVIDIA GPU) or auto (cuda-gl where it can be used, else
 /// upload). Throws palpsim::Error for an unusable cuda-gl; `note` says what was chosen
 /// and why.
 std::unique_ptr<OverlayWriter> make_overlay_writer(OverlayWriterChoice choice, const EglContext& ctx,

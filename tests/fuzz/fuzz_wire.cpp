@@ -32,7 +32,7 @@
 #include "core/error.h"
 #include "net/scene_io.h"
 #include "net/server.h"
-#include "net/session_table.h"
+#include "net/wire_limits.h"
 #include "palpsim/wire.pb.h"
 #include "support/synthetic_patient.h"
 

@@ -5,6 +5,9 @@
 #include <cmath>
 #include <functional>
 #include <limits>
+#include <memory>
+#include <optional>
+#include <string>
 #include <vector>
 
 #include "core/error.h"
@@ -40,6 +43,39 @@ TEST_CASE("backends are chosen by name; an unavailable cuda says why") {
     CHECK(e.find("unavailable") != std::string::npos);
     CHECK(e.find(why) != std::string::npos);
   }
+}
+
+TEST_CASE("deform.backend cuda and auto make what is registered for cuda, and say why it cannot be used") {
+  // a fake "cuda" in the registry (the real one, in a CUDA build, is put back at the end)
+  const std::optional<DeformBackendRegistry::Factory> real = deform_backends().find(DeformBackendChoice::kCuda);
+  bool usable = true;
+  int made = 0;
+  deform_backends().add(DeformBackendChoice::kCuda,
+                        {[&](std::string* why) {
+                           *why = usable ? "fake device" : "fake: no device";
+                           return usable;
+                         },
+                         [&] {
+                           ++made;
+                           return std::unique_ptr<DeformBackend>(std::make_unique<CpuDeformBackend>());
+                         }});
+  std::string why, note;
+  CHECK(cuda_deform_available(&why));
+  CHECK(why == "fake device");
+  make_deform_backend("cuda", &note);
+  make_deform_backend("auto");
+  CHECK(made == 2);
+  CHECK(note == "deform backend \"cuda\" (fake device)");
+  usable = false;
+  CHECK(error_of([] { make_deform_backend("cuda"); }).find("unavailable: fake: no device") != std::string::npos);
+  CHECK(make_deform_backend("auto", &note)->name() == "cpu");
+  CHECK(note == "deform backend \"cpu\" (auto: cuda unavailable: fake: no device)");
+  CHECK(made == 2);
+  // nothing registered: what a build without CUDA says
+  deform_backends().remove(DeformBackendChoice::kCuda);
+  CHECK_FALSE(cuda_deform_available(&why));
+  CHECK(why.find("PALPSIM_CUDA=OFF") != std::string::npos);
+  if (real) deform_backends().add(DeformBackendChoice::kCuda, *real);
 }
 
 TEST_CASE("sessions are batched only when every setting the batched kernels share is equal") {

@@ -13,7 +13,7 @@
 #include "net/curve_keys.h"
 #include "net/scene_io.h"
 #include "net/server.h"
-#include "net/session_table.h"
+#include "runtime/session_table.h"
 #include "net/zap_handler.h"
 #include "support/net_client.h"
 #include "support/synthetic_patient.h"
@@ -160,7 +160,7 @@ TEST_CASE("refused handshakes: a line at once, then one summary per period at mo
 }
 
 TEST_CASE("a session slot's haptics parameters start as HapticsSettings' defaults", "[net]") {
-  const HapticsSettings p = net::SessionSlot{}.params(), d;
+  const HapticsSettings p = runtime::SessionSlot{}.params(), d;
   CHECK(p.stiffness_n_per_mm == d.stiffness_n_per_mm);
   CHECK(p.friction == d.friction);
   CHECK(p.max_force_n == d.max_force_n);
@@ -169,7 +169,7 @@ TEST_CASE("a session slot's haptics parameters start as HapticsSettings' default
 }
 
 TEST_CASE("a session's key check: any sender without CURVE, only the opener's key with it", "[net][security]") {
-  net::SessionSlot slot;
+  runtime::SessionSlot slot;
   const std::string a = net::make_curve_keypair().public_key, b = net::make_curve_keypair().public_key;
   CHECK(slot.key_may_act(nullptr));
   CHECK(slot.key_may_act(b.c_str()));

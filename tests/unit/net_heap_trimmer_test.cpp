@@ -1,4 +1,4 @@
-// The heap trimmer (net/heap_trimmer.h): when its policy trims, and that a trim gives
+// The heap trimmer (runtime/heap_trimmer.h): when its policy trims, and that a trim gives
 // back memory freed in the middle of glibc's heap, which free() alone keeps resident.
 #include <catch2/catch.hpp>
 
@@ -8,7 +8,7 @@
 #include <thread>
 #include <vector>
 
-#include "net/heap_trimmer.h"
+#include "runtime/heap_trimmer.h"
 
 using namespace palpsim;
 
@@ -51,7 +51,7 @@ struct Fragments {
 }  // namespace
 
 TEST_CASE("the trim policy: a step freed since the last trim, or a step of regrowth", "[net][memory]") {
-  net::TrimPolicy p(4 * kMB);
+  runtime::TrimPolicy p(4 * kMB);
   // step: 1/32 of resident memory, at least 4 MB: 8 MB at 256 MB
   CHECK_FALSE(p.due(256 * kMB, 10 * kMB));
   CHECK_FALSE(p.due(256 * kMB, 17 * kMB));  // 7 MB more free: below the step
@@ -71,15 +71,15 @@ TEST_CASE("the trim policy: a step freed since the last trim, or a step of regro
 TEST_CASE("a trim gives back memory freed in the middle of the heap; free() alone does not", "[net][memory]") {
   Fragments f;
   CHECK(f.sum() > 0);
-  const std::size_t before = net::resident_bytes();
+  const std::size_t before = runtime::resident_bytes();
   REQUIRE(before > 0);
   f.free_half();
   // free() kept the 48 MB (at most a few blocks went back): the point of the trimmer
-  const std::size_t after_free = net::resident_bytes();
+  const std::size_t after_free = runtime::resident_bytes();
   CHECK(after_free + 8 * kMB > before);
   // 48 MB freed, in whole pages but for the chunk headers: 40 MB leaves room for what
   // other threads of this test process allocate meanwhile
-  const std::size_t dropped = net::trim_heap();
+  const std::size_t dropped = runtime::trim_heap();
   INFO("resident " << before / kMB << " MB, after free " << after_free / kMB << " MB, trim gave back "
                    << dropped / kMB << " MB");
   CHECK(dropped >= 40 * kMB);
@@ -89,16 +89,16 @@ TEST_CASE("the trimmer's thread trims by itself once memory is freed", "[net][me
   Fragments f;
   CHECK(f.sum() > 0);
   // a look every 20 ms; the first look sets the baselines
-  net::HeapTrimmer trimmer(0.02, 4 * kMB);
+  runtime::HeapTrimmer trimmer(0.02, 4 * kMB);
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
-  const std::size_t before = net::resident_bytes();
+  const std::size_t before = runtime::resident_bytes();
   f.free_half();
   // the next looks see 48 MB more free in the arenas and trim; 10 s covers a loaded machine
   std::size_t now = before;
   const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(10);
   while (now + 40 * kMB > before && std::chrono::steady_clock::now() < end) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    now = net::resident_bytes();
+    now = runtime::resident_bytes();
   }
   INFO("resident " << before / kMB << " MB before the free, " << now / kMB << " MB after");
   CHECK(now + 40 * kMB <= before);

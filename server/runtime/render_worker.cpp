@@ -1,4 +1,4 @@
-#include "net/render_worker.h"
+#include "runtime/render_worker.h"
 
 #include <spdlog/spdlog.h>
 
@@ -23,7 +23,7 @@
 #include "render/frame_renderer.h"
 #include "render/overlay_writer.h"
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 namespace {
 
 // how long the thread naps at most when no watched session needs a frame now (s): well
@@ -32,12 +32,6 @@ namespace {
 constexpr double kIdleSleepS = 1e-3;
 // and while nobody watches anything (s)
 constexpr double kUnwatchedSleepS = 10e-3;
-
-std::string hex_id(std::uint64_t id) {
-  char b[32];
-  std::snprintf(b, sizeof b, "%016" PRIx64, id);
-  return b;
-}
 
 bool same_marks(const render::FrameMarks& a, const render::FrameMarks& b) {
   return a.has_tip == b.has_tip && a.tip_mm == b.tip_mm && a.proxy_mm == b.proxy_mm && a.contact == b.contact;
@@ -414,4 +408,4 @@ void RenderWorker::draw_batch(const int* index, int n) {
   report_bytes();  // a framebuffer may have been made or resized
 }
 
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

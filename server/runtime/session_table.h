@@ -4,9 +4,11 @@
 #pragma once
 
 #include <array>
+#include <cinttypes>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <cstring>
 #include <memory>
 #include <string>
@@ -18,26 +20,17 @@
 #include "haptics/elastic_force.h"
 #include "haptics/force_model.h"
 #include "haptics/passivity.h"
-#include "net/patch_worker.h"
+#include "runtime/patch_channel.h"
+#include "runtime/world.h"
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 
-/// A scene with its prepared patient and its place in the load history. Immutable once
-/// published; the pose thread reads it through a raw pointer that the control thread
-/// keeps alive until the pose thread has moved on (ServerShared::seen_generation).
-struct World {
-  Scene scene;
-  PatientPtr patient;
-  std::uint64_t generation = 0;  // 1 for the scene loaded at start, +1 per successful load
-  Vec3 bounds_min_mm{0, 0, 0};   // physical bounding box of the patient grid
-  Vec3 bounds_max_mm{0, 0, 0};
-  Vec3 body_min_mm{0, 0, 0};     // bounding box of the body mask's voxel centres
-  Vec3 body_max_mm{0, 0, 0};
-  Vec3 body_center_mm{0, 0, 0};  // the body's centre as frames take it (render/camera.h's body_center)
-};
-
-/// Builds a World (bounds included) from a scene and its patient.
-std::unique_ptr<World> make_world(const Scene& scene, PatientPtr patient, std::uint64_t generation);
+/// A session id as 16 hex digits, for logs and messages.
+inline std::string hex_id(std::uint64_t id) {
+  char b[32];
+  std::snprintf(b, sizeof b, "%016" PRIx64, id);
+  return b;
+}
 
 /// The largest number of sessions any scene may ask for (scene.proto's server.max_sessions max).
 constexpr int kMaxSlots = 4096;
@@ -279,26 +272,4 @@ struct ServerShared {
                                                      // the workers' passes over the sessions stop there
 };
 
-/// Limits of the two paths (PROTOCOL.md).
-constexpr std::size_t kMaxPoseBytes = 1024;
-constexpr std::size_t kMaxControlBytes = 1 << 20;
-/// Local force model patches (PoseRequest.local_model_edge, local_model_period_s): voxels
-/// per axis and the period between patches (s). 16^3 voxels are 68 KiB on the wire.
-constexpr int kMinPatchEdge = 4, kMaxPatchEdge = 16;
-constexpr double kMinPatchPeriodS = 0.01, kMaxPatchPeriodS = 1.0;
-/// A patch is sent early when the tip comes within this many voxels of the last box's faces.
-constexpr double kPatchMarginVox = 2.0;
-/// A patch's box is centred ahead of the tip by its velocity (since the last patch) times this
-/// (s), at most so far that the tip stays kPatchMarginVox + 1 voxels inside: a patch is used
-/// a round trip after it was cut, longer when TCP waits for a lost segment (100 to 300 ms
-/// at 100 ms round trip and 1 % loss), and a box centred on the tip where it was cut covers
-/// 10 mm ahead at most (12 voxels of 2 mm), 0.5 s at 20 mm/s.
-constexpr double kPatchLeadS = 0.25;
-/// The largest PoseReply: a small reply and the largest patch (C 1, F 4, grad F 12 bytes a voxel).
-constexpr std::size_t kMaxPoseReplyBytes = 4096 + std::size_t(kMaxPatchEdge) * kMaxPatchEdge * kMaxPatchEdge * 17;
-/// Longest ControlRequest.client_token (bytes).
-constexpr std::size_t kMaxClientTokenBytes = 64;
-/// ZeroMQ drops connections that send frames larger than this (memory guard).
-constexpr std::int64_t kMaxFrameBytes = 16 << 20;
-
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

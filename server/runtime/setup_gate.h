@@ -7,7 +7,7 @@
 #include <mutex>
 #include <string>
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 
 /// Opened once by the worker thread when its first set-up is over, failed or not.
 class SetupGate {
@@ -47,4 +47,4 @@ class SetupGate {
   std::string error_;
 };
 
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

@@ -1,10 +1,10 @@
-#include "net/stream_state.h"
+#include "runtime/stream_state.h"
 
 #include <algorithm>
 #include <cinttypes>
 #include <cstdio>
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 
 double LatencyRing::quantile(double q) const {
   const std::size_t n = std::size_t(std::min<std::uint64_t>(count, kSize));
@@ -55,4 +55,4 @@ std::size_t held_bytes(const Latest<EncodedFrame>& h) {
   return n;
 }
 
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

@@ -17,11 +17,11 @@
 #include "core/latest.h"
 #include "core/scene.h"
 #include "deform/deform_math.h"
-#include "net/session_table.h"
+#include "runtime/session_table.h"
 #include "render/frame_renderer.h"
 #include "render/view.h"
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 
 using deform::Voi;
 
@@ -147,4 +147,4 @@ std::string brick_topic(std::uint64_t session_id);
 std::size_t held_bytes(const Latest<JSnapshot>& h);
 std::size_t held_bytes(const Latest<EncodedFrame>& h);
 
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

@@ -14,9 +14,9 @@
 #include <thread>
 #include <vector>
 
-#include "net/session_table.h"
-#include "net/setup_gate.h"
-#include "net/stream_state.h"
+#include "runtime/session_table.h"
+#include "runtime/setup_gate.h"
+#include "runtime/stream_state.h"
 
 #include "render/frame_encoder.h"
 #include "render/frame_renderer.h"
@@ -26,7 +26,7 @@ namespace palpsim::render {
 class EglContext;
 }  // namespace palpsim::render
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 
 /// Renders frames of the watched sessions on one thread.
 ///
@@ -99,4 +99,4 @@ class RenderWorker {
   SetupGate setup_;
 };
 
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

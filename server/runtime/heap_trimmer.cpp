@@ -1,4 +1,4 @@
-#include "net/heap_trimmer.h"
+#include "runtime/heap_trimmer.h"
 
 #include <spdlog/spdlog.h>
 #include <unistd.h>
@@ -13,7 +13,7 @@
 
 #include "core/thread.h"
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 
 void configure_heap() {
 #if defined(__GLIBC__)
@@ -92,4 +92,4 @@ void HeapTrimmer::run() {
   }
 }
 
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

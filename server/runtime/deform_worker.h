@@ -18,11 +18,11 @@
 
 #include "core/volume.h"
 #include "deform/engine.h"
-#include "net/session_table.h"
-#include "net/setup_gate.h"
-#include "net/stream_state.h"
+#include "runtime/session_table.h"
+#include "runtime/setup_gate.h"
+#include "runtime/stream_state.h"
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 
 /// The latest elastic step's force (deform.relax_method "elastic"; ElasticForceStats).
 struct ElasticForceReport {
@@ -212,4 +212,4 @@ class DeformWorker {
   std::unique_ptr<Request> request_;
 };
 
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

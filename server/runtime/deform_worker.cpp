@@ -1,4 +1,4 @@
-#include "net/deform_worker.h"
+#include "runtime/deform_worker.h"
 
 #include <spdlog/spdlog.h>
 
@@ -20,8 +20,9 @@
 #include "core/thread.h"
 #include "deform/approach.h"
 #include "deform/relax_multigrid.h"
+#include "runtime/deform_worker_state.h"
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 namespace {
 
 // at most this many engines of closed sessions are kept for the next sessions
@@ -48,12 +49,6 @@ constexpr double kPrimeShare = 0.1;
 // SCHED_IDLE on top of nice 19 (ServerOptions::background_idle) halved p99 again:
 // core/thread.h has the figures.
 
-std::string hex_id(std::uint64_t id) {
-  char b[32];
-  std::snprintf(b, sizeof b, "%016" PRIx64, id);
-  return b;
-}
-
 void add_times(DeformTimes& a, const DeformTimes& b) {
   a.reset_ms += b.reset_ms;
   a.chainmail_ms += b.chainmail_ms;
@@ -64,16 +59,6 @@ void add_times(DeformTimes& a, const DeformTimes& b) {
   a.total_ms += b.total_ms;
 }
 
-void add_memory(DeformMemory& a, const DeformMemory& b) {
-  a.chainmail_bytes += b.chainmail_bytes;
-  a.relax_bytes += b.relax_bytes;
-  a.invert_bytes += b.invert_bytes;
-  // every engine of a world shares the one device copy of its patient: count it once
-  a.shared_patient_bytes = std::max(a.shared_patient_bytes, b.shared_patient_bytes);
-  // and the one solver scratch of its multigrid sessions
-  a.shared_scratch_bytes = std::max(a.shared_scratch_bytes, b.shared_scratch_bytes);
-}
-
 bool finite(const DeformStats& st) {
   const DeformTimes& t = st.times;
   const Vec3f& u = st.chainmail.grabbed_u_vox;
@@ -82,37 +67,6 @@ bool finite(const DeformStats& st) {
 }
 
 }  // namespace
-
-// the worker's own state of one session slot
-struct DeformWorker::Session {
-  std::uint64_t id = 0;                 // 0: no session
-  std::unique_ptr<DeformEngine> engine; // made at the first contact
-  std::uint64_t last_version = 0;       // contact slot version last taken (0: none yet)
-  std::uint32_t resets_seen = 0;        // SessionSlot::reset_requests applied
-  std::uint32_t pose_resets_seen = 0;   // SessionSlot::pose_resets applied
-  DeformSessionReport report;
-  double last_contact_time_s = 0;       // server time of the pose the latest step ran on
-  double last_step_begun_s = -1e9;      // server time the latest step began (pacing of watched sessions)
-  Vec3 last_tip_mm{0, 0, 0};            // and its tip, skin point and proxy
-  Vec3 last_skin_mm{0, 0, 0};
-  Vec3 last_proxy_mm{0, 0, 0};
-  double last_prime_s = -1e9;           // server time of the latest prime (pacing) ...
-  double last_prime_cost_s = 0;         // ... and the worker's time it took (s)
-  // the stream's hand-overs (stream_state.h): the state's version, and what was exported
-  std::uint64_t state_version = 1;      // grows with every step, reset and failure
-  std::uint64_t render_exported = 0;    // state_version last handed to the render thread
-  std::uint64_t bricks_exported = 0;    // ... and to the publisher
-  bool render_watched = false;          // frames were wanted at the last pass
-  bool bricks_watched = false;          // bricks were wanted at the last pass
-};
-
-// one deformed_volume() request
-struct DeformWorker::Request {
-  std::uint64_t session_id = 0;
-  Volume<float>* out = nullptr;
-  bool done = false;
-  bool found = false;
-};
 
 DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time_point start, int nice, bool idle,
                            int concurrency, int batch)
@@ -642,155 +596,4 @@ void DeformWorker::fail(Session& s, int index, const Contact& c, const std::exce
   ++server_.failures;
 }
 
-void DeformWorker::publish_elastic(Session& s, int index, const ElasticModel& m) {
-  ElasticForceReport& r = s.report.elastic;
-  r.model = m;
-  r.model.session_id = s.id;
-  r.model.generation = generation_;
-  // with haptics.force_model "elastic" the haptic thread renders it (newest wins; never waits)
-  if (config_.elastic_stiffness) {
-    sh_.slots[index].elastic_model.back() = r.model;
-    sh_.slots[index].elastic_model.publish();
-    ++r.models_published;
-  }
-}
-
-void DeformWorker::export_watched(int index) {
-  StreamState* st = sh_.stream.load(std::memory_order_acquire);
-  Session& s = sessions_[index];
-  if (!st || s.id == 0) return;
-  StreamSlot& ss = st->slots[index];
-  // a session that became watched gets its current state at once; then every change
-  const bool frames = ss.frames_for.load(std::memory_order_acquire) == s.id;
-  const bool bricks = ss.bricks_for.load(std::memory_order_acquire) == s.id;
-  if (frames && (!s.render_watched || s.render_exported != s.state_version)) {
-    fill_snapshot(ss.j_render.back(), s, st->render_wants_device.load(std::memory_order_acquire));
-    ss.j_render.publish();
-    ss.j_render_bytes.store(held_bytes(ss.j_render), std::memory_order_relaxed);
-    s.render_exported = s.state_version;
-  }
-  if (bricks && (!s.bricks_watched || s.bricks_exported != s.state_version)) {
-    fill_snapshot(ss.j_bricks.back(), s, false);
-    ss.j_bricks.publish();
-    ss.brick_bytes.store(held_bytes(ss.j_bricks), std::memory_order_relaxed);
-    s.bricks_exported = s.state_version;
-  }
-  s.render_watched = frames;
-  s.bricks_watched = bricks;
-}
-
-void DeformWorker::fill_snapshot(JSnapshot& o, Session& s, bool device) {
-  o.session_id = s.id;
-  o.step = s.report.steps;
-  o.pose_seq = s.report.last_contact_seq;
-  o.pose_server_time_s = s.last_contact_time_s;
-  o.tip_mm = s.last_tip_mm;
-  o.proxy_mm = s.last_proxy_mm;
-  // J exists after a step of a scene with inversion; otherwise the image is undeformed
-  const bool has_j = s.report.deformed && s.engine && s.engine->has_deformed_brick();
-  o.deformed = has_j;
-  o.voi = has_j ? s.engine->voi() : Voi{};
-  o.host_valid = false;
-  o.device_valid = false;
-  if (!has_j) return;
-  // the render thread's cuda-gl writer takes a device copy; everyone else the host brick
-  if (device) {
-    try {
-      o.device_valid = s.engine->copy_brick_to_device(o.device_j);
-    } catch (const std::exception& e) {
-      spdlog::warn("session {}: device copy of J for the renderer failed ({}); sending the host copy", hex_id(s.id),
-                   e.what());
-    }
-  }
-  if (!o.device_valid) {
-    const float* j = s.engine->deformed_brick();  // cuda: copied to the host now, after a batched step
-    o.host_j.assign(j, j + o.voi.count());
-    o.host_valid = true;
-  }
-}
-
-void DeformWorker::publish(const Session& s, int index) {
-  std::lock_guard<std::mutex> lock(report_mu_);
-  DeformSessionReport& out = reports_[index];
-  out = s.report;
-  out.memory = s.engine ? s.engine->memory() : DeformMemory{};
-  // server_.memory holds the spare engines; server_report() adds the sessions' own
-  publish_worker_times();
-  server_.batches = std::uint64_t(std::llround(batch_share_));
-  server_.batched_steps = batched_steps_;
-  server_.memory = DeformMemory{};
-  server_.engines = 0;
-  for (const auto& e : spares_) {
-    add_memory(server_.memory, e->memory());
-    ++server_.engines;
-  }
-}
-
-void DeformWorker::publish_worker_times() {
-  server_.worker_wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - world_start_).count();
-  server_.worker_step_s = step_s_;
-  server_.worker_sleep_s = sleep_s_;
-}
-
-bool DeformWorker::session_report(std::uint64_t session_id, DeformSessionReport& out) const {
-  if (session_id == 0) return false;
-  std::lock_guard<std::mutex> lock(report_mu_);
-  if (reports_.empty()) return false;
-  const DeformSessionReport& r = reports_[session_id & (kMaxSlots - 1)];
-  if (r.session_id != session_id) return false;
-  out = r;
-  return true;
-}
-
-DeformServerReport DeformWorker::server_report() const {
-  std::lock_guard<std::mutex> lock(report_mu_);
-  DeformServerReport r = server_;
-  // the worker's own per-slot bookkeeping serves ChainMail too
-  r.memory.chainmail_bytes += slot_bytes_;
-  // sessions' engines on top of the spares
-  for (const DeformSessionReport& s : reports_)
-    if (s.session_id != 0 && s.memory.total() > 0) {
-      add_memory(r.memory, s.memory);
-      ++r.engines;
-    }
-  // server-wide, ChainMail's stage holds the patient's shared device copy too (once)
-  r.memory.chainmail_bytes += r.memory.shared_patient_bytes;
-  r.memory.relax_bytes += r.memory.shared_scratch_bytes;
-  return r;
-}
-
-bool DeformWorker::deformed_volume(std::uint64_t session_id, Volume<float>& out, double timeout_s) {
-  std::lock_guard<std::mutex> one_at_a_time(request_mu_);
-  std::unique_lock<std::mutex> lock(mailbox_mu_);
-  request_ = std::make_unique<Request>();
-  request_->session_id = session_id;
-  request_->out = &out;
-  request_pending_.store(true, std::memory_order_release);
-  const bool answered = mailbox_cv_.wait_for(lock, std::chrono::duration<double>(timeout_s), [this] { return request_->done; });
-  const bool found = answered && request_->found;
-  request_pending_.store(false, std::memory_order_release);
-  request_.reset();
-  return found;
-}
-
-void DeformWorker::answer_request() {
-  std::lock_guard<std::mutex> lock(mailbox_mu_);
-  if (!request_ || request_->done) return;
-  Request& q = *request_;
-  const Session* s = sessions_.empty() ? nullptr : &sessions_[q.session_id & (kMaxSlots - 1)];
-  if (s && q.session_id != 0 && s->id == q.session_id) {
-    q.found = true;
-    if (s->engine) {
-      *q.out = s->engine->deformed_volume();
-    } else {
-      // no engine yet: undeformed
-      q.out->grid = patient_->grid;
-      q.out->data = patient_->intensity.data;
-    }
-  }
-  q.done = true;
-  request_pending_.store(false, std::memory_order_release);
-  mailbox_cv_.notify_all();
-}
-
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

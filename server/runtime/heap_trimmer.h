@@ -16,7 +16,7 @@
 #include <mutex>
 #include <thread>
 
-namespace palpsim::net {
+namespace palpsim::runtime {
 
 /// Blocks of at least this many bytes get pages of their own, given back when freed.
 constexpr std::size_t kHeapMmapThresholdBytes = std::size_t(4) << 20;
@@ -101,4 +101,4 @@ class HeapTrimmer {
   std::thread thread_;
 };
 
-}  // namespace palpsim::net
+}  // namespace palpsim::runtime

@@ -12,7 +12,8 @@
 // - selective reduced integration: the mu part with 2x2x2 Gauss points, the lambda part
 //   (the volume change) at the cell centre, so that nu up to 0.49 does not lock (a cell
 //   whose volume change is held to 0 at eight points is held nearly rigid);
-// - held nodes (u = 0): bone (rigid and fixed, as ChainMail's bone) and the VOI's faces;
+// - held nodes (u = 0): bone (rigid and fixed, as ChainMail's bone), the VOI's faces, and
+//   air beyond kElasticAirRim nodes from the body (the solve skips them);
 // - contact nodes: body nodes under the fingertip, a rigid sphere of radius R whose deepest
 //   point is the tip x, pressing along n (from the skin point X to x). A contact node's
 //   displacement along n is prescribed (it lies on the sphere: elastic_sphere_push); across
@@ -106,6 +107,12 @@ constexpr int kElasticMaxDegree = 32;
 /// more than this (voxel edges): a margin above float rounding of positions of tens of mm.
 constexpr float kElasticPenetrationVox = 1e-4f;
 
+/// Air nodes more than this many nodes away (along some axis) from every body node are held
+/// at rest: the gel there (kElasticAirRatio times as stiff as tissue) moves nothing the body
+/// feels, and the solve skips them. The air nodes nearer the body follow the skin, so a cell
+/// of air folds only where the skin bulges out by more than this many voxels.
+constexpr int kElasticAirRim = 2;
+
 /// Node flags (one byte a node, every level).
 constexpr std::uint8_t kElasticHeld = 1;     // u = 0 (bone, a VOI face, beyond a coarse level's fine grid)
 constexpr std::uint8_t kElasticContact = 2;  // u . n prescribed (under the fingertip); across n free
@@ -153,15 +160,22 @@ PALPSIM_HD float elastic_node_modulus(const ElasticMaterial& m, float hu, bool b
 /// Corner c of a cell (bit 0: +i, bit 1: +j, bit 2: +k; deform_math.h's cell_blend order).
 PALPSIM_HD Vec3i elastic_corner(int c) { return Vec3i{c & 1, (c >> 1) & 1, (c >> 2) & 1}; }
 
-/// A level-0 node's static flags: held where it is bone or on a VOI face (`face`), body
-/// where the body mask holds it and it is no bone, skin where such a node has a face
-/// neighbour outside the body; `in_body(gi, gj, gk)` reads the mask at patient voxel
-/// (gi, gj, gk), false outside the grid.
+/// A level-0 node's static flags: held where it is bone, on a VOI face (`face`) or air
+/// farther than kElasticAirRim nodes from the body, body where the body mask holds it and
+/// it is no bone, skin where such a node has a face neighbour outside the body;
+/// `in_body(gi, gj, gk)` reads the mask at patient voxel (gi, gj, gk), false outside the grid.
 template <typename InBody>
 PALPSIM_HD std::uint8_t elastic_static_flags(bool body, bool bone, bool face, const InBody& in_body, int gi, int gj,
                                              int gk) {
   std::uint8_t f = 0;
   if (bone || face) f |= kElasticHeld;
+  if (!body) {
+    bool near = false;
+    for (int dk = -kElasticAirRim; dk <= kElasticAirRim && !near; ++dk)
+      for (int dj = -kElasticAirRim; dj <= kElasticAirRim && !near; ++dj)
+        for (int di = -kElasticAirRim; di <= kElasticAirRim && !near; ++di) near = in_body(gi + di, gj + dj, gk + dk);
+    if (!near) f |= kElasticHeld;
+  }
   if (body && !bone) {
     f |= kElasticBody;
     bool skin = false;

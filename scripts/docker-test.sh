@@ -371,7 +371,8 @@ try:
     # the gateway beyond loopback asks for the station token once
     driver.get(url + "/")
     if not driver.current_url.endswith("/login"):
-        raise SystemExit(f"the gateway served {driver.current_url} without the station login")
+        raise SystemExit(f"no station login at {url}/: the browser shows {driver.current_url} "
+                         f"({driver.title!r}; no gateway there, or one without a token)")
     field = driver.find_element("name", "token")
     field.send_keys(token)
     field.submit()
@@ -411,7 +412,7 @@ finally:
     driver.quit()
 PY
   { dk logs "$web_ctr" > "$logs/web.log" 2>&1 || true
-    die "step 5: headless chromium through the gateway container $web_ctr (browser: $logs/browser.log)" "$logs/web.log"; }
+    die "step 5: headless chromium through the gateway container $web_ctr: $(tail -n 1 "$logs/browser.log") (browser: $logs/browser.log)" "$logs/web.log"; }
 read -r web_frames web_changed web_fps p2f50 p2f90 p2fn force < <(python3 -c '
 import json, sys
 r = json.load(open(sys.argv[1]))
@@ -474,7 +475,7 @@ finally:
     slicer.stop()
 PY
   { dk logs "$igtl_ctr" > "$logs/igtl.log" 2>&1 || true
-    die "step 6: a pyigtl client through the bridge container $igtl_ctr (client: $logs/slicer.log)" "$logs/igtl.log"; }
+    die "step 6: a pyigtl client through the bridge container $igtl_ctr: $(tail -n 1 "$logs/slicer.log") (client: $logs/slicer.log)" "$logs/igtl.log"; }
 read -r igtl_shape igtl_rate < <(python3 -c '
 import json, sys
 r = json.load(open(sys.argv[1]))

@@ -1,5 +1,6 @@
 # palpsim clients image: the thin haptic client palpsim-haptic (C++), the Python package's
-# palpsim-batch and palpsim-view, and palpsim-keys. CPU only; the build stage is
+# palpsim-batch, palpsim-view, palpsim-web (the browser station's gateway) and palpsim-igtl
+# (3D Slicer's OpenIGTLink bridge), and palpsim-keys. CPU only; the build stage is
 # server.Dockerfile's first layers (Docker shares them), the runtime stage holds the two
 # executables with the libraries they link, and a Python venv with the package.
 #
@@ -11,6 +12,11 @@
 #     --server-key /keys/server.key --client-key /keys/station1.key_secret --device press --seconds 5
 #   docker run --rm -v "$PWD/keys:/keys:ro" -v "$PWD/out:/out" palpsim-clients palpsim-batch PLAN \
 #     --connect tcp://HOST:7420 --server-key /keys/server.key --client-key /keys/station1.key_secret --out /out/run
+#   docker run -d -p 8443:8080 -v "$PWD/keys:/keys:ro" palpsim-clients palpsim-web --connect tcp://HOST:7420 \
+#     --server-key /keys/server.key --client-key /keys/station1.key_secret --host 0.0.0.0 --port 8080 \
+#     --tls-cert /keys/web.crt --tls-key /keys/web.key --station-token-file /keys/station.token
+#   docker run -d --network host -v "$PWD/keys:/keys:ro" palpsim-clients palpsim-igtl --connect tcp://HOST:7420 \
+#     --server-key /keys/server.key --client-key /keys/station1.key_secret     # Slicer on this host: 127.0.0.1:18944
 # Build args: JOBS (compile jobs, default: all cores), EXTRA_CA_CERTS (PEM text of CAs that
 # pip must trust behind a TLS-inspecting proxy; build stage only).
 
@@ -50,10 +56,11 @@ RUN --mount=type=cache,target=/root/.ccache \
  && /src/docker/collect-libs.sh /opt/palpsim /build/palpsim-haptic /build/palpsim-keys
 
 # the package itself, less the libraries' own test suites (110 MB); the check imports what
-# the three tools use
+# the tools use
 RUN --mount=type=cache,target=/root/.cache/pip /opt/palpsim/venv/bin/pip install -q --no-deps /src/clients/python \
  && find /opt/palpsim/venv/lib -depth -type d -name tests -prune -exec rm -rf {} + \
- && /opt/palpsim/venv/bin/python -c 'import palpsim.batch, palpsim.view, palpsim.plots, pyarrow.parquet, zmq; \
+ && /opt/palpsim/venv/bin/python -c 'import palpsim.batch, palpsim.view, palpsim.plots, palpsim.web, palpsim.igtl, \
+      aiohttp.web, pyigtl, pyarrow.parquet, zmq; \
       assert zmq.has("curve"), "pyzmq without CURVE"'
 
 # ---- the image: debian:12 with Python 3.11 (the venv's interpreter) and the clients
@@ -65,5 +72,9 @@ RUN echo /opt/palpsim/lib > /etc/ld.so.conf.d/palpsim.conf && ldconfig
 # the example plans, for palpsim-batch
 COPY clients/python/examples /opt/palpsim/examples
 ENV PATH=/opt/palpsim/bin:/opt/palpsim/venv/bin:$PATH MPLBACKEND=Agg
+# palpsim-web's port as docs/containers.md runs it (--host 0.0.0.0 --port 8080, with TLS and
+# a station token). palpsim-igtl serves OpenIGTLink, which has no login, on loopback only:
+# its container runs with --network host beside Slicer, or connects out (--igtl-connect)
+EXPOSE 8080
 WORKDIR /work
 CMD ["palpsim-haptic", "--help"]

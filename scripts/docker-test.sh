@@ -17,10 +17,20 @@
 #    palpsim-view and asks the server's stats, then is refused with the intruder's key.
 # 4. Checks: every pose answered, force in the body, the batch's presses in contact, frames
 #    received, the server's stats count station1's connections admitted and the
-#    intruder's refused. Containers and the network are removed at exit (--keep keeps them).
+#    intruder's refused.
+# 5. The browser station: palpsim-web in a clients container on the network, beyond its
+#    loopback (TLS with a self-signed certificate, a station token), published on the
+#    host's loopback; the host's headless chromium logs in, sees a frame, clicks the back,
+#    and sees the frames change while the depth moves (screenshots, pose to frame).
+# 6. Slicer's stand-in: palpsim-igtl in a clients container on the host's network (it
+#    serves OpenIGTLink on loopback), and a pyigtl client on the host that receives the
+#    IMAGE and TRANSFORMs. Containers and the network are removed at exit (--keep keeps them).
 #
 # Writes out/docker-test/: summary.txt (date, commit, image sizes, build times, the result),
-# logs/ (dockerd, each build, server, client) and client/ (the clients' outputs).
+# logs/ (dockerd, each build, server, client, gateway, browser, bridge), client/ (the
+# clients' outputs) and web-1-first-frame.png, web-2-pressed.png (the browser's screenshots).
+# Steps 5 and 6 need the host's .venv (scripts/setup.sh: selenium, pyigtl, palpsim) and
+# Debian's chromium and chromium-driver.
 # Environment: PALPSIM_DOCKER_JOBS (compile jobs in the builds; default all cores),
 # PALPSIM_DEBIAN_MIRROR (for debootstrap; default http://deb.debian.org/debian).
 # Safe to run again: images and the build cache are reused, leftovers of an earlier run removed.
@@ -35,7 +45,7 @@ for a in "$@"; do
   case "$a" in
     --no-gpu-build) gpu_build=0 ;;
     --keep) keep=1 ;;
-    -h|--help) sed -n '2,26p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,36p' "$0"; exit 0 ;;
     *) echo "docker-test: unknown argument '$a' (expected --no-gpu-build, --keep)" >&2; exit 2 ;;
   esac
 done
@@ -43,6 +53,8 @@ done
 net=palpsim-dtest
 server_ctr=palpsim-dtest-server
 client_ctr=palpsim-dtest-client
+web_ctr=palpsim-dtest-web
+igtl_ctr=palpsim-dtest-igtl
 mkdir -p "$logs"
 summary=$out/summary.txt
 : > "$summary"
@@ -75,6 +87,12 @@ apt_install() {
 }
 command -v dockerd >/dev/null || apt_install docker.io
 command -v iptables >/dev/null || apt_install iptables
+command -v openssl >/dev/null || apt_install openssl
+
+# the host's side of steps 5 and 6: the project's venv drives chromium and speaks OpenIGTLink
+py=$root/.venv/bin/python
+"$py" -c 'import selenium, pyigtl, palpsim.web' > "$logs/host-python.log" 2>&1 ||
+  die "the host's $py cannot import selenium, pyigtl and palpsim.web (run scripts/setup.sh)" "$logs/host-python.log"
 
 # a docker CLI that builds with BuildKit (the Dockerfiles use cache mounts): one with the
 # buildx plugin, or a CLI older than 23 (Debian's docker.io 20.10), whose BuildKit is built in
@@ -156,7 +174,7 @@ build palpsim-clients docker/clients.Dockerfile
 # ---- 3. keys, network, server, client
 # removes this script's containers and network (leftovers of an earlier run too)
 cleanup() {
-  dk rm -f "$client_ctr" "$server_ctr" >/dev/null 2>&1 || true
+  dk rm -f "$client_ctr" "$web_ctr" "$igtl_ctr" "$server_ctr" >/dev/null 2>&1 || true
   dk network rm "$net" >/dev/null 2>&1 || true
 }
 cleanup
@@ -172,21 +190,34 @@ for who in server station1 intruder; do
 done
 cp "$keys/station1.key" "$keys/allowed"
 note "keys: server, station1 (allowed), intruder (not allowed), by palpsim-keys in $keys"
+# the gateway's TLS certificate (self-signed, for 127.0.0.1 and localhost) and station token
+openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes -days 2 -subj /CN=localhost \
+  -addext 'subjectAltName=DNS:localhost,IP:127.0.0.1' -keyout "$keys/web.key" -out "$keys/web.crt" \
+  >> "$logs/keys.log" 2>&1 || die "openssl: the gateway's TLS certificate" "$logs/keys.log"
+python3 -c 'import secrets; print(secrets.token_urlsafe(24))' > "$keys/station.token"
+chmod 600 "$keys/web.key" "$keys/station.token"
 
-# start_server IMAGE LOG RUN-ARGS...: runs container $server_ctr (`docker run -d RUN-ARGS`,
-# which name IMAGE) and waits for the server's 'ready on' line, its output in LOG
-start_server() {
-  local image=$1 log=$2; shift 2
-  dk run -d --name "$server_ctr" "$@" > /dev/null || die "starting container $server_ctr from $image"
+# start_ctr NAME IMAGE LOG LINE RUN-ARGS...: runs container NAME (`docker run -d RUN-ARGS`,
+# which name IMAGE) and waits for LINE (a grep pattern) in its output, which goes to LOG
+start_ctr() {
+  local name=$1 image=$2 log=$3 line=$4; shift 4
+  dk run -d --name "$name" "$@" > /dev/null || die "starting container $name from $image"
   for _ in $(seq 180); do
-    dk logs "$server_ctr" > "$log" 2>&1 || true
-    grep -q 'ready on' "$log" && return 0
-    [ "$(dk inspect -f '{{.State.Running}}' "$server_ctr")" = true ] ||
-      die "container $server_ctr ($image) exited before it was ready" "$log"
+    dk logs "$name" > "$log" 2>&1 || true
+    grep -q "$line" "$log" && return 0
+    [ "$(dk inspect -f '{{.State.Running}}' "$name")" = true ] ||
+      die "container $name ($image) exited before it printed '$line'" "$log"
     sleep 1
   done
-  die "container $server_ctr ($image) printed no 'ready on' within 180 s" "$log"
+  die "container $name ($image) printed no '$line' within 180 s" "$log"
 }
+# start_server IMAGE LOG RUN-ARGS...: container $server_ctr, ready at its 'ready on' line
+start_server() {
+  local image=$1 log=$2; shift 2
+  start_ctr "$server_ctr" "$image" "$log" 'ready on' "$@"
+}
+# a free TCP port on the host's loopback
+free_port() { python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
 
 dk network create "$net" > /dev/null || die "docker network create $net"
 # the image's default command: the phantom scene on 0.0.0.0:7420 with /keys/server.key_secret and /keys/allowed
@@ -288,10 +319,176 @@ print(s["intruder"], s["curve_admitted"], s["curve_refused"])
 note "server stats: curve_admitted $admitted, curve_refused $refused; the intruder's key was $intruder"
 [ "$intruder" = refused ] && [ "$admitted" -gt 0 ] && [ "$refused" -gt 0 ] ||
   die "CURVE: expected station1 admitted and the intruder refused (stats in $client_out/stats.json)" "$logs/server.log"
+note "palpation across containers with CURVE: PASSED"
+
+# ---- 5. the browser station: the gateway in a container beyond its loopback (TLS, token),
+# published on the host's loopback, and the host's headless chromium
+web_w=640 web_h=360
+web_port=$(free_port)
+say "palpsim-web in container $web_ctr on https://127.0.0.1:$web_port (log: $logs/web.log)"
+start_ctr "$web_ctr" palpsim-clients "$logs/web.log" 'serving on https://' --network "$net" \
+  -p "127.0.0.1:$web_port:8080" -v "$keys:/keys:ro" palpsim-clients \
+  palpsim-web --connect tcp://palpsim-dtest-server:7420 --server-key /keys/server.key \
+  --client-key /keys/station1.key_secret --host 0.0.0.0 --port 8080 --tls-cert /keys/web.crt \
+  --tls-key /keys/web.key --station-token-file /keys/station.token --size "${web_w}x$web_h"
+note "gateway: $(grep -m1 'serving on' "$logs/web.log") in the container, published on https://127.0.0.1:$web_port"
+rm -f "$out"/web-*.png "$client_out/web.json"
+"$py" - "https://127.0.0.1:$web_port" "$keys/station.token" "$out" "$web_w" "$web_h" > "$logs/browser.log" 2>&1 <<'PY' ||
+import io, json, sys, time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from palpsim.web import headless_chromium
+
+url, token, out, w, h = sys.argv[1], Path(sys.argv[2]).read_text().split()[0], Path(sys.argv[3]), *map(int, sys.argv[4:6])
+
+
+def wait(cond, timeout_s, what):
+    """cond()'s first true value, polled every 0.1 s (llvmpipe on a loaded machine renders a few frames a second)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        v = cond()
+        if v:
+            return v
+        time.sleep(0.1)
+    raise SystemExit(f"no {what} within {timeout_s} s (page stats: {stats()})")
+
+
+def canvas():
+    png = driver.find_element("id", "frame").screenshot_as_png
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(float)
+
+
+def pct(v, q):
+    return sorted(v)[min(len(v) - 1, int(q * len(v)))] if v else float("nan")
+
+
+driver = headless_chromium(w + 500, h + 300, accept_insecure_certs=True)
+stats = lambda: driver.execute_script("return window.palpsimStats || null")  # noqa: E731
+try:
+    # the gateway beyond loopback asks for the station token once
+    driver.get(url + "/")
+    if not driver.current_url.endswith("/login"):
+        raise SystemExit(f"no station login at {url}/: the browser shows {driver.current_url} "
+                         f"({driver.title!r}; no gateway there, or one without a token)")
+    field = driver.find_element("name", "token")
+    field.send_keys(token)
+    field.submit()
+    wait(lambda: (stats() or {}).get("frames", 0) >= 1, 120, "frame in the page after the login")
+    first = canvas()
+    driver.save_screenshot(str(out / "web-1-first-frame.png"))
+    # click the centre of the 3D view (the frame's left part; azimuth 0 looks at the back)
+    driver.execute_script(f"window.palpsim.pick({(w - min(h // 3, w)) / 2}, {h / 2})")
+    wait(lambda: (lambda s: s["contact"] and s["maxForce"] > 0)(stats()), 60, "contact with a force above 0")
+    # the depth goal alternates between 3 and 9 mm for 10 s: the tip keeps moving
+    s0 = stats()
+    frames0, p2f0 = s0["frames"], len(s0["poseToFrame"])
+    t0, depth = time.monotonic(), 3
+    while time.monotonic() - t0 < 10:
+        depth = 12 - depth
+        driver.execute_script(f"window.palpsim.setDepth({depth})")
+        time.sleep(0.25)
+    wait(lambda: stats()["frames"] >= frames0 + 2, 60, "two frames during the press")
+    s = stats()
+    pressed = canvas()
+    driver.save_screenshot(str(out / "web-2-pressed.png"))
+    # two distinct frames: each has structure (a blank one has a pixel spread of 0), and
+    # pixels more than 30 grey levels apart (far above JPEG noise; an unchanged view
+    # re-encodes byte for byte) number at least 20, a quarter of the tip marker's disc
+    changed = int((np.abs(pressed - first).max(axis=2) > 30).sum())
+    p2f = s["poseToFrame"][p2f0:]
+    result = {"frames": s["frames"], "frames_during_press": s["frames"] - frames0,
+              "frames_per_s": s["fps"], "changed_pixels": changed,
+              "pixel_std": [round(first.std(), 1), round(pressed.std(), 1)],
+              "max_force_n": s["maxForce"], "contact": s["contact"], "errors": s["errors"],
+              "pose_to_frame_ms": {"p50": pct(p2f, 0.5), "p90": pct(p2f, 0.9), "n": len(p2f)}}
+    (out / "client" / "web.json").write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result))
+    if s["errors"] or first.std() <= 10 or pressed.std() <= 10 or changed < 20:
+        raise SystemExit(f"expected two distinct frames of the body and no page errors: {result}")
+finally:
+    driver.quit()
+PY
+  { dk logs "$web_ctr" > "$logs/web.log" 2>&1 || true
+    die "step 5: headless chromium through the gateway container $web_ctr: $(tail -n 1 "$logs/browser.log") (browser: $logs/browser.log)" "$logs/web.log"; }
+read -r web_frames web_changed web_fps p2f50 p2f90 p2fn force < <(python3 -c '
+import json, sys
+r = json.load(open(sys.argv[1]))
+p = r["pose_to_frame_ms"]
+print(r["frames"], r["changed_pixels"], format(r["frames_per_s"], ".1f"), format(p["p50"], ".0f"), format(p["p90"], ".0f"), p["n"], format(r["max_force_n"], ".2f"))
+' "$client_out/web.json")
+note "browser: $web_frames frames at ${web_w}x$web_h (${web_fps} frames/s), $web_changed pixels changed by the press, force up to $force N; pose to frame through the gateway p50 $p2f50 ms, p90 $p2f90 ms ($p2fn frames)"
+dk stop -t 10 "$web_ctr" > /dev/null
+dk logs "$web_ctr" > "$logs/web.log" 2>&1 || true
+note "browser station through the gateway container (TLS, station token, CURVE): PASSED; screenshots $out/web-1-first-frame.png, $out/web-2-pressed.png"
+
+# ---- 6. Slicer's stand-in: the bridge in a container on the host's network (OpenIGTLink
+# on loopback), the server at its container address, a pyigtl client on the host
+server_ip=$(dk inspect -f '{{range .NetworkSettings.Networks}}{{.IPAddress}}{{end}}' "$server_ctr")
+igtl_port=$(free_port)
+say "palpsim-igtl in container $igtl_ctr on 127.0.0.1:$igtl_port (log: $logs/igtl.log)"
+start_ctr "$igtl_ctr" palpsim-clients "$logs/igtl.log" 'serving OpenIGTLink on' --network host \
+  -v "$keys:/keys:ro" palpsim-clients palpsim-igtl --connect "tcp://$server_ip:7420" \
+  --server-key /keys/server.key --client-key /keys/station1.key_secret --port "$igtl_port"
+"$py" - "$igtl_port" "$client_out/igtl.json" > "$logs/slicer.log" 2>&1 <<'PY' ||
+import collections, json, sys, time
+
+import pyigtl
+
+
+class Counter(dict):
+    """pyigtl's table of the newest message per device name, counting arrivals."""
+
+    def __init__(self):
+        super().__init__()
+        self.n = collections.Counter()
+
+    def __setitem__(self, name, msg):
+        self.n[name] += 1
+        super().__setitem__(name, msg)
+
+
+slicer = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=int(sys.argv[1]), start_now=False)
+slicer.incoming_messages = got = Counter()
+slicer.start()
+try:
+    image = slicer.wait_for_message("PalpsimVolume", timeout=120)
+    if image is None:
+        raise SystemExit(f"no IMAGE PalpsimVolume within 120 s (arrived: {dict(got.n)})")
+    tip = slicer.wait_for_message("PalpsimTip", timeout=30)
+    if tip is None:
+        raise SystemExit(f"no TRANSFORM PalpsimTip within 30 s (arrived: {dict(got.n)})")
+    n0, t0 = got.n["PalpsimTip"], time.monotonic()
+    time.sleep(3.0)
+    rate = (got.n["PalpsimTip"] - n0) / (time.monotonic() - t0)
+    result = {"image_shape": list(image.image.shape), "image_dtype": str(image.image.dtype),
+              "image_origin_ras_mm": [round(float(v), 2) for v in image.ijk_to_world_matrix[:3, 3]],
+              "tip_ras_mm": [round(float(v), 2) for v in tip.matrix[:3, 3]],
+              "tip_transforms_per_s": round(rate, 1), "arrived": dict(got.n)}
+    json.dump(result, open(sys.argv[2], "w"), indent=2)
+    print(json.dumps(result))
+    if rate <= 0:
+        raise SystemExit(f"the tip's TRANSFORM stopped after the first: {result}")
+finally:
+    slicer.stop()
+PY
+  { dk logs "$igtl_ctr" > "$logs/igtl.log" 2>&1 || true
+    die "step 6: a pyigtl client through the bridge container $igtl_ctr: $(tail -n 1 "$logs/slicer.log") (client: $logs/slicer.log)" "$logs/igtl.log"; }
+read -r igtl_shape igtl_rate < <(python3 -c '
+import json, sys
+r = json.load(open(sys.argv[1]))
+print("x".join(map(str, r["image_shape"])) + "_" + r["image_dtype"], r["tip_transforms_per_s"])
+' "$client_out/igtl.json")
+dk stop -t 10 "$igtl_ctr" > /dev/null
+dk logs "$igtl_ctr" > "$logs/igtl.log" 2>&1 || true
+note "igtl: IMAGE PalpsimVolume ${igtl_shape/_/ } (k, j, i), TRANSFORM PalpsimTip at $igtl_rate a second; bridge: $(grep -v serving "$logs/igtl.log" | tail -1)"
+note "Slicer's stand-in through the bridge container: PASSED"
+
 dk stop -t 10 "$server_ctr" > /dev/null
 dk logs "$server_ctr" > "$logs/server.log" 2>&1 || true
 dk rm -f "$server_ctr" > /dev/null
-note "palpation across containers with CURVE: PASSED"
 
 # ---- the GPU server image: built here, run in full only on a machine with an NVIDIA GPU;
 # here it must start on the built-in scene (no frames: no EGL vendor without the driver)

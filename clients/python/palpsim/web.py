@@ -571,9 +571,11 @@ class Gateway:
                                     "poses_per_s": rate, "frames_skipped": st.frames_skipped})
 
 
-def headless_chromium(width: int = 1100, height: int = 800):
+def headless_chromium(width: int = 1100, height: int = 800, accept_insecure_certs: bool = False):
     """A selenium WebDriver of Debian's headless chromium through chromium-driver, for the
-    browser test and the benchmark; raises RuntimeError naming what is missing."""
+    browser test, the benchmark and scripts/docker-test.sh; raises RuntimeError naming what
+    is missing. accept_insecure_certs lets it open a gateway whose TLS certificate is
+    self-signed (the container test's)."""
     import shutil
 
     try:
@@ -591,6 +593,8 @@ def headless_chromium(width: int = 1100, height: int = 800):
     opts.binary_location = browser
     for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", f"--window-size={width},{height}"):
         opts.add_argument(a)
+    if accept_insecure_certs:
+        opts.set_capability("acceptInsecureCerts", True)
     return webdriver.Chrome(service=Service(driver), options=opts)
 
 

@@ -35,7 +35,7 @@ struct BoneCase {
   std::string name;
   double slice_mm = 0;
   double prep_s = 0, bone_mask_s = 0;
-  double low_hu = 0, high_hu = 0;
+  double low_hu = 0, high_hu = 0, thin_seed_hu = 0;
   test::Agreement all, spine;
   std::map<int, test::Agreement> ribs;
   double rib_recall_min = 0, rib_recall_all = 0;
@@ -69,6 +69,7 @@ BoneCase measure(const std::string& name, double slice_mm, const Volume<float>& 
   c.bone_mask_s = spread(bone).median;
   c.low_hu = r.bone_thresholds.low;
   c.high_hu = r.bone_thresholds.high;
+  c.thin_seed_hu = r.bone_thresholds.thin_seed;
   c.spine_found = r.bone_summary.spine_found;
   c.canal_slices = r.bone_summary.column.canal_slices;
   c.segments = r.bone_summary.column.segments;
@@ -100,8 +101,9 @@ BoneCase measure(const std::string& name, double slice_mm, const Volume<float>& 
 }
 
 void print_case(const BoneCase& c) {
-  std::printf("%s (%.0f mm slices): prep %.2f s (bone mask %.2f s), thresholds %.0f / %.0f HU, bone %.0f ml\n",
-              c.name.c_str(), c.slice_mm, c.prep_s, c.bone_mask_s, c.low_hu, c.high_hu, c.bone_ml);
+  std::printf("%s (%.0f mm slices): prep %.2f s (bone mask %.2f s), thresholds %.0f / %.0f HU (thin seeds %.0f HU), "
+              "bone %.0f ml\n",
+              c.name.c_str(), c.slice_mm, c.prep_s, c.bone_mask_s, c.low_hu, c.high_hu, c.thin_seed_hu, c.bone_ml);
   std::printf("  bone within 3 mm: recall %.3f, precision %.3f; vertebrae recall %.3f; ribs recall %.3f (lowest %.3f)\n",
               c.all.recall(), c.all.precision(), c.spine.recall(), c.rib_recall_all, c.rib_recall_min);
   std::printf("  spinal cord in the mask %zu of %zu voxels; discs in the mask %zu of %zu; canal slices %d, segments %d; "
@@ -119,6 +121,7 @@ std::string case_json(const BoneCase& c) {
   j << "    {\"case\": " << json_str(c.name) << ", \"slice_mm\": " << json_number(c.slice_mm)
     << ", \"prep_s\": " << json_number(c.prep_s) << ", \"bone_mask_s\": " << json_number(c.bone_mask_s)
     << ", \"low_hu\": " << json_number(c.low_hu) << ", \"seed_hu\": " << json_number(c.high_hu)
+    << ", \"thin_seed_hu\": " << json_number(c.thin_seed_hu)
     << ", \"bone_ml\": " << json_number(c.bone_ml) << ", \"recall\": " << json_number(c.all.recall())
     << ", \"precision\": " << json_number(c.all.precision()) << ", \"vertebrae_recall\": " << json_number(c.spine.recall())
     << ", \"rib_recall\": " << json_number(c.rib_recall_all) << ", \"rib_recall_min\": " << json_number(c.rib_recall_min)

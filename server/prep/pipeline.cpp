@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "core/error.h"
+#include "prep/contrast.h"
 #include "prep/distance.h"
 
 namespace palpsim {
@@ -347,9 +348,46 @@ Volume<T> crop(const Volume<T>& v, Vec3i lo, Vec3i size) {
   return c;
 }
 
+// the body voxels at or above t.thin_seed that are no thin seed: within kThinSeedClearMm
+// of a contrast-filled region (find_contrast_regions before there is a bone mask or a
+// column), or within sqrt(2) kThinSeedHalfWidthMm and a voxel of a voxel of theirs
+// farther than kThinSeedHalfWidthMm from any darker one (a thick bright part: a vessel's
+// lumen)
+Volume<std::uint8_t> not_thin_seeds(const Volume<float>& image, const Volume<std::uint8_t>& body,
+                                    const BoneThresholds& t, int threads) {
+  const Grid& g = image.grid;
+  const double h = std::max({g.spacing_mm.x, g.spacing_mm.y, g.spacing_mm.z});
+  Volume<std::uint8_t> out(g, 0);
+  const auto near = [&](const Volume<std::uint8_t>& m, double r_mm) {
+    const Volume<float> d2 = squared_distance_mm2(m, true, threads);
+    const float r2 = float(r_mm * r_mm);
+    parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+      for (std::size_t i = b; i < e; ++i) out.data[i] |= d2.data[i] <= r2;
+    });
+  };
+  Volume<std::uint8_t> regions;
+  if (!find_contrast_regions(image, body, Volume<std::uint8_t>(g, 0), t, SpineColumn{}, &regions, threads).empty())
+    near(regions, kThinSeedClearMm);
+  Volume<std::uint8_t> core(g);
+  parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+    for (std::size_t i = b; i < e; ++i) core.data[i] = body.data[i] && image.data[i] >= t.thin_seed;
+  });
+  {
+    const Volume<float> d2 = squared_distance_mm2(core, false, threads);
+    const float r2 = float(kThinSeedHalfWidthMm * kThinSeedHalfWidthMm);
+    parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+      for (std::size_t i = b; i < e; ++i) core.data[i] = d2.data[i] > r2;
+    });
+  }
+  // the core's reach: sqrt(2) half widths (a square lumen's corners) and a voxel
+  if (count_nonzero(core) > 0) near(core, std::sqrt(2.0) * kThinSeedHalfWidthMm + h);
+  return out;
+}
+
 // the hysteresis on a volume already cropped to the seeds and the growth's reach:
 // candidates (body voxels at or above t.low) within t.grow_mm of a seed (at or above
-// t.high), in 6-connected components holding a seed
+// t.high, or at or above t.thin_seed in thin ridges apart from contrast), in 6-connected
+// components holding a seed
 Volume<std::uint8_t> hysteresis(const Volume<float>& image, const Volume<std::uint8_t>& body,
                                 const BoneThresholds& t, int threads) {
   const Grid& g = image.grid;
@@ -361,6 +399,15 @@ Volume<std::uint8_t> hysteresis(const Volume<float>& image, const Volume<std::ui
     }
   });
   if (!(t.high > t.low)) return raw;
+  // lower seeds in thin ridges (a rib's cortex blurred by partial volume), not in thick
+  // bright parts or beside contrast-filled regions
+  if (t.thin_seed < t.high) {
+    const Volume<std::uint8_t> excluded = not_thin_seeds(image, body, t, threads);
+    parallel_for(g.count(), threads, [&](std::size_t b, std::size_t e) {
+      for (std::size_t i = b; i < e; ++i)
+        seed.data[i] |= raw.data[i] && image.data[i] >= t.thin_seed && !excluded.data[i];
+    });
+  }
   if (t.grow_mm > 0) {
     const Volume<float> d2 = squared_distance_mm2(seed, true, threads);
     const float r2 = float(t.grow_mm * t.grow_mm);
@@ -431,9 +478,25 @@ Volume<std::uint8_t> bone_mask_cropped(const Volume<float>& image, const Volume<
     }
   }
 
-  // small components: vessels with contrast, calcifications, noise
+  // small components: vessels with contrast, calcifications, noise; not a piece
+  // within kBonePieceGapMm of a larger one (a rib broken by partial volume)
   const double voxel_ml = g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z / 1000.0;
-  remove_small_components(bone, std::size_t(std::ceil(prep.bone_min_volume_ml / voxel_ml)));
+  const std::size_t min_voxels = std::size_t(std::ceil(prep.bone_min_volume_ml / voxel_ml));
+  std::vector<std::uint32_t> label;
+  const std::uint32_t n = component_labels(bone, label);
+  std::vector<std::size_t> size(n + 1, 0);
+  for (std::uint32_t l : label) ++size[l];
+  Volume<std::uint8_t> large(g);
+  for (std::size_t i = 0; i < label.size(); ++i) large.data[i] = label[i] && size[label[i]] >= min_voxels;
+  std::vector<std::uint8_t> keep(n + 1, 0);
+  for (std::uint32_t l = 1; l <= n; ++l) keep[l] = size[l] >= min_voxels;
+  if (count_nonzero(large) > 0) {
+    const Volume<float> d2 = squared_distance_mm2(large, true, threads);
+    const float r2 = float(kBonePieceGapMm * kBonePieceGapMm);
+    for (std::size_t i = 0; i < label.size(); ++i)
+      if (label[i] && d2.data[i] <= r2) keep[label[i]] = 1;
+  }
+  for (std::size_t i = 0; i < label.size(); ++i) bone.data[i] = keep[label[i]];
   return bone;
 }
 
@@ -444,7 +507,7 @@ BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<s
   BoneThresholds t;
   // an explicit threshold wins: a plain threshold, the cancellous level from it
   if (prep.bone_threshold_set) {
-    t.low = t.high = prep.bone_threshold;
+    t.low = t.high = t.thin_seed = prep.bone_threshold;
     t.cancellous = t.cancellous_axial = cancellous_level(prep);
     t.reason = "prep.bone_threshold set (scene or palpsim-prep --bone-threshold)";
     return t;
@@ -483,7 +546,7 @@ BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<s
   std::ostringstream why;
   if (peak < 1e-3 * double(n) / 21.0) {
     // no soft tissue to speak of (a phantom of bone in air, a non-CT image): the default
-    t.low = t.high = PrepSettings{}.bone_threshold;
+    t.low = t.high = t.thin_seed = PrepSettings{}.bone_threshold;
     t.cancellous = t.cancellous_axial = cancellous_level(PrepSettings{});
     why << "automatic: the body's histogram has no soft-tissue peak between -50 and 150 HU, so the default "
         << t.low << " HU is used as a plain threshold";
@@ -498,16 +561,21 @@ BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<s
   t.soft_tissue_sigma_hu = sigma;
 
   // low: 100 HU or 3 sigma above soft tissue, within the bounds; seeds twice as far
-  // above soft tissue (cortical bone); cavities filled from halfway up, within bounds
+  // above soft tissue (cortical bone), thin seeds 1.5 times as far; cavities filled
+  // from halfway up, within bounds
   t.low = std::clamp(mu + std::max(100.0, 3 * sigma), kAutoBoneLowMinHu, kAutoBoneLowMaxHu);
   t.high = std::max(kAutoBoneSeedMinHu, mu + 2 * (t.low - mu));
+  t.thin_seed = std::min(t.high, mu + kThinSeedSpan * (t.low - mu));
   t.cancellous = std::clamp(mu + 0.5 * (t.low - mu), kAutoCancellousMinHu, kAutoCancellousMaxHu);
   t.cancellous_axial = t.cancellous - kAxialCancellousDropHu;
   t.grow_mm = kAutoBoneGrowMm;
   why << "automatic from the body's histogram: soft-tissue peak " << mu << " HU, spread " << std::lround(sigma)
       << " HU; bone from " << std::lround(t.low) << " HU (soft tissue + max(100, 3 spread), kept within "
       << kAutoBoneLowMinHu << ".." << kAutoBoneLowMaxHu << " HU) where joined within " << t.grow_mm
-      << " mm to seeds from " << std::lround(t.high) << " HU (cortex); cavities enclosed by bone filled from a mean of "
+      << " mm to seeds from " << std::lround(t.high) << " HU (cortex), or from " << std::lround(t.thin_seed)
+      << " HU in thin ridges away from contrast-filled regions (a rib's cortex blurred by partial volume); small "
+      << "pieces within "
+      << kBonePieceGapMm << " mm of larger bone kept; cavities enclosed by bone filled from a mean of "
       << std::lround(t.cancellous) << " HU (" << std::lround(t.cancellous_axial) << " HU in axial slices)";
   t.reason = why.str();
   return t;
@@ -555,7 +623,8 @@ Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uin
   Vec3i lo, size;
   const bool unlimited = t.high > t.low && t.grow_mm <= 0;
   const int m1 = unlimited ? std::max({g.size.x, g.size.y, g.size.z}) : int(std::ceil(t.grow_mm / h_min)) + 2;
-  if (!box([&](std::size_t i) { return body.data[i] && image.data[i] >= t.high; }, m1, lo, size)) return bone;
+  const double seed_min = std::min(t.high, t.thin_seed);
+  if (!box([&](std::size_t i) { return body.data[i] && image.data[i] >= seed_min; }, m1, lo, size)) return bone;
   Volume<std::uint8_t> raw(g);
   paste(hysteresis(crop(image, lo, size), crop(body, lo, size), t, threads), lo, raw);
 

@@ -63,6 +63,8 @@ struct BoneThresholds {
   double cancellous = 80;        // HU: a cavity enclosed in 3D, or in a coronal or sagittal slice, with
                                  // at least this mean is filled
   double cancellous_axial = 80;  // HU: the same for a cavity enclosed in an axial slice (no disc is)
+  double thin_seed = 200;        // HU: voxels at or above it in thin ridges apart from contrast start bone
+                                 // too (a rib's cortex blurred by partial volume); = high when unused
   double grow_mm = 0;            // the low threshold reaches this far (mm) from a seed; 0 = unlimited
   double soft_tissue_hu = 0;     // automatic: the soft-tissue peak of the body's histogram (HU)
   double soft_tissue_sigma_hu = 0;  // automatic: its spread (HU), from the upper half width at half height
@@ -76,6 +78,23 @@ struct BoneThresholds {
 constexpr double kAutoBoneLowMinHu = 110;
 constexpr double kAutoBoneLowMaxHu = 180;
 constexpr double kAutoBoneSeedMinHu = 300;
+/// Lower seeds: a rib's cortex on thick slices or 3 mm voxels is blurred by partial
+/// volume to 170-290 HU, below the cortical seeds. A voxel at or above
+/// BoneThresholds::thin_seed, mu + kThinSeedSpan (low - mu) (half as far again above
+/// soft tissue as the low threshold), seeds bone too where those voxels form a thin
+/// ridge: not within kThinSeedHalfWidthMm (and a voxel) of one of them farther than
+/// kThinSeedHalfWidthMm from any darker voxel (a vessel's lumen that bright is thick),
+/// and not within kThinSeedClearMm of a contrast-filled region (contrast.h's
+/// find_contrast_regions, run before the mask: large, smooth and without cortex), whose
+/// noise reaches the level here and there.
+constexpr double kThinSeedSpan = 1.5;
+constexpr double kThinSeedHalfWidthMm = 3;
+constexpr double kThinSeedClearMm = 3;
+/// A bone component smaller than prep.bone_min_volume_ml is kept when it lies within
+/// this distance (mm) of a larger one: the end of a rib that partial volume on thick
+/// slices cuts off from the rest (vessels with contrast, calcifications and noise
+/// apart from bone still go).
+constexpr double kBonePieceGapMm = 10;
 /// How far (mm) the automatic low threshold grows from a seed: half a lumbar
 /// vertebral body's width, so its cancellous bone is reached from the cortex on
 /// either side; a vessel or organ at or above the low threshold that touches bone
@@ -95,14 +114,16 @@ constexpr double kAxialCancellousDropHu = 40;
 /// peak mu (the mode between -50 and 150 HU) and its spread sigma (upper half width
 /// at half height / 1.18); low = mu + max(100, 3 sigma) clamped to
 /// [kAutoBoneLowMinHu, kAutoBoneLowMaxHu], high = max(kAutoBoneSeedMinHu,
-/// mu + 2 (low - mu)), cancellous = mu + 0.5 (low - mu) clamped to
-/// [kAutoCancellousMinHu, kAutoCancellousMaxHu], cancellous_axial = cancellous -
-/// kAxialCancellousDropHu, grow_mm = kAutoBoneGrowMm.
+/// mu + 2 (low - mu)), thin_seed = min(high, mu + kThinSeedSpan (low - mu)),
+/// cancellous = mu + 0.5 (low - mu) clamped to [kAutoCancellousMinHu,
+/// kAutoCancellousMaxHu], cancellous_axial = cancellous - kAxialCancellousDropHu,
+/// grow_mm = kAutoBoneGrowMm.
 /// Throws palpsim::Error for an empty body.
 BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<std::uint8_t>& body,
                                       const PrepSettings& prep);
 
-/// Bone mask with hysteresis: seeds (body voxels >= t.high) grown into the
+/// Bone mask with hysteresis: seeds (body voxels >= t.high, and those >= t.thin_seed
+/// in thin ridges apart from contrast-filled regions, see kThinSeedSpan) grown into the
 /// 6-connected body voxels >= t.low that lie within t.grow_mm of a seed, closed
 /// with a ball of prep.bone_closing_mm, cavities enclosed by bone filled
 /// (prep.bone_fill_holes: the cancellous interior of a vertebral body is rigid

@@ -136,7 +136,8 @@ std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::
   const std::string w = jstrings(b.warnings);
   return "{\"thresholds\": {\"automatic\": " + std::string(t.automatic ? "true" : "false") + ", \"units\": " +
          jstr(units) + ", \"low_hu\": " +
-         jnum(t.low) + ", \"high_hu\": " + jnum(t.high) + ", \"cancellous_hu\": " + jnum(t.cancellous) +
+         jnum(t.low) + ", \"high_hu\": " + jnum(t.high) + ", \"thin_seed_hu\": " + jnum(t.thin_seed) +
+         ", \"cancellous_hu\": " + jnum(t.cancellous) +
          ", \"cancellous_axial_hu\": " + jnum(t.cancellous_axial) + ", \"grow_mm\": " + jnum(t.grow_mm) +
          (t.automatic ? ", \"soft_tissue_hu\": " + jnum(t.soft_tissue_hu) + ", \"soft_tissue_sigma_hu\": " +
                             jnum(t.soft_tissue_sigma_hu)
@@ -436,8 +437,8 @@ std::vector<std::string> PrepReport::summary_lines() const {
   const std::string u = " " + units;
   s << std::fixed << std::setprecision(0);
   if (t.automatic && t.high > t.low)
-    s << "bone auto: " << t.low << u << " grown from seeds " << t.high << u << " (soft tissue " << t.soft_tissue_hu
-      << u << "), cavities from " << t.cancellous << u;
+    s << "bone auto: " << t.low << u << " grown from seeds " << t.high << u << " (thin " << t.thin_seed << u
+      << ", soft tissue " << t.soft_tissue_hu << u << "), cavities from " << t.cancellous << u;
   else
     s << "bone threshold " << t.low << u << " (" << t.reason << "), cavities from " << t.cancellous << u;
   lines.push_back(s.str());

@@ -28,7 +28,7 @@ struct PrepSettings {
   bool air_threshold_set = false;   // the scene set it explicitly
   bool bone_threshold_set = false;  // the scene set it explicitly; false: the bone mask's thresholds are automatic
                                     // (and relaxation's material function steps at the automatic low one)
-  double bone_min_volume_ml = 0.5;  // smaller bone components are removed
+  double bone_min_volume_ml = 0.5;  // smaller bone components are removed unless within 10 mm of larger bone (a rib's end)
   double bone_closing_mm = 3.0;     // closing radius before hole filling
   bool bone_fill_holes = true;      // fill cavities enclosed by bone
   double max_memory_mb = 8192;      // refuse larger patients

@@ -1,0 +1,263 @@
+// The elastic kernels' shared pieces: node ranges and levels, the device arrays, the
+// gathered operator (level 0 in shared-memory tiles, coarse levels eight lanes a node) and
+// block sums.
+#pragma once
+// Included by cuda/relax_elastic.cu alone (one translation unit: the kernels are templates
+// in its anonymous namespace); see that file for what the elastic step does on the GPU.
+#include <cooperative_groups.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "cuda/relax_elastic.h"
+#include "deform/deform_math.h"
+#include "deform/elastic_math.h"
+
+namespace palpsim::cuda {
+
+namespace {
+
+namespace cg = cooperative_groups;
+using deform::ElasticMaterial;
+using deform::ElasticPlan;
+using deform::ElasticPredict;
+using deform::kElasticContact;
+using deform::kElasticHeld;
+using deform::kElasticMaxDegree;
+using deform::kElasticMaxLevels;
+using deform::kElasticSkin;
+using deform::Voi;
+
+constexpr int kThreads = 512;      // threads per block of both kernels
+constexpr int kBlockNodes = 512;   // coarse levels of at most this many nodes run in block 0 alone (the default)
+constexpr int kSlot = 4;           // sums a reduction slot holds
+constexpr int kRing = 32;          // the step's reduction slots, reused in turn
+constexpr int kSetupSums = deform::kElasticPowerIterations * kElasticMaxLevels;  // the set-up's slots
+constexpr int kSmooth = deform::kElasticSmoothDegree;
+constexpr int kCoarsest = deform::kElasticCoarsestDegree;
+static_assert(kSmooth >= 2 && kCoarsest >= 2 && kCoarsest <= kElasticMaxDegree && kSmooth <= kElasticMaxDegree,
+              "the passes fuse each smoother's first step into the pass before it and need a second");
+
+// the threads that share a pass: the whole grid, or block 0 alone
+struct Team {
+  int first, stride;
+};
+
+// one vector kind over a range of nodes: component c of node e at p[c * stride + e]
+struct Field {
+  float* p;
+  long long stride;
+  __device__ Vec3f at(int e) const { return Vec3f{p[e], p[stride + e], p[2 * stride + e]}; }
+  __device__ void set(int e, const Vec3f& v) const {
+    p[e] = v.x;
+    p[stride + e] = v.y;
+    p[2 * stride + e] = v.z;
+  }
+};
+
+// one level: its nodes start at `off` in the every-level arrays; cell edge `scale` times level 0's
+struct Lvl {
+  Vec3i n;
+  int off, count;
+  float scale;
+  bool coarse;
+  __device__ int at(int i, int j, int k) const { return off + (k * n.y + j) * n.x + i; }
+  __device__ void coords(int q, int& i, int& j, int& k) const {
+    i = q % n.x;
+    const int r = q / n.x;
+    j = r % n.y;
+    k = r / n.y;
+  }
+};
+
+// the cell matrix (for E = 1 kPa at level 0) from the kernel's arguments
+struct CellMatrix {
+  const float* k;
+  __device__ float operator()(int r, int c) const { return k[24 * r + c]; }
+};
+
+// a level's cell moduli (kPa) by lowest corner
+struct CellModuli {
+  const float* e;
+  Lvl L;
+  __device__ float operator()(int i, int j, int k) const { return e[L.at(i, j, k)]; }
+};
+
+// a field's node values on a level
+struct Load {
+  Field x;
+  Lvl L;
+  __device__ Vec3f operator()(int i, int j, int k) const { return x.at(L.at(i, j, k)); }
+};
+
+// the device arrays both kernels work on: the session's own and the scratch's
+struct View {
+  float* u;            // the field (mm), level 0, stride capacity
+  float* u_unit;       // the unit press, likewise (null without the stiffness)
+  std::uint8_t* flags; // every level
+  float* cell_e;       // every level
+  float* lmax;         // every level's largest eigenvalue of D^-1 K
+  float* x[2];         // every level, stride total: the V-cycle's corrections
+  float *f, *res, *d;  // every level: right-hand side, residual, Chebyshev step
+  float* p;            // level 0, stride capacity: CG's direction
+  std::uint8_t* tmp_flags;
+  double* sums;
+  long long capacity, total;
+};
+
+__device__ Field level0(float* p, const View& v) { return Field{p, v.capacity}; }
+__device__ Field every(float* p, const View& v) { return Field{p, v.total}; }
+
+// the levels of `plan` in the every-level arrays (level l >= 1 after the capacity)
+__device__ void make_levels(const ElasticPlan& plan, long long capacity, Lvl* lv) {
+  for (int l = 0; l < plan.levels; ++l) {
+    const Vec3i n = plan.size[l];
+    lv[l] = Lvl{n, l == 0 ? 0 : int(capacity + plan.offset[l]), n.x * n.y * n.z, float(1 << l), l > 0};
+  }
+}
+
+__device__ Vec3f mul(const Vec3f& a, const Vec3f& b) { return Vec3f{a.x * b.x, a.y * b.y, a.z * b.z}; }
+// the inverse Jacobi diagonal, 0 where the diagonal is not positive (no cell: held space)
+__device__ Vec3f inverse(const Vec3f& d) {
+  return Vec3f{d.x > 0 ? 1 / d.x : 0.0f, d.y > 0 ? 1 / d.y : 0.0f, d.z > 0 ? 1 / d.z : 0.0f};
+}
+// a . b summed in double, as the CPU's dot_all
+__device__ double dot_d(const Vec3f& a, const Vec3f& b) {
+  return double(a.x) * b.x + double(a.y) * b.y + double(a.z) * b.z;
+}
+
+// level 0's node tiles: kTile nodes along i, j and k, read with a layer of neighbours
+// around them into shared memory (kHalo), the cells' moduli likewise
+constexpr int kTileX = 32, kTileY = 4, kTileZ = 4;
+static_assert(kTileX * kTileY * kTileZ == kThreads, "a tile holds a node per thread");
+constexpr int kHaloX = kTileX + 2, kHaloY = kTileY + 2, kHaloZ = kTileZ + 2;
+constexpr int kHalo = kHaloX * kHaloY * kHaloZ;
+
+// one tile's shared memory for every gather of a kernel (one function, so one array: each
+// instantiation of a template declaring it would have its own)
+__device__ float* tile_memory() {
+  __shared__ float t[4 * kHalo];
+  return t;
+}
+
+// calls fn(e, i, j, k, kx, dg) for every node of level 0 (L), the whole grid taking a tile
+// of kThreads nodes a block at a time: the tile's nodes and their neighbours' displacements
+// x and the cells' moduli go to shared memory, then each thread sums its node's cells from
+// there (elastic_apply_interior: every load one register and a constant apart). Held nodes
+// get kx = dg = 0 (every caller projects them to 0); a free node on the level's faces
+// (none: the VOI's faces are held) would take elastic_apply_node from global memory.
+// Every thread of a block runs every tile of the block (the tile's barriers).
+template <typename Fn>
+__device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const Lvl& L,
+                             const Field& x, Fn& fn) {
+  float* const tu = tile_memory();  // tu[c * kHalo + h]: component c at halo node h
+  float* const te = tu + 3 * kHalo;
+  const int tx = (L.n.x + kTileX - 1) / kTileX, ty = (L.n.y + kTileY - 1) / kTileY,
+            tz = (L.n.z + kTileZ - 1) / kTileZ;
+  const int tiles = tx * ty * tz;
+  const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
+  for (int tile = blockIdx.x; tile < tiles; tile += gridDim.x) {
+    const int i0 = (tile % tx) * kTileX, j0 = ((tile / tx) % ty) * kTileY, k0 = (tile / (tx * ty)) * kTileZ;
+    // the halo: nodes (i0 - 1 .. i0 + kTileX) etc., 0 outside the level; the cell at halo
+    // position h has its lowest corner there (cells beyond the last node: 0)
+    for (int h = threadIdx.x; h < kHalo; h += blockDim.x) {
+      const int hi = h % kHaloX, hj = (h / kHaloX) % kHaloY, hk = h / (kHaloX * kHaloY);
+      const int i = i0 - 1 + hi, j = j0 - 1 + hj, k = k0 - 1 + hk;
+      const bool in = i >= 0 && j >= 0 && k >= 0 && i < L.n.x && j < L.n.y && k < L.n.z;
+      const Vec3f u = in ? x.at(L.at(i, j, k)) : Vec3f{0, 0, 0};
+      tu[h] = u.x;
+      tu[kHalo + h] = u.y;
+      tu[2 * kHalo + h] = u.z;
+      te[h] = in && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z ? cell_e[L.at(i, j, k)] : 0.0f;
+    }
+    __syncthreads();
+    const int i = i0 + li, j = j0 + lj, k = k0 + lk;
+    if (i < L.n.x && j < L.n.y && k < L.n.z) {
+      const int e = L.at(i, j, k);
+      Vec3f kx{0, 0, 0}, dg{0, 0, 0};
+      if (!(flags[e] & kElasticHeld)) {
+        if (i > 0 && j > 0 && k > 0 && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z) {
+          const int h = ((lk + 1) * kHaloY + lj + 1) * kHaloX + li + 1;
+          deform::elastic_apply_interior(
+              km, [&](int o) { return te[h + o]; },
+              [&](int o) { return Vec3f{tu[h + o], tu[kHalo + h + o], tu[2 * kHalo + h + o]}; }, kHaloX, kHaloX * kHaloY,
+              L.scale, kx, dg);
+        } else {
+          kx = deform::elastic_apply_node(km, CellModuli{cell_e, L}, Load{x, L}, L.n, L.scale, i, j, k);
+          dg = deform::elastic_diag_node(km, CellModuli{cell_e, L}, L.n, L.scale, i, j, k);
+        }
+      }
+      fn(e, i, j, k, kx, dg);
+    }
+    __syncthreads();
+  }
+}
+
+// calls fn(e, i, j, k, kx, dg) for the nodes of level L that team t covers: kx = (K x) at
+// the node (N), dg its Jacobi diagonal (N/mm). Level 0: a thread a node; a coarse level:
+// eight lanes a node, lane a adding the cell in which the node is corner a, summed by
+// shuffles (whole warps run each round, so that every lane takes part in them)
+template <typename Fn>
+__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const Lvl& L, Team t,
+                       const Field& x, Fn&& fn) {
+  const CellModuli ce{cell_e, L};
+  const Load load{x, L};
+  if (!L.coarse) {
+    gather_tiles(km, cell_e, flags, L, x, fn);
+    return;
+  }
+  const int lane = threadIdx.x & 31;
+  const int tasks = 8 * L.count;
+  for (int t0 = t.first - lane; t0 < tasks; t0 += t.stride) {
+    const int q = t0 + lane, node = q >> 3, a = q & 7;
+    const bool mine = q < tasks;
+    int i = 0, j = 0, k = 0;
+    Vec3f kx{0, 0, 0}, dg{0, 0, 0};
+    if (mine) {
+      L.coords(node, i, j, k);
+      deform::elastic_add_cell(km, ce, load, L.n, L.scale, i, j, k, a, kx);
+      deform::elastic_add_cell_diag(km, ce, L.n, L.scale, i, j, k, a, dg);
+    }
+    for (int o = 1; o < 8; o <<= 1) {
+      kx.x += __shfl_xor_sync(0xffffffffu, kx.x, o, 8);
+      kx.y += __shfl_xor_sync(0xffffffffu, kx.y, o, 8);
+      kx.z += __shfl_xor_sync(0xffffffffu, kx.z, o, 8);
+      dg.x += __shfl_xor_sync(0xffffffffu, dg.x, o, 8);
+      dg.y += __shfl_xor_sync(0xffffffffu, dg.y, o, 8);
+      dg.z += __shfl_xor_sync(0xffffffffu, dg.z, o, 8);
+    }
+    if (mine && a == 0) fn(L.off + node, i, j, k, kx, dg);
+  }
+}
+
+// the node's Jacobi diagonal alone (a thread a node)
+__device__ Vec3f diag_at(const CellMatrix& km, const float* cell_e, const Lvl& L, int i, int j, int k) {
+  return deform::elastic_diag_node(km, CellModuli{cell_e, L}, L.n, L.scale, i, j, k);
+}
+
+// adds this thread's v[0 .. N-1] to out[0 .. N-1]: block sums, then one atomic each per block
+template <int N>
+__device__ void block_sum(const double (&v)[N], double* out) {
+  __shared__ double warp_sums[32][kSlot];
+  double w[N];
+  for (int i = 0; i < N; ++i) w[i] = v[i];
+  for (int o = 16; o > 0; o >>= 1)
+    for (int i = 0; i < N; ++i) w[i] += __shfl_down_sync(0xffffffffu, w[i], o);
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  if (lane == 0)
+    for (int i = 0; i < N; ++i) warp_sums[warp][i] = w[i];
+  __syncthreads();
+  if (warp == 0) {
+    const bool has = lane < int(blockDim.x >> 5);
+    for (int i = 0; i < N; ++i) w[i] = has ? warp_sums[lane][i] : 0.0;
+    for (int o = 16; o > 0; o >>= 1)
+      for (int i = 0; i < N; ++i) w[i] += __shfl_down_sync(0xffffffffu, w[i], o);
+    if (lane == 0)
+      for (int i = 0; i < N; ++i) atomicAdd(out + i, w[i]);
+  }
+  __syncthreads();
+}
+
+}  // namespace
+
+}  // namespace palpsim::cuda

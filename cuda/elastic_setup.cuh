@@ -1,0 +1,176 @@
+// The elastic set-up kernel: node moduli and flags, every level's cells and largest
+// eigenvalue, and the last field carried onto a new VOI.
+#pragma once
+// Included by cuda/relax_elastic.cu alone (one translation unit: the kernels are templates
+// in its anonymous namespace); see that file for what the elastic step does on the GPU.
+#include <cooperative_groups.h>
+
+#include "cuda/elastic_device.cuh"
+
+#include <algorithm>
+#include <cmath>
+
+#include "cuda/relax_elastic.h"
+#include "deform/deform_math.h"
+#include "deform/elastic_math.h"
+
+namespace palpsim::cuda {
+
+namespace {
+
+namespace cg = cooperative_groups;
+struct SetupArgs {
+  float k[576];
+  ElasticPlan plan;
+  View v;
+  Voi voi, last;           // the VOI to set up and the one the field is on (patient voxels)
+  Vec3i grid;              // the patient grid's size
+  ElasticMaterial material;
+  ElasticPatient patient;
+  int had;                 // carry the last field and contact set over
+};
+
+template <int MinBlocks>
+__global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(const __grid_constant__ SetupArgs a) {
+  cg::grid_group g = cg::this_grid();
+  __shared__ alignas(16) unsigned char level_bytes[kElasticMaxLevels * sizeof(Lvl)];  // raw: Vec3i has initialisers
+  Lvl* lv = reinterpret_cast<Lvl*>(level_bytes);
+  if (threadIdx.x == 0) make_levels(a.plan, a.v.capacity, lv);
+  __syncthreads();
+  const View& v = a.v;
+  const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
+  const Lvl& L0 = lv[0];
+  const int levels = a.plan.levels;
+  const CellMatrix km{a.k};
+  const Field u = level0(v.u, v), tmp_u = every(v.f, v);
+  float* node_e = v.d;
+  double* sums = v.sums + kSlot * kRing;
+  const ElasticPatient& pt = a.patient;
+  auto patient_index = [&](int gi, int gj, int gk) { return ((long long)gk * a.grid.y + gj) * a.grid.x + gi; };
+  auto in_body = [&](int gi, int gj, int gk) {
+    return gi >= 0 && gj >= 0 && gk >= 0 && gi < a.grid.x && gj < a.grid.y && gk < a.grid.z &&
+           pt.body[patient_index(gi, gj, gk)] != 0;
+  };
+
+  // the last field and contact bits aside for the carry; the sums cleared
+  const int last_count = int(a.last.count());
+  if (a.had)
+    for (int e = all.first; e < last_count; e += all.stride) {
+      tmp_u.set(e, u.at(e));
+      v.tmp_flags[e] = v.flags[e] & kElasticContact;
+    }
+  for (int e = all.first; e < kSlot * kSetupSums; e += all.stride) sums[e] = 0.0;
+  g.sync();
+
+  // node moduli (kPa, into the scratch's d) and level 0's static flags: held (bone, the
+  // VOI's faces), body, skin (a face neighbour outside the body)
+  for (int e = all.first; e < L0.count; e += all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    const int gi = a.voi.lo.x + i, gj = a.voi.lo.y + j, gk = a.voi.lo.z + k;
+    const long long pi = patient_index(gi, gj, gk);
+    const bool body = pt.body[pi] != 0, bone = pt.bone[pi] != 0;
+    node_e[e] = deform::elastic_node_modulus(a.material, pt.intensity[pi], body, pt.dist_skin_mm[pi]);
+    const bool face = i == 0 || j == 0 || k == 0 || i + 1 == L0.n.x || j + 1 == L0.n.y || k + 1 == L0.n.z;
+    v.flags[e] = deform::elastic_static_flags(body, bone, face, in_body, gi, gj, gk);
+  }
+  g.sync();
+  // level 0's cell moduli: the mean of the corners' where all eight are in the body, else air's gel
+  for (int e = all.first; e < L0.count; e += all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    if (i + 1 >= L0.n.x || j + 1 >= L0.n.y || k + 1 >= L0.n.z) {
+      v.cell_e[e] = 0.0f;
+      continue;
+    }
+    v.cell_e[e] = deform::elastic_cell_modulus(
+        [&](int c) {
+          const Vec3i o = deform::elastic_corner(c);
+          return node_e[L0.at(i + o.x, j + o.y, k + o.z)];
+        },
+        [&](int c) {
+          const Vec3i o = deform::elastic_corner(c);
+          return pt.body[patient_index(a.voi.lo.x + i + o.x, a.voi.lo.y + j + o.y, a.voi.lo.z + k + o.z)] != 0;
+        },
+        a.material.air_e_kpa);
+  }
+  g.sync();
+  // coarse levels, each from the one below: moduli and held nodes
+  for (int l = 1; l < levels; ++l) {
+    const Lvl& F = lv[l - 1];
+    const Lvl& C = lv[l];
+    for (int q = all.first; q < C.count; q += all.stride) {
+      int i, j, k;
+      C.coords(q, i, j, k);
+      const int e = C.off + q;
+      v.cell_e[e] = (i + 1 < C.n.x && j + 1 < C.n.y && k + 1 < C.n.z)
+                        ? deform::elastic_coarse_cell_e(CellModuli{v.cell_e, F}, F.n, i, j, k)
+                        : 0.0f;
+      const bool beyond = 2 * i >= F.n.x || 2 * j >= F.n.y || 2 * k >= F.n.z;
+      v.flags[e] =
+          deform::elastic_coarse_flags(beyond ? 0 : (v.flags[F.at(2 * i, 2 * j, 2 * k)] & kElasticHeld), beyond);
+    }
+    g.sync();
+  }
+  // every level's largest eigenvalue of D^-1 K by power iteration, all levels in the same
+  // passes: the start, then x' = Pi D^-1 K x with |x|^2 and |x'|^2 per level
+  const Vec3f none{0, 0, 0};
+  for (int l = 0; l < levels; ++l) {
+    const Lvl& L = lv[l];
+    const Field x0 = every(v.x[0], v);
+    for (int q = all.first; q < L.count; q += all.stride) {
+      const unsigned long long m = 3ull * (unsigned long long)q;
+      const int e = L.off + q;
+      x0.set(e, deform::elastic_project(v.flags[e], none,
+                                        Vec3f{deform::elastic_power_start(m), deform::elastic_power_start(m + 1),
+                                              deform::elastic_power_start(m + 2)}));
+    }
+  }
+  g.sync();
+  for (int it = 0; it < deform::kElasticPowerIterations; ++it) {
+    const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
+    for (int l = 0; l < levels; ++l) {
+      double part[2] = {0, 0};
+      gather(km, v.cell_e, v.flags, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+        const Vec3f xe = xf.at(e);
+        const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
+        xt.set(e, re);
+        part[0] += dot_d(xe, xe);
+        part[1] += dot_d(re, re);
+      });
+      block_sum(part, sums + kSlot * (it * kElasticMaxLevels + l));
+    }
+    g.sync();
+  }
+  if (blockIdx.x == 0 && threadIdx.x == 0) {
+    for (int l = 0; l < levels; ++l) {
+      bool dead = false;
+      double lambda = 0;
+      for (int it = 0; it < deform::kElasticPowerIterations; ++it) {
+        const double* s = sums + kSlot * (it * kElasticMaxLevels + l);
+        const double xn = sqrt(s[0]);
+        if (!(xn > 0)) {
+          dead = true;
+          break;
+        }
+        lambda = sqrt(s[1]) / xn;
+      }
+      v.lmax[l] = dead || !(lambda > 0) ? 1.0f : float(lambda);
+    }
+  }
+  // the last field and contact set carried onto the new VOI (0 where it has none); held
+  // nodes (the new VOI's faces, bone) stay at rest: the solve keeps what they hold
+  for (int e = all.first; e < L0.count; e += all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    const int pa = i + a.voi.lo.x - a.last.lo.x, pb = j + a.voi.lo.y - a.last.lo.y, pc = k + a.voi.lo.z - a.last.lo.z;
+    const bool carry = a.had && a.last.contains(pa, pb, pc) && !(v.flags[e] & kElasticHeld);
+    const int le = carry ? int(a.last.index(pa, pb, pc)) : 0;
+    u.set(e, carry ? tmp_u.at(le) : Vec3f{0, 0, 0});
+    if (carry) v.flags[e] |= v.tmp_flags[le];
+  }
+}
+
+}  // namespace
+
+}  // namespace palpsim::cuda

@@ -21,6 +21,7 @@ namespace cg = cooperative_groups;
 using deform::ElasticMaterial;
 using deform::ElasticPlan;
 using deform::ElasticPredict;
+using deform::kElasticAir;
 using deform::kElasticContact;
 using deform::kElasticHeld;
 using deform::kElasticMaxDegree;

@@ -108,7 +108,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
                         : 0.0f;
       const bool beyond = 2 * i >= F.n.x || 2 * j >= F.n.y || 2 * k >= F.n.z;
       v.flags[e] =
-          deform::elastic_coarse_flags(beyond ? 0 : (v.flags[F.at(2 * i, 2 * j, 2 * k)] & kElasticHeld), beyond);
+          deform::elastic_coarse_flags(beyond ? 0 : (v.flags[F.at(2 * i, 2 * j, 2 * k)] & (kElasticHeld | kElasticAir)), beyond);
     }
     g.sync();
   }

@@ -118,6 +118,7 @@ constexpr std::uint8_t kElasticHeld = 1;     // u = 0 (bone, a VOI face, beyond 
 constexpr std::uint8_t kElasticContact = 2;  // u . n prescribed (under the fingertip); across n free
 constexpr std::uint8_t kElasticBody = 4;     // level 0: inside the body mask and not bone
 constexpr std::uint8_t kElasticSkin = 8;     // level 0: a body node with a face neighbour outside the body (the finger touches these)
+constexpr std::uint8_t kElasticAir = 16;     // level 0: held as air beyond kElasticAirRim (coarse levels do not inherit the hold)
 
 /// A scene's table from intensity (HU) to Young's modulus (kPa): points sorted by HU,
 /// linear between them, constant beyond the ends.
@@ -174,7 +175,7 @@ PALPSIM_HD std::uint8_t elastic_static_flags(bool body, bool bone, bool face, co
     for (int dk = -kElasticAirRim; dk <= kElasticAirRim && !near; ++dk)
       for (int dj = -kElasticAirRim; dj <= kElasticAirRim && !near; ++dj)
         for (int di = -kElasticAirRim; di <= kElasticAirRim && !near; ++di) near = in_body(gi + di, gj + dj, gk + dk);
-    if (!near) f |= kElasticHeld;
+    if (!near) f |= kElasticHeld | kElasticAir;
   }
   if (body && !bone) {
     f |= kElasticBody;
@@ -479,9 +480,12 @@ PALPSIM_HD float elastic_coarse_cell_e(const FineE& fine_e, const Vec3i& fine_si
 }
 
 /// A coarse node's flags from the fine node it lies on (2 I): held beyond the fine grid or
-/// where the fine node is held; in contact where it is.
+/// where the fine node is held (but as far air); in contact where it is.
 PALPSIM_HD std::uint8_t elastic_coarse_flags(std::uint8_t fine_flags, bool beyond) {
   if (beyond) return kElasticHeld;
+  // far air is held on level 0 only: a coarse node held there would pin the coarse
+  // correction of the skin within its cell (level 2's cells span four voxels)
+  if (fine_flags & kElasticAir) return 0;
   return std::uint8_t(fine_flags & (kElasticHeld | kElasticContact));
 }
 

@@ -379,7 +379,7 @@ void elastic_set_up_cpu(const Patient& p, const Voi& voi, const ElasticParams& p
                    ? elastic_coarse_cell_e([&](int a, int b, int d) { return f.e[f.index(a, b, d)]; }, f.n, i, j, k)
                    : 0.0f;
       const bool beyond = 2 * i >= f.n.x || 2 * j >= f.n.y || 2 * k >= f.n.z;
-      c.flags[e] = elastic_coarse_flags(beyond ? 0 : (f.flags[f.index(2 * i, 2 * j, 2 * k)] & kElasticHeld), beyond);
+      c.flags[e] = elastic_coarse_flags(beyond ? 0 : (f.flags[f.index(2 * i, 2 * j, 2 * k)] & (kElasticHeld | kElasticAir)), beyond);
     });
   }
   // every level's inverse Jacobi diagonal

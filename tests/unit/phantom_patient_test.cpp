@@ -73,7 +73,7 @@ void check_masks_and_distances(const Patient& pt, const Scene& defaults, int str
   const Grid& g = pt.grid;
   const double h = g.spacing_mm.x;
   const double closing = defaults.prep.bone_closing_mm;
-  Failures body_in, body_out, table, gas, bone_in, bone_out, a_range, b_range, a_tight;
+  Failures body_in, body_out, table, gas, bone_in, bone_out, a_range, b_range;
   double a_err_sum = 0, b_err_sum = 0;
   std::size_t a_n = 0, b_n = 0, body_far = 0, bone_deep = 0, bone_far = 0, table_n = 0, gas_n = 0;
   for (int k = 0; k < g.size.z; k += stride)
@@ -190,6 +190,7 @@ void check_vertebrae(const Patient& pt, const Scene& defaults) {
     CHECK(pt.bone.at(i, j, k) == 1);
   }
 
+  Failures a_tight;
   // tight bounds where the bone is convex and the closing adds nothing: straight
   // behind each spinous tip, A follows the exact distance from -0.5 to +1.6 voxels
   for (const PhantomLandmark& l : geo.landmarks()) {

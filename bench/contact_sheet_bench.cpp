@@ -181,8 +181,8 @@ std::vector<float> sample(const Plane& pl, const F& f) {
   return out;
 }
 
-int run(int argc, char** argv) {
-  Options o;
+// reads the command line into `o`; false after printing the usage (--help)
+bool parse_options(int argc, char** argv, Options& o) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&]() -> std::string {
@@ -198,11 +198,111 @@ int run(int argc, char** argv) {
     else if (a == "--help" || a == "-h") {
       std::printf("usage: palpsim-bench contact_sheet [--out DIR (out/contact-sheet)] [--depth-mm 15] [--z-mm -5] "
                   "[--repeats 3] [--commit C] [--scene FILE (lumbar_phantom)]\n");
-      return 0;
+      return false;
     } else {
       throw Error("unknown argument '" + a + "'");
     }
   }
+  return true;
+}
+
+// the three models on the scene's deformation settings `base`: the paper's explicit
+// relaxation, the shipped multigrid diffusion and the elastic model
+std::vector<Model> three_models(const DeformConfig& base) {
+  std::vector<Model> models(3);
+  models[0].key = "explicit";
+  models[0].label = "paper: explicit relaxation, 20 iterations";
+  models[0].cfg = base;
+  models[0].cfg.settings.relax_method = RelaxMethod::kExplicit;
+  models[0].cfg.settings.relax_iterations = 20;
+  models[0].cfg.settings.grab_radius_mm = 0;
+  models[1].key = "multigrid";
+  models[1].label = "shipped: multigrid diffusion, 5 mm fingertip";
+  models[1].cfg = base;
+  models[2].key = "elastic";
+  models[2].label = "elastic, 5 mm fingertip sphere";
+  models[2].cfg = base;
+  models[2].cfg.settings.relax_method = RelaxMethod::kElastic;
+  models[2].cfg.settings.grab_radius_mm = 5;
+  return models;
+}
+
+// `m`'s press on `patient`, `repeats` times, a fresh backend from rest and the press a
+// millimetre a step (its last step timed and kept); its largest |u| and moved bone, printed
+void run_model(Model& m, const PatientPtr& patient, const Press& press, int repeats) {
+  const Patient& p = *patient;
+  const Vec3& h = p.grid.spacing_mm;
+  const DeformContact& deepest = press.contacts.back();
+  std::vector<double> rest, step, relax, inv;
+  for (int r = 0; r < repeats; ++r) {
+    // from rest: a fresh backend's one step at the deepest contact
+    auto fresh = make_deform_backend("cpu");
+    fresh->bind(patient, m.cfg);
+    rest.push_back(fresh->step(deepest).times.total_ms);
+    // the press, a millimetre a step; its last step is the one timed and shown
+    auto b = make_deform_backend("cpu");
+    b->bind(patient, m.cfg);
+    for (const DeformContact& k : press.contacts) m.last = b->step(k);
+    step.push_back(m.last.times.total_ms);
+    relax.push_back(m.last.times.relax_ms);
+    inv.push_back(m.last.times.invert_ms);
+    if (r + 1 == repeats) {
+      m.voi = b->voi();
+      m.u = b->displacement();
+      m.j.assign(b->deformed_brick(), b->deformed_brick() + m.voi.count());
+    }
+  }
+  m.rest_ms = spread(rest);
+  m.press_ms = spread(step);
+  m.press_relax_ms = spread(relax);
+  m.press_invert_ms = spread(inv);
+  for (int k = 0; k < m.voi.size.z; ++k)
+    for (int j = 0; j < m.voi.size.y; ++j)
+      for (int i = 0; i < m.voi.size.x; ++i) {
+        const Vec3f& v = m.u[std::size_t(m.voi.index(i, j, k))];
+        m.max_u_mm = std::max(m.max_u_mm, norm(Vec3(v.x * h.x, v.y * h.y, v.z * h.z)));
+        m.bone_moved += p.bone.at(m.voi.lo.x + i, m.voi.lo.y + j, m.voi.lo.z + k) && !(v == Vec3f{0, 0, 0});
+      }
+  std::printf("%-46s step while pressing %8.1f ms (relax %.1f, invert %.1f), from rest %8.1f ms; max |u| %.2f mm, "
+              "bone moved %lld, J unresolved %lld%s\n",
+              m.label.c_str(), m.press_ms.median, m.press_relax_ms.median, m.press_invert_ms.median, m.rest_ms.median,
+              m.max_u_mm, m.bone_moved, m.last.invert_unresolved,
+              m.cfg.settings.relax_method == RelaxMethod::kElastic
+                  ? (", force " + std::to_string(norm(m.last.elastic.force_n)) + " N").c_str()
+                  : "");
+}
+
+// one model's settings, times and figures as JSON
+std::string model_json(const Model& m) {
+  std::ostringstream js;
+  const DeformSettings& s = m.cfg.settings;
+  const deform::ElasticRun& el = m.last.elastic;
+  js << "\n    {\"key\": " << quoted(m.key) << ", \"label\": " << quoted(m.label)
+     << ", \"relax_method\": " << quoted(setting_name(s.relax_method)) << ", \"relax_iterations\": " << s.relax_iterations
+     << ", \"relax_cycles\": " << s.relax_cycles << ", \"grab_radius_mm\": " << json_number(s.grab_radius_mm)
+     << ", \"voi_edge\": " << s.voi_edge << ", \"invert_search\": " << (s.invert_search ? "true" : "false")
+     << ",\n     \"step_while_pressing\": " << json_spread(m.press_ms) << ", \"relax_while_pressing\": "
+     << json_spread(m.press_relax_ms) << ", \"invert_while_pressing\": " << json_spread(m.press_invert_ms)
+     << ", \"step_from_rest\": " << json_spread(m.rest_ms) << ",\n     \"voi_lo\": [" << m.voi.lo.x << ", "
+     << m.voi.lo.y << ", " << m.voi.lo.z << "], \"voi_size\": [" << m.voi.size.x << ", " << m.voi.size.y << ", "
+     << m.voi.size.z << "], \"max_u_mm\": " << json_number(m.max_u_mm) << ", \"bone_moved_voxels\": " << m.bone_moved
+     << ", \"invert_residual_vox\": " << json_number(m.last.invert_residual_vox)
+     << ", \"invert_unresolved\": " << m.last.invert_unresolved << ", \"invert_nonfinite\": " << m.last.invert_nonfinite
+     << ", \"chainmail_skipped\": " << (m.last.chainmail.skipped ? "true" : "false");
+  if (s.relax_method == RelaxMethod::kElastic)
+    js << ",\n     \"elastic\": {\"force_n\": " << json_vec(el.force_n) << ", \"force_norm_n\": "
+       << json_number(norm(el.force_n)) << ", \"contact_nodes\": " << el.contact_nodes << ", \"rounds\": " << el.rounds
+       << ", \"iterations\": " << el.iterations << ", \"residual\": " << json_number(el.residual)
+       << ", \"converged\": " << (el.converged ? "true" : "false") << ", \"warm\": " << (el.warm ? "true" : "false")
+       << ", \"inverted_cells\": " << el.inverted_cells << ", \"poisson\": " << json_number(s.elastic.poisson)
+       << ", \"normal\": " << json_vec(el.normal) << ", \"radius_mm\": " << json_number(s.grab_radius_mm) << "}";
+  js << "}";
+  return js.str();
+}
+
+int run(int argc, char** argv) {
+  Options o;
+  if (!parse_options(argc, argv, o)) return 0;
   if (!(o.depth_mm >= 1 && o.depth_mm <= 60)) throw Error("--depth-mm must lie in [1, 60]");
 
   // the scene's patient
@@ -230,63 +330,11 @@ int run(int argc, char** argv) {
   // the three models on the scene's deformation settings
   DeformConfig base = DeformConfig::from_scene(scene, patient.get());
   base.settings.backend = DeformBackendChoice::kCpu;
-  std::vector<Model> models(3);
-  models[0].key = "explicit";
-  models[0].label = "paper: explicit relaxation, 20 iterations";
-  models[0].cfg = base;
-  models[0].cfg.settings.relax_method = RelaxMethod::kExplicit;
-  models[0].cfg.settings.relax_iterations = 20;
-  models[0].cfg.settings.grab_radius_mm = 0;
-  models[1].key = "multigrid";
-  models[1].label = "shipped: multigrid diffusion, 5 mm fingertip";
-  models[1].cfg = base;
-  models[2].key = "elastic";
-  models[2].label = "elastic, 5 mm fingertip sphere";
-  models[2].cfg = base;
-  models[2].cfg.settings.relax_method = RelaxMethod::kElastic;
-  models[2].cfg.settings.grab_radius_mm = 5;
+  std::vector<Model> models = three_models(base);
 
   const Vec3& h = g.spacing_mm;
   const double load_before = load_average();
-  for (Model& m : models) {
-    std::vector<double> rest, step, relax, inv;
-    for (int r = 0; r < o.repeats; ++r) {
-      // from rest: a fresh backend's one step at the deepest contact
-      auto fresh = make_deform_backend("cpu");
-      fresh->bind(patient, m.cfg);
-      rest.push_back(fresh->step(deepest).times.total_ms);
-      // the press, a millimetre a step; its last step is the one timed and shown
-      auto b = make_deform_backend("cpu");
-      b->bind(patient, m.cfg);
-      for (const DeformContact& k : press.contacts) m.last = b->step(k);
-      step.push_back(m.last.times.total_ms);
-      relax.push_back(m.last.times.relax_ms);
-      inv.push_back(m.last.times.invert_ms);
-      if (r + 1 == o.repeats) {
-        m.voi = b->voi();
-        m.u = b->displacement();
-        m.j.assign(b->deformed_brick(), b->deformed_brick() + m.voi.count());
-      }
-    }
-    m.rest_ms = spread(rest);
-    m.press_ms = spread(step);
-    m.press_relax_ms = spread(relax);
-    m.press_invert_ms = spread(inv);
-    for (int k = 0; k < m.voi.size.z; ++k)
-      for (int j = 0; j < m.voi.size.y; ++j)
-        for (int i = 0; i < m.voi.size.x; ++i) {
-          const Vec3f& v = m.u[std::size_t(m.voi.index(i, j, k))];
-          m.max_u_mm = std::max(m.max_u_mm, norm(Vec3(v.x * h.x, v.y * h.y, v.z * h.z)));
-          m.bone_moved += p.bone.at(m.voi.lo.x + i, m.voi.lo.y + j, m.voi.lo.z + k) && !(v == Vec3f{0, 0, 0});
-        }
-    std::printf("%-46s step while pressing %8.1f ms (relax %.1f, invert %.1f), from rest %8.1f ms; max |u| %.2f mm, "
-                "bone moved %lld, J unresolved %lld%s\n",
-                m.label.c_str(), m.press_ms.median, m.press_relax_ms.median, m.press_invert_ms.median, m.rest_ms.median,
-                m.max_u_mm, m.bone_moved, m.last.invert_unresolved,
-                m.cfg.settings.relax_method == RelaxMethod::kElastic
-                    ? (", force " + std::to_string(norm(m.last.elastic.force_n)) + " N").c_str()
-                    : "");
-  }
+  for (Model& m : models) run_model(m, patient, press, o.repeats);
 
   const double load_after = load_average();
   std::printf("load average %.2f before the models, %.2f after\n", load_before, load_after);
@@ -347,31 +395,7 @@ int run(int argc, char** argv) {
      << ", \"depth_mm\": " << json_number(o.depth_mm) << ", \"steps_mm\": 1, \"X_mm\": " << json_vec(deepest.skin_point_mm)
      << ", \"tip_mm\": " << json_vec(deepest.tip_mm) << ", \"eq2_force_n\": " << json_vec(press.last.force_n)
      << ", \"eq2_force_norm_n\": " << json_number(norm(press.last.force_n)) << "},\n  \"models\": [";
-  for (std::size_t i = 0; i < models.size(); ++i) {
-    const Model& m = models[i];
-    const DeformSettings& s = m.cfg.settings;
-    const deform::ElasticRun& el = m.last.elastic;
-    js << (i ? "," : "") << "\n    {\"key\": " << quoted(m.key) << ", \"label\": " << quoted(m.label)
-       << ", \"relax_method\": " << quoted(setting_name(s.relax_method)) << ", \"relax_iterations\": " << s.relax_iterations
-       << ", \"relax_cycles\": " << s.relax_cycles << ", \"grab_radius_mm\": " << json_number(s.grab_radius_mm)
-       << ", \"voi_edge\": " << s.voi_edge << ", \"invert_search\": " << (s.invert_search ? "true" : "false")
-       << ",\n     \"step_while_pressing\": " << json_spread(m.press_ms) << ", \"relax_while_pressing\": "
-       << json_spread(m.press_relax_ms) << ", \"invert_while_pressing\": " << json_spread(m.press_invert_ms)
-       << ", \"step_from_rest\": " << json_spread(m.rest_ms) << ",\n     \"voi_lo\": [" << m.voi.lo.x << ", "
-       << m.voi.lo.y << ", " << m.voi.lo.z << "], \"voi_size\": [" << m.voi.size.x << ", " << m.voi.size.y << ", "
-       << m.voi.size.z << "], \"max_u_mm\": " << json_number(m.max_u_mm) << ", \"bone_moved_voxels\": " << m.bone_moved
-       << ", \"invert_residual_vox\": " << json_number(m.last.invert_residual_vox)
-       << ", \"invert_unresolved\": " << m.last.invert_unresolved << ", \"invert_nonfinite\": " << m.last.invert_nonfinite
-       << ", \"chainmail_skipped\": " << (m.last.chainmail.skipped ? "true" : "false");
-    if (s.relax_method == RelaxMethod::kElastic)
-      js << ",\n     \"elastic\": {\"force_n\": " << json_vec(el.force_n) << ", \"force_norm_n\": "
-         << json_number(norm(el.force_n)) << ", \"contact_nodes\": " << el.contact_nodes << ", \"rounds\": " << el.rounds
-         << ", \"iterations\": " << el.iterations << ", \"residual\": " << json_number(el.residual)
-         << ", \"converged\": " << (el.converged ? "true" : "false") << ", \"warm\": " << (el.warm ? "true" : "false")
-         << ", \"inverted_cells\": " << el.inverted_cells << ", \"poisson\": " << json_number(s.elastic.poisson)
-         << ", \"normal\": " << json_vec(el.normal) << ", \"radius_mm\": " << json_number(s.grab_radius_mm) << "}";
-    js << "}";
-  }
+  for (std::size_t i = 0; i < models.size(); ++i) js << (i ? "," : "") << model_json(models[i]);
   js << "\n  ],\n  \"planes\": [\n    " << planes_json.str() << "\n  ],\n  \"files\": \"<plane>-<I|body|bone|J-<key>|u-<key>>.npy\"}\n";
   std::ofstream(out / "contact_sheet.json") << js.str();
   std::printf("wrote %s (contact_sheet.json and %zu slices)\n", o.out.c_str(), planes.size() * (3 + 2 * models.size()));

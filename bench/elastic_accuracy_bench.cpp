@@ -399,14 +399,143 @@ std::vector<Run> run_rows(const std::string& backend, const PatientPtr& patient,
 
 }  // namespace
 
-int run_elastic_accuracy(const ElasticStudyOptions& o) {
-  check_writable(o.json, "accuracy --elastic:");
-  std::string device;
-  const std::vector<std::string> backends = deform_backends(device, "accuracy --elastic", o.backend);
-  const bool refs = o.references;
+// references (i) and (ii) of one case: the elastic model converged (`s`, its compared nodes
+// `u`), the FEM of the same problem (`f`; none without `python`) and the model on the patient
+// refined 2x (`fs`, on the coarse nodes `fu`); their figures as JSON
+std::string case_json(const char* name, const PatientPtr& p, const DeformConfig& cfg, const DeformContact& c,
+                      const std::string& python, const std::string& work, Solved& s, Fem& f, Solved& fs,
+                      std::vector<Vec3>& fu, std::vector<bool>& u) {
+  std::printf("reference %s: the elastic model converged\n", name);
+  s = solve_elastic(p, converged(cfg), c);
+  u = compared_nodes(*p, s.voi);
+  if (!python.empty()) {
+    std::printf("reference %s (i): the FEM of the same problem (bench/accuracy_fem.py contact)\n", name);
+    f = solve_fem_contact(python, work, name, *p, s.voi, cfg, c);
+  }
+  std::printf("reference %s (ii): the elastic model on the patient refined 2x\n", name);
+  fs = solve_fine(*p, s.voi, converged(cfg), c);
+  fu = coarse_of_fine(s.voi, fs);
+  const double F = norm(s.run.force_n), Ff = norm(fs.run.force_n);
+  std::ostringstream j;
+  j << "{\"voi\": {\"lo\": [" << s.voi.lo.x << ", " << s.voi.lo.y << ", " << s.voi.lo.z << "], \"size\": [" << s.voi.size.x
+    << ", " << s.voi.size.y << ", " << s.voi.size.z << "]}, \"compared_nodes\": "
+    << std::count(u.begin(), u.end(), true) << ",\n      \"elastic\": {\"iterations\": " << s.run.iterations
+    << ", \"rounds\": " << s.run.rounds << ", \"settled\": " << (s.run.contact_settled ? "true" : "false")
+    << ", \"contact_nodes\": " << s.run.contact_nodes << ", \"force_n\": " << json_vec3(s.run.force_n)
+    << ", \"seconds\": " << json_number(s.seconds) << "},\n      \"fem\": ";
+  if (f.ok) {
+    double max_mm = 0;
+    for (std::size_t e = 0; e < u.size(); ++e)
+      if (u[e]) max_mm = std::max(max_mm, norm(s.u[e] - f.u[e]));
+    j << "{\"stats\": " << f.stats << "},\n      \"verification\": {\"u_pct\": " << json_number(rel_rms_pct(s.u, f.u, u))
+      << ", \"force_pct\": " << json_number(pct(F, norm(f.force_n))) << ", \"max_diff_mm\": " << json_number(max_mm)
+      << "}";
+  } else {
+    j << "null, \"verification\": null";
+  }
+  j << ",\n      \"fine\": {\"size\": [" << fs.voi.size.x << ", " << fs.voi.size.y << ", " << fs.voi.size.z
+    << "], \"iterations\": " << fs.run.iterations << ", \"rounds\": " << fs.run.rounds
+    << ", \"contact_nodes\": " << fs.run.contact_nodes << ", \"force_n\": " << json_vec3(fs.run.force_n)
+    << ", \"seconds\": " << json_number(fs.seconds) << "},\n      \"discretisation\": {\"u_pct\": "
+    << json_number(rel_rms_pct(s.u, fu, u)) << ", \"force_pct\": " << json_number(pct(F, Ff)) << "}}";
+  return j.str();
+}
+
+// references (iii) and (iv): the elastic model pressing large blocks of `block_el`'s tissue
+// against Hertz (and, with o.python, the FEM); the rows' JSON, and in `profile` the profile
+// of the 96^3 block's deepest press
+std::string hertz_json(const DeformConfig& block_el, const ElasticStudyOptions& o, const std::string& work,
+                       std::string& profile) {
+  std::ostringstream refs_json;
+  bool first = true;
+  for (const int n : {96, 128}) {
+    const PatientPtr hb = elastic_block({n, n, n}, 1.0, n - kHertzAir, kBlockHu);
+    for (const double hnu : kHertzNus)
+      for (const double d : kHertzDepths) {
+        if (n == 128 && (d != kHertzDepths[2] || o.quick)) continue;  // the larger block: the deepest press only
+        if (o.quick && (d != kHertzDepths[2] || hnu != kHertzNus[0])) continue;
+        DeformConfig c = block_el;
+        c.settings.whole_volume = true;
+        c.settings.grab_radius_mm = kHertzR;
+        c.settings.elastic.poisson = hnu;
+        const double e = deform::elastic_table_e(c.elastic_params().material.table, kBlockHu);
+        std::printf("reference (iii): Hertz, block %d^3, R %g mm, d %g mm, nu %g\n", n, kHertzR, d, hnu);
+        const DeformContact hc = block_press(*hb, n - kHertzAir, d);
+        const Solved hs = solve_elastic(hb, converged(c), hc);
+        const double F = norm(hs.run.force_n), Fh = hertz_force_n(e, hnu, kHertzR, d);
+        refs_json << (first ? "\n      " : ",\n      ") << "{\"block_n\": " << n << ", \"nu\": " << json_number(hnu)
+                  << ", \"radius_mm\": " << json_number(kHertzR) << ", \"depth_mm\": " << json_number(d)
+                  << ", \"e_kpa\": " << json_number(e) << ", \"hertz_n\": " << json_number(Fh)
+                  << ", \"elastic_n\": " << json_number(F) << ", \"ratio\": " << json_number(F / Fh)
+                  << ", \"iterations\": " << hs.run.iterations << ", \"rounds\": " << hs.run.rounds
+                  << ", \"contact_nodes\": " << hs.run.contact_nodes << ", \"seconds\": " << json_number(hs.seconds)
+                  << ", \"profile_pct\": " << json_number(profile_error(*hb, n - kHertzAir, hs.voi, hs.u, kHertzR, d));
+        first = false;
+        if (n == 96 && !o.python.empty()) {
+          std::printf("reference (iii): the FEM, converged; and at the voxels' 1 mm, reduced and fully integrated\n");
+          refs_json << ", \"fem\": " << solve_fem_hertz(o.python, work, kHertzR, d, hnu, e, kHertzFemH0, false)
+                    << ", \"fem_voxel\": " << solve_fem_hertz(o.python, work, kHertzR, d, hnu, e, kHertzFemVoxelH0, false)
+                    << ", \"fem_full\": " << solve_fem_hertz(o.python, work, kHertzR, d, hnu, e, kHertzFemVoxelH0, true);
+        }
+        refs_json << "}";
+        if (n == 96 && hnu == kHertzNus[0] && d == kHertzDepths[2]) {
+          const double a = std::sqrt(kHertzR * d);
+          std::ostringstream pj;
+          pj << "{\"block_n\": " << n << ", \"nu\": " << json_number(hnu) << ", \"radius_mm\": " << json_number(kHertzR)
+             << ", \"depth_mm\": " << json_number(d) << ", \"a_mm\": " << json_number(a) << ", \"within_radii\": "
+             << json_number(kProfileRadii) << ", \"elastic_pct\": "
+             << json_number(profile_error(*hb, n - kHertzAir, hs.voi, hs.u, kHertzR, d)) << ", \"elastic\": "
+             << profile_json(*hb, n - kHertzAir, hs.voi, hs.u, int(std::ceil(6 * a))) << "}";
+          profile = pj.str();
+        }
+      }
+  }
+  return refs_json.str();
+}
+
+// what holding the VOI's faces costs: the elastic press converged on VOIs of 64, 96 and 128
+// against the largest (`ref` is the shipped VOI's, `use` its compared nodes), and each one's
+// first step from rest; as JSON rows
+std::string voi_json(const PatientPtr& patient, const DeformConfig& el, const DeformConfig& shipped,
+                     const DeformContact& press, const Solved& ref, const std::vector<bool>& use) {
+  std::ostringstream refs_json;
+  std::printf("reference: the elastic press on larger VOIs\n");
+  struct VoiRun {
+    int edge;
+    Solved s;
+    double step_ms;
+    int steps;
+  };
+  std::vector<VoiRun> vr;
+  for (const int edge : {64, 96, 128}) {
+    DeformConfig c = el;
+    c.settings.voi_edge = edge;
+    VoiRun v{edge, edge == shipped.settings.voi_edge ? ref : solve_elastic(patient, converged(c), press), 0, 0};
+    const Run first_step = run_first_contacts("cpu", patient, c, press, nullptr, 0, 1);
+    v.step_ms = first_step.step_ms.median;
+    v.steps = first_step.last.elastic.iterations;
+    vr.push_back(std::move(v));
+  }
+  const VoiRun& big = vr.back();
+  for (std::size_t i = 0; i < vr.size(); ++i) {
+    const VoiRun& v = vr[i];
+    const Vec3& h = patient->grid.spacing_mm;
+    const std::vector<Vec3> a = in_mm(field_on(ref.voi, v.s.voi, v.s.u_vox, false), h),
+                            b = in_mm(field_on(ref.voi, big.s.voi, big.s.u_vox, false), h);
+    refs_json << (i ? ",\n      " : "\n      ") << "{\"edge\": " << v.edge << ", \"force_n\": " << json_number(norm(v.s.run.force_n))
+              << ", \"force_pct\": " << json_number(pct(norm(v.s.run.force_n), norm(big.s.run.force_n)))
+              << ", \"u_pct\": " << json_number(rel_rms_pct(a, b, use)) << ", \"converged_iterations\": "
+              << v.s.run.iterations << ", \"converged_s\": " << json_number(v.s.seconds)
+              << ", \"step_ms\": " << json_number(v.step_ms) << ", \"step_iterations\": " << v.steps << "}";
+  }
+  return refs_json.str();
+}
+
+// the FEM's folder: --work (made, and checked writable), else a new one under /tmp
+// (`temporary`: to remove at the end) when the references run the FEM, else none
+std::string work_folder(const ElasticStudyOptions& o, bool& temporary) {
   std::string work = o.work_dir;
-  bool temporary = false;
-  if (refs && !o.python.empty() && work.empty()) {
+  if (o.references && !o.python.empty() && work.empty()) {
     char templ[] = "/tmp/palpsim-elastic-XXXXXX";
     if (!mkdtemp(templ)) throw Error("accuracy --elastic: cannot make a temporary folder under /tmp");
     work = templ;
@@ -415,6 +544,68 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
     mkdir(work.c_str(), 0755);
     check_writable(work + "/probe", "accuracy --elastic: --work");
   }
+  return work;
+}
+
+// one row's setting on the block, in the row's mode: from rest, the tip moving (from half the
+// depth), or the press repeated
+Run block_run(const std::string& be, const PatientPtr& block, const DeformConfig& bc, const DeformContact& bpress,
+              const std::string& mode, double block_d) {
+  if (mode == "from rest") return run_first_contacts(be, block, bc, bpress, nullptr, 0, 1);
+  if (mode == "tip moving") {
+    const DeformContact half{bpress.skin_point_mm, bpress.skin_point_mm - Vec3{0, block_d / 2, 0}};
+    return run_settings(be, block, {bc}, std::vector<DeformContact>{bpress, half}, 0, 2, Stage::relax).front();
+  }
+  return run_setting(be, block, bc, bpress, 0, 2, Stage::relax);
+}
+
+// the rows as JSON lines
+std::string rows_json(const std::vector<RowResult>& rows) {
+  std::ostringstream f;
+  for (std::size_t i = 0; i < rows.size(); ++i) {
+    const RowResult& r = rows[i];
+    f << "    {\"backend\": " << json_str(r.backend) << ", \"model\": " << json_str(r.spec.model) << ", \"mode\": "
+      << json_str(r.spec.mode) << ", \"setting\": " << json_str(r.spec.setting) << ", \"reps\": " << r.reps
+      << ", \"step\": " << json_spread(r.step_ms) << ", \"relax\": " << json_spread(r.relax_ms)
+      << ", \"cg_steps\": " << (r.cg_steps >= 0 ? std::to_string(r.cg_steps) : "null") << ", \"force_n\": "
+      << json_number(r.force_n) << ", \"errors\": {\"fem_u_pct\": " << json_number(r.fem_u)
+      << ", \"fem_force_pct\": " << json_number(r.fem_f) << ", \"fine_u_pct\": " << json_number(r.fine_u)
+      << ", \"fine_force_pct\": " << json_number(r.fine_f) << ", \"hertz_force_pct\": " << json_number(r.hertz_f)
+      << ", \"profile_pct\": " << json_number(r.profile) << "}}" << (i + 1 < rows.size() ? "," : "") << "\n";
+  }
+  return f.str();
+}
+
+// one row's times (and, for the elastic model, its CG steps and force) from its run
+RowResult row_of(const RowSpec& spec, const std::string& be, const Run& run) {
+  RowResult r;
+  r.spec = spec;
+  r.backend = be;
+  r.step_ms = run.step_ms;
+  r.relax_ms = run.stage_ms;
+  r.reps = run.reps;
+  if (spec.model == "elastic") {
+    r.cg_steps = run.last.elastic.iterations;
+    r.force_n = norm(run.last.elastic.force_n);
+  }
+  return r;
+}
+
+// one row's step time and errors on stdout
+void print_row(const RowResult& r) {
+  std::printf("%-4s %-20s %-14s %-18s step %9.3f ms | FEM u %7.3g %% F %7.3g %% | h/2 u %7.3g %% F %7.3g %% | "
+              "Hertz F %7.3g %% profile %7.3g %%\n",
+              r.backend.c_str(), r.spec.model.c_str(), r.spec.mode.c_str(), r.spec.setting.c_str(), r.step_ms.median,
+              r.fem_u, r.fem_f, r.fine_u, r.fine_f, r.hertz_f, r.profile);
+}
+
+int run_elastic_accuracy(const ElasticStudyOptions& o) {
+  check_writable(o.json, "accuracy --elastic:");
+  std::string device;
+  const std::vector<std::string> backends = deform_backends(device, "accuracy --elastic", o.backend);
+  const bool refs = o.references;
+  bool temporary = false;
+  const std::string work = work_folder(o, temporary);
 
   // the shipped scene, its patient through prep, and the press
   const std::string scene_file = "config/scenes/lumbar_phantom.textproto";
@@ -450,45 +641,8 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
   if (refs) {
     const bool with_fem = !o.python.empty();
     // (i) and (ii) on the phantom press and on the block
-    auto case_json = [&](const char* name, const PatientPtr& p, const DeformConfig& cfg, const DeformContact& c,
-                         Solved& s, Fem& f, Solved& fs, std::vector<Vec3>& fu, std::vector<bool>& u) {
-      std::printf("reference %s: the elastic model converged\n", name);
-      s = solve_elastic(p, converged(cfg), c);
-      u = compared_nodes(*p, s.voi);
-      if (with_fem) {
-        std::printf("reference %s (i): the FEM of the same problem (bench/accuracy_fem.py contact)\n", name);
-        f = solve_fem_contact(o.python, work, name, *p, s.voi, cfg, c);
-      }
-      std::printf("reference %s (ii): the elastic model on the patient refined 2x\n", name);
-      fs = solve_fine(*p, s.voi, converged(cfg), c);
-      fu = coarse_of_fine(s.voi, fs);
-      const double F = norm(s.run.force_n), Ff = norm(fs.run.force_n);
-      std::ostringstream j;
-      j << "{\"voi\": {\"lo\": [" << s.voi.lo.x << ", " << s.voi.lo.y << ", " << s.voi.lo.z << "], \"size\": [" << s.voi.size.x
-        << ", " << s.voi.size.y << ", " << s.voi.size.z << "]}, \"compared_nodes\": "
-        << std::count(u.begin(), u.end(), true) << ",\n      \"elastic\": {\"iterations\": " << s.run.iterations
-        << ", \"rounds\": " << s.run.rounds << ", \"settled\": " << (s.run.contact_settled ? "true" : "false")
-        << ", \"contact_nodes\": " << s.run.contact_nodes << ", \"force_n\": " << json_vec3(s.run.force_n)
-        << ", \"seconds\": " << json_number(s.seconds) << "},\n      \"fem\": ";
-      if (f.ok) {
-        double max_mm = 0;
-        for (std::size_t e = 0; e < u.size(); ++e)
-          if (u[e]) max_mm = std::max(max_mm, norm(s.u[e] - f.u[e]));
-        j << "{\"stats\": " << f.stats << "},\n      \"verification\": {\"u_pct\": " << json_number(rel_rms_pct(s.u, f.u, u))
-          << ", \"force_pct\": " << json_number(pct(F, norm(f.force_n))) << ", \"max_diff_mm\": " << json_number(max_mm)
-          << "}";
-      } else {
-        j << "null, \"verification\": null";
-      }
-      j << ",\n      \"fine\": {\"size\": [" << fs.voi.size.x << ", " << fs.voi.size.y << ", " << fs.voi.size.z
-        << "], \"iterations\": " << fs.run.iterations << ", \"rounds\": " << fs.run.rounds
-        << ", \"contact_nodes\": " << fs.run.contact_nodes << ", \"force_n\": " << json_vec3(fs.run.force_n)
-        << ", \"seconds\": " << json_number(fs.seconds) << "},\n      \"discretisation\": {\"u_pct\": "
-        << json_number(rel_rms_pct(s.u, fu, u)) << ", \"force_pct\": " << json_number(pct(F, Ff)) << "}}";
-      return j.str();
-    };
-    refs_json << "{\n    \"press\": " << case_json("press", patient, el, press, ref, fem, fine, fine_u, use);
-    refs_json << ",\n    \"block\": " << case_json("block", block, block_el, bpress, bref, bfem, bfine, bfine_u, buse);
+    refs_json << "{\n    \"press\": " << case_json("press", patient, el, press, o.python, work, ref, fem, fine, fine_u, use);
+    refs_json << ",\n    \"block\": " << case_json("block", block, block_el, bpress, o.python, work, bref, bfem, bfine, bfine_u, buse);
     refs_json << ",\n    \"block_hertz_pct\": {\"elastic\": " << json_number(pct(norm(bref.run.force_n), block_hertz))
               << ", \"fine\": " << json_number(pct(norm(bfine.run.force_n), block_hertz)) << "}";
     if (with_fem)
@@ -497,82 +651,11 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
     // (iii) Hertz on large blocks, (iv) the profile
     refs_json << ",\n    \"hertz\": [";
     std::string profile;
-    bool first = true;
-    for (const int n : {96, 128}) {
-      const PatientPtr hb = elastic_block({n, n, n}, 1.0, n - kHertzAir, kBlockHu);
-      for (const double hnu : kHertzNus)
-        for (const double d : kHertzDepths) {
-          if (n == 128 && (d != kHertzDepths[2] || o.quick)) continue;  // the larger block: the deepest press only
-          if (o.quick && (d != kHertzDepths[2] || hnu != kHertzNus[0])) continue;
-          DeformConfig c = block_el;
-          c.settings.whole_volume = true;
-          c.settings.grab_radius_mm = kHertzR;
-          c.settings.elastic.poisson = hnu;
-          const double e = deform::elastic_table_e(c.elastic_params().material.table, kBlockHu);
-          std::printf("reference (iii): Hertz, block %d^3, R %g mm, d %g mm, nu %g\n", n, kHertzR, d, hnu);
-          const DeformContact hc = block_press(*hb, n - kHertzAir, d);
-          const Solved hs = solve_elastic(hb, converged(c), hc);
-          const double F = norm(hs.run.force_n), Fh = hertz_force_n(e, hnu, kHertzR, d);
-          refs_json << (first ? "\n      " : ",\n      ") << "{\"block_n\": " << n << ", \"nu\": " << json_number(hnu)
-                    << ", \"radius_mm\": " << json_number(kHertzR) << ", \"depth_mm\": " << json_number(d)
-                    << ", \"e_kpa\": " << json_number(e) << ", \"hertz_n\": " << json_number(Fh)
-                    << ", \"elastic_n\": " << json_number(F) << ", \"ratio\": " << json_number(F / Fh)
-                    << ", \"iterations\": " << hs.run.iterations << ", \"rounds\": " << hs.run.rounds
-                    << ", \"contact_nodes\": " << hs.run.contact_nodes << ", \"seconds\": " << json_number(hs.seconds)
-                    << ", \"profile_pct\": " << json_number(profile_error(*hb, n - kHertzAir, hs.voi, hs.u, kHertzR, d));
-          first = false;
-          if (n == 96 && !o.python.empty()) {
-            std::printf("reference (iii): the FEM, converged; and at the voxels' 1 mm, reduced and fully integrated\n");
-            refs_json << ", \"fem\": " << solve_fem_hertz(o.python, work, kHertzR, d, hnu, e, kHertzFemH0, false)
-                      << ", \"fem_voxel\": " << solve_fem_hertz(o.python, work, kHertzR, d, hnu, e, kHertzFemVoxelH0, false)
-                      << ", \"fem_full\": " << solve_fem_hertz(o.python, work, kHertzR, d, hnu, e, kHertzFemVoxelH0, true);
-          }
-          refs_json << "}";
-          if (n == 96 && hnu == kHertzNus[0] && d == kHertzDepths[2]) {
-            const double a = std::sqrt(kHertzR * d);
-            std::ostringstream pj;
-            pj << "{\"block_n\": " << n << ", \"nu\": " << json_number(hnu) << ", \"radius_mm\": " << json_number(kHertzR)
-               << ", \"depth_mm\": " << json_number(d) << ", \"a_mm\": " << json_number(a) << ", \"within_radii\": "
-               << json_number(kProfileRadii) << ", \"elastic_pct\": "
-               << json_number(profile_error(*hb, n - kHertzAir, hs.voi, hs.u, kHertzR, d)) << ", \"elastic\": "
-               << profile_json(*hb, n - kHertzAir, hs.voi, hs.u, int(std::ceil(6 * a))) << "}";
-            profile = pj.str();
-          }
-        }
-    }
+    refs_json << hertz_json(block_el, o, work, profile);
     refs_json << "\n    ],\n    \"profile\": " << (profile.empty() ? "null" : profile);
 
     // the VOI: what holding its faces costs, against the largest
-    std::printf("reference: the elastic press on larger VOIs\n");
-    struct VoiRun {
-      int edge;
-      Solved s;
-      double step_ms;
-      int steps;
-    };
-    std::vector<VoiRun> vr;
-    for (const int edge : {64, 96, 128}) {
-      DeformConfig c = el;
-      c.settings.voi_edge = edge;
-      VoiRun v{edge, edge == shipped.settings.voi_edge ? ref : solve_elastic(patient, converged(c), press), 0, 0};
-      const Run first_step = run_first_contacts("cpu", patient, c, press, nullptr, 0, 1);
-      v.step_ms = first_step.step_ms.median;
-      v.steps = first_step.last.elastic.iterations;
-      vr.push_back(std::move(v));
-    }
-    const VoiRun& big = vr.back();
-    refs_json << ",\n    \"voi\": [";
-    for (std::size_t i = 0; i < vr.size(); ++i) {
-      const VoiRun& v = vr[i];
-      const Vec3& h = patient->grid.spacing_mm;
-      const std::vector<Vec3> a = in_mm(field_on(ref.voi, v.s.voi, v.s.u_vox, false), h),
-                              b = in_mm(field_on(ref.voi, big.s.voi, big.s.u_vox, false), h);
-      refs_json << (i ? ",\n      " : "\n      ") << "{\"edge\": " << v.edge << ", \"force_n\": " << json_number(norm(v.s.run.force_n))
-                << ", \"force_pct\": " << json_number(pct(norm(v.s.run.force_n), norm(big.s.run.force_n)))
-                << ", \"u_pct\": " << json_number(rel_rms_pct(a, b, use)) << ", \"converged_iterations\": "
-                << v.s.run.iterations << ", \"converged_s\": " << json_number(v.s.seconds)
-                << ", \"step_ms\": " << json_number(v.step_ms) << ", \"step_iterations\": " << v.steps << "}";
-    }
+    refs_json << ",\n    \"voi\": [" << voi_json(patient, el, shipped, press, ref, use);
     refs_json << "\n    ]\n  }";
   }
 
@@ -586,17 +669,8 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
     for (std::size_t i = 0; i < specs.size(); ++i) {
       const RowSpec& spec = specs[i];
       const Run& run = runs[i];
-      RowResult r;
-      r.spec = spec;
-      r.backend = be;
-      r.step_ms = run.step_ms;
-      r.relax_ms = run.stage_ms;
-      r.reps = run.reps;
+      RowResult r = row_of(spec, be, run);
       const bool elastic = spec.model == "elastic";
-      if (elastic) {
-        r.cg_steps = run.last.elastic.iterations;
-        r.force_n = norm(run.last.elastic.force_n);
-      }
       if (refs) {
         const std::vector<Vec3> u = in_mm(field_on(ref.voi, run.last.chainmail.voi, run.u, false), patient->grid.spacing_mm);
         if (fem.ok) r.fem_u = rel_rms_pct(u, fem.u, use);
@@ -608,23 +682,12 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
         // the same setting on the block: Hertz's force and profile
         DeformConfig bc = spec.cfg;
         if (elastic) bc.settings.elastic.skin_thickness_mm = 0;
-        Run br;
-        if (spec.mode == "from rest") {
-          br = run_first_contacts(be, block, bc, bpress, nullptr, 0, 1);
-        } else if (spec.mode == "tip moving") {
-          const DeformContact half{bpress.skin_point_mm, bpress.skin_point_mm - Vec3{0, block_d / 2, 0}};
-          br = run_settings(be, block, {bc}, std::vector<DeformContact>{bpress, half}, 0, 2, Stage::relax).front();
-        } else {
-          br = run_setting(be, block, bc, bpress, 0, 2, Stage::relax);
-        }
+        const Run br = block_run(be, block, bc, bpress, spec.mode, block_d);
         const std::vector<Vec3> bu = in_mm(br.u, block->grid.spacing_mm);
         r.profile = profile_error(*block, kBlockSkinJ, br.last.chainmail.voi, bu, R, block_d);
         if (elastic) r.hertz_f = pct(norm(br.last.elastic.force_n), block_hertz);
       }
-      std::printf("%-4s %-20s %-14s %-18s step %9.3f ms | FEM u %7.3g %% F %7.3g %% | h/2 u %7.3g %% F %7.3g %% | "
-                  "Hertz F %7.3g %% profile %7.3g %%\n",
-                  be.c_str(), spec.model.c_str(), spec.mode.c_str(), spec.setting.c_str(), r.step_ms.median, r.fem_u,
-                  r.fem_f, r.fine_u, r.fine_f, r.hertz_f, r.profile);
+      print_row(r);
       rows.push_back(r);
     }
   }
@@ -644,17 +707,7 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
       << json_number(R) << ", \"depth_mm\": " << json_number(block_d) << ", \"hertz_n\": " << json_number(block_hertz)
       << ", \"profile_within_radii\": " << json_number(kProfileRadii) << "},\n  \"references\": "
       << (refs ? refs_json.str() : "null") << ",\n  \"rows\": [\n";
-    for (std::size_t i = 0; i < rows.size(); ++i) {
-      const RowResult& r = rows[i];
-      f << "    {\"backend\": " << json_str(r.backend) << ", \"model\": " << json_str(r.spec.model) << ", \"mode\": "
-        << json_str(r.spec.mode) << ", \"setting\": " << json_str(r.spec.setting) << ", \"reps\": " << r.reps
-        << ", \"step\": " << json_spread(r.step_ms) << ", \"relax\": " << json_spread(r.relax_ms)
-        << ", \"cg_steps\": " << (r.cg_steps >= 0 ? std::to_string(r.cg_steps) : "null") << ", \"force_n\": "
-        << json_number(r.force_n) << ", \"errors\": {\"fem_u_pct\": " << json_number(r.fem_u)
-        << ", \"fem_force_pct\": " << json_number(r.fem_f) << ", \"fine_u_pct\": " << json_number(r.fine_u)
-        << ", \"fine_force_pct\": " << json_number(r.fine_f) << ", \"hertz_force_pct\": " << json_number(r.hertz_f)
-        << ", \"profile_pct\": " << json_number(r.profile) << "}}" << (i + 1 < rows.size() ? "," : "") << "\n";
-    }
+    f << rows_json(rows);
     f << "  ]\n}\n";
     if (!f) throw Error("accuracy --elastic: writing " + o.json + " failed");
   }

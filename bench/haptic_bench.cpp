@@ -249,8 +249,8 @@ Quantiles service_time(const net::Server& server, const Setup& setup) {
   return service;
 }
 
-int run(int argc, char** argv) {
-  Options o;
+// reads the command line into `o`; false after printing the usage (--help)
+bool parse_options(int argc, char** argv, Options& o) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&]() -> std::string {
@@ -268,11 +268,139 @@ int run(int argc, char** argv) {
     } else if (a == "--help" || a == "-h") {
       std::printf(
           "usage: palpsim-bench haptic [--json FILE] [--seconds S per run (5)] [--clients 1,4,16] [--model-poses N]\n");
-      return 0;
+      return false;
     } else {
       throw Error("palpsim-bench haptic: unknown argument '" + a + "'");
     }
   }
+  return true;
+}
+
+// the force model's cost per pose with `haptics`' rule for the skin point and with the
+// paper's ("line"), printed
+void bench_models(const Patient& patient, const HapticsSettings& haptics, long poses, ModelResult& model,
+                  ModelResult& model_line) {
+  model = bench_model(patient, haptics, poses);
+  HapticsSettings paper = haptics;
+  paper.skin_point = SkinPointRule::kLine;
+  model_line = bench_model(patient, paper, poses);
+  for (const auto& [name, m] : {std::pair<const char*, const ModelResult&>{"skin point \"normal\"", model},
+                                {"skin point \"line\"", model_line}})
+    std::printf("force model, %s: %zu poses (%.0f %% in contact): p50 %.0f ns, p99 %.0f ns, p99.9 %.0f ns, max %.0f ns, "
+                "mean %.0f ns\n",
+                name, m.ns.n, 100 * m.contact_fraction, m.ns.p50, m.ns.p99, m.ns.p999, m.ns.max, m.ns.mean);
+}
+
+// the servers' own receive-to-send times, plain and with CURVE
+void print_service(const Quantiles& service, const Quantiles& curve_service) {
+  for (const auto& [name, q] : {std::make_pair("", service), std::make_pair(" with CURVE", curve_service)})
+    std::printf("server-side service time%s (receive to send, 9 %% bins): p50 %.2f us, p99 %.2f us, p99.9 %.2f us, "
+                "max %.0f us over %zu poses\n",
+                name, q.p50, q.p99, q.p999, q.max, q.n);
+}
+
+// a pose in contact, for the message sizes and as the template of every client's poses
+v1::PoseRequest sample_pose() {
+  v1::PoseRequest sample_req;
+  sample_req.set_schema_version(1);
+  sample_req.set_session_id(0xfedcba9876543210ull);
+  sample_req.set_seq(123456);
+  sample_req.set_client_time_s(12.345678);
+  sample_req.mutable_tip_mm()->set_x(1.25);
+  sample_req.mutable_tip_mm()->set_y(95.5);
+  sample_req.mutable_tip_mm()->set_z(-3.75);
+  return sample_req;
+}
+
+// opens a session on `server`, sends one pose 10 mm into the back's middle and closes it:
+// the reply's size (bytes); `top` becomes the top of the body's box above its middle (mm)
+std::size_t probe_reply(const net::Server& server, const v1::PoseRequest& sample_req, Vec3& top) {
+  std::size_t reply_bytes = 0;
+  zmq::context_t ctx(1);
+  zmq::socket_t c(ctx, zmq::socket_type::req);
+  c.connect(server.control_endpoint());
+  v1::ControlRequest q;
+  q.set_schema_version(1);
+  q.mutable_open();
+  c.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
+  zmq::message_t m;
+  (void)c.recv(m);
+  v1::ControlReply r;
+  r.ParseFromArray(m.data(), int(m.size()));
+  const auto& pi = r.open().server().patient();
+  top = {0.5 * (pi.body_min_mm().x() + pi.body_max_mm().x()), pi.body_max_mm().y(),
+         0.5 * (pi.body_min_mm().z() + pi.body_max_mm().z())};
+  zmq::socket_t p(ctx, zmq::socket_type::dealer);
+  p.connect(r.open().pose_endpoint());
+  v1::PoseRequest pr = sample_req;
+  pr.set_session_id(r.open().session_id());
+  pr.mutable_tip_mm()->set_x(top.x);
+  pr.mutable_tip_mm()->set_y(top.y - 10);
+  pr.mutable_tip_mm()->set_z(top.z);
+  p.send(zmq::buffer(pr.SerializeAsString()), zmq::send_flags::none);
+  (void)p.recv(m);
+  reply_bytes = m.size();
+  v1::ControlRequest cl;
+  cl.set_schema_version(1);
+  cl.mutable_close()->set_session_id(r.open().session_id());
+  c.send(zmq::buffer(cl.SerializeAsString()), zmq::send_flags::none);
+  (void)c.recv(m);
+  return reply_bytes;
+}
+
+// one client count's round trips on stdout: palpsim, bare ZeroMQ and CURVE
+void print_row(const RoundTripRow& row, const Options& o) {
+  const int n = row.clients;
+  std::printf(
+      "%2d client%s at %.0f Hz: palpsim p50 %.1f us, p99 %.1f us, p99.9 %.1f us | bare ZeroMQ p50 %.1f us, p99 %.1f "
+      "us, p99.9 %.1f us | ratio p50 %.2f, p99 %.2f (goal <= 1.3)\n"
+      "             with CURVE: p50 %.1f us, p99 %.1f us, p99.9 %.1f us | CURVE / plain p50 %.2f, p99 %.2f\n",
+      n, n == 1 ? " " : "s", o.rate_hz, row.palpsim.p50, row.palpsim.p99, row.palpsim.p999, row.bare.p50,
+      row.bare.p99, row.bare.p999, row.palpsim.p50 / row.bare.p50, row.palpsim.p99 / row.bare.p99, row.curve.p50,
+      row.curve.p99, row.curve.p999, row.curve.p50 / row.palpsim.p50, row.curve.p99 / row.palpsim.p99);
+  std::fflush(stdout);
+}
+
+// everything measured, as --json
+void write_json(const Options& o, const Patient& patient, const ModelResult& model, const ModelResult& model_line,
+                std::size_t req_bytes, std::size_t reply_bytes, const Quantiles& service, const Quantiles& curve_service,
+                const std::vector<RoundTripRow>& rows) {
+  std::ofstream f(o.json);
+  if (!f) throw Error("palpsim-bench haptic: cannot write --json " + o.json);
+  const std::time_t now = std::time(nullptr);
+  char date[32];
+  std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
+  f << "{\n  \"area\": \"haptic\",\n  \"date\": \"" << date << "\",\n  \"machine\": \"" << machine()
+    << "\",\n  \"patient\": {\"source\": \"" << patient.source << "\", \"size\": [" << patient.grid.size.x << ", "
+    << patient.grid.size.y << ", " << patient.grid.size.z << "], \"voxel_mm\": " << patient.grid.spacing_mm.x
+    << "},\n  \"force_model\": {\"poses\": " << model.ns.n << ", \"contact_fraction\": " << model.contact_fraction
+    << ", \"per_pose\": " << json_q(model.ns, "ns")
+    << ", \"per_pose_skin_point_line\": " << json_q(model_line.ns, "ns") << "},\n  \"messages\": {\"pose_bytes\": "
+    << req_bytes
+    << ", \"reply_bytes\": " << reply_bytes << "},\n  \"rate_hz\": " << o.rate_hz << ",\n  \"seconds_per_run\": "
+    << o.seconds << ",\n  \"server_service\": {\"n\": " << service.n << ", \"p50_us\": " << service.p50
+    << ", \"p99_us\": " << service.p99 << ", \"p999_us\": " << service.p999 << ", \"max_us\": " << service.max
+    << "},\n  \"server_service_curve\": {\"n\": " << curve_service.n << ", \"p50_us\": " << curve_service.p50
+    << ", \"p99_us\": " << curve_service.p99 << ", \"p999_us\": " << curve_service.p999
+    << ", \"max_us\": " << curve_service.max << "},\n  \"round_trip\": [\n";
+  for (std::size_t i = 0; i < rows.size(); ++i) {
+    const auto& r = rows[i];
+    const double r50 = r.palpsim.p50 / r.bare.p50, r99 = r.palpsim.p99 / r.bare.p99;
+    f << "    {\"clients\": " << r.clients << ", \"palpsim\": " << json_q(r.palpsim, "us")
+      << ", \"bare_zmq\": " << json_q(r.bare, "us") << ", \"palpsim_curve\": " << json_q(r.curve, "us")
+      << ", \"curve_over_plain_p50\": " << r.curve.p50 / r.palpsim.p50
+      << ", \"curve_over_plain_p99\": " << r.curve.p99 / r.palpsim.p99 << ", \"ratio_p50\": " << r50
+      << ", \"ratio_p99\": " << r99
+      << ", \"goal_met\": " << ((r50 <= 1.3 && r99 <= 1.3) ? "true" : "false") << "}"
+      << (i + 1 < rows.size() ? "," : "") << "\n";
+  }
+  f << "  ]\n}\n";
+  std::printf("wrote %s\n", o.json.c_str());
+}
+
+int run(int argc, char** argv) {
+  Options o;
+  if (!parse_options(argc, argv, o)) return 0;
 
   // the phantom patient of the default scene
   const Scene scene = default_scene();
@@ -286,15 +414,8 @@ int run(int argc, char** argv) {
   spdlog::set_level(spdlog::level::warn);
 
   // force model cost, with the scene's rule for the skin point and with the paper's
-  const ModelResult model = bench_model(*patient, scene.haptics, o.model_poses);
-  HapticsSettings paper = scene.haptics;
-  paper.skin_point = SkinPointRule::kLine;
-  const ModelResult model_line = bench_model(*patient, paper, o.model_poses);
-  for (const auto& [name, m] : {std::pair<const char*, const ModelResult&>{"skin point \"normal\"", model},
-                                {"skin point \"line\"", model_line}})
-    std::printf("force model, %s: %zu poses (%.0f %% in contact): p50 %.0f ns, p99 %.0f ns, p99.9 %.0f ns, max %.0f ns, "
-                "mean %.0f ns\n",
-                name, m.ns.n, 100 * m.contact_fraction, m.ns.p50, m.ns.p99, m.ns.p999, m.ns.max, m.ns.mean);
+  ModelResult model, model_line;
+  bench_models(*patient, scene.haptics, o.model_poses, model, model_line);
 
   // the server, in this process, on loopback tcp like the real one
   net::ServerOptions so;
@@ -315,49 +436,11 @@ int run(int argc, char** argv) {
   const Setup curve_setup = [&](zmq::socket_t& s) { net::make_curve_client(s, server_keys.public_key, client_keys); };
 
   // message sizes: a pose in contact and its reply
-  v1::PoseRequest sample_req;
-  sample_req.set_schema_version(1);
-  sample_req.set_session_id(0xfedcba9876543210ull);
-  sample_req.set_seq(123456);
-  sample_req.set_client_time_s(12.345678);
-  sample_req.mutable_tip_mm()->set_x(1.25);
-  sample_req.mutable_tip_mm()->set_y(95.5);
-  sample_req.mutable_tip_mm()->set_z(-3.75);
+  const v1::PoseRequest sample_req = sample_pose();
   const std::size_t req_bytes = sample_req.ByteSizeLong();
-  std::size_t reply_bytes = 0;
   // the tip presses in and out at the back's middle, like a palpation
   Vec3 top{0, 0, 0};
-  {
-    zmq::context_t ctx(1);
-    zmq::socket_t c(ctx, zmq::socket_type::req);
-    c.connect(server.control_endpoint());
-    v1::ControlRequest q;
-    q.set_schema_version(1);
-    q.mutable_open();
-    c.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::none);
-    zmq::message_t m;
-    (void)c.recv(m);
-    v1::ControlReply r;
-    r.ParseFromArray(m.data(), int(m.size()));
-    const auto& pi = r.open().server().patient();
-    top = {0.5 * (pi.body_min_mm().x() + pi.body_max_mm().x()), pi.body_max_mm().y(),
-           0.5 * (pi.body_min_mm().z() + pi.body_max_mm().z())};
-    zmq::socket_t p(ctx, zmq::socket_type::dealer);
-    p.connect(r.open().pose_endpoint());
-    v1::PoseRequest pr = sample_req;
-    pr.set_session_id(r.open().session_id());
-    pr.mutable_tip_mm()->set_x(top.x);
-    pr.mutable_tip_mm()->set_y(top.y - 10);
-    pr.mutable_tip_mm()->set_z(top.z);
-    p.send(zmq::buffer(pr.SerializeAsString()), zmq::send_flags::none);
-    (void)p.recv(m);
-    reply_bytes = m.size();
-    v1::ControlRequest cl;
-    cl.set_schema_version(1);
-    cl.mutable_close()->set_session_id(r.open().session_id());
-    c.send(zmq::buffer(cl.SerializeAsString()), zmq::send_flags::none);
-    (void)c.recv(m);
-  }
+  const std::size_t reply_bytes = probe_reply(server, sample_req, top);
   std::printf("messages: pose %zu bytes, reply %zu bytes (the bare ping-pong sends and answers the same sizes)\n",
               req_bytes, reply_bytes);
   EchoServer echo(std::string(reply_bytes, 'r'));
@@ -419,59 +502,18 @@ int run(int argc, char** argv) {
     row.bare = quantiles(bare);
     row.palpsim = quantiles(pal);
     row.curve = quantiles(cur);
-    std::printf(
-        "%2d client%s at %.0f Hz: palpsim p50 %.1f us, p99 %.1f us, p99.9 %.1f us | bare ZeroMQ p50 %.1f us, p99 %.1f "
-        "us, p99.9 %.1f us | ratio p50 %.2f, p99 %.2f (goal <= 1.3)\n"
-        "             with CURVE: p50 %.1f us, p99 %.1f us, p99.9 %.1f us | CURVE / plain p50 %.2f, p99 %.2f\n",
-        n, n == 1 ? " " : "s", o.rate_hz, row.palpsim.p50, row.palpsim.p99, row.palpsim.p999, row.bare.p50,
-        row.bare.p99, row.bare.p999, row.palpsim.p50 / row.bare.p50, row.palpsim.p99 / row.bare.p99, row.curve.p50,
-        row.curve.p99, row.curve.p999, row.curve.p50 / row.palpsim.p50, row.curve.p99 / row.palpsim.p99);
-    std::fflush(stdout);
+    print_row(row, o);
     rows.push_back(row);
   }
   // the servers' own receive-to-send times over every pose of the runs (decryption and
   // encryption happen in ZeroMQ's I/O thread, outside this time)
   const Quantiles service = service_time(server, {}), curve_service = service_time(curve_server, curve_setup);
-  for (const auto& [name, q] : {std::make_pair("", service), std::make_pair(" with CURVE", curve_service)})
-    std::printf("server-side service time%s (receive to send, 9 %% bins): p50 %.2f us, p99 %.2f us, p99.9 %.2f us, "
-                "max %.0f us over %zu poses\n",
-                name, q.p50, q.p99, q.p999, q.max, q.n);
+  print_service(service, curve_service);
   server.stop();
   curve_server.stop();
 
-  if (!o.json.empty()) {
-    std::ofstream f(o.json);
-    if (!f) throw Error("palpsim-bench haptic: cannot write --json " + o.json);
-    const std::time_t now = std::time(nullptr);
-    char date[32];
-    std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
-    f << "{\n  \"area\": \"haptic\",\n  \"date\": \"" << date << "\",\n  \"machine\": \"" << machine()
-      << "\",\n  \"patient\": {\"source\": \"" << patient->source << "\", \"size\": [" << patient->grid.size.x << ", "
-      << patient->grid.size.y << ", " << patient->grid.size.z << "], \"voxel_mm\": " << patient->grid.spacing_mm.x
-      << "},\n  \"force_model\": {\"poses\": " << model.ns.n << ", \"contact_fraction\": " << model.contact_fraction
-      << ", \"per_pose\": " << json_q(model.ns, "ns")
-      << ", \"per_pose_skin_point_line\": " << json_q(model_line.ns, "ns") << "},\n  \"messages\": {\"pose_bytes\": "
-      << req_bytes
-      << ", \"reply_bytes\": " << reply_bytes << "},\n  \"rate_hz\": " << o.rate_hz << ",\n  \"seconds_per_run\": "
-      << o.seconds << ",\n  \"server_service\": {\"n\": " << service.n << ", \"p50_us\": " << service.p50
-      << ", \"p99_us\": " << service.p99 << ", \"p999_us\": " << service.p999 << ", \"max_us\": " << service.max
-      << "},\n  \"server_service_curve\": {\"n\": " << curve_service.n << ", \"p50_us\": " << curve_service.p50
-      << ", \"p99_us\": " << curve_service.p99 << ", \"p999_us\": " << curve_service.p999
-      << ", \"max_us\": " << curve_service.max << "},\n  \"round_trip\": [\n";
-    for (std::size_t i = 0; i < rows.size(); ++i) {
-      const auto& r = rows[i];
-      const double r50 = r.palpsim.p50 / r.bare.p50, r99 = r.palpsim.p99 / r.bare.p99;
-      f << "    {\"clients\": " << r.clients << ", \"palpsim\": " << json_q(r.palpsim, "us")
-        << ", \"bare_zmq\": " << json_q(r.bare, "us") << ", \"palpsim_curve\": " << json_q(r.curve, "us")
-        << ", \"curve_over_plain_p50\": " << r.curve.p50 / r.palpsim.p50
-        << ", \"curve_over_plain_p99\": " << r.curve.p99 / r.palpsim.p99 << ", \"ratio_p50\": " << r50
-        << ", \"ratio_p99\": " << r99
-        << ", \"goal_met\": " << ((r50 <= 1.3 && r99 <= 1.3) ? "true" : "false") << "}"
-        << (i + 1 < rows.size() ? "," : "") << "\n";
-    }
-    f << "  ]\n}\n";
-    std::printf("wrote %s\n", o.json.c_str());
-  }
+  if (!o.json.empty())
+    write_json(o, *patient, model, model_line, req_bytes, reply_bytes, service, curve_service, rows);
   return 0;
 }
 

@@ -113,6 +113,36 @@ std::string json_stage(const StageRow& r) {
 
 // --- stages ---------------------------------------------------------------------------
 
+// every overlay writer and JPEG encoder this build and context can use (upload and cpu always)
+void available_writers_and_encoders(render::EglContext& ctx, std::vector<OverlayWriterChoice>& writers,
+                                    std::vector<JpegEncoderChoice>& encoders) {
+  writers = {OverlayWriterChoice::kUpload};
+  encoders = {JpegEncoderChoice::kCpu};
+  std::string note;
+  try {
+    render::make_overlay_writer(OverlayWriterChoice::kCudaGl, ctx, &note);
+    writers.push_back(OverlayWriterChoice::kCudaGl);
+  } catch (const std::exception& e) {
+    std::printf("overlay writer cuda-gl: not here (%s)\n", e.what());
+  }
+  try {
+    render::make_frame_encoder(JpegEncoderChoice::kNvjpeg, ctx, &note);
+    encoders.push_back(JpegEncoderChoice::kNvjpeg);
+  } catch (const std::exception& e) {
+    std::printf("jpeg encoder nvjpeg: not here (%s)\n", e.what());
+  }
+}
+
+// one configuration's stage times on stdout
+void print_stage_row(const StageRow& r) {
+  std::printf(
+      "%4dx%-4d %-7s %-9s %-11s %-22s J->tex %6.3f  raycast %7.3f  slices %6.3f  composite %6.3f  readback %6.3f"
+      "  encode %6.3f | render+encode %7.3f ms (p90 %7.3f)  %zu KB\n",
+      r.width, r.height, r.writer.c_str(), r.encoder.c_str(), r.preset.c_str(), r.label.c_str(), r.j_to_texture.median,
+      r.raycast.median, r.slices.median, r.composite.median, r.readback.median, r.encode.median,
+      r.render_encode.median, r.render_encode.p90, r.jpeg_bytes / 1024);
+}
+
 // frames of the phantom at each size, for each writer and encoder, while the deformation
 // steps a press that goes 2..12 mm deep and back between frames
 std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene, Options o,
@@ -130,21 +160,9 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
   std::unique_ptr<DeviceBytes> device_j;
 
   // every writer and encoder this build and context can use
-  std::vector<OverlayWriterChoice> writers{OverlayWriterChoice::kUpload};
-  std::vector<JpegEncoderChoice> encoders{JpegEncoderChoice::kCpu};
-  std::string note;
-  try {
-    render::make_overlay_writer(OverlayWriterChoice::kCudaGl, *ctx, &note);
-    writers.push_back(OverlayWriterChoice::kCudaGl);
-  } catch (const std::exception& e) {
-    std::printf("overlay writer cuda-gl: not here (%s)\n", e.what());
-  }
-  try {
-    render::make_frame_encoder(JpegEncoderChoice::kNvjpeg, *ctx, &note);
-    encoders.push_back(JpegEncoderChoice::kNvjpeg);
-  } catch (const std::exception& e) {
-    std::printf("jpeg encoder nvjpeg: not here (%s)\n", e.what());
-  }
+  std::vector<OverlayWriterChoice> writers;
+  std::vector<JpegEncoderChoice> encoders;
+  available_writers_and_encoders(*ctx, writers, encoders);
   const int frames = o.frames > 0 ? o.frames : (software ? 8 : 200);
   if (!o.sweep_set) o.sweep = !software;  // on llvmpipe the sweep takes minutes; ask for it with --sweep
   const int warmup = software ? 1 : 20;
@@ -215,12 +233,7 @@ std::vector<StageRow> bench_stages(const PatientPtr& patient, const Scene& scene
         r.total = spread(tt);
         r.jpeg_bytes = bytes;
         r.label = label;
-        std::printf(
-            "%4dx%-4d %-7s %-9s %-11s %-22s J->tex %6.3f  raycast %7.3f  slices %6.3f  composite %6.3f  readback %6.3f"
-            "  encode %6.3f | render+encode %7.3f ms (p90 %7.3f)  %zu KB\n",
-            w, h, r.writer.c_str(), r.encoder.c_str(), r.preset.c_str(), label.c_str(), r.j_to_texture.median,
-            r.raycast.median, r.slices.median, r.composite.median, r.readback.median, r.encode.median,
-            r.render_encode.median, r.render_encode.p90, bytes / 1024);
+        print_stage_row(r);
         rows.push_back(r);
   };
   // every writer and encoder at every size, the default quality and preset
@@ -445,8 +458,8 @@ std::vector<ServerRow> bench_server(const PatientPtr& patient, Scene scene, cons
   return rows;
 }
 
-int run(int argc, char** argv) {
-  Options o;
+// reads the command line into `o`; false after printing the usage (--help)
+bool parse_options(int argc, char** argv, Options& o) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&]() -> std::string {
@@ -518,11 +531,17 @@ int run(int argc, char** argv) {
           "                            [--viewers-nice N (server part: the viewer threads', 19)]\n"
           "                            [--no-server] [--sweep|--no-sweep (ray step x CT precision x preset;\n"
           "                            default: on a GPU only)]\n");
-      return 0;
+      return false;
     } else {
       throw Error("palpsim-bench render: unknown argument '" + a + "'");
     }
   }
+  return true;
+}
+
+int run(int argc, char** argv) {
+  Options o;
+  if (!parse_options(argc, argv, o)) return 0;
   const Scene scene = load_scene_file(o.scene);
   PrepReport report;
   const PatientPtr patient = prepare_patient(scene, &report);

@@ -75,8 +75,8 @@ struct Row {
   std::vector<double> ratios;          // per round: p99 with / p99 without deformation
 };
 
-int run(int argc, char** argv) {
-  Options o;
+// reads the command line into `o`; false after printing the usage (--help)
+bool parse_options(int argc, char** argv, Options& o) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&]() -> std::string {
@@ -108,11 +108,112 @@ int run(int argc, char** argv) {
           "                            [--voi EDGE (64)] [--backend auto|cpu|cuda] [--nice N (19)]\n"
           "                            [--background idle|nice (idle, as palpsim-server)] [--concurrency K] [--batch N (64)]\n"
           "                            [--scene FILE] [--json FILE] [--commit C]\n");
-      return 0;
+      return false;
     } else {
       throw Error("palpsim-bench server: unknown argument '" + a + "'");
     }
   }
+  return true;
+}
+
+// the servers' options: free loopback ports, the worker's priority, concurrency and batches;
+// one bench client opens every session, so its quota is the scene's max_sessions
+net::ServerOptions server_options(const Options& o, int max_sessions) {
+  net::ServerOptions so;
+  so.control_bind = "tcp://127.0.0.1:*";
+  so.pose_bind = "tcp://127.0.0.1:*";
+  so.stream_bind = "tcp://127.0.0.1:*";
+  so.deform_nice = o.nice;
+  so.background_idle = o.idle;
+  so.deform_concurrency = o.concurrency;
+  so.deform_batch = o.batch;
+  so.max_sessions_per_client = max_sessions;
+  return so;
+}
+
+// one session count's row on stdout: stage times, steps, batching, memory and round trips
+void print_row(const Row& r, const Options& o) {
+  const int n = r.sessions;
+  double gpu_ms = 0;  // the stages' sum: the step's share of the batch's GPU time
+  for (int k = 0; k < 5; ++k) gpu_ms += quantile(r.stage_ms[k], 0.5);
+  std::printf("%2d sessions: mean stage times per step (ms, a batch's share), medians over sessions: reset %.4f "
+              "ChainMail %.4f relax %.4f invert %.4f upload/counters %.4f, GPU %.4f of a %.4f ms step\n",
+              n, quantile(r.stage_ms[0], 0.5), quantile(r.stage_ms[1], 0.5), quantile(r.stage_ms[2], 0.5),
+              quantile(r.stage_ms[3], 0.5), quantile(r.stage_ms[4], 0.5), gpu_ms, quantile(r.step_ms, 0.5));
+  const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
+  std::printf(
+      "%2d sessions (%s, VOI %d, %s, %d in flight, batches of up to %d): steps/s per session min %.0f median %.0f "
+      "(in the body %.0f%% of the time: %.0f per second of contact); "
+      "%.0f%% of steps batched, %.1f sessions a batch; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
+      "memory %.1f MB per session, deformation server-wide %.1f MB; round trip p50 %.0f / p99 %.0f us with "
+      "deformation, p99 %.0f us without (ratio %.2f, median of %zu rounds)\n",
+      n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice", o.concurrency, o.batch,
+      r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()),
+      quantile(r.steps_per_s, 0.5), 100 * quantile(r.contact_share, 0.5), quantile(r.steps_per_contact_s, 0.5),
+      100 * r.batched_share, r.mean_batch, quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
+      100 * r.worker_sleep_share, own_mb,
+      r.server_bytes / (1 << 20), quantile(r.rtt_with, 0.5), quantile(r.rtt_with, 0.99),
+      quantile(r.rtt_without, 0.99), quantile(r.ratios, 0.5), r.ratios.size());
+  if (!r.solve_share.empty())
+    std::printf("%2d sessions: multigrid steps that solved (not reusing the unit response), median over sessions: %.1f%%\n",
+                n, 100 * quantile(r.solve_share, 0.5));
+}
+
+// memory per added session: the growth of the server's deformation memory over counts
+void print_memory_growth(const std::vector<Row>& rows) {
+  for (std::size_t i = 1; i < rows.size(); ++i) {
+    const double added = double(rows[i].sessions - rows[i - 1].sessions);
+    if (added > 0)
+      std::printf("memory per added session, %d -> %d sessions: %.1f MB\n", rows[i - 1].sessions, rows[i].sessions,
+                  (rows[i].server_bytes - rows[i - 1].server_bytes) / added / (1 << 20));
+  }
+}
+
+// the rows as --json
+void write_json(const Options& o, const std::vector<Row>& rows) {
+  std::ofstream out(o.json);
+  if (!out) throw Error("palpsim-bench server: cannot write --json " + o.json);
+  char date[32];
+  const std::time_t now = std::time(nullptr);
+  std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
+  out << "{\n  \"bench\": \"server\",\n  \"commit\": \"" << o.commit << "\",\n  \"date\": \"" << date
+      << "\",\n  \"machine\": \"" << machine()
+      << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"concurrency\": " << o.concurrency << ",\n  \"batch\": " << o.batch << ",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
+      << ",\n  \"rows\": [\n";
+  for (std::size_t i = 0; i < rows.size(); ++i) {
+    const Row& r = rows[i];
+    out << "    {\"sessions\": " << r.sessions << ", \"backend\": \"" << r.backend << "\", \"steps_per_s_min\": "
+        << json_number(r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()))
+        << ", \"steps_per_s_median\": " << json_number(quantile(r.steps_per_s, 0.5))
+        << ", \"contact_share_median\": " << json_number(quantile(r.contact_share, 0.5))
+        << ", \"steps_per_contact_s_median\": " << json_number(quantile(r.steps_per_contact_s, 0.5))
+        << ", \"multigrid_solve_share_median\": " << json_number(quantile(r.solve_share, 0.5))
+        << ", \"step_ms_median\": " << json_number(quantile(r.step_ms, 0.5))
+        << ", \"stage_ms_median\": {\"reset\": " << json_number(quantile(r.stage_ms[0], 0.5))
+        << ", \"chainmail\": " << json_number(quantile(r.stage_ms[1], 0.5))
+        << ", \"relax\": " << json_number(quantile(r.stage_ms[2], 0.5))
+        << ", \"invert\": " << json_number(quantile(r.stage_ms[3], 0.5))
+        << ", \"upload\": " << json_number(quantile(r.stage_ms[4], 0.5)) << "}"
+        << ", \"dropped_share_median\": " << json_number(quantile(r.dropped_share, 0.5))
+        << ", \"worker_step_share\": " << json_number(r.worker_step_share)
+        << ", \"worker_sleep_share\": " << json_number(r.worker_sleep_share)
+        << ", \"batched_share\": " << json_number(r.batched_share) << ", \"mean_batch\": " << json_number(r.mean_batch)
+        << ", \"own_bytes_median\": " << json_number(quantile(r.own_bytes, 0.5))
+        << ", \"deform_bytes_server\": " << json_number(r.server_bytes)
+        << ", \"rtt_p50_us_with\": " << json_number(quantile(r.rtt_with, 0.5))
+        << ", \"rtt_p99_us_with\": " << json_number(quantile(r.rtt_with, 0.99))
+        << ", \"rtt_p50_us_without\": " << json_number(quantile(r.rtt_without, 0.5))
+        << ", \"rtt_p99_us_without\": " << json_number(quantile(r.rtt_without, 0.99))
+        << ", \"rtt_p99_ratio_median_of_rounds\": " << json_number(quantile(r.ratios, 0.5)) << "}"
+        << (i + 1 < rows.size() ? ",\n" : "\n");
+  }
+  out << "  ]\n}\n";
+  std::printf("wrote %s\n", o.json.c_str());
+}
+
+int run(int argc, char** argv) {
+  Options o;
+  if (!parse_options(argc, argv, o)) return 0;
   const Scene base = load_scene_file(o.scene);
   PrepReport report;
   const PatientPtr patient = prepare_patient(base, &report);
@@ -130,15 +231,7 @@ int run(int argc, char** argv) {
   deform.server.max_sessions = std::max(deform.server.max_sessions, most);
   Scene plain = deform;
   plain.effects.chainmail = plain.effects.relaxation = plain.effects.inversion = false;
-  net::ServerOptions so;
-  so.control_bind = "tcp://127.0.0.1:*";
-  so.pose_bind = "tcp://127.0.0.1:*";
-  so.stream_bind = "tcp://127.0.0.1:*";
-  so.deform_nice = o.nice;
-  so.background_idle = o.idle;
-  so.deform_concurrency = o.concurrency;
-  so.deform_batch = o.batch;
-  so.max_sessions_per_client = deform.server.max_sessions;  // one bench client opens every session
+  const net::ServerOptions so = server_options(o, deform.server.max_sessions);
   net::Server with(deform, patient, nullptr, so), without(plain, patient, nullptr, so);
   with.start();
   without.start();
@@ -221,83 +314,15 @@ int run(int argc, char** argv) {
     row.batched_share = steps > 0 ? batched / steps : 0.0;
     row.mean_batch = batches > 0 ? batched / batches : 1.0;
     rows.push_back(row);
-    const Row& r = rows.back();
-    double gpu_ms = 0;  // the stages' sum: the step's share of the batch's GPU time
-    for (int k = 0; k < 5; ++k) gpu_ms += quantile(r.stage_ms[k], 0.5);
-    std::printf("%2d sessions: mean stage times per step (ms, a batch's share), medians over sessions: reset %.4f "
-                "ChainMail %.4f relax %.4f invert %.4f upload/counters %.4f, GPU %.4f of a %.4f ms step\n",
-                n, quantile(r.stage_ms[0], 0.5), quantile(r.stage_ms[1], 0.5), quantile(r.stage_ms[2], 0.5),
-                quantile(r.stage_ms[3], 0.5), quantile(r.stage_ms[4], 0.5), gpu_ms, quantile(r.step_ms, 0.5));
-    const double own_mb = quantile(r.own_bytes, 0.5) / (1 << 20);
-    std::printf(
-        "%2d sessions (%s, VOI %d, %s, %d in flight, batches of up to %d): steps/s per session min %.0f median %.0f "
-        "(in the body %.0f%% of the time: %.0f per second of contact); "
-        "%.0f%% of steps batched, %.1f sessions a batch; step %.3f ms; dropped %.0f%%; worker in steps %.0f%%, napping %.0f%%; own "
-        "memory %.1f MB per session, deformation server-wide %.1f MB; round trip p50 %.0f / p99 %.0f us with "
-        "deformation, p99 %.0f us without (ratio %.2f, median of %zu rounds)\n",
-        n, r.backend.c_str(), o.voi_edge, o.idle ? "SCHED_IDLE" : "nice", o.concurrency, o.batch,
-        r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()),
-        quantile(r.steps_per_s, 0.5), 100 * quantile(r.contact_share, 0.5), quantile(r.steps_per_contact_s, 0.5),
-        100 * r.batched_share, r.mean_batch, quantile(r.step_ms, 0.5), 100 * quantile(r.dropped_share, 0.5), 100 * r.worker_step_share,
-        100 * r.worker_sleep_share, own_mb,
-        r.server_bytes / (1 << 20), quantile(r.rtt_with, 0.5), quantile(r.rtt_with, 0.99),
-        quantile(r.rtt_without, 0.99), quantile(r.ratios, 0.5), r.ratios.size());
-    if (!r.solve_share.empty())
-      std::printf("%2d sessions: multigrid steps that solved (not reusing the unit response), median over sessions: %.1f%%\n",
-                  n, 100 * quantile(r.solve_share, 0.5));
+    print_row(rows.back(), o);
     std::fflush(stdout);
   }
   with.stop();
   without.stop();
 
-  // memory per added session: the growth of the server's deformation memory over counts
-  for (std::size_t i = 1; i < rows.size(); ++i) {
-    const double added = double(rows[i].sessions - rows[i - 1].sessions);
-    if (added > 0)
-      std::printf("memory per added session, %d -> %d sessions: %.1f MB\n", rows[i - 1].sessions, rows[i].sessions,
-                  (rows[i].server_bytes - rows[i - 1].server_bytes) / added / (1 << 20));
-  }
+  print_memory_growth(rows);
 
-  if (!o.json.empty()) {
-    std::ofstream out(o.json);
-    if (!out) throw Error("palpsim-bench server: cannot write --json " + o.json);
-    char date[32];
-    const std::time_t now = std::time(nullptr);
-    std::strftime(date, sizeof date, "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
-    out << "{\n  \"bench\": \"server\",\n  \"commit\": \"" << o.commit << "\",\n  \"date\": \"" << date
-        << "\",\n  \"machine\": \"" << machine()
-        << "\",\n  \"background\": \"" << (o.idle ? "idle" : "nice") << "\",\n  \"concurrency\": " << o.concurrency << ",\n  \"batch\": " << o.batch << ",\n  \"voi_edge\": " << o.voi_edge << ",\n  \"seconds\": " << json_number(o.seconds)
-        << ",\n  \"rows\": [\n";
-    for (std::size_t i = 0; i < rows.size(); ++i) {
-      const Row& r = rows[i];
-      out << "    {\"sessions\": " << r.sessions << ", \"backend\": \"" << r.backend << "\", \"steps_per_s_min\": "
-          << json_number(r.steps_per_s.empty() ? 0.0 : *std::min_element(r.steps_per_s.begin(), r.steps_per_s.end()))
-          << ", \"steps_per_s_median\": " << json_number(quantile(r.steps_per_s, 0.5))
-          << ", \"contact_share_median\": " << json_number(quantile(r.contact_share, 0.5))
-          << ", \"steps_per_contact_s_median\": " << json_number(quantile(r.steps_per_contact_s, 0.5))
-          << ", \"multigrid_solve_share_median\": " << json_number(quantile(r.solve_share, 0.5))
-          << ", \"step_ms_median\": " << json_number(quantile(r.step_ms, 0.5))
-          << ", \"stage_ms_median\": {\"reset\": " << json_number(quantile(r.stage_ms[0], 0.5))
-          << ", \"chainmail\": " << json_number(quantile(r.stage_ms[1], 0.5))
-          << ", \"relax\": " << json_number(quantile(r.stage_ms[2], 0.5))
-          << ", \"invert\": " << json_number(quantile(r.stage_ms[3], 0.5))
-          << ", \"upload\": " << json_number(quantile(r.stage_ms[4], 0.5)) << "}"
-          << ", \"dropped_share_median\": " << json_number(quantile(r.dropped_share, 0.5))
-          << ", \"worker_step_share\": " << json_number(r.worker_step_share)
-          << ", \"worker_sleep_share\": " << json_number(r.worker_sleep_share)
-          << ", \"batched_share\": " << json_number(r.batched_share) << ", \"mean_batch\": " << json_number(r.mean_batch)
-          << ", \"own_bytes_median\": " << json_number(quantile(r.own_bytes, 0.5))
-          << ", \"deform_bytes_server\": " << json_number(r.server_bytes)
-          << ", \"rtt_p50_us_with\": " << json_number(quantile(r.rtt_with, 0.5))
-          << ", \"rtt_p99_us_with\": " << json_number(quantile(r.rtt_with, 0.99))
-          << ", \"rtt_p50_us_without\": " << json_number(quantile(r.rtt_without, 0.5))
-          << ", \"rtt_p99_us_without\": " << json_number(quantile(r.rtt_without, 0.99))
-          << ", \"rtt_p99_ratio_median_of_rounds\": " << json_number(quantile(r.ratios, 0.5)) << "}"
-          << (i + 1 < rows.size() ? ",\n" : "\n");
-    }
-    out << "  ]\n}\n";
-    std::printf("wrote %s\n", o.json.c_str());
-  }
+  if (!o.json.empty()) write_json(o, rows);
   return 0;
 }
 

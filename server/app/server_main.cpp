@@ -78,27 +78,16 @@ int fail(const std::string& what) {
   return 1;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  // big blocks go back to the system when freed (runtime/heap_trimmer.h says why)
-  palpsim::runtime::configure_heap();
-  // cuda's deformation backend, nvJPEG encoder and overlay writer, in a CUDA build
-  palpsim::register_linked_backends();
-
-  // SIGINT and SIGTERM are taken by sigwait below; every thread started later inherits the mask
-  sigset_t stop_signals;
-  sigemptyset(&stop_signals);
-  sigaddset(&stop_signals, SIGINT);
-  sigaddset(&stop_signals, SIGTERM);
-  pthread_sigmask(SIG_BLOCK, &stop_signals, nullptr);
-
-  // log lines go to stderr; stdout carries only the 'ready on' and 'stopped' lines for scripts
-  spdlog::set_default_logger(spdlog::stderr_color_mt("palpsim-server"));
-
-  // command line
+// what the command line asks for
+struct CommandLine {
   std::string scene_file, curve_secret_file, curve_public_file, allow_file, cache_dir;
   palpsim::net::ServerOptions options;
+};
+
+// reads the command line into `cl`; -1 to go on, else the exit status (0: --help; 2: a bad
+// option, said with the usage)
+int parse_command_line(int argc, char** argv, CommandLine& cl) {
+  palpsim::net::ServerOptions& options = cl.options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&](const char* name) -> std::string {
@@ -119,19 +108,19 @@ int main(int argc, char** argv) {
         std::fputs(kUsage, stdout);
         return 0;
       } else if (a == "--scene") {
-        scene_file = value("--scene");
+        cl.scene_file = value("--scene");
       } else if (a == "--curve-secret") {
-        curve_secret_file = value("--curve-secret");
+        cl.curve_secret_file = value("--curve-secret");
       } else if (a == "--curve-public") {
-        curve_public_file = value("--curve-public");
+        cl.curve_public_file = value("--curve-public");
       } else if (a == "--allow") {
-        allow_file = value("--allow");
+        cl.allow_file = value("--allow");
       } else if (a == "--insecure") {
         options.insecure = true;
       } else if (a == "--scene-dir") {
         options.scene_dirs.push_back(value("--scene-dir"));
       } else if (a == "--cache-dir") {
-        cache_dir = value("--cache-dir");
+        cl.cache_dir = value("--cache-dir");
       } else if (a == "--bind") {
         options.control_bind = value("--bind");
       } else if (a == "--pose-bind") {
@@ -175,30 +164,66 @@ int main(int argc, char** argv) {
       return 2;
     }
   }
+  return -1;
+}
+
+// refuses folders that do not exist and bad key files (throws palpsim::Error saying which),
+// and takes the CURVE keys into the options
+void check_files_and_keys(CommandLine& cl) {
+  palpsim::net::ServerOptions& options = cl.options;
+  const std::string &curve_secret_file = cl.curve_secret_file, &curve_public_file = cl.curve_public_file,
+                    &allow_file = cl.allow_file;
+  palpsim::PathPolicy check(options.scene_dirs);
+  if (curve_secret_file.empty() != allow_file.empty())
+    throw palpsim::Error(curve_secret_file.empty() ? "--allow needs --curve-secret (the server's secret key)"
+                                                   : "--curve-secret needs --allow (the client keys admitted)");
+  if (!curve_public_file.empty() && curve_secret_file.empty())
+    throw palpsim::Error("--curve-public needs --curve-secret (the public key is checked against it)");
+  if (!curve_secret_file.empty()) {
+    if (!palpsim::net::curve_available())
+      throw palpsim::Error("--curve-secret: this libzmq has no CURVE (zmq_has(\"curve\") is false)");
+    const auto pair = palpsim::net::read_secret_key_file(curve_secret_file, curve_public_file);
+    options.curve_secret_key = pair.secret_key;
+    options.curve_allowed_keys = palpsim::net::read_allow_list(allow_file);
+    // the server's own secret key on its list: it is no longer secret
+    for (const std::string& k : options.curve_allowed_keys)
+      if (k == pair.secret_key)
+        throw palpsim::Error(allow_file + ": holds the server's own secret key (" + curve_secret_file +
+                             "); an allow-list holds the clients' public keys, and this secret key is no longer " +
+                             "private: make the server a new pair");
+    spdlog::info("CURVE on every endpoint: server public key {}, {} client key(s) allowed from {}", pair.public_key,
+                 options.curve_allowed_keys.size(), allow_file);
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  // big blocks go back to the system when freed (runtime/heap_trimmer.h says why)
+  palpsim::runtime::configure_heap();
+  // cuda's deformation backend, nvJPEG encoder and overlay writer, in a CUDA build
+  palpsim::register_linked_backends();
+
+  // SIGINT and SIGTERM are taken by sigwait below; every thread started later inherits the mask
+  sigset_t stop_signals;
+  sigemptyset(&stop_signals);
+  sigaddset(&stop_signals, SIGINT);
+  sigaddset(&stop_signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &stop_signals, nullptr);
+
+  // log lines go to stderr; stdout carries only the 'ready on' and 'stopped' lines for scripts
+  spdlog::set_default_logger(spdlog::stderr_color_mt("palpsim-server"));
+
+  // command line
+  CommandLine cl;
+  if (const int status = parse_command_line(argc, argv, cl); status >= 0) return status;
+  palpsim::net::ServerOptions& options = cl.options;
+  const std::string& scene_file = cl.scene_file;
+  std::string& cache_dir = cl.cache_dir;
 
   // folders that do not exist and bad key files are refused before the patient is prepared
   try {
-    palpsim::PathPolicy check(options.scene_dirs);
-    if (curve_secret_file.empty() != allow_file.empty())
-      throw palpsim::Error(curve_secret_file.empty() ? "--allow needs --curve-secret (the server's secret key)"
-                                                     : "--curve-secret needs --allow (the client keys admitted)");
-    if (!curve_public_file.empty() && curve_secret_file.empty())
-      throw palpsim::Error("--curve-public needs --curve-secret (the public key is checked against it)");
-    if (!curve_secret_file.empty()) {
-      if (!palpsim::net::curve_available())
-        throw palpsim::Error("--curve-secret: this libzmq has no CURVE (zmq_has(\"curve\") is false)");
-      const auto pair = palpsim::net::read_secret_key_file(curve_secret_file, curve_public_file);
-      options.curve_secret_key = pair.secret_key;
-      options.curve_allowed_keys = palpsim::net::read_allow_list(allow_file);
-      // the server's own secret key on its list: it is no longer secret
-      for (const std::string& k : options.curve_allowed_keys)
-        if (k == pair.secret_key)
-          throw palpsim::Error(allow_file + ": holds the server's own secret key (" + curve_secret_file +
-                               "); an allow-list holds the clients' public keys, and this secret key is no longer " +
-                               "private: make the server a new pair");
-      spdlog::info("CURVE on every endpoint: server public key {}, {} client key(s) allowed from {}", pair.public_key,
-                   options.curve_allowed_keys.size(), allow_file);
-    }
+    check_files_and_keys(cl);
   } catch (const std::exception& e) {
     return fail(std::string("cannot start: ") + e.what());
   }

@@ -202,6 +202,15 @@ struct DeformStats {
   deform::ElasticRun elastic;        // the elastic model's solve, contact and force (relax_method "elastic"; all 0 otherwise)
   DeformTimes times;
   int batch = 1;                     // sessions stepped by the same launches (DeformBackend::begin_steps); 1: alone
+
+  /// Takes the inversion's figures into the step's (every backend's step, batched or not).
+  void take_inversion(const InvertStats& inv) {
+    invert_residual_vox = inv.max_residual_vox;
+    invert_unresolved = inv.unresolved;
+    invert_searched = inv.searched;
+    invert_max_change = inv.max_change;
+    invert_nonfinite = inv.nonfinite;
+  }
 };
 
 /// What DeformBackend::prime() did.

@@ -178,11 +178,7 @@ DeformStats CpuDeformBackend::step_impl(const ChainMailStats& setup) {
   if (config_.invert) {
     t0 = clock::now();
     const InvertStats inv = invert_impl();
-    out.invert_residual_vox = inv.max_residual_vox;
-    out.invert_unresolved = inv.unresolved;
-    out.invert_searched = inv.searched;
-    out.invert_max_change = inv.max_change;
-    out.invert_nonfinite = inv.nonfinite;
+    out.take_inversion(inv);
     out.times.invert_ms = ms_since(t0);
     t0 = clock::now();
     upload_impl();

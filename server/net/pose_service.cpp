@@ -150,21 +150,38 @@ class PoseService {
     if (slot) slot->errors.fetch_add(1, std::memory_order_relaxed);
   }
 
+  // one PoseRequest: checked, its force computed, answered and handed to the deformation path
   void handle(const char* data, std::size_t len, std::size_t full_len, std::int64_t t_recv, bool req_envelope) {
     rep_.Clear();
     patch_ = nullptr;
+    SessionSlot* slot = parse_request(data, len, full_len) ? open_session() : nullptr;
+    if (!slot) return send(req_envelope);
+    slot->last_seen_ns.store(t_recv, std::memory_order_relaxed);
+    slot->last_used_ns.store(t_recv, std::memory_order_relaxed);
+    if (!check_pose(*slot)) return send(req_envelope);
+    const Vec3 tip{req_.tip_mm().x(), req_.tip_mm().y(), req_.tip_mm().z()};
+    refresh_state(*slot, t_recv);
+    const double now_s = t_recv * 1e-9;
+    const double dt = pose_dt(*slot, now_s);
+    const ForceSample f = force(*slot, tip, dt, now_s);
+    reply(*slot, tip, f, t_recv);
+    send(req_envelope);
+  }
+
+  // size, parse, version; false: refused (rep_ says why)
+  bool parse_request(const char* data, std::size_t len, std::size_t full_len) {
     char msg[256];
     // size, parse, version
     if (full_len > kMaxPoseBytes) {
       std::snprintf(msg, sizeof msg, "PoseRequest: %zu bytes, over the pose path's limit of %zu bytes", full_len,
                     kMaxPoseBytes);
       refuse(v1::ERROR_OVERSIZED, sh_.counters.oversized, msg, nullptr);
-      return send(req_envelope);
+      return false;
     }
     if (!req_.ParseFromArray(data, int(len))) {
       std::snprintf(msg, sizeof msg, "PoseRequest: %zu bytes do not parse (truncated, or not a PoseRequest)", len);
       refuse(v1::ERROR_MALFORMED, sh_.counters.malformed, msg, nullptr);
-      return send(req_envelope);
+      return false;
     }
     rep_.set_seq(req_.seq());
     rep_.set_session_id(req_.session_id());
@@ -173,12 +190,18 @@ class PoseService {
       std::snprintf(msg, sizeof msg, "PoseRequest.schema_version: got %u, this server speaks %d", req_.schema_version(),
                     int(v1::VERSION_CURRENT));
       refuse(v1::ERROR_WRONG_SCHEMA_VERSION, sh_.counters.wrong_schema_version, msg, nullptr);
-      return send(req_envelope);
+      return false;
     }
     if (!req_.has_tip_mm()) {
       refuse(v1::ERROR_MALFORMED, sh_.counters.malformed, "PoseRequest.tip_mm: missing", nullptr);
-      return send(req_envelope);
+      return false;
     }
+    return true;
+  }
+
+  // the session of req_ when it is open and this client's; nullptr: refused
+  SessionSlot* open_session() {
+    char msg[256];
     // the session: its slot index is in the id's low bits, and the slot must hold this id
     const std::uint64_t id = req_.session_id();
     SessionSlot* slot = &sh_.slots[id & (kMaxSlots - 1)];
@@ -187,30 +210,33 @@ class PoseService {
                     "PoseRequest.session_id: %016" PRIx64 " is not an open session (never opened, closed, or timed out)",
                     id);
       refuse(v1::ERROR_UNKNOWN_SESSION, sh_.counters.unknown_session, msg, nullptr);
-      return send(req_envelope);
+      return nullptr;
     }
     // with CURVE only the key that opened the session may pose for it
     if (!slot->key_may_act(has_user_ ? user_ : nullptr)) {
       std::snprintf(msg, sizeof msg, "PoseRequest.session_id: %016" PRIx64 " belongs to another client's key", id);
       refuse(v1::ERROR_NOT_OWNER, sh_.counters.not_owner, msg, nullptr);
-      return send(req_envelope);
+      return nullptr;
     }
-    slot->last_seen_ns.store(t_recv, std::memory_order_relaxed);
-    slot->last_used_ns.store(t_recv, std::memory_order_relaxed);
-    // the pose itself
+    return slot;
+  }
+
+  // the pose itself and its patch request; false: refused
+  bool check_pose(SessionSlot& slot) {
+    char msg[256];
     const Vec3 tip{req_.tip_mm().x(), req_.tip_mm().y(), req_.tip_mm().z()};
     if (!is_finite(tip)) {
       std::snprintf(msg, sizeof msg, "PoseRequest.tip_mm: (%g, %g, %g) is not finite", tip.x, tip.y, tip.z);
-      refuse(v1::ERROR_BAD_POSE, sh_.counters.bad_pose, msg, slot);
-      return send(req_envelope);
+      refuse(v1::ERROR_BAD_POSE, sh_.counters.bad_pose, msg, &slot);
+      return false;
     }
     const double away_mm = box_distance_mm(tip, world_->bounds_min_mm, world_->bounds_max_mm);
     if (away_mm > sh_.max_pose_distance_mm) {
       std::snprintf(msg, sizeof msg,
                     "PoseRequest.tip_mm: (%g, %g, %g) is %.0f mm from the patient, over the limit of %.0f mm", tip.x,
                     tip.y, tip.z, away_mm, sh_.max_pose_distance_mm);
-      refuse(v1::ERROR_ABSURD_POSE, sh_.counters.absurd_pose, msg, slot);
-      return send(req_envelope);
+      refuse(v1::ERROR_ABSURD_POSE, sh_.counters.absurd_pose, msg, &slot);
+      return false;
     }
     // a request for patches names a size and a period within their ranges
     const std::uint32_t edge = req_.local_model_edge();
@@ -218,58 +244,76 @@ class PoseService {
     if (edge != 0 && (edge < kMinPatchEdge || edge > kMaxPatchEdge)) {
       std::snprintf(msg, sizeof msg, "PoseRequest.local_model_edge: %u voxels, outside %d..%d (0: no patches)", edge,
                     kMinPatchEdge, kMaxPatchEdge);
-      refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, msg, slot);
-      return send(req_envelope);
+      refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, msg, &slot);
+      return false;
     }
     if (edge != 0 && !(period >= kMinPatchPeriodS && period <= kMaxPatchPeriodS)) {
       std::snprintf(msg, sizeof msg, "PoseRequest.local_model_period_s: %g s, outside %g..%g s", period,
                     kMinPatchPeriodS, kMaxPatchPeriodS);
-      refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, msg, slot);
-      return send(req_envelope);
+      refuse(v1::ERROR_BAD_PARAMETER, sh_.counters.bad_parameter, msg, &slot);
+      return false;
     }
-    // a new session in this slot, a reset, or a new world: a fresh proxy state
-    const std::uint32_t resets = slot->reset_requests.load(std::memory_order_acquire);
-    if (slot->state_id != id || slot->resets_seen != resets || slot->state_generation != world_->generation ||
+    return true;
+  }
+
+  // a new session in this slot, a reset, or a new world: a fresh proxy state
+  void refresh_state(SessionSlot& slot, std::int64_t t_recv) {
+    const std::uint64_t id = req_.session_id();
+    const std::uint32_t resets = slot.reset_requests.load(std::memory_order_acquire);
+    if (slot.state_id != id || slot.resets_seen != resets || slot.state_generation != world_->generation ||
         req_.reset_proxy()) {
-      if (slot->state_id != id) {
-        slot->latest.clear();
-        slot->patch_version = 0;
+      if (slot.state_id != id) {
+        slot.latest.clear();
+        slot.patch_version = 0;
       }
-      slot->patch_sent_s = -1;  // a fresh state gets a fresh patch with its next pose
-      slot->state_id = id;
-      slot->resets_seen = resets;
-      slot->state_generation = world_->generation;
-      slot->proxy = ProxyState{};
-      slot->elastic = ElasticRenderState{};
-      slot->elastic.left_s = t_recv * 1e-9;  // models of poses before the reset are not taken
-      slot->passivity = PassivityObserver{};
-      slot->last_client_time_s = 0;
-      slot->last_server_time_s = 0;
+      slot.patch_sent_s = -1;  // a fresh state gets a fresh patch with its next pose
+      slot.state_id = id;
+      slot.resets_seen = resets;
+      slot.state_generation = world_->generation;
+      slot.proxy = ProxyState{};
+      slot.elastic = ElasticRenderState{};
+      slot.elastic.left_s = t_recv * 1e-9;  // models of poses before the reset are not taken
+      slot.passivity = PassivityObserver{};
+      slot.last_client_time_s = 0;
+      slot.last_server_time_s = 0;
       // the deformation worker resets the session's deformation too
-      if (req_.reset_proxy()) slot->pose_resets.fetch_add(1, std::memory_order_release);
+      if (req_.reset_proxy()) slot.pose_resets.fetch_add(1, std::memory_order_release);
     }
-    // dt from the client's clock when it grows, else from the server's
-    const double now_s = t_recv * 1e-9;
+  }
+
+  // dt from the client's clock when it grows, else from the server's (s)
+  double pose_dt(SessionSlot& slot, double now_s) {
     const double tc = req_.client_time_s();
     double dt = 0;
-    if (tc > 0 && slot->last_client_time_s > 0 && tc > slot->last_client_time_s)
-      dt = tc - slot->last_client_time_s;
-    else if (slot->last_server_time_s > 0)
-      dt = now_s - slot->last_server_time_s;
-    slot->last_client_time_s = tc;
-    slot->last_server_time_s = now_s;
+    if (tc > 0 && slot.last_client_time_s > 0 && tc > slot.last_client_time_s)
+      dt = tc - slot.last_client_time_s;
+    else if (slot.last_server_time_s > 0)
+      dt = now_s - slot.last_server_time_s;
+    slot.last_client_time_s = tc;
+    slot.last_server_time_s = now_s;
+    return dt;
+  }
 
-    HapticsSettings params = slot->params();
+  // the force on the hand, the passivity observer and the patches asked for
+  ForceSample force(SessionSlot& slot, const Vec3& tip, double dt, double now_s) {
+    const double tc = req_.client_time_s();
+    const std::uint32_t edge = req_.local_model_edge();
+    const double period = req_.local_model_period_s();
+    HapticsSettings params = slot.params();
     params.skin_point = world_->scene.haptics.skin_point;  // scene-wide, not a session parameter
-    ForceSample f = compute_force(*world_->patient, params, tip, dt, slot->proxy);
+    ForceSample f = compute_force(*world_->patient, params, tip, dt, slot.proxy);
     const bool elastic = world_->scene.haptics.force_model == ForceModel::kElastic;
-    if (elastic) render_elastic_force(*slot, params, tip, dt, now_s, f);
-    observe_passivity(*slot, tip, elastic, f);
-    if (edge != 0) serve_patches(*slot, params, tip, edge, period, now_s, tc);
-    slot->renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);
-    if (req_.renders_locally()) slot->local_poses.fetch_add(1, std::memory_order_relaxed);
+    if (elastic) render_elastic_force(slot, params, tip, dt, now_s, f);
+    observe_passivity(slot, tip, elastic, f);
+    if (edge != 0) serve_patches(slot, params, tip, edge, period, now_s, tc);
+    slot.renders_locally.store(req_.renders_locally(), std::memory_order_relaxed);
+    if (req_.renders_locally()) slot.local_poses.fetch_add(1, std::memory_order_relaxed);
+    return f;
+  }
 
-    // the reply
+  // the reply, statistics and the hand-over to the deformation path
+  void reply(SessionSlot& slot, const Vec3& tip, const ForceSample& f, std::int64_t t_recv) {
+    const std::uint64_t id = req_.session_id();
     rep_.set_schema_version(v1::VERSION_CURRENT);
     set_vec(rep_.mutable_force_n(), f.force_n);
     set_vec(rep_.mutable_proxy_mm(), f.proxy_mm);
@@ -281,11 +325,11 @@ class PoseService {
     const double service_us = (t_done - t_recv) * 1e-3;
     rep_.set_service_time_us(service_us);
     // statistics and the hand-over to the deformation path
-    slot->poses.fetch_add(1, std::memory_order_relaxed);
-    slot->last_seq.store(req_.seq(), std::memory_order_relaxed);
-    slot->contact.store(f.contact, std::memory_order_relaxed);
-    slot->depth_mm.store(f.depth_mm, std::memory_order_relaxed);
-    if (f.clamped) slot->clamps.fetch_add(1, std::memory_order_relaxed);
+    slot.poses.fetch_add(1, std::memory_order_relaxed);
+    slot.last_seq.store(req_.seq(), std::memory_order_relaxed);
+    slot.contact.store(f.contact, std::memory_order_relaxed);
+    slot.depth_mm.store(f.depth_mm, std::memory_order_relaxed);
+    if (f.clamped) slot.clamps.fetch_add(1, std::memory_order_relaxed);
     if (f.reset) sh_.counters.internal_errors.fetch_add(1, std::memory_order_relaxed);
     Contact c;
     c.tip_mm = tip;
@@ -296,10 +340,9 @@ class PoseService {
     c.seq = req_.seq();
     c.session_id = id;
     c.server_time_s = t_done * 1e-9;
-    slot->latest.write(c);
+    slot.latest.write(c);
     sh_.counters.poses.fetch_add(1, std::memory_order_relaxed);
     sh_.pose_service.add(service_us);
-    send(req_envelope);
   }
 
   // haptics.force_model "elastic": eq. 2's pass above gave contact, X and depth; the force is

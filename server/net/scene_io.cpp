@@ -149,6 +149,142 @@ std::string resolve_ct_path(const std::string& raw, const std::string& origin) {
   return (p.is_absolute() ? p : base / p).lexically_normal().string();
 }
 
+// prep: how the CT becomes a patient
+PrepSettings to_prep(const v1::Prep& p, const std::string& origin) {
+  PrepSettings out;
+  out.spacing_mm = p.spacing_mm();
+  out.air_threshold = p.air_threshold();
+  out.bone_threshold = p.bone_threshold();
+  out.air_threshold_set = p.has_air_threshold();
+  out.bone_threshold_set = p.has_bone_threshold();
+  out.bone_min_volume_ml = p.bone_min_volume_ml();
+  out.bone_closing_mm = p.bone_closing_mm();
+  out.bone_fill_holes = p.bone_fill_holes();
+  out.max_memory_mb = p.max_memory_mb();
+  out.dicom_series_uid = p.dicom_series_uid();
+  out.cache_dir = p.cache_dir();
+  out.use_cache = p.use_cache();
+  out.body_opening_mm = p.body_opening_mm();
+  out.body_min_part_ml = p.body_min_part_ml();
+  out.cut_faces = named_setting<CutFaces>(origin, p.cut_faces());
+  out.contrast = named_setting<ContrastAs>(origin, p.contrast());
+  return out;
+}
+
+// haptics: the force model and its limits
+HapticsSettings to_haptics(const v1::Haptics& h, const std::string& origin) {
+  HapticsSettings out;
+  out.stiffness_n_per_mm = h.stiffness_n_per_mm();
+  out.friction = h.friction();
+  out.max_force_n = h.max_force_n();
+  out.max_force_rate_n_per_s = h.max_force_rate_n_per_s();
+  out.min_gradient_norm = h.min_gradient_norm();
+  out.skin_point = named_setting<SkinPointRule>(origin, h.skin_point());
+  out.force_model = named_setting<ForceModel>(origin, h.force_model());
+  out.elastic_max_jump_n = h.elastic_max_jump_n();
+  out.passivity = h.passivity();
+  return out;
+}
+
+// deform.elastic: the table as given (checked with the rest of deform by
+// check_deform_config, which names the field), the defaults where it is left out
+void read_elastic(const v1::Elastic& el, ElasticSettings& out) {
+  if (el.has_modulus()) {
+    out.modulus.clear();
+    for (const auto& pt : el.modulus().point()) out.modulus.push_back({pt.hu(), pt.e_kpa()});
+  }
+  out.skin_e_kpa = el.skin_e_kpa();
+  out.skin_thickness_mm = el.skin_thickness_mm();
+  out.poisson = el.poisson();
+  out.max_iterations = el.max_iterations();
+  out.tolerance = el.tolerance();
+  out.contact_rounds = el.contact_rounds();
+  out.predict = el.predict();
+  out.stiffness_tolerance = el.stiffness_tolerance();
+}
+
+// deform: the preset's ChainMail limits, the fields given over them, the rest as given
+DeformSettings to_deform(const v1::Deform& d, const std::string& origin) {
+  DeformSettings out;
+  if (d.preset() == v1::Deform::P2) {
+    out.min_dist = 0.25, out.max_dist = 1.5, out.max_sheer = 1.0;
+  } else {
+    out.min_dist = 0.5, out.max_dist = 1.5, out.max_sheer = 0.5;
+  }
+  if (d.has_min_dist()) out.min_dist = d.min_dist();
+  if (d.has_max_dist()) out.max_dist = d.max_dist();
+  if (d.has_max_sheer()) out.max_sheer = d.max_sheer();
+  if (out.min_dist >= out.max_dist)
+    throw Error(origin + ": deform.min_dist (" + fmt(out.min_dist) + ") must be below deform.max_dist (" +
+                fmt(out.max_dist) + ")");
+  out.voi_edge = d.voi_edge();
+  out.whole_volume = d.whole_volume();
+  out.max_sweeps = d.max_sweeps();
+  out.relax_iterations = d.relax_iterations();
+  out.relax_step = d.relax_step();
+  out.relax_method = named_setting<RelaxMethod>(origin, d.relax_method());
+  out.relax_cycles = d.relax_cycles();
+  out.relax_warm_cycles = d.relax_warm_cycles();
+  out.grab_radius_mm = d.grab_radius_mm();
+  out.material_width = d.material_width();
+  out.invert_iterations = d.invert_iterations();
+  out.untangle = d.untangle();
+  out.invert_search = d.invert_search();
+  out.backend = named_setting<DeformBackendChoice>(origin, d.backend());
+  read_elastic(d.elastic(), out.elastic);
+  return out;
+}
+
+// effects, and the settings they need from the rest of the scene
+EffectsSettings to_effects(const v1::Scene& s, const Scene& scene, const std::string& origin) {
+  EffectsSettings out;
+  const auto& e = s.effects();
+  out.haptics = e.haptics();
+  out.chainmail = e.chainmail();
+  out.relaxation = e.relaxation();
+  out.inversion = e.inversion();
+  out.frames = e.frames();
+  out.bricks = e.bricks();
+  if ((out.relaxation || out.inversion) && !out.chainmail)
+    throw Error(origin + ": effects.relaxation and effects.inversion need effects.chainmail: true");
+  // the elastic force is the elastic step's reaction: without that step there is none to render
+  if (scene.haptics.force_model == ForceModel::kElastic) {
+    if (scene.deform.relax_method != RelaxMethod::kElastic)
+      throw Error(origin + ": haptics.force_model = \"elastic\" needs deform.relax_method = \"elastic\" (got \"" +
+                  s.deform().relax_method() + "\"): the force is the elastic step's reaction on the fingertip");
+    if (!out.chainmail || !out.relaxation)
+      throw Error(origin +
+                  ": haptics.force_model = \"elastic\" needs effects.chainmail: true and effects.relaxation: true "
+                  "(the deformation worker's elastic step computes the force)");
+  }
+  return out;
+}
+
+// frames and bricks: names checked here so a bad scene is refused with its file
+RenderSettings to_render(const v1::Render& r, const std::string& origin) {
+  RenderSettings out;
+  out.width = r.width();
+  out.height = r.height();
+  out.preset = named_setting<RenderPreset>(origin, r.preset());
+  out.azimuth_deg = r.azimuth_deg();
+  out.elevation_deg = r.elevation_deg();
+  out.zoom = r.zoom();
+  out.jpeg_quality = r.jpeg_quality();
+  out.slice_fov_mm = r.slice_fov_mm();
+  out.show_proxy = r.show_proxy();
+  out.max_fps = r.max_fps();
+  out.ray_step_vox = r.ray_step_vox();
+  out.max_batch = r.max_batch();
+  out.jpeg_encoder = named_setting<JpegEncoderChoice>(origin, r.jpeg_encoder());
+  out.overlay_writer = named_setting<OverlayWriterChoice>(origin, r.overlay_writer());
+  if (!r.record_dir().empty()) {
+    const fs::path dir(r.record_dir());
+    const fs::path base = origin.empty() ? fs::current_path() : fs::absolute(origin).parent_path();
+    out.record_dir = (dir.is_absolute() ? dir : base / dir).lexically_normal().string();
+  }
+  return out;
+}
+
 Scene to_scene(const v1::Scene& s, const std::string& origin) {
   Scene out;
   out.file = origin;
@@ -162,126 +298,17 @@ Scene to_scene(const v1::Scene& s, const std::string& origin) {
     out.use_phantom = true;
     out.phantom_voxel_mm = s.phantom().voxel_mm();
   }
-  const auto& p = s.prep();
-  out.prep.spacing_mm = p.spacing_mm();
-  out.prep.air_threshold = p.air_threshold();
-  out.prep.bone_threshold = p.bone_threshold();
-  out.prep.air_threshold_set = p.has_air_threshold();
-  out.prep.bone_threshold_set = p.has_bone_threshold();
-  out.prep.bone_min_volume_ml = p.bone_min_volume_ml();
-  out.prep.bone_closing_mm = p.bone_closing_mm();
-  out.prep.bone_fill_holes = p.bone_fill_holes();
-  out.prep.max_memory_mb = p.max_memory_mb();
-  out.prep.dicom_series_uid = p.dicom_series_uid();
-  out.prep.cache_dir = p.cache_dir();
-  out.prep.use_cache = p.use_cache();
-  out.prep.body_opening_mm = p.body_opening_mm();
-  out.prep.body_min_part_ml = p.body_min_part_ml();
-  out.prep.cut_faces = named_setting<CutFaces>(origin, p.cut_faces());
-  out.prep.contrast = named_setting<ContrastAs>(origin, p.contrast());
-
+  out.prep = to_prep(s.prep(), origin);
   const auto& f = s.force_image();
   out.force_image.alpha = f.alpha();
   out.force_image.beta = f.beta();
   out.force_image.gamma = f.gamma();
-
-  const auto& h = s.haptics();
-  out.haptics.stiffness_n_per_mm = h.stiffness_n_per_mm();
-  out.haptics.friction = h.friction();
-  out.haptics.max_force_n = h.max_force_n();
-  out.haptics.max_force_rate_n_per_s = h.max_force_rate_n_per_s();
-  out.haptics.min_gradient_norm = h.min_gradient_norm();
-  out.haptics.skin_point = named_setting<SkinPointRule>(origin, h.skin_point());
-  out.haptics.force_model = named_setting<ForceModel>(origin, h.force_model());
-  out.haptics.elastic_max_jump_n = h.elastic_max_jump_n();
-  out.haptics.passivity = h.passivity();
-
-  const auto& d = s.deform();
-  if (d.preset() == v1::Deform::P2) {
-    out.deform.min_dist = 0.25, out.deform.max_dist = 1.5, out.deform.max_sheer = 1.0;
-  } else {
-    out.deform.min_dist = 0.5, out.deform.max_dist = 1.5, out.deform.max_sheer = 0.5;
-  }
-  if (d.has_min_dist()) out.deform.min_dist = d.min_dist();
-  if (d.has_max_dist()) out.deform.max_dist = d.max_dist();
-  if (d.has_max_sheer()) out.deform.max_sheer = d.max_sheer();
-  if (out.deform.min_dist >= out.deform.max_dist)
-    throw Error(origin + ": deform.min_dist (" + fmt(out.deform.min_dist) + ") must be below deform.max_dist (" +
-                fmt(out.deform.max_dist) + ")");
-  out.deform.voi_edge = d.voi_edge();
-  out.deform.whole_volume = d.whole_volume();
-  out.deform.max_sweeps = d.max_sweeps();
-  out.deform.relax_iterations = d.relax_iterations();
-  out.deform.relax_step = d.relax_step();
-  out.deform.relax_method = named_setting<RelaxMethod>(origin, d.relax_method());
-  out.deform.relax_cycles = d.relax_cycles();
-  out.deform.relax_warm_cycles = d.relax_warm_cycles();
-  out.deform.grab_radius_mm = d.grab_radius_mm();
-  out.deform.material_width = d.material_width();
-  out.deform.invert_iterations = d.invert_iterations();
-  out.deform.untangle = d.untangle();
-  out.deform.invert_search = d.invert_search();
-  out.deform.backend = named_setting<DeformBackendChoice>(origin, d.backend());
-  // the elastic model's settings: the table as given (checked with the rest of deform by
-  // check_deform_config, which names the field), the defaults where it is left out
-  const auto& el = d.elastic();
-  if (el.has_modulus()) {
-    out.deform.elastic.modulus.clear();
-    for (const auto& pt : el.modulus().point()) out.deform.elastic.modulus.push_back({pt.hu(), pt.e_kpa()});
-  }
-  out.deform.elastic.skin_e_kpa = el.skin_e_kpa();
-  out.deform.elastic.skin_thickness_mm = el.skin_thickness_mm();
-  out.deform.elastic.poisson = el.poisson();
-  out.deform.elastic.max_iterations = el.max_iterations();
-  out.deform.elastic.tolerance = el.tolerance();
-  out.deform.elastic.contact_rounds = el.contact_rounds();
-  out.deform.elastic.predict = el.predict();
-  out.deform.elastic.stiffness_tolerance = el.stiffness_tolerance();
-
-  const auto& e = s.effects();
-  out.effects.haptics = e.haptics();
-  out.effects.chainmail = e.chainmail();
-  out.effects.relaxation = e.relaxation();
-  out.effects.inversion = e.inversion();
-  out.effects.frames = e.frames();
-  out.effects.bricks = e.bricks();
-  if ((out.effects.relaxation || out.effects.inversion) && !out.effects.chainmail)
-    throw Error(origin + ": effects.relaxation and effects.inversion need effects.chainmail: true");
-  // the elastic force is the elastic step's reaction: without that step there is none to render
-  if (out.haptics.force_model == ForceModel::kElastic) {
-    if (out.deform.relax_method != RelaxMethod::kElastic)
-      throw Error(origin + ": haptics.force_model = \"elastic\" needs deform.relax_method = \"elastic\" (got \"" +
-                  d.relax_method() + "\"): the force is the elastic step's reaction on the fingertip");
-    if (!out.effects.chainmail || !out.effects.relaxation)
-      throw Error(origin +
-                  ": haptics.force_model = \"elastic\" needs effects.chainmail: true and effects.relaxation: true "
-                  "(the deformation worker's elastic step computes the force)");
-  }
-
+  out.haptics = to_haptics(s.haptics(), origin);
+  out.deform = to_deform(s.deform(), origin);
+  out.effects = to_effects(s, out, origin);
   out.server.session_timeout_s = s.server().session_timeout_s();
   out.server.max_sessions = s.server().max_sessions();
-
-  // frames and bricks: names checked here so a bad scene is refused with its file
-  const auto& r = s.render();
-  out.render.width = r.width();
-  out.render.height = r.height();
-  out.render.preset = named_setting<RenderPreset>(origin, r.preset());
-  out.render.azimuth_deg = r.azimuth_deg();
-  out.render.elevation_deg = r.elevation_deg();
-  out.render.zoom = r.zoom();
-  out.render.jpeg_quality = r.jpeg_quality();
-  out.render.slice_fov_mm = r.slice_fov_mm();
-  out.render.show_proxy = r.show_proxy();
-  out.render.max_fps = r.max_fps();
-  out.render.ray_step_vox = r.ray_step_vox();
-  out.render.max_batch = r.max_batch();
-  out.render.jpeg_encoder = named_setting<JpegEncoderChoice>(origin, r.jpeg_encoder());
-  out.render.overlay_writer = named_setting<OverlayWriterChoice>(origin, r.overlay_writer());
-  if (!r.record_dir().empty()) {
-    const fs::path dir(r.record_dir());
-    const fs::path base = origin.empty() ? fs::current_path() : fs::absolute(origin).parent_path();
-    out.render.record_dir = (dir.is_absolute() ? dir : base / dir).lexically_normal().string();
-  }
+  out.render = to_render(s.render(), origin);
   return out;
 }
 

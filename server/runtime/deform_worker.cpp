@@ -17,7 +17,6 @@
 #endif
 
 #include "core/error.h"
-#include "core/thread.h"
 #include "deform/approach.h"
 #include "deform/relax_multigrid.h"
 #include "runtime/deform_worker_state.h"
@@ -74,6 +73,7 @@ DeformWorker::DeformWorker(ServerShared& shared, std::chrono::steady_clock::time
       start_(start),
       nice_(nice),
       idle_(idle),
+      thread_(shared.world, shared.deform_seen_generation),
       max_inflight_(std::max(1, concurrency)),
       max_batch_(std::max(1, batch)) {}
 
@@ -83,42 +83,14 @@ double DeformWorker::now_s() const {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
 }
 
-void DeformWorker::start() {
-  if (thread_.joinable()) return;
-  // the world being served now may not be freed before the worker has copied what it needs
-  const World* w = sh_.world.load(std::memory_order_acquire);
-  sh_.deform_seen_generation.store(w ? w->generation : 0, std::memory_order_release);
-  thread_ = std::thread([this] { run(); });
-  const std::string error = setup_.wait();
-  if (!error.empty()) {
-    stop();
-    throw Error(error);
-  }
-}
+void DeformWorker::start() { thread_.start("palpsim-deform", nice_, idle_, [this] { run(); }); }
 
-void DeformWorker::stop() {
-  stop_.store(true);
-  if (thread_.joinable()) thread_.join();
-  sh_.deform_seen_generation.store(~std::uint64_t(0), std::memory_order_release);
-}
+void DeformWorker::stop() { thread_.stop(); }
 
 void DeformWorker::run() {
-  name_this_thread("palpsim-deform");
-  // below the threads that serve poses (core/thread.h says why SCHED_IDLE); llvmpipe's
-  // rasteriser threads, started from the render thread, inherit it
-  lower_this_thread(nice_, idle_);
-  bool first = true;
-  while (!stop_.load(std::memory_order_relaxed)) {
+  while (!thread_.stopping()) {
     // a new scene: new engines (or none)
-    const World* w = sh_.world.load(std::memory_order_acquire);
-    if (w && w->generation != generation_) {
-      set_up_world();
-      if (first) {
-        setup_.open();
-        first = false;
-        if (!setup_.error().empty()) break;
-      }
-    }
+    if (!thread_.follow_world(generation_, [this] { set_up_world(); })) break;
     if (request_pending_.load(std::memory_order_acquire)) answer_request();
     if (!built_) {
       std::this_thread::sleep_for(std::chrono::duration<double>(kDisabledSleepS));
@@ -132,7 +104,7 @@ void DeformWorker::run() {
     int open = 0;
     for (int i = 0; i < used; ++i) open += sh_.slots[i].id.load(std::memory_order_relaxed) != 0;
     gpu_share_ = std::max(1, std::min(max_inflight_, open));
-    for (int i = 0; i < used && !stop_.load(std::memory_order_relaxed); ++i) {
+    for (int i = 0; i < used && !thread_.stopping(); ++i) {
       worked = serve(i) || worked;
       any_open = any_open || sessions_[i].id != 0;
       if (request_pending_.load(std::memory_order_acquire)) {
@@ -157,7 +129,7 @@ void DeformWorker::run() {
   // every engine is destroyed on this thread (cuda: its stream and buffers too)
   for (Session& s : sessions_) s.engine.reset();
   spares_.clear();
-  setup_.open();
+  thread_.setup().open();
 }
 
 void DeformWorker::set_up_world() {
@@ -166,7 +138,7 @@ void DeformWorker::set_up_world() {
   generation_ = w->generation;
   const Scene scene = w->scene;
   patient_ = w->patient;
-  sh_.deform_seen_generation.store(generation_, std::memory_order_release);
+  thread_.picked_up(generation_);
   config_ = DeformConfig::from_scene(scene, patient_.get());
   // priming needs multigrid relaxation that reuses and starts warm (DeformBackend::prime)
   const DeformSettings& ds = config_.settings;
@@ -208,8 +180,8 @@ void DeformWorker::set_up_world() {
       rep.built = false;
       const std::string why = std::string("scene '") + scene.name + "': deformation cannot be served: " + e.what();
       // the first scene: start() throws it; a scene loaded later is served with haptics only
-      if (!setup_.is_open())
-        setup_.fail(why);
+      if (!thread_.setup().is_open())
+        thread_.setup().fail(why);
       else
         spdlog::error("{}; its sessions get haptics only", why);
     }

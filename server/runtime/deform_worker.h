@@ -19,7 +19,7 @@
 #include "core/volume.h"
 #include "deform/engine.h"
 #include "runtime/session_table.h"
-#include "runtime/setup_gate.h"
+#include "runtime/worker_thread.h"
 #include "runtime/stream_state.h"
 
 namespace palpsim::runtime {
@@ -163,8 +163,7 @@ class DeformWorker {
   std::chrono::steady_clock::time_point start_;
   int nice_ = 19;
   bool idle_ = true;
-  std::thread thread_;
-  std::atomic<bool> stop_{false};
+  WorkerThread thread_;  // keeps the world-pinning rule (ServerShared::deform_seen_generation)
 
   // (worker) the world being served and its engines
   std::uint64_t generation_ = 0;
@@ -200,9 +199,6 @@ class DeformWorker {
   std::vector<DeformSessionReport> reports_;  // by slot index; session_id 0: none
   std::size_t slot_bytes_ = 0;                // what sessions_ and reports_ hold (bytes)
   DeformServerReport server_;
-
-  // start() waits for the first world set-up
-  SetupGate setup_;
 
   // deformed_volume() requests: one at a time, answered between steps
   std::mutex request_mu_;             // requesters among themselves

@@ -17,7 +17,6 @@
 #endif
 
 #include "core/error.h"
-#include "core/thread.h"
 #include "render/egl_context.h"
 #include "render/frame_encoder.h"
 #include "render/frame_renderer.h"
@@ -60,7 +59,12 @@ struct RenderWorker::View {
 
 RenderWorker::RenderWorker(ServerShared& shared, StreamState& stream, std::chrono::steady_clock::time_point start,
                            int nice, bool idle)
-    : sh_(shared), st_(stream), start_(start), nice_(nice), idle_(idle) {}
+    : sh_(shared),
+      st_(stream),
+      start_(start),
+      nice_(nice),
+      idle_(idle),
+      thread_(shared.world, shared.render_seen_generation) {}
 
 RenderWorker::~RenderWorker() { stop(); }
 
@@ -69,21 +73,16 @@ double RenderWorker::now_s() const {
 }
 
 void RenderWorker::start() {
-  if (thread_.joinable()) return;
-  const World* w = sh_.world.load(std::memory_order_acquire);
-  sh_.render_seen_generation.store(w ? w->generation : 0, std::memory_order_release);
-  thread_ = std::thread([this] { run(); });
-  const std::string error = setup_.wait();
-  if (!error.empty()) {
+  try {
+    thread_.start("palpsim-render", nice_, idle_, [this] { run(); });
+  } catch (const Error&) {
     stop();
-    throw Error(error);
+    throw;
   }
 }
 
 void RenderWorker::stop() {
-  stop_.store(true);
-  if (thread_.joinable()) thread_.join();
-  sh_.render_seen_generation.store(~std::uint64_t(0), std::memory_order_release);
+  thread_.stop();
   st_.render_wants_device.store(false, std::memory_order_release);
   std::lock_guard<std::mutex> lock(st_.info_mu);
   st_.info.render_thread = false;
@@ -92,11 +91,6 @@ void RenderWorker::stop() {
 }
 
 void RenderWorker::run() {
-  name_this_thread("palpsim-render");
-  // below the threads that serve poses (core/thread.h says why SCHED_IDLE); llvmpipe's
-  // rasteriser threads, started from the render thread, inherit it
-  lower_this_thread(nice_, idle_);
-  bool first = true;
   try {
     ctx_ = render::EglContext::create();
     spdlog::info("render thread: OpenGL {}", ctx_->describe());
@@ -107,30 +101,22 @@ void RenderWorker::run() {
     st_.info.gl_version = ctx_->version();
   } catch (const std::exception& e) {
     const World* w = sh_.world.load(std::memory_order_acquire);
-    setup_.fail("scene '" + (w ? w->scene.name : std::string()) +
-                "' asks for frames (effects.frames) but no OpenGL 4.5 context could be made: " + e.what());
-    setup_.open();
+    thread_.setup().fail("scene '" + (w ? w->scene.name : std::string()) +
+                         "' asks for frames (effects.frames) but no OpenGL 4.5 context could be made: " + e.what());
+    thread_.setup().open();
     return;
   }
   views_.assign(kMaxSlots, View{});
-  while (!stop_.load(std::memory_order_relaxed)) {
+  while (!thread_.stopping()) {
     // a new scene: a renderer of its patient (or none)
-    const World* w = sh_.world.load(std::memory_order_acquire);
-    if (w && w->generation != generation_) {
-      set_up_world();
-      if (first) {
-        first = false;
-        setup_.open();
-        if (!setup_.error().empty()) break;
-      }
-    }
+    if (!thread_.follow_world(generation_, [this] { set_up_world(); })) break;
     // one pass over the watched sessions: each one's news; those due for a frame are
     // drawn render.max_batch at a time (at most one frame each)
     bool any = false;
     double nap = kUnwatchedSleepS;
     due_.clear();
     const int used = sh_.slots_used.load(std::memory_order_acquire);
-    for (int i = 0; i < used && !stop_.load(std::memory_order_relaxed); ++i) {
+    for (int i = 0; i < used && !thread_.stopping(); ++i) {
       const double now = now_s();
       if (look(i, now)) due_.push_back(i);
       const View& v = views_[i];
@@ -140,7 +126,7 @@ void RenderWorker::run() {
       nap = std::min(nap, v.dirty ? std::max(v.next_frame_s - now, 0.0) : kIdleSleepS);
     }
     const int batch = std::max(1, settings_.max_batch);
-    for (std::size_t b = 0; b < due_.size() && !stop_.load(std::memory_order_relaxed); b += std::size_t(batch))
+    for (std::size_t b = 0; b < due_.size() && !thread_.stopping(); b += std::size_t(batch))
       draw_batch(due_.data() + b, int(std::min(due_.size() - b, std::size_t(batch))));
     // nobody watches any more: the buffers sized for the last viewers' frames go
     if (!any && drew_since_release_) {
@@ -162,7 +148,7 @@ void RenderWorker::run() {
   encoder_.reset();
   renderer_.reset();
   ctx_.reset();
-  setup_.open();
+  thread_.setup().open();
 }
 
 void RenderWorker::set_up_world() {
@@ -171,7 +157,7 @@ void RenderWorker::set_up_world() {
   const Scene scene = w->scene;
   const bool same_patient = patient_ == w->patient;
   patient_ = w->patient;
-  sh_.render_seen_generation.store(generation_, std::memory_order_release);
+  thread_.picked_up(generation_);
   settings_ = scene.render;
   // overlays hold at most one VOI: deform.voi_edge^3 within the grid, or the whole grid
   const Vec3i g = patient_->grid.size;
@@ -206,8 +192,8 @@ void RenderWorker::set_up_world() {
     encoder_.reset();
     renderer_.reset();
     note = "scene '" + scene.name + "': frames cannot be served: " + e.what();
-    if (!setup_.is_open())
-      setup_.fail(note);
+    if (!thread_.setup().is_open())
+      thread_.setup().fail(note);
     else
       spdlog::error("{}; its sessions get no frames", note);
   }

@@ -15,7 +15,7 @@
 #include <vector>
 
 #include "runtime/session_table.h"
-#include "runtime/setup_gate.h"
+#include "runtime/worker_thread.h"
 #include "runtime/stream_state.h"
 
 #include "render/frame_encoder.h"
@@ -73,8 +73,7 @@ class RenderWorker {
   std::chrono::steady_clock::time_point start_;
   int nice_ = 19;
   bool idle_ = true;
-  std::thread thread_;
-  std::atomic<bool> stop_{false};
+  WorkerThread thread_;  // keeps the world-pinning rule (ServerShared::render_seen_generation)
 
   // (render thread) the context, the world it draws and per-slot views
   std::unique_ptr<render::EglContext> ctx_;
@@ -94,9 +93,6 @@ class RenderWorker {
   std::vector<render::EncodeJob> jobs_;
   std::size_t reported_bytes_ = 0;  // the renderer's bytes as the stats have them
   bool drew_since_release_ = false;  // frames were encoded since the encoder's buffers were last freed
-
-  // start() waits for the first set-up
-  SetupGate setup_;
 };
 
 }  // namespace palpsim::runtime

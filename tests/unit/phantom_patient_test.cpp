@@ -67,18 +67,13 @@ double z_margin(const Grid& g, const Vec3& p) {
   return std::min(p.z - z0, z1 - p.z);
 }
 
-// every check of this file on one prepared phantom; the voxel-wise comparisons
-// visit every `stride`-th voxel along each axis
-void check_patient(const Patient& pt, const Scene& defaults, int stride) {
+// the masks, A and B against the closed form at every `stride`-th voxel along each axis
+void check_masks_and_distances(const Patient& pt, const Scene& defaults, int stride) {
   const PhantomGeometry geo;
   const Grid& g = pt.grid;
   const double h = g.spacing_mm.x;
   const double closing = defaults.prep.bone_closing_mm;
-  REQUIRE(g.spacing_mm.y == h);
-  REQUIRE(g.spacing_mm.z == h);
-  REQUIRE(pt.has_bone);
-
-  Failures body_in, body_out, table, gas, bone_in, bone_out, a_range, b_range, a_tight;
+  Failures body_in, body_out, table, gas, bone_in, bone_out, a_range, b_range;
   double a_err_sum = 0, b_err_sum = 0;
   std::size_t a_n = 0, b_n = 0, body_far = 0, bone_deep = 0, bone_far = 0, table_n = 0, gas_n = 0;
   for (int k = 0; k < g.size.z; k += stride)
@@ -155,7 +150,6 @@ void check_patient(const Patient& pt, const Scene& defaults, int stride) {
         }
       }
 
-  INFO("voxel " << h << " mm");
   REQUIRE(body_far > 100000);
   REQUIRE(table_n > 0);
   REQUIRE(gas_n > 0);
@@ -178,7 +172,13 @@ void check_patient(const Patient& pt, const Scene& defaults, int stride) {
   CHECK(a_mean < 1.0 * h);
   CHECK(b_mean > -0.25 * h);
   CHECK(b_mean < 1.0 * h);
+}
 
+// the vertebral bodies and A behind the spinous tips
+void check_vertebrae(const Patient& pt, const Scene& defaults) {
+  const PhantomGeometry geo;
+  const Grid& g = pt.grid;
+  const double h = g.spacing_mm.x;
   // every vertebral body (T12-L5 centres) is bone throughout, its cancellous
   // interior (180 HU, below the threshold) included
   for (const char* level : {"T12", "L1", "L2", "L3", "L4", "L5"}) {
@@ -190,6 +190,7 @@ void check_patient(const Patient& pt, const Scene& defaults, int stride) {
     CHECK(pt.bone.at(i, j, k) == 1);
   }
 
+  Failures a_tight;
   // tight bounds where the bone is convex and the closing adds nothing: straight
   // behind each spinous tip, A follows the exact distance from -0.5 to +1.6 voxels
   for (const PhantomLandmark& l : geo.landmarks()) {
@@ -205,7 +206,12 @@ void check_patient(const Patient& pt, const Scene& defaults, int stride) {
     }
   }
   expect_none("A behind the spinous tips", a_tight);
+}
 
+// F and grad F against eq. 1 and central differences
+void check_force_image(const Patient& pt, const Scene& defaults) {
+  const Grid& g = pt.grid;
+  const double h = g.spacing_mm.x;
   // F = eq. 1 at sampled voxels (float arithmetic: relative 1e-5), F = 0 outside
   const ForceImageSettings& f = defaults.force_image;
   std::size_t f_bad = 0, f_outside_bad = 0, f_n = 0;
@@ -238,6 +244,20 @@ void check_patient(const Patient& pt, const Scene& defaults, int stride) {
       }
   CHECK(g_n > 1000);
   CHECK(g_bad == 0);
+}
+
+// every check of this file on one prepared phantom; the voxel-wise comparisons
+// visit every `stride`-th voxel along each axis
+void check_patient(const Patient& pt, const Scene& defaults, int stride) {
+  const Grid& g = pt.grid;
+  const double h = g.spacing_mm.x;
+  REQUIRE(g.spacing_mm.y == h);
+  REQUIRE(g.spacing_mm.z == h);
+  REQUIRE(pt.has_bone);
+  INFO("voxel " << h << " mm");
+  check_masks_and_distances(pt, defaults, stride);
+  check_vertebrae(pt, defaults);
+  check_force_image(pt, defaults);
 }
 
 }  // namespace

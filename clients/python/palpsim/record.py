@@ -385,7 +385,7 @@ def write_mp4(images: Sequence[np.ndarray], captions: Sequence[Sequence[str]], p
     """An MP4 (h264, yuv420p, through palpsim-view's writer) showing each image with its
     caption below it for `frames_per_image` video frames at `fps`; returns the number
     of video frames. Odd edges are padded to even ones."""
-    from .view import Mp4Sink
+    from .view_outputs import Mp4Sink
 
     if len(images) != len(captions):
         raise ValueError(f"write_mp4: {len(images)} images but {len(captions)} captions")

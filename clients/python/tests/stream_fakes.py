@@ -531,3 +531,12 @@ def start_xvfb(timeout_s: float = 20.0) -> Iterator[str]:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+
+
+def summary_numbers(out: str) -> dict[str, float]:
+    """The numbers of the summary line: received, shown, fps, missed, skipped, p50, p99."""
+    m = re.search(r"(\d+) frames received, (\d+) shown, ([\d.na]+) fps, (\d+) missed, (\d+) skipped, "
+                  r"pose-to-frame p50 ([\d.na]+) ms p99 ([\d.na]+) ms", out)
+    assert m, f"no summary line in {out!r}"
+    keys = ("received", "shown", "fps", "missed", "skipped", "p50", "p99")
+    return {k: float(v) for k, v in zip(keys, m.groups())}

@@ -180,20 +180,30 @@ void table1(const std::string& name, const Options& o, const PatientPtr& patient
 // (alternating between two depths a voxel apart: the VOI held, the last field the start),
 // and on cuda 16 sessions at 16 points along the spine begun together, each with 1/16 of
 // the device and a scratch of its own (as the server steps them), or the whole device in turn
-void elastic_rows(const std::string& name, const Options& o, const PatientPtr& phantom, const test::Press& press,
-                  std::vector<ElasticRow>& rows) {
-  const bool gpu = name == "cuda";
-  DeformConfig cfg = test::preset_config(1);
-  cfg.settings.relax_method = RelaxMethod::kElastic;
-  cfg.settings.grab_radius_mm = 5;
-  cfg.settings.voi_edge = 64;
-  cfg.settings.invert_search = false;  // as the scenes ship
-  cfg.elastic_stiffness = true;
-  const Vec3 X = press.contact.skin_point_mm, in = (press.contact.tip_mm - X) / press.press_mm;
-  const double depth = 6, h = phantom->grid.spacing_mm.x;
-  auto contact = [&](const Vec3& at, int s) { return DeformContact{at, at + in * (depth + (s & 1) * h)}; };
-  auto row = [&](const std::string& what, const std::vector<double>& relax, const std::vector<double>& total,
-                 const DeformStats& st, const DeformMemory& m) {
+struct ElasticBench {
+  std::string name;
+  const Options& o;
+  PatientPtr phantom;
+  bool gpu;
+  DeformConfig cfg;
+  Vec3 X, in;  // the skin point over L3 (mm) and the press direction (unit)
+  double depth = 6, h;
+
+  ElasticBench(const std::string& backend, const Options& opt, const PatientPtr& p, const test::Press& press)
+      : name(backend), o(opt), phantom(p), gpu(backend == "cuda"), cfg(test::preset_config(1)),
+        X(press.contact.skin_point_mm), in((press.contact.tip_mm - X) / press.press_mm), h(p->grid.spacing_mm.x) {
+    cfg.settings.relax_method = RelaxMethod::kElastic;
+    cfg.settings.grab_radius_mm = 5;
+    cfg.settings.voi_edge = 64;
+    cfg.settings.invert_search = false;  // as the scenes ship
+    cfg.elastic_stiffness = true;
+  }
+
+  // step s's press at skin point `at`: 6 mm deep, a voxel deeper on odd steps
+  DeformContact contact(const Vec3& at, int s) const { return DeformContact{at, at + in * (depth + (s & 1) * h)}; }
+
+  ElasticRow row(const std::string& what, const std::vector<double>& relax, const std::vector<double>& total,
+                 const DeformStats& st, const DeformMemory& m) const {
     ElasticRow r;
     r.backend = name;
     r.what = what;
@@ -207,33 +217,33 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
     r.own_mb = m.total() / 1048576.0;
     r.shared_mb = m.shared_scratch_bytes / 1048576.0;
     return r;
-  };
-  auto b = make_deform_backend(name);
-  b->bind(phantom, cfg);
-  // from rest
-  {
+  }
+
+  // from rest: reset() before each step (one warm-up run)
+  ElasticRow from_rest() const {
+    auto b = make_deform_backend(name);
+    b->bind(phantom, cfg);
     const int reps = gpu ? (o.quick ? 10 : 50) : (o.quick ? 1 : 3);
     std::vector<double> relax, total;
     DeformStats st;
-    for (int r = -1; r < reps; ++r) {  // one warm-up run
+    for (int r = -1; r < reps; ++r) {
       b->reset();
       st = b->step(contact(X, 0));
       if (r < 0) continue;
       relax.push_back(st.times.relax_ms);
       total.push_back(st.times.total_ms);
     }
-    rows.push_back(row("from rest", relax, total, st, b->memory()));
+    return row("from rest", relax, total, st, b->memory());
   }
-  // while the tip moves a voxel: with the unit press (the elastic force model) and without
-  // (eq. 2's force), each from the last field alone and predicted (deform.elastic.predict);
-  // each row's last field, force and stiffness against the same steps converged (tolerance
-  // 1e-6, 12 contact rounds: the history only picks the VOI)
-  const int moving_reps = gpu ? (o.quick ? 20 : 100) : (o.quick ? 2 : 6);
-  auto moving = [&](DeformConfig c, std::vector<double>* relax, std::vector<double>* total, DeformStats& st,
-                    DeformMemory* mem) {
+
+  // config c's steps while the tip moves a voxel (two warm-up steps), their times when asked;
+  // the last field
+  std::vector<Vec3f> moving(const DeformConfig& c, std::vector<double>* relax, std::vector<double>* total,
+                            DeformStats& st, DeformMemory* mem) const {
+    const int reps = gpu ? (o.quick ? 20 : 100) : (o.quick ? 2 : 6);
     auto m = make_deform_backend(name);
     m->bind(phantom, c);
-    for (int r = -2; r < moving_reps; ++r) {
+    for (int r = -2; r < reps; ++r) {
       st = m->step(contact(X, r + 2));
       if (r < 0 || !relax) continue;
       relax->push_back(st.times.relax_ms);
@@ -241,19 +251,25 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
     }
     if (mem) *mem = m->memory();
     return m->displacement();
-  };
-  DeformConfig conv = cfg;
-  conv.settings.elastic.tolerance = 1e-6;
-  conv.settings.elastic.contact_rounds = 12;
-  conv.settings.elastic.max_iterations = 400;
-  DeformStats ref_st;
-  const std::vector<Vec3f> u_ref = moving(conv, nullptr, nullptr, ref_st, nullptr);
-  struct Moving {
-    bool stiffness, predict;
-    double stiffness_tolerance;  // 0: the unit press to the round's tolerance
-  };
-  for (const Moving& mv : {Moving{true, false, 0}, Moving{true, true, 0}, Moving{true, true, 0.01},
-                           Moving{false, false, 0}, Moving{false, true, 0}}) {
+  }
+
+  // while the tip moves a voxel: with the unit press (the elastic force model) and without
+  // (eq. 2's force), each from the last field alone and predicted (deform.elastic.predict);
+  // each row's last field, force and stiffness against the same steps converged (tolerance
+  // 1e-6, 12 contact rounds: the history only picks the VOI)
+  void moving_rows(std::vector<ElasticRow>& rows) const {
+    DeformConfig conv = cfg;
+    conv.settings.elastic.tolerance = 1e-6;
+    conv.settings.elastic.contact_rounds = 12;
+    conv.settings.elastic.max_iterations = 400;
+    DeformStats ref_st;
+    const std::vector<Vec3f> u_ref = moving(conv, nullptr, nullptr, ref_st, nullptr);
+    struct Moving {
+      bool stiffness, predict;
+      double stiffness_tolerance;  // 0: the unit press to the round's tolerance
+    };
+    for (const Moving& mv : {Moving{true, false, 0}, Moving{true, true, 0}, Moving{true, true, 0.01},
+                             Moving{false, false, 0}, Moving{false, true, 0}}) {
       DeformConfig c = cfg;
       c.elastic_stiffness = mv.stiffness;
       c.settings.elastic.predict = mv.predict;
@@ -277,16 +293,17 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
         r.stiffness_err_pct = 100 * (st.elastic.stiffness_n_per_mm / ref_st.elastic.stiffness_n_per_mm - 1);
       rows.push_back(r);
     }
-  // 16 sessions side by side, from the last field alone and predicted, each with 1/16 of
-  // the device (as the server steps them); predicted, each with the whole device in turn
-  // (one shared scratch)
-  for (int variant = 0; gpu && variant < 3; ++variant) {
-    const int n = 16, rounds = o.quick ? 10 : 50, predict = variant > 0, share = variant < 2 ? n : 1;
+  }
+
+  // 16 sessions side by side, the tip moving a voxel, predicted or not, each with 1/share of
+  // the device (share 1: the whole device in turn, one shared scratch)
+  ElasticRow sessions_row(bool predict, int share) const {
+    const int n = 16, rounds = o.quick ? 10 : 50;
     std::vector<std::unique_ptr<DeformBackend>> sessions;
     for (int s = 0; s < n; ++s) {
       sessions.push_back(make_deform_backend(name));
       DeformConfig c = cfg;
-      c.settings.elastic.predict = predict != 0;
+      c.settings.elastic.predict = predict;
       sessions.back()->bind(phantom, c);
       sessions.back()->set_gpu_share(share);
     }
@@ -310,25 +327,41 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
                        relax, total, st, sessions[0]->memory());
     r.sessions = n;
     r.steps_per_s = rounds / wall_s;
-    rows.push_back(r);
+    return r;
   }
-  for (std::size_t i = rows.size() - (gpu ? 9 : 6); i < rows.size(); ++i) {
-    const ElasticRow& r = rows[i];
-    std::printf("elastic %-4s VOI %d %-45s median ms: relax %.3f (p10 %.3f, p90 %.3f)  total %.3f  CG steps %d + %d "
-                "(unit press), %d contact nodes, F %.3f N, own %.1f MiB, shared scratch %.1f MiB",
-                r.backend.c_str(), r.voi, r.what.c_str(), r.relax.median, r.relax.p10, r.relax.p90, r.total.median,
-                r.iterations, r.stiffness_iterations, r.contact_nodes, r.force_n, r.own_mb, r.shared_mb);
-    if (r.sessions > 1) std::printf(", %.0f steps/s per session", r.steps_per_s);
-    if (r.u_err_pct >= 0) std::printf("; against converged: u %.2f %%, F %+.2f %%", r.u_err_pct, r.force_err_pct);
-    if (r.u_err_pct >= 0 && r.stiffness_iterations > 0) std::printf(", stiffness %+.2f %%", r.stiffness_err_pct);
-    std::printf("\n");
-    if (gpu) {
-      if (r.what == "from rest") std::printf("       [goal: at most 2 ms from rest]\n");
-      if (r.what.rfind("tip moving a voxel", 0) == 0) std::printf("       [goal: at most 1 ms while the tip moves, aim 0.5 ms]\n");
-      if (r.sessions > 1)
-        std::printf("       [goal: 16 sessions at 300 steps/s or more each, at most 32 MB per session]\n");
-    }
+};
+
+// one elastic row as the bench prints it, with its goal on cuda
+void print_elastic_row(const ElasticRow& r, bool gpu) {
+  std::printf("elastic %-4s VOI %d %-45s median ms: relax %.3f (p10 %.3f, p90 %.3f)  total %.3f  CG steps %d + %d "
+              "(unit press), %d contact nodes, F %.3f N, own %.1f MiB, shared scratch %.1f MiB",
+              r.backend.c_str(), r.voi, r.what.c_str(), r.relax.median, r.relax.p10, r.relax.p90, r.total.median,
+              r.iterations, r.stiffness_iterations, r.contact_nodes, r.force_n, r.own_mb, r.shared_mb);
+  if (r.sessions > 1) std::printf(", %.0f steps/s per session", r.steps_per_s);
+  if (r.u_err_pct >= 0) std::printf("; against converged: u %.2f %%, F %+.2f %%", r.u_err_pct, r.force_err_pct);
+  if (r.u_err_pct >= 0 && r.stiffness_iterations > 0) std::printf(", stiffness %+.2f %%", r.stiffness_err_pct);
+  std::printf("\n");
+  if (!gpu) return;
+  if (r.what == "from rest") std::printf("       [goal: at most 2 ms from rest]\n");
+  if (r.what.rfind("tip moving a voxel", 0) == 0) std::printf("       [goal: at most 1 ms while the tip moves, aim 0.5 ms]\n");
+  if (r.sessions > 1) std::printf("       [goal: 16 sessions at 300 steps/s or more each, at most 32 MB per session]\n");
+}
+
+// one backend's elastic rows (ElasticBench), printed as they are added
+void elastic_rows(const std::string& name, const Options& o, const PatientPtr& phantom, const test::Press& press,
+                  std::vector<ElasticRow>& rows) {
+  const ElasticBench b(name, o, phantom, press);
+  const std::size_t first = rows.size();
+  rows.push_back(b.from_rest());
+  b.moving_rows(rows);
+  // on cuda: from the last field alone and predicted, each with 1/16 of the device as the
+  // server steps them; predicted, each with the whole device in turn
+  if (b.gpu) {
+    rows.push_back(b.sessions_row(false, 16));
+    rows.push_back(b.sessions_row(true, 16));
+    rows.push_back(b.sessions_row(true, 1));
   }
+  for (std::size_t i = first; i < rows.size(); ++i) print_elastic_row(rows[i], b.gpu);
   std::fflush(stdout);
 }
 

@@ -30,6 +30,60 @@ struct SetupArgs {
   int had;                 // carry the last field and contact set over
 };
 
+// every level's largest eigenvalue of D^-1 K by power iteration, all levels in the same
+// passes (the whole grid): the start, then x' = Pi D^-1 K x with |x|^2 and |x'|^2 per
+// level, into v.lmax by block 0's thread 0 after the last pass
+__device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all, cg::grid_group& g) {
+  const View& v = a.v;
+  const int levels = a.plan.levels;
+  const CellMatrix km{a.k};
+  double* sums = v.sums + kSlot * kRing;
+  const Vec3f none{0, 0, 0};
+  for (int l = 0; l < levels; ++l) {
+    const Lvl& L = lv[l];
+    const Field x0 = every(v.x[0], v);
+    for (int q = all.first; q < L.count; q += all.stride) {
+      const unsigned long long m = 3ull * (unsigned long long)q;
+      const int e = L.off + q;
+      x0.set(e, deform::elastic_project(v.flags[e], none,
+                                        Vec3f{deform::elastic_power_start(m), deform::elastic_power_start(m + 1),
+                                              deform::elastic_power_start(m + 2)}));
+    }
+  }
+  g.sync();
+  for (int it = 0; it < deform::kElasticPowerIterations; ++it) {
+    const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
+    for (int l = 0; l < levels; ++l) {
+      double part[2] = {0, 0};
+      gather(km, v.cell_e, v.flags, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+        const Vec3f xe = xf.at(e);
+        const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
+        xt.set(e, re);
+        part[0] += dot_d(xe, xe);
+        part[1] += dot_d(re, re);
+      });
+      block_sum(part, sums + kSlot * (it * kElasticMaxLevels + l));
+    }
+    g.sync();
+  }
+  if (blockIdx.x == 0 && threadIdx.x == 0) {
+    for (int l = 0; l < levels; ++l) {
+      bool dead = false;
+      double lambda = 0;
+      for (int it = 0; it < deform::kElasticPowerIterations; ++it) {
+        const double* s = sums + kSlot * (it * kElasticMaxLevels + l);
+        const double xn = sqrt(s[0]);
+        if (!(xn > 0)) {
+          dead = true;
+          break;
+        }
+        lambda = sqrt(s[1]) / xn;
+      }
+      v.lmax[l] = dead || !(lambda > 0) ? 1.0f : float(lambda);
+    }
+  }
+}
+
 template <int MinBlocks>
 __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(const __grid_constant__ SetupArgs a) {
   cg::grid_group g = cg::this_grid();
@@ -112,52 +166,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
     }
     g.sync();
   }
-  // every level's largest eigenvalue of D^-1 K by power iteration, all levels in the same
-  // passes: the start, then x' = Pi D^-1 K x with |x|^2 and |x'|^2 per level
-  const Vec3f none{0, 0, 0};
-  for (int l = 0; l < levels; ++l) {
-    const Lvl& L = lv[l];
-    const Field x0 = every(v.x[0], v);
-    for (int q = all.first; q < L.count; q += all.stride) {
-      const unsigned long long m = 3ull * (unsigned long long)q;
-      const int e = L.off + q;
-      x0.set(e, deform::elastic_project(v.flags[e], none,
-                                        Vec3f{deform::elastic_power_start(m), deform::elastic_power_start(m + 1),
-                                              deform::elastic_power_start(m + 2)}));
-    }
-  }
-  g.sync();
-  for (int it = 0; it < deform::kElasticPowerIterations; ++it) {
-    const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
-    for (int l = 0; l < levels; ++l) {
-      double part[2] = {0, 0};
-      gather(km, v.cell_e, v.flags, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
-        const Vec3f xe = xf.at(e);
-        const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
-        xt.set(e, re);
-        part[0] += dot_d(xe, xe);
-        part[1] += dot_d(re, re);
-      });
-      block_sum(part, sums + kSlot * (it * kElasticMaxLevels + l));
-    }
-    g.sync();
-  }
-  if (blockIdx.x == 0 && threadIdx.x == 0) {
-    for (int l = 0; l < levels; ++l) {
-      bool dead = false;
-      double lambda = 0;
-      for (int it = 0; it < deform::kElasticPowerIterations; ++it) {
-        const double* s = sums + kSlot * (it * kElasticMaxLevels + l);
-        const double xn = sqrt(s[0]);
-        if (!(xn > 0)) {
-          dead = true;
-          break;
-        }
-        lambda = sqrt(s[1]) / xn;
-      }
-      v.lmax[l] = dead || !(lambda > 0) ? 1.0f : float(lambda);
-    }
-  }
+  estimate_lmax(a, lv, all, g);
   // the last field and contact set carried onto the new VOI (0 where it has none); held
   // nodes (the new VOI's faces, bone) stay at rest: the solve keeps what they hold
   for (int e = all.first; e < L0.count; e += all.stride) {

@@ -334,49 +334,35 @@ struct Step {
   }
 };
 
-// what the step solves, in order: contact rounds, a last solve of u when they ran out
-// with the set still changing, the unit press
-enum Job { kRound, kLast, kUnit, kDone };
-
-template <int MinBlocks>
-__global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const __grid_constant__ StepArgs a) {
-  cg::grid_group g = cg::this_grid();
-  // the shared table as raw bytes (__shared__ allows no initialisers, which Vec3i has)
-  __shared__ alignas(16) unsigned char shared_bytes[sizeof(StepShared)];
-  StepShared& sh = *reinterpret_cast<StepShared*>(shared_bytes);
+// the step's shared table (thread 0 of each block): the levels, the first level block 0
+// runs alone, each level's Chebyshev coefficients from its lmax (the set-up's)
+__device__ void make_step_table(const StepArgs& a, StepShared& sh) {
   const View& v = a.v;
-  if (threadIdx.x == 0) {
-    make_levels(a.plan, v.capacity, sh.lv);
-    sh.levels = a.plan.levels;
-    sh.split = a.plan.levels;
-    for (int l = 1; l < a.plan.levels; ++l)
-      if (sh.lv[l].count <= a.block_nodes) {
-        sh.split = l;
-        break;
-      }
-    // each level's Chebyshev coefficients from its lmax (the set-up's)
-    for (int l = 0; l < a.plan.levels; ++l) {
-      const bool coarsest = l + 1 == a.plan.levels;
-      const float hi = deform::kElasticChebyshevMargin * v.lmax[l];
-      deform::elastic_chebyshev(hi / (coarsest ? deform::kElasticCoarsestRatio : deform::kElasticChebyshevRatio), hi,
-                                coarsest ? kCoarsest : kSmooth, sh.ca[l], sh.cb[l]);
+  make_levels(a.plan, v.capacity, sh.lv);
+  sh.levels = a.plan.levels;
+  sh.split = a.plan.levels;
+  for (int l = 1; l < a.plan.levels; ++l)
+    if (sh.lv[l].count <= a.block_nodes) {
+      sh.split = l;
+      break;
     }
+  for (int l = 0; l < a.plan.levels; ++l) {
+    const bool coarsest = l + 1 == a.plan.levels;
+    const float hi = deform::kElasticChebyshevMargin * v.lmax[l];
+    deform::elastic_chebyshev(hi / (coarsest ? deform::kElasticCoarsestRatio : deform::kElasticChebyshevRatio), hi,
+                              coarsest ? kCoarsest : kSmooth, sh.ca[l], sh.cb[l]);
   }
-  Ring ring{v.sums, 0};
-  const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
-  for (int e = all.first; e < kSlot * kRing; e += all.stride) v.sums[e] = 0.0;
-  __syncthreads();
-  g.sync();
-  const Step st{a, sh, g, ring, all, Team{int(threadIdx.x), int(blockDim.x)}};
-  const Lvl& L0 = sh.lv[0];
-  const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
-  ElasticCounters out{};
-  out.settled = 1;
-  out.converged = 1;
+}
 
-  // the contact set: last step's nodes still under the sphere, nodes the last field (as the
-  // prediction moves it) leaves inside it, every node under it on a fresh start (the field
-  // and contact set zeroed first)
+// the contact set at the step's start (every thread its nodes): last step's nodes still
+// under the sphere, nodes the last field (as the prediction moves it) leaves inside it,
+// every node under it on a fresh start (the field and contact set zeroed first); this
+// thread's count of nodes under the sphere
+__device__ double start_contact(const StepArgs& a, const Step& st) {
+  const View& v = a.v;
+  const Lvl& L0 = st.sh.lv[0];
+  const Team all = st.all;
+  const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
   double under = 0;
   for (int e = all.first; e < L0.count; e += all.stride) {
     int i, j, k;
@@ -401,6 +387,133 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     if (t > 0 && (was || pen || !a.had)) fl |= kElasticContact;
     v.flags[e] = fl;
   }
+  return under;
+}
+
+// the start of a solve (every thread its nodes): the unit press's w (from the last one or
+// 0, every contact node 1 mm along n), or u's contact nodes onto the sphere along n (held
+// nodes stay)
+__device__ void job_start(const StepArgs& a, const Step& st, bool unit_press, const Field& w) {
+  const View& v = a.v;
+  const Lvl& L0 = st.sh.lv[0];
+  const Team all = st.all;
+  if (unit_press) {
+    for (int e = all.first; e < L0.count; e += all.stride) {
+      Vec3f we = a.unit_warm ? w.at(e) : Vec3f{0, 0, 0};
+      if (v.flags[e] & kElasticContact) we = we - a.nrm * dot(we, a.nrm) + a.nrm;
+      w.set(e, we);
+    }
+  } else {
+    // contact nodes onto the sphere along n (held nodes stay)
+    for (int e = all.first; e < L0.count; e += all.stride) {
+      const std::uint8_t fl = v.flags[e];
+      if (!(fl & kElasticContact)) continue;
+      int i, j, k;
+      L0.coords(e, i, j, k);
+      const Vec3f we = w.at(e);
+      w.set(e, we - a.nrm * dot(we, a.nrm) + a.nrm * st.push(fl, i, j, k));
+    }
+  }
+}
+
+// after a solve (every thread its nodes, into sums): the contact nodes' forces along n and
+// their count; after a round (`round`), the set's update and how many nodes changed; after
+// the unit press by reciprocity (elastic_math.h, `reciprocal`) the push sum of u . K w and
+// w's residual's part of w . K w
+__device__ void contact_sums(const StepArgs& a, const Step& st, bool round, bool reciprocal, const Field& w,
+                             double (&sums)[4]) {
+  const View& v = a.v;
+  const Lvl& L0 = st.sh.lv[0];
+  const Team all = st.all;
+  const Field u = level0(v.u, v);
+  const Field rw = st.f();
+  for (int e = all.first; e < L0.count; e += all.stride) {
+    const std::uint8_t fl = v.flags[e];
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    if (reciprocal) {
+      const Vec3f re = rw.at(e);
+      sums[2] -= dot_d(u.at(e), re);
+      sums[3] += dot_d(w.at(e), re);
+    }
+    if (fl & kElasticContact) {
+      const float fn = dot(deform::elastic_apply_node(st.km(), CellModuli{v.cell_e, L0}, Load{w, L0}, L0.n, 1.0f, i,
+                                                      j, k),
+                           a.nrm);
+      sums[0] += double(fn);
+      sums[1] += 1;
+      if (reciprocal) sums[2] += double(fn) * double(dot(u.at(e), a.nrm));
+      if (round && fn < 0.0f) {
+        v.flags[e] = std::uint8_t(fl & ~kElasticContact);
+        sums[2] += 1;
+      }
+    } else if (round) {
+      const float t = st.push(fl, i, j, k);
+      if (t > 0 && t - dot(w.at(e), a.nrm) > a.penetration) {
+        v.flags[e] = std::uint8_t(fl | kElasticContact);
+        sums[2] += 1;
+      }
+    }
+  }
+}
+
+// the field in voxels for the inversion (every thread its nodes), and this thread's count of
+// the cells it folds
+__device__ double write_field(const StepArgs& a, const Step& st) {
+  const View& v = a.v;
+  const Lvl& L0 = st.sh.lv[0];
+  const Team all = st.all;
+  const Field u = level0(v.u, v);
+  double folded = 0;
+  auto load_vox = [&](int i, int j, int k) {
+    const Vec3f ue = u.at(L0.at(i, j, k));
+    return Vec3f{float(ue.x / a.h[0]), float(ue.y / a.h[1]), float(ue.z / a.h[2])};
+  };
+  for (int e = all.first; e < L0.count; e += all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    const Vec3f ue = u.at(e);
+    a.out[0][e] = float(ue.x / a.h[0]);
+    a.out[1][e] = float(ue.y / a.h[1]);
+    a.out[2][e] = float(ue.z / a.h[2]);
+    if (i + 1 >= L0.n.x || j + 1 >= L0.n.y || k + 1 >= L0.n.z) continue;
+    bool moved = false;
+    for (int c = 0; c < 8 && !moved; ++c) {
+      const Vec3i o = deform::elastic_corner(c);
+      const Vec3f w = u.at(L0.at(i + o.x, j + o.y, k + o.z));
+      moved = w.x != 0.0f || w.y != 0.0f || w.z != 0.0f;
+    }
+    if (moved && !(deform::cell_min_det(load_vox, i, j, k) > 0.0f)) folded += 1;
+  }
+  return folded;
+}
+
+// what the step solves, in order: contact rounds, a last solve of u when they ran out
+// with the set still changing, the unit press
+enum Job { kRound, kLast, kUnit, kDone };
+
+template <int MinBlocks>
+__global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const __grid_constant__ StepArgs a) {
+  cg::grid_group g = cg::this_grid();
+  // the shared table as raw bytes (__shared__ allows no initialisers, which Vec3i has)
+  __shared__ alignas(16) unsigned char shared_bytes[sizeof(StepShared)];
+  StepShared& sh = *reinterpret_cast<StepShared*>(shared_bytes);
+  const View& v = a.v;
+  if (threadIdx.x == 0) make_step_table(a, sh);
+  Ring ring{v.sums, 0};
+  const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
+  for (int e = all.first; e < kSlot * kRing; e += all.stride) v.sums[e] = 0.0;
+  __syncthreads();
+  g.sync();
+  const Step st{a, sh, g, ring, all, Team{int(threadIdx.x), int(blockDim.x)}};
+  const Lvl& L0 = sh.lv[0];
+  const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
+  ElasticCounters out{};
+  out.settled = 1;
+  out.converged = 1;
+
+  // the contact set (start_contact)
+  const double under = start_contact(a, st);
   if (reduce1(ring, under, g) == 0) {
     // nothing pressed: the tissue at rest
     for (int e = all.first; e < L0.count; e += all.stride) {
@@ -423,23 +536,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   Job job = kRound;
   while (job != kDone) {
     const Field w = job == kUnit ? unit : u;
-    if (job == kUnit) {
-      for (int e = all.first; e < L0.count; e += all.stride) {
-        Vec3f we = a.unit_warm ? w.at(e) : Vec3f{0, 0, 0};
-        if (v.flags[e] & kElasticContact) we = we - a.nrm * dot(we, a.nrm) + a.nrm;
-        w.set(e, we);
-      }
-    } else {
-      // contact nodes onto the sphere along n (held nodes stay)
-      for (int e = all.first; e < L0.count; e += all.stride) {
-        const std::uint8_t fl = v.flags[e];
-        if (!(fl & kElasticContact)) continue;
-        int i, j, k;
-        L0.coords(e, i, j, k);
-        const Vec3f we = w.at(e);
-        w.set(e, we - a.nrm * dot(we, a.nrm) + a.nrm * st.push(fl, i, j, k));
-      }
-    }
+    job_start(a, st, job == kUnit, w);
     g.sync();
     const Step::Solve sr = st.solve(w, job == kUnit && a.reciprocal ? a.stiffness_tolerance : a.tolerance);
     if (job == kUnit) {
@@ -454,36 +551,8 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     // after the unit press by reciprocity (elastic_math.h) the push sum of u . K w and w's
     // residual's part of w . K w
     const bool reciprocal = job == kUnit && a.reciprocal;
-    const Field rw = st.f();
     double sums[4] = {0, 0, 0, 0};
-    for (int e = all.first; e < L0.count; e += all.stride) {
-      const std::uint8_t fl = v.flags[e];
-      int i, j, k;
-      L0.coords(e, i, j, k);
-      if (reciprocal) {
-        const Vec3f re = rw.at(e);
-        sums[2] -= dot_d(u.at(e), re);
-        sums[3] += dot_d(w.at(e), re);
-      }
-      if (fl & kElasticContact) {
-        const float fn = dot(deform::elastic_apply_node(st.km(), CellModuli{v.cell_e, L0}, Load{w, L0}, L0.n, 1.0f, i,
-                                                        j, k),
-                             a.nrm);
-        sums[0] += double(fn);
-        sums[1] += 1;
-        if (reciprocal) sums[2] += double(fn) * double(dot(u.at(e), a.nrm));
-        if (job == kRound && fn < 0.0f) {
-          v.flags[e] = std::uint8_t(fl & ~kElasticContact);
-          sums[2] += 1;
-        }
-      } else if (job == kRound) {
-        const float t = st.push(fl, i, j, k);
-        if (t > 0 && t - dot(w.at(e), a.nrm) > a.penetration) {
-          v.flags[e] = std::uint8_t(fl | kElasticContact);
-          sums[2] += 1;
-        }
-      }
-    }
+    contact_sums(a, st, job == kRound, reciprocal, w, sums);
     reduce(ring, sums, g);
     if (job == kRound) {
       ++round;
@@ -506,27 +575,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   out.settled = settled;
 
   // the field in voxels for the inversion, and the cells it folds
-  double folded = 0;
-  auto load_vox = [&](int i, int j, int k) {
-    const Vec3f ue = u.at(L0.at(i, j, k));
-    return Vec3f{float(ue.x / a.h[0]), float(ue.y / a.h[1]), float(ue.z / a.h[2])};
-  };
-  for (int e = all.first; e < L0.count; e += all.stride) {
-    int i, j, k;
-    L0.coords(e, i, j, k);
-    const Vec3f ue = u.at(e);
-    a.out[0][e] = float(ue.x / a.h[0]);
-    a.out[1][e] = float(ue.y / a.h[1]);
-    a.out[2][e] = float(ue.z / a.h[2]);
-    if (i + 1 >= L0.n.x || j + 1 >= L0.n.y || k + 1 >= L0.n.z) continue;
-    bool moved = false;
-    for (int c = 0; c < 8 && !moved; ++c) {
-      const Vec3i o = deform::elastic_corner(c);
-      const Vec3f w = u.at(L0.at(i + o.x, j + o.y, k + o.z));
-      moved = w.x != 0.0f || w.y != 0.0f || w.z != 0.0f;
-    }
-    if (moved && !(deform::cell_min_det(load_vox, i, j, k) > 0.0f)) folded += 1;
-  }
+  const double folded = write_field(a, st);
   out.inverted = (unsigned long long)reduce1(ring, folded, g);
   if (blockIdx.x == 0 && threadIdx.x == 0) *a.result = out;
 }

@@ -492,12 +492,13 @@ std::size_t elastic_cpu_bytes(const ElasticCpu& s) {
          b(s.tmp_flags) + b(s.cheb_d) + b(s.c_d);
 }
 
-ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& skin_vox, const Vec3& tip_vox,
-                             const ElasticParams& prm, ElasticCpu& s, Vec3f* u_vox) {
-  const Vec3 h = pat.grid.spacing_mm;
-  ElasticRun out;
+namespace {
+
+// the warm start (relax_elastic_cpu()): the last field and contact set shifted onto this
+// VOI when it or the model changed (the set-up first), the tissue at rest when there is
+// none; whether a last field is the start
+bool warm_start(const Patient& pat, const Voi& voi, const ElasticParams& prm, ElasticCpu& s) {
   const long long n = voi.count();
-  // warm start: the last field and contact set, shifted onto this VOI
   const bool same_model = s.poisson == prm.poisson && s.material_key == material_key(prm.material);
   const Voi last = s.voi;
   const bool had = s.have_u && same_model;
@@ -523,69 +524,78 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
     for (long long e = 0; e < n; ++e) s.flags[std::size_t(e)] &= std::uint8_t(~kElasticContact);
     s.have_unit = false;
   }
-  out.warm = had;
-  Vec3f* u = s.u.data();
-  // the press: n from X to x (mm along the grid axes), the sphere's centre R behind the tip
+  return had;
+}
+
+// one step's press in the VOI's frame: n from X to x (mm along the grid axes, 0 when the
+// tip is outside the skin), the depth (mm), the sphere's centre R behind the tip (mm,
+// VOI-local), the tip (mm, patient)
+struct Press {
+  double depth;
+  Vec3f nrm, centre;
+  float radius;
+  Vec3 tip_mm;
+};
+
+Press press_of(const Patient& pat, const Voi& voi, const Vec3& skin_vox, const Vec3& tip_vox, const ElasticParams& prm) {
+  const Vec3 h = pat.grid.spacing_mm;
+  Press pr;
   const Vec3 d_mm{(tip_vox.x - skin_vox.x) * h.x, (tip_vox.y - skin_vox.y) * h.y, (tip_vox.z - skin_vox.z) * h.z};
-  const double depth = elastic_tip_inside(pat, tip_vox) ? norm(d_mm) : 0.0;
-  out.depth_mm = depth;
-  const Vec3f nrm = depth > 1e-6 ? Vec3f{float(d_mm.x / depth), float(d_mm.y / depth), float(d_mm.z / depth)}
-                                 : Vec3f{0, 0, 0};
-  out.normal = Vec3(nrm);
-  const float R = prm.finger_radius_mm;
+  pr.depth = elastic_tip_inside(pat, tip_vox) ? norm(d_mm) : 0.0;
+  pr.nrm = pr.depth > 1e-6 ? Vec3f{float(d_mm.x / pr.depth), float(d_mm.y / pr.depth), float(d_mm.z / pr.depth)}
+                           : Vec3f{0, 0, 0};
+  pr.radius = prm.finger_radius_mm;
   const Vec3f tip_local{float((tip_vox.x - voi.lo.x) * h.x), float((tip_vox.y - voi.lo.y) * h.y),
                         float((tip_vox.z - voi.lo.z) * h.z)};
-  const Vec3f centre = tip_local - nrm * R;
-  // the warm start's prediction of this press from the last one (elastic_prediction)
-  const Vec3 tip_mm{tip_vox.x * h.x, tip_vox.y * h.y, tip_vox.z * h.z};
-  const ElasticPrediction pred = elastic_prediction(s.last_press, had && prm.predict, s.have_unit && dot(s.unit_normal, nrm) > 0.999f,
-                                                    tip_mm, depth, nrm);
-  if (pred.kind != ElasticPredict::kNone)
-    for (long long e = 0; e < n; ++e)
-      u[e] = elastic_predicted(pred.kind, pred.factor, u[e],
-                               pred.kind == ElasticPredict::kUnit ? s.u_unit[std::size_t(e)] : Vec3f{0, 0, 0});
-  out.prediction = pred.kind;
-  s.last_press = ElasticLastPress{depth > 1e-6, tip_mm, depth, nrm};
-  // the pushes of skin nodes under the sphere; the contact set: last step's nodes still
-  // under it, nodes the last field leaves inside it, and every node under it on a fresh start
+  pr.centre = tip_local - pr.nrm * pr.radius;
+  pr.tip_mm = Vec3{tip_vox.x * h.x, tip_vox.y * h.y, tip_vox.z * h.z};
+  return pr;
+}
+
+// the pushes of skin nodes under the sphere and the contact set: last step's nodes still
+// under it, nodes the last field leaves inside it, every node under it on a fresh start;
+// how many nodes lie under it
+long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press& pr, bool had) {
   long long under = 0;
+  const Vec3f* u = s.u.data();
   each_node(voi.size, [&](int i, int j, int kk) {
     const long long e = voi.index(i, j, kk);
     std::uint8_t& f = s.flags[std::size_t(e)];
-    const bool skin = depth > 1e-6 && (f & kElasticSkin) && !(f & kElasticHeld);
+    const bool skin = pr.depth > 1e-6 && (f & kElasticSkin) && !(f & kElasticHeld);
     const Vec3f rest{float(i * h.x), float(j * h.y), float(kk * h.z)};
-    const float t = skin ? elastic_sphere_push(rest, centre, nrm, R) : -1.0f;
+    const float t = skin ? elastic_sphere_push(rest, pr.centre, pr.nrm, pr.radius) : -1.0f;
     s.push[std::size_t(e)] = t;
     if (t > 0) ++under;
     const bool was = (f & kElasticContact) != 0;
-    const bool pen = t > 0 && t - dot(u[e], nrm) > 0;
+    const bool pen = t > 0 && t - dot(u[e], pr.nrm) > 0;
     f = std::uint8_t(f & ~kElasticContact);
     if (t > 0 && (was || pen || !had)) f |= kElasticContact;
   });
-  if (under == 0) {
-    // nothing pressed: the tissue at rest
-    std::fill_n(u, n, Vec3f{0, 0, 0});
-    s.have_u = true;
-    s.have_unit = false;
-    std::fill_n(u_vox, n, Vec3f{0, 0, 0});
-    return out;
-  }
-  out.contact = true;
-  // contact nodes on the sphere along n (held nodes stay at 0)
+  return under;
+}
+
+// the contact rounds: contact nodes onto the sphere along n (held nodes stay at 0), solve,
+// then nodes the finger pulls leave and skin nodes pushed into the sphere join; a last
+// solve when the last round still changed the set
+void contact_rounds(ElasticCpu& s, const Voi& voi, const Vec3& h, const Vec3f& nrm, const ElasticParams& prm,
+                    ElasticRun& out) {
+  const long long n = voi.count();
+  Vec3f* u = s.u.data();
   auto place = [&]() {
     for (long long e = 0; e < n; ++e)
       if (s.flags[std::size_t(e)] & kElasticContact) u[e] = u[e] - nrm * dot(u[e], nrm) + nrm * s.push[std::size_t(e)];
   };
-  // the contact rounds: solve, then nodes the finger pulls leave and skin nodes pushed into
-  // the sphere join; a last solve when the last round still changed the set
-  bool settled = false;
-  for (int round = 0; round < std::max(1, prm.contact_rounds) && !settled; ++round) {
-    place();
+  auto solve = [&]() {
     const ElasticSolve sr = elastic_solve_cpu(s, nrm, u, prm.max_iterations, prm.tolerance);
-    out.rounds = round + 1;
     out.iterations += sr.iterations;
     out.residual = sr.residual;
     out.converged = out.converged && sr.converged;
+  };
+  bool settled = false;
+  for (int round = 0; round < std::max(1, prm.contact_rounds) && !settled; ++round) {
+    place();
+    solve();
+    out.rounds = round + 1;
     settled = true;
     each_node(voi.size, [&](int i, int j, int kk) {
       const long long e = voi.index(i, j, kk);
@@ -605,57 +615,97 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   out.contact_settled = settled;
   if (!settled) {
     place();
-    const ElasticSolve sr = elastic_solve_cpu(s, nrm, u, prm.max_iterations, prm.tolerance);
-    out.iterations += sr.iterations;
-    out.residual = sr.residual;
-    out.converged = out.converged && sr.converged;
+    solve();
   }
-  // the reaction: the force the finger applies along n, summed over the contact nodes
+}
+
+// the reaction: the force the finger applies along n, summed over the contact nodes
+void reaction(const ElasticCpu& s, const Voi& voi, const Vec3f& nrm, ElasticRun& out) {
   double press = 0;
   int contacts = 0;
   each_node(voi.size, [&](int i, int j, int kk) {
     if (!(s.flags[std::size_t(voi.index(i, j, kk))] & kElasticContact)) return;
     ++contacts;
-    press += dot(elastic_node_force_cpu(s, u, i, j, kk), nrm);
+    press += dot(elastic_node_force_cpu(s, s.u.data(), i, j, kk), nrm);
   });
   out.contact_nodes = contacts;
   out.force_n = Vec3(nrm) * -press;
-  // the stiffness: the unit press (every contact node 1 mm along n) with the set held
-  if (prm.stiffness && contacts > 0) {
-    Vec3f* w = s.u_unit.data();
-    if (!s.have_unit || !(s.unit_normal == nrm)) std::fill_n(w, n, Vec3f{0, 0, 0});
-    for (long long e = 0; e < n; ++e) {
-      const std::uint8_t f = s.flags[std::size_t(e)];
-      if (f & kElasticContact) w[e] = w[e] - nrm * dot(w[e], nrm) + nrm;
-    }
-    const bool reciprocal = prm.stiffness_tolerance > 0;
-    const ElasticSolve sr =
-        elastic_solve_cpu(s, nrm, w, prm.max_iterations, reciprocal ? prm.stiffness_tolerance : prm.tolerance);
-    out.stiffness_iterations = sr.iterations;
-    double k_n = 0, push_k = 0;
-    each_node(voi.size, [&](int i, int j, int kk) {
-      const long long e = voi.index(i, j, kk);
-      if (!(s.flags[std::size_t(e)] & kElasticContact)) return;
-      const double kn = dot(elastic_node_force_cpu(s, w, i, j, kk), nrm);
-      k_n += kn;
-      push_k += kn * dot(u[e], nrm);
-    });
-    if (reciprocal) {
-      // the force and stiffness by reciprocity (elastic_math.h, ElasticParams::stiffness_tolerance):
-      // w.K.u and w.K.w, with the free components of K w as the unit press's residual r
-      // leaves them (K w = -r there)
-      double wr = 0, ur = 0;
-      for (long long e = 0; e < n; ++e) {
-        wr += double(dot(w[e], s.r[std::size_t(e)]));
-        ur += double(dot(u[e], s.r[std::size_t(e)]));
-      }
-      out.force_n = Vec3(nrm) * -(push_k - ur);
-      k_n -= wr;
-    }
-    out.stiffness_n_per_mm = k_n;
-    s.have_unit = true;
-    s.unit_normal = nrm;
+}
+
+// the stiffness: the unit press (every contact node 1 mm along n) with the set held; with
+// stiffness_tolerance, the force and stiffness by reciprocity (elastic_math.h)
+void unit_press(ElasticCpu& s, const Voi& voi, const Vec3f& nrm, const ElasticParams& prm, ElasticRun& out) {
+  const long long n = voi.count();
+  const Vec3f* u = s.u.data();
+  Vec3f* w = s.u_unit.data();
+  if (!s.have_unit || !(s.unit_normal == nrm)) std::fill_n(w, n, Vec3f{0, 0, 0});
+  for (long long e = 0; e < n; ++e) {
+    const std::uint8_t f = s.flags[std::size_t(e)];
+    if (f & kElasticContact) w[e] = w[e] - nrm * dot(w[e], nrm) + nrm;
   }
+  const bool reciprocal = prm.stiffness_tolerance > 0;
+  const ElasticSolve sr =
+      elastic_solve_cpu(s, nrm, w, prm.max_iterations, reciprocal ? prm.stiffness_tolerance : prm.tolerance);
+  out.stiffness_iterations = sr.iterations;
+  double k_n = 0, push_k = 0;
+  each_node(voi.size, [&](int i, int j, int kk) {
+    const long long e = voi.index(i, j, kk);
+    if (!(s.flags[std::size_t(e)] & kElasticContact)) return;
+    const double kn = dot(elastic_node_force_cpu(s, w, i, j, kk), nrm);
+    k_n += kn;
+    push_k += kn * dot(u[e], nrm);
+  });
+  if (reciprocal) {
+    // w.K.u and w.K.w, with the free components of K w as the unit press's residual r
+    // leaves them (K w = -r there)
+    double wr = 0, ur = 0;
+    for (long long e = 0; e < n; ++e) {
+      wr += double(dot(w[e], s.r[std::size_t(e)]));
+      ur += double(dot(u[e], s.r[std::size_t(e)]));
+    }
+    out.force_n = Vec3(nrm) * -(push_k - ur);
+    k_n -= wr;
+  }
+  out.stiffness_n_per_mm = k_n;
+  s.have_unit = true;
+  s.unit_normal = nrm;
+}
+
+}  // namespace
+
+ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& skin_vox, const Vec3& tip_vox,
+                             const ElasticParams& prm, ElasticCpu& s, Vec3f* u_vox) {
+  const Vec3 h = pat.grid.spacing_mm;
+  ElasticRun out;
+  const long long n = voi.count();
+  const bool had = warm_start(pat, voi, prm, s);
+  out.warm = had;
+  Vec3f* u = s.u.data();
+  const Press pr = press_of(pat, voi, skin_vox, tip_vox, prm);
+  out.depth_mm = pr.depth;
+  out.normal = Vec3(pr.nrm);
+  // the warm start's prediction of this press from the last one (elastic_prediction)
+  const ElasticPrediction pred =
+      elastic_prediction(s.last_press, had && prm.predict, s.have_unit && dot(s.unit_normal, pr.nrm) > 0.999f,
+                         pr.tip_mm, pr.depth, pr.nrm);
+  if (pred.kind != ElasticPredict::kNone)
+    for (long long e = 0; e < n; ++e)
+      u[e] = elastic_predicted(pred.kind, pred.factor, u[e],
+                               pred.kind == ElasticPredict::kUnit ? s.u_unit[std::size_t(e)] : Vec3f{0, 0, 0});
+  out.prediction = pred.kind;
+  s.last_press = ElasticLastPress{pr.depth > 1e-6, pr.tip_mm, pr.depth, pr.nrm};
+  if (contact_set(s, voi, h, pr, had) == 0) {
+    // nothing pressed: the tissue at rest
+    std::fill_n(u, n, Vec3f{0, 0, 0});
+    s.have_u = true;
+    s.have_unit = false;
+    std::fill_n(u_vox, n, Vec3f{0, 0, 0});
+    return out;
+  }
+  out.contact = true;
+  contact_rounds(s, voi, h, pr.nrm, prm, out);
+  reaction(s, voi, pr.nrm, out);
+  if (prm.stiffness && out.contact_nodes > 0) unit_press(s, voi, pr.nrm, prm, out);
   s.have_u = true;
   // the field in voxels for the backend's buffers, and the folds it holds
   for (long long e = 0; e < n; ++e) u_vox[e] = Vec3f{float(u[e].x / h.x), float(u[e].y / h.y), float(u[e].z / h.z)};

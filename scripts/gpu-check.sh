@@ -47,6 +47,10 @@ fi
 if [ -z "$quick" ]; then
   step bench-render palpsim-bench render --scene config/scenes/lumbar_phantom.textproto --rounds 5 --json "$out/render.json"
   step bench-deform palpsim-bench deform --json "$out/deform.json"
+  # the elastic rows again with two blocks a multiprocessor, and with coarse levels of up
+  # to 64 nodes (not 512) in block 0 alone: which launch shape the step should keep
+  step bench-elastic-bps2 env PALPSIM_ELASTIC_BLOCKS_PER_SM=2 palpsim-bench deform --elastic --backend cuda --quick
+  step bench-elastic-bn64 env PALPSIM_ELASTIC_BLOCK_NODES=64 palpsim-bench deform --elastic --backend cuda --quick
   # the elastic study's GPU column for bench/results/accuracy.md (--elastic-gpu-json)
   step accuracy-elastic palpsim-bench accuracy --elastic --json-only "$out/accuracy-elastic.json" --backend cuda \
     --commit "$commit"

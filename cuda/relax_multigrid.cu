@@ -194,67 +194,45 @@ struct MgArgs {
   MultigridBuffers m;
 };
 
-__global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgArgs a) {
-  cg::grid_group grid = cg::this_grid();
-  const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
-  const Team block0{int(threadIdx.x), int(blockDim.x)};
-  const bool first_thread = blockIdx.x == 0 && threadIdx.x == 0;
-  const MultigridPlan& plan = a.plan;
-  const MultigridBuffers& m = a.m;
-  const deform::Voi& voi = a.geo.voi;
-  float* u[3] = {a.b.u[a.src][0], a.b.u[a.src][1], a.b.u[a.src][2]};
-  // the levels: 0 solves for z with right-hand side r (lvs[b]: r[b]), the field is X = G;
-  // in shared memory, one copy per block (per-thread arrays indexed by level would live
-  // in local memory), as raw bytes (__shared__ allows no default member initialisers)
-  constexpr int kL = deform::kMultigridMaxLevels;
-  __shared__ alignas(16) unsigned char level_bytes[3 * kL * sizeof(MultigridLevel) + kL * sizeof(Vec3i)];
-  auto* lvs = reinterpret_cast<MultigridLevel(*)[kL]>(level_bytes);
-  MultigridLevel* sl = reinterpret_cast<MultigridLevel*>(level_bytes + 2 * kL * sizeof(MultigridLevel));
-  Vec3i* origin = reinterpret_cast<Vec3i*>(level_bytes + 3 * kL * sizeof(MultigridLevel));
-  if (threadIdx.x == 0) {
-    for (int b = 0; b < 2; ++b) {
-      lvs[b][0] = MultigridLevel{voi.size, m.z, m.r[b], m.held, m.res};
-      for (int l = 1; l < plan.levels; ++l) {
-        const long long o = plan.offset[l];
-        lvs[b][l] = MultigridLevel{plan.size[l], m.cx + o, m.cf + o, m.cheld + o, m.cres + o};
-      }
-    }
-    for (int l = 0; l + 1 < plan.levels; ++l) origin[l] = plan.origin[l];
-  }
-  const MultigridLevel* lv = lvs[0];
-  const MultigridLevel L0{voi.size, m.z, m.r[0], m.held, m.res};  // level 0 (its f aside)
-  const int n = L0.count();
-  float* X = m.g;
-  const int split = block_split(plan);
-  const int last = plan.levels - 1;
-  const int grid_to = split < last ? split : last;
-  // levels split..last (the end of the coarse buffers) in block 0's shared memory
-  extern __shared__ float mg_smem[];
-  if (threadIdx.x == 0 && split > 0 && split <= last) {
-    const long long base = plan.offset[split];
-    const int nb = int(plan.coarse_count - base);
-    float* sx = mg_smem;
-    float* sf = sx + nb;
-    float* sr = sf + nb;
-    std::uint8_t* sh = reinterpret_cast<std::uint8_t*>(sr + nb);
-    for (int l = split; l <= last; ++l) {
-      const int o = int(plan.offset[l] - base);
-      sl[l] = MultigridLevel{plan.size[l], sx + o, sf + o, sh + o, sr + o};
-    }
-  }
-  __syncthreads();
-  const int g_idx = L0.index(a.geo.grabbed.x, a.geo.grabbed.y, a.geo.grabbed.z);
-  const Vec3f d = a.prime ? Vec3f{0, 0, 0} : Vec3f{u[0][g_idx], u[1][g_idx], u[2][g_idx]};
-  int* dirty = m.flags + a.parity;
-  const bool kept = *(volatile int*)(m.flags + 2) != 0;  // read before the first thread may clear it
-  const bool hit = a.hit && kept;
+constexpr int kL = deform::kMultigridMaxLevels;
 
-  // the held mask (the grabbed element and the fingertip's soft elements, set to d here;
-  // material weight 0), whether an element held at rest moved, and with a reusable G
-  // already u = d G (overwritten below if one moved: the solves read u at held elements
-  // only). Every thread read d above and writes the same d at the grabbed element.
-  if (first_thread) m.flags[a.parity ^ 1] = 0;
-  for (int e = all.first; e < 6 * max(a.cycles, a.warm_cycles); e += all.stride) m.dots[e] = 0.0;
+// the levels' descriptors in global memory (thread 0 of each block): level 0 solves for z
+// with right-hand side r (lvs[b]: r[b]), the coarse ones from the plan; and the origins
+__device__ __forceinline__ void grid_levels(const MultigridPlan& plan, const MultigridBuffers& m,
+                                            const deform::Voi& voi, MultigridLevel (*lvs)[kL], Vec3i* origin) {
+  for (int b = 0; b < 2; ++b) {
+    lvs[b][0] = MultigridLevel{voi.size, m.z, m.r[b], m.held, m.res};
+    for (int l = 1; l < plan.levels; ++l) {
+      const long long o = plan.offset[l];
+      lvs[b][l] = MultigridLevel{plan.size[l], m.cx + o, m.cf + o, m.cheld + o, m.cres + o};
+    }
+  }
+  for (int l = 0; l + 1 < plan.levels; ++l) origin[l] = plan.origin[l];
+}
+
+// the descriptors of levels split..last (the end of the coarse buffers) in block 0's
+// shared memory mg_smem (thread 0 of each block)
+__device__ __forceinline__ void block_levels(const MultigridPlan& plan, int split, int last, float* mg_smem,
+                                             MultigridLevel* sl) {
+  const long long base = plan.offset[split];
+  const int nb = int(plan.coarse_count - base);
+  float* sx = mg_smem;
+  float* sf = sx + nb;
+  float* sr = sf + nb;
+  std::uint8_t* sh = reinterpret_cast<std::uint8_t*>(sr + nb);
+  for (int l = split; l <= last; ++l) {
+    const int o = int(plan.offset[l] - base);
+    sl[l] = MultigridLevel{plan.size[l], sx + o, sf + o, sh + o, sr + o};
+  }
+}
+
+// the held mask (the grabbed element and the fingertip's soft elements, set to d here;
+// material weight 0), and with a reusable G (hit) already u = d G (overwritten later if
+// an element held at rest moved: the solves read u at held elements only); returns
+// whether one did. Every thread read d before and writes the same d at the grabbed element.
+__device__ __forceinline__ bool hold_pass(const MgArgs& a, const MultigridLevel& L0, int n, int g_idx, const Vec3f d,
+                                          bool hit, float* const (&u)[3], const float* X, Team all) {
+  const MultigridBuffers& m = a.m;
   bool moved_held = false;
   for (int e = all.first; e < n; e += all.stride) {
     int i, j, k;
@@ -280,7 +258,231 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
       u[2][e] = d.z * ge;
     }
   }
-  if (moved_held) *(volatile int*)dirty = 1;
+  return moved_held;
+}
+
+// a solve's start: X the held data, the start on free nodes (0, or the last G shifted);
+// r = sum6(X) - 6 X on free nodes; z its first red half-sweep from 0 (X of the neighbours
+// from the mask, the data and the start)
+template <typename Data>
+__device__ __forceinline__ void solve_start(const MultigridBuffers& m, const MultigridLevel& L0, int n, Data data,
+                                            const deform::MultigridStart& start, float* X, Team all) {
+  for (int e = all.first; e < n; e += all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    const bool held = m.held[e];
+    const float xe = held ? data(e) : start.at(i, j, k);
+    float s = 0;
+    for (int q = 0; q < 6; ++q) {
+      const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
+      if (!L0.inside(nb.x, nb.y, nb.z)) continue;
+      const int ne = L0.index(nb.x, nb.y, nb.z);
+      s += m.held[ne] ? data(ne) : start.at(nb.x, nb.y, nb.z);
+    }
+    const float re = held ? 0.0f : s - 6.0f * xe;
+    X[e] = xe;
+    m.r[0][e] = re;
+    m.z[e] = !held && deform::multigrid_colour(i, j, k) == 0 ? deform::multigrid_smooth(0.0f, re) : 0.0f;
+  }
+}
+
+// z = M r: the grid down to level split, block 0 below it (in shared memory, sl, when
+// split > 0), the grid back up; level 0's last red half-sweep is left to red_and_rho
+__device__ __forceinline__ void v_cycle(const MultigridLevel* lv, const MultigridLevel* sl, const Vec3i* origin,
+                                        int split, int last, int grid_to, Team all, Team block0,
+                                        cg::grid_group& grid) {
+  auto gsync = [&] { grid.sync(); };
+  auto bsync = [] { __syncthreads(); };
+  down(lv, origin, 0, grid_to, all, true, gsync);
+  if (split <= last) {
+    if (blockIdx.x == 0) {
+      const MultigridLevel* bl = split > 0 ? sl : lv;
+      if (split > 0) {
+        // level split's f, held mask and first red half-sweep into shared memory
+        const MultigridLevel g = lv[split], sg = bl[split];
+        for (int e = block0.first; e < g.count(); e += block0.stride) {
+          sg.x[e] = g.x[e];
+          sg.f[e] = g.f[e];
+          sg.held[e] = g.held[e];
+        }
+        __syncthreads();
+      }
+      down(bl, origin, split, last, block0, false, bsync);
+      coarsest(bl[last], last > 0, block0, bsync);
+      up(bl, origin, split, last, block0, -1, bsync);
+      if (split > 0) {
+        const MultigridLevel g = lv[split], sg = bl[split];
+        for (int e = block0.first; e < g.count(); e += block0.stride) g.x[e] = sg.x[e];
+      }
+    }
+    grid.sync();
+  } else {
+    // the coarsest level too large for one block (a thin VOI: level 0 itself)
+    coarsest(lv[last], last > 0, all, gsync);
+  }
+  up(lv, origin, 0, grid_to, all, 0, gsync);
+}
+
+// level 0's red half-sweep, when the grid runs it, with this thread's part of rho = r . z
+// (rho alone when block 0 ran that half-sweep)
+__device__ __forceinline__ double red_and_rho(const MultigridBuffers& m, const MultigridLevel& L0, int n,
+                                              const MultigridLevel l0, bool red_on_grid, const float* r, Team all) {
+  double part = 0;
+  for (int e = all.first; e < n; e += all.stride) {
+    if (red_on_grid) {
+      int i, j, k;
+      L0.coords(e, i, j, k);
+      deform::multigrid_sweep_node(l0, 0, i, j, k);
+    }
+    part += double(r[e]) * m.z[e];
+  }
+  return part;
+}
+
+// p' = z + beta p into p_next, q = A p' on free nodes (p' of the neighbours from z and p);
+// returns this thread's part of p' . q
+__device__ __forceinline__ double direction_pass(const MultigridBuffers& m, const MultigridLevel& L0, int n, int c,
+                                                 float beta, const float* p, float* p_next, Team all) {
+  double part = 0;
+  for (int e = all.first; e < n; e += all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    const float pe = c == 0 ? m.z[e] : m.z[e] + p[e] * beta;
+    float s = 0;
+    for (int q = 0; q < 6; ++q) {
+      const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
+      if (!L0.inside(nb.x, nb.y, nb.z)) continue;
+      const int ne = L0.index(nb.x, nb.y, nb.z);
+      s += c == 0 ? m.z[ne] : m.z[ne] + p[ne] * beta;
+    }
+    const float qe = m.held[e] ? 0.0f : 6.0f * pe - s;
+    p_next[e] = pe;
+    m.q[e] = qe;
+    part += double(pe) * qe;
+  }
+  return part;
+}
+
+// X += alpha p; r' = r - alpha q into r_next; z for the next V-cycle: r' / 6 at red free
+// nodes, the black half-sweep from those at black free nodes
+__device__ __forceinline__ void update_pass(const MultigridBuffers& m, const MultigridLevel& L0, int n, float alpha,
+                                            const float* pn, const float* r, float* r_next, float* X, Team all) {
+  for (int e = all.first; e < n; e += all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    X[e] += pn[e] * alpha;
+    const float re = deform::multigrid_cg_residual(r[e], m.q[e], alpha);
+    r_next[e] = re;
+    float ze = 0;
+    if (!m.held[e]) {
+      if (deform::multigrid_colour(i, j, k) == 0) {
+        ze = deform::multigrid_smooth(0.0f, re);
+      } else {
+        float s = 0;
+        for (int q = 0; q < 6; ++q) {
+          const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
+          if (!L0.inside(nb.x, nb.y, nb.z)) continue;
+          const int ne = L0.index(nb.x, nb.y, nb.z);
+          s += m.held[ne] ? 0.0f : deform::multigrid_smooth(0.0f, deform::multigrid_cg_residual(r[ne], m.q[ne], alpha));
+        }
+        ze = deform::multigrid_smooth(s, re);
+      }
+    }
+    m.z[e] = ze;
+  }
+}
+
+// one solve's CG cycles after its start: a V-cycle, rho, the direction and q, then X and
+// r (dots: this solve's 2 per cycle); the last cycle's X += alpha p is left to the output
+// pass (stepped), with its alpha and the buffer (pc) of p
+__device__ __forceinline__ void cg_cycles(const MultigridBuffers& m, MultigridLevel (*lvs)[kL], const MultigridLevel* sl,
+                                          const Vec3i* origin, int split, int last, int grid_to,
+                                          const MultigridLevel& L0, int n, int cycles, double* dots, float* X,
+                                          Team all, Team block0, cg::grid_group& grid, bool& stepped, float& alpha,
+                                          int& pc) {
+  int cur = 0;
+  double rho = 0;
+  for (int c = 0; c < cycles; ++c) {
+    const MultigridLevel* lv = lvs[cur];
+    v_cycle(lv, sl, origin, split, last, grid_to, all, block0, grid);
+    const float* r = m.r[cur];
+    block_sum_add(red_and_rho(m, L0, n, lv[0], grid_to > 0, r, all), &dots[2 * c]);
+    grid.sync();
+    const double rho_new = dots[2 * c];
+    if (!(rho_new > 0)) break;  // r = 0: converged
+    const float beta = c == 0 ? 0.0f : float(rho_new / rho);
+    rho = rho_new;
+    block_sum_add(direction_pass(m, L0, n, c, beta, m.p[pc], m.p[pc ^ 1], all), &dots[2 * c + 1]);
+    pc ^= 1;
+    grid.sync();
+    const double pq = dots[2 * c + 1];
+    if (!(pq > 0)) break;
+    alpha = float(rho / pq);
+    if (c + 1 == cycles) {
+      stepped = true;
+      break;
+    }
+    update_pass(m, L0, n, alpha, m.p[pc], r, m.r[cur ^ 1], X, all);
+    cur ^= 1;
+    grid.sync();
+  }
+}
+
+// the last X += alpha p (stepped), and u from X on free elements: d X (X = G, clean) or
+// component comp
+__device__ __forceinline__ void output_pass(const MultigridBuffers& m, int n, bool stepped, float alpha,
+                                            const float* pn, float* X, bool prime, bool clean, const Vec3f d,
+                                            float* const (&u)[3], int comp, Team all) {
+  for (int e = all.first; e < n; e += all.stride) {
+    if (stepped) X[e] += pn[e] * alpha;
+    if (m.held[e] || prime) continue;
+    const float xe = X[e];
+    if (clean) {
+      u[0][e] = d.x * xe;
+      u[1][e] = d.y * xe;
+      u[2][e] = d.z * xe;
+    } else {
+      u[comp][e] = xe;
+    }
+  }
+}
+
+__global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgArgs a) {
+  cg::grid_group grid = cg::this_grid();
+  const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
+  const Team block0{int(threadIdx.x), int(blockDim.x)};
+  const bool first_thread = blockIdx.x == 0 && threadIdx.x == 0;
+  const MultigridPlan& plan = a.plan;
+  const MultigridBuffers& m = a.m;
+  const deform::Voi& voi = a.geo.voi;
+  float* u[3] = {a.b.u[a.src][0], a.b.u[a.src][1], a.b.u[a.src][2]};
+  // the levels in shared memory, one copy per block (per-thread arrays indexed by level
+  // would live in local memory), as raw bytes (__shared__ allows no default member
+  // initialisers)
+  __shared__ alignas(16) unsigned char level_bytes[3 * kL * sizeof(MultigridLevel) + kL * sizeof(Vec3i)];
+  auto* lvs = reinterpret_cast<MultigridLevel(*)[kL]>(level_bytes);
+  MultigridLevel* sl = reinterpret_cast<MultigridLevel*>(level_bytes + 2 * kL * sizeof(MultigridLevel));
+  Vec3i* origin = reinterpret_cast<Vec3i*>(level_bytes + 3 * kL * sizeof(MultigridLevel));
+  if (threadIdx.x == 0) grid_levels(plan, m, voi, lvs, origin);
+  const MultigridLevel L0{voi.size, m.z, m.r[0], m.held, m.res};  // level 0 (its f aside)
+  const int n = L0.count();
+  float* X = m.g;  // the field: X = G
+  const int split = block_split(plan);
+  const int last = plan.levels - 1;
+  const int grid_to = split < last ? split : last;
+  extern __shared__ float mg_smem[];
+  if (threadIdx.x == 0 && split > 0 && split <= last) block_levels(plan, split, last, mg_smem, sl);
+  __syncthreads();
+  const int g_idx = L0.index(a.geo.grabbed.x, a.geo.grabbed.y, a.geo.grabbed.z);
+  const Vec3f d = a.prime ? Vec3f{0, 0, 0} : Vec3f{u[0][g_idx], u[1][g_idx], u[2][g_idx]};
+  int* dirty = m.flags + a.parity;
+  const bool kept = *(volatile int*)(m.flags + 2) != 0;  // read before the first thread may clear it
+  const bool hit = a.hit && kept;
+
+  // the held mask, u = d G with a reusable G, and whether an element held at rest moved
+  if (first_thread) m.flags[a.parity ^ 1] = 0;
+  for (int e = all.first; e < 6 * max(a.cycles, a.warm_cycles); e += all.stride) m.dots[e] = 0.0;
+  if (hold_pass(a, L0, n, g_idx, d, hit, u, X, all)) *(volatile int*)dirty = 1;
   grid.sync();
   const bool clean = *(volatile int*)dirty == 0;
   // one scalar solve per component with its own held data, or one for G when clean
@@ -298,164 +500,16 @@ __global__ void __launch_bounds__(kPersistentThreads) relax_multigrid_kernel(MgA
   for (int comp = 0; comp < solves; ++comp) {
     const float* ucomp = u[comp];
     auto data = [&](int e) { return clean ? (m.held[e] == deform::kMultigridHeldGrabbed ? 1.0f : 0.0f) : ucomp[e]; };
-    double* dots = m.dots + 2 * cycles * comp;
-    // X: the held data, the start on free nodes (0, or the last G shifted); r = sum6(X) -
-    // 6 X on free nodes; z its first red half-sweep from 0 (X of the neighbours from the
-    // mask, the data and the start)
-    for (int e = all.first; e < n; e += all.stride) {
-      int i, j, k;
-      L0.coords(e, i, j, k);
-      const bool held = m.held[e];
-      const float xe = held ? data(e) : start.at(i, j, k);
-      float s = 0;
-      for (int q = 0; q < 6; ++q) {
-        const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
-        if (!L0.inside(nb.x, nb.y, nb.z)) continue;
-        const int ne = L0.index(nb.x, nb.y, nb.z);
-        s += m.held[ne] ? data(ne) : start.at(nb.x, nb.y, nb.z);
-      }
-      const float re = held ? 0.0f : s - 6.0f * xe;
-      X[e] = xe;
-      m.r[0][e] = re;
-      m.z[e] = !held && deform::multigrid_colour(i, j, k) == 0 ? deform::multigrid_smooth(0.0f, re) : 0.0f;
-    }
+    solve_start(m, L0, n, data, start, X, all);
     grid.sync();
-    lv = lvs[0];
-    sweep(lv[0], 1, all);
+    sweep(lvs[0][0], 1, all);
     grid.sync();
-
-    int cur = 0, pc = 0;
-    double rho = 0;
+    int pc = 0;
     float alpha = 0;
     bool stepped = false;  // the last step's X += alpha p is left to the output pass
-    for (int c = 0; c < cycles; ++c) {
-      lv = lvs[cur];
-      // z = M r: the grid down to level split, block 0 below it (in shared memory when
-      // split > 0), the grid back up; level 0's last red half-sweep comes with rho below
-      auto gsync = [&] { grid.sync(); };
-      auto bsync = [] { __syncthreads(); };
-      down(lv, origin, 0, grid_to, all, true, gsync);
-      if (split <= last) {
-        if (blockIdx.x == 0) {
-          const MultigridLevel* bl = split > 0 ? sl : lv;
-          if (split > 0) {
-            // level split's f, held mask and first red half-sweep into shared memory
-            const MultigridLevel g = lv[split], sg = bl[split];
-            for (int e = block0.first; e < g.count(); e += block0.stride) {
-              sg.x[e] = g.x[e];
-              sg.f[e] = g.f[e];
-              sg.held[e] = g.held[e];
-            }
-            __syncthreads();
-          }
-          down(bl, origin, split, last, block0, false, bsync);
-          coarsest(bl[last], last > 0, block0, bsync);
-          up(bl, origin, split, last, block0, -1, bsync);
-          if (split > 0) {
-            const MultigridLevel g = lv[split], sg = bl[split];
-            for (int e = block0.first; e < g.count(); e += block0.stride) g.x[e] = sg.x[e];
-          }
-        }
-        grid.sync();
-      } else {
-        // the coarsest level too large for one block (a thin VOI: level 0 itself)
-        coarsest(lv[last], last > 0, all, gsync);
-      }
-      up(lv, origin, 0, grid_to, all, 0, gsync);
-      // level 0's red half-sweep, when the grid runs it, with rho = r . z; else rho alone
-      const float* r = m.r[cur];
-      double part = 0;
-      const bool red_on_grid = grid_to > 0;
-      const MultigridLevel l0 = lv[0];
-      for (int e = all.first; e < n; e += all.stride) {
-        if (red_on_grid) {
-          int i, j, k;
-          L0.coords(e, i, j, k);
-          deform::multigrid_sweep_node(l0, 0, i, j, k);
-        }
-        part += double(r[e]) * m.z[e];
-      }
-      block_sum_add(part, &dots[2 * c]);
-      grid.sync();
-      const double rho_new = dots[2 * c];
-      if (!(rho_new > 0)) break;  // r = 0: converged
-      const float beta = c == 0 ? 0.0f : float(rho_new / rho);
-      rho = rho_new;
-      // p' = z + beta p into the other buffer, q = A p' on free nodes (p' of the
-      // neighbours from z and p), and p' . q
-      const float* p = m.p[pc];
-      float* p_next = m.p[pc ^ 1];
-      part = 0;
-      for (int e = all.first; e < n; e += all.stride) {
-        int i, j, k;
-        L0.coords(e, i, j, k);
-        const float pe = c == 0 ? m.z[e] : m.z[e] + p[e] * beta;
-        float s = 0;
-        for (int q = 0; q < 6; ++q) {
-          const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
-          if (!L0.inside(nb.x, nb.y, nb.z)) continue;
-          const int ne = L0.index(nb.x, nb.y, nb.z);
-          s += c == 0 ? m.z[ne] : m.z[ne] + p[ne] * beta;
-        }
-        const float qe = m.held[e] ? 0.0f : 6.0f * pe - s;
-        p_next[e] = pe;
-        m.q[e] = qe;
-        part += double(pe) * qe;
-      }
-      block_sum_add(part, &dots[2 * c + 1]);
-      pc ^= 1;
-      grid.sync();
-      const double pq = dots[2 * c + 1];
-      if (!(pq > 0)) break;
-      alpha = float(rho / pq);
-      if (c + 1 == cycles) {
-        stepped = true;
-        break;
-      }
-      // X += alpha p; r' = r - alpha q into the other buffer; z for the next V-cycle:
-      // r' / 6 at red free nodes, the black half-sweep from those at black free nodes
-      const float* pn = m.p[pc];
-      float* r_next = m.r[cur ^ 1];
-      for (int e = all.first; e < n; e += all.stride) {
-        int i, j, k;
-        L0.coords(e, i, j, k);
-        X[e] += pn[e] * alpha;
-        const float re = deform::multigrid_cg_residual(r[e], m.q[e], alpha);
-        r_next[e] = re;
-        float ze = 0;
-        if (!m.held[e]) {
-          if (deform::multigrid_colour(i, j, k) == 0) {
-            ze = deform::multigrid_smooth(0.0f, re);
-          } else {
-            float s = 0;
-            for (int q = 0; q < 6; ++q) {
-              const Vec3i nb = Vec3i{i, j, k} + deform::neighbour_offset(q);
-              if (!L0.inside(nb.x, nb.y, nb.z)) continue;
-              const int ne = L0.index(nb.x, nb.y, nb.z);
-              s += m.held[ne] ? 0.0f : deform::multigrid_smooth(0.0f, deform::multigrid_cg_residual(r[ne], m.q[ne], alpha));
-            }
-            ze = deform::multigrid_smooth(s, re);
-          }
-        }
-        m.z[e] = ze;
-      }
-      cur ^= 1;
-      grid.sync();
-    }
-    // the last X += alpha p, and u from X on free elements: d X (X = G) or this component
-    const float* pn = m.p[pc];
-    for (int e = all.first; e < n; e += all.stride) {
-      if (stepped) X[e] += pn[e] * alpha;
-      if (m.held[e] || a.prime) continue;
-      const float xe = X[e];
-      if (clean) {
-        u[0][e] = d.x * xe;
-        u[1][e] = d.y * xe;
-        u[2][e] = d.z * xe;
-      } else {
-        u[comp][e] = xe;
-      }
-    }
+    cg_cycles(m, lvs, sl, origin, split, last, grid_to, L0, n, cycles, m.dots + 2 * cycles * comp, X, all, block0,
+              grid, stepped, alpha, pc);
+    output_pass(m, n, stepped, alpha, m.p[pc], X, a.prime, clean, d, u, comp, all);
     if (comp + 1 < solves) grid.sync();
   }
   if (clean && first_thread) m.flags[2] = 1;  // X holds G

@@ -236,81 +236,88 @@ std::vector<Vec3> catmull_rom(const std::vector<Vec3>& pts, int n) {
   return out;
 }
 
-std::shared_ptr<PhantomShapes> build_shapes() {
-  auto s = std::make_shared<PhantomShapes>();
-  namespace hu = phantom_hu;
-  // closes the group of bones added since the last call (for the distance queries)
-  const auto end_group = [&s] {
-    PhantomShapes::Group g{s->groups.empty() ? 0 : s->groups.back().end, s->bones.size(), {}};
-    for (std::size_t i = g.begin; i < g.end; ++i) {
-      const Aabb& b = s->bones[i].box;
-      g.box.lo = {std::min(g.box.lo.x, b.lo.x), std::min(g.box.lo.y, b.lo.y), std::min(g.box.lo.z, b.lo.z)};
-      g.box.hi = {std::max(g.box.hi.x, b.hi.x), std::max(g.box.hi.y, b.hi.y), std::max(g.box.hi.z, b.hi.z)};
-    }
-    if (g.end > g.begin) s->groups.push_back(g);
-  };
-  constexpr double kBodyY = 6, kBodyRound = 2;
-
-  // spine: T12, L1-L5 and the top of S1 (cut by the volume; its interior is above the
-  // bone threshold because a cut body cannot be hole-filled)
-  const Level levels[] = {
-      {"T12", 96, 17, 12.5, 9.5, 82, 18, 28, 3.5, hu::kCancellousVertebra},
-      {"L1", 62, 18, 13, 10.5, 83, 12, 36, 3.5, hu::kCancellousVertebra},
-      {"L2", 28, 19, 13.5, 10.5, 85, 10, 40, 3.5, hu::kCancellousVertebra},
-      {"L3", -6, 20, 14, 10.5, 86, 8, 46, 3.5, hu::kCancellousVertebra},
-      {"L4", -40, 21, 14, 10.5, 84, 8, 42, 3.5, hu::kCancellousVertebra},
-      {"L5", -74, 22, 14.5, 10.5, 79, 5, 40, 5.0, hu::kCancellousVertebra},
-      {"S1", -108, 23, 15, 10, 72, 0, 0, 0, hu::kCancellous},
-  };
-  for (const Level& l : levels) {
-    // vertebral body: 2 mm cortex around the cancellous interior
-    s->bones.push_back(bone(Solid::ellipse_slab({0, kBodyY, l.z}, l.ax, l.ay, l.hz, kBodyRound), 2.0,
-                            l.body_interior_hu));
-    s->landmarks.push_back({std::string("vertebral_body_") + l.name, {0, kBodyY, l.z}});
-    // pedicles, lateral to the canal
-    for (double sx : {-1.0, 1.0})
-      s->bones.push_back(bone(Solid::round_box({sx * 14, 30, l.z + 1}, {0, 1, 0}, {1, 0, 0}, {8, 2, 4}, 2.5), 1.5,
-                              hu::kCancellous));
-    // laminae: plates from the pedicles to the midline, the canal's roof
-    for (double sx : {-1.0, 1.0}) {
-      const Vec3 from{sx * 14, 40, l.z}, to{0, 47, l.z};
-      s->bones.push_back(bone(Solid::round_box((from + to) * 0.5, to - from, {0, 0, 1},
-                                               {norm(to - from) * 0.5, 6.5, 1.5}, 2.5),
-                              1.5, hu::kCancellous));
-    }
-    // spinous process: a rounded plate from the laminae backwards, sloping down
-    // by tilt; its posterior-most point lies at y = tip_y
-    {
-      const double th = l.tilt_deg * kPi / 180, r = 2, hx = 2, hz = 7;
-      const Vec3 u{0, std::cos(th), -std::sin(th)}, w{0, std::sin(th), std::cos(th)};
-      const Vec3 start{0, 44, l.z};
-      // solve start.y + 2 hl cos(th) + hz sin(th) + r = tip_y for the half length hl
-      const double hl = (l.tip_y - start.y - hz * std::sin(th) - r) / (2 * std::cos(th));
-      const Vec3 c = start + u * hl;
-      s->bones.push_back(bone(Solid::round_box(c, u, {1, 0, 0}, {hl, hx, hz}, r), 1.5, hu::kCancellous));
-      const Vec3 corner = c + u * hl + w * hz;
-      s->landmarks.push_back({std::string("spinous_tip_") + l.name, {0, corner.y + r, corner.z}});
-    }
-    // transverse processes
-    if (l.tp_x > 0)
-      for (double sx : {-1.0, 1.0})
-        s->bones.push_back(
-            bone(Solid::capsule({sx * 14, 32, l.z}, {sx * l.tp_x, 36, l.z + 1}, l.tp_r), 1.5, hu::kCancellous));
-    end_group();
+// closes the group of bones added since the last call (for the distance queries)
+void end_group(PhantomShapes& s) {
+  PhantomShapes::Group g{s.groups.empty() ? 0 : s.groups.back().end, s.bones.size(), {}};
+  for (std::size_t i = g.begin; i < g.end; ++i) {
+    const Aabb& b = s.bones[i].box;
+    g.box.lo = {std::min(g.box.lo.x, b.lo.x), std::min(g.box.lo.y, b.lo.y), std::min(g.box.lo.z, b.lo.z)};
+    g.box.hi = {std::max(g.box.hi.x, b.hi.x), std::max(g.box.hi.y, b.hi.y), std::max(g.box.hi.z, b.hi.z)};
   }
-  // intervertebral discs between consecutive bodies, overlapping the endplates by 1 mm
-  for (std::size_t i = 0; i + 1 < std::size(levels); ++i) {
-    const Level& up = levels[i];
-    const Level& lo = levels[i + 1];
+  if (g.end > g.begin) s.groups.push_back(g);
+}
+
+// vertebral bodies: centre y and rounding (mm)
+constexpr double kBodyY = 6, kBodyRound = 2;
+
+// spine: T12, L1-L5 and the top of S1 (cut by the volume; its interior is above the
+// bone threshold because a cut body cannot be hole-filled)
+const Level kLevels[] = {
+    {"T12", 96, 17, 12.5, 9.5, 82, 18, 28, 3.5, phantom_hu::kCancellousVertebra},
+    {"L1", 62, 18, 13, 10.5, 83, 12, 36, 3.5, phantom_hu::kCancellousVertebra},
+    {"L2", 28, 19, 13.5, 10.5, 85, 10, 40, 3.5, phantom_hu::kCancellousVertebra},
+    {"L3", -6, 20, 14, 10.5, 86, 8, 46, 3.5, phantom_hu::kCancellousVertebra},
+    {"L4", -40, 21, 14, 10.5, 84, 8, 42, 3.5, phantom_hu::kCancellousVertebra},
+    {"L5", -74, 22, 14.5, 10.5, 79, 5, 40, 5.0, phantom_hu::kCancellousVertebra},
+    {"S1", -108, 23, 15, 10, 72, 0, 0, 0, phantom_hu::kCancellous},
+};
+
+// one vertebra's bones and landmarks, closed as one group
+void add_vertebra(PhantomShapes& s, const Level& l) {
+  namespace hu = phantom_hu;
+  // vertebral body: 2 mm cortex around the cancellous interior
+  s.bones.push_back(bone(Solid::ellipse_slab({0, kBodyY, l.z}, l.ax, l.ay, l.hz, kBodyRound), 2.0,
+                         l.body_interior_hu));
+  s.landmarks.push_back({std::string("vertebral_body_") + l.name, {0, kBodyY, l.z}});
+  // pedicles, lateral to the canal
+  for (double sx : {-1.0, 1.0})
+    s.bones.push_back(bone(Solid::round_box({sx * 14, 30, l.z + 1}, {0, 1, 0}, {1, 0, 0}, {8, 2, 4}, 2.5), 1.5,
+                           hu::kCancellous));
+  // laminae: plates from the pedicles to the midline, the canal's roof
+  for (double sx : {-1.0, 1.0}) {
+    const Vec3 from{sx * 14, 40, l.z}, to{0, 47, l.z};
+    s.bones.push_back(bone(Solid::round_box((from + to) * 0.5, to - from, {0, 0, 1},
+                                            {norm(to - from) * 0.5, 6.5, 1.5}, 2.5),
+                           1.5, hu::kCancellous));
+  }
+  // spinous process: a rounded plate from the laminae backwards, sloping down
+  // by tilt; its posterior-most point lies at y = tip_y
+  {
+    const double th = l.tilt_deg * kPi / 180, r = 2, hx = 2, hz = 7;
+    const Vec3 u{0, std::cos(th), -std::sin(th)}, w{0, std::sin(th), std::cos(th)};
+    const Vec3 start{0, 44, l.z};
+    // solve start.y + 2 hl cos(th) + hz sin(th) + r = tip_y for the half length hl
+    const double hl = (l.tip_y - start.y - hz * std::sin(th) - r) / (2 * std::cos(th));
+    const Vec3 c = start + u * hl;
+    s.bones.push_back(bone(Solid::round_box(c, u, {1, 0, 0}, {hl, hx, hz}, r), 1.5, hu::kCancellous));
+    const Vec3 corner = c + u * hl + w * hz;
+    s.landmarks.push_back({std::string("spinous_tip_") + l.name, {0, corner.y + r, corner.z}});
+  }
+  // transverse processes
+  if (l.tp_x > 0)
+    for (double sx : {-1.0, 1.0})
+      s.bones.push_back(
+          bone(Solid::capsule({sx * 14, 32, l.z}, {sx * l.tp_x, 36, l.z + 1}, l.tp_r), 1.5, hu::kCancellous));
+  end_group(s);
+}
+
+// intervertebral discs between consecutive bodies, overlapping the endplates by 1 mm
+void add_discs(PhantomShapes& s) {
+  for (std::size_t i = 0; i + 1 < std::size(kLevels); ++i) {
+    const Level& up = kLevels[i];
+    const Level& lo = kLevels[i + 1];
     const double top = up.z - up.hz - kBodyRound + 1, bottom = lo.z + lo.hz + kBodyRound - 1;
     Solid d = Solid::ellipse_slab({0, kBodyY, 0.5 * (top + bottom)}, 0.5 * (up.ax + lo.ax) + 1,
                                   0.5 * (up.ay + lo.ay) + 1, 0.5 * (top - bottom) - 1, 1);
-    d.interior_hu = hu::kDisc;
-    s->discs.push_back(d);
+    d.interior_hu = phantom_hu::kDisc;
+    s.discs.push_back(d);
   }
+}
 
-  // ribs 10-12: from the costovertebral joint round the posterior and lateral body
-  // wall on an ellipse (128 x 84 mm), sloping down; capsules of a constant radius
+// ribs 10-12: from the costovertebral joint round the posterior and lateral body
+// wall on an ellipse (128 x 84 mm), sloping down; capsules of a constant radius; one
+// group and one landmark per rib
+void add_ribs(PhantomShapes& s) {
   struct Rib {
     int n;
     double head_z, tip_z, tip_deg, radius, landmark_deg;
@@ -326,20 +333,22 @@ std::shared_ptr<PhantomShapes> build_shapes() {
         pts.push_back({sx * 128 * std::cos(phi), 84 * std::sin(phi), lerp(rb.head_z - 6, rb.tip_z, t)});
       }
       for (std::size_t i = 0; i + 1 < pts.size(); ++i)
-        s->bones.push_back(bone(Solid::capsule(pts[i], pts[i + 1], rb.radius), 1.5, hu::kCancellous));
-      end_group();
+        s.bones.push_back(bone(Solid::capsule(pts[i], pts[i + 1], rb.radius), 1.5, phantom_hu::kCancellous));
+      end_group(s);
       // landmark: the rib's outer surface (facing the skin) at the vertex nearest to
       // landmark_deg, a place inside the volume where the rib is palpable
       const int iv = 1 + int(std::lround((phi0 - rb.landmark_deg) / step));
       const Vec3 vtx = pts[iv], t = normalized(pts[iv + 1] - pts[iv - 1]);
       const Vec3 radial = normalized(Vec3{vtx.x / (128.0 * 128.0), vtx.y / (84.0 * 84.0), 0});
       const Vec3 out = normalized(radial - t * dot(radial, t));
-      s->landmarks.push_back({"rib" + std::to_string(rb.n) + (sx > 0 ? "_left" : "_right"), vtx + out * rb.radius});
+      s.landmarks.push_back({"rib" + std::to_string(rb.n) + (sx > 0 ? "_left" : "_right"), vtx + out * rb.radius});
     }
+}
 
-  // iliac wings: the crest is a chain of capsules along a spline from the posterior
-  // superior iliac spine round the flank to the anterior superior spine; a plate
-  // hangs from each crest segment down beyond the volume
+// iliac wings: the crest is a chain of capsules along a spline from the posterior
+// superior iliac spine round the flank to the anterior superior spine; a plate
+// hangs from each crest segment down beyond the volume; one group per wing
+void add_iliac_wings(PhantomShapes& s) {
   for (double sx : {-1.0, 1.0}) {
     const std::vector<Vec3> ctrl{{sx * 38, 62, -92}, {sx * 75, 64, -62}, {sx * 110, 42, -46},
                                  {sx * 128, 6, -40}, {sx * 126, -28, -48}, {sx * 118, -45, -70}};
@@ -350,7 +359,7 @@ std::shared_ptr<PhantomShapes> build_shapes() {
       if (crest[i].z > crest[top].z) top = i;
       if (i + 1 == crest.size()) break;
       const Vec3 a = crest[i], b = crest[i + 1];
-      s->bones.push_back(bone(Solid::capsule(a, b, kCrestR), 2.0, hu::kCancellous));
+      s.bones.push_back(bone(Solid::capsule(a, b, kCrestR), 2.0, phantom_hu::kCancellous));
       // the plate: vertical, along the segment's horizontal direction, thickness across
       // it; its top edge at the segment's lower end stays inside the crest capsule
       // because consecutive crest points differ by less than the capsule radius in z
@@ -359,21 +368,19 @@ std::shared_ptr<PhantomShapes> build_shapes() {
       const double top_z = std::min(a.z, b.z);
       const Vec3 c{0.5 * (a.x + b.x), 0.5 * (a.y + b.y), top_z - kPlateDepth * 0.5};
       const double len = std::hypot(b.x - a.x, b.y - a.y);
-      s->bones.push_back(bone(Solid::round_box(c, u, v,
-                                               {len * 0.5 + 2, kPlateHalf - kPlateRound,
-                                                kPlateDepth * 0.5 - kPlateRound},
-                                               kPlateRound),
-                              2.0, hu::kCancellous));
+      s.bones.push_back(bone(Solid::round_box(c, u, v,
+                                              {len * 0.5 + 2, kPlateHalf - kPlateRound,
+                                               kPlateDepth * 0.5 - kPlateRound},
+                                              kPlateRound),
+                             2.0, phantom_hu::kCancellous));
     }
-    end_group();
-    s->landmarks.push_back({sx > 0 ? "iliac_crest_top_left" : "iliac_crest_top_right", crest[top] + Vec3{0, 0, kCrestR}});
+    end_group(s);
+    s.landmarks.push_back({sx > 0 ? "iliac_crest_top_left" : "iliac_crest_top_right", crest[top] + Vec3{0, 0, kCrestR}});
   }
+}
 
-  // every bone belongs to one group (bone_signed_distance_mm relies on it)
-  if (s->groups.empty() || s->groups.back().end != s->bones.size() || s->groups.size() > 64)
-    throw Error("phantom: internal error: the bone groups do not cover the bones");
-
-  // bowel: colon and small-bowel loops inside the abdominal cavity; gas above the level
+// bowel: colon and small-bowel loops inside the abdominal cavity; gas above the level
+void add_bowel(PhantomShapes& s) {
   struct Loop {
     Vec3 a, b;
     double r;
@@ -396,8 +403,20 @@ std::shared_ptr<PhantomShapes> build_shapes() {
     // gas above a horizontal level: the lumen's top y minus the gas fraction of its diameter
     const double top_y = std::max(l.a.y, l.b.y) + (l.r - kWall);
     b.gas_level_y = l.gas_fraction > 0 ? top_y - l.gas_fraction * 2 * (l.r - kWall) : kInf;
-    s->loops.push_back(b);
+    s.loops.push_back(b);
   }
+}
+
+std::shared_ptr<PhantomShapes> build_shapes() {
+  auto s = std::make_shared<PhantomShapes>();
+  for (const Level& l : kLevels) add_vertebra(*s, l);
+  add_discs(*s);
+  add_ribs(*s);
+  add_iliac_wings(*s);
+  // every bone belongs to one group (bone_signed_distance_mm relies on it)
+  if (s->groups.empty() || s->groups.back().end != s->bones.size() || s->groups.size() > 64)
+    throw Error("phantom: internal error: the bone groups do not cover the bones");
+  add_bowel(*s);
   return s;
 }
 

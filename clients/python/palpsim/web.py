@@ -18,7 +18,8 @@ Security: it binds loopback by default; on any other address it needs --tls-cert
 cookie then holds a random login, never the token). The CURVE keys and client token stay
 in the gateway: no secret reaches the page. Messages from the page are JSON of at most
 MAX_WS_MESSAGE_BYTES; bad ones get an error message naming the field. A browser that
-disconnects ends its session after --idle-s seconds.
+disconnects ends its session after --idle-s seconds. The login and TLS pieces are in
+palpsim/web_access.py.
 
 Wire format to the page: text messages are JSON ({"type": ...}); a binary message is a
 frame: 4 bytes big-endian header length, the header as JSON, then the JPEG. The header
@@ -33,11 +34,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import collections
-import hmac
-import ipaddress
 import json
 import math
-import secrets
 import signal
 import ssl
 import struct
@@ -55,6 +53,8 @@ from .keys import CurveKeys
 from .proto import wire
 from .stream import SessionClosed, StreamClient, StreamError
 from .view import _session, _size, positive_number
+from .web_access import (MAX_FORM_BYTES, StationLogin, check_exposure, is_loopback,  # noqa: F401 (palpsim.web's names)
+                         read_token, tls_context)
 
 PROG = "palpsim-web"
 STATIC = Path(__file__).with_name("web_static")
@@ -67,9 +67,6 @@ DEPTH_RANGE_MM = (-30.0, 40.0) # depths a page may ask for along the pixel's ray
 DEFAULT_DEPTH_MM = 6.0         # the press a click starts
 STATE_RATE_HZ = 30.0           # force and contact messages to the page per second
 MAX_WS_MESSAGE_BYTES = 4096    # a page's message (JSON) is far smaller; larger ones close the socket
-MAX_FORM_BYTES = 4096          # the login form
-LOOPBACK_NAMES = ("localhost",)
-COOKIE = "palpsim_web"
 
 # view fields a page may set (client.VIEW_FIELDS less what the gateway decides)
 PAGE_VIEW_FIELDS = ("preset", "azimuth_deg", "elevation_deg", "zoom", "look_at_tip", "center_mm",
@@ -368,8 +365,7 @@ class Gateway:
     def __init__(self, args: argparse.Namespace, curve: CurveKeys | None, token: str | None):
         self.args = args
         self.curve = curve
-        self.token = token
-        self.logins: set[str] = set()
+        self.access = StationLogin(PROG, token, secure=args.tls_cert is not None)
         self.stations = 0
         self.live: set[Station] = set()          # stations with a session (closed at exit)
         self._endings: set[asyncio.Task] = set()  # idle-time ends of left browsers
@@ -387,26 +383,23 @@ class Gateway:
 
         app = web.Application(client_max_size=MAX_FORM_BYTES)
         app.router.add_get("/", self.index)
-        app.router.add_get("/login", self.login_page)
-        app.router.add_post("/login", self.login)
+        app.router.add_get("/login", self.access.page)
+        app.router.add_post("/login", self.access.login)
         app.router.add_get("/ws", self.websocket)
         app.router.add_get("/static/{name}", self.static)
         return app
 
-    def _logged_in(self, request) -> bool:
-        return self.token is None or request.cookies.get(COOKIE, "") in self.logins
-
     async def index(self, request):
         from aiohttp import web
 
-        if not self._logged_in(request):
+        if not self.access.logged_in(request):
             raise web.HTTPFound("/login")
         return web.FileResponse(STATIC / "index.html", headers=_NO_STORE)
 
     async def static(self, request):
         from aiohttp import web
 
-        if not self._logged_in(request):
+        if not self.access.logged_in(request):
             raise web.HTTPUnauthorized(text=f"{PROG}: log in first (/login)")
         name = request.match_info["name"]
         path = STATIC / name
@@ -414,38 +407,12 @@ class Gateway:
             raise web.HTTPNotFound(text=f"{PROG}: no file {name!r} here (the page is at /)")
         return web.FileResponse(path, headers=_NO_STORE)
 
-    async def login_page(self, request):
-        from aiohttp import web
-
-        return web.Response(text=_LOGIN_HTML.format(note=""), content_type="text/html")
-
-    async def login(self, request):
-        from aiohttp import web
-
-        if self.token is None:
-            raise web.HTTPFound("/")
-        try:
-            form = await request.post()
-        except web.HTTPRequestEntityTooLarge:
-            raise web.HTTPRequestEntityTooLarge(max_size=MAX_FORM_BYTES, actual_size=request.content_length,
-                                                text=f"{PROG}: the login form is larger than "
-                                                     f"{MAX_FORM_BYTES} bytes") from None
-        given = form.get("token", "")
-        if not isinstance(given, str) or not hmac.compare_digest(given.encode(), self.token.encode()):
-            return web.Response(status=403, content_type="text/html",
-                                text=_LOGIN_HTML.format(note="<p>That is not this station's token.</p>"))
-        login = secrets.token_hex(32)
-        self.logins.add(login)
-        resp = web.HTTPFound("/")
-        resp.set_cookie(COOKIE, login, httponly=True, samesite="Strict", secure=self.args.tls_cert is not None)
-        raise resp
-
     # -- WebSocket ------------------------------------------------------------------------
 
     async def websocket(self, request):
         from aiohttp import WSMsgType, web
 
-        if not self._logged_in(request):
+        if not self.access.logged_in(request):
             raise web.HTTPUnauthorized(text=f"{PROG}: log in first (/login)")
         origin = request.headers.get("Origin")
         if origin is not None and origin.split("://", 1)[-1] != request.host:
@@ -606,11 +573,6 @@ def _refusal(e: Exception) -> str:
 
 _NO_STORE = {"Cache-Control": "no-store"}
 
-_LOGIN_HTML = """<!doctype html><html><head><meta charset="utf-8"><title>palpsim station login</title></head>
-<body style="font-family: sans-serif; margin: 3em"><h1>palpsim station</h1>{note}
-<form method="post" action="/login"><label>Station token <input type="password" name="token" autofocus></label>
-<button type="submit">Log in</button></form></body></html>"""
-
 
 # ---------------------------------------------------------------------------------------
 # Command line
@@ -649,43 +611,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def is_loopback(host: str) -> bool:
-    """True for localhost and loopback addresses."""
-    if host in LOOPBACK_NAMES:
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def check_exposure(args: argparse.Namespace) -> str | None:
-    """Why the gateway may not start as asked (None when it may): beyond loopback it needs
-    TLS and a station token; a certificate needs its key."""
-    if bool(args.tls_cert) != bool(args.tls_key):
-        return "--tls-cert and --tls-key go together"
-    if not is_loopback(args.host):
-        missing = [n for n, v in (("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key),
-                                  ("--station-token-file", args.station_token_file)) if not v]
-        if missing:
-            return (f"--host {args.host} serves beyond loopback, which needs TLS and a station login: "
-                    f"give {', '.join(missing)} (or serve on 127.0.0.1 and reach it through an SSH tunnel)")
-    return None
-
-
-def read_token(path: str) -> str:
-    """The station token: the first line of the file, at least 16 characters."""
-    try:
-        lines = Path(path).read_text().splitlines()
-    except OSError as e:
-        raise ValueError(f"{path}: cannot read the station token: {e.strerror}") from None
-    token = lines[0].strip() if lines else ""
-    if len(token) < 16:
-        raise ValueError(f"{path}: the station token on its first line has {len(token)} characters, "
-                         "at least 16 are needed (e.g. python3 -c 'import secrets; print(secrets.token_urlsafe())')")
-    return token
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """palpsim-web's entry point; returns the exit status."""
     args = build_parser().parse_args(argv)
@@ -699,10 +624,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         curve = keys.from_arguments(args)
         token = read_token(args.station_token_file) if args.station_token_file else None
-        tls = None
-        if args.tls_cert:
-            tls = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-            tls.load_cert_chain(args.tls_cert, args.tls_key)
+        tls = tls_context(args)
     except (keys.KeyFileError, ValueError, RuntimeError) as e:
         _say(str(e))
         return EXIT_USAGE

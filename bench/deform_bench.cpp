@@ -197,6 +197,10 @@ struct ElasticBench {
     cfg.settings.voi_edge = 64;
     cfg.settings.invert_search = false;  // as the scenes ship
     cfg.elastic_stiffness = true;
+    // the rows name what they turn on: from the last field alone, the unit press to the
+    // round's tolerance unless a row says otherwise
+    cfg.settings.elastic.predict = false;
+    cfg.settings.elastic.stiffness_tolerance = 0;
   }
 
   // step s's press at skin point `at`: 6 mm deep, a voxel deeper on odd steps

@@ -94,8 +94,8 @@ struct ElasticSettings {
   int max_iterations = 60;         // conjugate-gradient steps per contact round
   double tolerance = 1e-3;         // relative residual of a round
   int contact_rounds = 4;          // contact set updates per step
-  bool predict = false;            // a warm step starts from the last press's field moved to this one
-  double stiffness_tolerance = 0;  // the unit press's relative residual; above 0: force and stiffness by reciprocity
+  bool predict = true;             // a warm step starts from the last press's field moved to this one
+  double stiffness_tolerance = 0.01;  // the unit press's relative residual; above 0: force and stiffness by reciprocity
 };
 
 /// How relaxation follows ChainMail (deform.relax_method; names in core/setting_names.h).

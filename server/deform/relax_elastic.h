@@ -36,11 +36,11 @@ struct ElasticParams {
   int max_iterations = 60;      // CG steps per contact round at most
   float tolerance = 1e-3f;      // relative residual at which a round stops
   int contact_rounds = 4;       // contact set updates per step at most
-  bool predict = false;         // predict a warm step's start from the last press (elastic_prediction)
+  bool predict = true;          // predict a warm step's start from the last press (elastic_prediction)
   /// The unit press's own tolerance; 0: `tolerance`, and the force is the contact nodes'
   /// reactions summed. Above 0 the force and stiffness come from the unit press by
   /// reciprocity (elastic_math.h), accurate to the product of the two solves' errors.
-  float stiffness_tolerance = 0;
+  float stiffness_tolerance = 0.01f;
   bool stiffness = false;       // also solve the unit press for the contact's stiffness (haptics.force_model "elastic")
 };
 

@@ -201,12 +201,13 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
 template <typename Fn>
 __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const Lvl& L, Team t,
                        const Field& x, Fn&& fn) {
-  const CellModuli ce{cell_e, L};
-  const Load load{x, L};
+  // level 0 always runs on the whole grid (t is every thread): its tiles
   if (!L.coarse) {
     gather_tiles(km, cell_e, flags, L, x, fn);
     return;
   }
+  const CellModuli ce{cell_e, L};
+  const Load load{x, L};
   const int lane = threadIdx.x & 31;
   const int tasks = 8 * L.count;
   for (int t0 = t.first - lane; t0 < tasks; t0 += t.stride) {

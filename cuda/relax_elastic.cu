@@ -26,7 +26,6 @@
 
 #include <algorithm>
 #include <cstdlib>
-#include <string>
 
 #include "cuda/elastic_device.cuh"
 #include "cuda/elastic_setup.cuh"
@@ -49,25 +48,26 @@ void launch(void (*kernel)(Args), Args& args, int blocks, long long nodes, cudaS
                                                  dim3(kThreads), p, 0, stream));
 }
 
+// the positive integer in environment variable `name`, else `fallback`
+int env_positive(const char* name, int fallback) {
+  const char* s = std::getenv(name);
+  const int v = s ? std::atoi(s) : 0;
+  return v > 0 ? v : fallback;
+}
+
 // blocks of the elastic kernels per multiprocessor: 1 (a thread may use 128 registers) or 2
 // (64 registers a thread, the rest spilled to local memory, twice the warps to hide
 // latency, twice the blocks at each grid barrier); PALPSIM_ELASTIC_BLOCKS_PER_SM=2 picks 2
 // for a measurement (palpsim-bench deform --elastic)
 int elastic_blocks_per_sm() {
-  static const int n = [] {
-    const char* s = std::getenv("PALPSIM_ELASTIC_BLOCKS_PER_SM");
-    return s && std::string(s) == "2" ? 2 : 1;
-  }();
+  static const int n = env_positive("PALPSIM_ELASTIC_BLOCKS_PER_SM", 1) == 2 ? 2 : 1;
   return n;
 }
 
 // coarse levels of at most this many nodes run in block 0 alone: kBlockNodes, or
 // PALPSIM_ELASTIC_BLOCK_NODES for a measurement
 int elastic_block_nodes() {
-  static const int n = [] {
-    const char* s = std::getenv("PALPSIM_ELASTIC_BLOCK_NODES");
-    return s && std::atoi(s) > 0 ? std::atoi(s) : kBlockNodes;
-  }();
+  static const int n = env_positive("PALPSIM_ELASTIC_BLOCK_NODES", kBlockNodes);
   return n;
 }
 

@@ -30,7 +30,7 @@ using deform::kElasticSkin;
 using deform::Voi;
 
 constexpr int kThreads = 512;      // threads per block of both kernels
-constexpr int kBlockNodes = 512;   // coarse levels of at most this many nodes run in block 0 alone (the default)
+constexpr int kBlockNodes = 64;    // coarse levels of at most this many nodes run in block 0 alone (the default)
 constexpr int kSlot = 4;           // sums a reduction slot holds
 constexpr int kRing = 32;          // the step's reduction slots, reused in turn
 constexpr int kSetupSums = deform::kElasticPowerIterations * kElasticMaxLevels;  // the set-up's slots
@@ -38,6 +38,45 @@ constexpr int kSmooth = deform::kElasticSmoothDegree;
 constexpr int kCoarsest = deform::kElasticCoarsestDegree;
 static_assert(kSmooth >= 2 && kCoarsest >= 2 && kCoarsest <= kElasticMaxDegree && kSmooth <= kElasticMaxDegree,
               "the passes fuse each smoother's first step into the pass before it and need a second");
+
+// what a traced barrier ends (elastic_trace_summary() names them), times 16, plus the level
+enum TracePass : int {
+  kPassStart = 1,
+  kPassSmoothDown,
+  kPassResidual,
+  kPassRestrict,
+  kPassBlockLevels,
+  kPassCorrect,
+  kPassSmoothUp,
+  kPassCgDirection,
+  kPassCgApply,
+  kPassCgUpdate,
+  kPassVcycleLast,
+  kPassSolveStart,
+  kPassContact,
+  kPassJobStart,
+  kPassField,
+  kPassSetupNodes,
+  kPassSetupCells,
+  kPassSetupCoarse,
+  kPassSetupPower,
+  kPassSetupEnd,
+};
+
+// the passes' ends of one kernel run, when it is traced: block 0's thread 0 notes the time
+// (globaltimer, ns) at which pass `tag` (TracePass * 16 + level) ended, after its barrier
+struct Tracer {
+  unsigned long long* trace;  // (tag, ns) pairs, or null
+  int pairs, stamps;          // the pairs it holds, and those written
+  __device__ void stamp(int tag) {
+    if (!trace || blockIdx.x != 0 || threadIdx.x != 0 || stamps >= pairs) return;
+    unsigned long long ns;
+    asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(ns));
+    trace[2 * stamps] = (unsigned long long)tag;
+    trace[2 * stamps + 1] = ns;
+    ++stamps;
+  }
+};
 
 // the threads that share a pass: the whole grid, or block 0 alone
 struct Team {

@@ -28,12 +28,14 @@ struct SetupArgs {
   ElasticMaterial material;
   ElasticPatient patient;
   int had;                 // carry the last field and contact set over
+  unsigned long long* trace;  // null, or (pass, ns) pairs block 0 writes at each barrier (PALPSIM_ELASTIC_TRACE)
+  int trace_pairs;            // the pairs it holds
 };
 
 // every level's largest eigenvalue of D^-1 K by power iteration, all levels in the same
 // passes (the whole grid): the start, then x' = Pi D^-1 K x with |x|^2 and |x'|^2 per
 // level, into v.lmax by block 0's thread 0 after the last pass
-__device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all, cg::grid_group& g) {
+__device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all, cg::grid_group& g, Tracer& tr) {
   const View& v = a.v;
   const int levels = a.plan.levels;
   const CellMatrix km{a.k};
@@ -65,6 +67,7 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
       block_sum(part, sums + kSlot * (it * kElasticMaxLevels + l));
     }
     g.sync();
+    tr.stamp(kPassSetupPower * 16);
   }
   if (blockIdx.x == 0 && threadIdx.x == 0) {
     for (int l = 0; l < levels; ++l) {
@@ -115,6 +118,8 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
     }
   for (int e = all.first; e < kSlot * kSetupSums; e += all.stride) sums[e] = 0.0;
   g.sync();
+  Tracer tr{a.trace, a.trace_pairs, 0};
+  tr.stamp(kPassStart * 16);
 
   // node moduli (kPa, into the scratch's d) and level 0's static flags: held (bone, the
   // VOI's faces), body, skin (a face neighbour outside the body)
@@ -129,6 +134,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
     v.flags[e] = deform::elastic_static_flags(body, bone, face, in_body, gi, gj, gk);
   }
   g.sync();
+  tr.stamp(kPassSetupNodes * 16);
   // level 0's cell moduli: the mean of the corners' where all eight are in the body, else air's gel
   for (int e = all.first; e < L0.count; e += all.stride) {
     int i, j, k;
@@ -149,6 +155,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
         a.material.air_e_kpa);
   }
   g.sync();
+  tr.stamp(kPassSetupCells * 16);
   // coarse levels, each from the one below: moduli and held nodes
   for (int l = 1; l < levels; ++l) {
     const Lvl& F = lv[l - 1];
@@ -165,8 +172,9 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
           deform::elastic_coarse_flags(beyond ? 0 : (v.flags[F.at(2 * i, 2 * j, 2 * k)] & (kElasticHeld | kElasticAir)), beyond);
     }
     g.sync();
+    tr.stamp(kPassSetupCoarse * 16 + l);
   }
-  estimate_lmax(a, lv, all, g);
+  estimate_lmax(a, lv, all, g, tr);
   // the last field and contact set carried onto the new VOI (0 where it has none); held
   // nodes (the new VOI's faces, bone) stay at rest: the solve keeps what they hold
   for (int e = all.first; e < L0.count; e += all.stride) {
@@ -178,6 +186,8 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
     u.set(e, carry ? tmp_u.at(le) : Vec3f{0, 0, 0});
     if (carry) v.flags[e] |= v.tmp_flags[le];
   }
+  __syncthreads();
+  tr.stamp(kPassSetupEnd * 16);
 }
 
 }  // namespace

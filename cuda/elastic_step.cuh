@@ -42,30 +42,35 @@ struct StepArgs {
   int block_nodes;     // coarse levels of at most this many nodes run in block 0 alone
   float* out[3];       // u in voxels (the displacement buffer the inversion reads)
   ElasticCounters* result;
+  unsigned long long* trace;  // null, or (pass, ns) pairs block 0 writes at each barrier (PALPSIM_ELASTIC_TRACE)
+  int trace_pairs;            // the pairs it holds
 };
+
 
 // the reductions' ring: each use adds into the next slot and clears the one kRing / 2
 // ahead, which every thread read long ago and which the barrier publishes before its turn
 struct Ring {
   double* sums;
   int slot;
+  Tracer tracer;
 };
 
 // the grid's sums of this thread's v[0 .. N-1], read by every thread after a grid barrier
 template <int N>
-__device__ void reduce(Ring& rg, double (&v)[N], cg::grid_group& g) {
+__device__ void reduce(Ring& rg, double (&v)[N], cg::grid_group& g, int tag) {
   static_assert(N <= kSlot, "a slot holds kSlot sums");
   double* s = rg.sums + kSlot * rg.slot;
   block_sum<N>(v, s);
   if (blockIdx.x == 0 && threadIdx.x < kSlot) rg.sums[kSlot * ((rg.slot + kRing / 2) % kRing) + threadIdx.x] = 0.0;
   g.sync();
+  rg.tracer.stamp(tag);
   for (int i = 0; i < N; ++i) v[i] = *(volatile double*)&s[i];
   rg.slot = (rg.slot + 1) % kRing;
 }
 
-__device__ double reduce1(Ring& rg, double v, cg::grid_group& g) {
+__device__ double reduce1(Ring& rg, double v, cg::grid_group& g, int tag) {
   double s[1] = {v};
-  reduce(rg, s, g);
+  reduce(rg, s, g, tag);
   return s[0];
 }
 
@@ -93,12 +98,18 @@ struct Step {
   __device__ Vec3f project(int e, const Vec3f& w) const { return deform::elastic_project(a.v.flags[e], a.nrm, w); }
   __device__ bool on_grid(int l) const { return l < sh.split; }
   __device__ Team team(int l) const { return on_grid(l) ? all : block; }
-  // the barrier after a pass of level l: the grid's, or block 0's
-  __device__ void sync(int l) const {
+  // the barrier after a pass of level l (`pass` a TracePass): the grid's, or block 0's
+  __device__ void sync(int l, int pass) const {
     if (on_grid(l))
       g.sync();
     else
       __syncthreads();
+    ring.tracer.stamp(pass * 16 + l);
+  }
+  // the grid's barrier after a pass of level 0 (`pass` a TracePass)
+  __device__ void grid_sync(int pass) const {
+    g.sync();
+    ring.tracer.stamp(pass * 16);
   }
   // the buffer holding level l's x after its smoothing (the prolongation reads it)
   __device__ int final_buffer(int l) const { return l == sh.levels - 1 ? (kCoarsest - 1) & 1 : 1; }
@@ -199,27 +210,30 @@ struct Step {
         if (final)
           part = pp;
         else
-          sync(l);
+          sync(l, kPassSmoothDown);
       }
       if (l == last) break;
       residual(l, team(l), pre);
-      sync(l);
+      sync(l, kPassResidual);
       restrict_to(l, team(l));
-      sync(l);
+      sync(l, kPassRestrict);
     }
     // up: each level's coarse correction and smoothing from it
     for (int l = last - 1; l >= 0; --l) {
       if (!on_grid(l) && blockIdx.x != 0) continue;
-      if (on_grid(l) && !on_grid(l + 1)) g.sync();  // block 0's levels are done
+      if (on_grid(l) && !on_grid(l + 1)) {  // block 0's levels are done
+        g.sync();
+        ring.tracer.stamp(kPassBlockLevels * 16 + l + 1);
+      }
       correct(l, team(l), pre);
-      sync(l);
+      sync(l, kPassCorrect);
       for (int s = 0; s < kSmooth; ++s) {
         const bool final = l == 0 && s == kSmooth - 1;
         const double pp = smooth(l, team(l), s, (pre + s) & 1, (pre + s + 1) & 1, s == 0, final);
         if (final)
           part = pp;
         else
-          sync(l);
+          sync(l, kPassSmoothUp);
       }
     }
     return part;
@@ -285,7 +299,7 @@ struct Step {
         first_step(0, q, i, j, k, re);
       }
     }
-    reduce(ring, sums, g);
+    reduce(ring, sums, g, kPassSolveStart * 16);
     const double rref = sqrt(sums[0]);
     double rn = sqrt(sums[1]);
     out.residual = rref > 0 ? rn / rref : 0;
@@ -297,7 +311,7 @@ struct Step {
       if (it >= 0) {
         // p = z (the first step) or z + beta p
         for (int e = all.first; e < L0.count; e += all.stride) p.set(e, it == 0 ? z.at(e) : z.at(e) + p.at(e) * beta);
-        g.sync();
+        grid_sync(kPassCgDirection);
         // q = Pi K p, and p . q
         double part = 0;
         gather(km(), v.cell_e, v.flags, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
@@ -305,7 +319,7 @@ struct Step {
           kp.set(e, qe);
           part += dot_d(p.at(e), qe);
         });
-        const double pq = reduce1(ring, part, g);
+        const double pq = reduce1(ring, part, g, kPassCgApply * 16);
         if (!(pq > 0)) break;
         const float alpha = float(rz / pq);
         // w += alpha p, r -= alpha q, |r|^2, and the next V-cycle's first step
@@ -319,13 +333,13 @@ struct Step {
           part += dot_d(re, re);
           first_step(0, e, i, j, k, re);
         }
-        rn = sqrt(reduce1(ring, part, g));
+        rn = sqrt(reduce1(ring, part, g, kPassCgUpdate * 16));
         out.iterations = it + 1;
         out.residual = rn / rref;
         if (rn <= double(tolerance) * rref) return out;
         if (it + 1 == a.max_iterations) break;
       }
-      const double rz_new = reduce1(ring, vcycle(), g);
+      const double rz_new = reduce1(ring, vcycle(), g, kPassVcycleLast * 16);
       if (it >= 0) beta = float(rz_new / rz);
       rz = rz_new;
     }
@@ -500,11 +514,12 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   StepShared& sh = *reinterpret_cast<StepShared*>(shared_bytes);
   const View& v = a.v;
   if (threadIdx.x == 0) make_step_table(a, sh);
-  Ring ring{v.sums, 0};
+  Ring ring{v.sums, 0, Tracer{a.trace, a.trace_pairs, 0}};
   const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
   for (int e = all.first; e < kSlot * kRing; e += all.stride) v.sums[e] = 0.0;
   __syncthreads();
   g.sync();
+  ring.tracer.stamp(kPassStart * 16);
   const Step st{a, sh, g, ring, all, Team{int(threadIdx.x), int(blockDim.x)}};
   const Lvl& L0 = sh.lv[0];
   const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
@@ -514,7 +529,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
 
   // the contact set (start_contact)
   const double under = start_contact(a, st);
-  if (reduce1(ring, under, g) == 0) {
+  if (reduce1(ring, under, g, kPassContact * 16) == 0) {
     // nothing pressed: the tissue at rest
     for (int e = all.first; e < L0.count; e += all.stride) {
       u.set(e, Vec3f{0, 0, 0});
@@ -537,7 +552,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   while (job != kDone) {
     const Field w = job == kUnit ? unit : u;
     job_start(a, st, job == kUnit, w);
-    g.sync();
+    st.grid_sync(kPassJobStart);
     const Step::Solve sr = st.solve(w, job == kUnit && a.reciprocal ? a.stiffness_tolerance : a.tolerance);
     if (job == kUnit) {
       out.stiffness_iterations = sr.iterations;
@@ -553,7 +568,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     const bool reciprocal = job == kUnit && a.reciprocal;
     double sums[4] = {0, 0, 0, 0};
     contact_sums(a, st, job == kRound, reciprocal, w, sums);
-    reduce(ring, sums, g);
+    reduce(ring, sums, g, kPassContact * 16);
     if (job == kRound) {
       ++round;
       settled = sums[2] == 0;
@@ -576,7 +591,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
 
   // the field in voxels for the inversion, and the cells it folds
   const double folded = write_field(a, st);
-  out.inverted = (unsigned long long)reduce1(ring, folded, g);
+  out.inverted = (unsigned long long)reduce1(ring, folded, g, kPassField * 16);
   if (blockIdx.x == 0 && threadIdx.x == 0) *a.result = out;
 }
 

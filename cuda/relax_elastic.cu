@@ -25,7 +25,10 @@
 #include "cuda/relax_elastic.h"
 
 #include <algorithm>
+#include <cstdio>
 #include <cstdlib>
+#include <map>
+#include <vector>
 
 #include "cuda/elastic_device.cuh"
 #include "cuda/elastic_setup.cuh"
@@ -78,7 +81,99 @@ void launch_chosen(void (*one)(Args), void (*two)(Args), Args& args, int blocks,
   launch(elastic_blocks_per_sm() == 2 ? two : one, args, blocks, nodes, stream);
 }
 
+// what a traced pass is called (TracePass)
+const char* pass_name(int pass) {
+  static const char* const names[] = {"?",           "start",        "smooth down",     "residual",
+                                      "restrict",    "block 0's levels", "correct",     "smooth up",
+                                      "CG direction", "CG apply",     "CG update",       "V-cycle's last",
+                                      "solve start", "contact",      "job start",       "field",
+                                      "nodes",       "cells",        "coarse cells",    "power step",
+                                      "carry"};
+  return pass >= 0 && pass < int(sizeof(names) / sizeof(names[0])) ? names[pass] : "?";
+}
+
 }  // namespace
+
+// PALPSIM_ELASTIC_TRACE=1, a measurement: each step's kernels note when each pass ended on
+// block 0's clock (a grid pass's time is its slowest block's and the barrier's), and the
+// solver prints on release where its steps spent their time, per kind of pass and level
+class ElasticTrace {
+ public:
+  static constexpr int kPairs = 8192;  // (pass, ns) pairs a kernel run may note
+  ElasticTrace() { PALPSIM_CUDA_CHECK(cudaMalloc(&dev_, kBytes)); }
+  ~ElasticTrace() {
+    print();
+    cudaFree(dev_);
+  }
+  ElasticTrace(const ElasticTrace&) = delete;
+  ElasticTrace& operator=(const ElasticTrace&) = delete;
+  unsigned long long* setup() { return dev_; }
+  unsigned long long* step() { return dev_ + 2 * kPairs; }
+  // before a step's launches (on its stream)
+  void clear(cudaStream_t stream, bool setup) {
+    PALPSIM_CUDA_CHECK(cudaMemsetAsync(dev_, 0, kBytes, stream));
+    setup_ran_ = setup;
+  }
+  // after the step's stream finished: its intervals into the sums
+  void collect() {
+    std::vector<unsigned long long> h(4 * kPairs);
+    PALPSIM_CUDA_CHECK(cudaMemcpy(h.data(), dev_, kBytes, cudaMemcpyDeviceToHost));
+    const unsigned long long setup_end = setup_ran_ ? add(h.data(), setup_) : 0;
+    const unsigned long long* st = h.data() + 2 * kPairs;
+    if (setup_end && st[1]) gap_ns_ += double(st[1] - setup_end);
+    add(st, step_);
+    ++steps_;
+    setups_ += setup_ran_;
+  }
+
+ private:
+  static constexpr std::size_t kBytes = 4 * std::size_t(kPairs) * sizeof(unsigned long long);
+  struct Sum {
+    long long passes = 0;
+    double ns = 0;
+  };
+  // one kernel run's intervals by tag (the first stamp opens them); the last stamp's time
+  static unsigned long long add(const unsigned long long* t, std::map<int, Sum>& into) {
+    int n = 0;
+    while (n < kPairs && t[2 * n + 1] != 0) ++n;
+    for (int i = 1; i < n; ++i) {
+      Sum& s = into[int(t[2 * i])];
+      ++s.passes;
+      s.ns += double(t[2 * i + 1] - t[2 * i - 1]);
+    }
+    Sum& whole = into[-1];
+    ++whole.passes;
+    if (n > 1) whole.ns += double(t[2 * n - 1] - t[1]);
+    return n ? t[2 * n - 1] : 0;
+  }
+  void table(const char* kernel, const std::map<int, Sum>& sums, long long runs) const {
+    if (runs == 0) return;
+    std::vector<std::pair<int, Sum>> rows(sums.begin(), sums.end());
+    std::sort(rows.begin(), rows.end(), [](const auto& a, const auto& b) { return a.second.ns > b.second.ns; });
+    for (const auto& [tag, s] : rows) {
+      const double per_step = s.ns / 1e3 / double(steps_);
+      if (tag < 0)
+        std::fprintf(stderr, "  %-6s whole run (first to last barrier) %9.1f us a step, %lld runs\n", kernel, per_step,
+                     runs);
+      else
+        std::fprintf(stderr, "  %-6s %-17s level %d %7.1f passes %9.1f us a step %7.2f us a pass\n", kernel,
+                     pass_name(tag / 16), tag % 16, double(s.passes) / double(steps_), per_step,
+                     s.ns / 1e3 / double(s.passes));
+    }
+  }
+  void print() const {
+    if (steps_ == 0) return;
+    std::fprintf(stderr, "elastic trace over %lld steps (%lld set-ups; block 0's clock):\n", steps_, setups_);
+    table("setup", setup_, setups_);
+    if (setups_) std::fprintf(stderr, "  set-up's end to the step's first barrier %.1f us a step\n", gap_ns_ / 1e3 / double(steps_));
+    table("step", step_, steps_);
+  }
+  unsigned long long* dev_ = nullptr;
+  bool setup_ran_ = false;
+  std::map<int, Sum> setup_, step_;
+  long long steps_ = 0, setups_ = 0;
+  double gap_ns_ = 0;
+};
 
 int relax_elastic_blocks() {
   int dev = 0, sms = 0, per_sm_step = 0, per_sm_setup = 0;
@@ -128,9 +223,11 @@ std::size_t ElasticScratch::bytes() const {
          std::size_t(capacity) + kSlot * std::size_t(kRing + kSetupSums) * sizeof(double);
 }
 
+ElasticSolver::ElasticSolver() = default;
 ElasticSolver::~ElasticSolver() { release(); }
 
 void ElasticSolver::release() {
+  trace_.reset();
   // errors are ignored here: it runs from destructors
   for (void* q : {(void*)u_, (void*)u_unit_, (void*)flags_, (void*)cell_e_, (void*)lmax_}) cudaFree(q);
   u_ = u_unit_ = cell_e_ = lmax_ = nullptr;
@@ -163,6 +260,7 @@ void ElasticSolver::bind(const Patient& p, const deform::ElasticParams& params, 
   }
   capacity_ = n;
   coarse_capacity_ = nc;
+  if (env_positive("PALPSIM_ELASTIC_TRACE", 0) > 0) trace_ = std::make_unique<ElasticTrace>();
 }
 
 void ElasticSolver::forget() {
@@ -212,7 +310,9 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   pending_ = deform::ElasticRun{};
   pending_.warm = had;
   const ElasticScratch::Turn turn(scratch, stream);
-  if (!set_up_ || !(voi == voi_)) {
+  const bool setup = !set_up_ || !(voi == voi_);
+  if (trace_) trace_->clear(stream, setup);
+  if (setup) {
     SetupArgs s;
     std::copy(k_.begin(), k_.end(), s.k);
     s.plan = plan;
@@ -223,6 +323,8 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
     s.material = params_.material;
     s.patient = patient;
     s.had = had && set_up_;
+    s.trace = trace_ ? trace_->setup() : nullptr;
+    s.trace_pairs = ElasticTrace::kPairs;
     launch_chosen(elastic_setup_kernel<1>, elastic_setup_kernel<2>, s, blocks, voi.count(), stream);
     voi_ = voi;
     set_up_ = true;
@@ -273,11 +375,14 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.contact_rounds = params_.contact_rounds;
   s.block_nodes = elastic_block_nodes();
   s.result = result;
+  s.trace = trace_ ? trace_->step() : nullptr;
+  s.trace_pairs = ElasticTrace::kPairs;
   launch_chosen(elastic_step_kernel<1>, elastic_step_kernel<2>, s, blocks, voi.count(), stream);
   have_u_ = true;
 }
 
 deform::ElasticRun ElasticSolver::finish(const ElasticCounters& c) {
+  if (trace_) trace_->collect();
   deform::ElasticRun r = pending_;
   r.contact = c.contact != 0;
   r.contact_nodes = c.contact_nodes;

@@ -57,13 +57,15 @@ struct ElasticPatient {
   const float* dist_skin_mm = nullptr;     // B: depth under the skin (mm; DeviceBody)
 };
 
+class ElasticTrace;  // PALPSIM_ELASTIC_TRACE: where a solver's steps spend their time (relax_elastic.cu)
+
 /// One session's elastic model on the GPU: its buffers (the field, flags and moduli of
 /// every level kept from step to step: the warm start), what the host keeps of it (the
 /// VOI it is set up for, whether the field and the unit press may start the next step),
 /// and the step's launches. Mirrors relax_elastic_cpu() step for step.
 class ElasticSolver {
  public:
-  ElasticSolver() = default;
+  ElasticSolver();
   ~ElasticSolver();
   ElasticSolver(const ElasticSolver&) = delete;
   ElasticSolver& operator=(const ElasticSolver&) = delete;
@@ -119,6 +121,7 @@ class ElasticSolver {
   // what the enqueued step's run has from the host
   deform::ElasticRun pending_;
   Vec3f pending_normal_{0, 0, 0};
+  std::unique_ptr<ElasticTrace> trace_;  // only with PALPSIM_ELASTIC_TRACE set (a measurement)
 };
 
 /// Cooperative blocks of the elastic kernels that run at once on this device (one per multiprocessor).

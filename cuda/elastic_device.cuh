@@ -141,6 +141,7 @@ struct View {
   float *f, *res, *d;  // every level: right-hand side, residual, Chebyshev step
   float* p;            // level 0, stride capacity: CG's direction
   std::uint8_t* tmp_flags;
+  int* tiles;          // level 0's tiles with a node not held: count, then their indices (the set-up's; tile_list())
   double* sums;
   long long capacity, total;
 };
@@ -180,23 +181,32 @@ __device__ float* tile_memory() {
   return t;
 }
 
-// calls fn(e, i, j, k, kx, dg) for every node of level 0 (L), the whole grid taking a tile
-// of kThreads nodes a block at a time: the tile's nodes and their neighbours' displacements
-// x and the cells' moduli go to shared memory, then each thread sums its node's cells from
-// there (elastic_apply_interior: every load one register and a constant apart). Held nodes
-// get kx = dg = 0 (every caller projects them to 0); a free node on the level's faces
-// (none: the VOI's faces are held) would take elastic_apply_node from global memory.
+// level 0's tiles (L): kTile nodes along each axis, the last ones cut by the level's end
+__device__ Vec3i tile_grid(const Lvl& L) {
+  return Vec3i{(L.n.x + kTileX - 1) / kTileX, (L.n.y + kTileY - 1) / kTileY, (L.n.z + kTileZ - 1) / kTileZ};
+}
+
+// calls fn(e, i, j, k, kx, dg) for every node of level 0 (L) in a tile of `tiles` (its
+// count, then tile indices: those with a node that is not held), the whole grid taking a
+// tile of kThreads nodes a block at a time: the tile's nodes and their neighbours'
+// displacements x and the cells' moduli go to shared memory, then each thread sums its
+// node's cells from there (elastic_apply_interior: every load one register and a constant
+// apart). Held nodes get kx = dg = 0 (every caller projects them to 0); the nodes of the
+// tiles left out are all held, and every caller's outputs hold 0 there already (each solve
+// and the set-up's power steps clear them first). A free node on the level's faces (none:
+// the VOI's faces are held) would take elastic_apply_node from global memory.
 // Every thread of a block runs every tile of the block (the tile's barriers).
 template <typename Fn>
-__device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const Lvl& L,
-                             const Field& x, Fn& fn) {
+__device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
+                             const Lvl& L, const Field& x, Fn& fn) {
   float* const tu = tile_memory();  // tu[c * kHalo + h]: component c at halo node h
   float* const te = tu + 3 * kHalo;
-  const int tx = (L.n.x + kTileX - 1) / kTileX, ty = (L.n.y + kTileY - 1) / kTileY,
-            tz = (L.n.z + kTileZ - 1) / kTileZ;
-  const int tiles = tx * ty * tz;
+  const Vec3i tg = tile_grid(L);
+  const int tx = tg.x, ty = tg.y;
   const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
-  for (int tile = blockIdx.x; tile < tiles; tile += gridDim.x) {
+  const int active = tiles[0];
+  for (int q = blockIdx.x; q < active; q += gridDim.x) {
+    const int tile = tiles[1 + q];
     const int i0 = (tile % tx) * kTileX, j0 = ((tile / tx) % ty) * kTileY, k0 = (tile / (tx * ty)) * kTileZ;
     // the halo: nodes (i0 - 1 .. i0 + kTileX) etc., 0 outside the level; the cell at halo
     // position h has its lowest corner there (cells beyond the last node: 0)
@@ -238,11 +248,11 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
 // eight lanes a node, lane a adding the cell in which the node is corner a, summed by
 // shuffles (whole warps run each round, so that every lane takes part in them)
 template <typename Fn>
-__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const Lvl& L, Team t,
-                       const Field& x, Fn&& fn) {
+__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
+                       const Lvl& L, Team t, const Field& x, Fn&& fn) {
   // level 0 always runs on the whole grid (t is every thread): its tiles
   if (!L.coarse) {
-    gather_tiles(km, cell_e, flags, L, x, fn);
+    gather_tiles(km, cell_e, flags, tiles, L, x, fn);
     return;
   }
   const CellModuli ce{cell_e, L};
@@ -274,6 +284,49 @@ __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uin
 // the node's Jacobi diagonal alone (a thread a node)
 __device__ Vec3f diag_at(const CellMatrix& km, const float* cell_e, const Lvl& L, int i, int j, int k) {
   return deform::elastic_diag_node(km, CellModuli{cell_e, L}, L.n, L.scale, i, j, k);
+}
+
+// every block its tiles of level 0 (L): 1 at tiles[1 + n_tiles + t] where tile t holds a
+// node that is not held, else 0 (list_tiles() reads the marks)
+__device__ void mark_tiles(const std::uint8_t* flags, const Lvl& L, int* tiles) {
+  const Vec3i tg = tile_grid(L);
+  const int n = tg.x * tg.y * tg.z;
+  const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
+  for (int tile = blockIdx.x; tile < n; tile += gridDim.x) {
+    const int i = (tile % tg.x) * kTileX + li, j = ((tile / tg.x) % tg.y) * kTileY + lj,
+              k = (tile / (tg.x * tg.y)) * kTileZ + lk;
+    const bool free = i < L.n.x && j < L.n.y && k < L.n.z && !(flags[L.at(i, j, k)] & kElasticHeld);
+    const int any = __syncthreads_or(free);
+    if (threadIdx.x == 0) tiles[1 + n + tile] = any;
+  }
+}
+
+// block 0 alone, after the grid's barrier that follows mark_tiles(): the marked tiles'
+// count into tiles[0] and their indices in order after it (gather_tiles()'s list); each
+// thread takes a run of tiles and writes from the sum of the counts of the runs before it
+__device__ void list_tiles(const Lvl& L, int* tiles) {
+  __shared__ int warp_counts[32];
+  const Vec3i tg = tile_grid(L);
+  const int n = tg.x * tg.y * tg.z;
+  const int run = (n + int(blockDim.x) - 1) / int(blockDim.x);
+  const int first = int(threadIdx.x) * run, end = min(n, first + run);
+  int count = 0;
+  for (int t = first; t < end; ++t) count += tiles[1 + n + t] != 0;
+  // this thread's first slot: the counts of the threads before it
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  int before = count;
+  for (int o = 1; o < 32; o <<= 1) {
+    const int v = __shfl_up_sync(0xffffffffu, before, o);
+    if (lane >= o) before += v;
+  }
+  if (lane == 31) warp_counts[warp] = before;
+  __syncthreads();
+  int warps_before = 0;
+  for (int w = 0; w < warp; ++w) warps_before += warp_counts[w];
+  int slot = warps_before + before - count;
+  for (int t = first; t < end; ++t)
+    if (tiles[1 + n + t]) tiles[1 + slot++] = t;
+  if (threadIdx.x + 1 == blockDim.x) tiles[0] = slot;
 }
 
 // adds this thread's v[0 .. N-1] to out[0 .. N-1]: block sums, then one atomic each per block

@@ -43,13 +43,15 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
   const Vec3f none{0, 0, 0};
   for (int l = 0; l < levels; ++l) {
     const Lvl& L = lv[l];
-    const Field x0 = every(v.x[0], v);
+    const Field x0 = every(v.x[0], v), x1 = every(v.x[1], v);
     for (int q = all.first; q < L.count; q += all.stride) {
       const unsigned long long m = 3ull * (unsigned long long)q;
       const int e = L.off + q;
       x0.set(e, deform::elastic_project(v.flags[e], none,
                                         Vec3f{deform::elastic_power_start(m), deform::elastic_power_start(m + 1),
                                               deform::elastic_power_start(m + 2)}));
+      // level 0's second vector at held nodes: the gathers leave out tiles all held
+      if (l == 0 && (v.flags[e] & kElasticHeld)) x1.set(e, none);
     }
   }
   g.sync();
@@ -57,7 +59,7 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
     const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
     for (int l = 0; l < levels; ++l) {
       double part[2] = {0, 0};
-      gather(km, v.cell_e, v.flags, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+      gather(km, v.cell_e, v.flags, v.tiles, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
         const Vec3f xe = xf.at(e);
         const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
         xt.set(e, re);
@@ -135,6 +137,11 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
   }
   g.sync();
   tr.stamp(kPassSetupNodes * 16);
+  // level 0's tiles with a node that is not held (the gathers take those alone): marked by
+  // every block, listed by block 0 while the others go on to the cells
+  mark_tiles(v.flags, L0, v.tiles);
+  g.sync();
+  if (blockIdx.x == 0) list_tiles(L0, v.tiles);
   // level 0's cell moduli: the mean of the corners' where all eight are in the body, else air's gel
   for (int e = all.first; e < L0.count; e += all.stride) {
     int i, j, k;

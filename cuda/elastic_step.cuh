@@ -131,7 +131,7 @@ struct Step {
     const float ca = sh.ca[l][s], cb = sh.cb[l][s];
     const Field xf = x(from), xt = x(to), fv = f(), dv = d();
     double part = 0;
-    gather(km(), a.v.cell_e, a.v.flags, sh.lv[l], t, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+    gather(km(), a.v.cell_e, a.v.flags, a.v.tiles, sh.lv[l], t, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
       const Vec3f fe = fv.at(e);
       const Vec3f r = project(e, fe - kx);
       const Vec3f z = project(e, mul(inverse(dg), r));
@@ -147,7 +147,7 @@ struct Step {
   // the residual of level l by team t: res = Pi (f - K x[from])
   __device__ void residual(int l, Team t, int from) const {
     const Field fv = f(), rv = res();
-    gather(km(), a.v.cell_e, a.v.flags, sh.lv[l], t, x(from), [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
+    gather(km(), a.v.cell_e, a.v.flags, a.v.tiles, sh.lv[l], t, x(from), [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
       rv.set(e, project(e, fv.at(e) - kx));
     });
   }
@@ -297,6 +297,11 @@ struct Step {
         r.set(q, re);
         sums[1] += dot_d(re, re);
         first_step(0, q, i, j, k, re);
+        // what the gathers write at held nodes, which those of tiles left out never do
+        if (v.flags[q] & kElasticHeld) {
+          x(1).set(q, Vec3f{0, 0, 0});
+          kp.set(q, Vec3f{0, 0, 0});
+        }
       }
     }
     reduce(ring, sums, g, kPassSolveStart * 16);
@@ -314,7 +319,7 @@ struct Step {
         grid_sync(kPassCgDirection);
         // q = Pi K p, and p . q
         double part = 0;
-        gather(km(), v.cell_e, v.flags, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
+        gather(km(), v.cell_e, v.flags, v.tiles, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
           const Vec3f qe = project(e, kx);
           kp.set(e, qe);
           part += dot_d(p.at(e), qe);

@@ -229,9 +229,11 @@ ElasticSolver::~ElasticSolver() { release(); }
 void ElasticSolver::release() {
   trace_.reset();
   // errors are ignored here: it runs from destructors
-  for (void* q : {(void*)u_, (void*)u_unit_, (void*)flags_, (void*)cell_e_, (void*)lmax_}) cudaFree(q);
+  for (void* q : {(void*)u_, (void*)u_unit_, (void*)flags_, (void*)cell_e_, (void*)lmax_, (void*)tiles_}) cudaFree(q);
   u_ = u_unit_ = cell_e_ = lmax_ = nullptr;
   flags_ = nullptr;
+  tiles_ = nullptr;
+  tile_ints_ = 0;
   capacity_ = coarse_capacity_ = 0;
   set_up_ = have_u_ = have_unit_ = false;
   voi_ = Voi{};
@@ -254,6 +256,11 @@ void ElasticSolver::bind(const Patient& p, const deform::ElasticParams& params, 
     PALPSIM_CUDA_CHECK(cudaMalloc(&flags_, total));
     PALPSIM_CUDA_CHECK(cudaMalloc(&cell_e_, total * sizeof(float)));
     PALPSIM_CUDA_CHECK(cudaMalloc(&lmax_, kElasticMaxLevels * sizeof(float)));
+    // level 0's tiles: the list and the marks (list_tiles)
+    const long long tiles = (long long)((most.x + kTileX - 1) / kTileX) * ((most.y + kTileY - 1) / kTileY) *
+                            ((most.z + kTileZ - 1) / kTileZ);
+    tile_ints_ = std::size_t(1 + 2 * tiles);
+    PALPSIM_CUDA_CHECK(cudaMalloc(&tiles_, tile_ints_ * sizeof(int)));
   } catch (...) {
     release();
     throw;
@@ -271,7 +278,8 @@ void ElasticSolver::forget() {
 std::size_t ElasticSolver::bytes() const {
   if (!bound()) return 0;
   const std::size_t n = std::size_t(capacity_), total = std::size_t(capacity_ + coarse_capacity_);
-  return (u_unit_ ? 6 : 3) * n * sizeof(float) + total * (1 + sizeof(float)) + kElasticMaxLevels * sizeof(float);
+  return (u_unit_ ? 6 : 3) * n * sizeof(float) + total * (1 + sizeof(float)) + kElasticMaxLevels * sizeof(float) +
+         tile_ints_ * sizeof(int);
 }
 
 void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, const Voi& voi, const Vec3& skin_vox,
@@ -299,6 +307,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   view.d = scratch.d;
   view.p = scratch.p;
   view.tmp_flags = scratch.tmp_flags;
+  view.tiles = tiles_;
   view.sums = scratch.sums;
   view.capacity = scratch.capacity;
   view.total = scratch.capacity + scratch.coarse_capacity;

@@ -104,12 +104,14 @@ class ElasticSolver {
   long long capacity_ = 0, coarse_capacity_ = 0;
   // session's own device buffers: the field and the unit press (mm, component c at c times
   // capacity), every level's flags and cell moduli (level l >= 1 at capacity + its plan
-  // offset), every level's largest eigenvalue of D^-1 K
+  // offset), every level's largest eigenvalue of D^-1 K, level 0's tiles the gathers take
   float* u_ = nullptr;
   float* u_unit_ = nullptr;
   std::uint8_t* flags_ = nullptr;
   float* cell_e_ = nullptr;
   float* lmax_ = nullptr;
+  int* tiles_ = nullptr;      // level 0's tiles with a node that is not held (the set-up's list and marks)
+  std::size_t tile_ints_ = 0;  // the ints tiles_ holds
   // the host's record (ElasticCpu's): the VOI the buffers are set up for, the field's and
   // the unit press's validity, the unit press's normal
   deform::Voi voi_;

@@ -152,7 +152,7 @@ class Server::Control {
   // the slot of an open session, or nullptr
   SessionSlot* find(std::uint64_t id) {
     if (id == 0) return nullptr;
-    SessionSlot& s = sh_.slots[id & (kMaxSlots - 1)];
+    SessionSlot& s = sh_.slots[runtime::slot_index(id)];
     return s.id.load(std::memory_order_acquire) == id ? &s : nullptr;
   }
   // reads every waiting control request, checks its frames and answers it

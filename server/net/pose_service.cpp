@@ -17,7 +17,6 @@
 
 namespace palpsim::net {
 
-using runtime::kMaxSlots;
 using runtime::PatchBytes;
 using runtime::PatchChannel;
 using runtime::PatchRequest;
@@ -204,7 +203,7 @@ class PoseService {
     char msg[256];
     // the session: its slot index is in the id's low bits, and the slot must hold this id
     const std::uint64_t id = req_.session_id();
-    SessionSlot* slot = &sh_.slots[id & (kMaxSlots - 1)];
+    SessionSlot* slot = &sh_.slots[runtime::slot_index(id)];
     if (id == 0 || slot->id.load(std::memory_order_acquire) != id || !world_) {
       std::snprintf(msg, sizeof msg,
                     "PoseRequest.session_id: %016" PRIx64 " is not an open session (never opened, closed, or timed out)",

@@ -101,7 +101,7 @@ void Server::stop() {
 
 const ContactSlot* Server::contact_slot(std::uint64_t session_id) const {
   if (session_id == 0) return nullptr;
-  const SessionSlot& s = shared_->slots[session_id & (kMaxSlots - 1)];
+  const SessionSlot& s = shared_->slots[runtime::slot_index(session_id)];
   return s.id.load(std::memory_order_acquire) == session_id ? &s.latest : nullptr;
 }
 

@@ -20,6 +20,7 @@
 #include "net/client_text.h"
 #include "net/wire_convert.h"
 #include "palpsim/wire.pb.h"
+#include "runtime/session_state.h"
 
 namespace palpsim::net {
 
@@ -31,7 +32,10 @@ using runtime::hex_id;
 using runtime::JSnapshot;
 using runtime::kMaxSlots;
 using runtime::ServerShared;
+using runtime::SessionState;
+using runtime::SessionStates;
 using runtime::SessionStreamReport;
+using runtime::slot_index;
 using runtime::StreamSlot;
 using runtime::StreamState;
 using runtime::World;
@@ -83,10 +87,10 @@ std::uint64_t topic_session(const std::string& t) {
 }  // namespace
 
 
-// the publisher's own state of one session slot
 // a session whose frames cannot be recorded logs at most one line per this many seconds
 constexpr double kRecordLogPeriodS = 10.0;
 
+// the publisher's own state of one session slot (one of a session's parts: runtime/session_state.h)
 struct PubSlot {
   std::uint64_t session = 0;        // the open session in the slot (0: none)
   bool frames = false, bricks = false;  // watched at the last pass
@@ -126,6 +130,7 @@ struct StreamPublisher::Impl {
   std::unordered_set<std::string> exact;
   std::vector<std::string> prefixes;
   std::vector<PubSlot> pub = std::vector<PubSlot>(kMaxSlots);
+  SessionStates<PubSlot> sessions{sh, st, pub};  // each slot's parts: the table's, the stream's, pub's
 
   // the world whose patient the keys are made of
   std::uint64_t generation = 0;
@@ -197,7 +202,7 @@ struct StreamPublisher::Impl {
   }
 
   bool open(std::uint64_t id) const {
-    return id != 0 && sh.slots[id & (kMaxSlots - 1)].id.load(std::memory_order_acquire) == id;
+    return id != 0 && sh.slots[slot_index(id)].id.load(std::memory_order_acquire) == id;
   }
 
   // manual mode (CURVE): admits or refuses one subscription (the sender's key against the
@@ -206,7 +211,7 @@ struct StreamPublisher::Impl {
   bool admit(const zmq::message_t& m, bool on, const std::string& topic, std::uint64_t id, bool prefix) {
     auto& [admitted, refused] = held[topic];
     const char* key = zmq_msg_gets(m.handle(), "User-Id");
-    const bool foreign = id != 0 && open(id) && !sh.slots[id & (kMaxSlots - 1)].key_may_act(key);
+    const bool foreign = id != 0 && open(id) && !sh.slots[slot_index(id)].key_may_act(key);
     if (!on) {
       // an unsubscribe with a key says whose it is; a departing pipe's has none
       const bool was_refused = refused > 0 && (!key || foreign || prefix);
@@ -261,7 +266,7 @@ struct StreamPublisher::Impl {
       }
       exact.insert(topic);
       // every brick subscriber gets a key, so it can rebuild the whole deformed volume
-      if (is_brick) pub[id & (kMaxSlots - 1)].key_pending = true;
+      if (is_brick) pub[slot_index(id)].key_pending = true;
       return;
     }
     if (prefix) {
@@ -486,9 +491,10 @@ struct StreamPublisher::Impl {
 
   // one session slot: watched or not, then its newest frame and brick
   void serve(int index, double now, std::uint32_t& watched_count) {
-    PubSlot& p = pub[index];
-    StreamSlot& ss = st.slots[index];
-    const std::uint64_t id = sh.slots[index].id.load(std::memory_order_acquire);
+    const SessionState<PubSlot> parts = sessions.at(index);
+    PubSlot& p = parts.own;
+    StreamSlot& ss = *parts.stream;
+    const std::uint64_t id = parts.table.id.load(std::memory_order_acquire);
     if (id != p.session) {
       // the session closed or timed out: its subscribers are told
       if (p.session != 0) {

@@ -219,10 +219,11 @@ void DeformWorker::give_back(std::unique_ptr<DeformEngine> engine) {
 }
 
 bool DeformWorker::serve(int index) {
+  const Parts p = parts_.at(index);
   const std::size_t before = inflight_.size() + ready_.size();
-  const bool worked = serve_deformation(index);
+  const bool worked = serve_deformation(p);
   // a session whose step is readied or in flight exports when it completes (complete_inflight)
-  if (inflight_.size() + ready_.size() == before) export_watched(index);
+  if (inflight_.size() + ready_.size() == before) export_watched(p);
   // at most gpu_share_ steps in flight: their grids are sized to fit together
   if (inflight_.size() >= std::size_t(gpu_share_)) complete_inflight();
   // a full batch is begun and finished at once; a smaller one at the end of the pass
@@ -233,9 +234,9 @@ bool DeformWorker::serve(int index) {
   return worked;
 }
 
-bool DeformWorker::serve_deformation(int index) {
-  SessionSlot& slot = sh_.slots[index];
-  Session& s = sessions_[index];
+bool DeformWorker::serve_deformation(const Parts& p) {
+  SessionSlot& slot = p.table;
+  Session& s = p.own;
   const std::uint64_t id = slot.id.load(std::memory_order_acquire);
   // a closed session, or a new one in this slot
   if (id != s.id) {
@@ -249,7 +250,7 @@ bool DeformWorker::serve_deformation(int index) {
       s.report.session_id = id;
       s.report.elastic.built = config_.relax && config_.settings.relax_method == RelaxMethod::kElastic;
     }
-    if (had || id != 0) publish(s, index);
+    if (had || id != 0) publish(p);
   }
   if (id == 0) return false;
   // the newest contact first, then the reset counters: a reset ordered before this
@@ -264,7 +265,7 @@ bool DeformWorker::serve_deformation(int index) {
     s.report.resets += (resets - s.resets_seen) + (pose_resets - s.pose_resets_seen);
     s.resets_seen = resets;
     s.pose_resets_seen = pose_resets;
-    reset(s, index);
+    reset(p);
     // a ResetSession undoes what came before it, and the contact read above may: the
     // next pose deforms again. (A reset flag travels with its pose, whose contact is
     // newer than the reset and is stepped on below.)
@@ -282,7 +283,7 @@ bool DeformWorker::serve_deformation(int index) {
     // torso test), so that even a first pose already in the body starts warm
     Vec3i held;
     const bool holds = s.engine && s.engine->unit_response(held);
-    if (prime_ && c.session_id != id && !holds && prime(s, index, grid_centre_mm_)) worked = true;
+    if (prime_ && c.session_id != id && !holds && prime(p, grid_centre_mm_)) worked = true;
     return worked;
   }
   // contacts written since the last one taken were stale before the worker got to them
@@ -298,13 +299,13 @@ bool DeformWorker::serve_deformation(int index) {
     // out of the body: the tissue is undeformed again
     if (s.report.deformed) {
       ++s.report.releases;
-      reset(s, index);
+      reset(p);
       worked = true;
     } else if (dropped) {
-      publish(s, index);
+      publish(p);
     }
     // and the next contact's unit response is made ready where the tip is expected to touch
-    if (prime_ && prime(s, index, c.tip_mm)) worked = true;
+    if (prime_ && prime(p, c.tip_mm)) worked = true;
     return worked;
   }
   // the same contact as the step in place (a held tip): the same J, nothing to step; the
@@ -312,7 +313,7 @@ bool DeformWorker::serve_deformation(int index) {
   // dropped: a client waiting for its last pose's seq would otherwise wait for ever)
   if (s.report.deformed && s.engine && c.tip_mm == s.last_tip_mm && c.skin_point_mm == s.last_skin_mm) {
     s.report.last_contact_seq = c.seq;
-    publish(s, index);
+    publish(p);
     return worked;
   }
   // a session whose frames are watched steps at most once per frame: its viewer sees
@@ -321,20 +322,20 @@ bool DeformWorker::serve_deformation(int index) {
   // worker stepped them 2.6 times as often); the contact stays, the next pass takes the
   // newest
   if (min_watched_step_s_ > 0) {
-    const StreamState* st = sh_.stream.load(std::memory_order_acquire);
-    if (st && st->slots[index].frames_for.load(std::memory_order_acquire) == id &&
+    if (p.stream && p.stream->frames_for.load(std::memory_order_acquire) == id &&
         now_s() - s.last_step_begun_s < min_watched_step_s_) {
       s.last_version = version - 1;  // not taken: the next pass counts no drop for it
-      if (dropped) publish(s, index);
+      if (dropped) publish(p);
       return worked;
     }
   }
   s.last_step_begun_s = now_s();
-  step(s, index, c);
+  step(p, c);
   return true;
 }
 
-void DeformWorker::reset(Session& s, int index) {
+void DeformWorker::reset(const Parts& p) {
+  Session& s = p.own;
   ++s.state_version;
   try {
     if (s.engine) s.engine->reset();
@@ -350,12 +351,13 @@ void DeformWorker::reset(Session& s, int index) {
   if (s.report.elastic.built) {
     ElasticModel none;
     none.pose_server_time_s = now_s();
-    publish_elastic(s, index, none);
+    publish_elastic(p, none);
   }
-  publish(s, index);
+  publish(p);
 }
 
-bool DeformWorker::prime(Session& s, int index, const Vec3& tip_mm) {
+bool DeformWorker::prime(const Parts& p, const Vec3& tip_mm) {
+  Session& s = p.own;
   const double now = now_s();
   if (now - s.last_prime_s < std::max(kPrimeIntervalS, s.last_prime_cost_s / kPrimeShare)) return false;
   Vec3i v;
@@ -379,18 +381,19 @@ bool DeformWorker::prime(Session& s, int index, const Vec3& tip_mm) {
     const DeformPrime pr = s.engine->prime(DeformContact{X, X});
     if (pr.solved) ++s.report.multigrid_primes;
     // published either way: the engine just taken holds memory the stats must show
-    publish(s, index);
+    publish(p);
   } catch (const std::exception& e) {
     // a prime only prepares: its failure costs the next contact a solve from zero
     s.report.last_error = std::string("prime: ") + e.what();
-    publish(s, index);
+    publish(p);
   }
   s.last_prime_cost_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   step_s_ += s.last_prime_cost_s;
   return true;
 }
 
-void DeformWorker::step(Session& s, int index, const Contact& c) {
+void DeformWorker::step(const Parts& p, const Contact& c) {
+  Session& s = p.own;
   const auto t0 = std::chrono::steady_clock::now();
   DeformSessionReport& r = s.report;
   ++s.state_version;
@@ -403,16 +406,16 @@ void DeformWorker::step(Session& s, int index, const Contact& c) {
     r.backend = s.engine->backend_name();
     if (max_batch_ > 1) {
       // begun with the pass's other ready sessions (begin_ready)
-      ready_.push_back({index, c});
+      ready_.push_back({p.index, c});
     } else {
       // enqueued now, finished in complete() after the pass's other sessions are enqueued
       s.engine->backend().set_gpu_share(gpu_share_);
       s.engine->begin_step(DeformContact{c.skin_point_mm, c.tip_mm});
-      inflight_.push_back({index, c});
+      inflight_.push_back({p.index, c});
     }
   } catch (const std::exception& e) {
-    fail(s, index, c, e);
-    publish(s, index);
+    fail(p, c, e);
+    publish(p);
   }
   // enqueueing (cuda) or the whole step (cpu); complete_inflight() adds the wait
   step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -444,15 +447,15 @@ void DeformWorker::begin_ready() {
       continue;
     }
     // a step that could not be begun: counted and reset, as a step that threw
-    Session& s = sessions_[f.index];
+    const Parts p = parts_.at(f.index);
     try {
       std::rethrow_exception(errors[i]);
     } catch (const std::exception& e) {
-      fail(s, f.index, f.contact, e);
+      fail(p, f.contact, e);
     } catch (...) {
-      fail(s, f.index, f.contact, Error("unknown error"));
+      fail(p, f.contact, Error("unknown error"));
     }
-    publish(s, f.index);
+    publish(p);
   }
   ready_.clear();
   step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -461,19 +464,20 @@ void DeformWorker::begin_ready() {
 void DeformWorker::complete_inflight() {
   // in the order they were begun: the first enqueued is the first to finish
   for (const Inflight& f : inflight_) {
-    Session& s = sessions_[f.index];
+    const Parts p = parts_.at(f.index);
     const auto t0 = std::chrono::steady_clock::now();
-    complete(s, f.index, f.contact);
+    complete(p, f.contact);
     // the wait for this step (the others' steps overlap it on the GPU, so the worker's
     // step time counts waits, not the sum of the steps)
     step_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    publish(s, f.index);
-    export_watched(f.index);
+    publish(p);
+    export_watched(p);
   }
   inflight_.clear();
 }
 
-void DeformWorker::complete(Session& s, int index, const Contact& c) {
+void DeformWorker::complete(const Parts& p, const Contact& c) {
+  Session& s = p.own;
   DeformSessionReport& r = s.report;
   try {
     const DeformStats st = s.engine->end_step();
@@ -527,7 +531,7 @@ void DeformWorker::complete(Session& s, int index, const Contact& c) {
       r.elastic.iterations = e.iterations;
       r.elastic.stiffness_iterations = e.stiffness_iterations;
       r.elastic.converged = e.converged;
-      publish_elastic(s, index, m);
+      publish_elastic(p, m);
     }
     if (!st.chainmail.converged) {
       ++r.non_converged;
@@ -541,12 +545,13 @@ void DeformWorker::complete(Session& s, int index, const Contact& c) {
     add_times(server_.sum, st.times);
     if (!st.chainmail.converged) ++server_.non_converged;
   } catch (const std::exception& e) {
-    fail(s, index, c, e);
+    fail(p, c, e);
   }
 }
 
-void DeformWorker::fail(Session& s, int index, const Contact& c, const std::exception& e) {
+void DeformWorker::fail(const Parts& p, const Contact& c, const std::exception& e) {
   // a failed step poisons nothing: the session's deformation starts again from undeformed
+  Session& s = p.own;
   DeformSessionReport& r = s.report;
   ++r.failures;
   r.last_error = "contact seq " + std::to_string(c.seq) + ": " + e.what() + "; the session's deformation was reset";
@@ -562,7 +567,7 @@ void DeformWorker::fail(Session& s, int index, const Contact& c, const std::exce
     ElasticModel none;
     none.pose_seq = c.seq;
     none.pose_server_time_s = c.server_time_s;
-    publish_elastic(s, index, none);
+    publish_elastic(p, none);
   }
   std::lock_guard<std::mutex> lock(report_mu_);
   ++server_.failures;

@@ -18,6 +18,7 @@
 
 #include "core/volume.h"
 #include "deform/engine.h"
+#include "runtime/session_state.h"
 #include "runtime/session_table.h"
 #include "runtime/worker_thread.h"
 #include "runtime/stream_state.h"
@@ -138,23 +139,24 @@ class DeformWorker {
  private:
   struct Session;
   struct Request;
+  using Parts = SessionState<Session>;  // a session's parts, this worker's own included
   void run();
   void set_up_world();
   bool serve(int index);
-  bool serve_deformation(int index);
-  void export_watched(int index);
+  bool serve_deformation(const Parts& p);
+  void export_watched(const Parts& p);
   void fill_snapshot(JSnapshot& out, Session& s, bool device);
-  void step(Session& s, int index, const Contact& c);   // begins the step (in flight) or readies it for a batch
-  bool prime(Session& s, int index, const Vec3& tip_mm);  // primes the unit response where a tip out of the body will touch; true: it ran
-  void begin_ready();                                     // begins the readied steps, batched
-  void complete_inflight();                               // finishes every step in flight, in order
-  void complete(Session& s, int index, const Contact& c);  // finishes one: checks, counts, reports
-  void fail(Session& s, int index, const Contact& c, const std::exception& e);  // a step that threw: reset, counted
-  void reset(Session& s, int index);
+  void step(const Parts& p, const Contact& c);      // begins the step (in flight) or readies it for a batch
+  bool prime(const Parts& p, const Vec3& tip_mm);   // primes the unit response where a tip out of the body will touch; true: it ran
+  void begin_ready();                               // begins the readied steps, batched
+  void complete_inflight();                         // finishes every step in flight, in order
+  void complete(const Parts& p, const Contact& c);  // finishes one: checks, counts, reports
+  void fail(const Parts& p, const Contact& c, const std::exception& e);  // a step that threw: reset, counted
+  void reset(const Parts& p);
   std::unique_ptr<DeformEngine> take_engine();
   void give_back(std::unique_ptr<DeformEngine> engine);
-  void publish(const Session& s, int index);
-  void publish_elastic(Session& s, int index, const ElasticModel& m);  // the session's newest model, to stats and the haptic thread
+  void publish(const Parts& p);
+  void publish_elastic(const Parts& p, const ElasticModel& m);  // the session's newest model, to stats and the haptic thread
   void publish_worker_times();  // the worker's wall, step and nap times into server_ (report_mu_ held)
   void answer_request();
   double now_s() const;
@@ -171,6 +173,7 @@ class DeformWorker {
   DeformConfig config_;
   bool built_ = false;
   std::vector<Session> sessions_;                       // by slot index
+  SessionStates<Session> parts_{sh_, sessions_};       // each slot's parts: the table's, the stream's, sessions_'
   std::vector<std::unique_ptr<DeformEngine>> spares_;  // engines of closed sessions, reused
   // steps begun and not yet finished: the slot and its contact
   struct Inflight {

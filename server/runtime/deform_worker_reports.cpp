@@ -21,29 +21,31 @@ void add_memory(DeformMemory& a, const DeformMemory& b) {
   a.shared_scratch_bytes = std::max(a.shared_scratch_bytes, b.shared_scratch_bytes);
 }
 
-void DeformWorker::publish_elastic(Session& s, int index, const ElasticModel& m) {
+void DeformWorker::publish_elastic(const Parts& p, const ElasticModel& m) {
+  Session& s = p.own;
   ElasticForceReport& r = s.report.elastic;
   r.model = m;
   r.model.session_id = s.id;
   r.model.generation = generation_;
   // with haptics.force_model "elastic" the haptic thread renders it (newest wins; never waits)
   if (config_.elastic_stiffness) {
-    sh_.slots[index].elastic_model.back() = r.model;
-    sh_.slots[index].elastic_model.publish();
+    p.table.elastic_model.back() = r.model;
+    p.table.elastic_model.publish();
     ++r.models_published;
   }
 }
 
-void DeformWorker::export_watched(int index) {
-  StreamState* st = sh_.stream.load(std::memory_order_acquire);
-  Session& s = sessions_[index];
-  if (!st || s.id == 0) return;
-  StreamSlot& ss = st->slots[index];
+void DeformWorker::export_watched(const Parts& p) {
+  Session& s = p.own;
+  if (!p.stream || s.id == 0) return;
+  StreamSlot& ss = *p.stream;
   // a session that became watched gets its current state at once; then every change
   const bool frames = ss.frames_for.load(std::memory_order_acquire) == s.id;
   const bool bricks = ss.bricks_for.load(std::memory_order_acquire) == s.id;
   if (frames && (!s.render_watched || s.render_exported != s.state_version)) {
-    fill_snapshot(ss.j_render.back(), s, st->render_wants_device.load(std::memory_order_acquire));
+    // the stream state that holds p.stream: made once, kept for the server's life
+    const StreamState& st = *sh_.stream.load(std::memory_order_acquire);
+    fill_snapshot(ss.j_render.back(), s, st.render_wants_device.load(std::memory_order_acquire));
     ss.j_render.publish();
     ss.j_render_bytes.store(held_bytes(ss.j_render), std::memory_order_relaxed);
     s.render_exported = s.state_version;
@@ -88,9 +90,10 @@ void DeformWorker::fill_snapshot(JSnapshot& o, Session& s, bool device) {
   }
 }
 
-void DeformWorker::publish(const Session& s, int index) {
+void DeformWorker::publish(const Parts& p) {
+  const Session& s = p.own;
   std::lock_guard<std::mutex> lock(report_mu_);
-  DeformSessionReport& out = reports_[index];
+  DeformSessionReport& out = reports_[std::size_t(p.index)];
   out = s.report;
   out.memory = s.engine ? s.engine->memory() : DeformMemory{};
   // server_.memory holds the spare engines; server_report() adds the sessions' own
@@ -115,7 +118,7 @@ bool DeformWorker::session_report(std::uint64_t session_id, DeformSessionReport&
   if (session_id == 0) return false;
   std::lock_guard<std::mutex> lock(report_mu_);
   if (reports_.empty()) return false;
-  const DeformSessionReport& r = reports_[session_id & (kMaxSlots - 1)];
+  const DeformSessionReport& r = reports_[std::size_t(slot_index(session_id))];
   if (r.session_id != session_id) return false;
   out = r;
   return true;
@@ -156,7 +159,7 @@ void DeformWorker::answer_request() {
   std::lock_guard<std::mutex> lock(mailbox_mu_);
   if (!request_ || request_->done) return;
   Request& q = *request_;
-  const Session* s = sessions_.empty() ? nullptr : &sessions_[q.session_id & (kMaxSlots - 1)];
+  const Session* s = sessions_.empty() ? nullptr : &sessions_[std::size_t(slot_index(q.session_id))];
   if (s && q.session_id != 0 && s->id == q.session_id) {
     q.found = true;
     if (s->engine) {

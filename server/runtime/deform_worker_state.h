@@ -11,7 +11,7 @@
 
 namespace palpsim::runtime {
 
-// the worker's own state of one session slot
+// the worker's own state of one session slot (one of a session's parts: session_state.h)
 struct DeformWorker::Session {
   std::uint64_t id = 0;                 // 0: no session
   std::unique_ptr<DeformEngine> engine; // made at the first contact

@@ -230,8 +230,9 @@ void RenderWorker::report_bytes() {
 }
 
 bool RenderWorker::look(int index, double now) {
-  View& v = views_[index];
-  StreamSlot& ss = st_.slots[index];
+  const Parts p = parts_.at(index);
+  View& v = p.own;
+  StreamSlot& ss = *p.stream;
   const std::uint64_t id = renderer_ ? ss.frames_for.load(std::memory_order_acquire) : 0;
   // a session no longer watched, or another one in this slot
   if (id != v.session) {
@@ -257,7 +258,7 @@ bool RenderWorker::look(int index, double now) {
         v.dirty = true;
       }
     }
-    if (read_pose(index)) v.dirty = true;
+    if (read_pose(p)) v.dirty = true;
     if (!v.dirty || now < v.next_frame_s) return false;
     // render.max_fps on the frames' own cadence, so that waiting for other sessions'
     // frames does not stretch the interval; more than an interval behind, from now
@@ -272,11 +273,11 @@ bool RenderWorker::look(int index, double now) {
   }
 }
 
-bool RenderWorker::read_pose(int index) {
+bool RenderWorker::read_pose(const Parts& p) {
   // the newest pose: the tip and proxy markers, the camera and slice centre
-  View& v = views_[index];
+  View& v = p.own;
   Contact c;
-  sh_.slots[index].latest.read(c);
+  p.table.latest.read(c);
   if (c.session_id != v.session || c.seq == 0) return false;
   render::FrameMarks m;
   m.has_tip = true;
@@ -309,8 +310,9 @@ void RenderWorker::draw_batch(const int* index, int n) {
     writes_.clear();
     written_.clear();
     for (int b = 0; b < n; ++b) {
-      View& v = views_[index[b]];
-      StreamSlot& ss = st_.slots[index[b]];
+      const Parts p = parts_.at(index[b]);
+      View& v = p.own;
+      StreamSlot& ss = *p.stream;
       if (!ss.j_render.take()) continue;
       const JSnapshot& j = ss.j_render.front();
       if (j.session_id != v.session) continue;
@@ -336,15 +338,17 @@ void RenderWorker::draw_batch(const int* index, int n) {
     // with the pose newest now (the pass looked at it before the batches ahead of this one)
     const auto t1 = std::chrono::steady_clock::now();
     for (int b = 0; b < n; ++b) {
-      read_pose(index[b]);
-      const View& v = views_[index[b]];
+      const Parts p = parts_.at(index[b]);
+      read_pose(p);
+      const View& v = p.own;
       renderer_->draw(v.overlay, v.target, v.view, v.marks);
     }
     // 3. all encoded together, each into its slot's frame buffer
     jobs_.clear();
     for (int b = 0; b < n; ++b) {
-      const View& v = views_[index[b]];
-      EncodedFrame& f = st_.slots[index[b]].frames.back();
+      const Parts p = parts_.at(index[b]);
+      const View& v = p.own;
+      EncodedFrame& f = p.stream->frames.back();
       f.times = render::FrameTimes{};
       jobs_.push_back(render::EncodeJob{v.target, v.view.jpeg_quality, &f.jpeg, &f.times});
     }
@@ -356,8 +360,9 @@ void RenderWorker::draw_batch(const int* index, int n) {
 
     // 4. the frames handed over (newest wins)
     for (int b = 0; b < n; ++b) {
-      View& v = views_[index[b]];
-      StreamSlot& ss = st_.slots[index[b]];
+      const Parts p = parts_.at(index[b]);
+      View& v = p.own;
+      StreamSlot& ss = *p.stream;
       EncodedFrame& f = ss.frames.back();
       renderer_->draw_times(v.target, f.times);
       f.times.j_to_texture_ms = v.pending_j_ms;

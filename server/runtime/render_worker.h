@@ -14,6 +14,7 @@
 #include <thread>
 #include <vector>
 
+#include "runtime/session_state.h"
 #include "runtime/session_table.h"
 #include "runtime/worker_thread.h"
 #include "runtime/stream_state.h"
@@ -58,10 +59,11 @@ class RenderWorker {
 
  private:
   struct View;
+  using Parts = SessionState<View>;  // a session's parts, this thread's own included
   void run();
   void set_up_world();
   bool look(int index, double now_s);
-  bool read_pose(int index);
+  bool read_pose(const Parts& p);
   void draw_batch(const int* index, int n);
   void fail_frame(int index, double now_s, const std::string& what);
   void release_view(View& v);
@@ -86,6 +88,7 @@ class RenderWorker {
   render::RenderQuality quality_;  // the renderer's
   Vec3i max_voi_{0, 0, 0};
   std::vector<View> views_;  // by slot index
+  SessionStates<View> parts_{sh_, st_, views_};  // each slot's parts: the table's, the stream's, views_'
   // one pass's sessions due for a frame and one batch's work, kept to reuse their memory
   std::vector<int> due_;
   std::vector<render::OverlayWrite> writes_;

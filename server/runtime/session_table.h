@@ -36,6 +36,10 @@ inline std::string hex_id(std::uint64_t id) {
 constexpr int kMaxSlots = 4096;
 /// Low bits of a session id that hold its slot index.
 constexpr int kSlotBits = 12;
+static_assert(kMaxSlots == 1 << kSlotBits, "a slot index fills the id's low kSlotBits bits");
+
+/// The slot of session `id`: the index of each of its parts in every per-slot array (session_state.h).
+constexpr int slot_index(std::uint64_t id) { return int(id & (kMaxSlots - 1)); }
 
 /// What the haptic thread's elastic renderer did for a session (haptics.force_model
 /// "elastic"; ElasticForceStats in wire.proto): the pose thread adds, anyone reads, the
@@ -101,8 +105,9 @@ struct PassivityCounters {
   }
 };
 
-/// One session's slot. Fields marked (control) are written by the control thread only,
-/// (pose) by the pose thread only; atomics may be read by either.
+/// One session's slot in the table the threads share (the first of a session's parts:
+/// session_state.h lists them all). Fields marked (control) are written by the control
+/// thread only, (pose) by the pose thread only; atomics may be read by either.
 struct SessionSlot {
   std::atomic<std::uint64_t> id{0};             // (control) 0 = free; else the open session's id
   std::atomic<std::int64_t> last_seen_ns{0};    // (both) server clock of the last message naming it (Stats too)

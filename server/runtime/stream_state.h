@@ -87,7 +87,8 @@ struct SessionStreamReport {
   LatencyRing pose_to_frame;
 };
 
-/// One session slot's stream state (index = the session's slot index).
+/// One session slot's stream state (index = the session's slot index; one of a session's
+/// parts: session_state.h).
 struct StreamSlot {
   std::atomic<std::uint64_t> frames_for{0};  // (publisher) the session whose frames are rendered now; 0: none
   std::atomic<std::uint64_t> bricks_for{0};  // (publisher) the session whose bricks are published now; 0: none
@@ -124,7 +125,7 @@ struct StreamInfo {
 struct StreamState {
   StreamState() : slots(new StreamSlot[kMaxSlots]) {}
   std::unique_ptr<StreamSlot[]> slots;
-  StreamSlot& slot(std::uint64_t session_id) { return slots[session_id & (kMaxSlots - 1)]; }
+  StreamSlot& slot(std::uint64_t session_id) { return slots[slot_index(session_id)]; }
 
   std::atomic<bool> render_wants_device{false};  // (render) J for frames as a device copy (cuda-gl writer)
   std::atomic<std::uint64_t> frames_rendered{0}, frames_published{0}, frames_replaced{0}, bricks_published{0},

@@ -57,7 +57,7 @@ constexpr float kElasticAirRatio = 1e-4f;
 /// stable leaves the rest of the upper spectrum nearly undamped. lmax comes from
 /// kElasticPowerIterations power iterations per level when a VOI is set up.
 constexpr int kElasticSmoothDegree = 3;      // polynomial degree before and after the coarse correction
-constexpr int kElasticCoarsestDegree = 24;   // on the coarsest level (3 to 9 nodes along its shortest axis)
+constexpr int kElasticCoarsestDegree = 12;   // on the coarsest level (3 to 9 nodes along its shortest axis)
 constexpr float kElasticChebyshevRatio = 20.0f;
 constexpr float kElasticCoarsestRatio = 400.0f;  // the coarsest level's interval reaches further down
 constexpr float kElasticChebyshevMargin = 1.1f;  // the power estimate is a lower bound of lmax

@@ -1,7 +1,7 @@
 // palpsim-bench deform: the paper's Table 2 (ChainMail time and moved elements for
 // d = 3 ... 30, p1 and p2) and Table 1 (time per stage: reset, ChainMail, relax, untangle,
 // invert, upload, total) for VOI 32, 64, 96, 128 and the whole phantom volume, and the
-// elastic model's step (from rest, while the tip moves, 16 sessions side by side) at VOI
+// elastic model's step (from rest, while the tip moves, 16 sessions begun together) at VOI
 // 64, on every backend this build and machine have, in one run. GPU figures are printed
 // next to the floor from ../shared/docs/DEVICE.md or the goal that bounds them.
 #include <algorithm>
@@ -65,13 +65,13 @@ struct Table1Row {
 struct ElasticRow {
   std::string backend, what;
   int voi = 0;
-  int sessions = 1;             // stepped side by side
+  int sessions = 1;             // begun together
   int iterations = 0;           // CG steps of the last step (contact rounds; the unit press apart)
   int stiffness_iterations = 0; // ... of its unit press
   int contact_nodes = 0;
   double force_n = 0;           // |F| of the last step (N)
   Spread relax, total;          // the elastic stage and the whole step (ms)
-  double steps_per_s = 0;       // side by side: steps a second, per session
+  double steps_per_s = 0;       // begun together: steps a second, per session
   double own_mb = 0;            // a session's own memory (DeformMemory::total, MiB)
   double shared_mb = 0;         // the solver scratch its sessions share (MiB)
   // the last step against the same steps converged (percent; -1: not compared)
@@ -178,8 +178,8 @@ void table1(const std::string& name, const Options& o, const PatientPtr& patient
 // haptics.force_model "elastic" asks for, pressing over L3. A step from rest (reset()
 // before each: the VOI set up and solved from zero), a step while the tip moves a voxel
 // (alternating between two depths a voxel apart: the VOI held, the last field the start),
-// and on cuda 16 sessions at 16 points along the spine begun together, each with 1/16 of
-// the device and a scratch of its own (as the server steps them), or the whole device in turn
+// and on cuda 16 sessions at 16 points along the spine begun together, each with a share
+// of 16 as the server sets it (an elastic step keeps the whole device: they step in turn)
 struct ElasticBench {
   std::string name;
   const Options& o;
@@ -299,9 +299,9 @@ struct ElasticBench {
     }
   }
 
-  // 16 sessions side by side, the tip moving a voxel, predicted or not, each with 1/share of
-  // the device (share 1: the whole device in turn, one shared scratch)
-  ElasticRow sessions_row(bool predict, int share) const {
+  // 16 sessions begun together, the tip moving a voxel, predicted or not, each with the
+  // share the server gives it
+  ElasticRow sessions_row(bool predict) const {
     const int n = 16, rounds = o.quick ? 10 : 50;
     std::vector<std::unique_ptr<DeformBackend>> sessions;
     for (int s = 0; s < n; ++s) {
@@ -309,7 +309,7 @@ struct ElasticBench {
       DeformConfig c = cfg;
       c.settings.elastic.predict = predict;
       sessions.back()->bind(phantom, c);
-      sessions.back()->set_gpu_share(share);
+      sessions.back()->set_gpu_share(n);
     }
     auto at = [&](int s) { return X + Vec3{0, 0, 8.0 * (s - n / 2)}; };
     std::vector<double> relax, total;
@@ -326,8 +326,7 @@ struct ElasticBench {
       }
     }
     const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    ElasticRow r = row(std::string("16 sessions side by side, tip moving a voxel") + (predict ? ", predicted" : "") +
-                           (share == 1 ? ", whole device in turn" : ""),
+    ElasticRow r = row(std::string("16 sessions begun together, tip moving a voxel") + (predict ? ", predicted" : ""),
                        relax, total, st, sessions[0]->memory());
     r.sessions = n;
     r.steps_per_s = rounds / wall_s;
@@ -358,12 +357,10 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
   const std::size_t first = rows.size();
   rows.push_back(b.from_rest());
   b.moving_rows(rows);
-  // on cuda: from the last field alone and predicted, each with 1/16 of the device as the
-  // server steps them; predicted, each with the whole device in turn
+  // on cuda: 16 sessions as the server steps them, from the last field alone and predicted
   if (b.gpu) {
-    rows.push_back(b.sessions_row(false, 16));
-    rows.push_back(b.sessions_row(true, 16));
-    rows.push_back(b.sessions_row(true, 1));
+    rows.push_back(b.sessions_row(false));
+    rows.push_back(b.sessions_row(true));
   }
   for (std::size_t i = first; i < rows.size(); ++i) print_elastic_row(rows[i], b.gpu);
   std::fflush(stdout);

@@ -83,7 +83,6 @@ void CudaDeformBackend::release() {
   // the elastic model's own buffers; its scratch and the body copy go with their last holders
   elastic_.release();
   el_shared_.reset();
-  el_own_.reset();
   body_copy_.reset();
   cudaFreeHost(host_counters_);
   cudaFreeHost(host_j_);
@@ -207,11 +206,6 @@ void CudaDeformBackend::ensure_elastic_buffers() {
   full_el_blocks_ = el_blocks_ = relax_elastic_blocks();
 }
 
-ElasticScratch& CudaDeformBackend::step_elastic_scratch() {
-  if (gpu_share_ <= 1) return *el_shared_;
-  if (!el_own_) el_own_ = std::make_shared<ElasticScratch>(elastic_.capacity(), elastic_.coarse_capacity());
-  return *el_own_;
-}
 
 DeformMemory CudaDeformBackend::memory_impl() const {
   // what bind_impl allocated: both displacement fields and both sweep stamps serve
@@ -239,7 +233,6 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   // scratch of its own while steps run side by side; the shared scratch once per server,
   // the body copy once per patient
   m.relax_bytes += elastic_.bytes();
-  if (el_own_) m.relax_bytes += el_own_->bytes();
   if (el_shared_) m.shared_scratch_bytes += el_shared_->bytes();
   if (body_copy_) m.shared_patient_bytes += body_copy_->bytes();
   return m;
@@ -334,7 +327,7 @@ void CudaDeformBackend::enqueue_relax() {
     ensure_elastic_buffers();
     const ElasticPatient ep{patient_copy_->intensity(), patient_copy_->bone(), body_copy_->body(),
                             body_copy_->dist_skin_mm()};
-    elastic_.enqueue(*patient_, ep, voi_, setup_.skin_vox, setup_.tip_vox, step_elastic_scratch(), el_blocks_,
+    elastic_.enqueue(*patient_, ep, voi_, setup_.skin_vox, setup_.tip_vox, *el_shared_, el_blocks_,
                      d_.u[cur_], &d_.counters->elastic, stream_);
     field_extra_ = -1;
     return;
@@ -537,7 +530,11 @@ void CudaDeformBackend::launch_shape_for_share() {
   shape_.chainmail_blocks = std::max(1, full_shape_.chainmail_blocks / gpu_share_);
   shape_.relax_blocks = std::max(1, full_shape_.relax_blocks / gpu_share_);
   mg_blocks_ = std::max(1, full_mg_blocks_ / gpu_share_);
-  el_blocks_ = std::max(1, full_el_blocks_ / gpu_share_);
+  // the elastic step keeps the whole device whatever the share: sessions step in turn on
+  // every multiprocessor with one shared scratch (ElasticScratch::Turn), which gives each
+  // more steps than 1/share of the device side by side (a step is a chain of grid
+  // barriers whose cost hardly shrinks with fewer blocks) and no scratch of its own
+  el_blocks_ = full_el_blocks_;
 }
 
 bool CudaDeformBackend::copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>& dst) const {

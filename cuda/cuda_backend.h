@@ -114,9 +114,6 @@ class CudaDeformBackend final : public DeformBackend {
   void ensure_untangle_buffers();
   // allocates the elastic model's buffers and the patient's body copy once (deform.relax_method "elastic")
   void ensure_elastic_buffers();
-  // the scratch an elastic step takes: the shared one, or with other steps in flight beside
-  // it (set_gpu_share() above 1) its own, made on first use
-  ElasticScratch& step_elastic_scratch();
   StepGeometry geometry() const;
   // enqueue one stage on the stream
   void enqueue_reset();
@@ -160,7 +157,7 @@ class CudaDeformBackend final : public DeformBackend {
   /// (shared, or this session's own while steps run side by side, as the multigrid's)
   ElasticSolver elastic_;
   std::shared_ptr<const DeviceBody> body_copy_;
-  std::shared_ptr<ElasticScratch> el_shared_, el_own_;
+  std::shared_ptr<ElasticScratch> el_shared_;
   int el_blocks_ = 0;                  // cooperative blocks of the elastic kernels, this step
   int full_el_blocks_ = 0;             // ... that fit on the device
   bool mg_g_clean_ = false;  // the kept unit response was solved on a step that left ChainMail out (so it is a G)

@@ -117,7 +117,11 @@ struct Step {
   // level l's smoother's first step from 0 at one node whose right-hand side `fe` was just
   // written: d = b0 Pi D^-1 f, x[0] = d
   __device__ void first_step(int l, int e, int i, int j, int k, const Vec3f& fe) const {
-    const Vec3f z = project(e, mul(inverse(diag_at(km(), a.v.cell_e, sh.lv[l], i, j, k)), fe));
+    first_step_from(l, e, diag_at(km(), a.v.cell_e, sh.lv[l], i, j, k), fe);
+  }
+  // the same with the node's Jacobi diagonal `dg` known (a gather's)
+  __device__ void first_step_from(int l, int e, const Vec3f& dg, const Vec3f& fe) const {
+    const Vec3f z = project(e, mul(inverse(dg), fe));
     const Vec3f dv = z * sh.cb[l][0];
     d().set(e, dv);
     x(0).set(e, dv);
@@ -263,7 +267,10 @@ struct Step {
     const int last = sh.levels - 1;
     Solve out{0, 0.0, true};
     // the coarse levels' contact flags from level 0's (a coarse node that is not held lies
-    // on level-0 node 2^l I, through finer nodes none of which is held)
+    // on level-0 node 2^l I, through finer nodes none of which is held); level 0's
+    // constrained values alone (held nodes' w, contact nodes' part of it along n) into p;
+    // at held nodes what the gathers would write there (0), which those of tiles left out
+    // never do
     for (int l = 1; l <= last; ++l) {
       const Lvl& C = sh.lv[l];
       for (int q = all.first; q < C.count; q += all.stride) {
@@ -276,34 +283,34 @@ struct Step {
         v.flags[C.off + q] = nf;
       }
     }
-    // level 0: the scale of the tolerance (the residual of the constrained values alone),
-    // r = Pi (0 - K w), and the smoother's first step
-    double sums[2] = {0, 0};
-    {
-      const CellModuli ce{v.cell_e, L0};
-      const Load load_w{w, L0};
-      auto lift = [&](int i, int j, int k) {
-        const int e = L0.at(i, j, k);
-        const std::uint8_t fl = v.flags[e];
-        const Vec3f we = w.at(e);
-        return (fl & kElasticHeld) ? we : ((fl & kElasticContact) ? a.nrm * dot(we, a.nrm) : Vec3f{0, 0, 0});
-      };
-      for (int q = all.first; q < L0.count; q += all.stride) {
-        int i, j, k;
-        L0.coords(q, i, j, k);
-        const Vec3f t = project(q, deform::elastic_apply_node(km(), ce, lift, L0.n, 1.0f, i, j, k));
-        sums[0] += double(dot(t, t));
-        const Vec3f re = project(q, -deform::elastic_apply_node(km(), ce, load_w, L0.n, 1.0f, i, j, k));
-        r.set(q, re);
-        sums[1] += dot_d(re, re);
-        first_step(0, q, i, j, k, re);
-        // what the gathers write at held nodes, which those of tiles left out never do
-        if (v.flags[q] & kElasticHeld) {
-          x(1).set(q, Vec3f{0, 0, 0});
-          kp.set(q, Vec3f{0, 0, 0});
-        }
+    const Vec3f zero{0, 0, 0};
+    for (int e = all.first; e < L0.count; e += all.stride) {
+      const std::uint8_t fl = v.flags[e];
+      const Vec3f we = w.at(e);
+      p.set(e, (fl & kElasticHeld) ? we : ((fl & kElasticContact) ? a.nrm * dot(we, a.nrm) : zero));
+      if (fl & kElasticHeld) {
+        x(0).set(e, zero);
+        x(1).set(e, zero);
+        d().set(e, zero);
+        r.set(e, zero);
+        kp.set(e, zero);
       }
     }
+    grid_sync(kPassSolveStart);
+    // level 0: the scale of the tolerance (the residual of the constrained values alone),
+    // r = Pi (0 - K w), and the smoother's first step (both gathers in one pass: each reads
+    // what the pass before the barrier wrote)
+    double sums[2] = {0, 0};
+    gather(km(), v.cell_e, v.flags, v.tiles, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
+      const Vec3f t = project(e, kx);
+      sums[0] += double(dot(t, t));
+    });
+    gather(km(), v.cell_e, v.flags, v.tiles, L0, all, w, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+      const Vec3f re = project(e, -kx);
+      r.set(e, re);
+      sums[1] += dot_d(re, re);
+      first_step_from(0, e, dg, re);
+    });
     reduce(ring, sums, g, kPassSolveStart * 16);
     const double rref = sqrt(sums[0]);
     double rn = sqrt(sums[1]);

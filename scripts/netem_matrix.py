@@ -223,17 +223,25 @@ def realtime_ok():
         return False
 
 
+def set_up(link):
+    """None once `link`'s namespaces are made, else why not (what was made is torn down)."""
+    try:
+        link.setup()
+    except (RuntimeError, FileNotFoundError) as e:
+        teardown()
+        return "cannot make network namespaces: %s" % e
+    return None
+
+
 def pick_link(which):
     """(link, None) when namespaces and the asked impairment work here, else (None, reason)."""
     if os.geteuid() != 0:
         return None, "needs root for ip netns and veth (running as uid %d)" % os.geteuid()
     if which in ("auto", "netem"):
         link = NetemLink()
-        try:
-            link.setup()
-        except (RuntimeError, FileNotFoundError) as e:
-            teardown()
-            return None, "cannot make network namespaces: %s" % e
+        why = set_up(link)
+        if why:
+            return None, why
         try:
             link.shape(0, 0, 0)
             return link, None
@@ -242,12 +250,8 @@ def pick_link(which):
             if which == "netem":
                 return None, "tc netem is not available (kernel module sch_netem): %s" % e
     link = DelayLineLink()
-    try:
-        link.setup()
-    except (RuntimeError, FileNotFoundError) as e:
-        teardown()
-        return None, "cannot make network namespaces: %s" % e
-    return link, None
+    why = set_up(link)
+    return (None, why) if why else (link, None)
 
 
 def summary(out):

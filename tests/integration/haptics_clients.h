@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <memory>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -15,6 +16,7 @@
 
 #include "integration/server_process.h"
 #include "palpsim/wire.pb.h"
+#include "support/zmq_exchange.h"
 
 namespace palpsim::test::haptics {
 
@@ -47,12 +49,9 @@ class Control {
   }
   /// The next reply if one comes within `timeout_ms` (throws on junk).
   bool reply(v1::ControlReply& r, int timeout_ms) {
-    zmq::pollitem_t it[] = {{s_.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(timeout_ms));
-    if (!(it[0].revents & ZMQ_POLLIN)) return false;
-    zmq::message_t m;
-    (void)s_.recv(m);
-    if (!r.ParseFromArray(m.data(), int(m.size()))) throw std::runtime_error("control reply does not parse");
+    const std::optional<zmq::message_t> m = receive_within(s_, timeout_ms);
+    if (!m) return false;
+    if (!r.ParseFromArray(m->data(), int(m->size()))) throw std::runtime_error("control reply does not parse");
     return true;
   }
   v1::ControlReply call(v1::ControlRequest req, std::uint32_t version = v1::VERSION_CURRENT) {
@@ -110,13 +109,10 @@ class Poses {
     send_raw({q.SerializeAsString()});
   }
   v1::PoseReply recv() {
-    zmq::pollitem_t it[] = {{s_.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(kReplyTimeoutMs));
-    if (!(it[0].revents & ZMQ_POLLIN)) throw std::runtime_error("no pose reply");
-    zmq::message_t m;
-    (void)s_.recv(m);
+    const std::optional<zmq::message_t> m = receive_within(s_, kReplyTimeoutMs);
+    if (!m) throw std::runtime_error("no pose reply");
     v1::PoseReply r;
-    if (!r.ParseFromArray(m.data(), int(m.size()))) throw std::runtime_error("pose reply does not parse");
+    if (!r.ParseFromArray(m->data(), int(m->size()))) throw std::runtime_error("pose reply does not parse");
     return r;
   }
   v1::PoseReply call(std::uint64_t session, std::uint64_t seq, double x, double y, double z) {
@@ -125,12 +121,8 @@ class Poses {
   }
   /// True with the next reply in `r` when one comes within `timeout_ms`.
   bool try_recv(v1::PoseReply& r, int timeout_ms) {
-    zmq::pollitem_t it[] = {{s_.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(timeout_ms));
-    if (!(it[0].revents & ZMQ_POLLIN)) return false;
-    zmq::message_t m;
-    (void)s_.recv(m);
-    return r.ParseFromArray(m.data(), int(m.size()));
+    const std::optional<zmq::message_t> m = receive_within(s_, timeout_ms);
+    return m && r.ParseFromArray(m->data(), int(m->size()));
   }
 
  private:

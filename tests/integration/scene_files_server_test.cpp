@@ -16,6 +16,7 @@
 
 #include "palpsim/wire.pb.h"
 #include "server_process.h"
+#include "support/zmq_exchange.h"
 #include "unit/prep_files.h"
 
 using namespace palpsim;
@@ -39,14 +40,7 @@ class Control {
   std::optional<v1::ControlReply> call(v1::ControlRequest q) {
     q.set_schema_version(1);
     s_.send(zmq::buffer(q.SerializeAsString()), zmq::send_flags::dontwait);
-    zmq::pollitem_t it[] = {{s_.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(kReplyMs));
-    if (!(it[0].revents & ZMQ_POLLIN)) return std::nullopt;
-    zmq::message_t m;
-    (void)s_.recv(m);
-    v1::ControlReply r;
-    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
-    return r;
+    return test::reply_within<v1::ControlReply>(s_, kReplyMs);
   }
   /// LoadScene of a file path or of scene text; the reply (the test fails without one).
   v1::ControlReply load_path(const std::string& path) { return load(path, ""); }

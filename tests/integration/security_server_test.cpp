@@ -22,6 +22,7 @@
 #include "net/curve_keys.h"
 #include "palpsim/wire.pb.h"
 #include "server_process.h"
+#include "support/zmq_exchange.h"
 
 using namespace palpsim;
 namespace v1 = palpsim::v1;
@@ -136,14 +137,7 @@ class Peer {
   template <class Reply>
   static std::optional<Reply> exchange(zmq::socket_t& s, const std::string& bytes, int wait_ms) {
     s.send(zmq::buffer(bytes), zmq::send_flags::dontwait);
-    zmq::pollitem_t it[] = {{s.handle(), 0, ZMQ_POLLIN, 0}};
-    zmq::poll(it, 1, std::chrono::milliseconds(wait_ms));
-    if (!(it[0].revents & ZMQ_POLLIN)) return std::nullopt;
-    zmq::message_t m;
-    (void)s.recv(m);
-    Reply r;
-    REQUIRE(r.ParseFromArray(m.data(), int(m.size())));
-    return r;
+    return test::reply_within<Reply>(s, wait_ms);
   }
 };
 

@@ -303,11 +303,7 @@ TEST_CASE("stability: anisotropic input spacing (0.5 x 0.5 x 5 mm)") {
     REQUIRE(p.has_bone);
     require_finite_patient(p);
     HapticRun r(h);
-    const Grid& g = p.grid;
-    for (int s = 0; s < 20000; ++s) {
-      if (s % 50 == 0) r.reset();
-      r.pose(g.to_physical({c.uniform(-2, g.size.x + 1), c.uniform(-2, g.size.y + 1), c.uniform(-2, g.size.z + 1)}));
-    }
+    poses_over_grid(r, p.grid, c, 20000);
     // along z, across the thick slices' interpolated steps, at 1 m/s through bone
     for (double y : {-6.0, 0.0, 4.0}) {
       r.reset();
@@ -330,11 +326,7 @@ TEST_CASE("stability: extreme HU (-3024 and 30000)") {
     REQUIRE(p.has_bone);
     require_finite_patient(p);
     HapticRun r(h);
-    const Grid& g = p.grid;
-    for (int s = 0; s < 20000; ++s) {
-      if (s % 50 == 0) r.reset();
-      r.pose(g.to_physical({c.uniform(-2, g.size.x + 1), c.uniform(-2, g.size.y + 1), c.uniform(-2, g.size.z + 1)}));
-    }
+    poses_over_grid(r, p.grid, c, 20000);
     r.finish();
     CHECK(r.contacts() > 1000);
   }

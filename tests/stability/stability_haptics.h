@@ -153,4 +153,13 @@ inline void require_finite_patient(const Patient& p) {
   REQUIRE(bad == 0);
 }
 
+/// Poses `n` tips drawn by the case over the whole grid and 2 voxels beyond each face,
+/// resetting the session every 50 poses so that runs start afresh throughout.
+inline void poses_over_grid(HapticRun& r, const Grid& g, Case& c, int n) {
+  for (int s = 0; s < n; ++s) {
+    if (s % 50 == 0) r.reset();
+    r.pose(g.to_physical({c.uniform(-2, g.size.x + 1), c.uniform(-2, g.size.y + 1), c.uniform(-2, g.size.z + 1)}));
+  }
+}
+
 }  // namespace palpsim::test::stability

@@ -5,6 +5,8 @@
 
 #include <sys/resource.h>
 
+#include <catch2/catch.hpp>
+
 #include <cmath>
 #include <cstdint>
 #include <utility>
@@ -23,7 +25,7 @@ using Rgb = std::vector<std::uint8_t>;
 
 // the 2 mm phantom, prepared once for the whole executable
 inline const PatientPtr& phantom_2mm() {
-  static const PatientPtr p = test::render_phantom(2.0);
+  static const PatientPtr p = test::prepared_phantom(2.0);
   return p;
 }
 
@@ -111,6 +113,17 @@ inline DeformConfig cpu_voi32() {
   dc.settings.voi_edge = 32;
   return dc;
 }
+
+// the real CPU deformation of the 2 mm phantom under a 10 mm press over L3 (VOI of 32
+// voxels, 64 mm), stepped once: J on its VOI for an overlay
+struct PressedL3 {
+  PressedL3() : engine(phantom_2mm(), cpu_voi32()), press(l3_press(*phantom_2mm(), 10)) {
+    engine.step(press);
+    REQUIRE(engine.deformed_brick() != nullptr);
+  }
+  DeformEngine engine;
+  const DeformContact press;
+};
 
 // the markers of a contact: tip, proxy (the skin point), in contact
 inline FrameMarks marks_of(const DeformContact& c) {

@@ -1,5 +1,6 @@
-// Helpers of the render tests: the phantom patient, the skin point over the L3 spinous
-// process, an EGL context shared by the test cases, image statistics and PNG files.
+// Helpers of the render tests: the prepared phantom (support/prepared_phantom.h), the skin
+// point over the L3 spinous process, an EGL context shared by the test cases, image
+// statistics and PNG files.
 #pragma once
 
 #include <png.h>
@@ -15,18 +16,9 @@
 #include "core/error.h"
 #include "prep/prepare.h"
 #include "render/egl_context.h"
+#include "prepared_phantom.h"
 
 namespace palpsim::test {
-
-/// The built-in phantom prepared at `voxel_mm` without the cache.
-inline PatientPtr render_phantom(double voxel_mm) {
-  Scene s;
-  s.name = "render test phantom";
-  s.use_phantom = true;
-  s.phantom_voxel_mm = voxel_mm;
-  s.prep.use_cache = false;
-  return prepare_patient(s);
-}
 
 /// The skin over the L3 spinous process: on the body's mid-sagittal column at
 /// z = -5 mm, the body voxel farthest towards +y (the back, the phantom lies prone).

@@ -11,27 +11,18 @@
 
 #include "prep/phantom.h"
 #include "prep/prepare.h"
+#include "support/prepared_phantom.h"
 
 using namespace palpsim;
 
 namespace {
 
-// the phantom patient at `voxel_mm`, prepared without the cache
-PatientPtr phantom_patient(double voxel_mm) {
-  Scene s;
-  s.name = "phantom patient test";
-  s.use_phantom = true;
-  s.phantom_voxel_mm = voxel_mm;
-  s.prep.use_cache = false;
-  return prepare_patient(s);
-}
-
 const Patient& patient_2mm() {
-  static const PatientPtr p = phantom_patient(2.0);
+  static const PatientPtr p = test::prepared_phantom(2.0);
   return *p;
 }
 const Patient& patient_1mm() {
-  static const PatientPtr p = phantom_patient(1.0);
+  static const PatientPtr p = test::prepared_phantom(1.0);
   return *p;
 }
 

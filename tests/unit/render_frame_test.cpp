@@ -188,11 +188,9 @@ TEST_CASE("a deformed overlay changes the frame near the tip only; clearing it r
   FrameRenderer& r = renderer_2mm();
   const PatientPtr& p = phantom_2mm();
   // the real CPU deformation: a 10 mm press over L3, VOI of 32 voxels (64 mm)
-  DeformEngine engine(p, cpu_voi32());
-  const DeformContact press = l3_press(*p, 10);
-  engine.step(press);
-  REQUIRE(engine.deformed_brick() != nullptr);
-  const Voi voi = engine.voi();
+  const PressedL3 l3;
+  const DeformContact& press = l3.press;
+  const Voi voi = l3.engine.voi();
   const auto id = r.add_overlay({32, 32, 32});
 
   ViewSettings v = small_view(Preset::kSkin);
@@ -201,7 +199,7 @@ TEST_CASE("a deformed overlay changes the frame near the tip only; clearing it r
   auto writer = make_overlay_writer(OverlayWriterChoice::kUpload, test::render_context());
   OverlaySource src;
   src.voi = voi;
-  src.host_j = engine.deformed_brick();
+  src.host_j = l3.engine.deformed_brick();
   writer->write(r, id, src);
   const Rgb after = frame(r, id, v, m);
 

@@ -37,12 +37,9 @@ using namespace palpsim::test::render_frames;
 TEST_CASE("frames drawn into several targets, then encoded and written in batches, equal one at a time",
           "[render][frame][batch]") {
   FrameRenderer& r = renderer_2mm();
-  const PatientPtr& p = phantom_2mm();
   // two sessions: one pressed (a real CPU deformation over L3), one undeformed
-  DeformEngine engine(p, cpu_voi32());
-  const DeformContact press = l3_press(*p, 10);
-  engine.step(press);
-  REQUIRE(engine.deformed_brick() != nullptr);
+  const PressedL3 l3;
+  const DeformContact& press = l3.press;
   const auto pressed = r.add_overlay({32, 32, 32}), plain = r.add_overlay({32, 32, 32});
   const FrameMarks m = marks_of(press);
   ViewSettings va = small_view(Preset::kSkin), vb = small_view(Preset::kBone);
@@ -53,8 +50,8 @@ TEST_CASE("frames drawn into several targets, then encoded and written in batche
   // the reference: each frame alone, its overlay written alone, in target 0
   auto writer = make_overlay_writer(OverlayWriterChoice::kUpload, test::render_context());
   OverlaySource src;
-  src.voi = engine.voi();
-  src.host_j = engine.deformed_brick();
+  src.voi = l3.engine.voi();
+  src.host_j = l3.engine.deformed_brick();
   writer->write(r, pressed, src);
   writer->write(r, plain, OverlaySource{});
   const Rgb ref_a = frame(r, pressed, va, m), ref_b = frame(r, plain, vb, FrameMarks{});
@@ -259,7 +256,7 @@ TEST_CASE("encoder and writer factories: names, auto, and what this machine lack
 TEST_CASE("snapshot PNGs of the 1 mm phantom", "[.snapshot]") {
   EglContext& ctx = test::render_context();
   std::printf("GL: %s\n", ctx.describe().c_str());
-  const PatientPtr p = test::render_phantom(1.0);
+  const PatientPtr p = test::prepared_phantom(1.0);
   const double c0 = cpu_s();
   FrameRenderer r(p);
   std::printf("renderer set up in %.0f ms CPU, %.0f MB of textures\n", (cpu_s() - c0) * 1e3, r.bytes() / 1e6);

@@ -310,16 +310,9 @@ class Viewer:
                         return EXIT_OK
 
     def _frame(self, frame: "wire.Frame") -> None:
-        rgb = decode_frame(frame)
-        self.shown += 1
-        if self.png:
-            self.png.add(rgb)
-        if self.mp4:
-            self.mp4.add(rgb, frame.server_time_s)
-        if self.window:
-            self.window.show(rgb, f"frame {frame.frame_seq}  pose {frame.pose_seq}  "
-                                  f"step {frame.deform_step}  pose-to-frame "
-                                  f"{frame.pose_to_frame_ms:.1f} ms  {self.controller.preset}")
+        title = (f"frame {frame.frame_seq}  pose {frame.pose_seq}  step {frame.deform_step}  "
+                 f"pose-to-frame {frame.pose_to_frame_ms:.1f} ms  {self.controller.preset}")
+        self._show(decode_frame(frame), frame.server_time_s, title)
 
     def _brick(self, brick: "wire.Brick") -> None:
         v = self.volume
@@ -339,12 +332,15 @@ class Viewer:
         title = (f"brick {brick.brick_seq}  pose {brick.pose_seq}  step {brick.deform_step}  "
                  f"{'deformed' if brick.deformed else 'undeformed'}  at "
                  f"({s.point_mm[0]:.1f}, {s.point_mm[1]:.1f}, {s.point_mm[2]:.1f}) mm")
-        rgb = slices_image(s, self.slice_preset, title=title)
+        self._show(slices_image(s, self.slice_preset, title=title), brick.server_time_s, title)
+
+    def _show(self, rgb: np.ndarray, server_time_s: float, title: str) -> None:
+        """Counts one image shown and hands it to each output asked for: PNG, MP4, window."""
         self.shown += 1
         if self.png:
             self.png.add(rgb)
         if self.mp4:
-            self.mp4.add(rgb, brick.server_time_s)
+            self.mp4.add(rgb, server_time_s)
         if self.window:
             self.window.show(rgb, title)
 

@@ -227,6 +227,16 @@ def flat_skin(skin_y_mm: float = 100.0, k_n_per_mm: float = 0.1) -> PoseModel:
 FIRST_OPENED_SID = 0x5E55000000000001
 
 
+def _drain(recv: Callable[[int], Any], handle: Callable[[Any], None]) -> None:
+    """Hands every message that `recv` has ready (without waiting) to `handle`."""
+    while True:
+        try:
+            m = recv(zmq.NOBLOCK)
+        except zmq.Again:
+            return
+        handle(m)
+
+
 class FakeServer:
     """A fake palpsim-server: control ROUTER, pose ROUTER and stream XPUB on free loopback
     ports, one thread. `script(fake, topic)` is started when the XPUB sees the first
@@ -300,32 +310,21 @@ class FakeServer:
                 wait = min([max(0.0, g[0] - now) for g in self._gens] + [0.02])
                 events = dict(poller.poll(int(wait * 1000)))
                 if self.router in events:
-                    while True:
-                        try:
-                            parts = self.router.recv_multipart(zmq.NOBLOCK)
-                        except zmq.Again:
-                            break
-                        self._control(parts)
+                    _drain(self.router.recv_multipart, self._control)
                 if self.pose_router in events:
-                    while True:
-                        try:
-                            parts = self.pose_router.recv_multipart(zmq.NOBLOCK)
-                        except zmq.Again:
-                            break
-                        self._pose(parts)
+                    _drain(self.pose_router.recv_multipart, self._pose)
                 if self.xpub in events:
-                    while True:
-                        try:
-                            ev = self.xpub.recv(zmq.NOBLOCK)
-                        except zmq.Again:
-                            break
-                        if ev[:1] == b"\x01":
-                            self.subscriptions.append(ev[1:])
-                            if self.script is not None:
-                                self._gens.append([0.0, self.script(self, ev[1:])])
+                    _drain(self.xpub.recv, self._subscription)
                 self._step()
         except BaseException as e:  # surfaced by __exit__
             self.error = e
+
+    def _subscription(self, ev: bytes) -> None:
+        """A subscribe event from the XPUB (first byte 1): the topic noted, its script started."""
+        if ev[:1] == b"\x01":
+            self.subscriptions.append(ev[1:])
+            if self.script is not None:
+                self._gens.append([0.0, self.script(self, ev[1:])])
 
     def _step(self) -> None:
         now = time.monotonic()

@@ -31,6 +31,7 @@ using deform::Voi;
 
 constexpr int kThreads = 512;      // threads per block of both kernels
 constexpr int kBlockNodes = 64;    // coarse levels of at most this many nodes run in block 0 alone (the default)
+constexpr int kTileNodes = 8192;   // coarse levels of at least this many nodes on the grid take tiles (the default)
 constexpr int kSlot = 4;           // sums a reduction slot holds
 constexpr int kRing = 32;          // the step's reduction slots, reused in turn
 constexpr int kSetupSums = deform::kElasticPowerIterations * kElasticMaxLevels;  // the set-up's slots
@@ -186,8 +187,8 @@ __device__ Vec3i tile_grid(const Lvl& L) {
   return Vec3i{(L.n.x + kTileX - 1) / kTileX, (L.n.y + kTileY - 1) / kTileY, (L.n.z + kTileZ - 1) / kTileZ};
 }
 
-// calls fn(e, i, j, k, kx, dg) for every node of level 0 (L) in a tile of `tiles` (its
-// count, then tile indices: those with a node that is not held), the whole grid taking a
+// calls fn(e, i, j, k, kx, dg) for every node of level L in a tile of `tiles` (its count,
+// then tile indices: level 0's with a node that is not held; null: every tile), the whole grid taking a
 // tile of kThreads nodes a block at a time: the tile's nodes and their neighbours'
 // displacements x and the cells' moduli go to shared memory, then each thread sums its
 // node's cells from there (elastic_apply_interior: every load one register and a constant
@@ -204,9 +205,9 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
   const Vec3i tg = tile_grid(L);
   const int tx = tg.x, ty = tg.y;
   const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
-  const int active = tiles[0];
+  const int active = tiles ? tiles[0] : tg.x * tg.y * tg.z;
   for (int q = blockIdx.x; q < active; q += gridDim.x) {
-    const int tile = tiles[1 + q];
+    const int tile = tiles ? tiles[1 + q] : q;
     const int i0 = (tile % tx) * kTileX, j0 = ((tile / tx) % ty) * kTileY, k0 = (tile / (tx * ty)) * kTileZ;
     // the halo: nodes (i0 - 1 .. i0 + kTileX) etc., 0 outside the level; the cell at halo
     // position h has its lowest corner there (cells beyond the last node: 0)
@@ -244,15 +245,18 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
 }
 
 // calls fn(e, i, j, k, kx, dg) for the nodes of level L that team t covers: kx = (K x) at
-// the node (N), dg its Jacobi diagonal (N/mm). Level 0: a thread a node; a coarse level:
+// the node (N), dg its Jacobi diagonal (N/mm). Level 0 and coarse levels of at least
+// tile_nodes nodes on the grid: tiles, a thread a node; other coarse levels:
 // eight lanes a node, lane a adding the cell in which the node is corner a, summed by
 // shuffles (whole warps run each round, so that every lane takes part in them)
 template <typename Fn>
 __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                       const Lvl& L, Team t, const Field& x, Fn&& fn) {
-  // level 0 always runs on the whole grid (t is every thread): its tiles
-  if (!L.coarse) {
-    gather_tiles(km, cell_e, flags, tiles, L, x, fn);
+                       int tile_nodes, const Lvl& L, Team t, const Field& x, Fn&& fn) {
+  // level 0 always runs on the whole grid (t is every thread): its listed tiles; a coarse
+  // level of at least tile_nodes nodes on the whole grid: all its tiles (the lanes' cells
+  // wait on more loads a pass there than a tile does)
+  if (!L.coarse || (t.stride == int(gridDim.x * blockDim.x) && L.count >= tile_nodes)) {
+    gather_tiles(km, cell_e, flags, L.coarse ? nullptr : tiles, L, x, fn);
     return;
   }
   const CellModuli ce{cell_e, L};

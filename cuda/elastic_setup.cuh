@@ -28,6 +28,7 @@ struct SetupArgs {
   ElasticMaterial material;
   ElasticPatient patient;
   int had;                 // carry the last field and contact set over
+  int tile_nodes;          // coarse levels of at least this many nodes take tiles (gather)
   unsigned long long* trace;  // null, or (pass, ns) pairs block 0 writes at each barrier (PALPSIM_ELASTIC_TRACE)
   int trace_pairs;            // the pairs it holds
 };
@@ -59,7 +60,7 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
     const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
     for (int l = 0; l < levels; ++l) {
       double part[2] = {0, 0};
-      gather(km, v.cell_e, v.flags, v.tiles, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+      gather(km, v.cell_e, v.flags, v.tiles, a.tile_nodes, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
         const Vec3f xe = xf.at(e);
         const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
         xt.set(e, re);

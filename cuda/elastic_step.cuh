@@ -40,6 +40,7 @@ struct StepArgs {
   float stiffness_tolerance;
   int contact_rounds;
   int block_nodes;     // coarse levels of at most this many nodes run in block 0 alone
+  int tile_nodes;      // coarse levels of at least this many nodes on the grid take tiles (gather)
   float* out[3];       // u in voxels (the displacement buffer the inversion reads)
   ElasticCounters* result;
   unsigned long long* trace;  // null, or (pass, ns) pairs block 0 writes at each barrier (PALPSIM_ELASTIC_TRACE)
@@ -135,7 +136,7 @@ struct Step {
     const float ca = sh.ca[l][s], cb = sh.cb[l][s];
     const Field xf = x(from), xt = x(to), fv = f(), dv = d();
     double part = 0;
-    gather(km(), a.v.cell_e, a.v.flags, a.v.tiles, sh.lv[l], t, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+    gather(km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
       const Vec3f fe = fv.at(e);
       const Vec3f r = project(e, fe - kx);
       const Vec3f z = project(e, mul(inverse(dg), r));
@@ -151,7 +152,7 @@ struct Step {
   // the residual of level l by team t: res = Pi (f - K x[from])
   __device__ void residual(int l, Team t, int from) const {
     const Field fv = f(), rv = res();
-    gather(km(), a.v.cell_e, a.v.flags, a.v.tiles, sh.lv[l], t, x(from), [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
+    gather(km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, x(from), [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
       rv.set(e, project(e, fv.at(e) - kx));
     });
   }
@@ -301,11 +302,11 @@ struct Step {
     // r = Pi (0 - K w), and the smoother's first step (both gathers in one pass: each reads
     // what the pass before the barrier wrote)
     double sums[2] = {0, 0};
-    gather(km(), v.cell_e, v.flags, v.tiles, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
+    gather(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
       const Vec3f t = project(e, kx);
       sums[0] += double(dot(t, t));
     });
-    gather(km(), v.cell_e, v.flags, v.tiles, L0, all, w, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
+    gather(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, w, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
       const Vec3f re = project(e, -kx);
       r.set(e, re);
       sums[1] += dot_d(re, re);
@@ -326,7 +327,7 @@ struct Step {
         grid_sync(kPassCgDirection);
         // q = Pi K p, and p . q
         double part = 0;
-        gather(km(), v.cell_e, v.flags, v.tiles, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
+        gather(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
           const Vec3f qe = project(e, kx);
           kp.set(e, qe);
           part += dot_d(p.at(e), qe);
@@ -503,13 +504,8 @@ __device__ double write_field(const StepArgs& a, const Step& st) {
     a.out[1][e] = float(ue.y / a.h[1]);
     a.out[2][e] = float(ue.z / a.h[2]);
     if (i + 1 >= L0.n.x || j + 1 >= L0.n.y || k + 1 >= L0.n.z) continue;
-    bool moved = false;
-    for (int c = 0; c < 8 && !moved; ++c) {
-      const Vec3i o = deform::elastic_corner(c);
-      const Vec3f w = u.at(L0.at(i + o.x, j + o.y, k + o.z));
-      moved = w.x != 0.0f || w.y != 0.0f || w.z != 0.0f;
-    }
-    if (moved && !(deform::cell_min_det(load_vox, i, j, k) > 0.0f)) folded += 1;
+    // a cell whose edges barely change cannot fold (cell_may_fold): det left unevaluated
+    if (deform::cell_may_fold(load_vox, i, j, k) && !(deform::cell_min_det(load_vox, i, j, k) > 0.0f)) folded += 1;
   }
   return folded;
 }

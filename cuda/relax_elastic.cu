@@ -74,6 +74,13 @@ int elastic_block_nodes() {
   return n;
 }
 
+// coarse levels of at least this many nodes on the grid take level 0's tiles in the
+// gathers: kTileNodes, or PALPSIM_ELASTIC_TILE_NODES for a measurement
+int elastic_tile_nodes() {
+  static const int n = env_positive("PALPSIM_ELASTIC_TILE_NODES", kTileNodes);
+  return n;
+}
+
 // the cooperative launch of the kernel instantiated for elastic_blocks_per_sm()
 template <typename Args>
 void launch_chosen(void (*one)(Args), void (*two)(Args), Args& args, int blocks, long long nodes,
@@ -332,6 +339,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
     s.material = params_.material;
     s.patient = patient;
     s.had = had && set_up_;
+    s.tile_nodes = elastic_tile_nodes();
     s.trace = trace_ ? trace_->setup() : nullptr;
     s.trace_pairs = ElasticTrace::kPairs;
     launch_chosen(elastic_setup_kernel<1>, elastic_setup_kernel<2>, s, blocks, voi.count(), stream);
@@ -383,6 +391,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.stiffness_tolerance = params_.stiffness_tolerance;
   s.contact_rounds = params_.contact_rounds;
   s.block_nodes = elastic_block_nodes();
+  s.tile_nodes = elastic_tile_nodes();
   s.result = result;
   s.trace = trace_ ? trace_->step() : nullptr;
   s.trace_pairs = ElasticTrace::kPairs;

@@ -234,6 +234,28 @@ PALPSIM_HD float cell_min_det(const LoadU& load_u, int i, int j, int k) {
   return worst;
 }
 
+/// Whether cell (i, j, k) may fold under u (voxels, `load_u(i, j, k)`): false when
+/// along every edge each component of u changes by less than kCellNoFoldEdgeVox. Each
+/// entry of grad u anywhere in the cell is a mean of four such edge changes, so I + grad u
+/// is then strictly diagonally dominant by rows with a margin (1 - 0.3 = 2 x 0.3 + 0.1),
+/// its determinant at least 0.1^3 everywhere in the cell: cell_min_det() > 0 without
+/// evaluating it. A cell that does not move at all may not fold either.
+constexpr float kCellNoFoldEdgeVox = 0.3f;
+template <typename LoadU>
+PALPSIM_HD bool cell_may_fold(const LoadU& load_u, int i, int j, int k) {
+  Vec3f c[8];
+  for (int n = 0; n < 8; ++n) c[n] = load_u(i + (n & 1), j + ((n >> 1) & 1), k + ((n >> 2) & 1));
+  // the twelve edges: corner pairs differing in one bit
+  for (int n = 0; n < 8; ++n)
+    for (int b = 1; b < 8; b <<= 1) {
+      if (n & b) continue;
+      const Vec3f d = c[n | b] - c[n];
+      if (fabsf(d.x) >= kCellNoFoldEdgeVox || fabsf(d.y) >= kCellNoFoldEdgeVox || fabsf(d.z) >= kCellNoFoldEdgeVox)
+        return true;
+    }
+  return false;
+}
+
 /// Untangling (issue 8, section 4): a cell counts as folded, and its eight elements start
 /// the untangling, when its cell_min_det() is at most this: a margin above 0, so that a
 /// cell that untangling leaves alone keeps its inside one to one with room for float

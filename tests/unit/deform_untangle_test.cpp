@@ -7,11 +7,13 @@
 
 #include <algorithm>
 #include <climits>
+#include <cstdint>
 #include <cmath>
 #include <cstdio>
 #include <vector>
 
 #include "deform/cpu_backend.h"
+#include "deform/deform_math.h"
 #include "deform/invert_scatter.h"
 #include "prep/phantom.h"
 #include "support/deform_fixtures.h"
@@ -349,4 +351,40 @@ TEST_CASE("the cell search's scatter picks the source the ring search picks") {
   // picked, 76 of them in the pushes and Table 1's press, none left to the rings); 500
   // fails if the deep presses stopped folding and the test compared little
   CHECK(compared >= 500);
+}
+
+TEST_CASE("cell_may_fold: a cell it lets go has det(I + grad u) > 0; every folded cell it keeps") {
+  // random corner displacements (voxels) at scales from a tenth of the bound to twice a
+  // voxel: whatever cell_may_fold() calls safe must have cell_min_det() > 0 (it leaves a
+  // margin of 0.1^3 there, far above float rounding), and every cell whose min det is not
+  // positive must be kept. The largest scales fold many cells, the smallest none.
+  std::uint32_t state = 12345u;
+  auto uniform = [&]() {
+    state = state * 1664525u + 1013904223u;
+    return float(state >> 8) / float(1u << 24) * 2.0f - 1.0f;
+  };
+  int let_go = 0, folded = 0;
+  for (float scale : {0.03f, 0.1f, 0.15f, 0.3f, 0.6f, 1.0f, 2.0f}) {
+    for (int t = 0; t < 4000; ++t) {
+      Vec3f c[8];
+      for (Vec3f& v : c) v = Vec3f{uniform(), uniform(), uniform()} * scale;
+      auto load = [&](int i, int j, int k) { return c[i + 2 * j + 4 * k]; };
+      const bool may = deform::cell_may_fold(load, 0, 0, 0);
+      const float det = deform::cell_min_det(load, 0, 0, 0);
+      if (!may) {
+        ++let_go;
+        REQUIRE(det > 0.0f);
+      }
+      if (!(det > 0.0f)) {
+        ++folded;
+        REQUIRE(may);
+      }
+    }
+  }
+  // the draws reached both sides
+  CHECK(let_go > 1000);
+  CHECK(folded > 1000);
+  // a cell that does not move is let go
+  auto still = [](int, int, int) { return Vec3f{0.5f, -0.25f, 0.0f}; };
+  CHECK_FALSE(deform::cell_may_fold(still, 0, 0, 0));
 }

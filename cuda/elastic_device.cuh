@@ -1,5 +1,5 @@
 // The elastic kernels' shared pieces: node ranges and levels, the device arrays, the
-// gathered operator (level 0 in shared-memory tiles, coarse levels eight lanes a node) and
+// gathered operator (level 0 and large coarse levels in shared-memory tiles, small coarse levels eight lanes a node) and
 // block sums.
 #pragma once
 // Included by cuda/relax_elastic.cu alone (one translation unit: the kernels are templates

@@ -13,9 +13,10 @@
 // costs a grid barrier (2.2-2.5 us at VOI 64 on the H100, relax_multigrid.cu) whatever its
 // size. Level 0 takes a thread a node in tiles of a block's nodes held in shared memory
 // with their neighbours (elastic_apply_interior: 576 multiply-adds, every load one register
-// and a constant apart; held nodes skipped); the coarse
-// levels eight lanes a node, one cell each (elastic_add_cell), summed by shuffles, so that
-// a small level's pass waits for one cell's products rather than a node's. The cell matrix
+// and a constant apart; held nodes skipped, tiles all held left out); coarse levels of
+// at least kTileNodes nodes in the same tiles; smaller coarse levels eight lanes a node,
+// one cell each (elastic_add_cell), summed by shuffles, so that a small level's pass
+// waits for one cell's products rather than a node's. The cell matrix
 // is a kernel argument (__grid_constant__): every thread of a warp reads the same entry, as
 // from constant memory, and two sessions with different matrices cannot overwrite each
 // other's. The inverse diagonals are computed where they are needed (eight moduli) rather

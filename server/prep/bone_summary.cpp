@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "core/error.h"
+#include "prep/flood.h"
 #include "prep/pipeline.h"
 
 namespace palpsim {
@@ -27,15 +28,7 @@ bool encloses_hole(const std::vector<std::uint8_t>& m, int nu, int nv, std::size
     const int p = c * nu + a;
     if (!seen[p] && !m[p]) seen[p] = 1, queue.push_back(p);
   };
-  const auto flood = [&](std::size_t first) {
-    for (std::size_t q = first; q < queue.size(); ++q) {
-      const int p = queue[q], a = p % nu, c = p / nu;
-      if (a > 0) visit(a - 1, c);
-      if (a < nu - 1) visit(a + 1, c);
-      if (c > 0) visit(a, c - 1);
-      if (c < nv - 1) visit(a, c + 1);
-    }
-  };
+  const auto flood = [&](std::size_t first) { flood_4(queue, first, nu, nv, visit); };
   // the background reachable from the slice's border, then each hole in turn
   for (int a = 0; a < nu; ++a) visit(a, 0), visit(a, nv - 1);
   for (int c = 0; c < nv; ++c) visit(0, c), visit(nu - 1, c);

@@ -11,6 +11,7 @@
 #include "core/error.h"
 #include "prep/contrast.h"
 #include "prep/distance.h"
+#include "prep/flood.h"
 
 namespace palpsim {
 
@@ -219,26 +220,14 @@ void fill_holes_per_slice(Volume<std::uint8_t>& mask, int axis, std::size_t max_
       for (int a = 0; a < nu; ++a) seed(a, 0), seed(a, nv - 1);
       for (int c = 0; c < nv; ++c) seed(0, c), seed(nu - 1, c);
       // flood the background reachable from the border (4-connected)
-      for (std::size_t q = 0; q < queue.size(); ++q) {
-        const int p = queue[q], a = p % nu, c = p / nu;
-        if (a > 0) seed(a - 1, c);
-        if (a < nu - 1) seed(a + 1, c);
-        if (c > 0) seed(a, c - 1);
-        if (c < nv - 1) seed(a, c + 1);
-      }
+      flood_4(queue, 0, nu, nv, seed);
       // everything else in the slice is inside: fill each hole up to the size limit
       for (int c0 = 0; c0 < nv; ++c0)
         for (int a0 = 0; a0 < nu; ++a0) {
           if (seen[c0 * nu + a0] || at(a0, c0)) continue;
           const std::size_t first = queue.size();
           seed(a0, c0);
-          for (std::size_t q = first; q < queue.size(); ++q) {
-            const int p = queue[q], a = p % nu, c = p / nu;
-            if (a > 0) seed(a - 1, c);
-            if (a < nu - 1) seed(a + 1, c);
-            if (c > 0) seed(a, c - 1);
-            if (c < nv - 1) seed(a, c + 1);
-          }
+          flood_4(queue, first, nu, nv, seed);
           if (queue.size() - first > max_hole_pixels) continue;
           if (accept) {
             hole.clear();

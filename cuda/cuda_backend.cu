@@ -115,9 +115,8 @@ void CudaDeformBackend::bind_impl() {
   // VOI-sized state, undeformed. The fills go on this backend's own stream, which the
   // first step's kernels follow: cudaMemset() would run on the legacy default stream, which
   // a non-blocking stream does not wait for, and returns before a device fill is done, so
-  // the first ChainMail could read stamps and counters not yet set ("did not converge ...,
-  // 0 elements moved": the likely cause of the one such line the H100 render bench logged
-  // at e01d855)
+  // the first ChainMail could read stamps and counters not yet set (a "did not converge
+  // ..., 0 elements moved" line)
   for (auto& buf : d_.u)
     for (float*& c : buf) {
       PALPSIM_CUDA_CHECK(cudaMalloc(&c, n * sizeof(float)));

@@ -155,7 +155,7 @@ __device__ __forceinline__ void write_j(const ILoader& load_i, const DeviceBuffe
 // it, a block per voxel, and writes its J), and only where the queue is full does
 // the warp search here, for each lane that needs it in turn: a fold's voxels lie side by
 // side, so searching in place left a few warps to search 32 voxels each one after another
-// while the rest of the GPU idled (0.62 ms a step on lumbar presses, H100, ec7f6e7).
+// while the rest of the GPU idled.
 // Every lane of the warp must call it (the ballots), and a warp's lanes belong to one
 // session (a block never spans two sessions)
 __device__ __forceinline__ void invert_element(const StepGeometry& geo, int src, int iterations, bool search,
@@ -354,8 +354,8 @@ __device__ __forceinline__ void scatter_cells(const StepGeometry& geo, int src, 
 // search_cell() does), and the first ring with a source within kInvertSearchVox kept per
 // voxel. A thread per pair, not per cell: a cell stretched over a fold holds dozens of
 // queued voxels, and their solves one after another in one thread (12 Newton steps each,
-// a chain of dependent operations) made the scatter take 0.3-0.5 ms (H200, spinous
-// presses 20-30 mm) while the rest of the GPU idled
+// a chain of dependent operations) kept a few threads busy while the rest of the GPU
+// idled
 __device__ __forceinline__ void solve_candidates(const StepGeometry& geo, int src, const DeviceBuffers& b, unsigned t0,
                                                  unsigned stride) {
   if (b.counters->search_spill) return;

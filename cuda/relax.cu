@@ -16,17 +16,13 @@
 //   an iteration instead of three times (itself and as the neighbour above and below,
 //   which another block had read); a block is 64 x 16 columns, so the neighbours in the
 //   plane come through its L1 cache, and (i, j, k) come from the thread and its unit, not
-//   from three integer divisions of a linear index (tens of instructions each) as before.
+//   from three integer divisions of a linear index (tens of instructions each).
 // - Sessions are relaxed a group at a time, all 20 iterations of a group before the next
 //   group, the group as large as keeps its fields (both displacement buffers and the
 //   weights, 28 bytes an element) within a share of the L2 cache: a batch of 16 VOIs of
-//   64^3 holds 116 MB, which every iteration streamed from device memory.
-// Measured (H100, palpsim-bench server, lumbar phantom presses at VOI 64, relax stage per
-// step, a batch's share; bench/results/server-2026-11-23-h100-*.json): before (f32eabd)
-// 0.0724 ms at 16 sessions, 0.0677 at 64, 0.0881 alone; rows of a plane per unit instead
-// of the columns (fcc2888) 0.078 / 0.077 in L2 groups and 0.085 / 0.080 all at once:
-// slower, so the divisions and tanhf were not what cost; columns (ad19d85) 0.0493 /
-// 0.0566 / 0.0800 in L2 groups and 0.0665 / 0.0626 all at once.
+//   64^3 holds 116 MB, which every iteration would otherwise stream from device memory.
+// The rows of a plane per unit instead of columns, and all sessions at once instead of L2
+// groups, were both measured slower (bench/results/server-2026-11-23-h100-*.json).
 #include <cooperative_groups.h>
 
 #include <algorithm>
@@ -153,8 +149,8 @@ __global__ void __launch_bounds__(kPersistentThreads)
         int k0 = int(c) * shape.planes, k1 = min(k0 + shape.planes, size.z);
         // only the planes within reach (L1, deform::relax_reach) of the grabbed element from
         // the tile's nearest column: the rest is 0 in both buffers and stays so; the same
-        // planes for the whole block, so a warp's loads stay in one plane (per-column ranges
-        // cost 12%: H100, 16 sessions, 0.049 -> 0.055 ms a session-step)
+        // planes for the whole block, so a warp's loads stay in one plane (ranges per column
+        // were measured slower)
         const Vec3i g = item.geo.grabbed;
         const int ti0 = int(tx0) * kRelaxTx, tj0 = int(ty0) * kRelaxTy;
         const int near = max(max(ti0 - g.x, g.x - (ti0 + kRelaxTx - 1)), 0) +

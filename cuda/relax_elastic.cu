@@ -10,8 +10,7 @@
 //   joins), the force, the unit press, u in voxels and the folded cells.
 // Every pass covers a level's nodes with the whole grid; coarse levels of at most
 // kBlockNodes nodes run in block 0 alone between __syncthreads(), since a grid-wide pass
-// costs a grid barrier (2.2-2.5 us at VOI 64 on the H100, relax_multigrid.cu) whatever its
-// size. Level 0 takes a thread a node in tiles of a block's nodes held in shared memory
+// costs a grid barrier whatever its size. Level 0 takes a thread a node in tiles of a block's nodes held in shared memory
 // with their neighbours (elastic_apply_interior: 576 multiply-adds, every load one register
 // and a constant apart; held nodes skipped, tiles all held left out); coarse levels of
 // at least kTileNodes nodes in the same tiles; smaller coarse levels eight lanes a node,

@@ -3,9 +3,8 @@
 // same order (relax_multigrid.h), in one persistent cooperative kernel. Levels with more
 // than kBlockNodes nodes run on the whole grid with grid.sync() between passes; the
 // coarser ones run in block 0 alone, in its shared memory, with __syncthreads(). A
-// grid-wide pass costs 2.2-2.5 us at VOI 64 on the H100 whatever its level's size (level
-// 0's heavier ones 3.5-9 us), and a step has 20 of them (three grid levels) and block 0's
-// part (~13 us): ~70 us per step. A step whose VOI and grabbed element equal the last
+// grid-wide pass costs a grid barrier whatever its level's size, and a step has 20 of
+// them (three grid levels) besides block 0's part. A step whose VOI and grabbed element equal the last
 // solved one's reuses the unit response G: one pass, u = d G; another VOI or grabbed
 // element starts G from the last one (deform::MultigridStart), so that fewer steps
 // (deform.relax_warm_cycles) reach the same distance to the steady state.
@@ -26,9 +25,9 @@ using deform::MultigridLevel;
 using deform::MultigridPlan;
 
 // levels of at most this many nodes (8^3) run in block 0 alone, in its shared memory:
-// measured at VOI 64 on the H100 (5 steps), 0.369 ms with 512, 0.364 ms with 4096 (16^3;
-// 61 KB of shared memory), 0.425 ms with 64; one block's pass over 16^3 costs about as
-// much as a grid-wide pass (~2.3 us), so moving levels into the block gains little
+// 4096 (16^3, 61 KB of shared memory) measured about the same, 64 slower; one block's
+// pass over 16^3 costs about as much as a grid-wide pass, so moving levels into the
+// block gains little
 constexpr int kBlockNodes = 512;
 
 // the first level that block 0 handles alone (plan.levels: none)

@@ -276,8 +276,8 @@ class DeformBackend {
   /// Solves, ahead of time, the multigrid relaxation's unit response G for a contact
   /// expected soon (the tip approaching the skin: X where it will touch, x there too), and
   /// keeps it as the last one, so that the contact's first step starts warm (one or two
-  /// steps, 0.10-0.16 ms at VOI 64 on the H100) or reuses it, instead of solving from zero
-  /// (deform.relax_cycles steps, 0.30 ms). Nothing else changes: the deformation in place,
+  /// steps) or reuses it, instead of solving from zero (deform.relax_cycles steps).
+  /// Nothing else changes: the deformation in place,
   /// J, the held VOI and the stage stay, so the server calls it between a session's steps
   /// while the tip is outside the body. Does nothing (solved false) unless the scene
   /// relaxes by multigrid with reuse and warm starts (DeformConfig::relax_reuse,

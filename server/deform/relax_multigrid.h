@@ -259,8 +259,7 @@ struct MultigridLevel {
   }
   /// The six neighbours of (i, j, k) in `v` in the fixed order, zero outside the level
   /// (on the CPU a node off the level's faces adds them without the tests: the same sums
-  /// in the same order; on the GPU that branch made the solve slower, H100 at be0f813: 2
-  /// warm steps 0.158 -> 0.173 ms, 5 from zero 0.361 -> 0.403 ms).
+  /// in the same order; on the GPU that branch was measured to make the solve slower).
   PALPSIM_HD float sum6(const float* v, int i, int j, int k) const {
 #ifndef __CUDA_ARCH__
     if (i > 0 && j > 0 && k > 0 && i + 1 < n.x && j + 1 < n.y && k + 1 < n.z)
@@ -276,8 +275,8 @@ struct MultigridLevel {
   /// The neighbours of (i, j, k) in `v` over its uncut links (`cuts`: multigrid_cuts), in
   /// the fixed order and zero outside the level: sum6 where no link is cut. A cut
   /// neighbour is loaded and weighted 0 rather than skipped, so that on the GPU the loads
-  /// need not wait for the node byte that holds the cuts (skipping them cost a second
-  /// memory round trip: 1 us per coarse pass on the H100); v * 1 = v and s + (+-0) = s
+  /// need not wait for the node byte that holds the cuts (skipping them costs a second
+  /// memory round trip a coarse pass); v * 1 = v and s + (+-0) = s
   /// (s starts at +0 and a sum that cancels is +0), so the sums are those of skipping.
   PALPSIM_HD float sum_links(const float* v, int i, int j, int k, int cuts) const {
 #ifndef __CUDA_ARCH__

@@ -51,10 +51,9 @@ struct ServerOptions {
   bool background_idle = true;                          // and SCHED_IDLE for them (Linux; core/thread.h says why)
   // sessions' deformation steps in flight on the GPU at once, for steps that are not
   // batched (deform_batch 1, or scenes with multigrid relaxation or untangling). 1 by
-  // default: with 4, 16
-  // sessions step twice as often (223 against 119 steps/s each on the H100) but 16 watched
-  // sessions then get 26.7 instead of 30 frames/s (bench/results/render-2026-11-23-h100-
-  // deform-concurrency4.json); a server without viewers (batch studies) may raise it
+  // default: more lets sessions step more often but takes GPU time from watched
+  // sessions' frames (bench/results/render-2026-11-23-h100-deform-concurrency4.json); a
+  // server without viewers (batch studies) may raise it
   int deform_concurrency = 1;
   // sessions stepped together by one batched launch per stage at most (DeformWorker; cuda
   // with the same settings: cuda/batch.cu); 1 steps one session at a time, as before

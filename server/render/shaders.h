@@ -238,10 +238,10 @@ vec4 ray_color(vec2 frag_coord) {
   return vec4(acc.rgb + (1.0 - acc.a) * bg, 1.0);
 }
 
-// Why two entry points: an H100 runs fragment shaders on its few graphics-capable
-// multiprocessors only and compute shaders on all of them (measured there: this ray cast
-// of 1040x720 pixels took 4.2 ms as a fragment shader and 0.44 ms as a compute shader);
-// llvmpipe runs the fragment shader about 1.4 times faster than the compute one.
+// Why two entry points: a data-centre GPU (H100, H200) runs fragment shaders on its few
+// graphics-capable multiprocessors only and compute shaders on all of them, so the compute
+// ray cast is several times faster there; llvmpipe runs the fragment shader faster than
+// the compute one.
 #ifdef RAY_COMPUTE
 // one invocation per pixel of the rectangle u_rect (x0, y0 of its top row, width, height)
 layout(local_size_x = 8, local_size_y = 8) in;

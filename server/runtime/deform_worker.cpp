@@ -32,11 +32,11 @@ constexpr double kIdleSleepS = 0.5e-3;
 constexpr double kDisabledSleepS = 20e-3;
 // A session whose tip is out of the body has its multigrid unit response solved where the
 // tip is expected to touch (DeformEngine::prime), so that its first contact starts warm
-// (1-2 steps, 0.10-0.16 ms at VOI 64 on the H100) instead of solving from zero (4 steps,
-// 0.30 ms). At most once per this interval per session (s): a re-prime, which starts warm,
-// costs 0.10-0.16 ms of GPU, so a hovering session takes under 1% of it; and at most a
-// kPrimeShare of the worker's time, for the "cpu" backend, whose primes take 10-30 ms of
-// a core at VOI 64 (the interval then grows to 10 times the last prime's time).
+// (half the steps of a solve from zero or fewer). At most once per this interval per
+// session (s): a re-prime starts warm too, so a hovering session takes a small share of
+// the GPU; and at most a kPrimeShare of the worker's time, for the "cpu" backend, whose
+// primes take a core for tens of ms (the interval then grows to 10 times the last prime's
+// time).
 constexpr double kPrimeIntervalS = 20e-3;
 constexpr double kPrimeShare = 0.1;
 // Why the server runs the worker at nice 19 (ServerOptions::deform_nice): on a machine
@@ -318,9 +318,8 @@ bool DeformWorker::serve_deformation(const Parts& p) {
   }
   // a session whose frames are watched steps at most once per frame: its viewer sees
   // only the newest J at each frame, and steps beyond that only take the GPU from the
-  // frames (16 watched sessions fell from 29.4 to 27.5 frames/s on the H100 when the
-  // worker stepped them 2.6 times as often); the contact stays, the next pass takes the
-  // newest
+  // frames (watched sessions get fewer frames a second when stepped more often than
+  // their frames); the contact stays, the next pass takes the newest
   if (min_watched_step_s_ > 0) {
     if (p.stream && p.stream->frames_for.load(std::memory_order_acquire) == id &&
         now_s() - s.last_step_begun_s < min_watched_step_s_) {
@@ -488,8 +487,7 @@ void DeformWorker::complete(const Parts& p, const Contact& c) {
     }
     // J must be finite, and how far it moved from I says how much the image changed: the
     // inversion counts both as it writes J (on the GPU for cuda), so the worker does not
-    // read J again (that scan cost 0.2-0.7 ms a step on the H100's host, more than the
-    // step's own GPU work)
+    // read J again (a scan of J on the host costs more than the step's own GPU work)
     double change = 0;
     bool ok = finite(st);
     if (s.engine->has_deformed_brick()) {

@@ -38,7 +38,7 @@ namespace palpsim::runtime {
 ///
 /// Why batches: with the cuda deformation running, every hand-over between the GL
 /// context (ray cast) and CUDA (J into the overlay, nvJPEG) waits for the GPU's time
-/// slice; per frame that cost 2.2 ms instead of 1.3 ms on an H100 with 16 sessions. So
+/// slice, which with many sessions costs more than the frame's own work. So
 /// the sessions due in one pass are served render.max_batch at a time: all their J in
 /// one write, all frames drawn, then all encoded: two hand-overs per batch.
 class RenderWorker {

@@ -202,7 +202,7 @@ void CudaDeformBackend::ensure_elastic_buffers() {
     most[a] = config_.settings.whole_volume ? patient_->grid.size[a] : std::min(config_.settings.voi_edge, patient_->grid.size[a]);
   elastic_.bind(*patient_, config_.elastic_params(), most);
   el_shared_ = ElasticScratch::shared(elastic_.capacity(), elastic_.coarse_capacity());
-  full_el_blocks_ = el_blocks_ = relax_elastic_blocks();
+  el_blocks_ = relax_elastic_blocks();
 }
 
 
@@ -529,11 +529,10 @@ void CudaDeformBackend::launch_shape_for_share() {
   shape_.chainmail_blocks = std::max(1, full_shape_.chainmail_blocks / gpu_share_);
   shape_.relax_blocks = std::max(1, full_shape_.relax_blocks / gpu_share_);
   mg_blocks_ = std::max(1, full_mg_blocks_ / gpu_share_);
-  // the elastic step keeps the whole device whatever the share: sessions step in turn on
-  // every multiprocessor with one shared scratch (ElasticScratch::Turn), which gives each
-  // more steps than 1/share of the device side by side (a step is a chain of grid
-  // barriers whose cost hardly shrinks with fewer blocks) and no scratch of its own
-  el_blocks_ = full_el_blocks_;
+  // the elastic step keeps the whole device (el_blocks_) whatever the share: sessions step
+  // in turn on every multiprocessor with one shared scratch (ElasticScratch::Turn), which
+  // gives each more steps than 1/share of the device side by side (a step is a chain of
+  // grid barriers whose cost hardly shrinks with fewer blocks) and no scratch of its own
 }
 
 bool CudaDeformBackend::copy_brick_to_device_impl(std::unique_ptr<DeviceBytes>& dst) const {

@@ -158,8 +158,7 @@ class CudaDeformBackend final : public DeformBackend {
   ElasticSolver elastic_;
   std::shared_ptr<const DeviceBody> body_copy_;
   std::shared_ptr<ElasticScratch> el_shared_;
-  int el_blocks_ = 0;                  // cooperative blocks of the elastic kernels, this step
-  int full_el_blocks_ = 0;             // ... that fit on the device
+  int el_blocks_ = 0;                  // cooperative blocks of the elastic kernels: all that fit on the device
   bool mg_g_clean_ = false;  // the kept unit response was solved on a step that left ChainMail out (so it is a G)
   int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel, this step
   int full_mg_blocks_ = 0;             // ... that fit on the device

@@ -41,6 +41,7 @@ struct Options {
   std::string only;      // --backend: run this backend alone (empty: every one there is)
   bool untangle = false; // --untangle: Table 1 with deform.untangle on (off in scenes by default)
   bool elastic_only = false;  // --elastic: the elastic rows alone
+  ElasticSettings elastic;    // the elastic model's settings (--elastic-degrees F,C,L sets the V-cycle's degrees)
 };
 
 struct Table2Row {
@@ -193,6 +194,7 @@ struct ElasticBench {
       : name(backend), o(opt), phantom(p), gpu(backend == "cuda"), cfg(test::preset_config(1)),
         X(press.contact.skin_point_mm), in((press.contact.tip_mm - X) / press.press_mm), h(p->grid.spacing_mm.x) {
     cfg.settings.relax_method = RelaxMethod::kElastic;
+    cfg.settings.elastic = o.elastic;
     cfg.settings.grab_radius_mm = 5;
     cfg.settings.voi_edge = 64;
     cfg.settings.invert_search = false;  // as the scenes ship
@@ -369,7 +371,8 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
 }  // namespace
 
 PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step on cpu and cuda [--json FILE] [--quick] "
-                      "[--commit C] [--backend cpu|cuda] [--untangle] [--elastic: the elastic rows alone]; "
+                      "[--commit C] [--backend cpu|cuda] [--untangle] [--elastic: the elastic rows alone] [--elastic-degrees F,C,L: "
+                      "the V-cycle's Chebyshev degrees]; "
                       "--accuracy [--ref-voi N] [--study KNOB] [--backend B]: accuracy vs time of relaxation, multigrid, "
                       "inversion and VOI (deform_accuracy.h)") {
   Options o;
@@ -384,6 +387,13 @@ PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step
     else if (s == "--backend" && a + 1 < argc) o.only = argv[++a];
     else if (s == "--untangle") o.untangle = true;
     else if (s == "--elastic") o.elastic_only = true;
+    else if (s == "--elastic-degrees" && a + 1 < argc) {
+      ElasticSettings& e = o.elastic;
+      if (std::sscanf(argv[++a], "%d,%d,%d", &e.smooth_degree, &e.coarse_smooth_degree, &e.coarsest_degree) != 3) {
+        std::fprintf(stderr, "palpsim-bench deform: --elastic-degrees wants F,C,L (three integers), not '%s'\n", argv[a]);
+        return 2;
+      }
+    }
     else if (s == "--accuracy") accuracy = true;
     else if (s == "--ref-voi" && a + 1 < argc) ref_voi = std::atoi(argv[++a]);
     else if (s == "--study" && a + 1 < argc) study = argv[++a];
@@ -429,6 +439,8 @@ PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step
     const PatientPtr elastic_patient = test::elastic_phantom(std::move(ct));
     std::printf("phantom's body mask and B (%.1f s)\n",
                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+    std::printf("elastic model: the V-cycle's Chebyshev degrees %d (finest), %d (coarse), %d (coarsest)\n",
+                o.elastic.smooth_degree, o.elastic.coarse_smooth_degree, o.elastic.coarsest_degree);
     std::vector<ElasticRow> el;
     for (const auto& b : backends) elastic_rows(b, o, elastic_patient, press, el);
 
@@ -441,7 +453,8 @@ PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step
       f << "{\n  \"area\": \"deform\",\n  \"date\": \"" << date << "\",\n  \"device\": \"" << device
         << "\",\n  \"commit\": \"" << o.commit << "\",\n  \"quick\": " << (o.quick ? "true" : "false")
         << ",\n  \"phantom\": {\"voxel_mm\": " << o.voxel_mm << ", \"size\": [" << patient->grid.size.x << ", "
-        << patient->grid.size.y << ", " << patient->grid.size.z << "]},\n  \"table2\": [\n";
+        << patient->grid.size.y << ", " << patient->grid.size.z << "]},\n  \"elastic_degrees\": [" << o.elastic.smooth_degree
+        << ", " << o.elastic.coarse_smooth_degree << ", " << o.elastic.coarsest_degree << "],\n  \"table2\": [\n";
       for (std::size_t i = 0; i < t2.size(); ++i) {
         const auto& r = t2[i];
         f << "    {\"backend\": \"" << r.backend << "\", \"preset\": \"p" << r.preset << "\", \"d\": " << r.d

@@ -35,10 +35,6 @@ constexpr int kTileNodes = 8192;   // coarse levels of at least this many nodes 
 constexpr int kSlot = 4;           // sums a reduction slot holds
 constexpr int kRing = 32;          // the step's reduction slots, reused in turn
 constexpr int kSetupSums = deform::kElasticPowerIterations * kElasticMaxLevels;  // the set-up's slots
-constexpr int kSmooth = deform::kElasticSmoothDegree;
-constexpr int kCoarsest = deform::kElasticCoarsestDegree;
-static_assert(kSmooth >= 2 && kCoarsest >= 2 && kCoarsest <= kElasticMaxDegree && kSmooth <= kElasticMaxDegree,
-              "the passes fuse each smoother's first step into the pass before it and need a second");
 
 // what a traced barrier ends (elastic_trace_summary() names them), times 16, plus the level
 enum TracePass : int {
@@ -187,14 +183,22 @@ __device__ Vec3i tile_grid(const Lvl& L) {
   return Vec3i{(L.n.x + kTileX - 1) / kTileX, (L.n.y + kTileY - 1) / kTileY, (L.n.z + kTileZ - 1) / kTileZ};
 }
 
+// a coarse level's tiles that hold a node below its last layer along every axis: the tiles
+// left out hold nodes of the level's high faces alone, which are held (a coarse node lies on
+// a held level-0 face node or beyond the fine grid: elastic_coarse_flags)
+__device__ Vec3i coarse_tile_grid(const Lvl& L) {
+  return Vec3i{(L.n.x - 1 + kTileX - 1) / kTileX, (L.n.y - 1 + kTileY - 1) / kTileY, (L.n.z - 1 + kTileZ - 1) / kTileZ};
+}
+
 // calls fn(e, i, j, k, kx, dg) for every node of level L in a tile of `tiles` (its count,
-// then tile indices: level 0's with a node that is not held; null: every tile), the whole grid taking a
+// then tile indices: level 0's with a node that is not held; null, on a coarse level: every
+// tile but those of its high faces alone, coarse_tile_grid()), the whole grid taking a
 // tile of kThreads nodes a block at a time: the tile's nodes and their neighbours'
 // displacements x and the cells' moduli go to shared memory, then each thread sums its
 // node's cells from there (elastic_apply_interior: every load one register and a constant
 // apart). Held nodes get kx = dg = 0 (every caller projects them to 0); the nodes of the
 // tiles left out are all held, and every caller's outputs hold 0 there already (each solve
-// and the set-up's power steps clear them first). A free node on the level's faces (none:
+// and the set-up's power steps clear them first, on every level). A free node on the level's faces (none:
 // the VOI's faces are held) would take elastic_apply_node from global memory.
 // Every thread of a block runs every tile of the block (the tile's barriers).
 template <typename Fn>
@@ -202,7 +206,7 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
                              const Lvl& L, const Field& x, Fn& fn) {
   float* const tu = tile_memory();  // tu[c * kHalo + h]: component c at halo node h
   float* const te = tu + 3 * kHalo;
-  const Vec3i tg = tile_grid(L);
+  const Vec3i tg = tiles ? tile_grid(L) : coarse_tile_grid(L);
   const int tx = tg.x, ty = tg.y;
   const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
   const int active = tiles ? tiles[0] : tg.x * tg.y * tg.z;

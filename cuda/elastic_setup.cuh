@@ -51,8 +51,8 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
       x0.set(e, deform::elastic_project(v.flags[e], none,
                                         Vec3f{deform::elastic_power_start(m), deform::elastic_power_start(m + 1),
                                               deform::elastic_power_start(m + 2)}));
-      // level 0's second vector at held nodes: the gathers leave out tiles all held
-      if (l == 0 && (v.flags[e] & kElasticHeld)) x1.set(e, none);
+      // the second vector at held nodes: the gathers leave out tiles all held
+      if (v.flags[e] & kElasticHeld) x1.set(e, none);
     }
   }
   g.sync();

@@ -39,6 +39,7 @@ struct StepArgs {
   int reciprocal;             // the unit press stops at stiffness_tolerance; force and stiffness by reciprocity
   float stiffness_tolerance;
   int contact_rounds;
+  deform::ElasticDegrees degrees;  // the V-cycle's Chebyshev degrees (each in [2, kElasticMaxDegree]: backend.cpp checks)
   int block_nodes;     // coarse levels of at most this many nodes run in block 0 alone
   int tile_nodes;      // coarse levels of at least this many nodes on the grid take tiles (gather)
   float* out[3];       // u in voxels (the displacement buffer the inversion reads)
@@ -79,6 +80,7 @@ __device__ double reduce1(Ring& rg, double v, cg::grid_group& g, int tag) {
 struct StepShared {
   Lvl lv[kElasticMaxLevels];
   float ca[kElasticMaxLevels][kElasticMaxDegree], cb[kElasticMaxLevels][kElasticMaxDegree];  // Chebyshev a, b
+  int degree[kElasticMaxLevels];  // each level's Chebyshev degree
   int levels, split;  // split: the first level block 0 runs alone (levels: none)
 };
 
@@ -113,7 +115,7 @@ struct Step {
     ring.tracer.stamp(pass * 16);
   }
   // the buffer holding level l's x after its smoothing (the prolongation reads it)
-  __device__ int final_buffer(int l) const { return l == sh.levels - 1 ? (kCoarsest - 1) & 1 : 1; }
+  __device__ int final_buffer(int l) const { return l == sh.levels - 1 ? (sh.degree[l] - 1) & 1 : 1; }
 
   // level l's smoother's first step from 0 at one node whose right-hand side `fe` was just
   // written: d = b0 Pi D^-1 f, x[0] = d
@@ -202,13 +204,12 @@ struct Step {
   // the r . z it returns (this thread's part) is one
   __device__ double vcycle() const {
     const int last = sh.levels - 1;
-    constexpr int pre = (kSmooth - 1) & 1;
     double part = 0;
     // down: each level's smoothing from 0 (the coarsest's is all it does), then its
     // residual and the next level's right-hand side
     for (int l = 0; l <= last; ++l) {
       if (!on_grid(l) && blockIdx.x != 0) break;
-      const int degree = l == last ? kCoarsest : kSmooth;
+      const int degree = sh.degree[l];
       for (int s = 1; s < degree; ++s) {
         const bool final = l == 0 && last == 0 && s == degree - 1;
         const double pp = smooth(l, team(l), s, (s - 1) & 1, s & 1, false, final);
@@ -218,7 +219,7 @@ struct Step {
           sync(l, kPassSmoothDown);
       }
       if (l == last) break;
-      residual(l, team(l), pre);
+      residual(l, team(l), (degree - 1) & 1);
       sync(l, kPassResidual);
       restrict_to(l, team(l));
       sync(l, kPassRestrict);
@@ -230,10 +231,11 @@ struct Step {
         g.sync();
         ring.tracer.stamp(kPassBlockLevels * 16 + l + 1);
       }
+      const int degree = sh.degree[l], pre = (degree - 1) & 1;  // pre: the buffer the smoothing down left
       correct(l, team(l), pre);
       sync(l, kPassCorrect);
-      for (int s = 0; s < kSmooth; ++s) {
-        const bool final = l == 0 && s == kSmooth - 1;
+      for (int s = 0; s < degree; ++s) {
+        const bool final = l == 0 && s == degree - 1;
         const double pp = smooth(l, team(l), s, (pre + s) & 1, (pre + s + 1) & 1, s == 0, final);
         if (final)
           part = pp;
@@ -270,8 +272,9 @@ struct Step {
     // the coarse levels' contact flags from level 0's (a coarse node that is not held lies
     // on level-0 node 2^l I, through finer nodes none of which is held); level 0's
     // constrained values alone (held nodes' w, contact nodes' part of it along n) into p;
-    // at held nodes what the gathers would write there (0), which those of tiles left out
-    // never do
+    // at held nodes of every level what the gathers would write there (0), which those of
+    // tiles left out never do
+    const Vec3f zero{0, 0, 0};
     for (int l = 1; l <= last; ++l) {
       const Lvl& C = sh.lv[l];
       for (int q = all.first; q < C.count; q += all.stride) {
@@ -282,9 +285,13 @@ struct Step {
         if (!(nf & kElasticHeld) && fi < L0.n.x && fj < L0.n.y && fk < L0.n.z)
           nf |= v.flags[L0.at(fi, fj, fk)] & kElasticContact;
         v.flags[C.off + q] = nf;
+        if (nf & kElasticHeld) {
+          x(0).set(C.off + q, zero);
+          x(1).set(C.off + q, zero);
+          res().set(C.off + q, zero);
+        }
       }
     }
-    const Vec3f zero{0, 0, 0};
     for (int e = all.first; e < L0.count; e += all.stride) {
       const std::uint8_t fl = v.flags[e];
       const Vec3f we = w.at(e);
@@ -375,9 +382,10 @@ __device__ void make_step_table(const StepArgs& a, StepShared& sh) {
     }
   for (int l = 0; l < a.plan.levels; ++l) {
     const bool coarsest = l + 1 == a.plan.levels;
+    sh.degree[l] = min(kElasticMaxDegree, max(2, a.degrees.at(l, a.plan.levels)));
     const float hi = deform::kElasticChebyshevMargin * v.lmax[l];
     deform::elastic_chebyshev(hi / (coarsest ? deform::kElasticCoarsestRatio : deform::kElasticChebyshevRatio), hi,
-                              coarsest ? kCoarsest : kSmooth, sh.ca[l], sh.cb[l]);
+                              sh.degree[l], sh.ca[l], sh.cb[l]);
   }
 }
 

@@ -390,6 +390,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.reciprocal = params_.stiffness_tolerance > 0;
   s.stiffness_tolerance = params_.stiffness_tolerance;
   s.contact_rounds = params_.contact_rounds;
+  s.degrees = params_.degrees;
   s.block_nodes = elastic_block_nodes();
   s.tile_nodes = elastic_tile_nodes();
   s.result = result;

@@ -105,6 +105,13 @@ void check_elastic_settings(const ElasticSettings& e, const std::string& who) {
   if (e.contact_rounds < 1) bad("contact_rounds", e.contact_rounds, "must be at least 1");
   if (!(e.stiffness_tolerance >= 0 && e.stiffness_tolerance < 1))
     bad("stiffness_tolerance", e.stiffness_tolerance, "must lie in [0, 1) (0: the unit press stops at tolerance)");
+  // the Chebyshev degrees: the GPU fuses a smoothing's first step into the pass before it
+  // and needs a second; the coefficients' arrays hold kElasticMaxDegree
+  const std::string degrees = "must lie in [2, " + std::to_string(deform::kElasticMaxDegree) + "]";
+  for (const auto& [name, value] : {std::pair<const char*, int>{"smooth_degree", e.smooth_degree},
+                                    {"coarse_smooth_degree", e.coarse_smooth_degree},
+                                    {"coarsest_degree", e.coarsest_degree}})
+    if (value < 2 || value > deform::kElasticMaxDegree) bad(name, value, degrees);
 }
 
 void check_deform_config(const DeformConfig& config, const std::string& who) {
@@ -177,6 +184,7 @@ deform::ElasticParams DeformConfig::elastic_params() const {
   p.contact_rounds = e.contact_rounds;
   p.predict = e.predict;
   p.stiffness_tolerance = float(e.stiffness_tolerance);
+  p.degrees = deform::ElasticDegrees{e.smooth_degree, e.coarse_smooth_degree, e.coarsest_degree};
   p.stiffness = elastic_stiffness;
   return p;
 }

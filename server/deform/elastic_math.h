@@ -55,9 +55,8 @@ constexpr float kElasticAirRatio = 1e-4f;
 /// Damped Jacobi does not do: the centre-point volume term makes lmax(D^-1 K) about 8 to 24
 /// at nu 0.45 (a cell's divergence couples its 24 unknowns), so a weight that keeps Jacobi
 /// stable leaves the rest of the upper spectrum nearly undamped. lmax comes from
-/// kElasticPowerIterations power iterations per level when a VOI is set up.
-constexpr int kElasticSmoothDegree = 3;      // polynomial degree before and after the coarse correction
-constexpr int kElasticCoarsestDegree = 12;   // on the coarsest level (3 to 9 nodes along its shortest axis)
+/// kElasticPowerIterations power iterations per level when a VOI is set up. The degrees
+/// are the scene's (ElasticDegrees).
 constexpr float kElasticChebyshevRatio = 20.0f;
 constexpr float kElasticCoarsestRatio = 400.0f;  // the coarsest level's interval reaches further down
 constexpr float kElasticChebyshevMargin = 1.1f;  // the power estimate is a lower bound of lmax
@@ -102,6 +101,18 @@ PALPSIM_HD void elastic_chebyshev(float lo, float hi, int degree, float* a, floa
 
 /// The largest Chebyshev degree any level uses (the coefficient arrays' size).
 constexpr int kElasticMaxDegree = 32;
+
+/// The V-cycle's Chebyshev degrees (deform.elastic.smooth_degree, coarse_smooth_degree and
+/// coarsest_degree): the finest level's before and after the coarse correction, the coarse
+/// levels' above the coarsest, and the coarsest's (its smoothing is all it does there).
+/// Each lies in [2, kElasticMaxDegree]: the GPU fuses a smoothing's first step into the
+/// pass before it and needs a second. A higher degree takes fewer CG steps of more passes
+/// each; the coarsest level's passes cost the GPU a grid barrier each for a few free nodes.
+struct ElasticDegrees {
+  int fine = 3, coarse = 3, coarsest = 2;
+  /// level `l`'s degree in a V-cycle of `levels` levels (a single level is the coarsest)
+  PALPSIM_HD int at(int l, int levels) const { return l + 1 == levels ? coarsest : (l == 0 ? fine : coarse); }
+};
 
 /// A free skin node joins the contact set when the sphere's surface lies deeper than it by
 /// more than this (voxel edges): a margin above float rounding of positions of tens of mm.

@@ -144,13 +144,14 @@ void smooth(const Level& v, const std::array<float, 576>& k, const Vec3f& nrm, c
 }
 
 // the V-cycle from level l down: L.lv[l].x = B L.lv[l].f (both projected)
-void vcycle(const Levels& L, int l, const std::array<float, 576>& k, const Vec3f& nrm) {
+void vcycle(const Levels& L, int l, const std::array<float, 576>& k, const Vec3f& nrm, const ElasticDegrees& deg) {
   const Level& v = L.lv[l];
+  const int degree = deg.at(l, L.count);
   if (l + 1 == L.count) {
-    smooth(v, k, nrm, v.f, v.x, true, kElasticCoarsestDegree, kElasticCoarsestRatio);
+    smooth(v, k, nrm, v.f, v.x, true, degree, kElasticCoarsestRatio);
     return;
   }
-  smooth(v, k, nrm, v.f, v.x, true, kElasticSmoothDegree, kElasticChebyshevRatio);
+  smooth(v, k, nrm, v.f, v.x, true, degree, kElasticChebyshevRatio);
   // the coarse level's right-hand side: the restricted residual
   residual(v, k, nrm, v.f, v.x, v.r);
   const Level& c = L.lv[l + 1];
@@ -164,7 +165,7 @@ void vcycle(const Levels& L, int l, const std::array<float, 576>& k, const Vec3f
     const long long e = c.index(i, j, kk);
     c.f[e] = elastic_project(c.flags[e], nrm, g);
   });
-  vcycle(L, l + 1, k, nrm);
+  vcycle(L, l + 1, k, nrm, deg);
   // the coarse correction, then the post-smoothing
   each_node(v.n, [&](int i, int j, int kk) {
     const Vec3f g = elastic_prolong(
@@ -175,7 +176,7 @@ void vcycle(const Levels& L, int l, const std::array<float, 576>& k, const Vec3f
     const long long e = v.index(i, j, kk);
     v.x[e] += elastic_project(v.flags[e], nrm, g);
   });
-  smooth(v, k, nrm, v.f, v.x, false, kElasticSmoothDegree, kElasticChebyshevRatio);
+  smooth(v, k, nrm, v.f, v.x, false, degree, kElasticChebyshevRatio);
 }
 
 // the largest eigenvalue of D^-1 K on a level (held nodes out), by power iteration from a
@@ -224,7 +225,7 @@ SolveResult pcg(ElasticCpu& s, const Levels& L, const Vec3f& nrm, Vec3f* u, doub
   double rn = std::sqrt(dot_all(r, r, n));
   out.residual = rref > 0 ? rn / rref : 0;
   if (rref <= 0 || rn <= tol * rref) return out;
-  vcycle(L, 0, s.k, nrm);  // z = B r
+  vcycle(L, 0, s.k, nrm, s.degrees);  // z = B r
   std::copy_n(z, n, p);
   double rz = dot_all(r, z, n);
   for (int it = 0; it < max_it; ++it) {
@@ -241,7 +242,7 @@ SolveResult pcg(ElasticCpu& s, const Levels& L, const Vec3f& nrm, Vec3f* u, doub
     rn = std::sqrt(dot_all(r, r, n));
     out.residual = rn / rref;
     if (rn <= tol * rref) return out;
-    vcycle(L, 0, s.k, nrm);
+    vcycle(L, 0, s.k, nrm, s.degrees);
     const double rz_new = dot_all(r, z, n);
     const float beta = float(rz_new / rz);
     rz = rz_new;
@@ -401,7 +402,7 @@ void elastic_precondition_cpu(ElasticCpu& s, const Vec3f& nrm, const Vec3f* r, V
   coarsen_contact(L);
   const long long n = L.lv[0].count();
   std::copy_n(r, n, s.r.begin());
-  vcycle(L, 0, s.k, nrm);
+  vcycle(L, 0, s.k, nrm, s.degrees);
   std::copy_n(s.z.begin(), n, z);
 }
 
@@ -626,6 +627,7 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   ElasticRun out;
   const long long n = voi.count();
   const bool had = warm_start(pat, voi, prm, s);
+  s.degrees = prm.degrees;
   out.warm = had;
   Vec3f* u = s.u.data();
   const Press pr = press_of(pat, voi, skin_vox, tip_vox, prm);

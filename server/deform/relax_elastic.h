@@ -41,6 +41,7 @@ struct ElasticParams {
   /// reactions summed. Above 0 the force and stiffness come from the unit press by
   /// reciprocity (elastic_math.h), accurate to the product of the two solves' errors.
   float stiffness_tolerance = 0.01f;
+  ElasticDegrees degrees;       // the V-cycle's Chebyshev degrees
   bool stiffness = false;       // also solve the unit press for the contact's stiffness (haptics.force_model "elastic")
 };
 
@@ -92,6 +93,7 @@ struct ElasticCpu {
   bool have_unit = false;         // u_unit holds the unit press of the current contact set
   Vec3f unit_normal{0, 0, 0};     // ... along this n
   ElasticLastPress last_press;    // the last step's press, for the warm start's prediction
+  ElasticDegrees degrees;         // the V-cycle's Chebyshev degrees (the step's params)
 };
 
 /// A fingerprint of a material (its bytes): the set-up is redone when it changes.

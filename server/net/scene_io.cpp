@@ -201,6 +201,9 @@ void read_elastic(const v1::Elastic& el, ElasticSettings& out) {
   out.contact_rounds = el.contact_rounds();
   out.predict = el.predict();
   out.stiffness_tolerance = el.stiffness_tolerance();
+  out.smooth_degree = el.smooth_degree();
+  out.coarse_smooth_degree = el.coarse_smooth_degree();
+  out.coarsest_degree = el.coarsest_degree();
 }
 
 // deform: the preset's ChainMail limits, the fields given over them, the rest as given

@@ -217,6 +217,21 @@ TEST_CASE("gpu elastic steps equal the cpu's on clipped and small VOIs, through 
     const Vec3 skin{32, 32, 3.5};
     check_elastic_step(b, {skin, skin + down * 1.5}, kStrict, "flat VOI");
   }
+  // other V-cycle degrees (finest, coarse, coarsest; even and odd, so that the smoothings
+  // end in the other buffer), on VOI 32 (every level on the grid) and 16 (block 0's levels)
+  for (const int edge : {32, 16})
+    for (const deform::ElasticDegrees& deg : {deform::ElasticDegrees{4, 5, 3}, deform::ElasticDegrees{2, 2, 12}}) {
+      DeformConfig cfg = elastic_config(edge, 1e-6, true);
+      cfg.settings.elastic.smooth_degree = deg.fine;
+      cfg.settings.elastic.coarse_smooth_degree = deg.coarse;
+      cfg.settings.elastic.coarsest_degree = deg.coarsest;
+      Pair b(slab, cfg);
+      const Vec3 skin{30, 30, kSlabSkinZ};
+      const std::string what = "VOI " + std::to_string(edge) + ", degrees " + std::to_string(deg.fine) + ", " +
+                               std::to_string(deg.coarse) + ", " + std::to_string(deg.coarsest);
+      check_elastic_step(b, {skin, skin + down * 2.0}, kStrict, what);
+      check_elastic_step(b, {skin, skin + down * 3.0}, kStrict, what + ", a voxel deeper");
+    }
 }
 
 TEST_CASE("gpu elastic steps equal the cpu's on the lumbar phantom as the scenes ship them", "[elastic]") {

@@ -350,6 +350,11 @@ TEST_CASE("bad elastic settings in a scene are refused with the field named") {
              Catch::Contains("test.textproto:4:") && Catch::Contains("deform.elastic.modulus.point[0].hu"));
   // an empty table: the message for `modulus { }` says what to give
   CHECK_THAT(refusal("modulus { }"), Catch::Contains("test.textproto") && Catch::Contains("deform.elastic.modulus is empty"));
+  // the V-cycle's degrees: at least 2 (the GPU fuses a smoothing's first step) and at most 32
+  CHECK(refusal("smooth_degree: 2 coarse_smooth_degree: 32 coarsest_degree: 2").empty());
+  CHECK_THAT(refusal("smooth_degree: 1"), Catch::Contains("test.textproto") && Catch::Contains("deform.elastic.smooth_degree"));
+  CHECK_THAT(refusal("coarse_smooth_degree: 33"), Catch::Contains("deform.elastic.coarse_smooth_degree"));
+  CHECK_THAT(refusal("coarsest_degree: 0"), Catch::Contains("deform.elastic.coarsest_degree"));
   // every refusal is one line
   CHECK(refusal("poisson: 0.5").find('\n') == std::string::npos);
 }

@@ -173,7 +173,7 @@ PALPSIM_HD float elastic_node_modulus(const ElasticMaterial& m, float hu, bool b
 PALPSIM_HD Vec3i elastic_corner(int c) { return Vec3i{c & 1, (c >> 1) & 1, (c >> 2) & 1}; }
 
 /// A level-0 node's static flags: held where it is bone, on a VOI face (`face`) or air
-/// farther than kElasticAirRim nodes from the body, body where the body mask holds it and
+/// farther than kElasticAirRim nodes from the body (air as well only off the faces), body where the body mask holds it and
 /// it is no bone, skin where such a node has a face neighbour outside the body;
 /// `in_body(gi, gj, gk)` reads the mask at patient voxel (gi, gj, gk), false outside the grid.
 template <typename InBody>
@@ -186,7 +186,9 @@ PALPSIM_HD std::uint8_t elastic_static_flags(bool body, bool bone, bool face, co
     for (int dk = -kElasticAirRim; dk <= kElasticAirRim && !near; ++dk)
       for (int dj = -kElasticAirRim; dj <= kElasticAirRim && !near; ++dj)
         for (int di = -kElasticAirRim; di <= kElasticAirRim && !near; ++di) near = in_body(gi + di, gj + dj, gk + dk);
-    if (!near) f |= kElasticHeld | kElasticAir;
+    // a face node is held as a face, which the coarse nodes on it inherit (every level's
+    // faces held: the GPU's coarse gathers leave tiles of the high faces out)
+    if (!near && !face) f |= kElasticHeld | kElasticAir;
   }
   if (body && !bone) {
     f |= kElasticBody;

@@ -64,16 +64,22 @@ DeformConfig elastic_config(int edge, double tolerance, bool stiffness) {
 struct ElasticTol {
   double field_rms;  // RMS |u_cuda - u_cpu| over RMS |u_cpu|
   double field_max;  // max |u_cuda - u_cpu| over max |u_cpu|
-  double force;      // |F_cuda - F_cpu| / |F_cpu|, and the stiffness's likewise
+  double force;      // |F_cuda - F_cpu| / |F_cpu|
+  double stiffness;  // the stiffness's likewise
 };
 
 // solves to 1e-6: rounding alone, drifting over 20-60 steps, bounded 10-100 times above
 // the ~1e-6 relative that float sums of this size reach; where one side takes a CG step more
 // (the residual crosses 1e-6 a step apart) the fields part by a few 1e-4 RMS (measured on the
 // H200: 1.65e-4 at 11 against 10 steps, the forces 2e-6 apart), so 5e-4 RMS
-constexpr ElasticTol kStrict{5e-4, 1e-3, 1e-4};
+constexpr ElasticTol kStrict{5e-4, 1e-3, 1e-4, 1e-4};
 // the scenes' 1e-3: one step more or fewer on one side (see above), a few times the tolerance
-constexpr ElasticTol kShipped{5e-3, 2e-2, 5e-3};
+constexpr ElasticTol kShipped{5e-3, 2e-2, 5e-3, 5e-3};
+// the scenes' 1e-3 with the unit press stopped at 0.01 and the stiffness by reciprocity: k
+// lies above the exact one by the unit press's energy error squared, which a unit CG step
+// more or fewer on one side moves by about 1 % (the bench's defaults row lies 0.6-0.9 %
+// above converged): 3 % for the stiffness
+constexpr ElasticTol kShippedReciprocal{5e-3, 2e-2, 5e-3, 3e-2};
 
 double rms(const std::vector<Vec3f>& u) {
   double s = 0;
@@ -132,7 +138,7 @@ deform::ElasticRun check_elastic_step(Pair& b, const DeformContact& c, const Ela
   CHECK(field_rms <= tol.field_rms * loose);
   CHECK(field_max <= tol.field_max * loose);
   CHECK(force <= tol.force * loose);
-  CHECK(stiffness <= tol.force * loose);
+  CHECK(stiffness <= tol.stiffness * loose);
   CHECK(eg.converged == ec.converged);
   // the same solves to within a step each (a residual at the threshold), and a round more
   // or fewer where a tie changed the set late
@@ -218,8 +224,9 @@ TEST_CASE("gpu elastic steps equal the cpu's on clipped and small VOIs, through 
     check_elastic_step(b, {skin, skin + down * 1.5}, kStrict, "flat VOI");
   }
   // other V-cycle degrees (finest, coarse, coarsest; even and odd, so that the smoothings
-  // end in the other buffer), on VOI 32 (every level on the grid) and 16 (block 0's levels)
-  for (const int edge : {32, 16})
+  // end in the other buffer), on VOI 64 (the whole 60-voxel slab: level 1 of 31^3 nodes in
+  // tiles, far air on its faces), 32 (every level on the grid) and 16 (block 0's levels)
+  for (const int edge : {64, 32, 16})
     for (const deform::ElasticDegrees& deg : {deform::ElasticDegrees{4, 5, 3}, deform::ElasticDegrees{2, 2, 12}}) {
       DeformConfig cfg = elastic_config(edge, 1e-6, true);
       cfg.settings.elastic.smooth_degree = deg.fine;
@@ -278,10 +285,11 @@ TEST_CASE("gpu elastic steps equal the cpu's with the warm start predicted and t
     cfg.elastic_stiffness = stiffness;
     Pair b(phantom, cfg);
     const std::string with = stiffness ? "with the unit press" : "without the unit press";
-    const deform::ElasticRun first = check_elastic_step(b, {X, X + in * 6.0}, kShipped, "predicted, from rest, " + with);
+    const ElasticTol tol = stiffness ? kShippedReciprocal : kShipped;
+    const deform::ElasticRun first = check_elastic_step(b, {X, X + in * 6.0}, tol, "predicted, from rest, " + with);
     CHECK(first.prediction == deform::ElasticPredict::kNone);
     for (int s = 1; s <= 4; ++s) {
-      const deform::ElasticRun r = check_elastic_step(b, {X, X + in * (6.0 + (s & 1) * h)}, kShipped,
+      const deform::ElasticRun r = check_elastic_step(b, {X, X + in * (6.0 + (s & 1) * h)}, tol,
                                                       "predicted, step " + std::to_string(s) + ", " + with);
       CHECK(r.prediction == (stiffness ? deform::ElasticPredict::kUnit : deform::ElasticPredict::kScale));
     }

@@ -31,6 +31,7 @@ struct StepArgs {
   int pressing;        // the tip lies below the skin (depth above 1e-6 mm)
   int had;             // the field and contact set came from the last step
   int unit_warm;       // the unit press starts from the last one
+  float unit_scale;    // ... else from u times this (elastic_unit_start_scale)
   int predict;         // the warm start's prediction (deform::ElasticPredict) and its factor
   float predict_factor;
   int stiffness;       // solve the unit press
@@ -426,15 +427,15 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
 }
 
 // the start of a solve (every thread its nodes): the unit press's w (from the last one or
-// 0, every contact node 1 mm along n), or u's contact nodes onto the sphere along n (held
-// nodes stay)
+// u scaled to a 1 mm press, every contact node 1 mm along n), or u's contact nodes onto
+// the sphere along n (held nodes stay)
 __device__ void job_start(const StepArgs& a, const Step& st, bool unit_press, const Field& w) {
   const View& v = a.v;
   const Lvl& L0 = st.sh.lv[0];
   const Team all = st.all;
   if (unit_press) {
     for (int e = all.first; e < L0.count; e += all.stride) {
-      Vec3f we = a.unit_warm ? w.at(e) : Vec3f{0, 0, 0};
+      Vec3f we = a.unit_warm ? w.at(e) : level0(v.u, v).at(e) * a.unit_scale;
       if (v.flags[e] & kElasticContact) we = we - a.nrm * dot(we, a.nrm) + a.nrm;
       w.set(e, we);
     }

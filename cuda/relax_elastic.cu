@@ -382,6 +382,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.pressing = depth > 1e-6;
   s.had = had;
   s.unit_warm = have_unit_ && unit_normal_ == nrm;
+  s.unit_scale = deform::elastic_unit_start_scale(depth);
   s.predict = int(pred.kind);
   s.predict_factor = pred.factor;
   s.stiffness = params_.stiffness && u_unit_ != nullptr;

@@ -492,6 +492,10 @@ PALPSIM_HD float elastic_coarse_cell_e(const FineE& fine_e, const Vec3i& fine_si
   return n > 0 ? sum / float(n) : 0.0f;
 }
 
+/// The unit press's start where no last unit press along n is kept: the press's field times
+/// this (1 / the tip's depth in mm, 0 at no depth), the unit press's shape to first order.
+PALPSIM_HD float elastic_unit_start_scale(double depth_mm) { return depth_mm > 0 ? float(1.0 / depth_mm) : 0.0f; }
+
 /// A coarse node's flags from the fine node it lies on (2 I): held beyond the fine grid or
 /// where the fine node is held (but as far air); in contact where it is.
 PALPSIM_HD std::uint8_t elastic_coarse_flags(std::uint8_t fine_flags, bool beyond) {

@@ -586,7 +586,12 @@ void unit_press(ElasticCpu& s, const Voi& voi, const Vec3f& nrm, const ElasticPa
   const long long n = voi.count();
   const Vec3f* u = s.u.data();
   Vec3f* w = s.u_unit.data();
-  if (!s.have_unit || !(s.unit_normal == nrm)) std::fill_n(w, n, Vec3f{0, 0, 0});
+  // without a last unit press along n to start from: the press's field scaled to the tip's
+  // 1 mm (the unit press's shape to first order; held nodes hold 0 in both)
+  if (!s.have_unit || !(s.unit_normal == nrm)) {
+    const float scale = elastic_unit_start_scale(out.depth_mm);
+    for (long long e = 0; e < n; ++e) w[e] = u[e] * scale;
+  }
   for (long long e = 0; e < n; ++e) {
     const std::uint8_t f = s.flags[std::size_t(e)];
     if (f & kElasticContact) w[e] = w[e] - nrm * dot(w[e], nrm) + nrm;

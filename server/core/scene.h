@@ -96,8 +96,8 @@ struct ElasticSettings {
   int contact_rounds = 4;          // contact set updates per step
   bool predict = true;             // a warm step starts from the last press's field moved to this one
   double stiffness_tolerance = 0.01;  // the unit press's relative residual; above 0: force and stiffness by reciprocity
-  int smooth_degree = 3;           // the V-cycle's Chebyshev degree on the finest level
-  int coarse_smooth_degree = 3;    // ... on the coarse levels above the coarsest
+  int smooth_degree = 8;           // the V-cycle's Chebyshev degree on the finest level
+  int coarse_smooth_degree = 2;    // ... on the coarse levels above the coarsest
   int coarsest_degree = 2;         // ... on the coarsest level
 };
 

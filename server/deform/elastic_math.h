@@ -109,7 +109,7 @@ constexpr int kElasticMaxDegree = 32;
 /// pass before it and needs a second. A higher degree takes fewer CG steps of more passes
 /// each; the coarsest level's passes cost the GPU a grid barrier each for a few free nodes.
 struct ElasticDegrees {
-  int fine = 3, coarse = 3, coarsest = 2;
+  int fine = 8, coarse = 2, coarsest = 2;
   /// level `l`'s degree in a V-cycle of `levels` levels (a single level is the coarsest)
   PALPSIM_HD int at(int l, int levels) const { return l + 1 == levels ? coarsest : (l == 0 ? fine : coarse); }
 };

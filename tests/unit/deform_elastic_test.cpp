@@ -665,15 +665,18 @@ TEST_CASE("the force and stiffness by reciprocity: accurate from an inexact unit
                       << summed.stiffness_iterations << ")");
   REQUIRE(ref.converged);
   REQUIRE(recip.contact_nodes == ref.contact_nodes);
-  // the reciprocal force's error is the product of two solves' errors of order 1e-2 each: it
-  // lies within 0.5 % of the converged force (and closer than the summed reactions, whose
-  // error is first order in the press's)
-  CHECK(std::fabs(recip.force_n.z / f_ref - 1) <= 0.005);
+  // the reciprocal force's error is the product of the two solves' errors: each stops at a
+  // residual of 1e-2, which the V-cycle's strong smoothing (the residual left in smooth
+  // modes) makes a few percent of error in energy (the summed reactions, first order in
+  // the press's error, lie 3 % off here; the stiffness below 1.8 %, w's error squared): the
+  // product within 1 % of the converged force, and closer than the summed reactions
+  CHECK(std::fabs(recip.force_n.z / f_ref - 1) <= 0.01);
   CHECK(std::fabs(recip.force_n.z - f_ref) < std::fabs(summed.force_n.z - f_ref));
   // the energy w . K w bounds the stiffness from above (a minimum over the admissible unit
-  // presses), by w's error squared: within 2 %, float rounding allowed below
+  // presses), by w's error squared (of order 1e-2 for an error of order 1e-1 in energy):
+  // within 3 %, float rounding allowed below
   CHECK(recip.stiffness_n_per_mm >= k_ref * (1 - 1e-5));
-  CHECK(recip.stiffness_n_per_mm <= k_ref * 1.02);
+  CHECK(recip.stiffness_n_per_mm <= k_ref * 1.03);
   // the force pushes the finger out, along +z alone
   CHECK(recip.force_n.z > 0);
   CHECK(recip.force_n.x == 0.0);
@@ -681,7 +684,7 @@ TEST_CASE("the force and stiffness by reciprocity: accurate from an inexact unit
 
 TEST_CASE("the V-cycle's Chebyshev degrees change the CG steps, not the solution", "[elastic]") {
   // the slab of the fingertip's test pressed 3 mm at the centre, to a tolerance of 1e-5 with
-  // the lowest degrees, the defaults, and high ones (finest, coarse, coarsest)
+  // the lowest degrees, low ones, and the defaults (finest 8, coarse and coarsest 2)
   const int n = 32, top = 30;
   auto p = slab(n, top);
   const Voi voi{{0, 0, 0}, {n, n, n}};
@@ -698,9 +701,9 @@ TEST_CASE("the V-cycle's Chebyshev degrees change the CG steps, not the solution
     return relax_elastic_cpu(*p, voi, x_skin, x_skin - Vec3{0, 0, 3}, prm, s, u.data());
   };
   std::vector<Vec3f> u_low, u_def, u_high;
-  const ElasticRun low = press(ElasticDegrees{2, 2, 2}, u_low), def = press(ElasticDegrees{}, u_def),
-                   high = press(ElasticDegrees{6, 6, 8}, u_high);
-  INFO("CG steps: degrees 2,2,2 " << low.iterations << ", defaults " << def.iterations << ", 6,6,8 "
+  const ElasticRun low = press(ElasticDegrees{2, 2, 2}, u_low), def = press(ElasticDegrees{3, 3, 2}, u_def),
+                   high = press(ElasticDegrees{}, u_high);
+  INFO("CG steps: degrees 2,2,2 " << low.iterations << ", 3,3,2 " << def.iterations << ", the defaults "
                                    << high.iterations);
   REQUIRE(low.converged);
   REQUIRE(def.converged);

@@ -493,25 +493,31 @@ __device__ void contact_sums(const StepArgs& a, const Step& st, bool round, bool
   }
 }
 
-// the field in voxels for the inversion (every thread its nodes), and this thread's count of
-// the cells it folds
-__device__ double write_field(const StepArgs& a, const Step& st) {
+// the field in voxels for the inversion (every thread its nodes): u / h, as the CPU's u_vox
+__device__ void write_field(const StepArgs& a, const Step& st) {
   const View& v = a.v;
   const Lvl& L0 = st.sh.lv[0];
-  const Team all = st.all;
   const Field u = level0(v.u, v);
-  double folded = 0;
-  auto load_vox = [&](int i, int j, int k) {
-    const Vec3f ue = u.at(L0.at(i, j, k));
-    return Vec3f{float(ue.x / a.h[0]), float(ue.y / a.h[1]), float(ue.z / a.h[2])};
-  };
-  for (int e = all.first; e < L0.count; e += all.stride) {
-    int i, j, k;
-    L0.coords(e, i, j, k);
+  for (int e = st.all.first; e < L0.count; e += st.all.stride) {
     const Vec3f ue = u.at(e);
     a.out[0][e] = float(ue.x / a.h[0]);
     a.out[1][e] = float(ue.y / a.h[1]);
     a.out[2][e] = float(ue.z / a.h[2]);
+  }
+}
+
+// after write_field() and a barrier: this thread's count of the cells the field in voxels
+// folds (elastic_inverted_cells() on the CPU)
+__device__ double folded_cells(const StepArgs& a, const Step& st) {
+  const Lvl& L0 = st.sh.lv[0];
+  double folded = 0;
+  auto load_vox = [&](int i, int j, int k) {
+    const int e = L0.at(i, j, k);
+    return Vec3f{a.out[0][e], a.out[1][e], a.out[2][e]};
+  };
+  for (int e = st.all.first; e < L0.count; e += st.all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
     if (i + 1 >= L0.n.x || j + 1 >= L0.n.y || k + 1 >= L0.n.z) continue;
     // a cell whose edges barely change cannot fold (cell_may_fold): det left unevaluated
     if (deform::cell_may_fold(load_vox, i, j, k) && !(deform::cell_min_det(load_vox, i, j, k) > 0.0f)) folded += 1;
@@ -606,8 +612,10 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   }
   out.settled = settled;
 
-  // the field in voxels for the inversion, and the cells it folds
-  const double folded = write_field(a, st);
+  // the field in voxels for the inversion (each node's once), then the cells it folds
+  write_field(a, st);
+  st.grid_sync(kPassField);
+  const double folded = folded_cells(a, st);
   out.inverted = (unsigned long long)reduce1(ring, folded, g, kPassField * 16);
   if (blockIdx.x == 0 && threadIdx.x == 0) *a.result = out;
 }

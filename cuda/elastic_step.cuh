@@ -519,8 +519,7 @@ __device__ double folded_cells(const StepArgs& a, const Step& st) {
     int i, j, k;
     L0.coords(e, i, j, k);
     if (i + 1 >= L0.n.x || j + 1 >= L0.n.y || k + 1 >= L0.n.z) continue;
-    // a cell whose edges barely change cannot fold (cell_may_fold): det left unevaluated
-    if (deform::cell_may_fold(load_vox, i, j, k) && !(deform::cell_min_det(load_vox, i, j, k) > 0.0f)) folded += 1;
+    if (deform::cell_folded(load_vox, i, j, k)) folded += 1;
   }
   return folded;
 }

@@ -256,6 +256,14 @@ PALPSIM_HD bool cell_may_fold(const LoadU& load_u, int i, int j, int k) {
   return false;
 }
 
+/// Whether cell (i, j, k) is folded under u (voxels, `load_u(i, j, k)`): det(I + grad u) <= 0
+/// somewhere in it, evaluated only where cell_may_fold() lets it be (the elastic step's
+/// count of folded cells, the same rule on both backends).
+template <typename LoadU>
+PALPSIM_HD bool cell_folded(const LoadU& load_u, int i, int j, int k) {
+  return cell_may_fold(load_u, i, j, k) && !(cell_min_det(load_u, i, j, k) > 0.0f);
+}
+
 /// Untangling (issue 8, section 4): a cell counts as folded, and its eight elements start
 /// the untangling, when its cell_min_det() is at most this: a margin above 0, so that a
 /// cell that untangling leaves alone keeps its inside one to one with room for float

@@ -427,8 +427,7 @@ long long elastic_inverted_cells(const Voi& voi, const Vec3f* u_vox) {
   for (int k = 0; k + 1 < voi.size.z; ++k)
     for (int j = 0; j + 1 < voi.size.y; ++j)
       for (int i = 0; i + 1 < voi.size.x; ++i) {
-        // a cell whose edges barely change cannot fold (cell_may_fold): det left unevaluated
-        if (cell_may_fold(load, i, j, k) && !(cell_min_det(load, i, j, k) > 0.0f)) ++n;
+        if (cell_folded(load, i, j, k)) ++n;
       }
   return n;
 }

@@ -51,7 +51,6 @@ enum TracePass : int {
   kPassVcycleLast,
   kPassSolveStart,
   kPassContact,
-  kPassJobStart,
   kPassField,
   kPassSetupNodes,
   kPassSetupCells,
@@ -170,11 +169,13 @@ constexpr int kTileX = 32, kTileY = 4, kTileZ = 4;
 static_assert(kTileX * kTileY * kTileZ == kThreads, "a tile holds a node per thread");
 constexpr int kHaloX = kTileX + 2, kHaloY = kTileY + 2, kHaloZ = kTileZ + 2;
 constexpr int kHalo = kHaloX * kHaloY * kHaloZ;
+constexpr int kHaloRounds = (kHalo + kThreads - 1) / kThreads;  // halo nodes a thread loads
 
 // one tile's shared memory for every gather of a kernel (one function, so one array: each
 // instantiation of a template declaring it would have its own)
+constexpr int kTileFields = 2;  // fields a tile pass gathers at most (gather_pair)
 __device__ float* tile_memory() {
-  __shared__ float t[4 * kHalo];
+  __shared__ float t[(1 + 3 * kTileFields) * kHalo];
   return t;
 }
 
@@ -193,19 +194,20 @@ __device__ Vec3i coarse_tile_grid(const Lvl& L) {
 // calls fn(e, i, j, k, kx, dg) for every node of level L in a tile of `tiles` (its count,
 // then tile indices: level 0's with a node that is not held; null, on a coarse level: every
 // tile but those of its high faces alone, coarse_tile_grid()), the whole grid taking a
-// tile of kThreads nodes a block at a time: the tile's nodes and their neighbours'
-// displacements x and the cells' moduli go to shared memory, then each thread sums its
+// tile of kThreads nodes a block at a time: the tile's nodes and their neighbours' values
+// of the F fields x and the cells' moduli go to shared memory, then each thread sums its
 // node's cells from there (elastic_apply_interior: every load one register and a constant
-// apart). Held nodes get kx = dg = 0 (every caller projects them to 0); the nodes of the
-// tiles left out are all held, and every caller's outputs hold 0 there already (each solve
-// and the set-up's power steps clear them first, on every level). A free node on the level's faces (none:
-// the VOI's faces are held) would take elastic_apply_node from global memory.
-// Every thread of a block runs every tile of the block (the tile's barriers).
-template <typename Fn>
+// apart), kx[f] = (K x[f]) at the node. Held nodes get kx = dg = 0 (every caller projects
+// them to 0); the nodes of the tiles left out are all held, and every caller's outputs
+// hold 0 there already (each solve and the set-up's power steps clear them first, on every
+// level). A free node on the level's faces (none: the VOI's faces are held) would take
+// elastic_apply_node from global memory. Every thread of a block runs every tile of the
+// block (the tile's barriers).
+template <int F, typename Fn>
 __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                             const Lvl& L, const Field& x, Fn& fn) {
-  float* const tu = tile_memory();  // tu[c * kHalo + h]: component c at halo node h
-  float* const te = tu + 3 * kHalo;
+                             const Lvl& L, const Field (&x)[F], Fn& fn) {
+  static_assert(F >= 1 && F <= kTileFields, "the tile's memory holds kTileFields fields");
+  float* const te = tile_memory();  // te[h]: the cell at halo node h; te[(1 + 3 f + c) * kHalo + h]: field f's component c
   const Vec3i tg = tiles ? tile_grid(L) : coarse_tile_grid(L);
   const int tx = tg.x, ty = tg.y;
   const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
@@ -214,31 +216,52 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
     const int tile = tiles ? tiles[1 + q] : q;
     const int i0 = (tile % tx) * kTileX, j0 = ((tile / tx) % ty) * kTileY, k0 = (tile / (tx * ty)) * kTileZ;
     // the halo: nodes (i0 - 1 .. i0 + kTileX) etc., 0 outside the level; the cell at halo
-    // position h has its lowest corner there (cells beyond the last node: 0)
-    for (int h = threadIdx.x; h < kHalo; h += blockDim.x) {
+    // position h has its lowest corner there (cells beyond the last node: 0); every load
+    // of every round before the first store, so that the thread waits for them once
+    float hv[1 + 3 * F][kHaloRounds];
+#pragma unroll
+    for (int r = 0; r < kHaloRounds; ++r) {
+      const int h = int(threadIdx.x) + r * kThreads;
       const int hi = h % kHaloX, hj = (h / kHaloX) % kHaloY, hk = h / (kHaloX * kHaloY);
       const int i = i0 - 1 + hi, j = j0 - 1 + hj, k = k0 - 1 + hk;
-      const bool in = i >= 0 && j >= 0 && k >= 0 && i < L.n.x && j < L.n.y && k < L.n.z;
-      const Vec3f u = in ? x.at(L.at(i, j, k)) : Vec3f{0, 0, 0};
-      tu[h] = u.x;
-      tu[kHalo + h] = u.y;
-      tu[2 * kHalo + h] = u.z;
-      te[h] = in && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z ? cell_e[L.at(i, j, k)] : 0.0f;
+      const bool in = h < kHalo && i >= 0 && j >= 0 && k >= 0 && i < L.n.x && j < L.n.y && k < L.n.z;
+      const int e = in ? L.at(i, j, k) : 0;
+      hv[0][r] = in && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z ? cell_e[e] : 0.0f;
+#pragma unroll
+      for (int f = 0; f < F; ++f)
+#pragma unroll
+        for (int c = 0; c < 3; ++c) hv[1 + 3 * f + c][r] = in ? x[f].p[c * x[f].stride + e] : 0.0f;
+    }
+#pragma unroll
+    for (int r = 0; r < kHaloRounds; ++r) {
+      const int h = int(threadIdx.x) + r * kThreads;
+      if (h < kHalo)
+#pragma unroll
+        for (int c = 0; c < 1 + 3 * F; ++c) te[c * kHalo + h] = hv[c][r];
     }
     __syncthreads();
     const int i = i0 + li, j = j0 + lj, k = k0 + lk;
     if (i < L.n.x && j < L.n.y && k < L.n.z) {
       const int e = L.at(i, j, k);
-      Vec3f kx{0, 0, 0}, dg{0, 0, 0};
+      Vec3f kx[F], dg{0, 0, 0};
+#pragma unroll
+      for (int f = 0; f < F; ++f) kx[f] = Vec3f{0, 0, 0};
       if (!(flags[e] & kElasticHeld)) {
         if (i > 0 && j > 0 && k > 0 && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z) {
           const int h = ((lk + 1) * kHaloY + lj + 1) * kHaloX + li + 1;
-          deform::elastic_apply_interior(
-              km, [&](int o) { return te[h + o]; },
-              [&](int o) { return Vec3f{tu[h + o], tu[kHalo + h + o], tu[2 * kHalo + h + o]}; }, kHaloX, kHaloX * kHaloY,
-              L.scale, kx, dg);
+#pragma unroll
+          for (int f = 0; f < F; ++f) {
+            const float* const tu = te + (1 + 3 * f) * kHalo;
+            dg = Vec3f{0, 0, 0};
+            deform::elastic_apply_interior(
+                km, [&](int o) { return te[h + o]; },
+                [&](int o) { return Vec3f{tu[h + o], tu[kHalo + h + o], tu[2 * kHalo + h + o]}; }, kHaloX,
+                kHaloX * kHaloY, L.scale, kx[f], dg);
+          }
         } else {
-          kx = deform::elastic_apply_node(km, CellModuli{cell_e, L}, Load{x, L}, L.n, L.scale, i, j, k);
+#pragma unroll
+          for (int f = 0; f < F; ++f)
+            kx[f] = deform::elastic_apply_node(km, CellModuli{cell_e, L}, Load{x[f], L}, L.n, L.scale, i, j, k);
           dg = deform::elastic_diag_node(km, CellModuli{cell_e, L}, L.n, L.scale, i, j, k);
         }
       }
@@ -246,6 +269,16 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
     }
     __syncthreads();
   }
+}
+
+// level 0's gather of two fields in one tile pass: fn(e, i, j, k, K a, K b, dg) (a solve's
+// start, which needs both)
+template <typename Fn>
+__device__ void gather_pair(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
+                            const Lvl& L0, const Field& a, const Field& b, Fn&& fn) {
+  const Field x[2] = {a, b};
+  auto each = [&](int e, int i, int j, int k, const Vec3f (&kx)[2], const Vec3f& dg) { fn(e, i, j, k, kx[0], kx[1], dg); };
+  gather_tiles<2>(km, cell_e, flags, tiles, L0, x, each);
 }
 
 // calls fn(e, i, j, k, kx, dg) for the nodes of level L that team t covers: kx = (K x) at
@@ -260,7 +293,9 @@ __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uin
   // level of at least tile_nodes nodes on the whole grid: all its tiles (the lanes' cells
   // wait on more loads a pass there than a tile does)
   if (!L.coarse || (t.stride == int(gridDim.x * blockDim.x) && L.count >= tile_nodes)) {
-    gather_tiles(km, cell_e, flags, L.coarse ? nullptr : tiles, L, x, fn);
+    const Field one[1] = {x};
+    auto each = [&](int e, int i, int j, int k, const Vec3f (&kx)[1], const Vec3f& dg) { fn(e, i, j, k, kx[0], dg); };
+    gather_tiles<1>(km, cell_e, flags, L.coarse ? nullptr : tiles, L, one, each);
     return;
   }
   const CellModuli ce{cell_e, L};

@@ -307,19 +307,18 @@ struct Step {
     }
     grid_sync(kPassSolveStart);
     // level 0: the scale of the tolerance (the residual of the constrained values alone),
-    // r = Pi (0 - K w), and the smoother's first step (both gathers in one pass: each reads
-    // what the pass before the barrier wrote)
+    // r = Pi (0 - K w), and the smoother's first step (both products in one tile pass: each
+    // reads what the pass before the barrier wrote)
     double sums[2] = {0, 0};
-    gather(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
-      const Vec3f t = project(e, kx);
-      sums[0] += double(dot(t, t));
-    });
-    gather(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, w, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
-      const Vec3f re = project(e, -kx);
-      r.set(e, re);
-      sums[1] += dot_d(re, re);
-      first_step_from(0, e, dg, re);
-    });
+    gather_pair(km(), v.cell_e, v.flags, v.tiles, L0, p, w,
+                [&](int e, int, int, int, const Vec3f& kp_e, const Vec3f& kw_e, const Vec3f& dg) {
+                  const Vec3f t = project(e, kp_e);
+                  sums[0] += double(dot(t, t));
+                  const Vec3f re = project(e, -kw_e);
+                  r.set(e, re);
+                  sums[1] += dot_d(re, re);
+                  first_step_from(0, e, dg, re);
+                });
     reduce(ring, sums, g, kPassSolveStart * 16);
     const double rref = sqrt(sums[0]);
     double rn = sqrt(sums[1]);
@@ -452,12 +451,27 @@ __device__ void job_start(const StepArgs& a, const Step& st, bool unit_press, co
   }
 }
 
+// node e's field in voxels for the inversion: u / h, as the CPU's u_vox
+__device__ void write_node_field(const StepArgs& a, const Field& u, int e) {
+  const Vec3f ue = u.at(e);
+  a.out[0][e] = float(ue.x / a.h[0]);
+  a.out[1][e] = float(ue.y / a.h[1]);
+  a.out[2][e] = float(ue.z / a.h[2]);
+}
+
+// the field in voxels for the inversion (every thread its nodes)
+__device__ void write_field(const StepArgs& a, const Step& st) {
+  const Field u = level0(a.v.u, a.v);
+  for (int e = st.all.first; e < st.sh.lv[0].count; e += st.all.stride) write_node_field(a, u, e);
+}
+
 // after a solve (every thread its nodes, into sums): the contact nodes' forces along n and
 // their count; after a round (`round`), the set's update and how many nodes changed; after
 // the unit press by reciprocity (elastic_math.h, `reciprocal`) the push sum of u . K w and
-// w's residual's part of w . K w
-__device__ void contact_sums(const StepArgs& a, const Step& st, bool round, bool reciprocal, const Field& w,
-                             double (&sums)[4]) {
+// w's residual's part of w . K w; with `field`, u in voxels for the inversion (u is final:
+// write_field(), the barrier of the sums' reduction serving folded_cells())
+__device__ void contact_sums(const StepArgs& a, const Step& st, bool round, bool reciprocal, bool field,
+                             const Field& w, double (&sums)[4]) {
   const View& v = a.v;
   const Lvl& L0 = st.sh.lv[0];
   const Team all = st.all;
@@ -467,6 +481,7 @@ __device__ void contact_sums(const StepArgs& a, const Step& st, bool round, bool
     const std::uint8_t fl = v.flags[e];
     int i, j, k;
     L0.coords(e, i, j, k);
+    if (field) write_node_field(a, u, e);
     if (reciprocal) {
       const Vec3f re = rw.at(e);
       sums[2] -= dot_d(u.at(e), re);
@@ -490,19 +505,6 @@ __device__ void contact_sums(const StepArgs& a, const Step& st, bool round, bool
         sums[2] += 1;
       }
     }
-  }
-}
-
-// the field in voxels for the inversion (every thread its nodes): u / h, as the CPU's u_vox
-__device__ void write_field(const StepArgs& a, const Step& st) {
-  const View& v = a.v;
-  const Lvl& L0 = st.sh.lv[0];
-  const Field u = level0(v.u, v);
-  for (int e = st.all.first; e < L0.count; e += st.all.stride) {
-    const Vec3f ue = u.at(e);
-    a.out[0][e] = float(ue.x / a.h[0]);
-    a.out[1][e] = float(ue.y / a.h[1]);
-    a.out[2][e] = float(ue.z / a.h[2]);
   }
 }
 
@@ -569,12 +571,12 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   // reaction, or the stiffness), which after a round that changed nothing is u's reaction
   const int rounds = max(1, a.contact_rounds);
   int round = 0;
-  bool settled = false;
+  bool settled = false, field = false;  // field: the last contact_sums() wrote the field in voxels
   Job job = kRound;
   while (job != kDone) {
     const Field w = job == kUnit ? unit : u;
+    // (no barrier: the solve's first pass reads w at the nodes this thread wrote it)
     job_start(a, st, job == kUnit, w);
-    st.grid_sync(kPassJobStart);
     const Step::Solve sr = st.solve(w, job == kUnit && a.reciprocal ? a.stiffness_tolerance : a.tolerance);
     if (job == kUnit) {
       out.stiffness_iterations = sr.iterations;
@@ -586,10 +588,12 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     }
     // the contact nodes' forces along n and their count; after a round, the set's update;
     // after the unit press by reciprocity (elastic_math.h) the push sum of u . K w and w's
-    // residual's part of w . K w
+    // residual's part of w . K w; u in voxels where u is final: after the unit press, and
+    // after any solve of u without one (a later round writes it again)
     const bool reciprocal = job == kUnit && a.reciprocal;
+    field = job == kUnit || !a.stiffness;
     double sums[4] = {0, 0, 0, 0};
-    contact_sums(a, st, job == kRound, reciprocal, w, sums);
+    contact_sums(a, st, job == kRound, reciprocal, field, w, sums);
     reduce(ring, sums, g, kPassContact * 16);
     if (job == kRound) {
       ++round;
@@ -611,9 +615,13 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   }
   out.settled = settled;
 
-  // the field in voxels for the inversion (each node's once), then the cells it folds
-  write_field(a, st);
-  st.grid_sync(kPassField);
+  // the field in voxels for the inversion (each node's once, unless the last sums wrote
+  // it: no unit press after the last solve of u, as when no node was left in contact),
+  // then the cells it folds
+  if (!field) {
+    write_field(a, st);
+    st.grid_sync(kPassField);
+  }
   const double folded = folded_cells(a, st);
   out.inverted = (unsigned long long)reduce1(ring, folded, g, kPassField * 16);
   if (blockIdx.x == 0 && threadIdx.x == 0) *a.result = out;

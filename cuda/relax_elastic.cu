@@ -93,7 +93,7 @@ const char* pass_name(int pass) {
   static const char* const names[] = {"?",           "start",        "smooth down",     "residual",
                                       "restrict",    "block 0's levels", "correct",     "smooth up",
                                       "CG direction", "CG apply",     "CG update",       "V-cycle's last",
-                                      "solve start", "contact",      "job start",       "field",
+                                      "solve start", "contact",      "field",
                                       "nodes",       "cells",        "coarse cells",    "power step",
                                       "carry"};
   return pass >= 0 && pass < int(sizeof(names) / sizeof(names[0])) ? names[pass] : "?";

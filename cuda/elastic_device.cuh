@@ -35,6 +35,12 @@ constexpr int kTileNodes = 8192;   // coarse levels of at least this many nodes 
 constexpr int kSlot = 4;           // sums a reduction slot holds
 constexpr int kRing = 32;          // the step's reduction slots, reused in turn
 constexpr int kSetupSums = deform::kElasticPowerIterations * kElasticMaxLevels;  // the set-up's slots
+// the sums' last entry: the ring's slot at which the next step starts. Each use of a slot
+// clears the one kRing / 2 ahead, so the kRing / 2 slots from the next one on are clear when
+// a step ends (used before the step began, or cleared since): a step starts there with no
+// clearing pass and no barrier
+constexpr int kRingNext = kSlot * (kRing + kSetupSums);
+constexpr int kSumsEntries = kRingNext + 1;  // doubles the sums hold
 
 // what a traced barrier ends (elastic_trace_summary() names them), times 16, plus the level
 enum TracePass : int {

@@ -538,11 +538,10 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   StepShared& sh = *reinterpret_cast<StepShared*>(shared_bytes);
   const View& v = a.v;
   if (threadIdx.x == 0) make_step_table(a, sh);
-  Ring ring{v.sums, 0, Tracer{a.trace, a.trace_pairs, 0}};
+  // the ring from where the last step left it (kRingNext)
+  Ring ring{v.sums, int(v.sums[kRingNext]) % kRing, Tracer{a.trace, a.trace_pairs, 0}};
   const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
-  for (int e = all.first; e < kSlot * kRing; e += all.stride) v.sums[e] = 0.0;
   __syncthreads();
-  g.sync();
   ring.tracer.stamp(kPassStart * 16);
   const Step st{a, sh, g, ring, all, Team{int(threadIdx.x), int(blockDim.x)}};
   const Lvl& L0 = sh.lv[0];
@@ -559,7 +558,10 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
       u.set(e, Vec3f{0, 0, 0});
       a.out[0][e] = a.out[1][e] = a.out[2][e] = 0.0f;
     }
-    if (blockIdx.x == 0 && threadIdx.x == 0) *a.result = out;
+    if (blockIdx.x == 0 && threadIdx.x == 0) {
+      *a.result = out;
+      v.sums[kRingNext] = ring.slot;
+    }
     return;
   }
   out.contact = 1;
@@ -624,7 +626,10 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   }
   const double folded = folded_cells(a, st);
   out.inverted = (unsigned long long)reduce1(ring, folded, g, kPassField * 16);
-  if (blockIdx.x == 0 && threadIdx.x == 0) *a.result = out;
+  if (blockIdx.x == 0 && threadIdx.x == 0) {
+    *a.result = out;
+    v.sums[kRingNext] = ring.slot;
+  }
 }
 
 }  // namespace

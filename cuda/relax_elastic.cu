@@ -205,7 +205,9 @@ ElasticScratch::ElasticScratch(long long n, long long nc) : capacity(n), coarse_
     for (float** v : {&x[0], &x[1], &f, &res, &d}) PALPSIM_CUDA_CHECK(cudaMalloc(v, 3 * total * sizeof(float)));
     PALPSIM_CUDA_CHECK(cudaMalloc(&p, 3 * std::size_t(n) * sizeof(float)));
     PALPSIM_CUDA_CHECK(cudaMalloc(&tmp_flags, std::size_t(n)));
-    PALPSIM_CUDA_CHECK(cudaMalloc(&sums, kSlot * std::size_t(kRing + kSetupSums) * sizeof(double)));
+    // every slot clear, the ring's next slot 0
+    PALPSIM_CUDA_CHECK(cudaMalloc(&sums, kSumsEntries * sizeof(double)));
+    PALPSIM_CUDA_CHECK(cudaMemset(sums, 0, kSumsEntries * sizeof(double)));
     PALPSIM_CUDA_CHECK(cudaEventCreateWithFlags(&done, cudaEventDisableTiming));
   } catch (...) {
     for (void* v : {(void*)x[0], (void*)x[1], (void*)f, (void*)res, (void*)d, (void*)p, (void*)tmp_flags, (void*)sums})
@@ -227,7 +229,7 @@ std::shared_ptr<ElasticScratch> ElasticScratch::shared(long long n, long long nc
 
 std::size_t ElasticScratch::bytes() const {
   return 15 * std::size_t(capacity + coarse_capacity) * sizeof(float) + 3 * std::size_t(capacity) * sizeof(float) +
-         std::size_t(capacity) + kSlot * std::size_t(kRing + kSetupSums) * sizeof(double);
+         std::size_t(capacity) + kSumsEntries * sizeof(double);
 }
 
 ElasticSolver::ElasticSolver() = default;

@@ -223,6 +223,12 @@ TEST_CASE("gpu elastic steps equal the cpu's on clipped and small VOIs, through 
     const Vec3 skin{32, 32, 3.5};
     check_elastic_step(b, {skin, skin + down * 1.5}, kStrict, "flat VOI");
   }
+}
+
+TEST_CASE("gpu elastic steps equal the cpu's with other V-cycle degrees", "[elastic]") {
+  if (!have_gpu()) return;
+  auto slab = slab_patient();
+  const Vec3 down{0, 0, -1};
   // other V-cycle degrees (finest, coarse, coarsest; even and odd, so that the smoothings
   // end in the other buffer), on VOI 64 (the whole 60-voxel slab: level 1 of 31^3 nodes in
   // tiles, far air on its faces), 32 (every level on the grid) and 16 (block 0's levels)

@@ -205,9 +205,11 @@ ElasticScratch::ElasticScratch(long long n, long long nc) : capacity(n), coarse_
     for (float** v : {&x[0], &x[1], &f, &res, &d}) PALPSIM_CUDA_CHECK(cudaMalloc(v, 3 * total * sizeof(float)));
     PALPSIM_CUDA_CHECK(cudaMalloc(&p, 3 * std::size_t(n) * sizeof(float)));
     PALPSIM_CUDA_CHECK(cudaMalloc(&tmp_flags, std::size_t(n)));
-    // every slot clear, the ring's next slot 0
+    // every slot clear, the ring's next slot 0, done before any step's kernel can run: the
+    // steps' streams do not wait for the legacy default stream's fill, so it is waited for
     PALPSIM_CUDA_CHECK(cudaMalloc(&sums, kSumsEntries * sizeof(double)));
     PALPSIM_CUDA_CHECK(cudaMemset(sums, 0, kSumsEntries * sizeof(double)));
+    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(0));
     PALPSIM_CUDA_CHECK(cudaEventCreateWithFlags(&done, cudaEventDisableTiming));
   } catch (...) {
     for (void* v : {(void*)x[0], (void*)x[1], (void*)f, (void*)res, (void*)d, (void*)p, (void*)tmp_flags, (void*)sums})

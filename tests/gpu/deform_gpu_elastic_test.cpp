@@ -199,9 +199,10 @@ TEST_CASE("gpu elastic steps equal the cpu's on clipped and small VOIs, through 
   if (!have_gpu()) return;
   auto slab = slab_patient();
   const Vec3 down{0, 0, -1};
+  // sections, so that a slow tool (racecheck) can take one at a time (-c "name")
   // a press 3 voxels from the volume's corner: the VOI clipped to 19 x 19 x 32 (odd and
   // even sizes: coarse nodes beyond the fine grid)
-  {
+  SECTION("VOI clipped at the border") {
     Pair b(slab, elastic_config(32, 1e-6, true));
     const Vec3 skin{3, 3, kSlabSkinZ};
     check_elastic_step(b, {skin, skin + down * 3.0}, kStrict, "VOI clipped at the border");
@@ -209,15 +210,16 @@ TEST_CASE("gpu elastic steps equal the cpu's on clipped and small VOIs, through 
   }
   // VOI edges whose plans run level 0 alone (4: too small to coarsen), put every coarse
   // level in block 0 (8: 8, 5, 3) and split them (16: 16, 9 on the grid, 5, 3 in block 0)
-  for (int edge : {4, 8, 16}) {
-    Pair b(slab, elastic_config(edge, 1e-6, true));
-    const Vec3 skin{30, 30, kSlabSkinZ};
-    check_elastic_step(b, {skin, skin + down * 2.0}, kStrict, "VOI " + std::to_string(edge));
-    check_elastic_step(b, {skin, skin + down * 3.0}, kStrict, "VOI " + std::to_string(edge) + ", a voxel deeper");
-  }
+  for (int edge : {4, 8, 16})
+    DYNAMIC_SECTION("VOI " << edge) {
+      Pair b(slab, elastic_config(edge, 1e-6, true));
+      const Vec3 skin{30, 30, kSlabSkinZ};
+      check_elastic_step(b, {skin, skin + down * 2.0}, kStrict, "VOI " + std::to_string(edge));
+      check_elastic_step(b, {skin, skin + down * 3.0}, kStrict, "VOI " + std::to_string(edge) + ", a voxel deeper");
+    }
   // a flat VOI (64 x 64 x 6, the volume's height): its coarsest level (33 x 33 x 4) too large
   // for block 0, smoothed on the grid
-  {
+  SECTION("flat VOI") {
     auto flat = flat_slab({64, 64, 6}, 3.5);
     Pair b(flat, elastic_config(64, 1e-6, false));
     const Vec3 skin{32, 32, 3.5};
@@ -233,17 +235,19 @@ TEST_CASE("gpu elastic steps equal the cpu's with other V-cycle degrees", "[elas
   // end in the other buffer), on VOI 64 (the whole 60-voxel slab: level 1 of 31^3 nodes in
   // tiles, far air on its faces), 32 (every level on the grid) and 16 (block 0's levels)
   for (const int edge : {64, 32, 16})
-    for (const deform::ElasticDegrees& deg : {deform::ElasticDegrees{4, 5, 3}, deform::ElasticDegrees{2, 2, 12}}) {
-      DeformConfig cfg = elastic_config(edge, 1e-6, true);
-      cfg.settings.elastic.smooth_degree = deg.fine;
-      cfg.settings.elastic.coarse_smooth_degree = deg.coarse;
-      cfg.settings.elastic.coarsest_degree = deg.coarsest;
-      Pair b(slab, cfg);
-      const Vec3 skin{30, 30, kSlabSkinZ};
-      const std::string what = "VOI " + std::to_string(edge) + ", degrees " + std::to_string(deg.fine) + ", " +
-                               std::to_string(deg.coarse) + ", " + std::to_string(deg.coarsest);
-      check_elastic_step(b, {skin, skin + down * 2.0}, kStrict, what);
-      check_elastic_step(b, {skin, skin + down * 3.0}, kStrict, what + ", a voxel deeper");
+    DYNAMIC_SECTION("VOI " << edge) {
+      for (const deform::ElasticDegrees& deg : {deform::ElasticDegrees{4, 5, 3}, deform::ElasticDegrees{2, 2, 12}}) {
+        DeformConfig cfg = elastic_config(edge, 1e-6, true);
+        cfg.settings.elastic.smooth_degree = deg.fine;
+        cfg.settings.elastic.coarse_smooth_degree = deg.coarse;
+        cfg.settings.elastic.coarsest_degree = deg.coarsest;
+        Pair b(slab, cfg);
+        const Vec3 skin{30, 30, kSlabSkinZ};
+        const std::string what = "VOI " + std::to_string(edge) + ", degrees " + std::to_string(deg.fine) + ", " +
+                                 std::to_string(deg.coarse) + ", " + std::to_string(deg.coarsest);
+        check_elastic_step(b, {skin, skin + down * 2.0}, kStrict, what);
+        check_elastic_step(b, {skin, skin + down * 3.0}, kStrict, what + ", a voxel deeper");
+      }
     }
 }
 

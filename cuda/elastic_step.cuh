@@ -617,8 +617,8 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   }
   out.settled = settled;
 
-  // the field in voxels for the inversion (each node's once, unless the last sums wrote
-  // it: no unit press after the last solve of u, as when no node was left in contact),
+  // the field in voxels for the inversion, here only where the last sums' pass did not
+  // write it (the unit press was asked for, but no node was left in contact to press),
   // then the cells it folds
   if (!field) {
     write_field(a, st);

@@ -197,30 +197,59 @@ __device__ Vec3i coarse_tile_grid(const Lvl& L) {
   return Vec3i{(L.n.x - 1 + kTileX - 1) / kTileX, (L.n.y - 1 + kTileY - 1) / kTileY, (L.n.z - 1 + kTileZ - 1) / kTileZ};
 }
 
-// calls fn(e, i, j, k, kx, dg) for every node of level L in a tile of `tiles` (its count,
-// then tile indices: level 0's with a node that is not held; null, on a coarse level: every
-// tile but those of its high faces alone, coarse_tile_grid()), the whole grid taking a
+// what a gather's caller reads at a node before the node's products are summed (`pre`):
+// nothing. A caller that reads more (its right-hand side, its last Chebyshev step) gives a
+// functor pre(mine, e) returning those values, loaded where `mine`, so that their loads wait
+// beside the tile's rather than after the products
+struct NoPre {
+  __device__ int operator()(bool, int) const { return 0; }
+};
+
+// calls fn(e, i, j, k, kx, dg, own, pv) for every node of level L in a tile of `tiles` (its
+// count, then tile indices: level 0's with a node that is not held; null, on a coarse level:
+// every tile but those of its high faces alone, coarse_tile_grid()), the whole grid taking a
 // tile of kThreads nodes a block at a time: the tile's nodes and their neighbours' values
 // of the F fields x and the cells' moduli go to shared memory, then each thread sums its
 // node's cells from there (elastic_apply_interior: every load one register and a constant
-// apart), kx[f] = (K x[f]) at the node. Held nodes get kx = dg = 0 (every caller projects
+// apart), kx[f] = (K x[f]) at the node, own[f] = x[f] at the node (from the tile), pv =
+// pre(true, e) (loaded before the tile). Held nodes get kx = dg = 0 (every caller projects
 // them to 0); the nodes of the tiles left out are all held, and every caller's outputs
 // hold 0 there already (each solve and the set-up's power steps clear them first, on every
 // level). A free node on the level's faces (none: the VOI's faces are held) would take
 // elastic_apply_node from global memory. Every thread of a block runs every tile of the
-// block (the tile's barriers).
-template <int F, typename Fn>
+// block (the tile's barriers). What is left of the tiles after the whole rounds is summed
+// in parts of a tile along k (see `split`).
+template <int F, typename Pre, typename Fn>
 __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                             const Lvl& L, const Field (&x)[F], Fn& fn) {
+                             const Lvl& L, const Field (&x)[F], Pre& pre, Fn& fn) {
   static_assert(F >= 1 && F <= kTileFields, "the tile's memory holds kTileFields fields");
   float* const te = tile_memory();  // te[h]: the cell at halo node h; te[(1 + 3 f + c) * kHalo + h]: field f's component c
   const Vec3i tg = tiles ? tile_grid(L) : coarse_tile_grid(L);
   const int tx = tg.x, ty = tg.y;
   const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
   const int active = tiles ? tiles[0] : tg.x * tg.y * tg.z;
-  for (int q = blockIdx.x; q < active; q += gridDim.x) {
-    const int tile = tiles ? tiles[1 + q] : q;
-    const int i0 = (tile % tx) * kTileX, j0 = ((tile / tx) % ty) * kTileY, k0 = (tile / (tx * ty)) * kTileZ;
+  // the work units: the tiles of the whole rounds (every block one tile a round), then the
+  // rest of the tiles cut along k into `split` parts of kTileZ / split layers, as many as
+  // the grid takes in one round, so that the last round's blocks each sum fewer nodes
+  // instead of most blocks waiting for a few whole tiles
+  const int whole = active - active % int(gridDim.x);
+  const int rest = active - whole;
+  int split = 1;
+  while (split < kTileZ && rest * split * 2 <= int(gridDim.x)) split *= 2;
+  const int units = whole + rest * split;
+  for (int q = blockIdx.x; q < units; q += gridDim.x) {
+    const int tq = q < whole ? q : whole + (q - whole) / split;
+    const int layers = q < whole ? kTileZ : kTileZ / split;  // the unit's node layers along k
+    const int part = q < whole ? 0 : (q - whole) % split;
+    const int tile = tiles ? tiles[1 + tq] : tq;
+    const int i0 = (tile % tx) * kTileX, j0 = ((tile / tx) % ty) * kTileY,
+              k0 = (tile / (tx * ty)) * kTileZ + part * layers;
+    const int halo = kHaloX * kHaloY * (layers + 2);  // the unit's halo nodes (kHalo for a whole tile)
+    // this thread's node and what the caller reads there, loaded first
+    const int i = i0 + li, j = j0 + lj, k = k0 + lk;
+    const bool mine = lk < layers && i < L.n.x && j < L.n.y && k < L.n.z;
+    const int e = mine ? L.at(i, j, k) : 0;
+    const auto pv = pre(mine, e);
     // the halo: nodes (i0 - 1 .. i0 + kTileX) etc., 0 outside the level; the cell at halo
     // position h has its lowest corner there (cells beyond the last node: 0); every load
     // of every round before the first store, so that the thread waits for them once
@@ -229,32 +258,34 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
     for (int r = 0; r < kHaloRounds; ++r) {
       const int h = int(threadIdx.x) + r * kThreads;
       const int hi = h % kHaloX, hj = (h / kHaloX) % kHaloY, hk = h / (kHaloX * kHaloY);
-      const int i = i0 - 1 + hi, j = j0 - 1 + hj, k = k0 - 1 + hk;
-      const bool in = h < kHalo && i >= 0 && j >= 0 && k >= 0 && i < L.n.x && j < L.n.y && k < L.n.z;
-      const int e = in ? L.at(i, j, k) : 0;
-      hv[0][r] = in && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z ? cell_e[e] : 0.0f;
+      const int ni = i0 - 1 + hi, nj = j0 - 1 + hj, nk = k0 - 1 + hk;
+      const bool in = h < halo && ni >= 0 && nj >= 0 && nk >= 0 && ni < L.n.x && nj < L.n.y && nk < L.n.z;
+      const int he = in ? L.at(ni, nj, nk) : 0;
+      hv[0][r] = in && ni + 1 < L.n.x && nj + 1 < L.n.y && nk + 1 < L.n.z ? cell_e[he] : 0.0f;
 #pragma unroll
       for (int f = 0; f < F; ++f)
 #pragma unroll
-        for (int c = 0; c < 3; ++c) hv[1 + 3 * f + c][r] = in ? x[f].p[c * x[f].stride + e] : 0.0f;
+        for (int c = 0; c < 3; ++c) hv[1 + 3 * f + c][r] = in ? x[f].p[c * x[f].stride + he] : 0.0f;
     }
 #pragma unroll
     for (int r = 0; r < kHaloRounds; ++r) {
       const int h = int(threadIdx.x) + r * kThreads;
-      if (h < kHalo)
+      if (h < halo)
 #pragma unroll
         for (int c = 0; c < 1 + 3 * F; ++c) te[c * kHalo + h] = hv[c][r];
     }
     __syncthreads();
-    const int i = i0 + li, j = j0 + lj, k = k0 + lk;
-    if (i < L.n.x && j < L.n.y && k < L.n.z) {
-      const int e = L.at(i, j, k);
-      Vec3f kx[F], dg{0, 0, 0};
+    if (mine) {
+      const int h = ((lk + 1) * kHaloY + lj + 1) * kHaloX + li + 1;
+      Vec3f kx[F], own[F], dg{0, 0, 0};
 #pragma unroll
-      for (int f = 0; f < F; ++f) kx[f] = Vec3f{0, 0, 0};
+      for (int f = 0; f < F; ++f) {
+        kx[f] = Vec3f{0, 0, 0};
+        const float* const tu = te + (1 + 3 * f) * kHalo;
+        own[f] = Vec3f{tu[h], tu[kHalo + h], tu[2 * kHalo + h]};
+      }
       if (!(flags[e] & kElasticHeld)) {
         if (i > 0 && j > 0 && k > 0 && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z) {
-          const int h = ((lk + 1) * kHaloY + lj + 1) * kHaloX + li + 1;
 #pragma unroll
           for (int f = 0; f < F; ++f) {
             const float* const tu = te + (1 + 3 * f) * kHalo;
@@ -271,7 +302,7 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
           dg = deform::elastic_diag_node(km, CellModuli{cell_e, L}, L.n, L.scale, i, j, k);
         }
       }
-      fn(e, i, j, k, kx, dg);
+      fn(e, i, j, k, kx, dg, own, pv);
     }
     __syncthreads();
   }
@@ -283,25 +314,30 @@ template <typename Fn>
 __device__ void gather_pair(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
                             const Lvl& L0, const Field& a, const Field& b, Fn&& fn) {
   const Field x[2] = {a, b};
-  auto each = [&](int e, int i, int j, int k, const Vec3f (&kx)[2], const Vec3f& dg) { fn(e, i, j, k, kx[0], kx[1], dg); };
-  gather_tiles<2>(km, cell_e, flags, tiles, L0, x, each);
+  NoPre none;
+  auto each = [&](int e, int i, int j, int k, const Vec3f (&kx)[2], const Vec3f& dg, const Vec3f (&)[2], int) {
+    fn(e, i, j, k, kx[0], kx[1], dg);
+  };
+  gather_tiles<2>(km, cell_e, flags, tiles, L0, x, none, each);
 }
 
-// calls fn(e, i, j, k, kx, dg) for the nodes of level L that team t covers: kx = (K x) at
-// the node (N), dg its Jacobi diagonal (N/mm). Level 0 and coarse levels of at least
-// tile_nodes nodes on the grid: tiles, a thread a node; other coarse levels:
+// calls fn(e, i, j, k, kx, dg, own, pv) for the nodes of level L that team t covers: kx = (K
+// x) at the node (N), dg its Jacobi diagonal (N/mm), own = x at the node, pv = pre(true, e)
+// (what the caller reads there, loaded before the products). Level 0 and coarse levels of
+// at least tile_nodes nodes on the grid: tiles, a thread a node; other coarse levels:
 // eight lanes a node, lane a adding the cell in which the node is corner a, summed by
 // shuffles (whole warps run each round, so that every lane takes part in them)
-template <typename Fn>
-__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                       int tile_nodes, const Lvl& L, Team t, const Field& x, Fn&& fn) {
+template <typename Pre, typename Fn>
+__device__ void gather_with(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
+                            int tile_nodes, const Lvl& L, Team t, const Field& x, Pre&& pre, Fn&& fn) {
   // level 0 always runs on the whole grid (t is every thread): its listed tiles; a coarse
   // level of at least tile_nodes nodes on the whole grid: all its tiles (the lanes' cells
   // wait on more loads a pass there than a tile does)
   if (!L.coarse || (t.stride == int(gridDim.x * blockDim.x) && L.count >= tile_nodes)) {
     const Field one[1] = {x};
-    auto each = [&](int e, int i, int j, int k, const Vec3f (&kx)[1], const Vec3f& dg) { fn(e, i, j, k, kx[0], dg); };
-    gather_tiles<1>(km, cell_e, flags, L.coarse ? nullptr : tiles, L, one, each);
+    auto each = [&](int e, int i, int j, int k, const Vec3f (&kx)[1], const Vec3f& dg, const Vec3f (&own)[1],
+                    const auto& pv) { fn(e, i, j, k, kx[0], dg, own[0], pv); };
+    gather_tiles<1>(km, cell_e, flags, L.coarse ? nullptr : tiles, L, one, pre, each);
     return;
   }
   const CellModuli ce{cell_e, L};
@@ -311,6 +347,8 @@ __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uin
   for (int t0 = t.first - lane; t0 < tasks; t0 += t.stride) {
     const int q = t0 + lane, node = q >> 3, a = q & 7;
     const bool mine = q < tasks;
+    const int e = L.off + (mine ? node : 0);
+    const auto pv = pre(mine && a == 0, e);
     int i = 0, j = 0, k = 0;
     Vec3f kx{0, 0, 0}, dg{0, 0, 0};
     if (mine) {
@@ -326,8 +364,18 @@ __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uin
       dg.y += __shfl_xor_sync(0xffffffffu, dg.y, o, 8);
       dg.z += __shfl_xor_sync(0xffffffffu, dg.z, o, 8);
     }
-    if (mine && a == 0) fn(L.off + node, i, j, k, kx, dg);
+    if (mine && a == 0) fn(e, i, j, k, kx, dg, x.at(e), pv);
   }
+}
+
+// gather_with() for a caller that reads nothing more at the node: fn(e, i, j, k, kx, dg)
+template <typename Fn>
+__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
+                       int tile_nodes, const Lvl& L, Team t, const Field& x, Fn&& fn) {
+  gather_with(km, cell_e, flags, tiles, tile_nodes, L, t, x, NoPre{},
+              [&](int e, int i, int j, int k, const Vec3f& kx, const Vec3f& dg, const Vec3f&, int) {
+                fn(e, i, j, k, kx, dg);
+              });
 }
 
 // the node's Jacobi diagonal alone (a thread a node)

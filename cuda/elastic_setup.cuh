@@ -60,8 +60,8 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
     const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
     for (int l = 0; l < levels; ++l) {
       double part[2] = {0, 0};
-      gather(km, v.cell_e, v.flags, v.tiles, a.tile_nodes, lv[l], all, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
-        const Vec3f xe = xf.at(e);
+      gather_with(km, v.cell_e, v.flags, v.tiles, a.tile_nodes, lv[l], all, xf, NoPre{},
+                  [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg, const Vec3f& xe, int) {
         const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
         xt.set(e, re);
         part[0] += dot_d(xe, xe);

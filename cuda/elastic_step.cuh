@@ -85,6 +85,11 @@ struct StepShared {
   int levels, split;  // split: the first level block 0 runs alone (levels: none)
 };
 
+// a node's right-hand side and last Chebyshev step, as a smoothing step reads them
+struct NodeRhs {
+  Vec3f f, d;
+};
+
 // the passes of one step (the kernel's arguments, its blocks' shared table, the barrier
 // and the reductions' ring): each is inlined at one call site
 struct Step {
@@ -139,25 +144,38 @@ struct Step {
     const float ca = sh.ca[l][s], cb = sh.cb[l][s];
     const Field xf = x(from), xt = x(to), fv = f(), dv = d();
     double part = 0;
-    gather(km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, xf, [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg) {
-      const Vec3f fe = fv.at(e);
-      const Vec3f r = project(e, fe - kx);
-      const Vec3f z = project(e, mul(inverse(dg), r));
-      const Vec3f step = restart ? z * cb : dv.at(e) * ca + z * cb;
-      dv.set(e, step);
-      const Vec3f xn = xf.at(e) + step;
-      xt.set(e, xn);
-      if (dot) part += dot_d(fe, xn);
-    });
+    // the node's right-hand side and last step, loaded before its products are summed
+    gather_with(
+        km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, xf,
+        [&](bool mine, int e) {
+          NodeRhs v{Vec3f{0, 0, 0}, Vec3f{0, 0, 0}};
+          if (mine) {
+            v.f = fv.at(e);
+            if (!restart) v.d = dv.at(e);
+          }
+          return v;
+        },
+        [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg, const Vec3f& xe, const NodeRhs& pv) {
+          const Vec3f r = project(e, pv.f - kx);
+          const Vec3f z = project(e, mul(inverse(dg), r));
+          const Vec3f step = restart ? z * cb : pv.d * ca + z * cb;
+          dv.set(e, step);
+          const Vec3f xn = xe + step;
+          xt.set(e, xn);
+          if (dot) part += dot_d(pv.f, xn);
+        });
     return part;
   }
 
   // the residual of level l by team t: res = Pi (f - K x[from])
   __device__ void residual(int l, Team t, int from) const {
     const Field fv = f(), rv = res();
-    gather(km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, x(from), [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
-      rv.set(e, project(e, fv.at(e) - kx));
-    });
+    gather_with(
+        km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, x(from),
+        [&](bool mine, int e) { return mine ? fv.at(e) : Vec3f{0, 0, 0}; },
+        [&](int e, int, int, int, const Vec3f& kx, const Vec3f&, const Vec3f&, const Vec3f& fe) {
+          rv.set(e, project(e, fe - kx));
+        });
   }
 
   // level l + 1's right-hand side, the restricted residual of level l (team t), and its
@@ -334,11 +352,12 @@ struct Step {
         grid_sync(kPassCgDirection);
         // q = Pi K p, and p . q
         double part = 0;
-        gather(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, p, [&](int e, int, int, int, const Vec3f& kx, const Vec3f&) {
-          const Vec3f qe = project(e, kx);
-          kp.set(e, qe);
-          part += dot_d(p.at(e), qe);
-        });
+        gather_with(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, p, NoPre{},
+                    [&](int e, int, int, int, const Vec3f& kx, const Vec3f&, const Vec3f& pe, int) {
+                      const Vec3f qe = project(e, kx);
+                      kp.set(e, qe);
+                      part += dot_d(pe, qe);
+                    });
         const double pq = reduce1(ring, part, g, kPassCgApply * 16);
         if (!(pq > 0)) break;
         const float alpha = float(rz / pq);

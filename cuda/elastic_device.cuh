@@ -329,7 +329,7 @@ __device__ void gather_pair(const CellMatrix& km, const float* cell_e, const std
 // eight lanes a node, lane a adding the cell in which the node is corner a, summed by
 // shuffles (whole warps run each round, so that every lane takes part in them)
 template <typename Pre, typename Fn>
-__device__ void gather_with(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
+__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
                             int tile_nodes, const Lvl& L, Team t, const Field& x, Pre&& pre, Fn&& fn) {
   // level 0 always runs on the whole grid (t is every thread): its listed tiles; a coarse
   // level of at least tile_nodes nodes on the whole grid: all its tiles (the lanes' cells
@@ -367,16 +367,6 @@ __device__ void gather_with(const CellMatrix& km, const float* cell_e, const std
     }
     if (mine && a == 0) fn(e, i, j, k, kx, dg, x.at(e), pv);
   }
-}
-
-// gather_with() for a caller that reads nothing more at the node: fn(e, i, j, k, kx, dg)
-template <typename Fn>
-__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                       int tile_nodes, const Lvl& L, Team t, const Field& x, Fn&& fn) {
-  gather_with(km, cell_e, flags, tiles, tile_nodes, L, t, x, NoPre{},
-              [&](int e, int i, int j, int k, const Vec3f& kx, const Vec3f& dg, const Vec3f&, int) {
-                fn(e, i, j, k, kx, dg);
-              });
 }
 
 // the node's Jacobi diagonal alone (a thread a node)

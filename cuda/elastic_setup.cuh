@@ -60,7 +60,7 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
     const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
     for (int l = 0; l < levels; ++l) {
       double part[2] = {0, 0};
-      gather_with(km, v.cell_e, v.flags, v.tiles, a.tile_nodes, lv[l], all, xf, NoPre{},
+      gather(km, v.cell_e, v.flags, v.tiles, a.tile_nodes, lv[l], all, xf, NoPre{},
                   [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg, const Vec3f& xe, int) {
         const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
         xt.set(e, re);

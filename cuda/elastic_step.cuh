@@ -145,7 +145,7 @@ struct Step {
     const Field xf = x(from), xt = x(to), fv = f(), dv = d();
     double part = 0;
     // the node's right-hand side and last step, loaded before its products are summed
-    gather_with(
+    gather(
         km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, xf,
         [&](bool mine, int e) {
           NodeRhs v{Vec3f{0, 0, 0}, Vec3f{0, 0, 0}};
@@ -170,7 +170,7 @@ struct Step {
   // the residual of level l by team t: res = Pi (f - K x[from])
   __device__ void residual(int l, Team t, int from) const {
     const Field fv = f(), rv = res();
-    gather_with(
+    gather(
         km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, x(from),
         [&](bool mine, int e) { return mine ? fv.at(e) : Vec3f{0, 0, 0}; },
         [&](int e, int, int, int, const Vec3f& kx, const Vec3f&, const Vec3f&, const Vec3f& fe) {
@@ -352,7 +352,7 @@ struct Step {
         grid_sync(kPassCgDirection);
         // q = Pi K p, and p . q
         double part = 0;
-        gather_with(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, p, NoPre{},
+        gather(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, p, NoPre{},
                     [&](int e, int, int, int, const Vec3f& kx, const Vec3f&, const Vec3f& pe, int) {
                       const Vec3f qe = project(e, kx);
                       kp.set(e, qe);

@@ -40,6 +40,7 @@ struct BoneCase {
   std::map<int, test::Agreement> ribs;
   double rib_recall_min = 0, rib_recall_all = 0;
   std::size_t cord = 0, cord_in_bone = 0, disc = 0, disc_in_bone = 0;
+  std::size_t disc_soft = 0, disc_soft_in_bone = 0;  // the disc's voxels below test::kDiscSoftHu
   int canal_slices = 0, segments = 0;
   bool spine_found = false;
   double bone_ml = 0;
@@ -96,6 +97,9 @@ BoneCase measure(const std::string& name, double slice_mm, const Volume<float>& 
     c.cord_in_bone += lr.id.data[i] == test::kSpinalCordLabel && p->bone.data[i];
     c.disc += disc.data[i];
     c.disc_in_bone += disc.data[i] && p->bone.data[i];
+    const bool soft = disc.data[i] && p->intensity.data[i] < test::kDiscSoftHu;
+    c.disc_soft += soft;
+    c.disc_soft_in_bone += soft && p->bone.data[i];
   }
   return c;
 }
@@ -106,10 +110,10 @@ void print_case(const BoneCase& c) {
               c.name.c_str(), c.slice_mm, c.prep_s, c.bone_mask_s, c.low_hu, c.high_hu, c.thin_seed_hu, c.bone_ml);
   std::printf("  bone within 3 mm: recall %.3f, precision %.3f; vertebrae recall %.3f; ribs recall %.3f (lowest %.3f)\n",
               c.all.recall(), c.all.precision(), c.spine.recall(), c.rib_recall_all, c.rib_recall_min);
-  std::printf("  spinal cord in the mask %zu of %zu voxels; discs in the mask %zu of %zu; canal slices %d, segments %d; "
-              "spine %s\n",
-              c.cord_in_bone, c.cord, c.disc_in_bone, c.disc, c.canal_slices, c.segments,
-              c.spine_found ? "found" : "not found");
+  std::printf("  spinal cord in the mask %zu of %zu voxels; discs in the mask %zu of %zu (below %.0f HU: %zu of %zu); "
+              "canal slices %d, segments %d; spine %s\n",
+              c.cord_in_bone, c.cord, c.disc_in_bone, c.disc, double(test::kDiscSoftHu), c.disc_soft_in_bone,
+              c.disc_soft, c.canal_slices, c.segments, c.spine_found ? "found" : "not found");
   std::printf("  per rib (recall within 3 mm, labelled voxels):");
   for (const auto& [id, a] : c.ribs)
     if (a.ref) std::printf(" %s %.2f (%zu);", test::label_name(id).c_str(), a.recall(), a.ref);
@@ -126,7 +130,8 @@ std::string case_json(const BoneCase& c) {
     << ", \"precision\": " << json_number(c.all.precision()) << ", \"vertebrae_recall\": " << json_number(c.spine.recall())
     << ", \"rib_recall\": " << json_number(c.rib_recall_all) << ", \"rib_recall_min\": " << json_number(c.rib_recall_min)
     << ", \"cord_voxels\": " << c.cord << ", \"cord_in_bone\": " << c.cord_in_bone << ", \"disc_voxels\": " << c.disc
-    << ", \"disc_in_bone\": " << c.disc_in_bone << ", \"canal_slices\": " << c.canal_slices
+    << ", \"disc_in_bone\": " << c.disc_in_bone << ", \"disc_soft_voxels\": " << c.disc_soft
+    << ", \"disc_soft_in_bone\": " << c.disc_soft_in_bone << ", \"canal_slices\": " << c.canal_slices
     << ", \"segments\": " << c.segments
     << ", \"spine_found\": " << (c.spine_found ? "true" : "false") << ",\n     \"ribs\": {";
   bool first = true;
@@ -197,7 +202,9 @@ PALPSIM_BENCH(bone, "the default bone mask against the shared DICOM series' labe
     << "mean of 2 or 3 consecutive slices and their labels the majority of them; of ct/abdomen-lumbar-3mm.nii.gz "
     << "its per-structure masks (tests/reference_files/example_seg/ of TotalSegmentator at 5de6e4d) in "
     << "ct/abdomen-lumbar-3mm-labels/ (bone: ribs, vertebrae, sacrum, hips, femurs)\",\n  \"discs\": \"voxels "
-    << "of no label between two adjacent vertebrae's labels along the axial axis, at most 15 mm apart\",\n  "
+    << "of no label between two adjacent vertebrae's labels along the axial axis, at most 15 mm apart; "
+    << "disc_soft: those below " << test::kDiscSoftHu << " HU (the disc itself; above it mostly end plates and "
+    << "bone the labels leave out)\",\n  "
     << "\"tolerance_mm\": 3,\n  \"repeats\": "
     << repeats << ",\n  \"cases\": [\n";
   for (std::size_t i = 0; i < cases.size(); ++i) o << case_json(cases[i]) << (i + 1 < cases.size() ? ",\n" : "\n");

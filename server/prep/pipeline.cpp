@@ -441,20 +441,25 @@ Volume<std::uint8_t> bone_mask_cropped(const Volume<float>& image, const Volume<
     };
     const HoleFilter dense = dense_from(t.cancellous), dense_axial = dense_from(t.cancellous_axial);
     const int axial = axial_axis(g);
+    // soft tissue that an axial slice's cavity leaves open voxel by voxel (a disc)
+    const auto disc = [&](std::size_t i) { return image.data[i] >= t.disc_lo && image.data[i] < t.disc_hi; };
     // two rounds: what one orientation fills can close a cavity in another
     Volume<std::uint8_t> cavity(g), grown = wide;
     for (int round = 0; round < 2; ++round) {
       for (int axis = 0; axis < 3; ++axis) {
         Volume<std::uint8_t> filled = grown;
         fill_holes_per_slice(filled, axis, max_pixels, axis == axial ? dense_axial : dense);
-        for (std::size_t i = 0; i < cavity.data.size(); ++i) cavity.data[i] |= filled.data[i] && !wide.data[i];
+        for (std::size_t i = 0; i < cavity.data.size(); ++i)
+          cavity.data[i] |= filled.data[i] && !wide.data[i] && !(axis == axial && disc(i));
       }
       for (std::size_t i = 0; i < cavity.data.size(); ++i) grown.data[i] = wide.data[i] | cavity.data[i];
     }
     {
+      // enclosed in 3D by what the slices filled: but the disc voxels the axial fill left
       Volume<std::uint8_t> filled = grown;
       fill_holes_3d(filled);
-      for (std::size_t i = 0; i < cavity.data.size(); ++i) cavity.data[i] |= filled.data[i] && !wide.data[i];
+      for (std::size_t i = 0; i < cavity.data.size(); ++i)
+        cavity.data[i] |= filled.data[i] && !wide.data[i] && (grown.data[i] || !disc(i));
     }
     // the cavities, and the wide closing's voxels beside them (the gaps in their
     // cortex; not its bridges elsewhere, e.g. between spinous processes)
@@ -557,6 +562,8 @@ BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<s
   t.thin_seed = std::min(t.high, mu + kThinSeedSpan * (t.low - mu));
   t.cancellous = std::clamp(mu + 0.5 * (t.low - mu), kAutoCancellousMinHu, kAutoCancellousMaxHu);
   t.cancellous_axial = t.cancellous - kAxialCancellousDropHu;
+  t.disc_lo = mu - kDiscBandBelow * sigma;
+  t.disc_hi = mu + kDiscBandAbove * sigma;
   t.grow_mm = kAutoBoneGrowMm;
   why << "automatic from the body's histogram: soft-tissue peak " << mu << " HU, spread " << std::lround(sigma)
       << " HU; bone from " << std::lround(t.low) << " HU (soft tissue + max(100, 3 spread), kept within "
@@ -565,7 +572,8 @@ BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<s
       << " HU in thin ridges away from contrast-filled regions (a rib's cortex blurred by partial volume); small "
       << "pieces within "
       << kBonePieceGapMm << " mm of larger bone kept; cavities enclosed by bone filled from a mean of "
-      << std::lround(t.cancellous) << " HU (" << std::lround(t.cancellous_axial) << " HU in axial slices)";
+      << std::lround(t.cancellous) << " HU (" << std::lround(t.cancellous_axial) << " HU in axial slices, their "
+      << std::lround(t.disc_lo) << ".." << std::lround(t.disc_hi) << " HU voxels left open: discs)";
   t.reason = why.str();
   return t;
 }

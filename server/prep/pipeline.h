@@ -68,6 +68,8 @@ struct BoneThresholds {
   double grow_mm = 0;            // the low threshold reaches this far (mm) from a seed; 0 = unlimited
   double soft_tissue_hu = 0;     // automatic: the soft-tissue peak of the body's histogram (HU)
   double soft_tissue_sigma_hu = 0;  // automatic: its spread (HU), from the upper half width at half height
+  double disc_lo = 0, disc_hi = 0;  // HU: soft tissue [disc_lo, disc_hi) that a cavity enclosed only in
+                                    // axial slices leaves open voxel by voxel (a disc; none when lo >= hi)
   std::string reason;            // one sentence: where the values come from
 };
 
@@ -108,6 +110,15 @@ constexpr double kAutoBoneGrowMm = 15;
 constexpr double kAutoCancellousMinHu = 100;
 constexpr double kAutoCancellousMaxHu = 120;
 constexpr double kAxialCancellousDropHu = 40;
+/// The soft-tissue band a cavity enclosed only in axial slices leaves open, voxel by
+/// voxel: mu - kDiscBandBelow sigma .. mu + kDiscBandAbove sigma. On thin slices
+/// (the shared DICOM series at 2 mm) the closing joins two vertebral bodies' rims
+/// across their disc, so the disc's axial slices are enclosed, and with the end plates'
+/// partial volume their mean passes any cancellous level; the disc's own voxels lie
+/// at soft tissue (70-110 HU), a vertebral body's cancellous bone above it and its
+/// fatty marrow below it, so the band takes out the disc and little of the bone.
+constexpr double kDiscBandBelow = 2;
+constexpr double kDiscBandAbove = 1;
 
 /// Chooses the bone thresholds for `image` inside `body`: prep.bone_threshold when
 /// the scene set it, else from the histogram of the body's voxels: the soft-tissue
@@ -117,7 +128,7 @@ constexpr double kAxialCancellousDropHu = 40;
 /// mu + 2 (low - mu)), thin_seed = min(high, mu + kThinSeedSpan (low - mu)),
 /// cancellous = mu + 0.5 (low - mu) clamped to [kAutoCancellousMinHu,
 /// kAutoCancellousMaxHu], cancellous_axial = cancellous - kAxialCancellousDropHu,
-/// grow_mm = kAutoBoneGrowMm.
+/// grow_mm = kAutoBoneGrowMm, the disc band from kDiscBandBelow and kDiscBandAbove.
 /// Throws palpsim::Error for an empty body.
 BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<std::uint8_t>& body,
                                       const PrepSettings& prep);
@@ -132,8 +143,10 @@ BoneThresholds choose_bone_thresholds(const Volume<float>& image, const Volume<s
 /// `fill_closing_mm` (a cortex blurred by thick slices has gaps; build_patient
 /// passes twice the input's coarsest spacing), it is enclosed within an axial,
 /// coronal or sagittal slice, covers at most kMaxBoneHoleMm2 there, and its mean
-/// value reaches t.cancellous (t.cancellous_axial in an axial slice). That fills
-/// vertebral bodies but not the spinal canal (CSF), the discs, the pelvis or the thorax.
+/// value reaches t.cancellous (t.cancellous_axial in an axial slice, whose voxels in
+/// [t.disc_lo, t.disc_hi) stay open, as they do where only the closing's 3D fill
+/// after the slices would enclose them). That fills vertebral bodies but not the
+/// spinal canal (CSF), the discs, the pelvis or the thorax.
 constexpr double kMaxBoneHoleMm2 = 2500;
 Volume<std::uint8_t> bone_mask(const Volume<float>& image, const Volume<std::uint8_t>& body,
                                const BoneThresholds& t, const PrepSettings& prep, double fill_closing_mm = 0,

@@ -140,7 +140,8 @@ std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::
          ", \"cancellous_hu\": " + jnum(t.cancellous) +
          ", \"cancellous_axial_hu\": " + jnum(t.cancellous_axial) + ", \"grow_mm\": " + jnum(t.grow_mm) +
          (t.automatic ? ", \"soft_tissue_hu\": " + jnum(t.soft_tissue_hu) + ", \"soft_tissue_sigma_hu\": " +
-                            jnum(t.soft_tissue_sigma_hu)
+                            jnum(t.soft_tissue_sigma_hu) + ", \"disc_band_hu\": [" + jnum(t.disc_lo) + ", " +
+                            jnum(t.disc_hi) + "]"
                       : std::string()) +
          ", \"reason\": " + jstr(t.reason) + "}, \"regions_ml\": {\"spine\": " + jnum(b.spine_ml) +
          ", \"left\": " + jnum(b.left_ml) + ", \"right\": " + jnum(b.right_ml) + ", \"anterior\": " +

@@ -92,6 +92,12 @@ inline LabelReference dicom_label_reference(const Grid& g, const Volume<float>& 
 // the reference's label of the spinal cord (the canal's contents)
 constexpr int kSpinalCordLabel = 79;
 
+// below this value (HU) a voxel of disc_reference() is soft tissue, the disc itself;
+// at or above it mostly the end plates and the bone that the labels leave between two
+// vertebrae (the shared DICOM series at 2 mm: its disc voxels in the mask had a median of
+// 144 HU, those outside 58 HU)
+constexpr float kDiscSoftHu = 110;
+
 // the disc between two vertebrae's labels (`upper_id`, `lower_id`): voxels of neither,
 // along grid axis k (axial) between a voxel of one and a voxel of the other at most
 // `max_gap_mm` apart, in the same column (i, j)

@@ -95,13 +95,15 @@ TEST_CASE("DICOM series at 2 mm and in 4 and 6 mm slabs: every rib within 3 mm; 
   REQUIRE(ct.image.grid.size.z == 20);
   // per slab thickness (2 mm: the series itself): the least rib recall, and the
   // vertebrae's recall, the cord's and the disc's fraction in the mask measured
-  // before thin seeds (bench/results/bone-*.json); tolerances below
+  // before thin seeds (bench/results/bone-*.json), the disc's soft voxels' (below
+  // kDiscSoftHu) since the axial fill leaves them open (0.733 at 2 mm before:
+  // the disc filled between end plates); tolerances below
   struct Level {
     int n;
-    double rib_recall, vertebrae_recall, cord_in_bone, disc_in_bone;
+    double rib_recall, vertebrae_recall, cord_in_bone, disc_in_bone, disc_soft_in_bone;
   };
-  for (const Level& l : {Level{1, 0.95, 0.998, 0.0010, 0.860}, Level{2, 0.90, 0.944, 0.0023, 0.302},
-                         Level{3, 0.90, 0.895, 0.0010, 0.556}}) {
+  for (const Level& l : {Level{1, 0.95, 0.998, 0.0010, 0.635, 0.177}, Level{2, 0.90, 0.944, 0.0023, 0.302, 0.022},
+                         Level{3, 0.90, 0.895, 0.0010, 0.556, 0.129}}) {
     const Volume<float> image = l.n == 1 ? ct.image : average_slabs(ct.image, l.n);
     const Volume<float> lab = l.n == 1 ? labels.image : majority_slabs(labels.image, l.n);
     const std::string what = "DICOM series, " + std::to_string(2 * l.n) + " mm slices";
@@ -118,24 +120,31 @@ TEST_CASE("DICOM series at 2 mm and in 4 and 6 mm slabs: every rib within 3 mm; 
     // rim, 8-22 voxels) at most 0.1% of the cord more; the T11-T12 disc (which thick
     // slices blend with its end plates, the known limit) gains at most 1% of it
     const Volume<std::uint8_t> disc = disc_reference(lr.id, 33, 32);
-    std::size_t cord = 0, cord_bone = 0, disc_n = 0, disc_bone = 0;
+    std::size_t cord = 0, cord_bone = 0, disc_n = 0, disc_bone = 0, soft_n = 0, soft_bone = 0;
     for (std::size_t i = 0; i < p->bone.data.size(); ++i) {
       cord += lr.id.data[i] == kSpinalCordLabel, cord_bone += lr.id.data[i] == kSpinalCordLabel && p->bone.data[i];
       disc_n += disc.data[i], disc_bone += disc.data[i] && p->bone.data[i];
+      const bool soft = disc.data[i] && p->intensity.data[i] < kDiscSoftHu;
+      soft_n += soft, soft_bone += soft && p->bone.data[i];
     }
     const Agreement all = agreement(lr.bone, p->bone, lr.cartilage, 3.0);
     std::printf("%s: thin seeds %.0f HU; recall %.3f, precision %.3f; T11-T12 recall %.3f; cord %zu of %zu, disc %zu "
-                "of %zu in the mask\n",
+                "of %zu in the mask (soft %zu of %zu)\n",
                 what.c_str(), r.bone_thresholds.thin_seed, all.recall(), all.precision(), sp.recall(), cord_bone, cord,
-                disc_bone, disc_n);
+                disc_bone, disc_n, soft_bone, soft_n);
     INFO(what);
     CHECK(sp.recall() >= l.vertebrae_recall - 0.005);
     REQUIRE(cord > 5000);
     REQUIRE(disc_n > 1000);
     CHECK(double(cord_bone) / double(cord) <= l.cord_in_bone + 0.001);
     CHECK(double(disc_bone) / double(disc_n) <= l.disc_in_bone + 0.01);
-    // precision: 0.906-0.924 measured, as before within 0.005 (prep_bone_test says
-    // what the rest is: the aorta's calcified wall, discs, bone the labels leave out)
+    // the disc's own tissue stays open: its soft voxels in the mask at most 1 % of them
+    // more (at 2 mm the rest lie where the end plates' partial volume lifts them into the
+    // band's gap or in the closing's joins of the rims)
+    REQUIRE(soft_n > 400);
+    CHECK(double(soft_bone) / double(soft_n) <= l.disc_soft_in_bone + 0.01);
+    // precision: 0.917-0.924 measured (0.906 at 2 mm before the disc band) (prep_bone_test
+    // says what the rest is: the aorta's calcified wall and contrast, bone the labels leave out)
     CHECK(all.precision() >= 0.9);
     CHECK(r.bone_summary.spine_found);
   }

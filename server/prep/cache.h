@@ -11,7 +11,7 @@
 namespace palpsim {
 
 /// Bumped whenever the preparation's results change for the same inputs.
-constexpr int kPrepFormatVersion = 3;
+constexpr int kPrepFormatVersion = 4;
 
 /// The cache folder: prep.cache_dir, else $PALPSIM_CACHE, else ~/.cache/palpsim.
 std::string cache_root(const PrepSettings& prep);

@@ -366,6 +366,7 @@ def plot_elastic(rows, time_key, machine, out_png):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401 (the time axis's locator and formatters)
     fig, grid = plt.subplots(2, 2, figsize=(14, 11))
     for ax, (key, title, err) in zip(grid.ravel(), ELASTIC_REFERENCES):
         pts = [(r[time_key], err(r["errors"])) for r in rows]
@@ -389,6 +390,10 @@ def plot_elastic(rows, time_key, machine, out_png):
         for th in THRESHOLDS:
             ax.axhline(th, c="grey", ls=":", lw=0.8)
         ax.set_xscale("log")
+        # ticks at 1, 2, 5 per decade as plain numbers (the default labels every minor tick, overlapping)
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_yscale("log")
         ax.set_xlabel(f"step time on {machine}, median (ms)")
         ax.set_ylabel("error (%)")

@@ -330,7 +330,7 @@ __device__ void gather_pair(const CellMatrix& km, const float* cell_e, const std
 // shuffles (whole warps run each round, so that every lane takes part in them)
 template <typename Pre, typename Fn>
 __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                            int tile_nodes, const Lvl& L, Team t, const Field& x, Pre&& pre, Fn&& fn) {
+                       int tile_nodes, const Lvl& L, Team t, const Field& x, Pre&& pre, Fn&& fn) {
   // level 0 always runs on the whole grid (t is every thread): its listed tiles; a coarse
   // level of at least tile_nodes nodes on the whole grid: all its tiles (the lanes' cells
   // wait on more loads a pass there than a tile does)

@@ -61,12 +61,12 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
     for (int l = 0; l < levels; ++l) {
       double part[2] = {0, 0};
       gather(km, v.cell_e, v.flags, v.tiles, a.tile_nodes, lv[l], all, xf, NoPre{},
-                  [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg, const Vec3f& xe, int) {
-        const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
-        xt.set(e, re);
-        part[0] += dot_d(xe, xe);
-        part[1] += dot_d(re, re);
-      });
+             [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg, const Vec3f& xe, int) {
+               const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
+               xt.set(e, re);
+               part[0] += dot_d(xe, xe);
+               part[1] += dot_d(re, re);
+             });
       block_sum(part, sums + kSlot * (it * kElasticMaxLevels + l));
     }
     g.sync();

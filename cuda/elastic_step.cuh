@@ -353,11 +353,11 @@ struct Step {
         // q = Pi K p, and p . q
         double part = 0;
         gather(km(), v.cell_e, v.flags, v.tiles, a.tile_nodes, L0, all, p, NoPre{},
-                    [&](int e, int, int, int, const Vec3f& kx, const Vec3f&, const Vec3f& pe, int) {
-                      const Vec3f qe = project(e, kx);
-                      kp.set(e, qe);
-                      part += dot_d(pe, qe);
-                    });
+               [&](int e, int, int, int, const Vec3f& kx, const Vec3f&, const Vec3f& pe, int) {
+                 const Vec3f qe = project(e, kx);
+                 kp.set(e, qe);
+                 part += dot_d(pe, qe);
+               });
         const double pq = reduce1(ring, part, g, kPassCgApply * 16);
         if (!(pq > 0)) break;
         const float alpha = float(rz / pq);

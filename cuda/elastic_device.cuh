@@ -63,6 +63,7 @@ enum TracePass : int {
   kPassSetupCoarse,
   kPassSetupPower,
   kPassSetupEnd,
+  kPassShift,
 };
 
 // the passes' ends of one kernel run, when it is traced: block 0's thread 0 notes the time
@@ -130,6 +131,16 @@ struct Load {
   Field x;
   Lvl L;
   __device__ Vec3f operator()(int i, int j, int k) const { return x.at(L.at(i, j, k)); }
+};
+
+// the same, 0 beyond the level's nodes (a shifted field's reads, deform::elastic_shifted)
+struct LoadOrZero {
+  Field x;
+  Lvl L;
+  __device__ Vec3f operator()(int i, int j, int k) const {
+    if (i < 0 || j < 0 || k < 0 || i >= L.n.x || j >= L.n.y || k >= L.n.z) return Vec3f{0, 0, 0};
+    return x.at(L.at(i, j, k));
+  }
 };
 
 // the device arrays both kernels work on: the session's own and the scratch's

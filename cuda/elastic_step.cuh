@@ -29,11 +29,14 @@ struct StepArgs {
   float radius;        // its radius (mm)
   float penetration;   // how far (mm) the sphere must pass a free skin node for it to join
   int pressing;        // the tip lies below the skin (depth above 1e-6 mm)
+  float depth;         // the tip's depth along n (mm): a fresh start's contact set (elastic_start_contact)
   int had;             // the field and contact set came from the last step
   int unit_warm;       // the unit press starts from the last one
   float unit_scale;    // ... else from u times this (elastic_unit_start_scale)
   int predict;         // the warm start's prediction (deform::ElasticPredict) and its factor
   float predict_factor;
+  int shift;           // ... after moving the last field and unit press with the tip across n
+  Vec3f shift_vox;     // ... by this (voxels along the grid axes)
   int stiffness;       // solve the unit press
   int max_iterations;
   float tolerance;
@@ -408,10 +411,25 @@ __device__ void make_step_table(const StepArgs& a, StepShared& sh) {
   }
 }
 
-// the contact set at the step's start (every thread its nodes): last step's nodes still
-// under the sphere, nodes the last field (as the prediction moves it) leaves inside it,
-// every node under it on a fresh start (the field and contact set zeroed first); this
-// thread's count of nodes under the sphere
+// the warm start's shift (deform::elastic_prediction: the tip moved across n; every thread
+// its nodes): the last field and unit press copied into x[0] and x[1], for start_contact()
+// to read them moved, then the grid's barrier
+__device__ void shift_copy(const StepArgs& a, const Step& st) {
+  const View& v = a.v;
+  const Lvl& L0 = st.sh.lv[0];
+  const Field u = level0(v.u, v), unit = level0(v.u_unit, v), cu = st.x(0), cw = st.x(1);
+  const bool with_unit = a.predict == int(ElasticPredict::kUnit);
+  for (int e = st.all.first; e < L0.count; e += st.all.stride) {
+    cu.set(e, u.at(e));
+    if (with_unit) cw.set(e, unit.at(e));
+  }
+  st.grid_sync(kPassShift);
+}
+
+// the contact set at the step's start (every thread its nodes, elastic_start_contact): last
+// step's nodes still under the sphere and nodes the last field (as the prediction moves it)
+// leaves inside it, or on a fresh start (the field and contact set zeroed first) the nodes
+// within Hertz's contact area; this thread's count of nodes under the sphere
 __device__ double start_contact(const StepArgs& a, const Step& st) {
   const View& v = a.v;
   const Lvl& L0 = st.sh.lv[0];
@@ -429,16 +447,28 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
       fl = std::uint8_t(fl & ~kElasticContact);
     } else if (a.predict != int(ElasticPredict::kNone)) {
       const ElasticPredict kind = ElasticPredict(a.predict);
-      ue = deform::elastic_predicted(kind, a.predict_factor, ue,
-                                     kind == ElasticPredict::kUnit ? unit.at(e) : Vec3f{0, 0, 0});
+      Vec3f we = kind == ElasticPredict::kUnit ? unit.at(e) : Vec3f{0, 0, 0};
+      // moved with the tip across n (held nodes keep their 0): the copies shift_copy() made;
+      // the contact set from the moved field's penetration alone (deform::elastic_shifted)
+      if (a.shift) {
+        fl = std::uint8_t(fl & ~kElasticContact);
+        if (!(fl & kElasticHeld)) {
+          ue = deform::elastic_shifted(LoadOrZero{st.x(0), L0}, i, j, k, a.shift_vox);
+          if (kind == ElasticPredict::kUnit) {
+            we = deform::elastic_shifted(LoadOrZero{st.x(1), L0}, i, j, k, a.shift_vox);
+            unit.set(e, we);
+          }
+        }
+      }
+      ue = deform::elastic_predicted(kind, a.predict_factor, ue, we);
       u.set(e, ue);
     }
     const float t = st.push(fl, i, j, k);
     if (t > 0) under += 1;
     const bool was = (fl & kElasticContact) != 0;
-    const bool pen = t > 0 && t - dot(ue, a.nrm) > 0;
     fl = std::uint8_t(fl & ~kElasticContact);
-    if (t > 0 && (was || pen || !a.had)) fl |= kElasticContact;
+    if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth, a.shift ? a.penetration : 0.0f))
+      fl |= kElasticContact;
     v.flags[e] = fl;
   }
   return under;
@@ -569,7 +599,8 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   out.settled = 1;
   out.converged = 1;
 
-  // the contact set (start_contact)
+  // the contact set (start_contact), the last field moved with the tip first (shift_copy)
+  if (a.had && a.shift && a.predict != int(ElasticPredict::kNone)) shift_copy(a, st);
   const double under = start_contact(a, st);
   if (reduce1(ring, under, g, kPassContact * 16) == 0) {
     // nothing pressed: the tissue at rest

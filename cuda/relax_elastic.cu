@@ -95,7 +95,7 @@ const char* pass_name(int pass) {
                                       "CG direction", "CG apply",     "CG update",       "V-cycle's last",
                                       "solve start", "contact",      "field",
                                       "nodes",       "cells",        "coarse cells",    "power step",
-                                      "carry"};
+                                      "carry",       "shift"};
   return pass >= 0 && pass < int(sizeof(names) / sizeof(names[0])) ? names[pass] : "?";
 }
 
@@ -324,9 +324,9 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   view.total = scratch.capacity + scratch.coarse_capacity;
 
   // warm start (relax_elastic_cpu()): the last field and contact set, carried onto this VOI
-  // by the set-up when the VOI moved; from rest when there is none (the model is fixed at
-  // bind, so a kept field is always of the same model)
-  const bool had = have_u_;
+  // by the set-up when the VOI moved; from rest when there is none (elastic_warm; the model
+  // is fixed at bind, so a kept field is always of the same model)
+  const bool had = deform::elastic_warm(have_u_, last_press_.pressing, voi_, voi);
   pending_ = deform::ElasticRun{};
   pending_.warm = had;
   const ElasticScratch::Turn turn(scratch, stream);
@@ -367,7 +367,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   // the warm start's prediction of this press from the last one (elastic_prediction)
   const Vec3 tip_mm{tip_vox.x * h.x, tip_vox.y * h.y, tip_vox.z * h.z};
   const deform::ElasticPrediction pred = deform::elastic_prediction(
-      last_press_, had && params_.predict, have_unit_ && u_unit_ != nullptr && dot(unit_normal_, nrm) > 0.999f, tip_mm, depth, nrm);
+      last_press_, had && params_.predict, have_unit_ && u_unit_ != nullptr && dot(unit_normal_, nrm) > 0.999f, tip_mm, depth, nrm, h);
   pending_.prediction = pred.kind;
   last_press_ = deform::ElasticLastPress{depth > 1e-6, tip_mm, depth, nrm};
 
@@ -384,11 +384,14 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.radius = radius;
   s.penetration = deform::kElasticPenetrationVox * float(h.x);
   s.pressing = depth > 1e-6;
+  s.depth = float(depth);
   s.had = had;
   s.unit_warm = have_unit_ && unit_normal_ == nrm;
   s.unit_scale = deform::elastic_unit_start_scale(depth);
   s.predict = int(pred.kind);
   s.predict_factor = pred.factor;
+  s.shift = pred.shift;
+  s.shift_vox = pred.shift_vox;
   s.stiffness = params_.stiffness && u_unit_ != nullptr;
   s.max_iterations = params_.max_iterations;
   s.tolerance = params_.tolerance;

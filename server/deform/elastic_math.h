@@ -343,6 +343,39 @@ PALPSIM_HD float elastic_sphere_push(const Vec3f& p, const Vec3f& c, const Vec3f
   return sqrtf(h2) - along;
 }
 
+/// A fresh press (no last field to start from, elastic_warm) starts with the skin nodes the
+/// sphere pushes by at least this fraction of the tip's depth in its contact set. Hertz's
+/// contact radius sqrt(R d) is where the sphere's surface lies d / 2 above its deepest point,
+/// so the nodes inside it are pushed d / 2 or more; the whole overlap (radius sqrt(2 R d),
+/// twice the area) pulls its outer ring, and the contact rounds took those nodes off a round
+/// at a time. Nodes the start leaves out that the sphere still passes join in the rounds.
+constexpr float kElasticFreshContactFraction = 0.5f;
+
+/// Whether a skin node is in the contact set at a step's start: `t` is how far the sphere
+/// pushes it along n (mm, elastic_sphere_push: <= 0 not under the sphere), `u_n` its start
+/// field along n (mm), `was` whether it was in the last step's set, `warm` whether the step
+/// starts from the last field (elastic_warm), `depth_mm` the tip's depth. Warm: the nodes
+/// still under the sphere of the last set and those the start field leaves inside it, or
+/// within `touch_mm` of its surface (0 for the last field as it was; a field moved with the
+/// tip, elastic_shifted, holds its contact nodes on the new sphere to rounding); fresh: the
+/// nodes within Hertz's contact area (kElasticFreshContactFraction).
+PALPSIM_HD bool elastic_start_contact(float t, float u_n, bool was, bool warm, float depth_mm, float touch_mm) {
+  if (!(t > 0.0f)) return false;
+  if (warm) return was || t - u_n > -touch_mm;
+  return t >= kElasticFreshContactFraction * depth_mm;
+}
+
+/// Whether a step starts from the last step's field (a warm start): there is one
+/// (`have_field`, of the same model), the last step pressed (`last_pressing`; a field at
+/// rest holds nothing to start from) and this step's VOI shares a node with the last one's
+/// (a press elsewhere carries nothing over). Otherwise it starts as a fresh press.
+PALPSIM_HD bool elastic_warm(bool have_field, bool last_pressing, const Voi& last, const Voi& voi) {
+  if (!have_field || !last_pressing) return false;
+  return voi.lo.x < last.lo.x + last.size.x && last.lo.x < voi.lo.x + voi.size.x &&
+         voi.lo.y < last.lo.y + last.size.y && last.lo.y < voi.lo.y + voi.size.y &&
+         voi.lo.z < last.lo.z + last.size.z && last.lo.z < voi.lo.z + voi.size.z;
+}
+
 /// How a step's solve starts from the last step's field when the tip pressed along the same n
 /// then and now (the warm start's prediction): the contact nodes are placed on the sphere
 /// anyway, so the prediction is what the free nodes start from. kUnit adds the last unit
@@ -355,11 +388,20 @@ PALPSIM_HD float elastic_sphere_push(const Vec3f& p, const Vec3f& c, const Vec3f
 enum class ElasticPredict : int { kNone = 0, kUnit = 1, kScale = 2 };
 
 /// The prediction of one step (elastic_prediction) and its factor: mm of tip motion along n
-/// for kUnit, the depth's ratio for kScale.
+/// for kUnit, the depth's ratio for kScale; and the tip's move across n (voxels along the
+/// grid axes, zero below kElasticShiftMinVox): the last field (and unit press) is moved with
+/// the tip before either applies (elastic_shifted), as a frictionless finger sliding over
+/// homogeneous tissue carries its field along unchanged.
 struct ElasticPrediction {
   ElasticPredict kind = ElasticPredict::kNone;
   float factor = 0.0f;
+  Vec3f shift_vox{0, 0, 0};
+  bool shift = false;  // shift_vox is not zero
 };
+
+/// A tip's move across n shorter than this (voxels) moves no field: a press straight along n
+/// keeps its last field bit for bit (rounding of positions of tens of mm is far below it).
+constexpr float kElasticShiftMinVox = 1e-3f;
 
 /// The press a step predicts from (the last one) as the backends keep it.
 struct ElasticLastPress {
@@ -374,15 +416,22 @@ struct ElasticLastPress {
 /// pressed along n within 2.6 degrees (cos 0.999); kUnit when the last unit press is there
 /// along that n as well (`unit_along_n`), else kScale, its ratio held to [0, 2] so that a
 /// field of a first graze (a few hundredths of a mm) is not blown up into a guess worse
-/// than none.
+/// than none. The tip's move across n in voxels of `h_mm` is the field's shift.
 inline ElasticPrediction elastic_prediction(const ElasticLastPress& last, bool warm, bool unit_along_n,
-                                            const Vec3& tip_mm, double depth_mm, const Vec3f& n) {
+                                            const Vec3& tip_mm, double depth_mm, const Vec3f& n, const Vec3& h_mm) {
   ElasticPrediction p;
   if (!warm || !last.pressing || !(depth_mm > 1e-6) || !(last.depth_mm > 1e-6) || dot(n, last.normal) <= 0.999f)
     return p;
+  const Vec3 move = tip_mm - last.tip_mm;
+  const Vec3 across = move - Vec3(n) * dot(move, Vec3(n));
+  const Vec3f shift{float(across.x / h_mm.x), float(across.y / h_mm.y), float(across.z / h_mm.z)};
+  if (dot(shift, shift) >= kElasticShiftMinVox * kElasticShiftMinVox) {
+    p.shift = true;
+    p.shift_vox = shift;
+  }
   if (unit_along_n) {
     p.kind = ElasticPredict::kUnit;
-    p.factor = float(dot(tip_mm - last.tip_mm, Vec3(n)));
+    p.factor = float(dot(move, Vec3(n)));
   } else {
     p.kind = ElasticPredict::kScale;
     const double ratio = depth_mm / last.depth_mm;
@@ -391,8 +440,19 @@ inline ElasticPrediction elastic_prediction(const ElasticLastPress& last, bool w
   return p;
 }
 
+/// The value at node (i, j, k) of a field `load(i, j, k)` (0 beyond its VOI: the loader's)
+/// moved by `shift_vox`: trilinear at the node less the shift. The contact set does not move
+/// with it: a shifted start's set is the nodes the moved field leaves inside the sphere or on
+/// it (elastic_start_contact with no last set and a touch of kElasticPenetrationVox; the
+/// last set moved to the nearest nodes cost the bench's slide half again as many CG steps
+/// at the set's edge).
+template <typename Load>
+PALPSIM_HD Vec3f elastic_shifted(const Load& load, int i, int j, int k, const Vec3f& shift_vox) {
+  return trilinear<Vec3f>(load, Vec3f{float(i) - shift_vox.x, float(j) - shift_vox.y, float(k) - shift_vox.z});
+}
+
 /// A node's start value under a prediction: its last value `u`, and its last unit press
-/// `unit` (read only for kUnit).
+/// `unit` (read only for kUnit), each already shifted when the prediction shifts.
 PALPSIM_HD Vec3f elastic_predicted(ElasticPredict kind, float factor, const Vec3f& u, const Vec3f& unit) {
   if (kind == ElasticPredict::kUnit) return u + unit * factor;
   if (kind == ElasticPredict::kScale) return u * factor;

@@ -443,12 +443,12 @@ namespace {
 
 // the warm start (relax_elastic_cpu()): the last field and contact set shifted onto this
 // VOI when it or the model changed (the set-up first), the tissue at rest when there is
-// none; whether a last field is the start
+// none (elastic_warm); whether a last field is the start
 bool warm_start(const Patient& pat, const Voi& voi, const ElasticParams& prm, ElasticCpu& s) {
   const long long n = voi.count();
   const bool same_model = s.poisson == prm.poisson && s.material_key == material_key(prm.material);
   const Voi last = s.voi;
-  const bool had = s.have_u && same_model;
+  const bool had = elastic_warm(s.have_u && same_model, s.last_press.pressing, last, voi);
   if (!(voi == last) || !same_model) {
     if (had) {
       grow(s.tmp_u, std::size_t(last.count()));
@@ -499,10 +499,11 @@ Press press_of(const Patient& pat, const Voi& voi, const Vec3& skin_vox, const V
   return pr;
 }
 
-// the pushes of skin nodes under the sphere and the contact set: last step's nodes still
-// under it, nodes the last field leaves inside it, every node under it on a fresh start;
-// how many nodes lie under it
-long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press& pr, bool had) {
+// the pushes of skin nodes under the sphere and the contact set (elastic_start_contact):
+// last step's nodes still under it and nodes the last field leaves inside it, or on a fresh
+// start the nodes within Hertz's contact area; how many nodes lie under it
+long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press& pr, bool had, bool shifted) {
+  const float touch = shifted ? kElasticPenetrationVox * float(h.x) : 0.0f;
   long long under = 0;
   const Vec3f* u = s.u.data();
   each_node(voi.size, [&](int i, int j, int kk) {
@@ -514,11 +515,38 @@ long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press&
     s.push[std::size_t(e)] = t;
     if (t > 0) ++under;
     const bool was = (f & kElasticContact) != 0;
-    const bool pen = t > 0 && t - dot(u[e], pr.nrm) > 0;
     f = std::uint8_t(f & ~kElasticContact);
-    if (t > 0 && (was || pen || !had)) f |= kElasticContact;
+    if (elastic_start_contact(t, dot(u[e], pr.nrm), was, had, float(pr.depth), touch)) f |= kElasticContact;
   });
   return under;
+}
+
+// the warm start's prediction (elastic_prediction): the last field and its unit press moved
+// with the tip across n (held nodes keep their 0; the contact set then starts from the moved
+// field's penetration), then the press's change along n
+void predict_start(ElasticCpu& s, const Voi& voi, const ElasticPrediction& pred) {
+  const long long n = voi.count();
+  const bool unit = pred.kind == ElasticPredict::kUnit;
+  if (pred.shift) {
+    grow(s.tmp_u, std::size_t(n));
+    auto shift_field = [&](std::vector<Vec3f>& f) {
+      std::copy_n(f.begin(), n, s.tmp_u.begin());
+      const auto load = [&](int a, int b, int c) {
+        return voi.contains(a, b, c) ? s.tmp_u[std::size_t(voi.index(a, b, c))] : Vec3f{0, 0, 0};
+      };
+      each_node(voi.size, [&](int i, int j, int kk) {
+        const std::size_t e = std::size_t(voi.index(i, j, kk));
+        if (!(s.flags[e] & kElasticHeld)) f[e] = elastic_shifted(load, i, j, kk, pred.shift_vox);
+      });
+    };
+    shift_field(s.u);
+    if (unit) shift_field(s.u_unit);
+    // the contact set from the moved field's penetration alone (elastic_shifted)
+    for (long long e = 0; e < n; ++e) s.flags[std::size_t(e)] &= std::uint8_t(~kElasticContact);
+  }
+  for (long long e = 0; e < n; ++e)
+    s.u[std::size_t(e)] =
+        elastic_predicted(pred.kind, pred.factor, s.u[std::size_t(e)], unit ? s.u_unit[std::size_t(e)] : Vec3f{0, 0, 0});
 }
 
 // the contact rounds: contact nodes onto the sphere along n (held nodes stay at 0), solve,
@@ -640,14 +668,11 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   // the warm start's prediction of this press from the last one (elastic_prediction)
   const ElasticPrediction pred =
       elastic_prediction(s.last_press, had && prm.predict, s.have_unit && dot(s.unit_normal, pr.nrm) > 0.999f,
-                         pr.tip_mm, pr.depth, pr.nrm);
-  if (pred.kind != ElasticPredict::kNone)
-    for (long long e = 0; e < n; ++e)
-      u[e] = elastic_predicted(pred.kind, pred.factor, u[e],
-                               pred.kind == ElasticPredict::kUnit ? s.u_unit[std::size_t(e)] : Vec3f{0, 0, 0});
+                         pr.tip_mm, pr.depth, pr.nrm, h);
+  if (pred.kind != ElasticPredict::kNone) predict_start(s, voi, pred);
   out.prediction = pred.kind;
   s.last_press = ElasticLastPress{pr.depth > 1e-6, pr.tip_mm, pr.depth, pr.nrm};
-  if (contact_set(s, voi, h, pr, had) == 0) {
+  if (contact_set(s, voi, h, pr, had, pred.shift) == 0) {
     // nothing pressed: the tissue at rest
     std::fill_n(u, n, Vec3f{0, 0, 0});
     s.have_u = true;

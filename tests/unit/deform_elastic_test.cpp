@@ -558,7 +558,7 @@ TEST_CASE("a warm step whose VOI moved holds the new VOI's faces at rest", "[ela
   // measured 0.8 % of the largest displacement apart; 2 % bounds it)
   CpuDeformBackend fresh;
   fresh.bind(p, cfg);
-  fresh.step({aside, aside - Vec3{0, 0, 6}});
+  const DeformStats fs = fresh.step({aside, aside - Vec3{0, 0, 6}});
   REQUIRE(fresh.voi() == voi);
   const std::vector<Vec3f> uf = fresh.displacement();
   float worst = 0, scale = 0;
@@ -566,7 +566,10 @@ TEST_CASE("a warm step whose VOI moved holds the new VOI's faces at rest", "[ela
     worst = std::max(worst, norm(u[e] - uf[e]));
     scale = std::max(scale, norm(uf[e]));
   }
-  INFO("max |u - u_fresh| " << worst << " of " << scale << " voxel");
+  INFO("max |u - u_fresh| " << worst << " of " << scale << " voxel; warm " << next.elastic.rounds << " rounds (settled "
+                             << next.elastic.contact_settled << "), " << next.elastic.iterations << " CG steps, "
+                             << next.elastic.contact_nodes << " contact nodes; fresh " << fs.elastic.rounds << " rounds, "
+                             << fs.elastic.iterations << " CG steps, " << fs.elastic.contact_nodes << " contact nodes");
   CHECK(worst <= 0.02f * scale);
 }
 
@@ -626,6 +629,132 @@ TEST_CASE("the warm start predicts a press along the same n: fewer CG steps to t
     // the same solution: both stop at a relative residual of 1e-3 (the tolerance), and with the
     // V-cycle's small condition number each field's error is of that order; 1 % of the field's
     // RMS (and of the force) bounds the two errors together with a wide margin
+    double d2 = 0, u2 = 0;
+    for (std::size_t e = 0; e < up.size(); ++e) {
+      d2 += double(dot(up[e] - ul[e], up[e] - ul[e]));
+      u2 += double(dot(ul[e], ul[e]));
+    }
+    CHECK(std::sqrt(d2 / u2) <= 0.01);
+    CHECK(pr.contact_nodes == last.contact_nodes);
+    CHECK(pr.force_n.z == Approx(last.force_n.z).epsilon(0.01));
+  }
+}
+
+TEST_CASE("the start's rules: Hertz's contact area when fresh, warm only after a press on a VOI that overlaps", "[elastic]") {
+  // fresh: a node pushed at least half the depth (Hertz's contact radius sqrt(R d) is where
+  // the sphere lies d / 2 above its deepest point); nothing not under the sphere
+  CHECK(elastic_start_contact(2.0f, 0.0f, false, false, 4.0f, 0.0f));
+  CHECK(elastic_start_contact(4.0f, 0.0f, false, false, 4.0f, 0.0f));
+  CHECK_FALSE(elastic_start_contact(1.9f, 0.0f, false, false, 4.0f, 0.0f));
+  CHECK_FALSE(elastic_start_contact(0.0f, 0.0f, true, true, 4.0f, 0.0f));
+  CHECK_FALSE(elastic_start_contact(-1.0f, -3.0f, true, false, 4.0f, 0.0f));
+  // warm: the last set's nodes still under the sphere, and nodes the start field leaves in it
+  CHECK(elastic_start_contact(0.1f, 5.0f, true, true, 4.0f, 0.0f));
+  CHECK(elastic_start_contact(0.1f, 0.0f, false, true, 4.0f, 0.0f));
+  CHECK_FALSE(elastic_start_contact(0.1f, 0.2f, false, true, 4.0f, 0.0f));
+  // a field moved with the tip holds its contact nodes on the sphere to rounding: they stay in
+  CHECK_FALSE(elastic_start_contact(0.1f, 0.1f, false, true, 4.0f, 0.0f));
+  CHECK(elastic_start_contact(0.1f, 0.1f, false, true, 4.0f, 1e-4f));
+  const Voi a{{10, 10, 10}, {8, 8, 8}};
+  CHECK(elastic_warm(true, true, a, a));
+  CHECK(elastic_warm(true, true, a, Voi{{17, 3, 10}, {8, 8, 8}}));  // one node in common
+  CHECK_FALSE(elastic_warm(true, true, a, Voi{{18, 10, 10}, {8, 8, 8}}));
+  CHECK_FALSE(elastic_warm(true, true, a, Voi{{10, 10, 2}, {8, 8, 8}}));
+  CHECK_FALSE(elastic_warm(true, false, a, a));  // the last step pressed nothing: its field is at rest
+  CHECK_FALSE(elastic_warm(false, true, a, a));
+}
+
+TEST_CASE("a field moved with the tip: whole voxels exactly, 0 from beyond the VOI, linear between", "[elastic]") {
+  const Voi voi{{0, 0, 0}, {6, 5, 4}};
+  std::vector<Vec3f> f(std::size_t(voi.count()));
+  for (int k = 0; k < 4; ++k)
+    for (int j = 0; j < 5; ++j)
+      for (int i = 0; i < 6; ++i) f[std::size_t(voi.index(i, j, k))] = Vec3f{float(i), float(10 * j), float(100 * k)};
+  auto load = [&](int i, int j, int k) { return voi.contains(i, j, k) ? f[std::size_t(voi.index(i, j, k))] : Vec3f{0, 0, 0}; };
+  // two voxels along +i: node 3 holds node 1's value, nodes 0 and 1 read beyond the VOI
+  const Vec3f two{2, 0, 0};
+  CHECK(elastic_shifted(load, 3, 2, 1, two) == f[std::size_t(voi.index(1, 2, 1))]);
+  CHECK(elastic_shifted(load, 1, 2, 1, two) == Vec3f{0, 0, 0});
+  // half a voxel along -j: the mean of the node and the one after it (a linear field is
+  // reproduced to rounding)
+  const Vec3f v = elastic_shifted(load, 2, 1, 3, Vec3f{0, -0.5f, 0});
+  CHECK(v.x == Approx(2.0f));
+  CHECK(v.y == Approx(15.0f));
+  CHECK(v.z == Approx(300.0f));
+  // the prediction's shift is the tip's move across n in voxels; a move along n shifts nothing
+  ElasticLastPress last{true, Vec3{10, 20, 30}, 3.0, Vec3f{0, 0, -1}};
+  const Vec3 h{0.5, 1.0, 2.0};
+  const ElasticPrediction across = elastic_prediction(last, true, true, Vec3{11, 20, 29}, 4.0, Vec3f{0, 0, -1}, h);
+  CHECK(across.shift);
+  CHECK(across.shift_vox.x == Approx(2.0f));
+  CHECK(across.shift_vox.y == 0.0f);
+  CHECK(across.shift_vox.z == Approx(0.0f).margin(1e-6));
+  CHECK(across.factor == Approx(1.0f));
+  CHECK_FALSE(elastic_prediction(last, true, true, Vec3{10, 20, 28}, 5.0, Vec3f{0, 0, -1}, h).shift);
+}
+
+TEST_CASE("a fresh press starts from Hertz's contact area: fewer rounds, the end of a press reached step by step", "[elastic]") {
+  // the slab of the fingertip's test (skin layer k = 30 of 32^3 nodes), a 5 mm finger at the
+  // centre: 3 mm at once from rest, and 0.5 mm a step to 3 mm (each step warm), both to
+  // 1e-5 with 8 contact rounds
+  const int n = 32, top = 30;
+  auto p = slab(n, top);
+  const Voi voi{{0, 0, 0}, {n, n, n}};
+  const Vec3 x_skin{15.5, 15.5, double(top)};
+  ElasticParams prm = homogeneous(12, 0.45);
+  prm.finger_radius_mm = 5;
+  prm.tolerance = 1e-5f;
+  prm.max_iterations = 200;
+  prm.contact_rounds = 8;
+  std::vector<Vec3f> uf(std::size_t(voi.count())), us(uf.size());
+  ElasticCpu sf, ss;
+  const ElasticRun fresh = relax_elastic_cpu(*p, voi, x_skin, x_skin - Vec3{0, 0, 3}, prm, sf, uf.data());
+  ElasticRun steps;
+  for (int q = 1; q <= 6; ++q) steps = relax_elastic_cpu(*p, voi, x_skin, x_skin - Vec3{0, 0, 0.5 * q}, prm, ss, us.data());
+  INFO("fresh: " << fresh.rounds << " rounds, " << fresh.iterations << " CG steps, " << fresh.contact_nodes
+                 << " contact nodes, F " << fresh.force_n.z << " N; step by step: " << steps.contact_nodes << " nodes, F "
+                 << steps.force_n.z << " N");
+  REQUIRE(fresh.contact);
+  CHECK_FALSE(fresh.warm);
+  CHECK(steps.warm);
+  CHECK(fresh.converged);
+  CHECK(fresh.contact_settled);
+  // Hertz's area is the contact's to within the ring of nodes at its edge: one round finds
+  // the set settled, at most one more moves that ring (the whole overlap's start, twice the
+  // area, took 3 rounds here)
+  CHECK(fresh.rounds <= 2);
+  // the same contact and force: each solved to 1e-5, so 0.1 % bounds the two errors together
+  CHECK(fresh.contact_nodes == steps.contact_nodes);
+  CHECK(fresh.force_n.z == Approx(steps.force_n.z).epsilon(1e-3));
+}
+
+TEST_CASE("a sliding tip moves its field along: fewer CG steps to the same field", "[elastic]") {
+  // the slab, a 5 mm finger 3 mm deep, then half a voxel aside along i at the same depth
+  // (the bench's sliding row moves so), predicted (the field moved with the tip) and from
+  // the last field alone, at the scenes' tolerance, with and without the unit press
+  const int n = 32, top = 30;
+  auto p = slab(n, top);
+  const Voi voi{{0, 0, 0}, {n, n, n}};
+  const Vec3 x_skin{15.5, 15.5, double(top)}, aside{0.5, 0, 0};
+  for (const bool stiffness : {false, true}) {
+    ElasticParams prm = homogeneous(12, 0.45);
+    prm.finger_radius_mm = 5;
+    prm.stiffness = stiffness;
+    auto second = [&](bool predict, std::vector<Vec3f>& u) {
+      prm.predict = predict;
+      ElasticCpu s;
+      u.assign(std::size_t(voi.count()), Vec3f{0, 0, 0});
+      relax_elastic_cpu(*p, voi, x_skin, x_skin - Vec3{0, 0, 3}, prm, s, u.data());
+      return relax_elastic_cpu(*p, voi, x_skin + aside, x_skin + aside - Vec3{0, 0, 3}, prm, s, u.data());
+    };
+    std::vector<Vec3f> up, ul;
+    const ElasticRun pr = second(true, up), last = second(false, ul);
+    INFO("stiffness " << stiffness << ": moved " << pr.iterations << " + " << pr.stiffness_iterations
+                      << " CG steps, the last field alone " << last.iterations << " + " << last.stiffness_iterations);
+    CHECK(pr.converged);
+    CHECK(last.converged);
+    CHECK(pr.iterations + pr.stiffness_iterations < last.iterations + last.stiffness_iterations);
+    // the same solution, to the tolerance (1e-3 each, as in the prediction's test: 1 %)
     double d2 = 0, u2 = 0;
     for (std::size_t e = 0; e < up.size(); ++e) {
       d2 += double(dot(up[e] - ul[e], up[e] - ul[e]));

@@ -9,9 +9,14 @@
 #            build-gpu/palpsim-gpu-stability-tests \
 #            build-gpu/palpsim-bench build-gpu/palpsim-test-render build-gpu/palpsim-test-net-stream
 #          git describe --always --dirty > .device/commit   # what the bundle was built from
-#   there: bash scripts/gpu-check.sh "$OUT" [quick]
+#   there: bash scripts/gpu-check.sh "$OUT" [quick|elastic]
+#
+# `elastic` runs the elastic model's checks and figures alone (issue 25: its GPU cases and
+# the stability catalogue against the CPU, the sanitizers on the clipped VOIs, the deform
+# bench's elastic rows twice, a traced run and the accuracy report's GPU column); the
+# bundle then needs palpsim-gpu-tests, palpsim-gpu-stability-tests and palpsim-bench.
 set -uo pipefail
-out=${1:?usage: scripts/gpu-check.sh OUT_DIR [quick]}
+out=${1:?usage: scripts/gpu-check.sh OUT_DIR [quick|elastic]}
 quick=${2:-}
 mkdir -p "$out"
 tar xzf .device/bundle.tgz -C /tmp && . /tmp/bundle/env.sh || { echo "gpu-check: no bundle in .device/" >&2; exit 2; }
@@ -28,6 +33,27 @@ step() {  # name, command...: runs it, keeps its output, prints one status line
   printf '%-22s rc=%d  %3ds\n' "$name" "$rc" $((SECONDS - t0)) | tee -a "$out/summary.txt"
   return 0
 }
+if [ "$quick" = elastic ]; then
+  elastic_case="gpu elastic steps equal the cpu's on clipped*"
+  step gpu-elastic-tests palpsim-gpu-tests "[elastic]"
+  step gpu-stability-tests palpsim-gpu-stability-tests
+  if command -v compute-sanitizer >/dev/null; then
+    step memcheck-elastic compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
+    step racecheck-elastic compute-sanitizer --tool racecheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
+  fi
+  # the elastic rows twice (the 16 sessions' figure moves a few % from one run to the next),
+  # a traced run (where a step's time goes), the accuracy report's GPU column
+  step bench-elastic-1 palpsim-bench deform --elastic --backend cuda --commit "$commit" --json "$out/deform-elastic-1.json"
+  step bench-elastic-2 palpsim-bench deform --elastic --backend cuda --commit "$commit" --json "$out/deform-elastic-2.json"
+  step elastic-trace env PALPSIM_ELASTIC_TRACE=1 palpsim-bench deform --elastic --backend cuda --quick
+  step accuracy-elastic palpsim-bench accuracy --elastic --json-only "$out/accuracy-elastic.json" --backend cuda \
+    --commit "$commit"
+  for f in "$out"/*.txt; do
+    echo "=== $(basename "$f")"
+    grep -E "passed|failed|FAILED|ERROR SUMMARY|elastic cuda" "$f" | cut -c1-300 | tail -16
+  done
+  exit 0
+fi
 step gpu-tests palpsim-gpu-tests
 step gpu-render-tests palpsim-gpu-render-tests
 # the stability catalogue's deformation cases on "cuda" (tests/stability/, issue 8 section 5)

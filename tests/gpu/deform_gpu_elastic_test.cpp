@@ -277,7 +277,8 @@ TEST_CASE("gpu elastic steps equal the cpu's on the lumbar phantom as the scenes
 
 TEST_CASE("gpu elastic steps equal the cpu's with the warm start predicted and the force by reciprocity", "[elastic]") {
   if (!have_gpu()) return;
-  // the phantom's press over L3 as above, the tip moving a voxel in and out along n: with
+  // the phantom's press over L3 as above, the tip moving a voxel in and out along n, then
+  // sliding along the spine: with
   // the unit press (predicted from it, the unit press to 0.01 and the force by reciprocity)
   // and without (predicted by the depths' ratio)
   PhantomCt ct = make_phantom(340.0 / 255.0);
@@ -302,6 +303,14 @@ TEST_CASE("gpu elastic steps equal the cpu's with the warm start predicted and t
       const deform::ElasticRun r = check_elastic_step(b, {X, X + in * (6.0 + (s & 1) * h)}, tol,
                                                       "predicted, step " + std::to_string(s) + ", " + with);
       CHECK(r.prediction == (stiffness ? deform::ElasticPredict::kUnit : deform::ElasticPredict::kScale));
+    }
+    // sliding half a voxel a step along the spine (the bench's slide): the last field and
+    // unit press moved with the tip across n (deform::elastic_shifted)
+    for (int s = 1; s <= 3; ++s) {
+      const Vec3 at = X + Vec3{0, 0, 0.5 * h * s};
+      const deform::ElasticRun r =
+          check_elastic_step(b, {at, at + in * 6.0}, tol, "sliding, step " + std::to_string(s) + ", " + with);
+      CHECK(r.warm);
     }
   }
 }

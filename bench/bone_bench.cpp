@@ -5,9 +5,15 @@
 // abdomen (3 mm voxels) where the data folder holds its per-structure labels
 // (ct/abdomen-lumbar-3mm-labels/, see tests/unit/bone_agreement.h). Per rib recall
 // within 3 mm, overall recall and precision, the vertebrae, the spinal cord and the
-// discs in the mask, and the preparation's time. Writes one JSON file with the date,
-// the machine and the commit (bench/results/bone-*.json).
+// discs in the mask, the precision's misses (what the mask holds more than 3 mm from
+// labelled bone: by the reference's label there, and the largest connected parts, with an
+// optional picture of three slices of the 2 mm series), and the preparation's time. Writes
+// one JSON file with the date, the machine and the commit (bench/results/bone-*.json).
+#include <algorithm>
+#include <array>
 #include <chrono>
+#include <cmath>
+#include <map>
 #include <cstdio>
 #include <fstream>
 #include <sstream>
@@ -19,6 +25,8 @@
 #include "bench/stats.h"
 #include "core/error.h"
 #include "prep/ct_io.h"
+#include "prep/distance.h"
+#include "prep/outputs.h"
 #include "prep/pipeline.h"
 #include "prep/prepare.h"
 #include "tests/support/data.h"
@@ -44,13 +52,116 @@ struct BoneCase {
   int canal_slices = 0, segments = 0;
   bool spine_found = false;
   double bone_ml = 0;
+  // the precision's misses: mask voxels (cartilage left out) more than 3 mm from labelled
+  // bone, by the reference's label there, and their largest 26-connected parts
+  std::size_t misses = 0;
+  std::map<int, std::size_t> misses_by_label;
+  struct Part {
+    std::size_t voxels = 0;
+    double ml = 0, mean_hu = 0;
+    Vec3 centre_mm{0, 0, 0};  // LPS
+    int label = 0;            // the reference's label most of its voxels lie in
+  };
+  std::vector<Part> miss_parts;
 };
+
+// the largest 26-connected parts (at most `most`) of `m` (0/1), with their sizes, centres,
+// mean intensity and the label of `ids` most of each lies in
+std::vector<BoneCase::Part> largest_parts(const Volume<std::uint8_t>& m, const Volume<float>& hu,
+                                          const Volume<std::uint8_t>& ids, std::size_t most) {
+  const Grid& g = m.grid;
+  std::vector<std::uint8_t> seen(m.data.size(), 0);
+  std::vector<BoneCase::Part> parts;
+  std::vector<Vec3i> stack;
+  const double voxel_ml = g.spacing_mm.x * g.spacing_mm.y * g.spacing_mm.z / 1000.0;
+  for (int k = 0; k < g.size.z; ++k)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i) {
+        if (!m.at(i, j, k) || seen[g.index(i, j, k)]) continue;
+        BoneCase::Part part;
+        Vec3 sum{0, 0, 0};
+        std::map<int, std::size_t> labels;
+        seen[g.index(i, j, k)] = 1;
+        stack.assign(1, Vec3i{i, j, k});
+        while (!stack.empty()) {
+          const Vec3i v = stack.back();
+          stack.pop_back();
+          ++part.voxels;
+          sum = sum + Vec3{double(v.x), double(v.y), double(v.z)};
+          part.mean_hu += hu.at(v.x, v.y, v.z);
+          ++labels[ids.at(v.x, v.y, v.z)];
+          for (int dz = -1; dz <= 1; ++dz)
+            for (int dy = -1; dy <= 1; ++dy)
+              for (int dx = -1; dx <= 1; ++dx) {
+                const int a = v.x + dx, b = v.y + dy, c = v.z + dz;
+                if (!g.contains(a, b, c) || !m.at(a, b, c) || seen[g.index(a, b, c)]) continue;
+                seen[g.index(a, b, c)] = 1;
+                stack.push_back(Vec3i{a, b, c});
+              }
+        }
+        const double n = double(part.voxels);
+        part.ml = n * voxel_ml;
+        part.mean_hu /= n;
+        part.centre_mm = g.to_physical(sum * (1.0 / n));
+        part.label = std::max_element(labels.begin(), labels.end(), [](const auto& x, const auto& y) {
+                       return x.second < y.second;
+                     })->first;
+        parts.push_back(part);
+      }
+  std::sort(parts.begin(), parts.end(), [](const auto& x, const auto& y) { return x.voxels > y.voxels; });
+  if (parts.size() > most) parts.resize(most);
+  return parts;
+}
+
+// three axial slices (a sixth, half and five sixths up the volume) of the 2 mm series,
+// cropped to the body: the image in grey (-200 to 600 HU), the mask in green, its misses in red, the labelled
+// bone's outline in cyan and the costal cartilage's in yellow; patient's right on the
+// left, anterior up
+void write_misses_png(const std::string& path, const Patient& p, const test::LabelReference& lr,
+                      const Volume<std::uint8_t>& miss) {
+  const Grid& g = p.grid;
+  int slice[3];
+  for (int s = 0; s < 3; ++s) slice[s] = std::clamp(int(std::lround((2 * s + 1) * (g.size.z - 1) / 6.0)), 0, g.size.z - 1);
+  // the body's box in the three slices, 4 voxels around it
+  int i0 = g.size.x, i1 = -1, j0 = g.size.y, j1 = -1;
+  for (int s = 0; s < 3; ++s)
+    for (int j = 0; j < g.size.y; ++j)
+      for (int i = 0; i < g.size.x; ++i)
+        if (p.body.at(i, j, slice[s])) i0 = std::min(i0, i), i1 = std::max(i1, i), j0 = std::min(j0, j), j1 = std::max(j1, j);
+  if (i1 < 0) i0 = 0, i1 = g.size.x - 1, j0 = 0, j1 = g.size.y - 1;
+  i0 = std::max(0, i0 - 4), j0 = std::max(0, j0 - 4), i1 = std::min(g.size.x - 1, i1 + 4), j1 = std::min(g.size.y - 1, j1 + 4);
+  const int w = i1 - i0 + 1, h = j1 - j0 + 1;
+  std::vector<std::array<std::uint8_t, 3>> img(std::size_t(3 * w) * h);
+  auto edge = [&](const Volume<std::uint8_t>& v, int i, int j, int k) {
+    if (!v.at(i, j, k)) return false;
+    return (i == 0 || !v.at(i - 1, j, k)) || (i + 1 == g.size.x || !v.at(i + 1, j, k)) || (j == 0 || !v.at(i, j - 1, k)) ||
+           (j + 1 == g.size.y || !v.at(i, j + 1, k));
+  };
+  for (int s = 0; s < 3; ++s) {
+    const int k = slice[s];
+    for (int j = j0; j <= j1; ++j)
+      for (int i = i0; i <= i1; ++i) {
+        const double grey = std::clamp((p.intensity.at(i, j, k) + 200.0) / 800.0, 0.0, 1.0) * 255.0;
+        std::array<double, 3> c{grey, grey, grey};
+        auto blend = [&](std::array<double, 3> col, double a) {
+          for (int q = 0; q < 3; ++q) c[q] = (1 - a) * c[q] + a * col[q];
+        };
+        if (miss.at(i, j, k)) blend({255, 0, 0}, 0.7);
+        else if (p.bone.at(i, j, k)) blend({0, 255, 0}, 0.35);
+        if (edge(lr.bone, i, j, k)) c = {0, 255, 255};
+        if (edge(lr.cartilage, i, j, k)) c = {255, 255, 0};
+        std::array<std::uint8_t, 3>& px = img[std::size_t(j - j0) * 3 * w + std::size_t(s) * w + (i - i0)];
+        for (int q = 0; q < 3; ++q) px[q] = std::uint8_t(std::lround(c[q]));
+      }
+  }
+  write_rgb_png(path, img, 3 * w, h, 1);
+}
 
 // prepares `image` with the default scene and measures it against the reference that
 // `reference` puts on the patient's grid; `discs` are pairs of adjacent vertebrae's ids
 template <typename Reference>
 BoneCase measure(const std::string& name, double slice_mm, const Volume<float>& image, Reference&& reference,
-                 const std::vector<std::pair<int, int>>& discs, int repeats) {
+                 const std::vector<std::pair<int, int>>& discs, int repeats, const std::string& misses_png = "") {
   BoneCase c;
   c.name = name;
   c.slice_mm = slice_mm;
@@ -59,12 +170,13 @@ BoneCase measure(const std::string& name, double slice_mm, const Volume<float>& 
   PrepReport r;
   std::vector<double> total, bone;
   for (int i = 0; i < repeats; ++i) {
-    r = PrepReport{};
+    PrepReport run;
     const auto t0 = Clock::now();
-    p = build_patient(image, s, name, &r);
+    p = build_patient(image, s, name, &run);
     total.push_back(std::chrono::duration<double>(Clock::now() - t0).count());
-    for (const auto& [stage, sec] : r.stage_s)
+    for (const auto& [stage, sec] : run.stage_s)
       if (stage == "bone_mask") bone.push_back(sec);
+    r = std::move(run);
   }
   c.prep_s = spread(total).median;
   c.bone_mask_s = spread(bone).median;
@@ -77,6 +189,18 @@ BoneCase measure(const std::string& name, double slice_mm, const Volume<float>& 
   c.bone_ml = r.bone_ml;
   const test::LabelReference lr = reference(p->grid);
   c.all = test::agreement(lr.bone, p->bone, lr.cartilage, 3.0);
+  // the precision's misses, as test::agreement counts them
+  Volume<std::uint8_t> ref_or_cartilage = lr.bone, miss(p->grid, 0);
+  for (std::size_t i = 0; i < ref_or_cartilage.data.size(); ++i) ref_or_cartilage.data[i] |= lr.cartilage.data[i];
+  const Volume<float> to_ref = distance_to_mask_mm(ref_or_cartilage);
+  for (std::size_t i = 0; i < miss.data.size(); ++i) {
+    if (!p->bone.data[i] || lr.cartilage.data[i] || to_ref.data[i] <= 3.0f) continue;
+    miss.data[i] = 1;
+    ++c.misses;
+    ++c.misses_by_label[lr.id.data[i]];
+  }
+  c.miss_parts = largest_parts(miss, p->intensity, lr.id, 8);
+  if (!misses_png.empty()) write_misses_png(misses_png, *p, lr, miss);
   c.spine = test::agreement(lr.spine, p->bone, lr.cartilage, 3.0);
   c.ribs = test::recall_per_label(lr.id, p->bone, test::rib_label_ids(), 3.0);
   std::size_t ref = 0, hit = 0;
@@ -114,6 +238,13 @@ void print_case(const BoneCase& c) {
               "canal slices %d, segments %d; spine %s\n",
               c.cord_in_bone, c.cord, c.disc_in_bone, c.disc, double(test::kDiscSoftHu), c.disc_soft_in_bone,
               c.disc_soft, c.canal_slices, c.segments, c.spine_found ? "found" : "not found");
+  std::printf("  precision's misses (mask voxels more than 3 mm from labelled bone) %zu:", c.misses);
+  for (const auto& [id, n] : c.misses_by_label) std::printf(" %s %zu;", test::label_name(id).c_str(), n);
+  std::printf("\n  their largest parts:");
+  for (const auto& m : c.miss_parts)
+    std::printf(" %.1f ml at (%.0f, %.0f, %.0f) mm, %.0f HU, %s;", m.ml, m.centre_mm.x, m.centre_mm.y, m.centre_mm.z,
+                m.mean_hu, test::label_name(m.label).c_str());
+  std::printf("\n");
   std::printf("  per rib (recall within 3 mm, labelled voxels):");
   for (const auto& [id, a] : c.ribs)
     if (a.ref) std::printf(" %s %.2f (%zu);", test::label_name(id).c_str(), a.recall(), a.ref);
@@ -133,7 +264,21 @@ std::string case_json(const BoneCase& c) {
     << ", \"disc_in_bone\": " << c.disc_in_bone << ", \"disc_soft_voxels\": " << c.disc_soft
     << ", \"disc_soft_in_bone\": " << c.disc_soft_in_bone << ", \"canal_slices\": " << c.canal_slices
     << ", \"segments\": " << c.segments
-    << ", \"spine_found\": " << (c.spine_found ? "true" : "false") << ",\n     \"ribs\": {";
+    << ", \"spine_found\": " << (c.spine_found ? "true" : "false") << ",\n     \"misses\": " << c.misses
+    << ", \"misses_by_label\": {";
+  bool first_label = true;
+  for (const auto& [id, n] : c.misses_by_label) {
+    j << (first_label ? "" : ", ") << json_str(test::label_name(id)) << ": " << n;
+    first_label = false;
+  }
+  j << "},\n     \"miss_parts\": [";
+  for (std::size_t i = 0; i < c.miss_parts.size(); ++i) {
+    const auto& m = c.miss_parts[i];
+    j << (i ? ", " : "") << "{\"voxels\": " << m.voxels << ", \"ml\": " << json_number(m.ml) << ", \"centre_mm\": ["
+      << json_number(m.centre_mm.x) << ", " << json_number(m.centre_mm.y) << ", " << json_number(m.centre_mm.z)
+      << "], \"mean_hu\": " << json_number(m.mean_hu) << ", \"label\": " << json_str(test::label_name(m.label)) << "}";
+  }
+  j << "],\n     \"ribs\": {";
   bool first = true;
   for (const auto& [id, a] : c.ribs) {
     if (!a.ref) continue;
@@ -149,18 +294,20 @@ std::string case_json(const BoneCase& c) {
 }  // namespace palpsim::bench
 
 PALPSIM_BENCH(bone, "the default bone mask against the shared DICOM series' labels at 2 mm and in 4 and 6 mm slabs: "
-                    "per rib recall, precision, vertebrae, cord, disc, prep time [--json FILE] [--commit C] [--repeats N]") {
+                    "per rib recall, precision and its misses, vertebrae, cord, disc, prep time [--json FILE] [--commit C] "
+                    "[--repeats N] [--misses-png FILE: three slices of the 2 mm series with the misses]") {
   using namespace palpsim;
   using namespace palpsim::bench;
-  std::string json, commit = "unknown";
+  std::string json, commit = "unknown", misses_png;
   int repeats = 3;
   for (int a = 1; a < argc; ++a) {
     const std::string s = argv[a];
     if (s == "--json" && a + 1 < argc) json = argv[++a];
     else if (s == "--commit" && a + 1 < argc) commit = argv[++a];
     else if (s == "--repeats" && a + 1 < argc) repeats = std::max(1, std::atoi(argv[++a]));
+    else if (s == "--misses-png" && a + 1 < argc) misses_png = argv[++a];
     else {
-      std::fprintf(stderr, "usage: palpsim-bench bone [--json FILE] [--commit C] [--repeats N]\n");
+      std::fprintf(stderr, "usage: palpsim-bench bone [--json FILE] [--commit C] [--repeats N] [--misses-png FILE]\n");
       return 2;
     }
   }
@@ -177,7 +324,8 @@ PALPSIM_BENCH(bone, "the default bone mask against the shared DICOM series' labe
     const std::string name = n == 1 ? "dicom 2 mm" : "dicom " + std::to_string(2 * n) + " mm slabs";
     cases.push_back(measure(
         name, slab.grid.spacing_mm.z, slab,
-        [&](const Grid& g) { return test::dicom_label_reference(g, slab_labels); }, t11_t12, repeats));
+        [&](const Grid& g) { return test::dicom_label_reference(g, slab_labels); }, t11_t12, repeats,
+        n == 1 ? misses_png : std::string()));
     print_case(cases.back());
   }
   // the abdomen, where its labels are in the data folder

@@ -67,36 +67,6 @@ long long nearest_voxel(const Grid& g, const Vec3& p) {
   return g.contains(i, j, k) ? (long long)g.index(i, j, k) : -1;
 }
 
-// writes an RGB image as PNG, each pixel repeated `scale` times in x and y
-void write_rgb_png(const std::string& path, const std::vector<std::array<std::uint8_t, 3>>& img, int width,
-                   int height, int scale) {
-  std::vector<std::uint8_t> rows(std::size_t(width) * scale * 3 * height * scale);
-  const std::size_t stride = std::size_t(width) * scale * 3;
-  for (int y = 0; y < height * scale; ++y)
-    for (int x = 0; x < width * scale; ++x)
-      for (int c = 0; c < 3; ++c) rows[y * stride + std::size_t(x) * 3 + c] = img[std::size_t(y / scale) * width + x / scale][c];
-  std::vector<png_bytep> ptrs(std::size_t(height) * scale);
-  for (std::size_t y = 0; y < ptrs.size(); ++y) ptrs[y] = rows.data() + y * stride;
-  const png_uint_32 w = png_uint_32(width * scale), h = png_uint_32(height * scale);
-
-  std::FILE* fp = std::fopen(path.c_str(), "wb");
-  if (!fp) throw Error("cannot create '" + path + "'");
-  png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, nullptr, nullptr, nullptr);
-  png_infop info = png ? png_create_info_struct(png) : nullptr;
-  if (!png || !info || setjmp(png_jmpbuf(png))) {
-    png_destroy_write_struct(&png, &info);
-    std::fclose(fp);
-    throw Error("error writing '" + path + "'");
-  }
-  png_init_io(png, fp);
-  png_set_IHDR(png, info, w, h, 8, PNG_COLOR_TYPE_RGB, PNG_INTERLACE_NONE, PNG_COMPRESSION_TYPE_DEFAULT,
-               PNG_FILTER_TYPE_DEFAULT);
-  png_write_info(png, info);
-  png_write_image(png, ptrs.data());
-  png_write_end(png, nullptr);
-  png_destroy_write_struct(&png, &info);
-  if (std::fclose(fp) != 0) throw Error("error writing '" + path + "' (disk full?)");
-}
 
 // a 5 x 7 pixel font for the preview's caption: rows top to bottom, bit 4 the left
 // column; lowercase is drawn as uppercase, unknown characters as '?'
@@ -259,6 +229,36 @@ void draw_histogram(std::vector<Rgb>& img, int width, int height, int y0, int ba
 }
 
 }  // namespace
+
+void write_rgb_png(const std::string& path, const std::vector<std::array<std::uint8_t, 3>>& img, int width,
+                   int height, int scale) {
+  std::vector<std::uint8_t> rows(std::size_t(width) * scale * 3 * height * scale);
+  const std::size_t stride = std::size_t(width) * scale * 3;
+  for (int y = 0; y < height * scale; ++y)
+    for (int x = 0; x < width * scale; ++x)
+      for (int c = 0; c < 3; ++c) rows[y * stride + std::size_t(x) * 3 + c] = img[std::size_t(y / scale) * width + x / scale][c];
+  std::vector<png_bytep> ptrs(std::size_t(height) * scale);
+  for (std::size_t y = 0; y < ptrs.size(); ++y) ptrs[y] = rows.data() + y * stride;
+  const png_uint_32 w = png_uint_32(width * scale), h = png_uint_32(height * scale);
+
+  std::FILE* fp = std::fopen(path.c_str(), "wb");
+  if (!fp) throw Error("cannot create '" + path + "'");
+  png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, nullptr, nullptr, nullptr);
+  png_infop info = png ? png_create_info_struct(png) : nullptr;
+  if (!png || !info || setjmp(png_jmpbuf(png))) {
+    png_destroy_write_struct(&png, &info);
+    std::fclose(fp);
+    throw Error("error writing '" + path + "'");
+  }
+  png_init_io(png, fp);
+  png_set_IHDR(png, info, w, h, 8, PNG_COLOR_TYPE_RGB, PNG_INTERLACE_NONE, PNG_COMPRESSION_TYPE_DEFAULT,
+               PNG_FILTER_TYPE_DEFAULT);
+  png_write_info(png, info);
+  png_write_image(png, ptrs.data());
+  png_write_end(png, nullptr);
+  png_destroy_write_struct(&png, &info);
+  if (std::fclose(fp) != 0) throw Error("error writing '" + path + "' (disk full?)");
+}
 
 void write_nrrd(const std::string& path, const Volume<float>& v) { write_nrrd_any(path, v, "float"); }
 void write_nrrd(const std::string& path, const Volume<std::uint8_t>& v) { write_nrrd_any(path, v, "uint8"); }

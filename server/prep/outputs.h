@@ -3,6 +3,7 @@
 // contour, like the paper's Fig. 1), and the output folder written atomically.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <limits>
 #include <string>
@@ -18,6 +19,11 @@ namespace palpsim {
 void write_nrrd(const std::string& path, const Volume<float>& v);
 /// Writes a 0/1 mask as an unsigned 8-bit NRRD file (same geometry fields).
 void write_nrrd(const std::string& path, const Volume<std::uint8_t>& v);
+
+/// Writes `img` (width x height RGB pixels, row by row from the top) as a PNG file, each
+/// pixel repeated `scale` times along x and y; throws Error naming the file on failure.
+void write_rgb_png(const std::string& path, const std::vector<std::array<std::uint8_t, 3>>& img, int width,
+                   int height, int scale);
 
 /// What the preview shows beside F's slices.
 struct PreviewOptions {

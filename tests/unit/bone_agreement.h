@@ -59,13 +59,22 @@ inline std::vector<int> rib_label_ids() {
   for (int id = 109; id <= 115; ++id) ids.push_back(id);
   return ids;
 }
-// "rib 7 left" for a rib label id, the label number otherwise
+// "rib 7 left" for a rib label id, the name of a few others (TotalSegmentator's ids), the
+// label number otherwise
 inline std::string label_name(int id) {
   if (id >= 97 && id <= 103) return "rib " + std::to_string(id - 91) + " left";
   if (id >= 109 && id <= 115) return "rib " + std::to_string(id - 103) + " right";
   if (id == 32) return "T12";
   if (id == 33) return "T11";
   if (id >= 27 && id <= 31) return "L" + std::to_string(32 - id);
+  if (id == 0) return "no label";
+  if (id == 7) return "pancreas";
+  if (id == 52) return "aorta";
+  if (id == 63) return "inferior vena cava";
+  if (id == 64) return "portal and splenic vein";
+  if (id == 79) return "spinal cord";
+  if (id == 86 || id == 87) return "back muscles";
+  if (id == 117) return "costal cartilage";
   return "label " + std::to_string(id);
 }
 inline LabelReference dicom_label_reference(const Grid& g, const Volume<float>& labels) {

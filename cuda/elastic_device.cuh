@@ -34,7 +34,7 @@ constexpr int kBlockNodes = 64;    // coarse levels of at most this many nodes r
 constexpr int kTileNodes = 8192;   // coarse levels of at least this many nodes on the grid take tiles (the default)
 constexpr int kSlot = 4;           // sums a reduction slot holds
 constexpr int kRing = 32;          // the step's reduction slots, reused in turn
-constexpr int kSetupSums = deform::kElasticPowerIterations * kElasticMaxLevels;  // the set-up's slots
+constexpr int kSetupSums = deform::kElasticLanczosSteps * kElasticMaxLevels;  // the set-up's slots
 // the sums' last entry: the ring's slot at which the next step starts. Each use of a slot
 // clears the one kRing / 2 ahead, so the kRing / 2 slots from the next one on are clear when
 // a step ends (used before the step began, or cleared since): a step starts there with no
@@ -61,7 +61,7 @@ enum TracePass : int {
   kPassSetupNodes,
   kPassSetupCells,
   kPassSetupCoarse,
-  kPassSetupPower,
+  kPassSetupLanczos,
   kPassSetupEnd,
   kPassShift,
 };
@@ -225,7 +225,7 @@ struct NoPre {
 // apart), kx[f] = (K x[f]) at the node, own[f] = x[f] at the node (from the tile), pv =
 // pre(true, e) (loaded before the tile). Held nodes get kx = dg = 0 (every caller projects
 // them to 0); the nodes of the tiles left out are all held, and every caller's outputs
-// hold 0 there already (each solve and the set-up's power steps clear them first, on every
+// hold 0 there already (each solve and the set-up's Lanczos steps clear them first, on every
 // level). A free node on the level's faces (none: the VOI's faces are held) would take
 // elastic_apply_node from global memory. Every thread of a block runs every tile of the
 // block (the tile's barriers). What is left of the tiles after the whole rounds is summed

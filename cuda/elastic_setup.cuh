@@ -33,59 +33,81 @@ struct SetupArgs {
   int trace_pairs;            // the pairs it holds
 };
 
-// every level's largest eigenvalue of D^-1 K by power iteration, all levels in the same
-// passes (the whole grid): the start, then x' = Pi D^-1 K x with |x|^2 and |x'|^2 per
-// level, into v.lmax by block 0's thread 0 after the last pass
+// every level's largest eigenvalue of D^-1 K by kElasticLanczosSteps Lanczos steps
+// (deform::elastic_lanczos_lmax), all levels in the same passes (the whole grid), as
+// relax_elastic.cpp's estimate_lmax: the start u_0 in x[0]; step 0 applies A = Pi D^-1 K to
+// u_0 (z_0 into res), step j >= 1 to z_{j-1} and gets u_j (x[0] / x[1]) and z_j = A u_j (res /
+// d) from the last two by the recurrence, each over u_{j-2} and z_{j-2} at the same node;
+// the sums <u_j, u_j>_D and <z_j, u_j>_D per level and step, into v.lmax by block 0's thread
+// 0 after the last pass. The scratch's d held the node moduli, done with by now.
 __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all, cg::grid_group& g, Tracer& tr) {
   const View& v = a.v;
   const int levels = a.plan.levels;
   const CellMatrix km{a.k};
   double* sums = v.sums + kSlot * kRing;
   const Vec3f none{0, 0, 0};
+  const Field U[2] = {every(v.x[0], v), every(v.x[1], v)};
+  const Field Z[2] = {every(v.res, v), every(v.d, v)};
+  // the start, and the other vectors at 0 (the gathers leave out tiles all held)
   for (int l = 0; l < levels; ++l) {
     const Lvl& L = lv[l];
-    const Field x0 = every(v.x[0], v), x1 = every(v.x[1], v);
     for (int q = all.first; q < L.count; q += all.stride) {
       const unsigned long long m = 3ull * (unsigned long long)q;
       const int e = L.off + q;
-      x0.set(e, deform::elastic_project(v.flags[e], none,
-                                        Vec3f{deform::elastic_power_start(m), deform::elastic_power_start(m + 1),
-                                              deform::elastic_power_start(m + 2)}));
-      // the second vector at held nodes: the gathers leave out tiles all held
-      if (v.flags[e] & kElasticHeld) x1.set(e, none);
+      U[0].set(e, deform::elastic_project(v.flags[e], none,
+                                          Vec3f{deform::elastic_power_start(m), deform::elastic_power_start(m + 1),
+                                                deform::elastic_power_start(m + 2)}));
+      U[1].set(e, none);
+      Z[0].set(e, none);
+      Z[1].set(e, none);
     }
   }
   g.sync();
-  for (int it = 0; it < deform::kElasticPowerIterations; ++it) {
-    const Field xf = every(v.x[it & 1], v), xt = every(v.x[(it + 1) & 1], v);
+  // <a, b>_D with the node's diagonal `dg` (no weight where there is none)
+  auto dot_w = [](const Vec3f& x, const Vec3f& y, const Vec3f& dg) {
+    return (dg.x > 0 ? double(x.x) * y.x * dg.x : 0.0) + (dg.y > 0 ? double(x.y) * y.y * dg.y : 0.0) +
+           (dg.z > 0 ? double(x.z) * y.z * dg.z : 0.0);
+  };
+  for (int j = 0; j < deform::kElasticLanczosSteps; ++j) {
+    const Field un = U[j & 1], zn = Z[j & 1], up = U[(j + 1) & 1], zp = Z[(j + 1) & 1];
     for (int l = 0; l < levels; ++l) {
+      // this level's recurrence coefficients from the last two steps' sums
+      double alpha = 0, beta = 0;
+      if (j > 0) {
+        const double* s1 = sums + kSlot * ((j - 1) * kElasticMaxLevels + l);
+        if (s1[0] > 0) alpha = s1[1] / s1[0];
+        if (j > 1) {
+          const double* s2 = sums + kSlot * ((j - 2) * kElasticMaxLevels + l);
+          if (s2[0] > 0) beta = s1[0] / s2[0];
+        }
+      }
       double part[2] = {0, 0};
-      gather(km, v.cell_e, v.flags, v.tiles, a.tile_nodes, lv[l], all, xf, NoPre{},
+      gather(km, v.cell_e, v.flags, v.tiles, a.tile_nodes, lv[l], all, j == 0 ? U[0] : zp, NoPre{},
              [&](int e, int, int, int, const Vec3f& kx, const Vec3f& dg, const Vec3f& xe, int) {
-               const Vec3f re = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
-               xt.set(e, re);
-               part[0] += dot_d(xe, xe);
-               part[1] += dot_d(re, re);
+               const Vec3f t = deform::elastic_project(v.flags[e], none, mul(inverse(dg), kx));
+               Vec3f ue = xe, ze = t;
+               if (j > 0) {
+                 ue = xe - up.at(e) * float(alpha) - un.at(e) * float(beta);
+                 ze = t - xe * float(alpha) - zn.at(e) * float(beta);
+                 un.set(e, ue);
+               }
+               zn.set(e, ze);
+               part[0] += dot_w(ue, ue, dg);
+               part[1] += dot_w(ze, ue, dg);
              });
-      block_sum(part, sums + kSlot * (it * kElasticMaxLevels + l));
+      block_sum(part, sums + kSlot * (j * kElasticMaxLevels + l));
     }
     g.sync();
-    tr.stamp(kPassSetupPower * 16);
+    tr.stamp(kPassSetupLanczos * 16);
   }
   if (blockIdx.x == 0 && threadIdx.x == 0) {
     for (int l = 0; l < levels; ++l) {
-      bool dead = false;
-      double lambda = 0;
-      for (int it = 0; it < deform::kElasticPowerIterations; ++it) {
-        const double* s = sums + kSlot * (it * kElasticMaxLevels + l);
-        const double xn = sqrt(s[0]);
-        if (!(xn > 0)) {
-          dead = true;
-          break;
-        }
-        lambda = sqrt(s[1]) / xn;
+      double s[deform::kElasticLanczosSteps], n[deform::kElasticLanczosSteps];
+      for (int j = 0; j < deform::kElasticLanczosSteps; ++j) {
+        s[j] = sums[kSlot * (j * kElasticMaxLevels + l)];
+        n[j] = sums[kSlot * (j * kElasticMaxLevels + l) + 1];
       }
-      v.lmax[l] = dead || !(lambda > 0) ? 1.0f : float(lambda);
+      v.lmax[l] = float(deform::elastic_lanczos_lmax(s, n, deform::kElasticLanczosSteps));
     }
   }
 }

@@ -3,7 +3,7 @@
 // what is solved), in two persistent cooperative kernels with grid.sync() between passes
 // and every decision taken on the device, so that a step costs no host wait but its end:
 // - the set-up (a new VOI): node moduli, static flags, cell moduli of every level, each
-//   level's lmax of D^-1 K by power iteration (all levels in the same passes), and the last
+//   level's lmax of D^-1 K by Lanczos steps (all levels in the same passes), and the last
 //   field and contact set carried onto the new VOI;
 // - the step: the sphere's contact set, the contact rounds (conjugate gradients
 //   preconditioned by a V-cycle with Chebyshev smoothing; tension releases, penetration
@@ -94,7 +94,7 @@ const char* pass_name(int pass) {
                                       "restrict",    "block 0's levels", "correct",     "smooth up",
                                       "CG direction", "CG apply",     "CG update",       "V-cycle's last",
                                       "solve start", "contact",      "field",
-                                      "nodes",       "cells",        "coarse cells",    "power step",
+                                      "nodes",       "cells",        "coarse cells",    "Lanczos step",
                                       "carry",       "shift"};
   return pass >= 0 && pass < int(sizeof(names) / sizeof(names[0])) ? names[pass] : "?";
 }

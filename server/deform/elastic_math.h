@@ -32,6 +32,7 @@
 // is for E = 1 kPa (N/mm per mm of displacement), so K u is in N.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 
 #include "core/hd.h"
@@ -55,14 +56,59 @@ constexpr float kElasticAirRatio = 1e-4f;
 /// Damped Jacobi does not do: the centre-point volume term makes lmax(D^-1 K) about 8 to 24
 /// at nu 0.45 (a cell's divergence couples its 24 unknowns), so a weight that keeps Jacobi
 /// stable leaves the rest of the upper spectrum nearly undamped. lmax comes from
-/// kElasticPowerIterations power iterations per level when a VOI is set up. The degrees
-/// are the scene's (ElasticDegrees).
+/// kElasticLanczosSteps Lanczos steps per level when a VOI is set up (elastic_lanczos_lmax).
+/// The degrees are the scene's (ElasticDegrees).
 constexpr float kElasticChebyshevRatio = 20.0f;
 constexpr float kElasticCoarsestRatio = 400.0f;  // the coarsest level's interval reaches further down
-constexpr float kElasticChebyshevMargin = 1.1f;  // the power estimate is a lower bound of lmax
-constexpr int kElasticPowerIterations = 12;
+constexpr float kElasticChebyshevMargin = 1.1f;  // the estimate is a lower bound of lmax
+/// Lanczos steps (each one application of D^-1 K) for a level's lmax: Lanczos's largest Ritz
+/// value nears lmax far faster than the power iteration's ratio, whose 12 steps (used
+/// before) left some levels of the phantom's VOI nearly a margin under lmax and whose 6
+/// let the smoother diverge; 8 Lanczos steps came closer than those 12 on every level.
+constexpr int kElasticLanczosSteps = 8;
 
-/// The power iteration's start on a level (relax_elastic.cpp, estimate_lmax): component c of
+/// Lanczos without normalising (Stieltjes' form, in the inner product <a, b>_D = a . D b in
+/// which D^-1 K is symmetric): u_{j+1} = A u_j - alpha_j u_j - beta_j u_{j-1}, with alpha_j =
+/// <A u_j, u_j> / <u_j, u_j> and beta_j = <u_j, u_j> / <u_{j-1}, u_{j-1}> (beta_0 = 0). Step j
+/// of a backend sums s[j] = <u_j, u_j>_D and n[j] = <A u_j, u_j>_D; this returns the largest
+/// eigenvalue of the tridiagonal matrix they make (diagonal alpha, off-diagonal sqrt(beta)),
+/// the largest Ritz value: a lower bound of lmax that the steps bring up to it fast. It stops
+/// at the first step whose s is not above 0 (the space is exhausted), and gives 1 where the
+/// first is (a level all held).
+PALPSIM_HD double elastic_lanczos_lmax(const double* s, const double* n, int steps) {
+  double a[kElasticLanczosSteps], b2[kElasticLanczosSteps];
+  int m = 0;
+  for (int j = 0; j < steps && j < kElasticLanczosSteps; ++j) {
+    if (!(s[j] > 0)) break;
+    a[j] = n[j] / s[j];
+    b2[j] = j > 0 ? s[j] / s[j - 1] : 0.0;  // the square of T's entry (j - 1, j)
+    ++m;
+  }
+  if (m == 0) return 1.0;
+  // bisection on Sturm's count of the eigenvalues above x, inside Gershgorin's bound
+  double hi = 0;
+  for (int j = 0; j < m; ++j) {
+    const double left = j > 0 ? sqrt(b2[j]) : 0.0, right = j + 1 < m ? sqrt(b2[j + 1]) : 0.0;
+    const double r = fabs(a[j]) + left + right;
+    hi = r > hi ? r : hi;
+  }
+  double lo = -hi;
+  for (int it = 0; it < 100; ++it) {
+    const double x = 0.5 * (lo + hi);
+    int above = 0;
+    double q = 1.0;
+    for (int j = 0; j < m; ++j) {
+      q = a[j] - x - (j > 0 ? b2[j] / q : 0.0);
+      if (q == 0.0) q = 1e-300;
+      if (q > 0) ++above;
+    }
+    if (above > 0) lo = x;
+    else hi = x;
+  }
+  return lo > 0 ? lo : 1.0;
+}
+
+/// The Lanczos start on a level (relax_elastic.cpp, estimate_lmax): component c of
 /// node e is elastic_power_start(3 e + c), the (3 e + c + 1)-th state of a linear
 /// congruential generator from kElasticPowerSeed mapped to [-0.5, 0.5). Computed by jumping
 /// ahead (O'Neill, PCG's advance), so that a GPU thread makes its own nodes' values and the

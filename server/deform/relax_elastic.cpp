@@ -179,28 +179,61 @@ void vcycle(const Levels& L, int l, const std::array<float, 576>& k, const Vec3f
   smooth(v, k, nrm, v.f, v.x, false, degree, kElasticChebyshevRatio);
 }
 
-// the largest eigenvalue of D^-1 K on a level (held nodes out), by power iteration from a
-// fixed pseudo-random start (elastic_power_start); uses the level's x and r
+// the largest eigenvalue of D^-1 K on a level (held nodes out): kElasticLanczosSteps
+// Lanczos steps (elastic_lanczos_lmax) from a fixed pseudo-random start
+// (elastic_power_start), as the GPU runs them: step j >= 1 applies A = Pi D^-1 K to z_{j-1}
+// = A u_{j-1} and gets z_j = A u_j by linearity (A z_{j-1} - alpha z_{j-1} - beta z_{j-2}),
+// so that each step is one application to a vector the last step wrote; uses the level's
+// x and f (u), r and d (z)
 float estimate_lmax(const Level& v, const std::array<float, 576>& k) {
   const Vec3f none{0, 0, 0};
-  for (long long e = 0; e < v.count(); ++e) {
-    const unsigned long long m = 3ull * (unsigned long long)e;
-    v.x[e] = elastic_project(v.flags[e], none,
-                             Vec3f{elastic_power_start(m), elastic_power_start(m + 1), elastic_power_start(m + 2)});
-  }
-  double lambda = 0;
-  for (int it = 0; it < kElasticPowerIterations; ++it) {
-    const double xn = std::sqrt(dot_all(v.x, v.x, v.count()));
-    if (!(xn > 0)) return 1.0f;
-    apply_level(v, k, v.x, v.r);
-    for (long long e = 0; e < v.count(); ++e) {
+  const long long n = v.count();
+  Vec3f* u[2] = {v.x, v.f};
+  Vec3f* z[2] = {v.r, v.d};
+  std::vector<Vec3f> kz(static_cast<std::size_t>(n));
+  // A y at every node, into kz
+  auto apply = [&](const Vec3f* y) {
+    apply_level(v, k, y, kz.data());
+    for (long long e = 0; e < n; ++e) {
       const Vec3f dg = v.inv_diag[e];
-      v.r[e] = elastic_project(v.flags[e], none, Vec3f{dg.x * v.r[e].x, dg.y * v.r[e].y, dg.z * v.r[e].z});
+      kz[std::size_t(e)] = elastic_project(v.flags[e], none, Vec3f{dg.x * kz[e].x, dg.y * kz[e].y, dg.z * kz[e].z});
     }
-    lambda = std::sqrt(dot_all(v.r, v.r, v.count())) / xn;
-    std::copy_n(v.r, v.count(), v.x);
+  };
+  // <a, b>_D (D: the inverse of inv_diag; no weight where there is no diagonal)
+  auto dot_d = [&](const Vec3f& a, const Vec3f& b, const Vec3f& inv) {
+    return (inv.x > 0 ? double(a.x) * b.x / inv.x : 0.0) + (inv.y > 0 ? double(a.y) * b.y / inv.y : 0.0) +
+           (inv.z > 0 ? double(a.z) * b.z / inv.z : 0.0);
+  };
+  double s[kElasticLanczosSteps], nz[kElasticLanczosSteps];
+  for (long long e = 0; e < n; ++e) {
+    const unsigned long long m = 3ull * (unsigned long long)e;
+    u[0][e] = elastic_project(v.flags[e], none,
+                              Vec3f{elastic_power_start(m), elastic_power_start(m + 1), elastic_power_start(m + 2)});
+    u[1][e] = z[1][e] = none;
   }
-  return lambda > 0 ? float(lambda) : 1.0f;
+  for (int j = 0; j < kElasticLanczosSteps; ++j) {
+    const double alpha = j > 0 && s[j - 1] > 0 ? nz[j - 1] / s[j - 1] : 0.0;
+    const double beta = j > 1 && s[j - 2] > 0 ? s[j - 1] / s[j - 2] : 0.0;
+    Vec3f* const un = u[j & 1];  // u_j over u_{j-2}
+    Vec3f* const zn = z[j & 1];  // z_j over z_{j-2}
+    const Vec3f* const up = u[(j + 1) & 1];
+    const Vec3f* const zp = z[(j + 1) & 1];
+    apply(j == 0 ? u[0] : zp);
+    double sj = 0, nj = 0;
+    for (long long e = 0; e < n; ++e) {
+      if (j > 0) {
+        un[e] = zp[e] - up[e] * float(alpha) - un[e] * float(beta);
+        zn[e] = kz[std::size_t(e)] - zp[e] * float(alpha) - zn[e] * float(beta);
+      } else {
+        zn[e] = kz[std::size_t(e)];
+      }
+      sj += dot_d(un[e], un[e], v.inv_diag[e]);
+      nj += dot_d(zn[e], un[e], v.inv_diag[e]);
+    }
+    s[j] = sj;
+    nz[j] = nj;
+  }
+  return float(elastic_lanczos_lmax(s, nz, kElasticLanczosSteps));
 }
 
 struct SolveResult {

@@ -640,6 +640,26 @@ TEST_CASE("the warm start predicts a press along the same n: fewer CG steps to t
   }
 }
 
+TEST_CASE("Lanczos's lmax: the largest eigenvalue of the tridiagonal matrix the sums make", "[elastic]") {
+  // s_j = <u_j, u_j>, n_j = <A u_j, u_j>: alpha_j = n_j / s_j on the diagonal, sqrt(s_j /
+  // s_{j-1}) beside it. [[2, 1], [1, 2]] has eigenvalues 1 and 3; bisection to 1e-12
+  const double s2[2] = {1, 1}, n2[2] = {2, 2};
+  CHECK(elastic_lanczos_lmax(s2, n2, 2) == Approx(3.0).epsilon(1e-9));
+  // the 1D Laplacian's tridiagonal [2, -1] of 8 (s_j = 1: off-diagonal 1, its sign does not
+  // matter): 2 + 2 cos(pi / 9)
+  double s8[8], n8[8];
+  for (int j = 0; j < 8; ++j) s8[j] = 1, n8[j] = 2;
+  CHECK(elastic_lanczos_lmax(s8, n8, 8) == Approx(2 + 2 * std::cos(M_PI / 9)).epsilon(1e-9));
+  // s_j = 4^j: the monic u_j grow by 2 a step, T's off-diagonal is 2: 2 + 4 cos(pi / 9)
+  for (int j = 0; j < 8; ++j) s8[j] = std::pow(4.0, j), n8[j] = 2 * s8[j];
+  CHECK(elastic_lanczos_lmax(s8, n8, 8) == Approx(2 + 4 * std::cos(M_PI / 9)).epsilon(1e-9));
+  // a space exhausted after one step (s_1 = 0) gives its one Ritz value; no space gives 1
+  const double s1[3] = {2, 0, 5}, n1[3] = {9, 1, 1};
+  CHECK(elastic_lanczos_lmax(s1, n1, 3) == Approx(4.5).epsilon(1e-9));
+  const double s0[2] = {0, 0}, n0[2] = {0, 0};
+  CHECK(elastic_lanczos_lmax(s0, n0, 2) == 1.0);
+}
+
 TEST_CASE("the start's rules: Hertz's contact area when fresh, warm only after a press on a VOI that overlaps", "[elastic]") {
   // fresh: a node pushed at least half the depth (Hertz's contact radius sqrt(R d) is where
   // the sphere lies d / 2 above its deepest point); nothing not under the sphere

@@ -53,9 +53,9 @@ constexpr int kElasticMaxLevels = 16;
 constexpr float kElasticAirRatio = 1e-4f;
 /// The V-cycle's smoother: Chebyshev polynomials in D^-1 K (D the diagonal), aimed at the
 /// upper part [lmax / kElasticChebyshevRatio, kElasticChebyshevMargin lmax] of its spectrum.
-/// Damped Jacobi does not do: the centre-point volume term makes lmax(D^-1 K) about 8 to 24
-/// at nu 0.45 (a cell's divergence couples its 24 unknowns), so a weight that keeps Jacobi
-/// stable leaves the rest of the upper spectrum nearly undamped. lmax comes from
+/// Damped Jacobi does not do: the centre-point volume term puts lmax(D^-1 K) well above the
+/// 2 of a Laplacian (a cell's divergence couples its 24 unknowns), so a weight that keeps
+/// Jacobi stable leaves the rest of the upper spectrum nearly undamped. lmax comes from
 /// kElasticLanczosSteps Lanczos steps per level when a VOI is set up (elastic_lanczos_lmax).
 /// The degrees are the scene's (ElasticDegrees).
 constexpr float kElasticChebyshevRatio = 20.0f;

@@ -35,8 +35,8 @@ struct StepArgs {
   float unit_scale;    // ... else from u times this (elastic_unit_start_scale)
   int predict;         // the warm start's prediction (deform::ElasticPredict) and its factor
   float predict_factor;
-  int shift;           // ... after moving the last field and unit press with the tip across n
-  Vec3f shift_vox;     // ... by this (voxels along the grid axes)
+  Vec3f shift_vox;     // ... after moving the last field and unit press with the tip across n by this
+                       // (voxels along the grid axes; 0: no move, deform::elastic_shifts)
   int stiffness;       // solve the unit press
   int max_iterations;
   float tolerance;
@@ -450,7 +450,7 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
       Vec3f we = kind == ElasticPredict::kUnit ? unit.at(e) : Vec3f{0, 0, 0};
       // moved with the tip across n (held nodes keep their 0): the copies shift_copy() made;
       // the contact set from the moved field's penetration alone (deform::elastic_shifted)
-      if (a.shift) {
+      if (deform::elastic_shifts(a.shift_vox)) {
         fl = std::uint8_t(fl & ~kElasticContact);
         if (!(fl & kElasticHeld)) {
           ue = deform::elastic_shifted(LoadOrZero{st.x(0), L0}, i, j, k, a.shift_vox);
@@ -467,7 +467,8 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
     if (t > 0) under += 1;
     const bool was = (fl & kElasticContact) != 0;
     fl = std::uint8_t(fl & ~kElasticContact);
-    if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth, a.shift ? a.penetration : 0.0f))
+    if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth,
+                                      deform::elastic_shifts(a.shift_vox) ? a.penetration : 0.0f))
       fl |= kElasticContact;
     v.flags[e] = fl;
   }
@@ -600,7 +601,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   out.converged = 1;
 
   // the contact set (start_contact), the last field moved with the tip first (shift_copy)
-  if (a.had && a.shift && a.predict != int(ElasticPredict::kNone)) shift_copy(a, st);
+  if (a.had && deform::elastic_shifts(a.shift_vox) && a.predict != int(ElasticPredict::kNone)) shift_copy(a, st);
   const double under = start_contact(a, st);
   if (reduce1(ring, under, g, kPassContact * 16) == 0) {
     // nothing pressed: the tissue at rest

@@ -390,7 +390,6 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.unit_scale = deform::elastic_unit_start_scale(depth);
   s.predict = int(pred.kind);
   s.predict_factor = pred.factor;
-  s.shift = pred.shift;
   s.shift_vox = pred.shift_vox;
   s.stiffness = params_.stiffness && u_unit_ != nullptr;
   s.max_iterations = params_.max_iterations;

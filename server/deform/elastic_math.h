@@ -442,12 +442,16 @@ struct ElasticPrediction {
   ElasticPredict kind = ElasticPredict::kNone;
   float factor = 0.0f;
   Vec3f shift_vox{0, 0, 0};
-  bool shift = false;  // shift_vox is not zero
 };
 
 /// A tip's move across n shorter than this (voxels) moves no field: a press straight along n
 /// keeps its last field bit for bit (rounding of positions of tens of mm is far below it).
 constexpr float kElasticShiftMinVox = 1e-3f;
+
+/// Whether a prediction's shift (ElasticPrediction::shift_vox) moves the field.
+PALPSIM_HD bool elastic_shifts(const Vec3f& shift_vox) {
+  return shift_vox.x != 0.0f || shift_vox.y != 0.0f || shift_vox.z != 0.0f;
+}
 
 /// The press a step predicts from (the last one) as the backends keep it.
 struct ElasticLastPress {
@@ -471,10 +475,7 @@ inline ElasticPrediction elastic_prediction(const ElasticLastPress& last, bool w
   const Vec3 move = tip_mm - last.tip_mm;
   const Vec3 across = move - Vec3(n) * dot(move, Vec3(n));
   const Vec3f shift{float(across.x / h_mm.x), float(across.y / h_mm.y), float(across.z / h_mm.z)};
-  if (dot(shift, shift) >= kElasticShiftMinVox * kElasticShiftMinVox) {
-    p.shift = true;
-    p.shift_vox = shift;
-  }
+  if (dot(shift, shift) >= kElasticShiftMinVox * kElasticShiftMinVox) p.shift_vox = shift;
   if (unit_along_n) {
     p.kind = ElasticPredict::kUnit;
     p.factor = float(dot(move, Vec3(n)));

@@ -560,7 +560,7 @@ long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press&
 void predict_start(ElasticCpu& s, const Voi& voi, const ElasticPrediction& pred) {
   const long long n = voi.count();
   const bool unit = pred.kind == ElasticPredict::kUnit;
-  if (pred.shift) {
+  if (elastic_shifts(pred.shift_vox)) {
     grow(s.tmp_u, std::size_t(n));
     auto shift_field = [&](std::vector<Vec3f>& f) {
       std::copy_n(f.begin(), n, s.tmp_u.begin());
@@ -705,7 +705,7 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   if (pred.kind != ElasticPredict::kNone) predict_start(s, voi, pred);
   out.prediction = pred.kind;
   s.last_press = ElasticLastPress{pr.depth > 1e-6, pr.tip_mm, pr.depth, pr.nrm};
-  if (contact_set(s, voi, h, pr, had, pred.shift) == 0) {
+  if (contact_set(s, voi, h, pr, had, elastic_shifts(pred.shift_vox)) == 0) {
     // nothing pressed: the tissue at rest
     std::fill_n(u, n, Vec3f{0, 0, 0});
     s.have_u = true;

@@ -152,6 +152,21 @@ std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::
          ", \"body_slices\": " + std::to_string(b.body_slices) + ", \"warnings\": " + w + "}";
 }
 
+// whether to look for contrast-filled regions: their limits (contrast.h) are in HU, so on
+// an image in other units none is looked for (logged once, with `source`), and a scene that
+// asked for prep.contrast = "tissue" gets a warning that nothing was left out
+bool seek_contrast(const PrepSettings& prep, const std::string& source, PrepReport& r) {
+  if (r.units == "HU") return true;
+  if (!source.empty())
+    spdlog::info("prep: {}: no contrast-filled regions looked for: their limits are in HU, the image is in {}", source,
+                 r.units);
+  if (prep.contrast == ContrastAs::kTissue)
+    r.bone_summary.warnings.push_back(
+        "prep.contrast = \"tissue\" left nothing out: contrast-filled regions are found by limits in HU, and this "
+        "image is in " + r.units);
+  return false;
+}
+
 // derives F and grad F, which the cache does not store
 void derive_force(Patient& p, const Scene& scene, PrepReport& r) {
   p.force = timed(r, "force", [&] { return force_image(p, scene.force_image); });
@@ -167,12 +182,21 @@ void measure_cached(Patient& p, const PrepSettings& prep, const std::string& cor
   r.bone_thresholds = choose_bone_thresholds(p.intensity, p.body, prep);
   p.bone_threshold_hu = r.bone_thresholds.low;
   r.bone_summary = summarize_bone(p.body, p.bone);
-  r.contrast_regions = find_contrast_regions(p.intensity, p.body, p.bone, r.bone_thresholds, r.bone_summary.column);
+  r.units = core.find("\"units\": \"image units\"") != std::string::npos ? "image units" : "HU";
+  if (seek_contrast(prep, "", r))
+    r.contrast_regions = find_contrast_regions(p.intensity, p.body, p.bone, r.bone_thresholds, r.bone_summary.column);
   const std::size_t at = core.find("\"contrast_removed_ml\": ");
   if (at != std::string::npos) r.contrast_removed_ml = std::atof(core.c_str() + at + 23);
   r.field_of_view = find_cut_faces(p.body, prep.cut_faces);
-  r.units = core.find("\"units\": \"image units\"") != std::string::npos ? "image units" : "HU";
   r.body_check = check_body(p.body, prep.air_threshold, r.units);
+}
+
+// the report's warnings (field of view, body mask, bone), logged on every run, a cached
+// patient's too: a server that loads a patient from the cache warns as the first run did
+void log_warnings(const std::string& source, const PrepReport& r) {
+  if (!r.field_of_view.warning.empty()) spdlog::warn("prep: {}: {}", source, r.field_of_view.warning);
+  for (const std::string& w : r.body_check.warnings) spdlog::warn("prep: {}: {}", source, w);
+  for (const std::string& w : r.bone_summary.warnings) spdlog::warn("prep: {}: {}", source, w);
 }
 
 // "HU", or "image units" where the image failed the HU check and the scene's thresholds let it pass
@@ -218,6 +242,7 @@ std::string report_core(const Scene& scene, const std::string& source, const CtI
 // out of the bone mask (small pieces of bone left beside them go too; the summary is
 // measured again)
 void find_contrast(Patient& p, const PrepSettings& prep, const std::string& source, PrepReport& r) {
+  if (!seek_contrast(prep, source, r)) return;
   Volume<std::uint8_t> regions;
   r.contrast_regions = timed(r, "contrast", [&] {
     return find_contrast_regions(p.intensity, p.body, p.bone, r.bone_thresholds, r.bone_summary.column, &regions);
@@ -300,9 +325,7 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
     throw Error(source + ": no body found (only thin structures above prep.air_threshold = " +
                 jnum(prep.air_threshold) + ", e.g. a table or noise)");
   r.field_of_view = find_cut_faces(p->body, prep.cut_faces);
-  if (!r.field_of_view.warning.empty()) spdlog::warn("prep: {}: {}", source, r.field_of_view.warning);
   r.body_check = check_body(p->body, prep.air_threshold, r.units);
-  for (const std::string& w : r.body_check.warnings) spdlog::warn("prep: {}: {}", source, w);
   // cavities are looked for after a closing of twice the input's coarsest spacing
   const double coarsest = std::max({image.grid.spacing_mm.x, image.grid.spacing_mm.y, image.grid.spacing_mm.z});
   p->bone = timed(r, "bone_mask", [&] {
@@ -313,7 +336,7 @@ PatientPtr build_patient(const Volume<float>& image, const Scene& scene, const s
   r.bone_summary = summarize_bone(p->body, p->bone);
   find_contrast(*p, prep, source, r);
   r.bone_ml = double(count_nonzero(p->bone)) * voxel_ml;
-  for (const std::string& w : r.bone_summary.warnings) spdlog::warn("prep: {}: {}", source, w);
+  log_warnings(source, r);
   p->has_bone = r.bone_ml > 0;
 
   // distance maps: A to bone (inf without bone), B depth under the skin
@@ -387,6 +410,7 @@ PatientPtr prepare_patient(const Scene& scene, PrepReport* report, const PathPol
       r.from_cache = true;
       r.cache_path = entry;
       measure_cached(*p, prep, core, r);
+      log_warnings(source, r);
       r.total_s = seconds_since(t0);
       r.json = "{" + core + ",\n  \"cache\": {\"hit\": true, \"key\": " + jstr(r.cache_key) + ", \"path\": " +
                jstr(entry) + ", \"this_run_stages_s\": " + stages_json(r) + "},\n  \"total_s\": " +

@@ -4,7 +4,6 @@
 // and a malformed request gets exactly one reply frame.
 #include <catch2/catch.hpp>
 
-#include <spdlog/sinks/ostream_sink.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -24,6 +23,7 @@
 #include "net/scene_io.h"
 #include "net/server.h"
 #include "palpsim/wire.pb.h"
+#include "support/log_capture.h"
 #include "support/net_client.h"
 #include "support/synthetic_patient.h"
 
@@ -73,24 +73,6 @@ zmq::message_t recv_one_frame(zmq::socket_t& dealer) {
   CHECK_FALSE(m.more());
   return m;
 }
-
-// every line the server logs while it lives (spdlog's default logger, as palpsim-server's)
-struct LogCapture {
-  std::ostringstream out;
-  std::shared_ptr<spdlog::sinks::ostream_sink_mt> sink = std::make_shared<spdlog::sinks::ostream_sink_mt>(out);
-  LogCapture() { spdlog::default_logger()->sinks().push_back(sink); }
-  ~LogCapture() {
-    auto& s = spdlog::default_logger()->sinks();
-    s.erase(std::remove(s.begin(), s.end(), sink), s.end());
-  }
-  std::vector<std::string> lines() {
-    spdlog::default_logger()->flush();
-    std::vector<std::string> v;
-    std::istringstream in(out.str());
-    for (std::string l; std::getline(in, l);) v.push_back(l);
-    return v;
-  }
-};
 
 // a loader that holds until released (or 60 s pass), standing in for a slow patient
 struct HeldLoader {
@@ -284,7 +266,7 @@ TEST_CASE("a session without poses or control requests acting on it is freed; St
 }
 
 TEST_CASE("client strings reach log lines and replies escaped and cut", "[net][security]") {
-  LogCapture log;
+  test::LogCapture log;
   net::Server server(default_scene(), test::slab_patient(), nullptr, test::loopback_options());
   server.start();
   const std::string forged = "[1999-12-31 23:59:59.000] [palpsim-server] [info] FORGED";

@@ -16,6 +16,7 @@
 #include "prep/phantom.h"
 #include "prep/prepare.h"
 #include "support/data.h"
+#include "support/log_capture.h"
 #include "unit/prep_files.h"
 
 using namespace palpsim;
@@ -121,6 +122,29 @@ TEST_CASE("a cropped phantom: the cut faces are named, counted, warned about, an
   const Vec3 back = g.to_index({0, 100, 0});  // 10 mm under the back's skin, mid-height
   const int i = int(std::lround(back.x)), j = int(std::lround(back.y)), k = int(std::lround(back.z));
   CHECK(p->dist_skin_mm.at(i, j, k) == q->dist_skin_mm.at(i, j, k));
+}
+
+TEST_CASE("a cropped CT prepared from the cache warns of its cut faces as its first preparation did") {
+  // the 3 mm phantom's posterior half as a NRRD file, prepared twice with the cache on:
+  // palpsim-server loads most patients from the cache, so its log must warn there too
+  const PhantomCt ph = make_phantom(3.0);
+  const Vec3i n = ph.hu.grid.size;
+  TempDir d;
+  write_volume_nrrd(d / "back.nrrd", crop(ph.hu, {0, n.y / 2, 0}, n));
+  Scene s = ct_scene(d / "back.nrrd", d / "cache");
+  s.prep.spacing_mm = 3.0;
+  const std::string cut = "the body is cut at the anterior, inferior and superior faces";
+  for (const bool cached : {false, true}) {
+    LogCapture log;
+    PrepReport r;
+    prepare_patient(s, &r);
+    INFO((cached ? "from the cache" : "first preparation"));
+    REQUIRE(r.from_cache == cached);
+    CHECK_THAT(r.field_of_view.warning, Catch::StartsWith(cut));
+    const std::vector<std::string> warned = log.lines_with(cut);
+    REQUIRE(warned.size() == 1);
+    CHECK_THAT(warned[0], Catch::Contains("back.nrrd") && Catch::Contains("warn"));
+  }
 }
 
 TEST_CASE("the whole phantom is cut only at its inferior and superior faces; its body mask looks like a body") {

@@ -199,3 +199,36 @@ TEST_CASE("contrast: the shared abdomen's aorta lies in front of the column; lef
   CHECK(ct_.length_mm == Approx(c.length_mm));
   CHECK(rt.bone_summary.warnings.empty());
 }
+
+TEST_CASE("contrast: an image not in HU is not searched for contrast; prep.contrast \"tissue\" leaves its bone alone") {
+  // the shared abdomen as an 8-bit image, value = (HU + 1000) / 8 (air 0, soft tissue
+  // about 130, the bone threshold 200 HU at 150), prepared with both thresholds in its
+  // units, as palpsim-prep --air-threshold 75 --bone-threshold 150 would. The regions'
+  // limits are in HU (a spread of 50 HU is 6 of these units): here every smooth bright
+  // part passed them and "tissue" took most of the bone away (1683 -> 186 ml at 3 mm)
+  const std::string path = shared_data_file("ct/abdomen-lumbar-3mm.nii.gz");
+  if (path.empty()) return;
+  const CtImage ct = read_ct(path, PrepSettings{});
+  Volume<float> u8 = ct.image;
+  for (float& v : u8.data) v = std::round(std::clamp((v + 1000.0f) / 8.0f, 0.0f, 255.0f));
+  Scene s = scene_at(3.0);
+  s.prep.air_threshold = 75, s.prep.air_threshold_set = true;
+  s.prep.bone_threshold = 150, s.prep.bone_threshold_set = true;
+  PrepReport r, rt;
+  r.units = rt.units = "image units";  // what prepare_patient finds for an 8-bit file
+  const PatientPtr p = build_patient(u8, s, "abdomen 8-bit", &r);
+  s.prep.contrast = ContrastAs::kTissue;
+  const PatientPtr q = build_patient(u8, s, "abdomen 8-bit", &rt);
+  std::printf("abdomen 8-bit 3 mm: %zu / %zu contrast regions, bone %.1f / %.1f ml\n", r.contrast_regions.size(),
+              rt.contrast_regions.size(), r.bone_ml, rt.bone_ml);
+  CHECK(r.contrast_regions.empty());
+  CHECK(rt.contrast_regions.empty());
+  CHECK(rt.contrast_removed_ml == 0);
+  CHECK(rt.bone_ml == r.bone_ml);
+  CHECK((q->bone.data == p->bone.data));  // the same mask, voxel for voxel
+  CHECK(rt.bone_summary.spine_found);
+  // the scene asked for something not done: said so, naming the setting
+  REQUIRE_FALSE(rt.bone_summary.warnings.empty());
+  CHECK_THAT(rt.bone_summary.warnings.back(), Catch::Contains("prep.contrast") && Catch::Contains("image units"));
+  CHECK(r.bone_summary.warnings.empty());
+}

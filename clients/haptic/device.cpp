@@ -75,11 +75,17 @@ ScriptedDevice read_table(const std::string& path, const std::vector<std::string
   return ScriptedDevice(std::move(t), std::move(p), what + " " + path + " (" + std::to_string(lineno) + " lines)");
 }
 
-V3 parse_point(const std::string& s, const std::string& spec) {
+// press:X,Y,Z[,TRAVEL]: the start point and, when given, how far the press goes (mm,
+// (0, kMaxPressTravelMm]); `travel` keeps its default otherwise
+V3 parse_press(const std::string& s, const std::string& spec, double& travel_mm) {
   const auto c = split(s, ',');
   V3 v;
-  if (c.size() != 3 || !parse_double(c[0], v.x) || !parse_double(c[1], v.y) || !parse_double(c[2], v.z))
-    throw std::runtime_error("--device " + spec + ": expected press:X,Y,Z in mm");
+  if ((c.size() != 3 && c.size() != 4) || !parse_double(c[0], v.x) || !parse_double(c[1], v.y) ||
+      !parse_double(c[2], v.z))
+    throw std::runtime_error("--device " + spec + ": expected press:X,Y,Z or press:X,Y,Z,TRAVEL in mm");
+  if (c.size() == 4 && (!parse_double(c[3], travel_mm) || !(travel_mm > 0) || travel_mm > kMaxPressTravelMm))
+    throw std::runtime_error("--device " + spec + ": TRAVEL '" + c[3] + "' must be a length in mm in (0, " +
+                             std::to_string(int(kMaxPressTravelMm)) + "]");
   return v;
 }
 
@@ -104,12 +110,13 @@ bool ScriptedDevice::read_tip(double t, V3& tip) {
 
 std::unique_ptr<Device> make_device(const std::string& spec, const PatientBox& box) {
   if (spec == "press" || spec.rfind("press:", 0) == 0) {
-    // start 10 mm behind the middle of the back (or at the given point), press 40 mm
-    // along -y at 20 mm/s, hold 0.5 s, come back; three times
+    // start 10 mm behind the middle of the back (or at the given point), press 40 mm (or
+    // the given travel) along -y at 20 mm/s, hold 0.5 s, come back; three times
     V3 s{0.5 * (box.body_min_mm.x + box.body_max_mm.x), box.body_max_mm.y + 10,
          0.5 * (box.body_min_mm.z + box.body_max_mm.z)};
-    if (spec.size() > 6) s = parse_point(spec.substr(6), spec);
-    const double depth_mm = 40, speed_mm_s = 20, hold_s = 0.5;
+    double depth_mm = kDefaultPressTravelMm;
+    if (spec.size() > 6) s = parse_press(spec.substr(6), spec, depth_mm);
+    const double speed_mm_s = 20, hold_s = 0.5;
     const double t_press = depth_mm / speed_mm_s;
     std::vector<double> t;
     std::vector<V3> p;
@@ -126,8 +133,8 @@ std::unique_ptr<Device> make_device(const std::string& spec, const PatientBox& b
     t.push_back(t0);
     p.push_back(s);
     char what[160];
-    std::snprintf(what, sizeof what, "press from (%.1f, %.1f, %.1f) mm, 40 mm along -y at 20 mm/s, 3 times", s.x, s.y,
-                  s.z);
+    std::snprintf(what, sizeof what, "press from (%.1f, %.1f, %.1f) mm, %.1f mm along -y at 20 mm/s, 3 times", s.x,
+                  s.y, s.z, depth_mm);
     return std::make_unique<ScriptedDevice>(std::move(t), std::move(p), what);
   }
   if (spec.rfind("csv:", 0) == 0)
@@ -135,7 +142,7 @@ std::unique_ptr<Device> make_device(const std::string& spec, const PatientBox& b
   if (spec.rfind("replay:", 0) == 0)
     return std::make_unique<ScriptedDevice>(
         read_table(spec.substr(7), {"time_s", "tip_x_mm", "tip_y_mm", "tip_z_mm"}, true, "replay of"));
-  throw std::runtime_error("--device " + spec + ": expected press, press:X,Y,Z, csv:FILE or replay:FILE");
+  throw std::runtime_error("--device " + spec + ": expected press, press:X,Y,Z[,TRAVEL], csv:FILE or replay:FILE");
 }
 
 }  // namespace palpsim::haptic

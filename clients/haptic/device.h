@@ -50,8 +50,14 @@ class ScriptedDevice : public Device {
   std::size_t cursor_ = 0;  // the segment of the previous call (time only grows)
 };
 
+/// How far the scripted press goes from its start along -y (mm) unless press:X,Y,Z,TRAVEL
+/// says, and the most a TRAVEL may say (a trunk's depth from the back).
+constexpr double kDefaultPressTravelMm = 40;
+constexpr double kMaxPressTravelMm = 300;
+
 /// Makes the device named by --device: "press", "press:X,Y,Z" (start point; presses along
-/// -y, i.e. from the back (LPS +y is posterior) towards the front), "csv:FILE" (columns
+/// -y, i.e. from the back (LPS +y is posterior) towards the front), "press:X,Y,Z,TRAVEL"
+/// (the same, TRAVEL mm instead of kDefaultPressTravelMm), "csv:FILE" (columns
 /// t,x,y,z in s and mm, header optional) or "replay:FILE" (a palpsim-haptic log: columns
 /// time_s, tip_x_mm, tip_y_mm, tip_z_mm). Throws std::runtime_error naming the file, line
 /// and problem for bad input.

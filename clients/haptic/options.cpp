@@ -10,12 +10,12 @@ namespace palpsim::haptic {
 namespace {
 
 const char* kUsage =
-    "usage: palpsim-haptic --connect ADDR [--device press|press:X,Y,Z|csv:FILE|replay:FILE] [--rate HZ]\n"
+    "usage: palpsim-haptic --connect ADDR [--device press|press:X,Y,Z[,TRAVEL]|csv:FILE|replay:FILE] [--rate HZ]\n"
     "                      [--seconds S] [--log FILE] [--name NAME] [--server-key FILE --client-key FILE]\n"
     "                      [--client-token TEXT] [--mode auto|local|remote] [--patch-edge N] [--patch-period S]\n"
     "                      [--pose-via ADDR] [--warmup S] [--priority N]\n"
     "  --connect ADDR  the server's control address (its 'ready on ADDR' line)\n"
-    "  --device SPEC   the built-in press path (default), a CSV of t,x,y,z (s, mm), or a palpsim-haptic log to replay\n"
+    "  --device SPEC   the built-in press path (default; from X,Y,Z, TRAVEL mm along -y, 40 unless given), a CSV of t,x,y,z (s, mm), or a palpsim-haptic log to replay\n"
     "  --rate HZ       loop rate, 100 to 4000 (default 1000)\n"
     "  --seconds S     stop S seconds after the device's path starts (default: when it ends)\n"
     "  --log FILE      CSV of every step (time, pose, force, round trip)\n"

@@ -50,9 +50,9 @@ void print_landmarks(const std::vector<palpsim::SkinLandmark>& marks) {
     std::printf("  landmarks: no spinous process or iliac crest stands out in the bone mask\n");
     return;
   }
-  std::printf("  landmarks: the skin above each along +y (posterior); palpsim-haptic --device press:X,Y,Z starts "
-              "%.0f mm outside that skin point and presses along -y through it:\n",
-              palpsim::kPressStandoffMm);
+  std::printf("  landmarks: the skin above each along +y (posterior); palpsim-haptic --device press:X,Y,Z,TRAVEL "
+              "starts %.0f mm outside that skin point and presses along -y through it to %.0f mm past the bone:\n",
+              palpsim::kPressStandoffMm, palpsim::kPressBeyondBoneMm);
   for (const palpsim::SkinLandmark& l : marks)
     std::printf("    %-18s skin (%.1f, %.1f, %.1f) mm, bone %.1f mm under it, skin normal %.0f deg off +y: %s\n",
                 l.name.c_str(), l.skin_mm.x, l.skin_mm.y, l.skin_mm.z, l.depth_mm, l.normal_angle_deg,

@@ -129,6 +129,7 @@ SkinLandmark above(const Patient& p, const std::string& name, const Vec3& bone) 
   l.depth_mm = t + 0.125 * h;
   l.skin_mm = bone + up * l.depth_mm;
   l.press_start_mm = l.skin_mm + up * kPressStandoffMm;
+  l.press_travel_mm = kPressStandoffMm + l.depth_mm + kPressBeyondBoneMm;
   // the outward normal: -grad B a voxel and a half under the skin, by central differences
   const Vec3 c = p.grid.to_index(l.skin_mm - up * (1.5 * h));
   const int i = int(std::lround(c.x)), j = int(std::lround(c.y)), k = int(std::lround(c.z));
@@ -169,8 +170,9 @@ std::vector<SkinLandmark> find_landmarks(const Patient& p) {
 }
 
 std::string press_argument(const SkinLandmark& l) {
-  char b[96];
-  std::snprintf(b, sizeof b, "press:%.1f,%.1f,%.1f", l.press_start_mm.x, l.press_start_mm.y, l.press_start_mm.z);
+  char b[128];
+  std::snprintf(b, sizeof b, "press:%.1f,%.1f,%.1f,%.1f", l.press_start_mm.x, l.press_start_mm.y, l.press_start_mm.z,
+                l.press_travel_mm);
   return b;
 }
 

@@ -1,6 +1,7 @@
 // Palpable landmarks found in a prepared patient: the tips of the spinous processes
 // and the tops of the iliac crests, each with the skin point above it and the start
-// point of a scripted press (palpsim-haptic --device press:X,Y,Z) that reaches it.
+// point and travel of a scripted press (palpsim-haptic --device press:X,Y,Z,TRAVEL) that
+// reaches it.
 #pragma once
 
 #include <string>
@@ -17,14 +18,17 @@ struct SkinLandmark {
   Vec3 skin_mm;       // where the line from bone_mm along +y (posterior) leaves the body (mm, LPS)
   double depth_mm = 0;  // bone_mm under skin_mm (mm)
   Vec3 press_start_mm;  // kPressStandoffMm beyond skin_mm along +y (mm, LPS)
+  double press_travel_mm = 0;  // from press_start_mm along -y to bone_mm and kPressBeyondBoneMm on (mm)
   double normal_angle_deg = 0;  // the angle between the skin's outward normal at skin_mm and +y
 };
 
 /// How far (mm) outside the skin a printed press starts: the scripted press
-/// (clients/haptic, --device press:X,Y,Z) moves from its start point 40 mm along -y,
-/// so a start 10 mm out puts its first contact 0.5 s in and its deepest point 30 mm
-/// under the skin, beyond the deepest spinous process tip of the shared scans.
+/// (clients/haptic, --device press:X,Y,Z,TRAVEL) moves from its start point TRAVEL mm
+/// along -y at 20 mm/s, so a start 10 mm out puts its first contact 0.5 s in.
 constexpr double kPressStandoffMm = 10;
+/// How far (mm) a printed press goes on past the bone point: the tip then reaches the
+/// bone, whose surface the bone mask may place up to a voxel either side of the point.
+constexpr double kPressBeyondBoneMm = 5;
 
 /// Finds the landmarks (empty when none stands out). Spinous processes: per axial slice
 /// the posterior-most bone within kSpinousHalfWidthMm of the body's left-right centre;
@@ -45,7 +49,8 @@ constexpr double kCrestLateralMm = 60;
 /// "landmarks" are the sacrum through the buttocks, or bone seen through the belly.
 constexpr double kMaxLandmarkDepthMm = 100;
 
-/// The press argument that starts at `l.press_start_mm`: "press:X,Y,Z" (mm, one decimal).
+/// The press argument that starts at `l.press_start_mm` and goes `l.press_travel_mm`:
+/// "press:X,Y,Z,TRAVEL" (mm, one decimal).
 std::string press_argument(const SkinLandmark& l);
 
 }  // namespace palpsim

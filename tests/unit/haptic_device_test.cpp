@@ -94,6 +94,11 @@ TEST_CASE("the built-in press goes 40 mm in from behind the back and comes out a
   auto at = make_device("press:1,2,3", box);
   REQUIRE(at->read_tip(0, tip));
   CHECK((tip.x == 1.0 && tip.y == 2.0 && tip.z == 3.0));
+  // a travel of 90 mm (a landmark's press from palpsim-prep): 4.5 s in at 20 mm/s
+  auto far = make_device("press:1,2,3,90", box);
+  REQUIRE(far->read_tip(4.5, tip));
+  CHECK(tip.y == Approx(2.0 - 90.0));
+  CHECK(far->describe().find("90.0 mm along -y") != std::string::npos);
 }
 
 TEST_CASE("bad device files and specs are refused with file, line and problem", "[haptic-client]") {
@@ -108,5 +113,10 @@ TEST_CASE("bad device files and specs are refused with file, line and problem", 
   CHECK(error_of("csv:" + missing).find("no column 'z'") != std::string::npos);
   CHECK(error_of("joystick").find("expected press") != std::string::npos);
   CHECK(error_of("press:1,2").find("press:X,Y,Z") != std::string::npos);
+  CHECK(error_of("press:1,2,3,0").find("TRAVEL '0'") != std::string::npos);
+  CHECK(error_of("press:1,2,3,-5").find("TRAVEL '-5'") != std::string::npos);
+  CHECK(error_of("press:1,2,3,nan").find("TRAVEL 'nan'") != std::string::npos);
+  CHECK(error_of("press:1,2,3,400").find("(0, 300]") != std::string::npos);
+  CHECK(error_of("press:1,2,3,4,5").find("press:X,Y,Z,TRAVEL") != std::string::npos);
   for (const auto& f : {nan, back, empty, missing}) std::remove(f.c_str());
 }

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <string>
 
 #include "haptics/force_model.h"
@@ -253,7 +254,14 @@ TEST_CASE("landmarks on the phantom: each spinous process tip and iliac crest to
     CHECK(m.depth_mm == Approx(m.skin_mm.y - m.bone_mm.y));
     CHECK(m.press_start_mm.y == Approx(m.skin_mm.y + kPressStandoffMm));
     CHECK(ph.geometry.skin_signed_distance_mm(m.press_start_mm) > 5);
-    CHECK(press_argument(m).rfind("press:", 0) == 0);
+    // the press reaches the bone point and goes kPressBeyondBoneMm past it (the scripted
+    // press's default 40 mm stopped 30 mm under the skin, short of the crests at 54 mm)
+    const double end_y = m.press_start_mm.y - m.press_travel_mm;
+    CHECK(end_y == Approx(m.bone_mm.y - kPressBeyondBoneMm));
+    char expected[128];
+    std::snprintf(expected, sizeof expected, "press:%.1f,%.1f,%.1f,%.1f", m.press_start_mm.x, m.press_start_mm.y,
+                  m.press_start_mm.z, m.press_travel_mm);
+    CHECK(press_argument(m) == expected);
   }
   CHECK(spinous == int(found_tips.size()));  // no other peak taken for a tip
   // the crest tops at z = -34 mm, x = +-128 mm: the top slice's centroid lies within

@@ -205,8 +205,8 @@ BoneSummary summarize_bone(const Volume<std::uint8_t>& body, const Volume<std::u
   if (s.bone_fraction > kMaxBoneFraction) {
     w << "bone is " << std::lround(100 * s.bone_fraction) << "% of the body, above the plausible "
       << std::lround(100 * kMaxBoneFraction)
-      << "%: contrast, metal or a bone threshold too low; check prep.bone_threshold (left out, it is "
-         "chosen from the image)";
+      << "%: contrast, metal or a bone threshold too low; check prep.bone_threshold (where the scene leaves it "
+         "out, it is chosen from the image)";
     s.warnings.push_back(w.str());
   }
   return s;

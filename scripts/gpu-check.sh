@@ -11,10 +11,11 @@
 #          git describe --always --dirty > .device/commit   # what the bundle was built from
 #   there: bash scripts/gpu-check.sh "$OUT" [quick|elastic]
 #
-# `elastic` runs the elastic model's checks and figures alone (issue 25: its GPU cases and
-# the stability catalogue against the CPU, the sanitizers on the clipped VOIs, the deform
-# bench's elastic rows twice, a traced run and the accuracy report's GPU column); the
-# bundle then needs palpsim-gpu-tests, palpsim-gpu-stability-tests and palpsim-bench.
+# `elastic` runs the elastic model's checks and figures alone (issue 25: the deform bench's
+# elastic rows twice, and with ALT_DEGREES=F,C,L once with those V-cycle degrees; its GPU
+# cases and the stability catalogue against the CPU, a traced run, the accuracy report's GPU
+# column, the sanitizers on the clipped VOIs); the bundle then needs palpsim-gpu-tests,
+# palpsim-gpu-stability-tests and palpsim-bench.
 set -uo pipefail
 out=${1:?usage: scripts/gpu-check.sh OUT_DIR [quick|elastic]}
 quick=${2:-}
@@ -34,20 +35,27 @@ step() {  # name, command...: runs it, keeps its output, prints one status line
   return 0
 }
 if [ "$quick" = elastic ]; then
+  # the figures first (a run cut short by the device's time limit still brings them back):
+  # the elastic rows, and with ALT_DEGREES=F,C,L once more with those V-cycle degrees; then
+  # the tests, the rows again (the 16 sessions' figure moves a few % from one run to the
+  # next), a traced run (where a step's time goes), the accuracy report's GPU column, and
+  # the sanitizers on the clipped VOIs last (the slowest)
   elastic_case="gpu elastic steps equal the cpu's on clipped*"
+  step bench-elastic-1 palpsim-bench deform --elastic --backend cuda --commit "$commit" --json "$out/deform-elastic-1.json"
+  if [ -n "${ALT_DEGREES:-}" ]; then
+    step bench-elastic-alt palpsim-bench deform --elastic --backend cuda --commit "$commit" \
+      --elastic-degrees "$ALT_DEGREES" --json "$out/deform-elastic-alt.json"
+  fi
   step gpu-elastic-tests palpsim-gpu-tests "[elastic]"
   step gpu-stability-tests palpsim-gpu-stability-tests
-  if command -v compute-sanitizer >/dev/null; then
-    step memcheck-elastic compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
-    step racecheck-elastic compute-sanitizer --tool racecheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
-  fi
-  # the elastic rows twice (the 16 sessions' figure moves a few % from one run to the next),
-  # a traced run (where a step's time goes), the accuracy report's GPU column
-  step bench-elastic-1 palpsim-bench deform --elastic --backend cuda --commit "$commit" --json "$out/deform-elastic-1.json"
   step bench-elastic-2 palpsim-bench deform --elastic --backend cuda --commit "$commit" --json "$out/deform-elastic-2.json"
   step elastic-trace env PALPSIM_ELASTIC_TRACE=1 palpsim-bench deform --elastic --backend cuda --quick
   step accuracy-elastic palpsim-bench accuracy --elastic --json-only "$out/accuracy-elastic.json" --backend cuda \
     --commit "$commit"
+  if command -v compute-sanitizer >/dev/null; then
+    step racecheck-elastic compute-sanitizer --tool racecheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
+    step memcheck-elastic compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
+  fi
   for f in "$out"/*.txt; do
     echo "=== $(basename "$f")"
     grep -E "passed|failed|FAILED|ERROR SUMMARY|elastic cuda" "$f" | cut -c1-300 | tail -16

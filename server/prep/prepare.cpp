@@ -158,12 +158,13 @@ std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::
 bool seek_contrast(const PrepSettings& prep, const std::string& source, PrepReport& r) {
   if (r.units == "HU") return true;
   if (!source.empty())
-    spdlog::info("prep: {}: no contrast-filled regions looked for: their limits are in HU, the image is in {}", source,
-                 r.units);
+    spdlog::info("prep: {}: no contrast-filled regions looked for: their limits hold for Hounsfield units only, and "
+                 "the image is in {}",
+                 source, r.units);
   if (prep.contrast == ContrastAs::kTissue)
     r.bone_summary.warnings.push_back(
-        "prep.contrast = \"tissue\" left nothing out: contrast-filled regions are found by limits in HU, and this "
-        "image is in " + r.units);
+        "prep.contrast = \"tissue\" left nothing out: contrast-filled regions are found by limits in Hounsfield "
+        "units, and this image is in " + r.units);
   return false;
 }
 

@@ -15,6 +15,8 @@
 #include <limits>
 #include <string>
 
+#include <png.h>
+
 #include "unit/prep_files.h"
 
 using namespace palpsim::test;
@@ -37,6 +39,45 @@ Run prep(const std::string& args) {
   while ((n = fread(buf, 1, sizeof buf, p)) > 0) out.append(buf, n);
   const int status = pclose(p);
   return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+// the longest vertical run of pixels of exactly `rgb` in each column of the histogram strip
+// of palpsim-prep's preview: the rows from the first that holds its bars' background
+// (40, 40, 64) down (empty when the file cannot be read)
+std::vector<int> histogram_runs(const std::string& path, const std::uint8_t (&rgb)[3]) {
+  png_image im{};
+  im.version = PNG_IMAGE_VERSION;
+  if (!png_image_begin_read_from_file(&im, path.c_str())) return {};
+  im.format = PNG_FORMAT_RGB;
+  std::vector<std::uint8_t> px(PNG_IMAGE_SIZE(im));
+  if (!png_image_finish_read(&im, nullptr, px.data(), 0, nullptr)) return {};
+  const int w = int(im.width), h = int(im.height);
+  const auto is = [&](int x, int y, const std::uint8_t (&c)[3]) {
+    const std::uint8_t* p = &px[(std::size_t(y) * w + x) * 3];
+    return p[0] == c[0] && p[1] == c[1] && p[2] == c[2];
+  };
+  const std::uint8_t bar_background[3] = {40, 40, 64};
+  int strip = h;
+  for (int y = 0; y < h && strip == h; ++y)
+    for (int x = 0; x < w; ++x)
+      if (is(x, y, bar_background)) {
+        strip = y;
+        break;
+      }
+  std::vector<int> best(std::size_t(w), 0);
+  for (int x = 0; x < w; ++x)
+    for (int y = strip, run = 0; y < h; ++y) {
+      run = is(x, y, rgb) ? run + 1 : 0;
+      best[std::size_t(x)] = std::max(best[std::size_t(x)], run);
+    }
+  return best;
+}
+
+// the first column whose run is at least `min_run` pixels (-1: none)
+int first_column(const std::vector<int>& runs, int min_run) {
+  for (std::size_t x = 0; x < runs.size(); ++x)
+    if (runs[x] >= min_run) return int(x);
+  return -1;
 }
 
 }  // namespace
@@ -152,6 +193,14 @@ TEST_CASE("palpsim-prep --air-threshold and --bone-threshold process an 8-bit im
                        Catch::Contains("\"units\": \"image units\", \"low_hu\": 166") &&
                        Catch::Contains("\"min\": 0, \"max\": 242, \"units\": \"image units\""));
   CHECK_THAT(r.output, Catch::Contains("bone threshold 166 image units") && !Catch::Contains(" HU"));
+  // the preview's histogram marks both thresholds as vertical lines at least 40 pixels
+  // high (its bars' least height): air (76, cyan) left of bone (166, yellow), where the
+  // user sees how the chosen values fall between the image's peaks
+  const std::uint8_t cyan[3] = {0, 220, 255}, yellow[3] = {255, 210, 0};
+  const int air_x = first_column(histogram_runs(d / "out/preview.png", cyan), 40);
+  const int bone_x = first_column(histogram_runs(d / "out/preview.png", yellow), 40);
+  CHECK(air_x >= 0);
+  CHECK(bone_x > air_x);
   // the scene is named with its file and its CT (the default scene's name is the phantom's)
   CHECK_THAT(r.output, Catch::Contains("(built-in, CT " + (d / "chest8.nrrd") + ")"));
 }

@@ -41,7 +41,8 @@ struct Options {
   std::string only;      // --backend: run this backend alone (empty: every one there is)
   bool untangle = false; // --untangle: Table 1 with deform.untangle on (off in scenes by default)
   bool elastic_only = false;  // --elastic: the elastic rows alone
-  ElasticSettings elastic;    // the elastic model's settings (--elastic-degrees F,C,L sets the V-cycle's degrees)
+  ElasticSettings elastic;    // the elastic model's settings (--elastic-degrees F,C,L sets the V-cycle's degrees,
+                              // --elastic-unit-tolerance T the shipped rows' unit press tolerance, the scenes' 0.01)
 };
 
 struct Table2Row {
@@ -174,6 +175,13 @@ void table1(const std::string& name, const Options& o, const PatientPtr& patient
   }
 }
 
+// a row's words for the unit press stopped at `t` with the force and stiffness by reciprocity
+std::string reciprocal_words(double t) {
+  char b[64];
+  std::snprintf(b, sizeof b, ", unit press to %g, reciprocal", t);
+  return b;
+}
+
 // one backend's elastic rows, issue 25's goals: VOI 64 on the phantom (with its body mask
 // and B), the fingertip of 5 mm, the scenes' solver settings and the unit press that
 // haptics.force_model "elastic" asks for, pressing over L3. A step from rest (reset()
@@ -269,7 +277,7 @@ struct ElasticBench {
     auto ref = make_deform_backend(name);
     ref->bind(phantom, converged());
     const DeformStats ref_st = ref->step(contact(X, 0));
-    ElasticRow r = row(std::string("from rest") + (stiffness_tolerance > 0 ? ", unit press to 0.01, reciprocal" : ""),
+    ElasticRow r = row(std::string("from rest") + (stiffness_tolerance > 0 ? reciprocal_words(stiffness_tolerance) : ""),
                        relax, total, st, b->memory());
     against(r, b->displacement(), st, ref->displacement(), ref_st, true);
     return r;
@@ -315,8 +323,9 @@ struct ElasticBench {
       double stiffness_tolerance;  // 0: the unit press to the round's tolerance
       bool slide;
     };
-    for (const Moving& mv : {Moving{true, false, 0, false}, Moving{true, true, 0, false}, Moving{true, true, 0.01, false},
-                             Moving{false, false, 0, false}, Moving{false, true, 0, false}, Moving{true, true, 0.01, true}}) {
+    const double unit_tol = o.elastic.stiffness_tolerance;  // the shipped rows' (the scenes' 0.01 by default)
+    for (const Moving& mv : {Moving{true, false, 0, false}, Moving{true, true, 0, false}, Moving{true, true, unit_tol, false},
+                             Moving{false, false, 0, false}, Moving{false, true, 0, false}, Moving{true, true, unit_tol, true}}) {
       DeformConfig c = cfg;
       c.elastic_stiffness = mv.stiffness;
       c.settings.elastic.predict = mv.predict;
@@ -330,7 +339,7 @@ struct ElasticBench {
       ElasticRow r = row(std::string(mv.slide ? "tip sliding half a voxel" : "tip moving a voxel") +
                              (mv.stiffness ? "" : ", no unit press") +
                              (mv.predict ? ", predicted" : "") +
-                             (mv.stiffness_tolerance > 0 ? ", unit press to 0.01, reciprocal" : ""),
+                             (mv.stiffness_tolerance > 0 ? reciprocal_words(mv.stiffness_tolerance) : ""),
                          relax, total, st, mem);
       against(r, u, st, ref, ref_s, mv.stiffness);
       rows.push_back(r);
@@ -367,7 +376,7 @@ struct ElasticBench {
     }
     const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     ElasticRow r = row(std::string("16 sessions begun together, tip moving a voxel") + (predict ? ", predicted" : "") +
-                           (stiffness_tolerance > 0 ? ", unit press to 0.01, reciprocal" : ""),
+                           (stiffness_tolerance > 0 ? reciprocal_words(stiffness_tolerance) : ""),
                        relax, total, st, sessions[0]->memory());
     r.sessions = n;
     r.steps_per_s = rounds / wall_s;
@@ -398,14 +407,14 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
   const ElasticBench b(name, o, phantom, press);
   const std::size_t first = rows.size();
   rows.push_back(b.from_rest());
-  rows.push_back(b.from_rest(0.01));
+  rows.push_back(b.from_rest(o.elastic.stiffness_tolerance));
   b.moving_rows(rows);
   // on cuda: 16 sessions as the server steps them, from the last field alone, predicted, and
   // with the shipped settings
   if (b.gpu) {
     rows.push_back(b.sessions_row(false));
     rows.push_back(b.sessions_row(true));
-    rows.push_back(b.sessions_row(true, 0.01));
+    rows.push_back(b.sessions_row(true, o.elastic.stiffness_tolerance));
   }
   for (std::size_t i = first; i < rows.size(); ++i) print_elastic_row(rows[i], b.gpu);
   std::fflush(stdout);
@@ -414,7 +423,8 @@ void elastic_rows(const std::string& name, const Options& o, const PatientPtr& p
 }  // namespace
 
 PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step on cpu and cuda [--json FILE] [--quick] "
-                      "[--commit C] [--backend cpu|cuda] [--untangle] [--elastic: the elastic rows alone] [--elastic-degrees F,C,L: "
+                      "[--commit C] [--backend cpu|cuda] [--untangle] [--elastic: the elastic rows alone] [--elastic-unit-tolerance T: "
+                      "the shipped rows' unit press tolerance, 0.01] [--elastic-degrees F,C,L: "
                       "the V-cycle's Chebyshev degrees]; "
                       "--accuracy [--ref-voi N] [--study KNOB] [--backend B]: accuracy vs time of relaxation, multigrid, "
                       "inversion and VOI (deform_accuracy.h)") {
@@ -434,6 +444,14 @@ PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step
       ElasticSettings& e = o.elastic;
       if (std::sscanf(argv[++a], "%d,%d,%d", &e.smooth_degree, &e.coarse_smooth_degree, &e.coarsest_degree) != 3) {
         std::fprintf(stderr, "palpsim-bench deform: --elastic-degrees wants F,C,L (three integers), not '%s'\n", argv[a]);
+        return 2;
+      }
+    }
+    else if (s == "--elastic-unit-tolerance" && a + 1 < argc) {
+      o.elastic.stiffness_tolerance = std::atof(argv[++a]);
+      if (!(o.elastic.stiffness_tolerance > 0 && o.elastic.stiffness_tolerance < 1)) {
+        std::fprintf(stderr, "palpsim-bench deform: --elastic-unit-tolerance wants a relative residual in (0, 1), not '%s'\n",
+                     argv[a]);
         return 2;
       }
     }
@@ -497,7 +515,8 @@ PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step
         << "\",\n  \"commit\": \"" << o.commit << "\",\n  \"quick\": " << (o.quick ? "true" : "false")
         << ",\n  \"phantom\": {\"voxel_mm\": " << o.voxel_mm << ", \"size\": [" << patient->grid.size.x << ", "
         << patient->grid.size.y << ", " << patient->grid.size.z << "]},\n  \"elastic_degrees\": [" << o.elastic.smooth_degree
-        << ", " << o.elastic.coarse_smooth_degree << ", " << o.elastic.coarsest_degree << "],\n  \"table2\": [\n";
+        << ", " << o.elastic.coarse_smooth_degree << ", " << o.elastic.coarsest_degree
+        << "],\n  \"elastic_unit_tolerance\": " << o.elastic.stiffness_tolerance << ",\n  \"table2\": [\n";
       for (std::size_t i = 0; i < t2.size(); ++i) {
         const auto& r = t2[i];
         f << "    {\"backend\": \"" << r.backend << "\", \"preset\": \"p" << r.preset << "\", \"d\": " << r.d

@@ -251,6 +251,7 @@ struct ElasticBench {
   DeformConfig converged() const {
     DeformConfig conv = cfg;
     conv.settings.elastic.tolerance = 1e-6;
+    conv.settings.elastic.stiffness_tolerance = 0;  // the unit press to 1e-6 too, whatever --elastic-unit-tolerance says
     conv.settings.elastic.contact_rounds = 12;
     conv.settings.elastic.max_iterations = 400;
     return conv;

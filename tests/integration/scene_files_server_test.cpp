@@ -237,3 +237,20 @@ TEST_CASE("a CT scene inside --scene-dir loads, its patient cached in the operat
   CHECK(std::distance(fs::directory_iterator(cache), fs::directory_iterator{}) == 2);
   CHECK_FALSE(fs::exists(f.cache));
 }
+
+TEST_CASE("the server's log names each scene it serves with its file and its CT", "[integration][files]") {
+  // a scene copied to another CT keeps its name; the file and the CT beside it tell the
+  // copies apart in every line that names the scene (the start, ready and LoadScene lines)
+  Folders f;
+  fs::create_directories(f.scenes / "ct");
+  detached_torso((f.scenes / "ct/torso.nhdr").string(), "torso.raw", (f.scenes / "ct/torso.raw").string());
+  const std::string scene = f.scene("copy.textproto", "name: \"start\"\nct_path: \"ct/torso.nhdr\"\n");
+  auto server = start(f);
+  Control c(server->control());
+  CHECK(c.load_path(scene).error().code() == v1::ERROR_NONE);
+  const std::string start_file = (f.scenes / "start.textproto").string();
+  const std::string log = server->child().out() + server->child().err();
+  INFO(log);
+  CHECK_THAT(log, Catch::Contains("scene 'start' (" + start_file + ", phantom)"));
+  CHECK_THAT(log, Catch::Contains("now serving scene 'start' (" + scene + ", CT " + (f.scenes / "ct/torso.nhdr").string()));
+}

@@ -20,18 +20,25 @@ set -uo pipefail
 out=${1:?usage: scripts/gpu-check.sh OUT_DIR [quick|elastic]}
 quick=${2:-}
 mkdir -p "$out"
+# every step's whole output, here and appended to the one $out/logs.txt as it ends: the
+# device brings back at most 8 files a call, so the logs travel as one file beside the JSON
+logs=/tmp/gpu-check-logs
+rm -rf "$logs" && mkdir -p "$logs"
 tar xzf .device/bundle.tgz -C /tmp && . /tmp/bundle/env.sh || { echo "gpu-check: no bundle in .device/" >&2; exit 2; }
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/logs.txt"
 # the commit the bundle was built from (the GPU machine's copy of .git may be stale)
 commit=$(cat .device/commit 2>/dev/null || echo "unknown (no .device/commit)")
-echo "commit $commit" | tee -a "$out/gpu.txt"
+echo "commit $commit" | tee -a "$out/logs.txt"
 
 step() {  # name, command...: runs it, keeps its output, prints one status line
   local name=$1; shift
   local t0=$SECONDS
-  "$@" > "$out/$name.txt" 2>&1
+  "$@" > "$logs/$name.txt" 2>&1
   local rc=$?
-  printf '%-22s rc=%d  %3ds\n' "$name" "$rc" $((SECONDS - t0)) | tee -a "$out/summary.txt"
+  local line
+  line=$(printf '%-22s rc=%d  %3ds' "$name" "$rc" $((SECONDS - t0)))
+  echo "$line"
+  { echo "=== $line: $*"; cat "$logs/$name.txt"; } >> "$out/logs.txt"
   return 0
 }
 if [ "$quick" = elastic ]; then
@@ -56,9 +63,9 @@ if [ "$quick" = elastic ]; then
     step racecheck-elastic compute-sanitizer --tool racecheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
     step memcheck-elastic compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
   fi
-  for f in "$out"/*.txt; do
+  for f in "$logs"/*.txt; do
     echo "=== $(basename "$f")"
-    grep -E "passed|failed|FAILED|ERROR SUMMARY|elastic cuda" "$f" | cut -c1-300 | tail -16
+    grep -E "passed|failed|FAILED|ERROR SUMMARY|RACECHECK SUMMARY|elastic cuda" "$f" | cut -c1-300 | tail -16
   done
   exit 0
 fi
@@ -90,7 +97,7 @@ if [ -z "$quick" ]; then
     --commit "$commit"
 fi
 # the tail of each: what passed, what the benchmarks measured
-for f in "$out"/*.txt; do
+for f in "$logs"/*.txt; do
   echo "=== $(basename "$f")"
-  grep -E "passed|failed|FAILED|ERROR SUMMARY|render\+encode|server,|frames/s|skipped|median" "$f" | tail -25
+  grep -E "passed|failed|FAILED|ERROR SUMMARY|RACECHECK SUMMARY|render\+encode|server,|frames/s|skipped|median" "$f" | tail -25
 done

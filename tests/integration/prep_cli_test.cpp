@@ -13,6 +13,7 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <sstream>
 #include <string>
 
 #include <png.h>
@@ -205,3 +206,31 @@ TEST_CASE("palpsim-prep --air-threshold and --bone-threshold process an 8-bit im
   CHECK_THAT(r.output, Catch::Contains("(built-in, CT " + (d / "chest8.nrrd") + ")"));
 }
 
+
+TEST_CASE("palpsim-prep prints each landmark with a press that starts outside its skin point and reaches its bone") {
+  TempDir d;
+  // the phantom at 3 mm (its six spinous processes T12-L5 and both iliac crests stand out)
+  std::ofstream(d / "phantom3.textproto") << "phantom {\n  voxel_mm: 3\n}\nprep {\n  spacing_mm: 3\n}\n";
+  const Run r = prep("--scene '" + (d / "phantom3.textproto") + "' --no-cache --out '" + (d / "out") + "'");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  int marks = 0, crests = 0;
+  std::istringstream lines(r.output);
+  for (std::string line; std::getline(lines, line);) {
+    double sx, sy, sz, depth, px, py, pz, travel;
+    const std::size_t at = line.find(" skin (");
+    if (at == std::string::npos || line.find("press:") == std::string::npos) continue;
+    REQUIRE(std::sscanf(line.c_str() + at, " skin (%lf, %lf, %lf) mm, bone %lf mm under it", &sx, &sy, &sz, &depth) == 4);
+    REQUIRE(std::sscanf(line.c_str() + line.find("press:"), "press:%lf,%lf,%lf,%lf", &px, &py, &pz, &travel) == 4);
+    ++marks;
+    crests += line.find("iliac crest") != std::string::npos;
+    // printed to 0.1 mm: the start 10 mm above the skin point along +y, the travel to the
+    // bone point (depth under the skin) and 5 mm past it
+    CHECK(px == Approx(sx).margin(0.05));
+    CHECK(pz == Approx(sz).margin(0.05));
+    CHECK(py - sy == Approx(10).margin(0.1));
+    CHECK(travel - depth == Approx(15).margin(0.1));
+  }
+  CHECK(marks >= 8);
+  CHECK(crests == 2);
+}

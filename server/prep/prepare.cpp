@@ -153,14 +153,10 @@ std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::
 }
 
 // whether to look for contrast-filled regions: their limits (contrast.h) are in HU, so on
-// an image in other units none is looked for (logged once, with `source`), and a scene that
-// asked for prep.contrast = "tissue" gets a warning that nothing was left out
-bool seek_contrast(const PrepSettings& prep, const std::string& source, PrepReport& r) {
+// an image in other units none is looked for, and a scene that asked for prep.contrast =
+// "tissue" gets a warning (in the bone summary's) that nothing was left out
+bool seek_contrast(const PrepSettings& prep, PrepReport& r) {
   if (r.units == "HU") return true;
-  if (!source.empty())
-    spdlog::info("prep: {}: no contrast-filled regions looked for: their limits hold for Hounsfield units only, and "
-                 "the image is in {}",
-                 source, r.units);
   if (prep.contrast == ContrastAs::kTissue)
     r.bone_summary.warnings.push_back(
         "prep.contrast = \"tissue\" left nothing out: contrast-filled regions are found by limits in Hounsfield "
@@ -184,7 +180,7 @@ void measure_cached(Patient& p, const PrepSettings& prep, const std::string& cor
   p.bone_threshold_hu = r.bone_thresholds.low;
   r.bone_summary = summarize_bone(p.body, p.bone);
   r.units = core.find("\"units\": \"image units\"") != std::string::npos ? "image units" : "HU";
-  if (seek_contrast(prep, "", r))
+  if (seek_contrast(prep, r))
     r.contrast_regions = find_contrast_regions(p.intensity, p.body, p.bone, r.bone_thresholds, r.bone_summary.column);
   const std::size_t at = core.find("\"contrast_removed_ml\": ");
   if (at != std::string::npos) r.contrast_removed_ml = std::atof(core.c_str() + at + 23);
@@ -243,7 +239,12 @@ std::string report_core(const Scene& scene, const std::string& source, const CtI
 // out of the bone mask (small pieces of bone left beside them go too; the summary is
 // measured again)
 void find_contrast(Patient& p, const PrepSettings& prep, const std::string& source, PrepReport& r) {
-  if (!seek_contrast(prep, source, r)) return;
+  if (!seek_contrast(prep, r)) {
+    spdlog::info("prep: {}: no contrast-filled regions looked for: their limits hold for Hounsfield units only, and "
+                 "the image is in {}",
+                 source, r.units);
+    return;
+  }
   Volume<std::uint8_t> regions;
   r.contrast_regions = timed(r, "contrast", [&] {
     return find_contrast_regions(p.intensity, p.body, p.bone, r.bone_thresholds, r.bone_summary.column, &regions);

@@ -30,7 +30,10 @@ using deform::kElasticSkin;
 using deform::Voi;
 
 constexpr int kThreads = 512;      // threads per block of both kernels
-constexpr int kBlockNodes = 64;    // coarse levels of at most this many nodes run in block 0 alone (the default)
+// coarse levels of at most this many nodes run in block 0 alone (the default): none, since
+// a level has at least deform::kElasticCoarsestNodes^3 = 125 (the grid's pass and barrier
+// cost no more than block 0's); PALPSIM_ELASTIC_BLOCK_NODES sets it for a measurement
+constexpr int kBlockNodes = 64;
 constexpr int kTileNodes = 8192;   // coarse levels of at least this many nodes on the grid take tiles (the default)
 constexpr int kSlot = 4;           // sums a reduction slot holds
 constexpr int kRing = 32;          // the step's reduction slots, reused in turn
@@ -118,6 +121,21 @@ struct CellMatrix {
   const float* k;
   __device__ float operator()(int r, int c) const { return k[24 * r + c]; }
 };
+
+// the cell matrix's copy in each block's shared memory (one function, so one array), for
+// the eight-lane gathers: their lanes read eight row blocks at once, which the kernel
+// argument serves one address at a time and shared memory with two-way bank conflicts
+__device__ float* cell_matrix_shared() {
+  __shared__ float k[576];
+  return k;
+}
+
+// every thread of the block its entries of the copy; a __syncthreads() must follow before
+// a gather reads it
+__device__ void copy_cell_matrix(const float* k) {
+  float* const to = cell_matrix_shared();
+  for (int i = int(threadIdx.x); i < 576; i += int(blockDim.x)) to[i] = k[i];
+}
 
 // a level's cell moduli (kPa) by lowest corner
 struct CellModuli {
@@ -354,6 +372,7 @@ __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uin
   }
   const CellModuli ce{cell_e, L};
   const Load load{x, L};
+  const CellMatrix ks{cell_matrix_shared()};  // the same entries as km, from shared memory
   const int lane = threadIdx.x & 31;
   const int tasks = 8 * L.count;
   for (int t0 = t.first - lane; t0 < tasks; t0 += t.stride) {
@@ -365,8 +384,8 @@ __device__ void gather(const CellMatrix& km, const float* cell_e, const std::uin
     Vec3f kx{0, 0, 0}, dg{0, 0, 0};
     if (mine) {
       L.coords(node, i, j, k);
-      deform::elastic_add_cell(km, ce, load, L.n, L.scale, i, j, k, a, kx);
-      deform::elastic_add_cell_diag(km, ce, L.n, L.scale, i, j, k, a, dg);
+      deform::elastic_add_cell(ks, ce, load, L.n, L.scale, i, j, k, a, kx);
+      deform::elastic_add_cell_diag(ks, ce, L.n, L.scale, i, j, k, a, dg);
     }
     for (int o = 1; o < 8; o <<= 1) {
       kx.x += __shfl_xor_sync(0xffffffffu, kx.x, o, 8);

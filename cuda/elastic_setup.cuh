@@ -100,8 +100,9 @@ __device__ void estimate_lmax(const SetupArgs& a, const Lvl* lv, const Team& all
     g.sync();
     tr.stamp(kPassSetupLanczos * 16);
   }
-  if (blockIdx.x == 0 && threadIdx.x == 0) {
-    for (int l = 0; l < levels; ++l) {
+  // block 0's thread l takes level l
+  if (blockIdx.x == 0) {
+    for (int l = int(threadIdx.x); l < levels; l += int(blockDim.x)) {
       double s[deform::kElasticLanczosSteps], n[deform::kElasticLanczosSteps];
       for (int j = 0; j < deform::kElasticLanczosSteps; ++j) {
         s[j] = sums[kSlot * (j * kElasticMaxLevels + l)];
@@ -118,6 +119,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_setup_kernel(cons
   __shared__ alignas(16) unsigned char level_bytes[kElasticMaxLevels * sizeof(Lvl)];  // raw: Vec3i has initialisers
   Lvl* lv = reinterpret_cast<Lvl*>(level_bytes);
   if (threadIdx.x == 0) make_levels(a.plan, a.v.capacity, lv);
+  copy_cell_matrix(a.k);
   __syncthreads();
   const View& v = a.v;
   const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};

@@ -576,6 +576,22 @@ __device__ double folded_cells(const StepArgs& a, const Step& st) {
   return folded;
 }
 
+// the step's counters for the host but the folded cells' count, which the threads add to
+// the result themselves
+static_assert(sizeof(ElasticCounters) == 64, "write_result() writes every counter but inverted: add a new one there");
+__device__ void write_result(ElasticCounters* r, const ElasticCounters& out) {
+  r->contact = out.contact;
+  r->contact_nodes = out.contact_nodes;
+  r->rounds = out.rounds;
+  r->settled = out.settled;
+  r->iterations = out.iterations;
+  r->converged = out.converged;
+  r->stiffness_iterations = out.stiffness_iterations;
+  r->residual = out.residual;
+  r->press_n = out.press_n;
+  r->stiffness_n_per_mm = out.stiffness_n_per_mm;
+}
+
 // what the step solves, in order: contact rounds, a last solve of u when they ran out
 // with the set still changing, the unit press
 enum Job { kRound, kLast, kUnit, kDone };
@@ -588,6 +604,9 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   StepShared& sh = *reinterpret_cast<StepShared*>(shared_bytes);
   const View& v = a.v;
   if (threadIdx.x == 0) make_step_table(a, sh);
+  copy_cell_matrix(a.k);
+  // the folded cells' count, which every thread adds to at the end (after many barriers)
+  if (blockIdx.x == 0 && threadIdx.x == 0) a.result->inverted = 0;
   // the ring from where the last step left it (kRingNext)
   Ring ring{v.sums, int(v.sums[kRingNext]) % kRing, Tracer{a.trace, a.trace_pairs, 0}};
   const Team all{int(blockIdx.x * blockDim.x + threadIdx.x), int(gridDim.x * blockDim.x)};
@@ -610,7 +629,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
       a.out[0][e] = a.out[1][e] = a.out[2][e] = 0.0f;
     }
     if (blockIdx.x == 0 && threadIdx.x == 0) {
-      *a.result = out;
+      write_result(a.result, out);
       v.sums[kRingNext] = ring.slot;
     }
     return;
@@ -675,10 +694,12 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     write_field(a, st);
     st.grid_sync(kPassField);
   }
+  // (each thread adds its count to the result, zeroed at the start, with no barrier after:
+  // the host reads it once the kernel ended)
   const double folded = folded_cells(a, st);
-  out.inverted = (unsigned long long)reduce1(ring, folded, g, kPassField * 16);
+  if (folded > 0) atomicAdd(&a.result->inverted, (unsigned long long)folded);
   if (blockIdx.x == 0 && threadIdx.x == 0) {
-    *a.result = out;
+    write_result(a.result, out);
     v.sums[kRingNext] = ring.slot;
   }
 }

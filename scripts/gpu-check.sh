@@ -54,6 +54,8 @@ if [ "$quick" = elastic ]; then
       --elastic-degrees "$ALT_DEGREES" --json "$out/deform-elastic-alt.json"
   fi
   step gpu-elastic-tests palpsim-gpu-tests "[elastic]"
+  # block 0's coarse levels, which no plan reaches by default (kBlockNodes), on the small VOIs
+  step gpu-elastic-block0 env PALPSIM_ELASTIC_BLOCK_NODES=1000 palpsim-gpu-tests "$elastic_case"
   step gpu-stability-tests palpsim-gpu-stability-tests
   step bench-elastic-2 palpsim-bench deform --elastic --backend cuda --commit "$commit" --json "$out/deform-elastic-2.json"
   step elastic-trace env PALPSIM_ELASTIC_TRACE=1 palpsim-bench deform --elastic --backend cuda --quick
@@ -70,6 +72,8 @@ if [ "$quick" = elastic ]; then
   exit 0
 fi
 step gpu-tests palpsim-gpu-tests
+# block 0's coarse levels of the elastic model, which no plan reaches by default (kBlockNodes)
+step gpu-elastic-block0 env PALPSIM_ELASTIC_BLOCK_NODES=1000 palpsim-gpu-tests "gpu elastic steps equal the cpu's on clipped*"
 step gpu-render-tests palpsim-gpu-render-tests
 # the stability catalogue's deformation cases on "cuda" (tests/stability/, issue 8 section 5)
 command -v palpsim-gpu-stability-tests >/dev/null && step gpu-stability-tests palpsim-gpu-stability-tests

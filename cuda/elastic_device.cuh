@@ -30,9 +30,9 @@ using deform::kElasticSkin;
 using deform::Voi;
 
 constexpr int kThreads = 512;      // threads per block of both kernels
-// coarse levels of at most this many nodes run in block 0 alone (the default): none, since
-// a level has at least deform::kElasticCoarsestNodes^3 = 125 (the grid's pass and barrier
-// cost no more than block 0's); PALPSIM_ELASTIC_BLOCK_NODES sets it for a measurement
+// coarse levels of at most this many nodes run in block 0 alone (the default: a coarsest
+// level of 4^3, as a VOI of 48 ends on; the phantom's 64 x 49 x 64 ends on 5 x 4 x 5 on the
+// grid); PALPSIM_ELASTIC_BLOCK_NODES sets it for a measurement
 constexpr int kBlockNodes = 64;
 constexpr int kTileNodes = 8192;   // coarse levels of at least this many nodes on the grid take tiles (the default)
 constexpr int kSlot = 4;           // sums a reduction slot holds

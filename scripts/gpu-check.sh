@@ -54,7 +54,7 @@ if [ "$quick" = elastic ]; then
       --elastic-degrees "$ALT_DEGREES" --json "$out/deform-elastic-alt.json"
   fi
   step gpu-elastic-tests palpsim-gpu-tests "[elastic]"
-  # block 0's coarse levels, which no plan reaches by default (kBlockNodes), on the small VOIs
+  # block 0's coarse levels on the small VOIs (by default only a VOI ending on 4^3 nodes has one)
   step gpu-elastic-block0 env PALPSIM_ELASTIC_BLOCK_NODES=1000 palpsim-gpu-tests "$elastic_case"
   step gpu-stability-tests palpsim-gpu-stability-tests
   # (ONCE=1: not again, when the device's time is short)
@@ -74,7 +74,7 @@ if [ "$quick" = elastic ]; then
   exit 0
 fi
 step gpu-tests palpsim-gpu-tests
-# block 0's coarse levels of the elastic model, which no plan reaches by default (kBlockNodes)
+# block 0's coarse levels of the elastic model on the small VOIs (by default only a VOI ending on 4^3 nodes has one)
 step gpu-elastic-block0 env PALPSIM_ELASTIC_BLOCK_NODES=1000 palpsim-gpu-tests "gpu elastic steps equal the cpu's on clipped*"
 step gpu-render-tests palpsim-gpu-render-tests
 # the stability catalogue's deformation cases on "cuda" (tests/stability/, issue 8 section 5)

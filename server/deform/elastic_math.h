@@ -537,10 +537,13 @@ struct ElasticPlan {
   long long coarse_count = 0;           // nodes of all levels >= 1
 };
 
-/// A coarse level has at least this many nodes along every axis: at 3 (one node inside
-/// its held faces) the phantom's VOI 64 took the same CG steps and came out the same to the
-/// bench's digits as without that level, whose passes cost a V-cycle time on the GPU.
-constexpr int kElasticCoarsestNodes = 5;
+/// A coarse level has at least this many nodes along every axis: a level of 3 (one node
+/// inside its held faces) costs a V-cycle passes for nothing (the accuracy study's VOI 64 of
+/// 1 mm voxels took the same CG steps without it). At 5 the phantom's VOI (64 x 49 x 64
+/// nodes) loses its 5 x 4 x 5 level as well: a step from rest then takes 2 + 1 CG steps
+/// instead of 3 + 1, but ends 5.5 % from converged in u instead of 2.2 %
+/// (bench/results/elastic-coarsest-5-2026-12-06-h200-374ee99.txt).
+constexpr int kElasticCoarsestNodes = 4;
 
 /// The plan for a VOI of `voi_size` nodes: coarsen while every axis of the next level keeps
 /// at least kElasticCoarsestNodes nodes, at most kElasticMaxLevels levels.

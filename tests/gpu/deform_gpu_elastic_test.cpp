@@ -217,7 +217,8 @@ TEST_CASE("gpu elastic steps equal the cpu's on clipped and small VOIs, through 
   // VOI edges whose plans run level 0 alone (4: too small to coarsen) and one or two coarse
   // levels (8: 8, 5; 16: 16, 9, 5), all on the grid; with PALPSIM_ELASTIC_BLOCK_NODES=1000
   // (scripts/gpu-check.sh) 8 puts its coarse level in block 0 and 16 splits them (9 and 5
-  // in block 0), the only way a level now reaches block 0 (kBlockNodes: none is that small)
+  // in block 0); by default only a plan ending on 4^3 nodes (a VOI of 48: 48, 25, 13, 7, 4)
+  // puts a level there
   for (int edge : {4, 8, 16})
     DYNAMIC_SECTION("VOI " << edge) {
       Pair b(slab, elastic_config(edge, 1e-6, true));
@@ -374,10 +375,10 @@ TEST_CASE("gpu elastic sessions begun together equal sessions alone; they step u
   }
   // the session's own memory: ChainMail's fields and stamps, J and its pinned copy, and the
   // elastic field, unit press, flags and moduli of every level (level 0's 32^3 and the
-  // coarse levels 17^3, 9^3, 5^3, 3^3), every level's lmax, level 0's tile list (count,
+  // coarse levels 17^3, 9^3, 5^3), every level's lmax, level 0's tile list (count,
   // then list and marks of its 1 x 8 x 8 tiles of 32 x 4 x 4 nodes); the shared scratch
   // and the body copy counted apart
-  const std::size_t n = 32 * 32 * 32, total = n + 17 * 17 * 17 + 9 * 9 * 9 + 5 * 5 * 5 + 3 * 3 * 3;
+  const std::size_t n = 32 * 32 * 32, total = n + 17 * 17 * 17 + 9 * 9 * 9 + 5 * 5 * 5;
   const std::size_t elastic_own =
       6 * n * sizeof(float) + total * (1 + sizeof(float)) + 16 * sizeof(float) + (1 + 2 * 64) * sizeof(int);
   const DeformMemory m = twins[0]->backend().memory();

@@ -216,9 +216,10 @@ TEST_CASE("gpu elastic steps equal the cpu's on clipped and small VOIs, through 
   }
   // VOI edges whose plans run level 0 alone (4: too small to coarsen) and one or two coarse
   // levels (8: 8, 5; 16: 16, 9, 5), all on the grid; with PALPSIM_ELASTIC_BLOCK_NODES=1000
-  // (scripts/gpu-check.sh) 8 puts its coarse level in block 0 and 16 splits them (9 and 5
-  // in block 0); by default only a plan ending on 4^3 nodes (a VOI of 48: 48, 25, 13, 7, 4)
-  // puts a level there
+  // (scripts/gpu-check.sh) 8 and 16 put their coarse levels in block 0 and the VOI clipped
+  // at the border splits them (10 x 10 x 17 on the grid, 6 x 6 x 9 and 4 x 4 x 5 in block 0);
+  // by default only a plan ending on 4^3 nodes (a VOI of 48: 48, 25, 13, 7, 4) has a level
+  // there
   for (int edge : {4, 8, 16})
     DYNAMIC_SECTION("VOI " << edge) {
       Pair b(slab, elastic_config(edge, 1e-6, true));

@@ -41,13 +41,15 @@ step() {  # name, command...: runs it, keeps its output, prints one status line
   { echo "=== $line: $*"; cat "$logs/$name.txt"; } >> "$out/logs.txt"
   return 0
 }
+# the elastic GPU cases on clipped and small VOIs (every level layout, short enough for the
+# sanitizers)
+elastic_case="gpu elastic steps equal the cpu's on clipped*"
 if [ "$quick" = elastic ]; then
   # the figures first (a run cut short by the device's time limit still brings them back):
   # the elastic rows, and with ALT_DEGREES=F,C,L once more with those V-cycle degrees; then
   # the tests, the rows again (the 16 sessions' figure moves a few % from one run to the
   # next), a traced run (where a step's time goes), the accuracy report's GPU column, and
   # the sanitizers on the clipped VOIs last (the slowest)
-  elastic_case="gpu elastic steps equal the cpu's on clipped*"
   step bench-elastic-1 palpsim-bench deform --elastic --backend cuda --commit "$commit" --json "$out/deform-elastic-1.json"
   if [ -n "${ALT_DEGREES:-}" ]; then
     step bench-elastic-alt palpsim-bench deform --elastic --backend cuda --commit "$commit" \
@@ -75,7 +77,7 @@ if [ "$quick" = elastic ]; then
 fi
 step gpu-tests palpsim-gpu-tests
 # block 0's coarse levels of the elastic model on the small VOIs (by default only a VOI ending on 4^3 nodes has one)
-step gpu-elastic-block0 env PALPSIM_ELASTIC_BLOCK_NODES=1000 palpsim-gpu-tests "gpu elastic steps equal the cpu's on clipped*"
+step gpu-elastic-block0 env PALPSIM_ELASTIC_BLOCK_NODES=1000 palpsim-gpu-tests "$elastic_case"
 step gpu-render-tests palpsim-gpu-render-tests
 # the stability catalogue's deformation cases on "cuda" (tests/stability/, issue 8 section 5)
 command -v palpsim-gpu-stability-tests >/dev/null && step gpu-stability-tests palpsim-gpu-stability-tests
@@ -87,7 +89,6 @@ if command -v compute-sanitizer >/dev/null; then
   # the elastic kernels (cuda/relax_elastic.cu) on the case of clipped and small VOIs (every
   # level layout, short under the sanitizer): reads and writes out of bounds, and races on
   # shared memory
-  elastic_case="gpu elastic steps equal the cpu's on clipped*"
   step memcheck-elastic compute-sanitizer --tool memcheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
   step racecheck-elastic compute-sanitizer --tool racecheck --error-exitcode 9 palpsim-gpu-tests "$elastic_case"
 fi

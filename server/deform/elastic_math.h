@@ -538,7 +538,7 @@ struct ElasticPlan {
 };
 
 /// A coarse level has at least this many nodes along every axis: a level of 3 (one node
-/// inside its held faces) costs a V-cycle passes for nothing (the accuracy study's VOI 64 of
+/// inside its held faces) costs each V-cycle passes for nothing (the accuracy study's VOI 64 of
 /// 1 mm voxels took the same CG steps without it). At 5 the phantom's VOI (64 x 49 x 64
 /// nodes) loses its 5 x 4 x 5 level as well: a step from rest then takes 2 + 1 CG steps
 /// instead of 3 + 1, but ends 5.5 % from converged in u instead of 2.2 %

@@ -70,6 +70,7 @@ struct ElasticRow {
   int sessions = 1;             // begun together
   int iterations = 0;           // CG steps of the last step (contact rounds; the unit press apart)
   int stiffness_iterations = 0; // ... of its unit press
+  int rounds = 0;               // ... its contact rounds (each a solve and a pass over the set)
   int contact_nodes = 0;
   double force_n = 0;           // |F| of the last step (N)
   Spread relax, total;          // the elastic stage and the whole step (ms)
@@ -225,6 +226,7 @@ struct ElasticBench {
     r.voi = 64;
     r.iterations = st.elastic.iterations;
     r.stiffness_iterations = st.elastic.stiffness_iterations;
+    r.rounds = st.elastic.rounds;
     r.contact_nodes = st.elastic.contact_nodes;
     r.force_n = norm(st.elastic.force_n);
     r.relax = spread(relax);
@@ -390,9 +392,9 @@ struct ElasticBench {
 // one elastic row as the bench prints it, with its goal on cuda
 void print_elastic_row(const ElasticRow& r, bool gpu) {
   std::printf("elastic %-4s VOI %d %-45s median ms: relax %.3f (p10 %.3f, p90 %.3f)  total %.3f  CG steps %d + %d "
-              "(unit press), %d contact nodes, F %.3f N, own %.1f MiB, shared scratch %.1f MiB",
+              "(unit press), %d round%s, %d contact nodes, F %.3f N, own %.1f MiB, shared scratch %.1f MiB",
               r.backend.c_str(), r.voi, r.what.c_str(), r.relax.median, r.relax.p10, r.relax.p90, r.total.median,
-              r.iterations, r.stiffness_iterations, r.contact_nodes, r.force_n, r.own_mb, r.shared_mb);
+              r.iterations, r.stiffness_iterations, r.rounds, r.rounds == 1 ? "" : "s", r.contact_nodes, r.force_n, r.own_mb, r.shared_mb);
   if (r.sessions > 1) std::printf(", %.0f steps/s per session", r.steps_per_s);
   if (r.u_err_pct >= 0) std::printf("; against converged: u %.2f %%, F %+.2f %%", r.u_err_pct, r.force_err_pct);
   if (r.u_err_pct >= 0 && r.stiffness) std::printf(", stiffness %+.2f %%", r.stiffness_err_pct);
@@ -544,7 +546,8 @@ PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step
         const auto& r = el[i];
         f << "    {\"backend\": \"" << r.backend << "\", \"what\": \"" << r.what << "\", \"voi\": " << r.voi
           << ", \"sessions\": " << r.sessions << ", \"iterations\": " << r.iterations
-          << ", \"stiffness_iterations\": " << r.stiffness_iterations << ", \"contact_nodes\": " << r.contact_nodes
+          << ", \"stiffness_iterations\": " << r.stiffness_iterations << ", \"rounds\": " << r.rounds
+          << ", \"contact_nodes\": " << r.contact_nodes
           << ", \"force_n\": " << bench::json_number(r.force_n) << ", \"relax\": " << json_spread(r.relax)
           << ", \"total\": " << json_spread(r.total) << ", \"steps_per_s_per_session\": "
           << bench::json_number(r.steps_per_s) << ", \"own_mib\": " << bench::json_number(r.own_mb)

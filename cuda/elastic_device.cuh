@@ -165,6 +165,8 @@ struct LoadOrZero {
 struct View {
   float* u;            // the field (mm), level 0, stride capacity
   float* u_unit;       // the unit press, likewise (null without the stiffness)
+  float* react;        // the last step's reactions (N along n) at its contact nodes, level 0: the press's,
+                       // then the unit press's at capacity on (null without the stiffness)
   std::uint8_t* flags; // every level
   float* cell_e;       // every level
   float* lmax;         // every level's largest eigenvalue of D^-1 K

@@ -435,6 +435,8 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
   const Lvl& L0 = st.sh.lv[0];
   const Team all = st.all;
   const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
+  const bool reactions = a.had && a.predict == int(ElasticPredict::kUnit) && !deform::elastic_shifts(a.shift_vox) &&
+                         v.react != nullptr;
   double under = 0;
   for (int e = all.first; e < L0.count; e += all.stride) {
     int i, j, k;
@@ -467,8 +469,11 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
     if (t > 0) under += 1;
     const bool was = (fl & kElasticContact) != 0;
     fl = std::uint8_t(fl & ~kElasticContact);
+    // the last set's reactions predicted with the unit press (not where the field moved across n)
+    const bool pulled = was && reactions &&
+                        deform::elastic_predicted_pull(v.react[e], v.react[v.capacity + e], a.predict_factor);
     if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth,
-                                      deform::elastic_shifts(a.shift_vox) ? a.penetration : 0.0f))
+                                      deform::elastic_shifts(a.shift_vox) ? a.penetration : 0.0f, pulled))
       fl |= kElasticContact;
     v.flags[e] = fl;
   }
@@ -516,11 +521,12 @@ __device__ void write_field(const StepArgs& a, const Step& st) {
 }
 
 // after a solve (every thread its nodes, into sums): the contact nodes' forces along n and
-// their count; after a round (`round`), the set's update and how many nodes changed; after
+// their count, each kept for the next step's start (View::react: the press's, or the unit
+// press's for `unit`); after a round (`round`), the set's update and how many nodes changed; after
 // the unit press by reciprocity (elastic_math.h, `reciprocal`) the push sum of u . K w and
 // w's residual's part of w . K w; with `field`, u in voxels for the inversion (u is final:
 // write_field(), the barrier of the sums' reduction serving folded_cells())
-__device__ void contact_sums(const StepArgs& a, const Step& st, bool round, bool reciprocal, bool field,
+__device__ void contact_sums(const StepArgs& a, const Step& st, bool unit, bool round, bool reciprocal, bool field,
                              const Field& w, double (&sums)[4]) {
   const View& v = a.v;
   const Lvl& L0 = st.sh.lv[0];
@@ -541,6 +547,7 @@ __device__ void contact_sums(const StepArgs& a, const Step& st, bool round, bool
       const float fn = dot(deform::elastic_apply_node(st.km(), CellModuli{v.cell_e, L0}, Load{w, L0}, L0.n, 1.0f, i,
                                                       j, k),
                            a.nrm);
+      if (v.react) v.react[(unit ? v.capacity : 0) + e] = fn;
       sums[0] += double(fn);
       sums[1] += 1;
       if (reciprocal) sums[2] += double(fn) * double(dot(u.at(e), a.nrm));
@@ -665,7 +672,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     const bool reciprocal = job == kUnit && a.reciprocal;
     field = job == kUnit || !a.stiffness;
     double sums[4] = {0, 0, 0, 0};
-    contact_sums(a, st, job == kRound, reciprocal, field, w, sums);
+    contact_sums(a, st, job == kUnit, job == kRound, reciprocal, field, w, sums);
     reduce(ring, sums, g, kPassContact * 16);
     if (job == kRound) {
       ++round;

@@ -240,8 +240,9 @@ ElasticSolver::~ElasticSolver() { release(); }
 void ElasticSolver::release() {
   trace_.reset();
   // errors are ignored here: it runs from destructors
-  for (void* q : {(void*)u_, (void*)u_unit_, (void*)flags_, (void*)cell_e_, (void*)lmax_, (void*)tiles_}) cudaFree(q);
-  u_ = u_unit_ = cell_e_ = lmax_ = nullptr;
+  for (void* q : {(void*)u_, (void*)u_unit_, (void*)react_, (void*)flags_, (void*)cell_e_, (void*)lmax_, (void*)tiles_})
+    cudaFree(q);
+  u_ = u_unit_ = react_ = cell_e_ = lmax_ = nullptr;
   flags_ = nullptr;
   tiles_ = nullptr;
   tile_ints_ = 0;
@@ -263,7 +264,10 @@ void ElasticSolver::bind(const Patient& p, const deform::ElasticParams& params, 
   const std::size_t total = std::size_t(n + nc);
   try {
     PALPSIM_CUDA_CHECK(cudaMalloc(&u_, 3 * std::size_t(n) * sizeof(float)));
-    if (params.stiffness) PALPSIM_CUDA_CHECK(cudaMalloc(&u_unit_, 3 * std::size_t(n) * sizeof(float)));
+    if (params.stiffness) {
+      PALPSIM_CUDA_CHECK(cudaMalloc(&u_unit_, 3 * std::size_t(n) * sizeof(float)));
+      PALPSIM_CUDA_CHECK(cudaMalloc(&react_, 2 * std::size_t(n) * sizeof(float)));
+    }
     PALPSIM_CUDA_CHECK(cudaMalloc(&flags_, total));
     PALPSIM_CUDA_CHECK(cudaMalloc(&cell_e_, total * sizeof(float)));
     PALPSIM_CUDA_CHECK(cudaMalloc(&lmax_, kElasticMaxLevels * sizeof(float)));
@@ -289,7 +293,7 @@ void ElasticSolver::forget() {
 std::size_t ElasticSolver::bytes() const {
   if (!bound()) return 0;
   const std::size_t n = std::size_t(capacity_), total = std::size_t(capacity_ + coarse_capacity_);
-  return (u_unit_ ? 6 : 3) * n * sizeof(float) + total * (1 + sizeof(float)) + kElasticMaxLevels * sizeof(float) +
+  return (u_unit_ ? 8 : 3) * n * sizeof(float) + total * (1 + sizeof(float)) + kElasticMaxLevels * sizeof(float) +
          tile_ints_ * sizeof(int);
 }
 
@@ -308,6 +312,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   View view{};
   view.u = u_;
   view.u_unit = u_unit_;
+  view.react = react_;
   view.flags = flags_;
   view.cell_e = cell_e_;
   view.lmax = lmax_;

@@ -107,6 +107,7 @@ class ElasticSolver {
   // offset), every level's largest eigenvalue of D^-1 K, level 0's tiles the gathers take
   float* u_ = nullptr;
   float* u_unit_ = nullptr;
+  float* react_ = nullptr;  // the last reactions at the contact nodes (View::react; with the unit press)
   std::uint8_t* flags_ = nullptr;
   float* cell_e_ = nullptr;
   float* lmax_ = nullptr;

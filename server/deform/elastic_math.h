@@ -405,15 +405,29 @@ constexpr float kElasticFreshContactFraction = 0.5f;
 /// Whether a skin node is in the contact set at a step's start: `t` is how far the sphere
 /// pushes it along n (mm, elastic_sphere_push: <= 0 not under the sphere), `u_n` its start
 /// field along n (mm), `was` whether it was in the last step's set, `warm` whether the step
-/// starts from the last field (elastic_warm), `depth_mm` the tip's depth. Warm: the nodes
-/// still under the sphere of the last set and those the start field leaves inside it, or
-/// within `touch_mm` of its surface (0 for the last field as it was; a field moved with the
-/// tip, elastic_shifted, holds its contact nodes on the new sphere to rounding); fresh: the
-/// nodes within Hertz's contact area (kElasticFreshContactFraction).
-PALPSIM_HD bool elastic_start_contact(float t, float u_n, bool was, bool warm, float depth_mm, float touch_mm) {
+/// starts from the last field (elastic_warm), `depth_mm` the tip's depth, `pulled` whether
+/// the prediction has the finger pull it (elastic_predicted_pull). Warm: the nodes of the
+/// last set still under the sphere that the prediction does not pull, and the others that
+/// the start field leaves inside it, or within `touch_mm` of its surface (0 for the last
+/// field as it was; a field moved with the tip, elastic_shifted, holds its contact nodes on
+/// the new sphere to rounding); fresh: the nodes within Hertz's contact area
+/// (kElasticFreshContactFraction).
+PALPSIM_HD bool elastic_start_contact(float t, float u_n, bool was, bool warm, float depth_mm, float touch_mm,
+                                      bool pulled = false) {
   if (!(t > 0.0f)) return false;
-  if (warm) return was || t - u_n > -touch_mm;
+  if (warm) return was ? !pulled : t - u_n > -touch_mm;
   return t >= kElasticFreshContactFraction * depth_mm;
+}
+
+/// Whether the finger would pull a node of the last step's contact set in a step predicted
+/// from the last unit press (ElasticPredict::kUnit, the tip moved `move_mm` along n and not
+/// across it): the predicted field is the last press plus move_mm times the unit press, so
+/// its reaction at the node (N along n) is `react_press` plus move_mm times `react_unit`,
+/// theirs at the node; exact while the set stays, which is what the first round solves. A
+/// node the tip leaves as it backs off would otherwise stay in the set for a whole round
+/// (its solve, the pass that finds it pulled, and a second solve without it).
+PALPSIM_HD bool elastic_predicted_pull(float react_press, float react_unit, float move_mm) {
+  return react_press + move_mm * react_unit < 0.0f;
 }
 
 /// Whether a step starts from the last step's field (a warm start): there is one

@@ -315,6 +315,10 @@ void elastic_set_up_cpu(const Patient& p, const Voi& voi, const ElasticParams& p
   grow(s.flags, n0);
   grow(s.cell_e, n0);
   grow(s.push, n0);
+  if (prm.stiffness) {
+    grow(s.react_press, n0);
+    grow(s.react_unit, n0);
+  }
   grow(s.inv_diag, n0 + nc);
   grow(s.c_flags, nc);
   grow(s.c_e, nc);
@@ -467,7 +471,7 @@ long long elastic_inverted_cells(const Voi& voi, const Vec3f* u_vox) {
 
 std::size_t elastic_cpu_bytes(const ElasticCpu& s) {
   auto b = [](const auto& v) { return v.capacity() * sizeof(v[0]); };
-  return b(s.u) + b(s.u_unit) + b(s.r) + b(s.z) + b(s.p) + b(s.q) + b(s.ku) + b(s.flags) + b(s.cell_e) + b(s.push) +
+  return b(s.u) + b(s.u_unit) + b(s.r) + b(s.z) + b(s.p) + b(s.q) + b(s.ku) + b(s.flags) + b(s.cell_e) + b(s.push) + b(s.react_press) + b(s.react_unit) +
          b(s.inv_diag) + b(s.c_flags) + b(s.c_e) + b(s.c_x) + b(s.c_f) + b(s.c_r) + b(s.res0) + b(s.tmp_u) +
          b(s.tmp_flags) + b(s.cheb_d) + b(s.c_d);
 }
@@ -535,8 +539,12 @@ Press press_of(const Patient& pat, const Voi& voi, const Vec3& skin_vox, const V
 // the pushes of skin nodes under the sphere and the contact set (elastic_start_contact):
 // last step's nodes still under it and nodes the last field leaves inside it, or on a fresh
 // start the nodes within Hertz's contact area; how many nodes lie under it
-long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press& pr, bool had, bool shifted) {
+long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press& pr, bool had,
+                      const ElasticPrediction& pred) {
+  const bool shifted = elastic_shifts(pred.shift_vox);
   const float touch = shifted ? kElasticPenetrationVox * float(h.x) : 0.0f;
+  // the last set's reactions predicted with the unit press (not where the field moved across n)
+  const bool reactions = pred.kind == ElasticPredict::kUnit && !shifted && !s.react_press.empty() && !s.react_unit.empty();
   long long under = 0;
   const Vec3f* u = s.u.data();
   each_node(voi.size, [&](int i, int j, int kk) {
@@ -549,7 +557,9 @@ long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press&
     if (t > 0) ++under;
     const bool was = (f & kElasticContact) != 0;
     f = std::uint8_t(f & ~kElasticContact);
-    if (elastic_start_contact(t, dot(u[e], pr.nrm), was, had, float(pr.depth), touch)) f |= kElasticContact;
+    const bool pulled =
+        was && reactions && elastic_predicted_pull(s.react_press[std::size_t(e)], s.react_unit[std::size_t(e)], pred.factor);
+    if (elastic_start_contact(t, dot(u[e], pr.nrm), was, had, float(pr.depth), touch, pulled)) f |= kElasticContact;
   });
   return under;
 }
@@ -628,13 +638,16 @@ void contact_rounds(ElasticCpu& s, const Voi& voi, const Vec3& h, const Vec3f& n
 }
 
 // the reaction: the force the finger applies along n, summed over the contact nodes
-void reaction(const ElasticCpu& s, const Voi& voi, const Vec3f& nrm, ElasticRun& out) {
+void reaction(ElasticCpu& s, const Voi& voi, const Vec3f& nrm, ElasticRun& out) {
   double press = 0;
   int contacts = 0;
   each_node(voi.size, [&](int i, int j, int kk) {
-    if (!(s.flags[std::size_t(voi.index(i, j, kk))] & kElasticContact)) return;
+    const std::size_t e = std::size_t(voi.index(i, j, kk));
+    if (!(s.flags[e] & kElasticContact)) return;
     ++contacts;
-    press += dot(elastic_node_force_cpu(s, s.u.data(), i, j, kk), nrm);
+    const float fn = dot(elastic_node_force_cpu(s, s.u.data(), i, j, kk), nrm);
+    if (!s.react_press.empty()) s.react_press[e] = fn;
+    press += fn;
   });
   out.contact_nodes = contacts;
   out.force_n = Vec3(nrm) * -press;
@@ -664,7 +677,9 @@ void unit_press(ElasticCpu& s, const Voi& voi, const Vec3f& nrm, const ElasticPa
   each_node(voi.size, [&](int i, int j, int kk) {
     const long long e = voi.index(i, j, kk);
     if (!(s.flags[std::size_t(e)] & kElasticContact)) return;
-    const double kn = dot(elastic_node_force_cpu(s, w, i, j, kk), nrm);
+    const float fn = dot(elastic_node_force_cpu(s, w, i, j, kk), nrm);
+    if (!s.react_unit.empty()) s.react_unit[std::size_t(e)] = fn;
+    const double kn = fn;
     k_n += kn;
     push_k += kn * dot(u[e], nrm);
   });
@@ -705,7 +720,7 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   if (pred.kind != ElasticPredict::kNone) predict_start(s, voi, pred);
   out.prediction = pred.kind;
   s.last_press = ElasticLastPress{pr.depth > 1e-6, pr.tip_mm, pr.depth, pr.nrm};
-  if (contact_set(s, voi, h, pr, had, elastic_shifts(pred.shift_vox)) == 0) {
+  if (contact_set(s, voi, h, pr, had, pred) == 0) {
     // nothing pressed: the tissue at rest
     std::fill_n(u, n, Vec3f{0, 0, 0});
     s.have_u = true;

@@ -73,6 +73,10 @@ struct ElasticCpu {
   std::vector<std::uint8_t> flags;
   std::vector<float> cell_e;
   std::vector<float> push;
+  // the last step's reactions (N along n) at its contact nodes, of the press and of the unit
+  // press: a step predicted from the unit press leaves out the nodes they have pulled
+  // (elastic_predicted_pull)
+  std::vector<float> react_press, react_unit;
   // every level's inverse Jacobi diagonal (level 0 first, then the coarse ones at
   // plan.offset[l] + count0), and the coarse levels' flags, moduli, correction, right-hand
   // side and residual

@@ -67,6 +67,7 @@ enum TracePass : int {
   kPassSetupLanczos,
   kPassSetupEnd,
   kPassShift,
+  kPassSolveFlags,
 };
 
 // the passes' ends of one kernel run, when it is traced: block 0's thread 0 notes the time

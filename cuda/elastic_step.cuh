@@ -326,7 +326,7 @@ struct Step {
         kp.set(e, zero);
       }
     }
-    grid_sync(kPassSolveStart);
+    grid_sync(kPassSolveFlags);
     // level 0: the scale of the tolerance (the residual of the constrained values alone),
     // r = Pi (0 - K w), and the smoother's first step (both products in one tile pass: each
     // reads what the pass before the barrier wrote)

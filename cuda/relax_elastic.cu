@@ -95,7 +95,7 @@ const char* pass_name(int pass) {
                                       "CG direction", "CG apply",     "CG update",       "V-cycle's last",
                                       "solve start", "contact",      "field",
                                       "nodes",       "cells",        "coarse cells",    "Lanczos step",
-                                      "carry",       "shift"};
+                                      "carry",       "shift",        "solve flags"};
   return pass >= 0 && pass < int(sizeof(names) / sizeof(names[0])) ? names[pass] : "?";
 }
 

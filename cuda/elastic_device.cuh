@@ -287,6 +287,7 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
     // position h has its lowest corner there (cells beyond the last node: 0); every load
     // of every round before the first store, so that the thread waits for them once
     float hv[1 + 3 * F][kHaloRounds];
+    bool first_nonzero = false;  // two fields: the first is not 0 at a halo node this thread loaded
 #pragma unroll
     for (int r = 0; r < kHaloRounds; ++r) {
       const int h = int(threadIdx.x) + r * kThreads;
@@ -299,6 +300,7 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
       for (int f = 0; f < F; ++f)
 #pragma unroll
         for (int c = 0; c < 3; ++c) hv[1 + 3 * f + c][r] = in ? x[f].p[c * x[f].stride + he] : 0.0f;
+      if (F == 2) first_nonzero = first_nonzero || hv[1][r] != 0.0f || hv[2][r] != 0.0f || hv[3][r] != 0.0f;
     }
 #pragma unroll
     for (int r = 0; r < kHaloRounds; ++r) {
@@ -307,7 +309,10 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
 #pragma unroll
         for (int c = 0; c < 1 + 3 * F; ++c) te[c * kHalo + h] = hv[c][r];
     }
-    __syncthreads();
+    // (two fields: whether the first is 0 on the whole tile and its halo, where its products
+    // are 0 and left out: a solve start's constrained values lie at the contact alone)
+    const bool first_needed = F == 1 ? true : __syncthreads_or(first_nonzero) != 0;
+    if (F == 1) __syncthreads();
     if (mine) {
       const int h = ((lk + 1) * kHaloY + lj + 1) * kHaloX + li + 1;
       Vec3f kx[F], own[F], dg{0, 0, 0};
@@ -321,6 +326,7 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
         if (i > 0 && j > 0 && k > 0 && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z) {
 #pragma unroll
           for (int f = 0; f < F; ++f) {
+            if (f == 0 && !first_needed) continue;  // K 0 = 0 (kx[0] holds it)
             const float* const tu = te + (1 + 3 * f) * kHalo;
             dg = Vec3f{0, 0, 0};
             deform::elastic_apply_interior(

@@ -437,6 +437,8 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
   const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
   const bool reactions = a.had && a.predict == int(ElasticPredict::kUnit) && !deform::elastic_shifts(a.shift_vox) &&
                          v.react != nullptr;
+  const float touch =
+      deform::elastic_start_touch(deform::elastic_shifts(a.shift_vox), ElasticPredict(a.predict), float(a.h[0]));
   double under = 0;
   for (int e = all.first; e < L0.count; e += all.stride) {
     int i, j, k;
@@ -472,8 +474,7 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
     // the last set's reactions predicted with the unit press (not where the field moved across n)
     const bool pulled = was && reactions &&
                         deform::elastic_predicted_pull(v.react[e], v.react[v.capacity + e], a.predict_factor);
-    if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth,
-                                      deform::elastic_shifts(a.shift_vox) ? a.penetration : 0.0f, pulled))
+    if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth, touch, pulled))
       fl |= kElasticContact;
     v.flags[e] = fl;
   }

@@ -421,13 +421,16 @@ PALPSIM_HD bool elastic_start_contact(float t, float u_n, bool was, bool warm, f
 
 /// Whether the finger would pull a node of the last step's contact set in a step predicted
 /// from the last unit press (ElasticPredict::kUnit, the tip moved `move_mm` along n and not
-/// across it): the predicted field is the last press plus move_mm times the unit press, so
-/// its reaction at the node (N along n) is `react_press` plus move_mm times `react_unit`,
-/// theirs at the node; exact while the set stays, which is what the first round solves. A
-/// node the tip leaves as it backs off would otherwise stay in the set for a whole round
-/// (its solve, the pass that finds it pulled, and a second solve without it).
+/// across it) as the tip backs off (move_mm < 0): the predicted field is the last press plus
+/// move_mm times the unit press, so its reaction at the node (N along n) is `react_press`
+/// plus move_mm times `react_unit`, theirs at the node; exact while the set stays, which is
+/// what the first round solves. A node the tip leaves as it backs off would otherwise stay
+/// in the set for a whole round (its solve, the pass that finds it pulled, and a second solve
+/// without it). A tip going deeper keeps every node: a unit press stopped at its tolerance
+/// (0.01 in the scenes, often with no CG step) can leave an edge node's reaction below 0,
+/// which would take off a node the press still pushes.
 PALPSIM_HD bool elastic_predicted_pull(float react_press, float react_unit, float move_mm) {
-  return react_press + move_mm * react_unit < 0.0f;
+  return move_mm < 0.0f && react_press + move_mm * react_unit < 0.0f;
 }
 
 /// Whether a step starts from the last step's field (a warm start): there is one
@@ -462,6 +465,16 @@ struct ElasticPrediction {
   float factor = 0.0f;
   Vec3f shift_vox{0, 0, 0};
 };
+
+/// How near the sphere's surface (mm) a node outside the last set may start and join it at a
+/// warm start (elastic_start_contact's touch_mm) for grid spacing `h_mm` along i: a field
+/// moved with the tip (`shifted`, elastic_shifted) or predicted from the unit press (kUnit:
+/// the last set's nodes each moved the tip's move along n) puts nodes on the sphere to
+/// rounding, and a node the last step's rounds left there (free, on the sphere) would
+/// otherwise miss the start by rounding and join a round later; the last field as it was, 0.
+PALPSIM_HD float elastic_start_touch(bool shifted, ElasticPredict kind, float h_mm) {
+  return shifted || kind == ElasticPredict::kUnit ? kElasticPenetrationVox * h_mm : 0.0f;
+}
 
 /// A tip's move across n shorter than this (voxels) moves no field: a press straight along n
 /// keeps its last field bit for bit (rounding of positions of tens of mm is far below it).

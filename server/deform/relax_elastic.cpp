@@ -542,7 +542,7 @@ Press press_of(const Patient& pat, const Voi& voi, const Vec3& skin_vox, const V
 long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press& pr, bool had,
                       const ElasticPrediction& pred) {
   const bool shifted = elastic_shifts(pred.shift_vox);
-  const float touch = shifted ? kElasticPenetrationVox * float(h.x) : 0.0f;
+  const float touch = elastic_start_touch(shifted, pred.kind, float(h.x));
   // the last set's reactions predicted with the unit press (not where the field moved across n)
   const bool reactions = pred.kind == ElasticPredict::kUnit && !shifted && !s.react_press.empty() && !s.react_unit.empty();
   long long under = 0;

@@ -705,6 +705,12 @@ TEST_CASE("the start's rules: Hertz's contact area when fresh, warm only after a
   // a field moved with the tip holds its contact nodes on the sphere to rounding: they stay in
   CHECK_FALSE(elastic_start_contact(0.1f, 0.1f, false, true, 4.0f, 0.0f));
   CHECK(elastic_start_contact(0.1f, 0.1f, false, true, 4.0f, 1e-4f));
+  // a warm start's touch: a field moved with the tip or predicted from the unit press puts
+  // nodes on the sphere to rounding (1e-4 of a voxel); the last field as it was, none
+  CHECK(elastic_start_touch(true, ElasticPredict::kScale, 2.0f) == Approx(2e-4f));
+  CHECK(elastic_start_touch(false, ElasticPredict::kUnit, 2.0f) == Approx(2e-4f));
+  CHECK(elastic_start_touch(false, ElasticPredict::kScale, 2.0f) == 0.0f);
+  CHECK(elastic_start_touch(false, ElasticPredict::kNone, 2.0f) == 0.0f);
   // a node of the last set that the prediction pulls leaves, even where the predicted field
   // leaves it on the sphere or in it; pulled says nothing of the others
   CHECK_FALSE(elastic_start_contact(0.1f, 0.1f, true, true, 4.0f, 0.0f, true));
@@ -713,8 +719,9 @@ TEST_CASE("the start's rules: Hertz's contact area when fresh, warm only after a
   // the predicted reaction: the last press's plus the tip's move along n times the unit press's
   CHECK(elastic_predicted_pull(0.004f, 0.004f, -1.5f));
   CHECK_FALSE(elastic_predicted_pull(0.004f, 0.004f, -0.5f));
-  CHECK_FALSE(elastic_predicted_pull(0.004f, 0.004f, 1.0f));
-  CHECK_FALSE(elastic_predicted_pull(0.0f, 0.004f, 0.0f));  // no pull at 0 (the round's rule: pulled below 0)
+  CHECK_FALSE(elastic_predicted_pull(0.0f, 0.004f, -0.0f));  // no pull at 0 (the round's rule: pulled below 0)
+  // a tip going deeper keeps every node, whatever the (inexact) unit press's reaction says
+  CHECK_FALSE(elastic_predicted_pull(0.004f, -0.004f, 1.5f));
   const Voi a{{10, 10, 10}, {8, 8, 8}};
   CHECK(elastic_warm(true, true, a, a));
   CHECK(elastic_warm(true, true, a, Voi{{17, 3, 10}, {8, 8, 8}}));  // one node in common

@@ -394,7 +394,8 @@ void print_elastic_row(const ElasticRow& r, bool gpu) {
   std::printf("elastic %-4s VOI %d %-45s median ms: relax %.3f (p10 %.3f, p90 %.3f)  total %.3f  CG steps %d + %d "
               "(unit press), %d round%s, %d contact nodes, F %.3f N, own %.1f MiB, shared scratch %.1f MiB",
               r.backend.c_str(), r.voi, r.what.c_str(), r.relax.median, r.relax.p10, r.relax.p90, r.total.median,
-              r.iterations, r.stiffness_iterations, r.rounds, r.rounds == 1 ? "" : "s", r.contact_nodes, r.force_n, r.own_mb, r.shared_mb);
+              r.iterations, r.stiffness_iterations, r.rounds, r.rounds == 1 ? "" : "s", r.contact_nodes, r.force_n,
+              r.own_mb, r.shared_mb);
   if (r.sessions > 1) std::printf(", %.0f steps/s per session", r.steps_per_s);
   if (r.u_err_pct >= 0) std::printf("; against converged: u %.2f %%, F %+.2f %%", r.u_err_pct, r.force_err_pct);
   if (r.u_err_pct >= 0 && r.stiffness) std::printf(", stiffness %+.2f %%", r.stiffness_err_pct);

@@ -471,9 +471,9 @@ long long elastic_inverted_cells(const Voi& voi, const Vec3f* u_vox) {
 
 std::size_t elastic_cpu_bytes(const ElasticCpu& s) {
   auto b = [](const auto& v) { return v.capacity() * sizeof(v[0]); };
-  return b(s.u) + b(s.u_unit) + b(s.r) + b(s.z) + b(s.p) + b(s.q) + b(s.ku) + b(s.flags) + b(s.cell_e) + b(s.push) + b(s.react_press) + b(s.react_unit) +
-         b(s.inv_diag) + b(s.c_flags) + b(s.c_e) + b(s.c_x) + b(s.c_f) + b(s.c_r) + b(s.res0) + b(s.tmp_u) +
-         b(s.tmp_flags) + b(s.cheb_d) + b(s.c_d);
+  return b(s.u) + b(s.u_unit) + b(s.r) + b(s.z) + b(s.p) + b(s.q) + b(s.ku) + b(s.flags) + b(s.cell_e) + b(s.push) +
+         b(s.react_press) + b(s.react_unit) + b(s.inv_diag) + b(s.c_flags) + b(s.c_e) + b(s.c_x) + b(s.c_f) +
+         b(s.c_r) + b(s.res0) + b(s.tmp_u) + b(s.tmp_flags) + b(s.cheb_d) + b(s.c_d);
 }
 
 namespace {
@@ -544,7 +544,8 @@ long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press&
   const bool shifted = elastic_shifts(pred.shift_vox);
   const float touch = elastic_start_touch(shifted, pred.kind, float(h.x));
   // the last set's reactions predicted with the unit press (not where the field moved across n)
-  const bool reactions = pred.kind == ElasticPredict::kUnit && !shifted && !s.react_press.empty() && !s.react_unit.empty();
+  const bool reactions =
+      pred.kind == ElasticPredict::kUnit && !shifted && !s.react_press.empty() && !s.react_unit.empty();
   long long under = 0;
   const Vec3f* u = s.u.data();
   each_node(voi.size, [&](int i, int j, int kk) {
@@ -558,7 +559,8 @@ long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press&
     const bool was = (f & kElasticContact) != 0;
     f = std::uint8_t(f & ~kElasticContact);
     const bool pulled =
-        was && reactions && elastic_predicted_pull(s.react_press[std::size_t(e)], s.react_unit[std::size_t(e)], pred.factor);
+        was && reactions &&
+        elastic_predicted_pull(s.react_press[std::size_t(e)], s.react_unit[std::size_t(e)], pred.factor);
     if (elastic_start_contact(t, dot(u[e], pr.nrm), was, had, float(pr.depth), touch, pulled)) f |= kElasticContact;
   });
   return under;

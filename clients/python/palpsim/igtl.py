@@ -435,6 +435,18 @@ class _Stop(Exception):
     """SIGTERM: stop as on Ctrl-C."""
 
 
+# set by SIGTERM's handler before it raises _Stop: a library that catches every exception
+# (pyigtl's message constructors turn any into ValueError) may hand the stop on as its own
+# error, which is then still the stop (_stopped)
+_STOPPING = threading.Event()
+
+
+def _stopped(e: BaseException) -> bool:
+    """Whether exception `e` ends the bridge as Ctrl-C or SIGTERM does: KeyboardInterrupt,
+    _Stop, or any error raised while a SIGTERM is being handled."""
+    return isinstance(e, (KeyboardInterrupt, _Stop)) or _STOPPING.is_set()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """palpsim-igtl's entry point; returns the exit status (module docstring)."""
     args = build_parser().parse_args(argv)
@@ -445,15 +457,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     # SIGTERM ends the bridge as Ctrl-C does (pyigtl's server hands the signal on to us)
     previous_term = None
+    _STOPPING.clear()
     if threading.current_thread() is threading.main_thread():
         def on_term(*_: Any) -> None:
+            _STOPPING.set()
             raise _Stop()
         previous_term = signal.signal(signal.SIGTERM, on_term)
     try:
         with Client(args.connect, timeout_s=args.timeout, name=PROG, curve=curve,
                     client_token=args.client_token) as client:
             return _bridge(args, client)
-    except (KeyboardInterrupt, _Stop):
+    except BaseException as e:
+        if not _stopped(e):
+            raise
         return EXIT_OK
     finally:
         if previous_term is not None:
@@ -501,10 +517,12 @@ def _bridge(args: argparse.Namespace, client: Client) -> int:
             while not done.wait(0.1):
                 pass
     except ServerTimeout as e:
-        _say(str(e))
-        status = EXIT_FAIL
-    except (KeyboardInterrupt, _Stop):
-        pass
+        if not _stopped(e):
+            _say(str(e))
+            status = EXIT_FAIL
+    except BaseException as e:
+        if not _stopped(e):
+            raise
     finally:
         done.set()
         worker.join(5)

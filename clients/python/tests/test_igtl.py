@@ -53,6 +53,22 @@ def test_lps_ras_flips_x_and_y():
                                   (4.0, -5.0, 6.0))
 
 
+def test_a_stop_that_a_library_turned_into_its_own_error_is_still_the_stop():
+    """SIGTERM's handler raises igtl._Stop wherever the bridge is, and pyigtl's message
+    constructors catch every exception and raise ValueError instead (seen in CI: the
+    bridge then exited 1 on a plain stop). An error raised while a SIGTERM is being handled
+    ends the bridge as the stop does; the same error without one is an error."""
+    igtl._STOPPING.clear()
+    assert igtl._stopped(KeyboardInterrupt())
+    assert igtl._stopped(igtl._Stop())
+    assert not igtl._stopped(ValueError("Invalid transform matrix"))
+    igtl._STOPPING.set()
+    try:
+        assert igtl._stopped(ValueError("Invalid transform matrix"))
+    finally:
+        igtl._STOPPING.clear()
+
+
 def test_ijk_to_ras_of_an_oblique_grid():
     """A grid turned 90 degrees about z (its i axis along LPS +y): voxel (1, 0, 0) lies one
     spacing along LPS +y from the origin, so RAS -y."""

@@ -238,14 +238,16 @@ def test_live_window_on_xvfb_turns_the_frame_with_the_arrow_keys(stream_server, 
 
             def settle(name: str, until) -> np.ndarray:
                 """Screenshots every 0.2 s until `until(shot)` holds for two in a row that
-                are the same picture (the newest frame drawn); kept as name.png."""
+                are the same picture (the newest frame drawn) at the same size (the window may
+                still grow to its canvas after its first draw); kept as name.png."""
                 deadline = time.monotonic() + 20
                 last = None
                 while time.monotonic() < deadline:
                     assert proc.poll() is None, proc.communicate()
                     s.pose((0.0, 130.0, -38.0))
                     shot = _window_frame(xvfb, window)
-                    if last is not None and until(shot) and _diff(shot, last) < SAME_PICTURE:
+                    if (last is not None and last.shape == shot.shape and until(shot)
+                            and _diff(shot, last) < SAME_PICTURE):
                         Image.fromarray(shot).save(tmp_path / f"{name}.png")
                         return shot
                     last = shot

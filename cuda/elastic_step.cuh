@@ -435,8 +435,8 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
   const Lvl& L0 = st.sh.lv[0];
   const Team all = st.all;
   const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
-  const bool reactions = a.had && a.predict == int(ElasticPredict::kUnit) && !deform::elastic_shifts(a.shift_vox) &&
-                         v.react != nullptr;
+  const bool reactions =
+      deform::elastic_start_weighs_reactions(ElasticPredict(a.predict), a.shift_vox) && v.react != nullptr;
   const float touch =
       deform::elastic_start_touch(deform::elastic_shifts(a.shift_vox), ElasticPredict(a.predict), float(a.h[0]));
   double under = 0;
@@ -471,7 +471,6 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
     if (t > 0) under += 1;
     const bool was = (fl & kElasticContact) != 0;
     fl = std::uint8_t(fl & ~kElasticContact);
-    // the last set's reactions predicted with the unit press (not where the field moved across n)
     const bool pulled = was && reactions &&
                         deform::elastic_predicted_pull(v.react[e], v.react[v.capacity + e], a.predict_factor);
     if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth, touch, pulled))

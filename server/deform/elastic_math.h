@@ -485,6 +485,13 @@ PALPSIM_HD bool elastic_shifts(const Vec3f& shift_vox) {
   return shift_vox.x != 0.0f || shift_vox.y != 0.0f || shift_vox.z != 0.0f;
 }
 
+/// Whether a step's start weighs the last set's reactions (elastic_predicted_pull): a step
+/// predicted from the unit press (kUnit) whose field was not moved across n (`shift_vox`,
+/// elastic_shifts: a moved field's set starts from its penetration alone).
+PALPSIM_HD bool elastic_start_weighs_reactions(ElasticPredict kind, const Vec3f& shift_vox) {
+  return kind == ElasticPredict::kUnit && !elastic_shifts(shift_vox);
+}
+
 /// The press a step predicts from (the last one) as the backends keep it.
 struct ElasticLastPress {
   bool pressing = false;       // the last step's tip lay below the skin

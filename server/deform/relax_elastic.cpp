@@ -543,9 +543,8 @@ long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press&
                       const ElasticPrediction& pred) {
   const bool shifted = elastic_shifts(pred.shift_vox);
   const float touch = elastic_start_touch(shifted, pred.kind, float(h.x));
-  // the last set's reactions predicted with the unit press (not where the field moved across n)
   const bool reactions =
-      pred.kind == ElasticPredict::kUnit && !shifted && !s.react_press.empty() && !s.react_unit.empty();
+      elastic_start_weighs_reactions(pred.kind, pred.shift_vox) && !s.react_press.empty() && !s.react_unit.empty();
   long long under = 0;
   const Vec3f* u = s.u.data();
   each_node(voi.size, [&](int i, int j, int kk) {

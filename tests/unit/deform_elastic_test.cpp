@@ -716,6 +716,11 @@ TEST_CASE("the start's rules: Hertz's contact area when fresh, warm only after a
   CHECK(elastic_start_touch(false, ElasticPredict::kUnit, 2.0f) == Approx(2e-4f));
   CHECK(elastic_start_touch(false, ElasticPredict::kScale, 2.0f) == 0.0f);
   CHECK(elastic_start_touch(false, ElasticPredict::kNone, 2.0f) == 0.0f);
+  // the reactions weigh only in a start predicted from the unit press, not moved across n
+  CHECK(elastic_start_weighs_reactions(ElasticPredict::kUnit, Vec3f{0, 0, 0}));
+  CHECK_FALSE(elastic_start_weighs_reactions(ElasticPredict::kUnit, Vec3f{0.5f, 0, 0}));
+  CHECK_FALSE(elastic_start_weighs_reactions(ElasticPredict::kScale, Vec3f{0, 0, 0}));
+  CHECK_FALSE(elastic_start_weighs_reactions(ElasticPredict::kNone, Vec3f{0, 0, 0}));
   // a node of the last set that the prediction pulls leaves, even where the predicted field
   // leaves it on the sphere or in it; pulled says nothing of the others
   CHECK_FALSE(elastic_start_contact(0.1f, 0.1f, true, true, 4.0f, 0.0f, true));

@@ -209,13 +209,38 @@ constexpr int kHaloX = kTileX + 2, kHaloY = kTileY + 2, kHaloZ = kTileZ + 2;
 constexpr int kHalo = kHaloX * kHaloY * kHaloZ;
 constexpr int kHaloRounds = (kHalo + kThreads - 1) / kThreads;  // halo nodes a thread loads
 
-// one tile's shared memory for every gather of a kernel (one function, so one array: each
-// instantiation of a template declaring it would have its own)
+// one tile's shared memory for every gather of a kernel (one function each, so one array:
+// each instantiation of a template declaring it would have its own): a halo node's first
+// field and the modulus of the cell whose lowest corner it is, as one float4 (x, y, z, E),
+// which a product reads with one load; a second field's components in planes
 constexpr int kTileFields = 2;  // fields a tile pass gathers at most (gather_pair)
-__device__ float* tile_memory() {
-  __shared__ float t[(1 + 3 * kTileFields) * kHalo];
+__device__ float4* tile_nodes() {
+  __shared__ float4 t[kHalo];
   return t;
 }
+__device__ float* tile_planes() {
+  __shared__ float t[3 * (kTileFields - 1) * kHalo];
+  return t;
+}
+
+// a tile's node at offset o from one (`at`: the tile's float4s from that node on) as
+// elastic_apply_interior_once() reads it: field 0 and the modulus of the cell there
+struct TileNode {
+  const float4* at;
+  __device__ __forceinline__ deform::ElasticNodeCell operator()(int o) const {
+    const float4 q = at[o];
+    return deform::ElasticNodeCell{Vec3f{q.x, q.y, q.z}, q.w};
+  }
+};
+
+// the same for field 1, from the planes (`at`: plane 0 from that node on)
+struct TilePlanes {
+  const float4* cell;
+  const float* at;
+  __device__ __forceinline__ deform::ElasticNodeCell operator()(int o) const {
+    return deform::ElasticNodeCell{Vec3f{at[o], at[kHalo + o], at[2 * kHalo + o]}, cell[o].w};
+  }
+};
 
 // level 0's tiles (L): kTile nodes along each axis, the last ones cut by the level's end
 __device__ Vec3i tile_grid(const Lvl& L) {
@@ -251,11 +276,15 @@ struct NoPre {
 // elastic_apply_node from global memory. Every thread of a block runs every tile of the
 // block (the tile's barriers). What is left of the tiles after the whole rounds is summed
 // in parts of a tile along k (see `split`; one field's gathers).
+// (The gathers and the step's passes that call them are inlined: an outlined one takes the
+// kernel's arguments by a generic pointer, which ptxas serves from a local copy of all of
+// them, 2.6 KB a thread.)
 template <int F, typename Pre, typename Fn>
-__device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                             const Lvl& L, const Field (&x)[F], Pre& pre, Fn& fn) {
+__device__ __forceinline__ void gather_tiles(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags,
+                                             const int* tiles, const Lvl& L, const Field (&x)[F], Pre& pre, Fn& fn) {
   static_assert(F >= 1 && F <= kTileFields, "the tile's memory holds kTileFields fields");
-  float* const te = tile_memory();  // te[h]: the cell at halo node h; te[(1 + 3 f + c) * kHalo + h]: field f's component c
+  float4* const tn = tile_nodes();   // tn[h]: field 0 at halo node h and the cell there
+  float* const tp = tile_planes();   // tp[c * kHalo + h]: field 1's component c
   const Vec3i tg = tiles ? tile_grid(L) : coarse_tile_grid(L);
   const int tx = tg.x, ty = tg.y;
   const int li = threadIdx.x % kTileX, lj = (threadIdx.x / kTileX) % kTileY, lk = threadIdx.x / (kTileX * kTileY);
@@ -305,9 +334,11 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
 #pragma unroll
     for (int r = 0; r < kHaloRounds; ++r) {
       const int h = int(threadIdx.x) + r * kThreads;
-      if (h < halo)
+      if (h < halo) {
+        tn[h] = make_float4(hv[1][r], hv[2][r], hv[3][r], hv[0][r]);
 #pragma unroll
-        for (int c = 0; c < 1 + 3 * F; ++c) te[c * kHalo + h] = hv[c][r];
+        for (int c = 0; c < 3 * (F - 1); ++c) tp[c * kHalo + h] = hv[4 + c][r];
+      }
     }
     // (two fields: whether the first is 0 on the whole tile and its halo, where its products
     // are 0 and left out: a solve start's constrained values lie at the contact alone)
@@ -316,23 +347,23 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
     if (mine) {
       const int h = ((lk + 1) * kHaloY + lj + 1) * kHaloX + li + 1;
       Vec3f kx[F], own[F], dg{0, 0, 0};
+      const TileNode node0{tn + h};
+      const TilePlanes node1{tn + h, tp + h};
 #pragma unroll
       for (int f = 0; f < F; ++f) {
         kx[f] = Vec3f{0, 0, 0};
-        const float* const tu = te + (1 + 3 * f) * kHalo;
-        own[f] = Vec3f{tu[h], tu[kHalo + h], tu[2 * kHalo + h]};
+        own[f] = f == 0 ? node0(0).u : node1(0).u;
       }
       if (!(flags[e] & kElasticHeld)) {
         if (i > 0 && j > 0 && k > 0 && i + 1 < L.n.x && j + 1 < L.n.y && k + 1 < L.n.z) {
 #pragma unroll
           for (int f = 0; f < F; ++f) {
             if (f == 0 && !first_needed) continue;  // K 0 = 0 (kx[0] holds it)
-            const float* const tu = te + (1 + 3 * f) * kHalo;
-            dg = Vec3f{0, 0, 0};
-            deform::elastic_apply_interior(
-                km, [&](int o) { return te[h + o]; },
-                [&](int o) { return Vec3f{tu[h + o], tu[kHalo + h + o], tu[2 * kHalo + h + o]}; }, kHaloX,
-                kHaloX * kHaloY, L.scale, kx[f], dg);
+            // (each of the 27 neighbours one float4 load; the cell-by-cell form read 64 corners)
+            if (f == 0)
+              deform::elastic_apply_interior_once(km, node0, kHaloX, kHaloX * kHaloY, L.scale, kx[f], dg);
+            else
+              deform::elastic_apply_interior_once(km, node1, kHaloX, kHaloX * kHaloY, L.scale, kx[f], dg);
           }
         } else {
 #pragma unroll
@@ -350,8 +381,8 @@ __device__ void gather_tiles(const CellMatrix& km, const float* cell_e, const st
 // level 0's gather of two fields in one tile pass: fn(e, i, j, k, K a, K b, dg) (a solve's
 // start, which needs both)
 template <typename Fn>
-__device__ void gather_pair(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                            const Lvl& L0, const Field& a, const Field& b, Fn&& fn) {
+__device__ __forceinline__ void gather_pair(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags,
+                                            const int* tiles, const Lvl& L0, const Field& a, const Field& b, Fn&& fn) {
   const Field x[2] = {a, b};
   NoPre none;
   auto each = [&](int e, int i, int j, int k, const Vec3f (&kx)[2], const Vec3f& dg, const Vec3f (&)[2], int) {
@@ -367,8 +398,9 @@ __device__ void gather_pair(const CellMatrix& km, const float* cell_e, const std
 // eight lanes a node, lane a adding the cell in which the node is corner a, summed by
 // shuffles (whole warps run each round, so that every lane takes part in them)
 template <typename Pre, typename Fn>
-__device__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags, const int* tiles,
-                       int tile_nodes, const Lvl& L, Team t, const Field& x, Pre&& pre, Fn&& fn) {
+__device__ __forceinline__ void gather(const CellMatrix& km, const float* cell_e, const std::uint8_t* flags,
+                                       const int* tiles, int tile_nodes, const Lvl& L, Team t, const Field& x, Pre&& pre,
+                                       Fn&& fn) {
   // level 0 always runs on the whole grid (t is every thread): its listed tiles; a coarse
   // level of at least tile_nodes nodes on the whole grid: all its tiles (the lanes' cells
   // wait on more loads a pass there than a tile does)

@@ -171,7 +171,7 @@ struct Step {
   }
 
   // the residual of level l by team t: res = Pi (f - K x[from])
-  __device__ void residual(int l, Team t, int from) const {
+  __device__ __forceinline__ void residual(int l, Team t, int from) const {
     const Field fv = f(), rv = res();
     gather(
         km(), a.v.cell_e, a.v.flags, a.v.tiles, a.tile_nodes, sh.lv[l], t, x(from),
@@ -285,7 +285,7 @@ struct Step {
   // elastic_solve_cpu(): K w = 0 on the free components of w (level 0, the flags as they
   // are), held nodes keeping their value and contact nodes their part along n; conjugate
   // gradients preconditioned by the V-cycle, to the tolerance or max_iterations steps
-  __device__ Solve solve(const Field& w, float tolerance) const {
+  __device__ __forceinline__ Solve solve(const Field& w, float tolerance) const {
     const Lvl& L0 = sh.lv[0];
     const View& v = a.v;
     const Field r = f(), kp = res(), p = level0(v.p, v), z = x(final_buffer(0));

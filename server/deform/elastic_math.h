@@ -34,6 +34,7 @@
 
 #include <cmath>
 #include <cstdint>
+#include <utility>
 
 #include "core/hd.h"
 #include "core/vec3.h"
@@ -371,6 +372,82 @@ PALPSIM_HD void elastic_apply_interior(const KMat& k, const CellAt& cell_e, cons
     kx += elastic_cell_row(k, a, uc) * es;
     dg += elastic_cell_diag(k, a) * es;
   }
+}
+
+/// A node's displacement (mm) and the modulus (kPa) of the cell whose lowest corner it is, as
+/// elastic_apply_interior_once() reads them.
+struct ElasticNodeCell {
+  Vec3f u;
+  float e;
+};
+
+namespace detail {
+// elastic_apply_interior_once()'s pieces as templates, so that every index into the partial
+// sums and the matrix is a constant on both compilers (nvcc left the loops rolled inside
+// the step kernel, and the matrix then went to local memory)
+
+// neighbour D's (dx + 1 + 3 (dy + 1) + 9 (dz + 1)) products in cell A, where it is corner b
+template <int D, int A, typename KMat>
+PALPSIM_HD void elastic_once_cell(const KMat& k, const Vec3f& u, Vec3f (&acc)[8]) {
+  constexpr int bx = D % 3 - 1 + (A & 1), by = (D / 3) % 3 - 1 + ((A >> 1) & 1), bz = D / 9 - 1 + ((A >> 2) & 1);
+  if constexpr (bx >= 0 && bx <= 1 && by >= 0 && by <= 1 && bz >= 0 && bz <= 1) {
+    constexpr int b = bx + 2 * by + 4 * bz;
+    acc[A].x += k(3 * A, 3 * b) * u.x;
+    acc[A].x += k(3 * A, 3 * b + 1) * u.y;
+    acc[A].x += k(3 * A, 3 * b + 2) * u.z;
+    acc[A].y += k(3 * A + 1, 3 * b) * u.x;
+    acc[A].y += k(3 * A + 1, 3 * b + 1) * u.y;
+    acc[A].y += k(3 * A + 1, 3 * b + 2) * u.z;
+    acc[A].z += k(3 * A + 2, 3 * b) * u.x;
+    acc[A].z += k(3 * A + 2, 3 * b + 1) * u.y;
+    acc[A].z += k(3 * A + 2, 3 * b + 2) * u.z;
+  }
+}
+
+// neighbour D read once: its products in the cells it is a corner of, and the modulus of
+// the cell whose lowest corner it is
+template <int D, typename KMat, typename NodeAt, int... A>
+PALPSIM_HD void elastic_once_neighbour(const KMat& k, const NodeAt& node, int sy, int sz, float scale, Vec3f (&acc)[8],
+                                       float (&es)[8], std::integer_sequence<int, A...>) {
+  constexpr int dx = D % 3 - 1, dy = (D / 3) % 3 - 1, dz = D / 9 - 1;
+  const ElasticNodeCell q = node(dx + dy * sy + dz * sz);
+  if constexpr (dx <= 0 && dy <= 0 && dz <= 0) es[-dx - 2 * dy - 4 * dz] = q.e * scale;
+  (elastic_once_cell<D, A>(k, q.u, acc), ...);
+}
+
+// cell A's partial sum scaled into kx and its diagonal into dg (a cell of modulus 0 adds
+// nothing: elastic_add_cell skips it; its diagonal adds +0)
+template <int A, typename KMat>
+PALPSIM_HD void elastic_once_scale(const KMat& k, const Vec3f (&acc)[8], const float (&es)[8], Vec3f& kx, Vec3f& dg) {
+  if (es[A] == 0.0f) return;
+  kx += acc[A] * es[A];
+  dg += Vec3f{k(3 * A, 3 * A), k(3 * A + 1, 3 * A + 1), k(3 * A + 2, 3 * A + 2)} * es[A];
+}
+
+template <typename KMat, typename NodeAt, int... D, int... A>
+PALPSIM_HD void elastic_once_all(const KMat& k, const NodeAt& node, int sy, int sz, float scale, Vec3f& kx, Vec3f& dg,
+                                 std::integer_sequence<int, D...>, std::integer_sequence<int, A...> cells) {
+  Vec3f acc[8] = {};  // cell a's row block (the cell in which the node is corner a) times its corners
+  float es[8] = {};   // cell a's modulus times scale
+  (elastic_once_neighbour<D>(k, node, sy, sz, scale, acc, es, cells), ...);
+  kx = Vec3f{0, 0, 0};
+  dg = Vec3f{0, 0, 0};
+  (elastic_once_scale<A>(k, acc, es, kx, dg), ...);
+}
+}  // namespace detail
+
+/// elastic_apply_interior() with each of the node's 27 neighbours read once: `node(o)` gives
+/// the node at flat offset o (strides 1, `sy`, `sz`) and the modulus of the cell whose lowest
+/// corner it is. Each cell's row block times its corners is summed over the corners in the
+/// same order (the neighbours, k then j then i, run through each cell's corners in corner
+/// order), then scaled and added cell by cell, so kx and dg are elastic_apply_interior()'s
+/// to the bit. It holds eight partial sums instead of a cell's eight corners: a backend
+/// whose loads are the cost (a shared-memory tile, a float4 a node) reads 27 nodes, not 64.
+template <typename KMat, typename NodeAt>
+PALPSIM_HD void elastic_apply_interior_once(const KMat& k, const NodeAt& node, int sy, int sz, float scale, Vec3f& kx,
+                                            Vec3f& dg) {
+  detail::elastic_once_all(k, node, sy, sz, scale, kx, dg, std::make_integer_sequence<int, 27>{},
+                           std::make_integer_sequence<int, 8>{});
 }
 
 /// v with the components a node's constraint holds taken out: 0 at a held node, v minus its

@@ -117,17 +117,16 @@ struct Lvl {
   }
 };
 
-// the cell matrix (for E = 1 kPa at level 0) from the kernel's arguments
-struct CellMatrix {
-  const float* k;
-  __device__ float operator()(int r, int c) const { return k[24 * r + c]; }
-};
+// the cell matrix (for E = 1 kPa at level 0) from corner 0's row block in the kernel's
+// arguments or its copy in shared memory: 72 floats, which the constant cache holds
+// (the full matrix's 576 missed it a product in two)
+using CellMatrix = deform::ElasticCellBase;
 
-// the cell matrix's copy in each block's shared memory (one function, so one array), for
-// the eight-lane gathers: their lanes read eight row blocks at once, which the kernel
-// argument serves one address at a time and shared memory with two-way bank conflicts
+// the block's copy of the row block (one function, so one array), for the eight-lane
+// gathers: their lanes read eight row blocks at once, which the kernel argument serves one
+// address at a time
 __device__ float* cell_matrix_shared() {
-  __shared__ float k[576];
+  __shared__ float k[72];
   return k;
 }
 
@@ -135,7 +134,7 @@ __device__ float* cell_matrix_shared() {
 // a gather reads it
 __device__ void copy_cell_matrix(const float* k) {
   float* const to = cell_matrix_shared();
-  for (int i = int(threadIdx.x); i < 576; i += int(blockDim.x)) to[i] = k[i];
+  for (int i = int(threadIdx.x); i < 72; i += int(blockDim.x)) to[i] = k[i];
 }
 
 // a level's cell moduli (kPa) by lowest corner

@@ -20,7 +20,7 @@ namespace {
 
 namespace cg = cooperative_groups;
 struct SetupArgs {
-  float k[576];
+  float k[72];  // the cell matrix, E = 1 kPa, level 0: corner 0's row block (CellMatrix)
   ElasticPlan plan;
   View v;
   Voi voi, last;           // the VOI to set up and the one the field is on (patient voxels)

@@ -20,7 +20,7 @@ namespace {
 
 namespace cg = cooperative_groups;
 struct StepArgs {
-  float k[576];        // the cell matrix, E = 1 kPa, level 0
+  float k[72];         // the cell matrix, E = 1 kPa, level 0: corner 0's row block (CellMatrix)
   ElasticPlan plan;
   View v;
   double h[3];         // voxel edges (mm)

@@ -100,7 +100,9 @@ class ElasticSolver {
 
  private:
   deform::ElasticParams params_;
-  std::array<float, 576> k_{};  // the cell matrix for E = 1 kPa at level 0
+  // the cell matrix for E = 1 kPa at level 0 as the kernels take it: corner 0's row block
+  // (deform::ElasticCellBase; the rest by its mirror symmetry)
+  std::array<float, 72> k_{};
   long long capacity_ = 0, coarse_capacity_ = 0;
   // session's own device buffers: the field and the unit press (mm, component c at c times
   // capacity), every level's flags and cell moduli (level l >= 1 at capacity + its plan

@@ -48,9 +48,15 @@ std::array<float, 576> elastic_element(const Vec3& h_mm, double nu) {
     for (int b = 0; b < 8; ++b)
       for (int al = 0; al < 3; ++al)
         for (int be = 0; be < 3; ++be) k[3 * a + al][3 * b + be] += vol * lambda * g[a][al] * g[b][be];
+  // every entry from corner 0's row block by the mirror symmetry (elastic_mirror_negates),
+  // which the sums above hold to rounding: exactly so, for a backend that keeps that block
   std::array<float, 576> out{};
   for (int r = 0; r < 24; ++r)
-    for (int c = 0; c < 24; ++c) out[std::size_t(24 * r + c)] = float(k[r][c]);
+    for (int c = 0; c < 24; ++c) {
+      const int a = r / 3, i = r % 3, b = c / 3, j = c % 3;
+      const float v = float(k[i][3 * (a ^ b) + j]);
+      out[std::size_t(24 * r + c)] = elastic_mirror_negates(a, i, j) ? -v : v;
+    }
   return out;
 }
 

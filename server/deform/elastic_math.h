@@ -224,6 +224,29 @@ PALPSIM_HD float elastic_node_modulus(const ElasticMaterial& m, float hu, bool b
 /// Corner c of a cell (bit 0: +i, bit 1: +j, bit 2: +k; deform_math.h's cell_blend order).
 PALPSIM_HD Vec3i elastic_corner(int c) { return Vec3i{c & 1, (c >> 1) & 1, (c >> 2) & 1}; }
 
+/// The cell matrix's mirror symmetry: a box cell of one isotropic material is the same
+/// seen from each corner, with the axes through that corner, so entry (3 a + i, 3 b + j)
+/// (corner a's component i, corner b's component j) is corner 0's entry (i, 3 (a ^ b) + j)
+/// times this sign: + on the diagonal blocks' diagonals (i == j), else - where corner a lies
+/// on the far side along exactly one of axes i and j. elastic_element() builds every entry
+/// so, and a backend may keep corner 0's 72 entries alone (ElasticCellBase).
+PALPSIM_HD constexpr bool elastic_mirror_negates(int a, int i, int j) {
+  return i != j && (((a >> i) ^ (a >> j)) & 1) != 0;
+}
+
+/// The cell matrix kept as corner 0's row block (72 entries, base[9 d + 3 i + j] = entry
+/// (i, 3 d + j)), read as the full matrix through elastic_mirror_negates(): the same
+/// entries to the bit (elastic_element() makes them so); a GPU reads 288 bytes of constants
+/// instead of 2304, which its constant cache holds.
+struct ElasticCellBase {
+  const float* base;
+  PALPSIM_HD float operator()(int r, int c) const {
+    const int a = r / 3, i = r % 3, b = c / 3, j = c % 3;
+    const float v = base[9 * (a ^ b) + 3 * i + j];
+    return elastic_mirror_negates(a, i, j) ? -v : v;
+  }
+};
+
 /// A level-0 node's static flags: held where it is bone, on a VOI face (`face`) or air
 /// farther than kElasticAirRim nodes from the body (air as well only off the faces), body where the body mask holds it and
 /// it is no bone, skin where such a node has a face neighbour outside the body;

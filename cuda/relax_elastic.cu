@@ -254,10 +254,7 @@ void ElasticSolver::release() {
 void ElasticSolver::bind(const Patient& p, const deform::ElasticParams& params, const Vec3i& most) {
   release();
   params_ = params;
-  const std::array<float, 576> k = deform::elastic_element(p.grid.spacing_mm, params.poisson);
-  for (int d = 0; d < 8; ++d)
-    for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < 3; ++j) k_[std::size_t(9 * d + 3 * i + j)] = k[std::size_t(24 * i + 3 * d + j)];
+  k_ = deform::elastic_element_base(deform::elastic_element(p.grid.spacing_mm, params.poisson));
   const long long n = (long long)most.x * most.y * most.z;
   const long long nc = std::max(1LL, deform::elastic_plan(most).coarse_count);
   if (n + nc >= (1LL << 31))

@@ -60,4 +60,12 @@ std::array<float, 576> elastic_element(const Vec3& h_mm, double nu) {
   return out;
 }
 
+std::array<float, 72> elastic_element_base(const std::array<float, 576>& k) {
+  std::array<float, 72> base{};
+  for (int d = 0; d < 8; ++d)
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) base[std::size_t(9 * d + 3 * i + j)] = k[std::size_t(24 * i + 3 * d + j)];
+  return base;
+}
+
 }  // namespace palpsim::deform

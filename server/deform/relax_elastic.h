@@ -27,6 +27,11 @@ constexpr int kElasticVoiMarginVox = 2;
 /// order): N per mm of displacement. Computed in double, stored in float.
 std::array<float, 576> elastic_element(const Vec3& h_mm, double nu);
 
+/// elastic_element()'s corner-0 row block, base[9 d + 3 i + j] = k(i, 3 d + j): the 72
+/// entries from which ElasticCellBase (elastic_math.h) reads every other, as the CUDA
+/// kernels keep the matrix.
+std::array<float, 72> elastic_element_base(const std::array<float, 576>& k);
+
 /// The elastic model's settings as the solvers take them (from deform.elastic and
 /// deform.grab_radius_mm; DeformConfig holds them as a scene gave them).
 struct ElasticParams {

@@ -262,6 +262,39 @@ TEST_CASE("the shared node operator and the CPU's cell loop give the same K u; t
   CHECK(lambda < 2.0);
 }
 
+TEST_CASE("the cell matrix is its corner-0 row block mirrored: the GPU's 72 floats give every entry", "[elastic]") {
+  // elastic_element() builds every entry from corner 0's row block by the mirror rule, and
+  // the CUDA kernels read the matrix through ElasticCellBase from that block alone: every
+  // entry must come back to the bit, for cubic and anisotropic cells and any Poisson ratio;
+  // and the rule must be the element's own symmetry, not imposed on a matrix that lacks it:
+  // the symmetric, positive semi-definite K with rigid translations in its null space
+  for (const auto& [h, nu] : {std::pair{Vec3{1.0, 1.0, 1.0}, 0.45}, std::pair{Vec3{0.7, 0.8, 3.0}, 0.49},
+                              std::pair{Vec3{1.333, 1.333, 2.5}, 0.3}}) {
+    const std::array<float, 576> k = elastic_element(h, nu);
+    const std::array<float, 72> base = elastic_element_base(k);
+    const ElasticCellBase kb{base.data()};
+    int equal = 0;
+    double kmax = 0;
+    for (int r = 0; r < 24; ++r)
+      for (int c = 0; c < 24; ++c) {
+        equal += kb(r, c) == k[std::size_t(24 * r + c)];
+        kmax = std::max(kmax, double(std::fabs(k[std::size_t(24 * r + c)])));
+      }
+    CHECK(equal == 576);
+    for (int r = 0; r < 24; ++r) {
+      double row_sum[3] = {0, 0, 0};  // K times a unit translation along each axis
+      for (int c = 0; c < 24; ++c) {
+        // symmetric to the bit: the mirror rule maps (r, c) and (c, r) onto one stored entry
+        CHECK(k[std::size_t(24 * r + c)] == k[std::size_t(24 * c + r)]);
+        row_sum[c % 3] += k[std::size_t(24 * r + c)];
+      }
+      // rigid translations move nothing: each sum of 24 floats of size kmax within 1e-5 kmax
+      // (float rounding of the entries, 6e-8 relative each)
+      for (double s : row_sum) CHECK(std::fabs(s) <= 1e-5 * kmax);
+    }
+  }
+}
+
 TEST_CASE("the interior node forms (the GPU's level-0 tiles) give the node form's K u and diagonal to the bit", "[elastic]") {
   // random moduli (some cells 0: held space) and a random field on a 7 x 6 x 5 level whose
   // arrays have strides other than the node's own, read through flat offsets as the GPU's

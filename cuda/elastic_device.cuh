@@ -266,8 +266,8 @@ struct NoPre {
 // every tile but those of its high faces alone, coarse_tile_grid()), the whole grid taking a
 // tile of kThreads nodes a block at a time: the tile's nodes and their neighbours' values
 // of the F fields x and the cells' moduli go to shared memory, then each thread sums its
-// node's cells from there (elastic_apply_interior: every load one register and a constant
-// apart), kx[f] = (K x[f]) at the node, own[f] = x[f] at the node (from the tile), pv =
+// node's cells from there (elastic_apply_interior_once: every load one register and a
+// constant apart), kx[f] = (K x[f]) at the node, own[f] = x[f] at the node (from the tile), pv =
 // pre(true, e) (loaded before the tile). Held nodes get kx = dg = 0 (every caller projects
 // them to 0); the nodes of the tiles left out are all held, and every caller's outputs
 // hold 0 there already (each solve and the set-up's Lanczos steps clear them first, on every

@@ -11,7 +11,7 @@
 // Every pass covers a level's nodes with the whole grid; coarse levels of at most
 // kBlockNodes nodes run in block 0 alone between __syncthreads(), since a grid-wide pass
 // costs a grid barrier whatever its size. Level 0 takes a thread a node in tiles of a block's nodes held in shared memory
-// with their neighbours (elastic_apply_interior: 576 multiply-adds, every load one register
+// with their neighbours (elastic_apply_interior_once: 576 multiply-adds, every load one register
 // and a constant apart; held nodes skipped, tiles all held left out); coarse levels of
 // at least kTileNodes nodes in the same tiles; smaller coarse levels eight lanes a node,
 // one cell each (elastic_add_cell), summed by shuffles, so that a small level's pass

@@ -369,34 +369,6 @@ PALPSIM_HD Vec3f elastic_diag_node(const KMat& k, const CellE& cell_e, const Vec
   return d;
 }
 
-/// (K u) at an interior node (all eight cells around it lie in the level) into `kx` (N) and
-/// its Jacobi diagonal into `dg` (N/mm), in one pass over its cells: the same products in
-/// the same order as elastic_apply_node() and elastic_diag_node(), so the same sums to the
-/// bit. Nodes are read by flat offset from the node: `load_u(o)` gives the displacement (mm)
-/// of the node at offset o, `cell_e(o)` the modulus (kPa) of the cell whose lowest corner
-/// is at offset o, with strides 1, `sy` and `sz` along i, j and k. A backend whose strides
-/// are constants (a shared-memory tile) addresses every load by one register and a constant.
-template <typename KMat, typename CellAt, typename LoadAt>
-PALPSIM_HD void elastic_apply_interior(const KMat& k, const CellAt& cell_e, const LoadAt& load_u, int sy, int sz,
-                                       float scale, Vec3f& kx, Vec3f& dg) {
-  kx = Vec3f{0, 0, 0};
-  dg = Vec3f{0, 0, 0};
-  for (int a = 0; a < 8; ++a) {
-    const Vec3i o = elastic_corner(a);
-    const int c = -(o.x + o.y * sy + o.z * sz);
-    const float es = cell_e(c) * scale;
-    // a cell of modulus 0 adds nothing (elastic_add_cell skips it; its diagonal adds +0)
-    if (es == 0.0f) continue;
-    Vec3f uc[8];
-    for (int b = 0; b < 8; ++b) {
-      const Vec3i ob = elastic_corner(b);
-      uc[b] = load_u(c + ob.x + ob.y * sy + ob.z * sz);
-    }
-    kx += elastic_cell_row(k, a, uc) * es;
-    dg += elastic_cell_diag(k, a) * es;
-  }
-}
-
 /// A node's displacement (mm) and the modulus (kPa) of the cell whose lowest corner it is, as
 /// elastic_apply_interior_once() reads them.
 struct ElasticNodeCell {
@@ -459,13 +431,16 @@ PALPSIM_HD void elastic_once_all(const KMat& k, const NodeAt& node, int sy, int 
 }
 }  // namespace detail
 
-/// elastic_apply_interior() with each of the node's 27 neighbours read once: `node(o)` gives
-/// the node at flat offset o (strides 1, `sy`, `sz`) and the modulus of the cell whose lowest
-/// corner it is. Each cell's row block times its corners is summed over the corners in the
-/// same order (the neighbours, k then j then i, run through each cell's corners in corner
-/// order), then scaled and added cell by cell, so kx and dg are elastic_apply_interior()'s
-/// to the bit. It holds eight partial sums instead of a cell's eight corners: a backend
-/// whose loads are the cost (a shared-memory tile, a float4 a node) reads 27 nodes, not 64.
+/// (K u) at an interior node (all eight cells around it lie in the level) into `kx` (N) and
+/// its Jacobi diagonal into `dg` (N/mm), each of the node's 27 neighbours read once:
+/// `node(o)` gives the node at flat offset o (strides 1, `sy`, `sz` along i, j and k) and
+/// the modulus (kPa) of the cell whose lowest corner it is. Each cell's row block times its
+/// corners is summed over the corners in elastic_cell_row()'s order (the neighbours, k then
+/// j then i, run through each cell's corners in corner order), then scaled and added cell by
+/// cell, so kx and dg are elastic_apply_node()'s and elastic_diag_node()'s to the bit. It
+/// holds eight partial sums instead of a cell's eight corners: a backend whose loads are
+/// the cost (a shared-memory tile, a float4 a node, every load one register and a constant
+/// apart) reads 27 nodes, not 64 corners.
 template <typename KMat, typename NodeAt>
 PALPSIM_HD void elastic_apply_interior_once(const KMat& k, const NodeAt& node, int sy, int sz, float scale, Vec3f& kx,
                                             Vec3f& dg) {

@@ -6,18 +6,9 @@ import math
 from accuracy_common import THRESHOLDS, _finite, _fmt, _ms, fastest_within, image_lines, load_json, pareto
 
 
-# the rows' names in runs made while the scenes shipped the multigrid diffusion (before
-# 2026-12-06), as the bench names them since the scenes ship the elastic model
-RENAMED = {("model", "multigrid (shipped)"): "multigrid (diffusion)", ("setting", "as shipped"): "fingertip 5 mm"}
-
-
 def load_elastic(path):
-    """The JSON of one `palpsim-bench accuracy --elastic` run, its rows named as today's."""
-    el = load_json(path, "accuracy-elastic", "palpsim-bench accuracy --elastic")
-    for r in el.get("rows", []):
-        for key in ("model", "setting"):
-            r[key] = RENAMED.get((key, r.get(key)), r.get(key))
-    return el
+    """The JSON of one `palpsim-bench accuracy --elastic` run."""
+    return load_json(path, "accuracy-elastic", "palpsim-bench accuracy --elastic")
 
 
 def _abs(v):
@@ -147,8 +138,8 @@ def _elastic_references_text(el):
              f"a = sqrt(R d) and its decay outside (Johnson, Contact Mechanics, 3.42), compared as relative RMS over "
              f"the skin within {b['profile_within_radii']:g} a of the axis; the band is the smallest of "
              f"{', '.join(f'{x:g}' for x in BANDS)} % that the FEM of (iii), converged, meets.")
-    L.append("- **(v)** every row (the paper's explicit relaxation, the multigrid diffusion the scenes shipped before "
-             "the elastic model, the elastic model, which they ship) against the same references, with its step time: the whole step (ChainMail where it runs, "
+    L.append("- **(v)** every row (the paper's explicit relaxation, the shipped multigrid diffusion, the elastic "
+             "model) against the same references, with its step time: the whole step (ChainMail where it runs, "
              "relaxation or the elastic solve, inversion), median of the timed repetitions.")
     L.append("")
     return L
@@ -366,7 +357,7 @@ def elastic_markdown(el, gpu, rows, plots, sheets):
     return L
 
 
-MODEL_STYLE = {"explicit (paper)": ("tab:blue", "o"), "multigrid (diffusion)": ("tab:red", "P"), "elastic": ("tab:green", "s")}
+MODEL_STYLE = {"explicit (paper)": ("tab:blue", "o"), "multigrid (shipped)": ("tab:red", "P"), "elastic": ("tab:green", "s")}
 
 
 def plot_elastic(rows, time_key, machine, out_png):

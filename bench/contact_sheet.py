@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Compose the contact sheet of one press over L3 of the phantom from `palpsim-bench contact_sheet`.
 
-Three models side by side (columns): the paper's explicit relaxation, the multigrid
+Three models side by side (columns): the paper's explicit relaxation, the shipped multigrid
 diffusion and the elastic model. Rows: the deformed image J on the sagittal and the axial
 slice through the press, then |u| (mm, drawn at each voxel's rest position) on both. J panels carry the undeformed skin (cyan,
 dashed) and bone (yellow) contours, so that the dent and whether bone moved can be read

@@ -196,8 +196,7 @@ def test_the_elastic_section_names_goals_fronts_and_the_missing_gpu_figures(tmp_
     # multigrid's are faster but wrong); its front runs from the paper's 20 iterations to it
     assert ("| (i) FEM of the same problem: displacement | a new press | elastic, from rest, tol 0.001, cap 60 "
             "(2600, 0.3) |") in md
-    # (a run from before the scenes shipped the elastic model names the multigrid rows as today's)
-    assert ("explicit (paper), every step, 20 iterations (15, 400); multigrid (diffusion), from zero, 4 steps (50, 80); "
+    assert ("explicit (paper), every step, 20 iterations (15, 400); multigrid (shipped), from zero, 4 steps (50, 80); "
             "elastic, from rest, tol 0.1, cap 60 (900, 8); elastic, from rest, tol 0.001, cap 60 (2600, 0.3) |") in md
     # while the tip moves: within 1 % the tip-moving row (700 ms, 0.8 %)
     assert "| the tip moving a voxel a step | elastic, tip moving, tol 0.001, cap 60 (700, 0.8) |" in md

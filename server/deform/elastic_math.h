@@ -291,22 +291,30 @@ PALPSIM_HD float elastic_cell_modulus(const NodeE& node_e, const CornerBody& cor
   return body ? sum / 8 : air_e_kpa;
 }
 
+/// Adds the 3 x 3 block K[a][b] of one cell's matrix times corner b's displacement `u` (mm)
+/// to `y` (N per kPa of the cell's modulus), one running sum a row, a product at a time (a
+/// compiler that fuses multiply-adds makes each term one instruction). `k(r, c)` reads the
+/// 24 x 24 cell matrix, row and column 3 corner + component. Every product of K with a
+/// field goes through it, so that all of them sum in one order.
+template <typename KMat>
+PALPSIM_HD void elastic_cell_block_add(const KMat& k, int a, int b, const Vec3f& u, Vec3f& y) {
+  y.x += k(3 * a, 3 * b) * u.x;
+  y.x += k(3 * a, 3 * b + 1) * u.y;
+  y.x += k(3 * a, 3 * b + 2) * u.z;
+  y.y += k(3 * a + 1, 3 * b) * u.x;
+  y.y += k(3 * a + 1, 3 * b + 1) * u.y;
+  y.y += k(3 * a + 1, 3 * b + 2) * u.z;
+  y.z += k(3 * a + 2, 3 * b) * u.x;
+  y.z += k(3 * a + 2, 3 * b + 1) * u.y;
+  y.z += k(3 * a + 2, 3 * b + 2) * u.z;
+}
+
 /// The row block of corner `a` of one cell's matrix times the cell's corner displacements
-/// `uc` (8 corners, mm): sum_b K[a][b] uc[b] (N per kPa of the cell's modulus). `k(r, c)`
-/// reads the 24 x 24 cell matrix, row and column 3 corner + component.
+/// `uc` (8 corners, mm): sum_b K[a][b] uc[b] (N per kPa of the cell's modulus), b in order.
 template <typename KMat>
 PALPSIM_HD Vec3f elastic_cell_row(const KMat& k, int a, const Vec3f uc[8]) {
-  // one running sum a row, a product at a time: a compiler that fuses multiply-adds makes
-  // each term one instruction
   Vec3f y{0, 0, 0};
-  for (int b = 0; b < 8; ++b) {
-    for (int r = 0; r < 3; ++r) {
-      const int row = 3 * a + r;
-      y[r] += k(row, 3 * b) * uc[b].x;
-      y[r] += k(row, 3 * b + 1) * uc[b].y;
-      y[r] += k(row, 3 * b + 2) * uc[b].z;
-    }
-  }
+  for (int b = 0; b < 8; ++b) elastic_cell_block_add(k, a, b, uc[b], y);
   return y;
 }
 
@@ -385,18 +393,8 @@ namespace detail {
 template <int D, int A, typename KMat>
 PALPSIM_HD void elastic_once_cell(const KMat& k, const Vec3f& u, Vec3f (&acc)[8]) {
   constexpr int bx = D % 3 - 1 + (A & 1), by = (D / 3) % 3 - 1 + ((A >> 1) & 1), bz = D / 9 - 1 + ((A >> 2) & 1);
-  if constexpr (bx >= 0 && bx <= 1 && by >= 0 && by <= 1 && bz >= 0 && bz <= 1) {
-    constexpr int b = bx + 2 * by + 4 * bz;
-    acc[A].x += k(3 * A, 3 * b) * u.x;
-    acc[A].x += k(3 * A, 3 * b + 1) * u.y;
-    acc[A].x += k(3 * A, 3 * b + 2) * u.z;
-    acc[A].y += k(3 * A + 1, 3 * b) * u.x;
-    acc[A].y += k(3 * A + 1, 3 * b + 1) * u.y;
-    acc[A].y += k(3 * A + 1, 3 * b + 2) * u.z;
-    acc[A].z += k(3 * A + 2, 3 * b) * u.x;
-    acc[A].z += k(3 * A + 2, 3 * b + 1) * u.y;
-    acc[A].z += k(3 * A + 2, 3 * b + 2) * u.z;
-  }
+  if constexpr (bx >= 0 && bx <= 1 && by >= 0 && by <= 1 && bz >= 0 && bz <= 1)
+    elastic_cell_block_add(k, A, bx + 2 * by + 4 * bz, u, acc[A]);
 }
 
 // neighbour D read once: its products in the cells it is a corner of, and the modulus of
@@ -416,7 +414,7 @@ template <int A, typename KMat>
 PALPSIM_HD void elastic_once_scale(const KMat& k, const Vec3f (&acc)[8], const float (&es)[8], Vec3f& kx, Vec3f& dg) {
   if (es[A] == 0.0f) return;
   kx += acc[A] * es[A];
-  dg += Vec3f{k(3 * A, 3 * A), k(3 * A + 1, 3 * A + 1), k(3 * A + 2, 3 * A + 2)} * es[A];
+  dg += elastic_cell_diag(k, A) * es[A];
 }
 
 template <typename KMat, typename NodeAt, int... D, int... A>

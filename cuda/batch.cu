@@ -61,6 +61,9 @@ void launch_gather_batch(const BatchItem* items, int n, cudaStream_t stream) {
 CudaBatch::CudaBatch() {
   PALPSIM_CUDA_CHECK(cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking));
   for (cudaEvent_t& e : ev) PALPSIM_CUDA_CHECK(cudaEventCreate(&e));
+  for (cudaStream_t& l : lane_stream) PALPSIM_CUDA_CHECK(cudaStreamCreateWithFlags(&l, cudaStreamNonBlocking));
+  PALPSIM_CUDA_CHECK(cudaEventCreateWithFlags(&fork, cudaEventDisableTiming));
+  for (cudaEvent_t& e : joined) PALPSIM_CUDA_CHECK(cudaEventCreateWithFlags(&e, cudaEventDisableTiming));
   PALPSIM_CUDA_CHECK(cudaMallocHost(&host_items, kMaxBatch * sizeof(BatchItem)));
   PALPSIM_CUDA_CHECK(cudaMalloc(&dev_items, kMaxBatch * sizeof(BatchItem)));
 }
@@ -72,6 +75,11 @@ CudaBatch::~CudaBatch() {
   cudaFreeHost(host_items);
   for (cudaEvent_t& e : ev)
     if (e) cudaEventDestroy(e);
+  for (cudaEvent_t& e : joined)
+    if (e) cudaEventDestroy(e);
+  if (fork) cudaEventDestroy(fork);
+  for (cudaStream_t& l : lane_stream)
+    if (l) cudaStreamDestroy(l);
   if (stream) cudaStreamDestroy(stream);
 }
 

@@ -25,6 +25,12 @@ class CudaBatch {
   /// Waits for the batch's last stage (once) and reads the stage times.
   void wait();
 
+  /// Elastic solves side by side (relax_elastic_lanes()): each lane's stream waits for
+  /// `fork` (the reset, recorded on `stream`), `stream` for each lane's `joined`.
+  static constexpr int kMaxLanes = 8;
+  cudaStream_t lane_stream[kMaxLanes] = {};
+  cudaEvent_t fork = nullptr, joined[kMaxLanes] = {};
+
   cudaStream_t stream = nullptr;
   cudaEvent_t ev[6] = {};                // before reset, after reset, ChainMail, relax, invert, counters copied
   BatchItem* host_items = nullptr;       // pinned, kMaxBatch

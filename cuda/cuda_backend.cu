@@ -83,6 +83,7 @@ void CudaDeformBackend::release() {
   // the elastic model's own buffers; its scratch and the body copy go with their last holders
   elastic_.release();
   el_shared_.reset();
+  el_lane_.reset();
   body_copy_.reset();
   cudaFreeHost(host_counters_);
   cudaFreeHost(host_j_);
@@ -233,6 +234,8 @@ DeformMemory CudaDeformBackend::memory_impl() const {
   // the body copy once per patient
   m.relax_bytes += elastic_.bytes();
   if (el_shared_) m.shared_scratch_bytes += el_shared_->bytes();
+  // and the lanes' scratches (lanes 1 and up, all alive while sessions batch in lanes)
+  if (el_lane_) m.shared_scratch_bytes += el_lane_->bytes() * std::size_t(relax_elastic_lanes() - 1);
   if (body_copy_) m.shared_patient_bytes += body_copy_->bytes();
   return m;
 }
@@ -317,17 +320,26 @@ void CudaDeformBackend::enqueue_chainmail() {
   cur_ = config_.settings.max_sweeps & 1;
 }
 
+void CudaDeformBackend::enqueue_elastic(int buffer, cudaStream_t stream, int lane, int lanes) {
+  ensure_elastic_buffers();
+  const ElasticPatient ep{patient_copy_->intensity(), patient_copy_->bone(), body_copy_->body(),
+                          body_copy_->dist_skin_mm()};
+  // lane 0 solves in the scratch every session shares; another lane in that lane's
+  // (held while this session was last in that lane)
+  if (lane > 0 && (!el_lane_ || el_lane_->lane != lane))
+    el_lane_ = ElasticScratch::shared(elastic_.capacity(), elastic_.coarse_capacity(), lane);
+  ElasticScratch& scratch = lane > 0 ? *el_lane_ : *el_shared_;
+  elastic_.enqueue(*patient_, ep, voi_, setup_.skin_vox, setup_.tip_vox, scratch, std::max(1, el_blocks_ / lanes),
+                   d_.u[buffer], &d_.counters->elastic, stream);
+}
+
 void CudaDeformBackend::enqueue_relax() {
   const DeformSettings& s = config_.settings;
   if (s.relax_method == RelaxMethod::kElastic) {
     // every element of the VOI into the current buffer, which the reset and ChainMail's
     // start left at 0 but for the grabbed element; with other steps in flight beside it, in
     // a scratch of its own
-    ensure_elastic_buffers();
-    const ElasticPatient ep{patient_copy_->intensity(), patient_copy_->bone(), body_copy_->body(),
-                            body_copy_->dist_skin_mm()};
-    elastic_.enqueue(*patient_, ep, voi_, setup_.skin_vox, setup_.tip_vox, *el_shared_, el_blocks_,
-                     d_.u[cur_], &d_.counters->elastic, stream_);
+    enqueue_elastic(cur_, stream_);
     field_extra_ = -1;
     return;
   }

@@ -119,6 +119,9 @@ class CudaDeformBackend final : public DeformBackend {
   void enqueue_reset();
   void enqueue_chainmail();
   void enqueue_relax();
+  // the elastic solve of this step into displacement buffer `buffer`, on `stream` (its own
+  // step's or a batch's), in batch lane `lane` of `lanes` (relax_elastic_lanes())
+  void enqueue_elastic(int buffer, cudaStream_t stream, int lane = 0, int lanes = 1);
   void enqueue_untangle();
   void enqueue_invert();
   void enqueue_upload();
@@ -158,6 +161,7 @@ class CudaDeformBackend final : public DeformBackend {
   ElasticSolver elastic_;
   std::shared_ptr<const DeviceBody> body_copy_;
   std::shared_ptr<ElasticScratch> el_shared_;
+  std::shared_ptr<ElasticScratch> el_lane_;  // the batch lane's scratch this session last solved in (lane 1 and up)
   int el_blocks_ = 0;                  // cooperative blocks of the elastic kernels: all that fit on the device
   bool mg_g_clean_ = false;  // the kept unit response was solved on a step that left ChainMail out (so it is a G)
   int mg_blocks_ = 0;                  // cooperative blocks of the multigrid kernel, this step

@@ -29,6 +29,7 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   bt.wait();  // the last use of the items is over
   const DeformSettings& s = config_.settings;
   const bool mg = config_.relax && s.relax_method == RelaxMethod::kMultigrid;
+  const bool el = config_.relax && s.relax_method == RelaxMethod::kElastic;
   unsigned max_reset = 0, max_voi = 0;
   Vec3i most{0, 0, 0};  // the largest VOI size along each axis
   bool any_chainmail = false;
@@ -48,10 +49,11 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
     // start alone does), capped in the last sweep's; multigrid works in place
     int cur = it.chainmail == 1 ? (s.max_sweeps & 1) : 0;
     it.relax_src = cur;
-    if (config_.relax && !mg) cur = (cur + s.relax_iterations) & 1;
+    if (config_.relax && !mg && !el) cur = (cur + s.relax_iterations) & 1;
     it.invert_src = cur;
     c.cur_ = cur;
-    c.field_extra_ = config_.relax ? (mg ? -1 : s.relax_iterations) : 0;
+    c.field_extra_ = config_.relax ? (mg || el ? -1 : s.relax_iterations) : 0;
+    if (el) c.ensure_elastic_buffers();
     if (mg) {
       c.ensure_multigrid_buffers();
       // reusing a G solved on a step that left ChainMail out (so clean, a G): the batch's
@@ -78,7 +80,24 @@ bool CudaDeformBackend::begin_batch_impl(const std::vector<DeformBackend*>& grou
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[1], st));
   if (any_chainmail) launch_chainmail_batch(bt.dev_items, n, limits_, s.max_sweeps, full_shape_, st);
   PALPSIM_CUDA_CHECK(cudaEventRecord(bt.ev[2], st));
-  if (mg) {
+  if (el) {
+    // each session's elastic solve one cooperative launch (its settings its own), in turn
+    // on the whole device, or in lanes side by side with a share of it each; the batch
+    // shares the other stages' launches and its one wait
+    const int lanes = std::min(n, relax_elastic_lanes());
+    if (lanes <= 1) {
+      for (int i = 0; i < n; ++i) m[i]->enqueue_elastic(bt.host_items[i].relax_src, st);
+    } else {
+      PALPSIM_CUDA_CHECK(cudaEventRecord(bt.fork, st));
+      for (int l = 0; l < lanes; ++l) PALPSIM_CUDA_CHECK(cudaStreamWaitEvent(bt.lane_stream[l], bt.fork, 0));
+      for (int i = 0; i < n; ++i)
+        m[i]->enqueue_elastic(bt.host_items[i].relax_src, bt.lane_stream[i % lanes], i % lanes, lanes);
+      for (int l = 0; l < lanes; ++l) {
+        PALPSIM_CUDA_CHECK(cudaEventRecord(bt.joined[l], bt.lane_stream[l]));
+        PALPSIM_CUDA_CHECK(cudaStreamWaitEvent(st, bt.joined[l], 0));
+      }
+    }
+  } else if (mg) {
     // the reusing sessions in one launch; the others' solves in turn, without a wait
     // between them: no batched multigrid solver yet
     bool any_reuse = false;
@@ -117,6 +136,8 @@ DeformStats CudaDeformBackend::end_batched_step() {
   InvertStats inv;
   read_counters(&out.chainmail, &inv, nullptr);
   if (config_.relax && config_.settings.relax_method == RelaxMethod::kMultigrid) take_multigrid_counts(out);
+  if (config_.relax && config_.settings.relax_method == RelaxMethod::kElastic)
+    out.elastic = elastic_.finish(host_counters_->elastic);
   if (config_.invert) out.take_inversion(inv);
   // this step's share of the batch's stage times (ms)
   const double share = 1.0 / bt->n;

@@ -225,8 +225,24 @@ ElasticScratch::~ElasticScratch() {
     cudaFree(v);
 }
 
-std::shared_ptr<ElasticScratch> ElasticScratch::shared(long long n, long long nc) {
-  return shared_scratch<ElasticScratch>(n, nc);
+std::shared_ptr<ElasticScratch> ElasticScratch::shared(long long n, long long nc, int lane) {
+  static SharedCache<ElasticScratch> scratches;
+  int dev = 0;
+  PALPSIM_CUDA_CHECK(cudaGetDevice(&dev));
+  return scratches.get(
+      [&](const ElasticScratch& s) {
+        return s.device == dev && s.capacity == n && s.coarse_capacity == nc && s.lane == lane;
+      },
+      [&] {
+        auto s = std::make_shared<ElasticScratch>(n, nc);
+        s->lane = lane;
+        return s;
+      });
+}
+
+int relax_elastic_lanes() {
+  static const int n = std::min(8, env_positive("PALPSIM_ELASTIC_LANES", kElasticLanes));
+  return n;
 }
 
 std::size_t ElasticScratch::bytes() const {

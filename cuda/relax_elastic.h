@@ -31,13 +31,16 @@ struct ElasticScratch {
   ~ElasticScratch();
   ElasticScratch(const ElasticScratch&) = delete;
   ElasticScratch& operator=(const ElasticScratch&) = delete;
-  /// The scratch shared on the current device for these capacities: the one alive, or a new one.
-  static std::shared_ptr<ElasticScratch> shared(long long capacity, long long coarse_capacity);
+  /// The scratch shared on the current device for these capacities and `lane` (0: every
+  /// session's; 1 and up: the batch lanes' that run solves side by side,
+  /// relax_elastic_lanes()): the one alive, or a new one.
+  static std::shared_ptr<ElasticScratch> shared(long long capacity, long long coarse_capacity, int lane = 0);
   /// Device bytes held.
   std::size_t bytes() const;
 
   long long capacity, coarse_capacity;
   int device = 0;
+  int lane = 0;  // shared()'s lane
   // every level (capacity + coarse_capacity nodes, component c at c times that): the
   // V-cycle's two corrections (level 0: z), right-hand side (level 0: CG's residual r),
   // residual (level 0: also CG's K p), Chebyshev step; level 0 (capacity, same layout): CG's
@@ -131,5 +134,13 @@ class ElasticSolver {
 
 /// Cooperative blocks of the elastic kernels that run at once on this device (one per multiprocessor).
 int relax_elastic_blocks();
+
+/// How many of a batch's elastic solves run side by side (each on its own stream and lane
+/// scratch, with that share of relax_elastic_blocks()): PALPSIM_ELASTIC_LANES (1 to 8),
+/// else kElasticLanes. Two lanes overlap one solve's grid barriers and light passes with
+/// another's (the phantom scene's server bench on the H100, 16 sessions: 95 steps/s each
+/// in one lane, 117 in two or four, 111 in eight), for one more scratch server-wide.
+constexpr int kElasticLanes = 2;
+int relax_elastic_lanes();
 
 }  // namespace palpsim::cuda

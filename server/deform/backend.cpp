@@ -35,7 +35,13 @@ DeformConfig DeformConfig::from_scene(const Scene& scene, const Patient* patient
     c.bone_threshold = patient->bone_threshold_hu;
   c.relax = scene.effects.relaxation;
   c.invert = scene.effects.inversion;
-  c.elastic_stiffness = scene.haptics.force_model == ForceModel::kElastic;
+  c.elastic_force = scene.haptics.force_model == ForceModel::kElastic;
+  // the unit press, for the force model, and whenever the elastic model predicts: a warm
+  // start predicted from it needs fewer V-cycles than from the depths' ratio, which more
+  // than pays for it (the phantom scene's server bench, the H100: 16 sessions at 95 steps/s
+  // each with it, 50 without; bench/results/server-2026-12-06-h100-*-elastic-*.txt)
+  c.elastic_stiffness = c.elastic_force || (scene.deform.relax_method == RelaxMethod::kElastic &&
+                                            scene.deform.elastic.predict);
   return c;
 }
 
@@ -199,15 +205,16 @@ bool DeformBatchKey::operator==(const DeformBatchKey& o) const {
 std::optional<DeformBatchKey> deform_batch_key(const DeformConfig& config) {
   // every member by name: the session's own ones are left out of the key below
   [[maybe_unused]] const auto& [settings, bone_threshold, relax, invert, relax_reuse, skip_chainmail, voi_hold,
-                                elastic_stiffness] = config;
+                                elastic_stiffness, elastic_force] = config;
   [[maybe_unused]] const auto& [min_dist, max_dist, max_sheer, voi_edge, whole_volume, max_sweeps, relax_method,
                                 relax_iterations, relax_step, relax_cycles, relax_warm_cycles, grab_radius_mm,
                                 material_width, invert_iterations, untangle, invert_search, backend, elastic] = settings;
   // the session's own: its VOI (voi_edge, whole_volume, voi_hold), its multigrid fingertip
   // (grab_radius_mm: multigrid sessions share the batch's other launches and its one wait,
-  // their solves one launch each), its backend; the elastic model (elastic,
-  // elastic_stiffness) steps alone, each solve one cooperative launch, as untangling does
-  if (relax && (relax_method == RelaxMethod::kElastic || untangle)) return std::nullopt;
+  // their solves one launch each), the elastic model's settings (elastic,
+  // elastic_stiffness, elastic_force: each session's solve is one cooperative launch of its own, the
+  // batch's other stages shared), its backend; untangling steps alone
+  if (relax && untangle) return std::nullopt;
   const deform::ChainMailLimits limits = deform::chainmail_limits(min_dist, max_dist, max_sheer);
   const bool mg = relax_method == RelaxMethod::kMultigrid;
   // in DeformBatchKey's order

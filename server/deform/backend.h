@@ -59,8 +59,12 @@ struct DeformConfig {
   /// VOI follows the tip every step (the paper's rule; the warm-start tests and benches).
   bool voi_hold = true;
   /// The elastic model also solves the unit press for the contact's stiffness each step
-  /// (ElasticRun::stiffness_n_per_mm), which haptics.force_model "elastic" renders.
+  /// (ElasticRun::stiffness_n_per_mm), which haptics.force_model "elastic" renders and from
+  /// which the next step's start is predicted (deform::ElasticPredict::kUnit).
   bool elastic_stiffness = false;
+  /// The deformation worker hands each elastic step's local force model to the haptic
+  /// thread (haptics.force_model "elastic").
+  bool elastic_force = false;
 
   /// The elastic model's settings as its solvers take them (deform.elastic,
   /// deform.grab_radius_mm; the stiffness as elastic_stiffness says).

@@ -28,7 +28,7 @@ void DeformWorker::publish_elastic(const Parts& p, const ElasticModel& m) {
   r.model.session_id = s.id;
   r.model.generation = generation_;
   // with haptics.force_model "elastic" the haptic thread renders it (newest wins; never waits)
-  if (config_.elastic_stiffness) {
+  if (config_.elastic_force) {
     p.table.elastic_model.back() = r.model;
     p.table.elastic_model.publish();
     ++r.models_published;

@@ -274,3 +274,81 @@ TEST_CASE("a batch of sessions with the inversion's cell search equals each sess
   std::printf("batch of %d with the cell search: inversion %.3f ms a session's share in the batch, %.3f ms alone\n", n,
               batch_invert_ms / (2 * n), alone_invert_ms / (2 * n));
 }
+
+TEST_CASE("a batch of elastic sessions equals each session stepping alone", "[elastic]") {
+  if (!have_gpu()) return;
+  // 8 sessions pressing the phantom's back at 8 mm apart along the spine with the scenes'
+  // elastic model (VOI 64, the fingertip of 5 mm, the inversion's cell search), half of
+  // them with the unit press (haptics.force_model "elastic": each solve takes its own
+  // settings in a batch): from rest 10 mm, a voxel deeper (warm), the same again (nothing
+  // moved), then 12 mm along the spine (the VOI moved). They share the batch's reset,
+  // inversion and wait, their solves one cooperative launch each on the batch's stream,
+  // each on the whole device as alone. Solved to 1e-6 so that a differing stop cannot part
+  // them (the dot products' block sums meet in another order from run to run: the fields
+  // agree to rounding, 1e-6 of the largest component bounds it, as in
+  // deform_gpu_elastic_test.cpp's sessions begun together)
+  PhantomCt ct = make_phantom(340.0 / 255.0);
+  const Press press = spinous_press(ct.geometry);
+  const PatientPtr phantom = elastic_phantom(std::move(ct));
+  DeformConfig cfg = preset_config(1);
+  cfg.settings.backend = DeformBackendChoice::kCuda;
+  cfg.settings.relax_method = RelaxMethod::kElastic;
+  cfg.settings.grab_radius_mm = 5;
+  cfg.settings.voi_edge = 64;
+  cfg.settings.invert_search = true;
+  cfg.settings.elastic.tolerance = 1e-6;
+  cfg.settings.elastic.max_iterations = 400;
+  const int n = 8;
+  const Vec3 X0 = press.contact.skin_point_mm, in = (press.contact.tip_mm - X0) / press.press_mm;
+  const double h = phantom->grid.spacing_mm.x;
+  std::vector<std::unique_ptr<DeformEngine>> sessions, twins;
+  std::vector<DeformBackend*> backends;
+  for (int s = 0; s < n; ++s) {
+    DeformConfig own = cfg;
+    own.elastic_stiffness = s % 2 == 1;
+    sessions.push_back(std::make_unique<DeformEngine>(phantom, own));
+    twins.push_back(std::make_unique<DeformEngine>(phantom, own));
+    backends.push_back(&sessions.back()->backend());
+  }
+  int stiff = 0, warm = 0;
+  for (int round = 0; round < 4; ++round) {
+    std::vector<DeformContact> k;
+    for (int s = 0; s < n; ++s) {
+      const Vec3 X = X0 + Vec3{0, 0, 8.0 * (s - n / 2) + (round == 3 ? 12.0 : 0.0)};
+      k.push_back({X, X + in * (10.0 + (round >= 1 ? h : 0.0))});
+    }
+    const std::vector<DeformStats> st = step_batch(sessions, backends, k);
+    for (int s = 0; s < n; ++s) {
+      INFO("round " << round << ", session " << s);
+      const DeformStats a = twins[s]->step(k[s]);
+      const DeformStats& b = st[s];
+      CHECK(b.batch == n);
+      CHECK(b.chainmail.voi == a.chainmail.voi);
+      CHECK(b.elastic.contact == a.elastic.contact);
+      CHECK(b.elastic.contact_nodes == a.elastic.contact_nodes);
+      CHECK(b.elastic.warm == a.elastic.warm);
+      CHECK(b.elastic.rounds == a.elastic.rounds);
+      CHECK(b.elastic.converged);
+      CHECK(b.elastic.inverted_cells == a.elastic.inverted_cells);
+      const std::vector<Vec3f> ub = sessions[s]->backend().displacement(), ua = twins[s]->backend().displacement();
+      CHECK(max_abs_diff(ub, ua) <= 1e-6f * max_abs(ua));
+      CHECK(b.elastic.force_n.y == Approx(a.elastic.force_n.y).epsilon(1e-5));
+      CHECK(b.elastic.stiffness_n_per_mm == Approx(a.elastic.stiffness_n_per_mm).epsilon(1e-5));
+      // J from fields within 1e-6 of each other: each source moves by under 1e-4 voxel, J
+      // by under 0.1 HU where the image's gradient is 1000 HU a voxel; only a fold's
+      // search may pick another of two near-equal sources (a few voxels of a VOI)
+      CHECK(b.invert_unresolved == a.invert_unresolved);
+      const long long count = b.chainmail.voi.count();
+      const float *jb = sessions[s]->deformed_brick(), *ja = twins[s]->deformed_brick();
+      REQUIRE(jb);
+      long long apart = 0;
+      for (long long e = 0; e < count; ++e) apart += std::fabs(jb[e] - ja[e]) > 0.1f;
+      CHECK(apart <= 16);
+      stiff += b.elastic.stiffness_n_per_mm > 0;
+      warm += b.elastic.warm;
+    }
+  }
+  // the kinds of step the batch must handle were there: the unit press, warm starts
+  CHECK(stiff >= n / 2);
+  CHECK(warm >= n);
+}

@@ -118,6 +118,7 @@ TEST_CASE("sessions are batched only when every setting the batched kernels shar
       {"backend", [](DeformConfig& c) { c.settings.backend = DeformBackendChoice::kAuto; }},
       {"voi_hold", [](DeformConfig& c) { c.voi_hold = !c.voi_hold; }},
       {"elastic_stiffness", [](DeformConfig& c) { c.elastic_stiffness = !c.elastic_stiffness; }},
+      {"elastic_force", [](DeformConfig& c) { c.elastic_force = !c.elastic_force; }},
   };
   DeformConfig ex = preset_config(1), mg = preset_config(1);
   mg.settings.relax_method = RelaxMethod::kMultigrid;
@@ -146,11 +147,21 @@ TEST_CASE("sessions are batched only when every setting the batched kernels shar
       CHECK(deform_batchable(base, c));
     }
   }
-  // the elastic model and untangling step alone, even beside their own kind
+  // elastic sessions batch with their own kind, whatever their elastic settings (each
+  // solve is a launch of its own); untangling steps alone, even beside its own kind
   DeformConfig el = preset_config(1), un = preset_config(1);
   el.settings.relax_method = RelaxMethod::kElastic;
   un.settings.untangle = true;
-  CHECK_FALSE(deform_batch_key(el));
+  CHECK(deform_batchable(el, el));
+  CHECK_FALSE(deform_batchable(el, ex));
+  CHECK_FALSE(deform_batchable(el, mg));
+  {
+    DeformConfig stiff = el;
+    stiff.elastic_stiffness = true;
+    stiff.settings.elastic.poisson = 0.3;
+    CHECK(deform_batchable(el, stiff));
+  }
+  CHECK_FALSE(deform_batch_key(un));
   CHECK_FALSE(deform_batchable(un, un));
   CHECK_FALSE(deform_batchable(ex, un));
   // without relaxation neither matters

@@ -274,6 +274,20 @@ TEST_CASE("haptics.force_model \"elastic\" needs the elastic step, and a scene w
   const Scene s = parse_scene_text(elastic_deform + "effects { chainmail: true relaxation: true }", "x.textproto");
   CHECK(s.haptics.force_model == ForceModel::kElastic);
   CHECK(DeformConfig::from_scene(s).elastic_stiffness);
+  CHECK(DeformConfig::from_scene(s).elastic_force);
+  {
+    // the unit press also serves the prediction: solved with eq. 2's force too, unless the
+    // scene predicts nothing; never without the elastic model
+    const std::string eq2 = "phantom {} deform { relax_method: \"elastic\" grab_radius_mm: 5 ";
+    const std::string effects = "effects { chainmail: true relaxation: true }";
+    const DeformConfig predicts = DeformConfig::from_scene(parse_scene_text(eq2 + "} " + effects, "x.textproto"));
+    CHECK(predicts.elastic_stiffness);
+    CHECK_FALSE(predicts.elastic_force);
+    const DeformConfig still =
+        DeformConfig::from_scene(parse_scene_text(eq2 + "elastic { predict: false } } " + effects, "x.textproto"));
+    CHECK_FALSE(still.elastic_stiffness);
+    CHECK_FALSE(DeformConfig::from_scene(parse_scene_text("phantom {}", "x.textproto")).elastic_stiffness);
+  }
   CHECK(parse_scene_text("phantom {}", "x.textproto").haptics.force_model == ForceModel::kProxy);
   // another relaxation has no reaction force to render
   for (const char* method : {"explicit", "multigrid"}) {

@@ -139,7 +139,9 @@ int relax_elastic_blocks();
 /// scratch, with that share of relax_elastic_blocks()): PALPSIM_ELASTIC_LANES (1 to 8),
 /// else kElasticLanes. Two lanes overlap one solve's grid barriers and light passes with
 /// another's (the phantom scene's server bench on the H100, 16 sessions: 95 steps/s each
-/// in one lane, 117 in two or four, 111 in eight), for one more scratch server-wide.
+/// in one lane, 117 in two or four, 111 in eight;
+/// bench/results/elastic-server-probes-2026-12-06-h100-d9e7903.txt), for one more scratch
+/// server-wide.
 constexpr int kElasticLanes = 2;
 int relax_elastic_lanes();
 

@@ -39,7 +39,7 @@ DeformConfig DeformConfig::from_scene(const Scene& scene, const Patient* patient
   // the unit press, for the force model, and whenever the elastic model predicts: a warm
   // start predicted from it needs fewer V-cycles than from the depths' ratio, which more
   // than pays for it (the phantom scene's server bench, the H100: 16 sessions at 95 steps/s
-  // each with it, 50 without; bench/results/server-2026-12-06-h100-*-elastic-*.txt)
+  // each with it, 50 without; bench/results/elastic-server-probes-2026-12-06-h100-d9e7903.txt)
   c.elastic_stiffness = c.elastic_force || (scene.deform.relax_method == RelaxMethod::kElastic &&
                                             scene.deform.elastic.predict);
   return c;

@@ -38,6 +38,10 @@ struct StepArgs {
   Vec3f shift_vox;     // ... after moving the last field and unit press with the tip across n by this
                        // (voxels along the grid axes; 0: no move, deform::elastic_shifts)
   int stiffness;       // solve the unit press
+  // superpose where the start leaves the contact set as it was (deform::elastic_superposes,
+  // the host's part), on the last step's push along n (N), stiffness (N/mm) and residual
+  int superpose;
+  double last_push_n, last_stiffness, last_residual;
   int max_iterations;
   float tolerance;
   int reciprocal;             // the unit press stops at stiffness_tolerance; force and stiffness by reciprocity
@@ -429,8 +433,9 @@ __device__ void shift_copy(const StepArgs& a, const Step& st) {
 // the contact set at the step's start (every thread its nodes, elastic_start_contact): last
 // step's nodes still under the sphere and nodes the last field (as the prediction moves it)
 // leaves inside it, or on a fresh start (the field and contact set zeroed first) the nodes
-// within Hertz's contact area; this thread's count of nodes under the sphere
-__device__ double start_contact(const StepArgs& a, const Step& st) {
+// within Hertz's contact area; this thread's count of nodes under the sphere, and into
+// `changed` and `contacts` its nodes that joined or left the set and its contact nodes
+__device__ double start_contact(const StepArgs& a, const Step& st, double& changed, double& contacts) {
   const View& v = a.v;
   const Lvl& L0 = st.sh.lv[0];
   const Team all = st.all;
@@ -476,6 +481,9 @@ __device__ double start_contact(const StepArgs& a, const Step& st) {
     if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth, touch, pulled))
       fl |= kElasticContact;
     v.flags[e] = fl;
+    const bool is = (fl & kElasticContact) != 0;
+    changed += double(was != is);
+    contacts += double(is);
   }
   return under;
 }
@@ -597,6 +605,19 @@ __device__ void write_result(ElasticCounters* r, const ElasticCounters& out) {
   r->residual = out.residual;
   r->press_n = out.press_n;
   r->stiffness_n_per_mm = out.stiffness_n_per_mm;
+  r->superposed = out.superposed;
+}
+
+// the step's end, once the field in voxels is written and a barrier passed: the cells it
+// folds (each thread adds its count to the result, zeroed at the start, with no barrier
+// after: the host reads it once the kernel ended), the counters, the ring's next slot
+__device__ void end_step(const StepArgs& a, const Step& st, const Ring& ring, const ElasticCounters& out) {
+  const double folded = folded_cells(a, st);
+  if (folded > 0) atomicAdd(&a.result->inverted, (unsigned long long)folded);
+  if (blockIdx.x == 0 && threadIdx.x == 0) {
+    write_result(a.result, out);
+    a.v.sums[kRingNext] = ring.slot;
+  }
 }
 
 // what the step solves, in order: contact rounds, a last solve of u when they ran out
@@ -628,8 +649,10 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
 
   // the contact set (start_contact), the last field moved with the tip first (shift_copy)
   if (a.had && deform::elastic_shifts(a.shift_vox) && a.predict != int(ElasticPredict::kNone)) shift_copy(a, st);
-  const double under = start_contact(a, st);
-  if (reduce1(ring, under, g, kPassContact * 16) == 0) {
+  double started[3] = {0, 0, 0};  // under the sphere, joined or left, in contact
+  started[0] = start_contact(a, st, started[1], started[2]);
+  reduce(ring, started, g, kPassContact * 16);
+  if (started[0] == 0) {
     // nothing pressed: the tissue at rest
     for (int e = all.first; e < L0.count; e += all.stride) {
       u.set(e, Vec3f{0, 0, 0});
@@ -642,6 +665,26 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     return;
   }
   out.contact = 1;
+
+  if (a.superpose && started[1] == 0) {
+    // superposed (deform::elastic_superposes): the last press plus factor unit presses,
+    // which start_contact() wrote; the contact nodes' reactions and the push grow by factor
+    // times the unit press's, and the field in voxels, then the folds
+    const float factor = a.predict_factor;
+    for (int e = all.first; e < L0.count; e += all.stride) {
+      write_node_field(a, u, e);
+      if (v.react && (v.flags[e] & kElasticContact)) v.react[e] += factor * v.react[v.capacity + e];
+    }
+    out.superposed = 1;
+    out.rounds = 0;
+    out.contact_nodes = int(started[2]);
+    out.residual = a.last_residual;
+    out.press_n = a.last_push_n + double(factor) * a.last_stiffness;
+    out.stiffness_n_per_mm = a.last_stiffness;
+    st.grid_sync(kPassField);
+    end_step(a, st, ring, out);
+    return;
+  }
 
   // the solves: contact rounds (after each, nodes the finger pulls leave and skin nodes
   // pushed into the sphere join), one more when the last round still changed the set, then
@@ -701,14 +744,7 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
     write_field(a, st);
     st.grid_sync(kPassField);
   }
-  // (each thread adds its count to the result, zeroed at the start, with no barrier after:
-  // the host reads it once the kernel ended)
-  const double folded = folded_cells(a, st);
-  if (folded > 0) atomicAdd(&a.result->inverted, (unsigned long long)folded);
-  if (blockIdx.x == 0 && threadIdx.x == 0) {
-    write_result(a.result, out);
-    v.sums[kRingNext] = ring.slot;
-  }
+  end_step(a, st, ring, out);
 }
 
 }  // namespace

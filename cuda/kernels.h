@@ -31,7 +31,7 @@ struct ElasticCounters {
   int iterations;            // CG steps over the rounds
   int converged;             // every solve reached the tolerance
   int stiffness_iterations;  // CG steps of the unit press
-  int pad;
+  int superposed;            // no solve: the last press plus the unit press times the tip's move (deform::elastic_superposes)
   double residual;              // the last round's relative residual
   double press_n;               // the finger's push along n, summed over the contact nodes (N)
   double stiffness_n_per_mm;    // the unit press's force along n (N/mm), when asked

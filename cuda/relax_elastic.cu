@@ -25,6 +25,7 @@
 #include "cuda/relax_elastic.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <map>
@@ -413,6 +414,16 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.predict_factor = pred.factor;
   s.shift_vox = pred.shift_vox;
   s.stiffness = params_.stiffness && u_unit_ != nullptr;
+  // superposing, as far as the host can tell (the kernel adds that the set stays as it was)
+  s.superpose = s.stiffness && params_.superpose && have_unit_ && react_ != nullptr &&
+                deform::elastic_superposes(pred, dot(unit_normal_, nrm), last_solved_, superposed_mm_, depth,
+                                           params_.tolerance,
+                                           params_.stiffness_tolerance > 0 ? params_.stiffness_tolerance
+                                                                            : params_.tolerance);
+  s.last_push_n = last_push_n_;
+  s.last_stiffness = last_stiffness_;
+  s.last_residual = last_residual_;
+  pending_factor_ = pred.factor;
   s.max_iterations = params_.max_iterations;
   s.tolerance = params_.tolerance;
   s.reciprocal = params_.stiffness_tolerance > 0;
@@ -442,12 +453,25 @@ deform::ElasticRun ElasticSolver::finish(const ElasticCounters& c) {
   r.stiffness_n_per_mm = c.stiffness_n_per_mm;
   r.stiffness_iterations = c.stiffness_iterations;
   r.inverted_cells = (long long)c.inverted;
-  // what the next step starts from: the unit press holds this contact set's (along this n)
+  r.superposed = c.superposed != 0;
+  // what the next step starts from: the unit press holds this contact set's (along this n;
+  // a superposed step kept the set and the unit press as they were)
   if (!r.contact) {
     have_unit_ = false;
-  } else if (params_.stiffness && r.contact_nodes > 0) {
-    have_unit_ = true;
-    unit_normal_ = pending_normal_;
+    last_solved_ = false;
+  } else if (r.superposed) {
+    superposed_mm_ += std::fabs(double(pending_factor_));
+    last_push_n_ = c.press_n;
+  } else {
+    if (params_.stiffness && r.contact_nodes > 0) {
+      have_unit_ = true;
+      unit_normal_ = pending_normal_;
+    }
+    last_solved_ = r.converged && r.contact_settled && r.contact_nodes > 0;
+    superposed_mm_ = 0;
+    last_push_n_ = c.press_n;
+    last_stiffness_ = c.stiffness_n_per_mm;
+    last_residual_ = c.residual;
   }
   return r;
 }

@@ -192,6 +192,7 @@ deform::ElasticParams DeformConfig::elastic_params() const {
   p.stiffness_tolerance = float(e.stiffness_tolerance);
   p.degrees = deform::ElasticDegrees{e.smooth_degree, e.coarse_smooth_degree, e.coarsest_degree};
   p.stiffness = elastic_stiffness;
+  p.superpose = elastic_superpose;
   return p;
 }
 
@@ -205,14 +206,14 @@ bool DeformBatchKey::operator==(const DeformBatchKey& o) const {
 std::optional<DeformBatchKey> deform_batch_key(const DeformConfig& config) {
   // every member by name: the session's own ones are left out of the key below
   [[maybe_unused]] const auto& [settings, bone_threshold, relax, invert, relax_reuse, skip_chainmail, voi_hold,
-                                elastic_stiffness, elastic_force] = config;
+                                elastic_stiffness, elastic_force, elastic_superpose] = config;
   [[maybe_unused]] const auto& [min_dist, max_dist, max_sheer, voi_edge, whole_volume, max_sweeps, relax_method,
                                 relax_iterations, relax_step, relax_cycles, relax_warm_cycles, grab_radius_mm,
                                 material_width, invert_iterations, untangle, invert_search, backend, elastic] = settings;
   // the session's own: its VOI (voi_edge, whole_volume, voi_hold), its multigrid fingertip
   // (grab_radius_mm: multigrid sessions share the batch's other launches and its one wait,
   // their solves one launch each), the elastic model's settings (elastic,
-  // elastic_stiffness, elastic_force: each session's solve is one cooperative launch of its own, the
+  // elastic_stiffness, elastic_force, elastic_superpose: each session's solve is one cooperative launch of its own, the
   // batch's other stages shared), its backend; untangling steps alone
   if (relax && untangle) return std::nullopt;
   const deform::ChainMailLimits limits = deform::chainmail_limits(min_dist, max_dist, max_sheer);

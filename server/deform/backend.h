@@ -65,6 +65,11 @@ struct DeformConfig {
   /// The deformation worker hands each elastic step's local force model to the haptic
   /// thread (haptics.force_model "elastic").
   bool elastic_force = false;
+  /// An elastic step whose press moved along n alone, leaving the contact set as it was,
+  /// superposes the unit press on the last press instead of solving
+  /// (deform::elastic_superposes); false: every step solves (the tests and benches that
+  /// compare the two).
+  bool elastic_superpose = true;
 
   /// The elastic model's settings as its solvers take them (deform.elastic,
   /// deform.grab_radius_mm; the stiffness as elastic_stiffness says).

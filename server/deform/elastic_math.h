@@ -599,6 +599,31 @@ inline ElasticPrediction elastic_prediction(const ElasticLastPress& last, bool w
   return p;
 }
 
+/// A superposed step: n within this cosine of the unit press's (an angle of 4.5e-4 rad, which
+/// moves a contact node's prescribed part along n by under 5e-4 of its move across n).
+constexpr float kElasticSuperposeCos = 1.0f - 1e-7f;
+
+/// Whether a warm step may superpose, as far as the host can tell (the device adds that the
+/// step's start left the contact set as it was): the press moved along n alone (kUnit, no
+/// shift), with n within kElasticSuperposeCos of the unit press's (`unit_cos`), since a
+/// step that solved, converged and settled (`last_solved`, kept through superposed steps).
+/// Linear elasticity then holds the answer already: the last press plus `factor` unit
+/// presses meets every constraint (each contact node's push grows by the tip's move along
+/// n, the unit press moves each by 1 mm along n) and K u = 0 holds as well as each solve
+/// left it, so no solve runs and the force grows by factor times the stiffness. Its
+/// residual is the last solve's plus factor times the unit press's (solved to
+/// `unit_tolerance`), so the superposed moves since that solve (`superposed_mm`, this one's
+/// included) stay within tolerance / unit_tolerance of the depth: the residual then stays
+/// within about twice the tolerance, and the next step past that solves.
+PALPSIM_HD bool elastic_superposes(const ElasticPrediction& pred, float unit_cos, bool last_solved,
+                                   double superposed_mm, double depth_mm, float tolerance, float unit_tolerance) {
+  if (pred.kind != ElasticPredict::kUnit || elastic_shifts(pred.shift_vox) || !(unit_cos >= kElasticSuperposeCos) ||
+      !last_solved || !(depth_mm > 0))
+    return false;
+  const double moved = superposed_mm + fabs(double(pred.factor));
+  return moved * double(unit_tolerance) <= double(tolerance) * depth_mm;
+}
+
 /// The value at node (i, j, k) of a field `load(i, j, k)` (0 beyond its VOI: the loader's)
 /// moved by `shift_vox`: trilinear at the node less the shift. The contact set does not move
 /// with it: a shifted start's set is the nodes the moved field leaves inside the sphere or on

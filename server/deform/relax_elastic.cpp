@@ -538,14 +538,16 @@ Press press_of(const Patient& pat, const Voi& voi, const Vec3& skin_vox, const V
 
 // the pushes of skin nodes under the sphere and the contact set (elastic_start_contact):
 // last step's nodes still under it and nodes the last field leaves inside it, or on a fresh
-// start the nodes within Hertz's contact area; how many nodes lie under it
+// start the nodes within Hertz's contact area; how many nodes lie under it, and into
+// `changed` how many nodes joined or left the set
 long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press& pr, bool had,
-                      const ElasticPrediction& pred) {
+                      const ElasticPrediction& pred, long long& changed) {
   const bool shifted = elastic_shifts(pred.shift_vox);
   const float touch = elastic_start_touch(shifted, pred.kind, float(h.x));
   const bool reactions =
       elastic_start_weighs_reactions(pred.kind, pred.shift_vox) && !s.react_press.empty() && !s.react_unit.empty();
   long long under = 0;
+  changed = 0;
   const Vec3f* u = s.u.data();
   each_node(voi.size, [&](int i, int j, int kk) {
     const long long e = voi.index(i, j, kk);
@@ -561,6 +563,7 @@ long long contact_set(ElasticCpu& s, const Voi& voi, const Vec3& h, const Press&
         was && reactions &&
         elastic_predicted_pull(s.react_press[std::size_t(e)], s.react_unit[std::size_t(e)], pred.factor);
     if (elastic_start_contact(t, dot(u[e], pr.nrm), was, had, float(pr.depth), touch, pulled)) f |= kElasticContact;
+    changed += was != ((f & kElasticContact) != 0);
   });
   return under;
 }
@@ -721,18 +724,48 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   if (pred.kind != ElasticPredict::kNone) predict_start(s, voi, pred);
   out.prediction = pred.kind;
   s.last_press = ElasticLastPress{pr.depth > 1e-6, pr.tip_mm, pr.depth, pr.nrm};
-  if (contact_set(s, voi, h, pr, had, pred) == 0) {
+  // superposing, as far as the host can tell (the set must also stay as it was)
+  const bool superpose =
+      prm.superpose && prm.stiffness && s.have_unit &&
+      elastic_superposes(pred, dot(s.unit_normal, pr.nrm), s.last_solved, s.superposed_mm, pr.depth, prm.tolerance,
+                         prm.stiffness_tolerance > 0 ? prm.stiffness_tolerance : prm.tolerance);
+  long long changed = 0;
+  if (contact_set(s, voi, h, pr, had, pred, changed) == 0) {
     // nothing pressed: the tissue at rest
     std::fill_n(u, n, Vec3f{0, 0, 0});
     s.have_u = true;
     s.have_unit = false;
+    s.last_solved = false;
     std::fill_n(u_vox, n, Vec3f{0, 0, 0});
     return out;
   }
   out.contact = true;
-  contact_rounds(s, voi, h, pr.nrm, prm, out);
-  reaction(s, voi, pr.nrm, out);
-  if (prm.stiffness && out.contact_nodes > 0) unit_press(s, voi, pr.nrm, prm, out);
+  if (superpose && changed == 0) {
+    // the last press plus factor unit presses (predict_start wrote it): the contact nodes'
+    // reactions and the force grow by factor times the unit press's, the rest as it was
+    out.superposed = true;
+    out.rounds = 0;
+    out.residual = s.last_residual;
+    for (long long e = 0; e < n; ++e)
+      if (s.flags[std::size_t(e)] & kElasticContact) {
+        ++out.contact_nodes;
+        s.react_press[std::size_t(e)] += pred.factor * s.react_unit[std::size_t(e)];
+      }
+    s.last_push_n += double(pred.factor) * s.last_stiffness;
+    s.superposed_mm += std::fabs(double(pred.factor));
+    out.force_n = Vec3(pr.nrm) * -s.last_push_n;
+    out.stiffness_n_per_mm = s.last_stiffness;
+  } else {
+    contact_rounds(s, voi, h, pr.nrm, prm, out);
+    reaction(s, voi, pr.nrm, out);
+    if (prm.stiffness && out.contact_nodes > 0) unit_press(s, voi, pr.nrm, prm, out);
+    // what the next steps may superpose on
+    s.last_solved = out.converged && out.contact_settled && out.contact_nodes > 0;
+    s.superposed_mm = 0;
+    s.last_push_n = -dot(out.force_n, Vec3(pr.nrm));
+    s.last_stiffness = out.stiffness_n_per_mm;
+    s.last_residual = out.residual;
+  }
   s.have_u = true;
   // the field in voxels for the backend's buffers, and the folds it holds
   for (long long e = 0; e < n; ++e) u_vox[e] = Vec3f{float(u[e].x / h.x), float(u[e].y / h.y), float(u[e].z / h.z)};

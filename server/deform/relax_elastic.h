@@ -48,6 +48,7 @@ struct ElasticParams {
   float stiffness_tolerance = 0.01f;
   ElasticDegrees degrees;       // the V-cycle's Chebyshev degrees
   bool stiffness = false;       // also solve the unit press for the contact's stiffness (haptics.force_model "elastic")
+  bool superpose = true;        // a step whose press moved along n alone may superpose (elastic_superposes)
 };
 
 /// What one elastic step did and found.
@@ -67,6 +68,7 @@ struct ElasticRun {
   Vec3 normal{0, 0, 0};          // n: the press direction, unit, along the grid axes
   long long inverted_cells = 0;  // cells whose deformation folds (det(I + grad u) <= 0 somewhere in them)
   ElasticPredict prediction = ElasticPredict::kNone;  // how the warm start predicted this press (elastic_prediction)
+  bool superposed = false;       // the last press plus the unit press times the tip's move along n: no solve (elastic_superposes)
 };
 
 /// The CPU elastic solver's buffers for one session, sized for the largest VOI (grown on
@@ -102,6 +104,12 @@ struct ElasticCpu {
   bool have_unit = false;         // u_unit holds the unit press of the current contact set
   Vec3f unit_normal{0, 0, 0};     // ... along this n
   ElasticLastPress last_press;    // the last step's press, for the warm start's prediction
+  // what a superposed step adds to (elastic_superposes): whether the last step solved,
+  // converged and settled (or superposed on such a one), the tip's moves along n superposed
+  // since (mm), and that step's push along n (N), stiffness (N/mm) and relative residual
+  bool last_solved = false;
+  double superposed_mm = 0;
+  double last_push_n = 0, last_stiffness = 0, last_residual = 0;
   ElasticDegrees degrees;         // the V-cycle's Chebyshev degrees (the step's params)
 };
 

@@ -114,6 +114,8 @@ deform::ElasticRun check_elastic_step(Pair& b, const DeformContact& c, const Ela
   CHECK(eg.warm == ec.warm);
   CHECK(eg.prediction == ec.prediction);
   REQUIRE(eg.contact == ec.contact);
+  // a superposed step on one side only where a tie joined or left the set on the other
+  const bool superposed_apart = eg.superposed != ec.superposed;
   const std::vector<Vec3f> uc = b.cpu->displacement(), ug = b.gpu->displacement();
   REQUIRE(uc.size() == ug.size());
   CHECK(moved_bone_count(b.gpu->patient(), sg.chainmail.voi, ug) == 0);
@@ -129,15 +131,17 @@ deform::ElasticRun check_elastic_step(Pair& b, const DeformContact& c, const Ela
   // the contact sets: equal, or apart by ties (see above)
   const int tie = std::abs(eg.contact_nodes - ec.contact_nodes);
   CHECK(tie <= 2);
+  if (tie == 0) CHECK_FALSE(superposed_apart);
   const double loose = tie == 0 ? 1.0 : 10.0;
   const double field_rms = rms_diff(uc, ug) / rms(uc);
   const double field_max = max_abs_diff(uc, ug) / double(max_abs(uc));
   const double force = norm(eg.force_n - ec.force_n) / norm(ec.force_n);
   const double stiffness =
       ec.stiffness_n_per_mm > 0 ? std::fabs(eg.stiffness_n_per_mm - ec.stiffness_n_per_mm) / ec.stiffness_n_per_mm : 0.0;
-  std::printf("elastic %s: %d / %d contact nodes%s, %d / %d CG steps in %d / %d rounds, %d / %d for the unit press, "
+  std::printf("elastic %s: %s%d / %d contact nodes%s, %d / %d CG steps in %d / %d rounds, %d / %d for the unit press, "
               "F %.6g / %.6g N (%.2e), k %.6g / %.6g N/mm (%.2e), u RMS %.2e max %.2e of the field, folded %lld / %lld\n",
-              what.c_str(), ec.contact_nodes, eg.contact_nodes, tie ? " (a tie)" : "", ec.iterations, eg.iterations,
+              what.c_str(), ec.superposed ? (eg.superposed ? "superposed, " : "superposed on the cpu, ") : (eg.superposed ? "superposed on cuda, " : ""),
+              ec.contact_nodes, eg.contact_nodes, tie ? " (a tie)" : "", ec.iterations, eg.iterations,
               ec.rounds, eg.rounds, ec.stiffness_iterations, eg.stiffness_iterations, norm(ec.force_n),
               norm(eg.force_n), force, ec.stiffness_n_per_mm, eg.stiffness_n_per_mm, stiffness, field_rms, field_max,
               ec.inverted_cells, eg.inverted_cells);
@@ -321,6 +325,20 @@ TEST_CASE("gpu elastic steps equal the cpu's with the warm start predicted and t
       const deform::ElasticRun r =
           check_elastic_step(b, {at, at + in * 6.0}, tol, "sliding, step " + std::to_string(s) + ", " + with);
       CHECK(r.warm);
+    }
+    // then 0.05 mm deeper a step (a tip at 50 mm/s, 1 kHz) along n from the last slide:
+    // with the unit press most of these superpose (deform::elastic_superposes) on both
+    int superposed = 0;
+    const Vec3 at = X + Vec3{0, 0, 1.5 * h};
+    for (int s = 1; s <= 12; ++s) {
+      const deform::ElasticRun r = check_elastic_step(b, {at, at + in * (6.0 + 0.05 * s)}, tol,
+                                                      "0.05 mm deeper, step " + std::to_string(s) + ", " + with);
+      superposed += r.superposed;
+    }
+    if (stiffness) {
+      CHECK(superposed >= 6);
+    } else {
+      CHECK(superposed == 0);
     }
   }
 }

@@ -119,6 +119,7 @@ TEST_CASE("sessions are batched only when every setting the batched kernels shar
       {"voi_hold", [](DeformConfig& c) { c.voi_hold = !c.voi_hold; }},
       {"elastic_stiffness", [](DeformConfig& c) { c.elastic_stiffness = !c.elastic_stiffness; }},
       {"elastic_force", [](DeformConfig& c) { c.elastic_force = !c.elastic_force; }},
+      {"elastic_superpose", [](DeformConfig& c) { c.elastic_superpose = !c.elastic_superpose; }},
   };
   DeformConfig ex = preset_config(1), mg = preset_config(1);
   mg.settings.relax_method = RelaxMethod::kMultigrid;

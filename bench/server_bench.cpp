@@ -60,6 +60,7 @@ struct Row {
   std::vector<double> contact_share;   // per session: share of its pressing time in the body
   std::vector<double> steps_per_contact_s;  // per session, over its time in the body (steps are asked for only then)
   std::vector<double> solve_share;     // per session, multigrid scenes: steps that solved, of all
+  std::vector<double> superposed_share;  // per session, elastic scenes: steps that superposed, of all
   std::vector<double> stage_ms[5];     // per session, mean per step: reset, ChainMail, relax, invert, upload (a batch's share)
   std::vector<double> dropped_share;   // per session: contacts dropped / (steps + dropped)
   std::vector<double> step_ms;         // per session: mean whole step (ms)
@@ -157,6 +158,9 @@ void print_row(const Row& r, const Options& o) {
   if (!r.solve_share.empty())
     std::printf("%2d sessions: multigrid steps that solved (not reusing the unit response), median over sessions: %.1f%%\n",
                 n, 100 * quantile(r.solve_share, 0.5));
+  if (!r.superposed_share.empty())
+    std::printf("%2d sessions: elastic steps that superposed the unit press (no solve), median over sessions: %.1f%%\n",
+                n, 100 * quantile(r.superposed_share, 0.5));
 }
 
 // memory per added session: the growth of the server's deformation memory over counts
@@ -188,6 +192,7 @@ void write_json(const Options& o, const std::vector<Row>& rows) {
         << ", \"contact_share_median\": " << json_number(quantile(r.contact_share, 0.5))
         << ", \"steps_per_contact_s_median\": " << json_number(quantile(r.steps_per_contact_s, 0.5))
         << ", \"multigrid_solve_share_median\": " << json_number(quantile(r.solve_share, 0.5))
+        << ", \"elastic_superposed_share_median\": " << json_number(quantile(r.superposed_share, 0.5))
         << ", \"step_ms_median\": " << json_number(quantile(r.step_ms, 0.5))
         << ", \"stage_ms_median\": {\"reset\": " << json_number(quantile(r.stage_ms[0], 0.5))
         << ", \"chainmail\": " << json_number(quantile(r.stage_ms[1], 0.5))
@@ -268,6 +273,8 @@ int run(int argc, char** argv) {
             steps_of[std::size_t(c)] = double(d.steps());
             if (d.steps() > 0 && d.multigrid_solves() > 0)
               row.solve_share.push_back(double(d.multigrid_solves()) / double(d.steps()));
+            if (d.steps() > 0 && d.has_elastic())
+              row.superposed_share.push_back(double(d.elastic_superposed()) / double(d.steps()));
             const double offered = double(d.steps() + d.contacts_dropped());
             row.dropped_share.push_back(offered > 0 ? double(d.contacts_dropped()) / offered : 0.0);
             row.step_ms.push_back(d.mean().total_ms());

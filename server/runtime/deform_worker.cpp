@@ -510,6 +510,7 @@ void DeformWorker::complete(const Parts& p, const Contact& c) {
     r.chainmail_skipped = st.chainmail.skipped;
     r.multigrid_solves += st.relax_solves > 0;
     r.multigrid_warm += st.relax_warm;
+    r.elastic_superposed += st.elastic.superposed;
     r.converged = st.chainmail.converged;
     r.invert_residual_vox = st.invert_residual_vox;
     r.invert_unresolved = st.invert_unresolved;

@@ -55,6 +55,7 @@ struct DeformSessionReport {
   bool chainmail_skipped = false;      // latest step: ChainMail left out (ChainMailStats::skipped)
   std::uint64_t multigrid_solves = 0;  // steps whose multigrid relaxation solved (DeformStats::relax_solves > 0)
   std::uint64_t multigrid_warm = 0;    // ... starting from the last unit response
+  std::uint64_t elastic_superposed = 0;  // elastic steps that superposed the unit press (ElasticRun::superposed)
   std::uint64_t multigrid_primes = 0;  // unit responses solved while the tip was out of the body, where it was
                                        // expected to touch (DeformEngine::prime)
   double invert_residual_vox = 0;      // latest step: max inversion residual (voxel)

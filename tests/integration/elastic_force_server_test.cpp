@@ -118,6 +118,8 @@ TEST_CASE("palpsim-server renders the elastic model's force: it grows with depth
   CHECK(e.largest_jump_n() > 0);
   CHECK(e.jumps_bounded() >= 1);  // the first model of the press came from zero force
   CHECK(e.converged());
+  // superposed steps are steps (each press above moved the tip millimetres: each solved)
+  CHECK(d.elastic_superposed() <= d.steps());
 
   // out of the body: exactly zero at once
   const auto out = send(top);

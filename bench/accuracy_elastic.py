@@ -86,7 +86,9 @@ def _elastic_setup(el, gpu):
              f"{el['voi_edge']}, the fingertip of {el['finger_radius_mm']:g} mm (deform.grab_radius_mm), inversion "
              f"with its cell search; the elastic model at its defaults (nu {el['poisson']:g}, tolerance "
              f"{d['tolerance']:g}, at most {d['max_iterations']} CG steps a round, {d['contact_rounds']} contact "
-             "rounds) unless a row says otherwise.")
+             "rounds" + (f"; the unit press solved to {d['stiffness_tolerance']:g}, as an elastic scene solves it, "
+                         "predicting warm steps and superposing those that move along n alone"
+                         if d.get("unit_press") else "") + ") unless a row says otherwise.")
     L.append(f"- Press: X where the haptic path puts it, on the skin (the trilinear body mask at 1/2) straight above "
              f"{p['landmark']}, x {p['press_mm']:g} mm anterior (into the back, towards the bone). Every model gets "
              "this contact: ChainMail grabs the element nearest X (the multigrid diffusion moves the tissue within "

@@ -208,6 +208,9 @@ std::vector<RowSpec> row_specs(const DeformConfig& shipped, bool quick) {
   // the elastic model: tolerance at the default cap, and caps at the default tolerance
   DeformConfig el = shipped;
   el.settings.relax_method = RelaxMethod::kElastic;
+  // as DeformConfig::from_scene sets it for an elastic scene: the unit press whenever the
+  // model predicts (and so the prediction from it, and superposed steps)
+  el.elastic_stiffness = el.settings.elastic.predict;
   const ElasticSettings def;
   auto elastic = [&](const std::string& mode, double tol, int cap) {
     DeformConfig c = el;
@@ -561,7 +564,8 @@ int run_elastic_accuracy(const ElasticStudyOptions& o) {
       << ",\n  \"voi_edge\": " << shipped.settings.voi_edge << ",\n  \"finger_radius_mm\": " << json_number(R)
       << ",\n  \"poisson\": " << json_number(nu) << ",\n  \"elastic_defaults\": {\"tolerance\": "
       << json_number(ElasticSettings{}.tolerance) << ", \"max_iterations\": " << ElasticSettings{}.max_iterations
-      << ", \"contact_rounds\": " << ElasticSettings{}.contact_rounds << "},\n  \"press\": {\"landmark\": "
+      << ", \"contact_rounds\": " << ElasticSettings{}.contact_rounds << ", \"unit_press\": " << (ElasticSettings{}.predict ? "true" : "false") << ", \"stiffness_tolerance\": "
+      << json_number(ElasticSettings{}.stiffness_tolerance) << "},\n  \"press\": {\"landmark\": "
       << json_str(kPressLandmark) << ", \"X_mm\": " << json_vec3(press.skin_point_mm) << ", \"x_mm\": "
       << json_vec3(press.tip_mm) << ", \"press_mm\": " << json_number(kPressMm) << "},\n  \"block\": {\"size\": ["
       << kBlockSize.x << ", " << kBlockSize.y << ", " << kBlockSize.z << "], \"skin_j\": " << kBlockSkinJ

@@ -417,9 +417,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   // superposing, as far as the host can tell (the kernel adds that the set stays as it was)
   s.superpose = s.stiffness && params_.superpose && have_unit_ && react_ != nullptr &&
                 deform::elastic_superposes(pred, dot(unit_normal_, nrm), last_solved_, superposed_mm_, depth,
-                                           params_.tolerance,
-                                           params_.stiffness_tolerance > 0 ? params_.stiffness_tolerance
-                                                                            : params_.tolerance);
+                                           params_.tolerance, params_.unit_tolerance());
   s.last_push_n = last_push_n_;
   s.last_stiffness = last_stiffness_;
   s.last_residual = last_residual_;

@@ -674,8 +674,7 @@ void unit_press(ElasticCpu& s, const Voi& voi, const Vec3f& nrm, const ElasticPa
     if (f & kElasticContact) w[e] = w[e] - nrm * dot(w[e], nrm) + nrm;
   }
   const bool reciprocal = prm.stiffness_tolerance > 0;
-  const ElasticSolve sr =
-      elastic_solve_cpu(s, nrm, w, prm.max_iterations, reciprocal ? prm.stiffness_tolerance : prm.tolerance);
+  const ElasticSolve sr = elastic_solve_cpu(s, nrm, w, prm.max_iterations, prm.unit_tolerance());
   out.stiffness_iterations = sr.iterations;
   double k_n = 0, push_k = 0;
   each_node(voi.size, [&](int i, int j, int kk) {
@@ -725,10 +724,10 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   out.prediction = pred.kind;
   s.last_press = ElasticLastPress{pr.depth > 1e-6, pr.tip_mm, pr.depth, pr.nrm};
   // superposing, as far as the host can tell (the set must also stay as it was)
-  const bool superpose =
-      prm.superpose && prm.stiffness && s.have_unit &&
-      elastic_superposes(pred, dot(s.unit_normal, pr.nrm), s.last_solved, s.superposed_mm, pr.depth, prm.tolerance,
-                         prm.stiffness_tolerance > 0 ? prm.stiffness_tolerance : prm.tolerance);
+  const bool superpose = prm.superpose && prm.stiffness && s.have_unit && !s.react_press.empty() &&
+                         !s.react_unit.empty() &&
+                         elastic_superposes(pred, dot(s.unit_normal, pr.nrm), s.last_solved, s.superposed_mm,
+                                            pr.depth, prm.tolerance, prm.unit_tolerance());
   long long changed = 0;
   if (contact_set(s, voi, h, pr, had, pred, changed) == 0) {
     // nothing pressed: the tissue at rest

@@ -49,6 +49,10 @@ struct ElasticParams {
   ElasticDegrees degrees;       // the V-cycle's Chebyshev degrees
   bool stiffness = false;       // also solve the unit press for the contact's stiffness (haptics.force_model "elastic")
   bool superpose = true;        // a step whose press moved along n alone may superpose (elastic_superposes)
+
+  /// The relative residual the unit press is solved to: stiffness_tolerance, or
+  /// `tolerance` where that is 0.
+  float unit_tolerance() const { return stiffness_tolerance > 0 ? stiffness_tolerance : tolerance; }
 };
 
 /// What one elastic step did and found.

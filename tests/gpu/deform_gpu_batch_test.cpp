@@ -290,11 +290,8 @@ TEST_CASE("a batch of elastic sessions equals each session stepping alone", "[el
   PhantomCt ct = make_phantom(340.0 / 255.0);
   const Press press = spinous_press(ct.geometry);
   const PatientPtr phantom = elastic_phantom(std::move(ct));
-  DeformConfig cfg = preset_config(1);
+  DeformConfig cfg = phantom_elastic_config();
   cfg.settings.backend = DeformBackendChoice::kCuda;
-  cfg.settings.relax_method = RelaxMethod::kElastic;
-  cfg.settings.grab_radius_mm = 5;
-  cfg.settings.voi_edge = 64;
   cfg.settings.invert_search = true;
   cfg.settings.elastic.tolerance = 1e-6;
   cfg.settings.elastic.max_iterations = 400;

@@ -272,10 +272,7 @@ TEST_CASE("gpu elastic steps equal the cpu's on the lumbar phantom as the scenes
   PhantomCt ct = make_phantom(340.0 / 255.0);
   const Press press = spinous_press(ct.geometry);
   const PatientPtr phantom = elastic_phantom(std::move(ct));
-  DeformConfig cfg = preset_config(1);
-  cfg.settings.relax_method = RelaxMethod::kElastic;
-  cfg.settings.grab_radius_mm = 5;
-  cfg.settings.voi_edge = 64;
+  DeformConfig cfg = phantom_elastic_config();
   cfg.elastic_stiffness = true;
   Pair b(phantom, cfg);
   const Vec3 X = press.contact.skin_point_mm, in = (press.contact.tip_mm - X) / press.press_mm;
@@ -301,10 +298,7 @@ TEST_CASE("gpu elastic steps equal the cpu's with the warm start predicted and t
   const Vec3 X = press.contact.skin_point_mm, in = (press.contact.tip_mm - X) / press.press_mm;
   const double h = phantom->grid.spacing_mm.x;
   for (const bool stiffness : {true, false}) {
-    DeformConfig cfg = preset_config(1);
-    cfg.settings.relax_method = RelaxMethod::kElastic;
-    cfg.settings.grab_radius_mm = 5;
-    cfg.settings.voi_edge = 64;
+    DeformConfig cfg = phantom_elastic_config();
     cfg.settings.elastic.predict = true;
     cfg.settings.elastic.stiffness_tolerance = stiffness ? 0.01 : 0.0;
     cfg.elastic_stiffness = stiffness;

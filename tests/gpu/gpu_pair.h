@@ -114,6 +114,16 @@ inline void check_same_step(const DeformStats& b, const DeformStats& a, DeformEn
         std::vector<float>(alone.deformed_brick(), alone.deformed_brick() + a.chainmail.voi.count()));
 }
 
+// an elastic scene's deformation settings on the phantom: the model, the fingertip of 5 mm,
+// VOI 64, the rest at preset 1's and the scene defaults (the elastic cases and batches)
+inline DeformConfig phantom_elastic_config() {
+  DeformConfig cfg = preset_config(1);
+  cfg.settings.relax_method = RelaxMethod::kElastic;
+  cfg.settings.grab_radius_mm = 5;
+  cfg.settings.voi_edge = 64;
+  return cfg;
+}
+
 // four sessions' presses at different points of make_torso_patient(96)'s back
 inline std::vector<DeformContact> four_presses() {
   return {voxel_contact({44, 14, 44}, {1.0, 6.0, -1.0}), voxel_contact({52, 14, 44}, {0.0, 5.0, 0.5}),

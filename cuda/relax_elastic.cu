@@ -415,12 +415,11 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.shift_vox = pred.shift_vox;
   s.stiffness = params_.stiffness && u_unit_ != nullptr;
   // superposing, as far as the host can tell (the kernel adds that the set stays as it was)
-  s.superpose = s.stiffness && params_.superpose && have_unit_ && react_ != nullptr &&
-                deform::elastic_superposes(pred, dot(unit_normal_, nrm), last_solved_, superposed_mm_, depth,
-                                           params_.tolerance, params_.unit_tolerance());
-  s.last_push_n = last_push_n_;
-  s.last_stiffness = last_stiffness_;
-  s.last_residual = last_residual_;
+  s.superpose = s.stiffness && have_unit_ && react_ != nullptr &&
+                superpose_.allows(pred, dot(unit_normal_, nrm), depth, params_);
+  s.last_push_n = superpose_.last_push_n;
+  s.last_stiffness = superpose_.last_stiffness;
+  s.last_residual = superpose_.last_residual;
   pending_factor_ = pred.factor;
   s.max_iterations = params_.max_iterations;
   s.tolerance = params_.tolerance;
@@ -456,21 +455,11 @@ deform::ElasticRun ElasticSolver::finish(const ElasticCounters& c) {
   // a superposed step kept the set and the unit press as they were)
   if (!r.contact) {
     have_unit_ = false;
-    last_solved_ = false;
-  } else if (r.superposed) {
-    superposed_mm_ += std::fabs(double(pending_factor_));
-    last_push_n_ = c.press_n;
-  } else {
-    if (params_.stiffness && r.contact_nodes > 0) {
-      have_unit_ = true;
-      unit_normal_ = pending_normal_;
-    }
-    last_solved_ = r.converged && r.contact_settled && r.contact_nodes > 0;
-    superposed_mm_ = 0;
-    last_push_n_ = c.press_n;
-    last_stiffness_ = c.stiffness_n_per_mm;
-    last_residual_ = c.residual;
+  } else if (!r.superposed && params_.stiffness && r.contact_nodes > 0) {
+    have_unit_ = true;
+    unit_normal_ = pending_normal_;
   }
+  superpose_.after(r, pending_factor_);
   return r;
 }
 

@@ -126,10 +126,7 @@ class ElasticSolver {
   bool have_unit_ = false;
   Vec3f unit_normal_{0, 0, 0};
   deform::ElasticLastPress last_press_;  // the last step's press, for the warm start's prediction
-  // what a superposed step adds to (ElasticCpu's last_solved and the rest; deform::elastic_superposes)
-  bool last_solved_ = false;
-  double superposed_mm_ = 0;
-  double last_push_n_ = 0, last_stiffness_ = 0, last_residual_ = 0;
+  deform::ElasticSuperposeState superpose_;  // what a superposed step adds to (ElasticCpu's)
   // what the enqueued step's run has from the host
   deform::ElasticRun pending_;
   Vec3f pending_normal_{0, 0, 0};

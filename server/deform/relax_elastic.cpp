@@ -724,17 +724,15 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
   out.prediction = pred.kind;
   s.last_press = ElasticLastPress{pr.depth > 1e-6, pr.tip_mm, pr.depth, pr.nrm};
   // superposing, as far as the host can tell (the set must also stay as it was)
-  const bool superpose = prm.superpose && prm.stiffness && s.have_unit && !s.react_press.empty() &&
-                         !s.react_unit.empty() &&
-                         elastic_superposes(pred, dot(s.unit_normal, pr.nrm), s.last_solved, s.superposed_mm,
-                                            pr.depth, prm.tolerance, prm.unit_tolerance());
+  const bool superpose = s.have_unit && !s.react_press.empty() && !s.react_unit.empty() &&
+                         s.superpose.allows(pred, dot(s.unit_normal, pr.nrm), pr.depth, prm);
   long long changed = 0;
   if (contact_set(s, voi, h, pr, had, pred, changed) == 0) {
     // nothing pressed: the tissue at rest
     std::fill_n(u, n, Vec3f{0, 0, 0});
     s.have_u = true;
     s.have_unit = false;
-    s.last_solved = false;
+    s.superpose.after(out, pred.factor);
     std::fill_n(u_vox, n, Vec3f{0, 0, 0});
     return out;
   }
@@ -744,27 +742,21 @@ ElasticRun relax_elastic_cpu(const Patient& pat, const Voi& voi, const Vec3& ski
     // reactions and the force grow by factor times the unit press's, the rest as it was
     out.superposed = true;
     out.rounds = 0;
-    out.residual = s.last_residual;
+    out.residual = s.superpose.last_residual;
     for (long long e = 0; e < n; ++e)
       if (s.flags[std::size_t(e)] & kElasticContact) {
         ++out.contact_nodes;
         s.react_press[std::size_t(e)] += pred.factor * s.react_unit[std::size_t(e)];
       }
-    s.last_push_n += double(pred.factor) * s.last_stiffness;
-    s.superposed_mm += std::fabs(double(pred.factor));
-    out.force_n = Vec3(pr.nrm) * -s.last_push_n;
-    out.stiffness_n_per_mm = s.last_stiffness;
+    out.force_n = Vec3(pr.nrm) * -s.superpose.superposed_push(pred.factor);
+    out.stiffness_n_per_mm = s.superpose.last_stiffness;
   } else {
     contact_rounds(s, voi, h, pr.nrm, prm, out);
     reaction(s, voi, pr.nrm, out);
     if (prm.stiffness && out.contact_nodes > 0) unit_press(s, voi, pr.nrm, prm, out);
-    // what the next steps may superpose on
-    s.last_solved = out.converged && out.contact_settled && out.contact_nodes > 0;
-    s.superposed_mm = 0;
-    s.last_push_n = -dot(out.force_n, Vec3(pr.nrm));
-    s.last_stiffness = out.stiffness_n_per_mm;
-    s.last_residual = out.residual;
   }
+  // what the next steps may superpose on
+  s.superpose.after(out, pred.factor);
   s.have_u = true;
   // the field in voxels for the backend's buffers, and the folds it holds
   for (long long e = 0; e < n; ++e) u_vox[e] = Vec3f{float(u[e].x / h.x), float(u[e].y / h.y), float(u[e].z / h.z)};

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <array>
+#include <cmath>
 #include <cstdint>
 #include <vector>
 
@@ -75,6 +76,42 @@ struct ElasticRun {
   bool superposed = false;       // the last press plus the unit press times the tip's move along n: no solve (elastic_superposes)
 };
 
+/// What a superposed step adds to (elastic_superposes), which both backends' solvers keep
+/// from step to step: whether the last step solved, converged and settled (or superposed on
+/// such a one), the tip's moves along n superposed since (mm), and that step's push along n
+/// (N), stiffness (N/mm) and relative residual.
+struct ElasticSuperposeState {
+  bool last_solved = false;
+  double superposed_mm = 0;
+  double last_push_n = 0, last_stiffness = 0, last_residual = 0;
+
+  /// Whether a step predicted by `pred`, pressing `depth_mm` along an n at cosine `unit_cos`
+  /// from the unit press's, may superpose with settings `prm` (the host's part of
+  /// elastic_superposes; the step's start must also leave the contact set as it was).
+  bool allows(const ElasticPrediction& pred, float unit_cos, double depth_mm, const ElasticParams& prm) const {
+    return prm.superpose && prm.stiffness &&
+           elastic_superposes(pred, unit_cos, last_solved, superposed_mm, depth_mm, prm.tolerance, prm.unit_tolerance());
+  }
+  /// The push along n (N) that a superposed step of prediction factor `factor` reaches.
+  double superposed_push(float factor) const { return last_push_n + double(factor) * last_stiffness; }
+  /// Keeps what the step just run (`run`, its prediction's factor `factor`) leaves the next.
+  void after(const ElasticRun& run, float factor) {
+    if (!run.contact) {
+      last_solved = false;
+      return;
+    }
+    last_push_n = -dot(run.force_n, run.normal);
+    if (run.superposed) {
+      superposed_mm += std::fabs(double(factor));
+      return;
+    }
+    last_solved = run.converged && run.contact_settled && run.contact_nodes > 0;
+    superposed_mm = 0;
+    last_stiffness = run.stiffness_n_per_mm;
+    last_residual = run.residual;
+  }
+};
+
 /// The CPU elastic solver's buffers for one session, sized for the largest VOI (grown on
 /// first use: a scene without the elastic model allocates none of them). Fields in mm.
 struct ElasticCpu {
@@ -108,12 +145,7 @@ struct ElasticCpu {
   bool have_unit = false;         // u_unit holds the unit press of the current contact set
   Vec3f unit_normal{0, 0, 0};     // ... along this n
   ElasticLastPress last_press;    // the last step's press, for the warm start's prediction
-  // what a superposed step adds to (elastic_superposes): whether the last step solved,
-  // converged and settled (or superposed on such a one), the tip's moves along n superposed
-  // since (mm), and that step's push along n (N), stiffness (N/mm) and relative residual
-  bool last_solved = false;
-  double superposed_mm = 0;
-  double last_push_n = 0, last_stiffness = 0, last_residual = 0;
+  ElasticSuperposeState superpose;  // what a superposed step adds to
   ElasticDegrees degrees;         // the V-cycle's Chebyshev degrees (the step's params)
 };
 

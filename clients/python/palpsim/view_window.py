@@ -70,6 +70,16 @@ def missing_toolkit_hint() -> str:
             f"'apt-get install tk-dev' and install the version again), {qt}")
 
 
+def collect_gui_garbage() -> None:
+    """Frees a closed figure's toolkit objects now, in this (the GUI's) thread. Tk's
+    variables and images sit in reference cycles; left to the cycle collector, they may be
+    freed in whatever thread allocates next, where each one's Tcl call waits about a second
+    for a main loop that is not running and then fails, or Tcl aborts the process."""
+    import gc
+
+    gc.collect()
+
+
 def gui_problem() -> str | None:
     """None where the live window can open: a display exists and matplotlib has an
     interactive backend that opens a figure on it. Otherwise the sentence saying what is
@@ -100,8 +110,8 @@ def gui_problem() -> str | None:
         try:
             if backend != matplotlib.get_backend().lower():
                 plt.switch_backend(backend)
-            fig = plt.figure()
-            plt.close(fig)
+            plt.close(plt.figure())
+            collect_gui_garbage()
             return None
         except Exception as e:  # the toolkit is missing or cannot reach the display
             failures.append(f"{backend}: {e}")
@@ -188,4 +198,9 @@ class LiveWindow:
             self.fig.canvas.start_event_loop(seconds)
 
     def close(self) -> None:
-        self._plt.close(self.fig)
+        """Closes the window and frees its toolkit objects in this thread."""
+        fig, self.fig, self.ax, self.image = self.fig, None, None, None
+        self.closed = True
+        self._plt.close(fig)
+        del fig
+        collect_gui_garbage()

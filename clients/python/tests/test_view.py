@@ -27,6 +27,7 @@ from stream_fakes import (SID, OTHER_SID, FakeServer, GridSpec, Script, brick_pa
                           summary_numbers)
 
 from palpsim import view as view_mod
+from palpsim import view_window
 from palpsim.client import Client
 from palpsim.proto import wire
 from palpsim.stream import DeformedVolume, StreamClient, brick_topic
@@ -430,6 +431,7 @@ def test_live_window_shows_frames_and_sends_keys(capsys, xvfb, monkeypatch):
     finally:
         plt.close("all")
         plt.switch_backend(backend)
+        view_window.collect_gui_garbage()   # Tk's objects die here, not in a later fake's thread
 
 
 def _live_window(capsys):
@@ -502,6 +504,43 @@ def test_a_display_without_a_toolkit_names_the_toolkit(tmp_path, xvfb):
     assert "has no tkinter" in err and "PyQt6" in err
     if os.path.realpath(sys.base_prefix) == "/usr" and os.path.isfile("/etc/debian_version"):
         assert "apt-get install python3-tk" in err
+
+
+def test_closed_windows_leave_no_toolkit_objects_to_other_threads(tmp_path, xvfb):
+    """gui_problem()'s probe figure and a closed LiveWindow free their Tk objects in the
+    thread that made them. Left to the cycle collector they die in whatever thread runs it
+    next: there each Tcl call waits about 1 s for a main loop and fails (a fake server's
+    thread stalled past a client's 10 s timeout so), or Tcl aborts the process. In a
+    process of its own (an abort must not take pytest down), the collector then runs in
+    a second thread; it must find nothing of Tk's and take well under those seconds."""
+    code = (
+        "import gc, sys, threading, time\n"
+        "import numpy as np\n"
+        "from palpsim.view_window import LiveWindow, gui_problem\n"
+        "gc.disable()\n"
+        "problems = []\n"
+        "sys.unraisablehook = lambda u: problems.append(repr(u.exc_value))\n"
+        "problem = gui_problem()\n"
+        "if problem is not None: print('SKIP', problem); sys.exit(0)\n"
+        "w = LiveWindow('t', lambda key: None)\n"
+        "w.show(np.zeros((8, 8, 3), np.uint8), 'x')\n"
+        "w.pump()\n"
+        "w.close()\n"
+        "t0 = time.monotonic()\n"
+        "th = threading.Thread(target=gc.collect)\n"
+        "th.start(); th.join()\n"
+        "print(f'{time.monotonic() - t0:.3f}', len(problems), problems[:2])\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("WAYLAND_DISPLAY", "MPLBACKEND")}
+    env["DISPLAY"] = xvfb
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    if proc.stdout.startswith("SKIP"):
+        skip(f"no live window here: {proc.stdout[5:].strip()}")
+    seconds, count, _ = proc.stdout.split(" ", 2)
+    assert int(count) == 0, proc.stdout
+    # one stalled Tcl call costs ~1 s; a collection of plain objects takes milliseconds
+    assert float(seconds) < 0.5, proc.stdout
 
 
 def test_a_display_that_cannot_be_reached_is_named(tmp_path):

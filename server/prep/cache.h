@@ -10,8 +10,8 @@
 
 namespace palpsim {
 
-/// Bumped whenever the preparation's results change for the same inputs.
-constexpr int kPrepFormatVersion = 4;
+/// Bumped whenever the preparation's results change for the same inputs, or prep.json's keys do.
+constexpr int kPrepFormatVersion = 5;
 
 /// The cache folder: prep.cache_dir, else $PALPSIM_CACHE, else ~/.cache/palpsim.
 std::string cache_root(const PrepSettings& prep);

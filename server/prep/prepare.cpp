@@ -130,17 +130,18 @@ std::string spine_json(const SpineColumn& c) {
          ", \"centroid_mm\": " + jvec(c.centroid_mm) + ", \"reason\": " + jstr(c.reason) + "}";
 }
 
-// the bone section of the report: thresholds (the *_hu keys in `units`) and why, volume per region, warnings
+// the bone section of the report: thresholds (in `units`: HU, or the image's own units for
+// an image not in HU, so their keys name no unit) and why, volume per region, warnings
 std::string bone_json(const BoneThresholds& t, const BoneSummary& b, const std::string& units,
                       const std::vector<ContrastRegion>& contrast, double contrast_removed_ml) {
   const std::string w = jstrings(b.warnings);
   return "{\"thresholds\": {\"automatic\": " + std::string(t.automatic ? "true" : "false") + ", \"units\": " +
-         jstr(units) + ", \"low_hu\": " +
-         jnum(t.low) + ", \"high_hu\": " + jnum(t.high) + ", \"thin_seed_hu\": " + jnum(t.thin_seed) +
-         ", \"cancellous_hu\": " + jnum(t.cancellous) +
-         ", \"cancellous_axial_hu\": " + jnum(t.cancellous_axial) + ", \"grow_mm\": " + jnum(t.grow_mm) +
-         (t.automatic ? ", \"soft_tissue_hu\": " + jnum(t.soft_tissue_hu) + ", \"soft_tissue_sigma_hu\": " +
-                            jnum(t.soft_tissue_sigma_hu) + ", \"disc_band_hu\": [" + jnum(t.disc_lo) + ", " +
+         jstr(units) + ", \"low\": " +
+         jnum(t.low) + ", \"high\": " + jnum(t.high) + ", \"thin_seed\": " + jnum(t.thin_seed) +
+         ", \"cancellous\": " + jnum(t.cancellous) +
+         ", \"cancellous_axial\": " + jnum(t.cancellous_axial) + ", \"grow_mm\": " + jnum(t.grow_mm) +
+         (t.automatic ? ", \"soft_tissue\": " + jnum(t.soft_tissue_hu) + ", \"soft_tissue_sigma\": " +
+                            jnum(t.soft_tissue_sigma_hu) + ", \"disc_band\": [" + jnum(t.disc_lo) + ", " +
                             jnum(t.disc_hi) + "]"
                       : std::string()) +
          ", \"reason\": " + jstr(t.reason) + "}, \"regions_ml\": {\"spine\": " + jnum(b.spine_ml) +

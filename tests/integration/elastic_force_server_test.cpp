@@ -44,7 +44,10 @@ double norm3(const v1::Vec3& v) { return std::sqrt(v.x() * v.x() + v.y() * v.y()
 
 TEST_CASE("palpsim-server renders the elastic model's force: it grows with depth, points out, and matches the step's",
           "[integration][elastic]") {
-  ServerProcess server(test::temp_file("elastic-force.textproto", elastic_scene_text()));
+  // nice rather than SCHED_IDLE for the deformation worker: beside another test on the
+  // 2-core CI machine an idle-class worker waited over a minute for a core, and each
+  // depth's hold waits on its step (the memory test does the same for its render thread)
+  ServerProcess server(test::temp_file("elastic-force.textproto", elastic_scene_text()), {"--background", "nice"});
   REQUIRE(server.wait_ready(kStartS));
   INFO(server.child().err());
   test::PoseSession session(server.control(), server.pose(), "elastic-force-integration", kReplyTimeoutMs);
@@ -64,8 +67,10 @@ TEST_CASE("palpsim-server renders the elastic model's force: it grows with depth
   for (const double depth : depths_mm) {
     INFO("depth " << depth << " mm under the body's top");
     while (y > hi.y() - depth + 1e-9) send(y = std::max(hi.y() - depth, y - 0.05));
-    // hold until the worker has stepped on the held tip (its model's contact point is it)
-    const std::uint64_t hold_seq = session.seq + 1;
+    // hold until the worker has stepped on the held tip (its model's contact point is it):
+    // on the descent's last pose or a later one, all at this tip (a loaded worker may take
+    // that last pose; the held ones then bring the same contact and no step of their own)
+    const std::uint64_t hold_seq = session.seq;
     v1::PoseReply r = send(y);
     v1::ElasticForceStats e = stats();
     const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(kWorkerWaitS);
@@ -80,15 +85,26 @@ TEST_CASE("palpsim-server renders the elastic model's force: it grows with depth
     CHECK(e.contact_point_mm().y() == y);
     // the rest of the update's jump comes at most kMaxJumpN a pose (the tip holds, so the
     // model itself does not change the force; 1e-12 N: rounding of the steps); no force is
-    // above max_force_n (3.3 N, the default), so 66 poses take any jump
+    // above max_force_n (3.3 N, the default), so 66 poses take any jump. The worker may
+    // still publish a model on the held tip (the pose thread's skin point settling moves
+    // the contact by rounding): the poses are sent again until no model was published or
+    // taken while they ran, so the last reply renders the model the stats then describe
     const int jump_poses = int(std::ceil(3.3 / kMaxJumpN)) + 2;
-    v1::Vec3 prev = r.force_n();
-    for (int i = 0; i < jump_poses; ++i) {
-      r = send(y);
-      const double dx = r.force_n().x() - prev.x(), dy = r.force_n().y() - prev.y(), dz = r.force_n().z() - prev.z();
-      CHECK(std::sqrt(dx * dx + dy * dy + dz * dz) <= kMaxJumpN + 1e-12);
-      prev = r.force_n();
+    bool settled = false;
+    for (int attempt = 0; attempt < 5 && !settled; ++attempt) {
+      const v1::ElasticForceStats before = stats();
+      v1::Vec3 prev = r.force_n();
+      for (int i = 0; i < jump_poses; ++i) {
+        r = send(y);
+        const double dx = r.force_n().x() - prev.x(), dy = r.force_n().y() - prev.y(), dz = r.force_n().z() - prev.z();
+        CHECK(std::sqrt(dx * dx + dy * dy + dz * dz) <= kMaxJumpN + 1e-12);
+        prev = r.force_n();
+      }
+      e = stats();
+      settled = e.models_published() == before.models_published() && e.models_taken() == before.models_taken();
     }
+    INFO(e.DebugString());
+    REQUIRE(settled);
     // held: the reply's force is the step's force f0 (f0 + K (x - x0) with x = x0, every jump
     // taken; the same doubles, so to rounding: 1e-9 N)
     const auto& f = r.force_n();
@@ -141,5 +157,7 @@ TEST_CASE("palpsim-server renders the elastic model's force: it grows with depth
   CHECK(refused.error().message().find("haptics.force_model") != std::string::npos);
   CHECK(refused.error().message().find("deform.relax_method") != std::string::npos);
   CHECK(send(hi.y() - 3).contact());
-  CHECK(server.stop() == 0);
+  // a clean exit; the worker first ends the step it is in, which a loaded machine's nice-19
+  // worker may take many seconds over (a 0.1 s step)
+  CHECK(server.stop(kWorkerWaitS) == 0);
 }

@@ -68,7 +68,10 @@ def fingertip(ax, model, press, plane):
     if model["relax_method"] == "elastic":
         n = model["elastic"]["normal"]
         r = model["elastic"]["radius_mm"]
-        centre = [tip[a] - n[a] * r for a in range(3)]
+        # the sphere where the model presses: held short of bone (press_cap.h), the device
+        # tip (the cross) on beyond it
+        held = model["elastic"].get("pressed_tip_mm", tip)
+        centre = [held[a] - n[a] * r for a in range(3)]
         off = centre[plane["cut_axis"]] - plane["cut_mm"]
         if abs(off) < r:
             ax.add_patch(Circle(in_plane(centre, plane), np.sqrt(r * r - off * off), fill=False, color="red", lw=0.8))
@@ -78,13 +81,16 @@ def fingertip(ax, model, press, plane):
     ax.plot(*in_plane(tip, plane), marker="+", color="red", ms=7, mew=1.2)
 
 
-def title(model):
-    """A column's title: the model, its step times, its force."""
+def title(model, press):
+    """A column's title: the model, its step times, its force (and where bone held its press)."""
     w, r = model["step_while_pressing"], model["step_from_rest"]
     lines = [model["label"], f"step {w['median_ms']:.0f} ms pressing 1 mm a step, {r['median_ms']:.0f} ms from rest"]
     if "elastic" in model:
         e = model["elastic"]
         lines.append(f"reaction on the finger {e['force_norm_n']:.2f} N, {e['inverted_cells']} folded cells")
+        depth = e.get("pressed_depth_mm")
+        if depth is not None and depth < press["depth_mm"] - 1e-6:
+            lines.append(f"held {depth:.1f} mm deep: {e['min_tissue_fraction']:.0%} of the tissue over the bone left")
     else:
         lines.append("no force of its own (the proxy's eq. 2)")
     return "\n".join(lines)
@@ -140,7 +146,7 @@ def main(argv=None):
                 au.set_ylabel(f"{pl['name']} ({cut} = {pl['cut_mm']:.0f} mm): |u| at rest positions\n"
                               "y (mm, posterior \u2191)", fontsize=9)
             if q == 0:
-                aj.set_title(title(m), fontsize=9)
+                aj.set_title(title(m, press), fontsize=9)
             aj.text(0.02, 0.02, f"max |u| {m['max_u_mm']:.1f} mm, bone voxels moved {m['bone_moved_voxels']}, "
                     f"J unresolved {m['invert_unresolved']}", transform=aj.transAxes, color="white", fontsize=7,
                     bbox=box)

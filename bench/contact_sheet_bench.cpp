@@ -29,6 +29,7 @@
 #include "core/error.h"
 #include "core/setting_names.h"
 #include "deform/backend.h"
+#include "deform/press_cap.h"
 #include "haptics/force_model.h"
 #include "net/scene_io.h"
 #include "prep/prepare.h"
@@ -151,6 +152,8 @@ struct Model {
   Voi voi;
   long long bone_moved = 0;   // bone voxels of the VOI with u != 0
   double max_u_mm = 0;
+  Vec3 pressed_tip_mm{0, 0, 0};  // the deepest contact's tip as the model presses it (held short of bone)
+  double pressed_depth_mm = 0;   // and its depth under the skin point
 };
 
 // a plane of the patient grid through voxel `at` along axis `normal` (0: x, sagittal; 2: z,
@@ -238,11 +241,12 @@ void run_model(Model& m, const PatientPtr& patient, const Press& press, int repe
     // from rest: a fresh backend's one step at the deepest contact
     auto fresh = make_deform_backend("cpu");
     fresh->bind(patient, m.cfg);
-    rest.push_back(fresh->step(deepest).times.total_ms);
+    rest.push_back(fresh->step(deform::capped_press(p, m.cfg, deepest)).times.total_ms);
     // the press, a millimetre a step; its last step is the one timed and shown
     auto b = make_deform_backend("cpu");
     b->bind(patient, m.cfg);
-    for (const DeformContact& k : press.contacts) m.last = b->step(k);
+    // each contact as the server's engine presses it (the elastic one held short of bone)
+    for (const DeformContact& k : press.contacts) m.last = b->step(deform::capped_press(p, m.cfg, k));
     step.push_back(m.last.times.total_ms);
     relax.push_back(m.last.times.relax_ms);
     inv.push_back(m.last.times.invert_ms);
@@ -252,6 +256,9 @@ void run_model(Model& m, const PatientPtr& patient, const Press& press, int repe
       m.j.assign(b->deformed_brick(), b->deformed_brick() + m.voi.count());
     }
   }
+  const DeformContact pressed = deform::capped_press(p, m.cfg, deepest);
+  m.pressed_tip_mm = pressed.tip_mm;
+  m.pressed_depth_mm = norm(pressed.tip_mm - pressed.skin_point_mm);
   m.rest_ms = spread(rest);
   m.press_ms = spread(step);
   m.press_relax_ms = spread(relax);
@@ -295,7 +302,9 @@ std::string model_json(const Model& m) {
        << ", \"iterations\": " << el.iterations << ", \"residual\": " << json_number(el.residual)
        << ", \"converged\": " << (el.converged ? "true" : "false") << ", \"warm\": " << (el.warm ? "true" : "false")
        << ", \"inverted_cells\": " << el.inverted_cells << ", \"poisson\": " << json_number(s.elastic.poisson)
-       << ", \"normal\": " << json_vec(el.normal) << ", \"radius_mm\": " << json_number(s.grab_radius_mm) << "}";
+       << ", \"normal\": " << json_vec(el.normal) << ", \"radius_mm\": " << json_number(s.grab_radius_mm)
+       << ", \"min_tissue_fraction\": " << json_number(s.elastic.min_tissue_fraction) << ", \"pressed_tip_mm\": "
+       << json_vec(m.pressed_tip_mm) << ", \"pressed_depth_mm\": " << json_number(m.pressed_depth_mm) << "}";
   js << "}";
   return js.str();
 }

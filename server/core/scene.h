@@ -99,6 +99,8 @@ struct ElasticSettings {
   int smooth_degree = 8;           // the V-cycle's Chebyshev degree on the finest level
   int coarse_smooth_degree = 2;    // ... on the coarse levels above the coarsest
   int coarsest_degree = 2;         // ... on the coarsest level
+  double min_tissue_fraction = 0.5;  // the press stops where the tissue between it and bone would fall below this
+                                     // fraction of its thickness along the press (deform/press_cap.h); 0: no stop
 };
 
 /// How relaxation follows ChainMail (deform.relax_method; names in core/setting_names.h).

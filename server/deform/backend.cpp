@@ -109,6 +109,9 @@ void check_elastic_settings(const ElasticSettings& e, const std::string& who) {
   if (e.max_iterations < 1) bad("max_iterations", e.max_iterations, "must be at least 1");
   if (!(e.tolerance > 0 && e.tolerance < 1)) bad("tolerance", e.tolerance, "must lie in (0, 1)");
   if (e.contact_rounds < 1) bad("contact_rounds", e.contact_rounds, "must be at least 1");
+  if (!(e.min_tissue_fraction >= 0 && e.min_tissue_fraction <= 0.95))
+    bad("min_tissue_fraction", e.min_tissue_fraction,
+        "must lie in [0, 0.95] (0: the press is not stopped short of bone)");
   if (!(e.stiffness_tolerance >= 0 && e.stiffness_tolerance < 1))
     bad("stiffness_tolerance", e.stiffness_tolerance, "must lie in [0, 1) (0: the unit press stops at tolerance)");
   // the Chebyshev degrees: the GPU fuses a smoothing's first step into the pass before it

@@ -41,6 +41,11 @@ class DeformEngine {
   /// Whether a multigrid unit response is held, and its grabbed element (DeformBackend::unit_response).
   bool unit_response(Vec3i& grabbed_vox) const { return backend_->unit_response(grabbed_vox); }
 
+  /// The contact a step presses: the elastic model's held short of the bone under it
+  /// (deform/press_cap.h, deform.elastic.min_tissue_fraction), any other as given. step()
+  /// and begin_step() take it themselves; the worker asks to know which tip J stands for.
+  DeformContact pressed(const DeformContact& contact) const;
+
   /// Returns everything to undeformed (J = I).
   void reset();
 

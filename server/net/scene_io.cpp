@@ -204,6 +204,7 @@ void read_elastic(const v1::Elastic& el, ElasticSettings& out) {
   out.smooth_degree = el.smooth_degree();
   out.coarse_smooth_degree = el.coarse_smooth_degree();
   out.coarsest_degree = el.coarsest_degree();
+  out.min_tissue_fraction = el.min_tissue_fraction();
 }
 
 // deform: the preset's ChainMail limits, the fields given over them, the rest as given

@@ -18,6 +18,7 @@
 
 #include "core/error.h"
 #include "deform/approach.h"
+#include "deform/press_cap.h"
 #include "deform/relax_multigrid.h"
 #include "runtime/deform_worker_state.h"
 
@@ -308,10 +309,15 @@ bool DeformWorker::serve_deformation(const Parts& p) {
     if (prime_ && prime(p, c.tip_mm)) worked = true;
     return worked;
   }
-  // the same contact as the step in place (a held tip): the same J, nothing to step; the
-  // report says which contact J now stands for (published even when no contact was
-  // dropped: a client waiting for its last pose's seq would otherwise wait for ever)
-  if (s.report.deformed && s.engine && c.tip_mm == s.last_tip_mm && c.skin_point_mm == s.last_skin_mm) {
+  // the tip as the step presses it (the elastic model's held short of bone), so that a
+  // device tip going on into bone asks for no step, and the force model's x0 is it
+  c.tip_mm = deform::capped_press(*patient_, config_, DeformContact{c.skin_point_mm, c.tip_mm}).tip_mm;
+  // the same contact as the step in place (a held tip, or one pressing on past where bone
+  // holds the press: those tips differ by rounding, hence 1e-9 mm): the same J, nothing to
+  // step; the report says which contact J now stands for (published even when no contact
+  // was dropped: a client waiting for its last pose's seq would otherwise wait for ever)
+  auto same = [](const Vec3& a, const Vec3& b) { return norm(a - b) <= 1e-9; };
+  if (s.report.deformed && s.engine && same(c.tip_mm, s.last_tip_mm) && c.skin_point_mm == s.last_skin_mm) {
     s.report.last_contact_seq = c.seq;
     publish(p);
     return worked;

@@ -578,6 +578,12 @@ TEST_CASE("elastic settings are refused with the field named", "[elastic]") {
     c.settings.elastic.skin_e_kpa = -1;
     CHECK(refused(c, "deform.elastic.skin_e_kpa"));
   }
+  // where bone stops the press: a fraction of the tissue in [0, 0.95]
+  for (double f : {-0.1, 0.96, 1.0, std::nan("")}) {
+    DeformConfig c = cfg;
+    c.settings.elastic.min_tissue_fraction = f;
+    CHECK(refused(c, "deform.elastic.min_tissue_fraction"));
+  }
   // the V-cycle's degrees in [2, kElasticMaxDegree]
   for (int degree : {1, 0, deform::kElasticMaxDegree + 1}) {
     DeformConfig a = cfg, b = cfg, c = cfg;

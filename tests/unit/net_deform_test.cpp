@@ -281,6 +281,39 @@ TEST_CASE("a held tip's poses move the stats' last contact on, one at a time, wi
   }
 }
 
+TEST_CASE("an elastic press held short of bone asks for no step while the tip goes on into the bone", "[net][deform]") {
+  // over the slab's bone block (its top 14 mm under the skin): the press stops where half
+  // of that tissue is left (deform.elastic.min_tissue_fraction 0.5), so tips 9 to 13 mm
+  // deep are one and the same press; without friction the skin point is a function of the
+  // tip, so they are one contact and J already stands for each
+  Scene scene = deform_scene();
+  scene.haptics.friction = 0;
+  scene.deform.relax_method = RelaxMethod::kElastic;
+  scene.deform.grab_radius_mm = 5;
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client c(server);
+  c.press(30, 30, 9, 30);
+  std::uint64_t steps = 0;
+  for (int n = 0; n < 5; ++n) {
+    c.send_pose({30, 30, test::kSlabSkinZ - 9 - n});
+    const std::uint64_t last = c.seq;
+    v1::DeformSessionStats d;
+    INFO("tip " << 9 + n << " mm deep, seq " << last);
+    REQUIRE(c.wait_deform([&](const v1::DeformSessionStats& s) { return s.last_contact_seq() == last; }, &d));
+    CHECK(d.deformed());
+    CHECK(d.failures() == 0);
+    if (n == 0) steps = d.steps();
+    CHECK(d.steps() == steps);
+  }
+  // shallower than the stop the press moves again
+  c.send_pose({30, 30, test::kSlabSkinZ - 4});
+  const std::uint64_t last = c.seq;
+  v1::DeformSessionStats d;
+  REQUIRE(c.wait_deform([&](const v1::DeformSessionStats& s) { return s.last_contact_seq() == last; }, &d));
+  CHECK(d.steps() == steps + 1);
+}
+
 TEST_CASE("a reset, a reset flag and leaving the body restore the undeformed image", "[net][deform]") {
   const auto patient = test::slab_patient();
   net::Server server(deform_scene(), patient, nullptr, loopback());

@@ -432,8 +432,10 @@ def main():
         if (el.get("references") or {}).get("profile"):
             el_plots.append(("Hertz's surface profile", os.path.join(a.out_dir, "accuracy-elastic-profile.png")))
             plot_profile(el, el_plots[-1][1])
-        # the contact sheet of the three models, where one lies beside the elastic JSON
-        sheets = sorted(glob.glob(os.path.join(os.path.dirname(os.path.abspath(a.elastic)), "elastic-contact-sheet*.png")))
+        # the newest contact sheet of the three models beside the elastic JSON (named by
+        # date, then commit; older ones stay in bench/results as history)
+        sheets = sorted(glob.glob(os.path.join(os.path.dirname(os.path.abspath(a.elastic)),
+                                               "elastic-contact-sheet*.png")))[-1:]
     md = os.path.join(a.out_dir, "accuracy.md")
     with open(md, "w") as f:
         f.write(markdown(cpu, gpu, rows, plots, el, el_gpu, el_rows, el_plots, sheets, _command(a),

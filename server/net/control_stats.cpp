@@ -196,6 +196,7 @@ void Server::Control::fill_deform(v1::DeformSessionStats* o, const DeformSession
   o->set_multigrid_warm(r.multigrid_warm);
   o->set_multigrid_primes(r.multigrid_primes);
   o->set_elastic_superposed(r.elastic_superposed);
+  o->set_contacts_current(r.contacts_current);
   o->set_invert_residual_vox(r.invert_residual_vox);
   o->set_invert_unresolved(std::uint64_t(r.invert_unresolved));
   o->set_invert_searched(std::uint64_t(r.invert_searched));

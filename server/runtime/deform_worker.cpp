@@ -319,6 +319,7 @@ bool DeformWorker::serve_deformation(const Parts& p) {
   auto same = [](const Vec3& a, const Vec3& b) { return norm(a - b) <= 1e-9; };
   if (s.report.deformed && s.engine && same(c.tip_mm, s.last_tip_mm) && c.skin_point_mm == s.last_skin_mm) {
     s.report.last_contact_seq = c.seq;
+    ++s.report.contacts_current;
     publish(p);
     return worked;
   }

@@ -42,6 +42,7 @@ struct DeformSessionReport {
   std::string backend;                 // "cpu" or "cuda"; "" until the session's engine exists
   std::uint64_t steps = 0;             // deformation steps run
   std::uint64_t contacts_dropped = 0;  // contacts overwritten by newer ones before the worker got to them
+  std::uint64_t contacts_current = 0;  // contacts served without a step: J already stood for them
   std::uint64_t non_converged = 0;     // steps that reached deform.max_sweeps (the state is kept)
   std::uint64_t failures = 0;          // steps that threw or produced a non-finite value (the state is reset)
   std::uint64_t resets = 0;            // session resets (ResetSession or PoseRequest.reset_proxy)

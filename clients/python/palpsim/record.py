@@ -323,7 +323,26 @@ def _step(index: int, depth: float, pacer: _Pacer, stream: StreamClient, top: np
                 f"record_press: step {index + 1} (depth {depth:g} mm, first pose seq {first.seq}, "
                 f"{'in' if first.contact else 'out of'} contact): no frame showing it within "
                 f"{timeout_s:g} s (frames seen and passed over, by reason: {seen}); is the "
-                "server rendering (stats: render_failures, last_error)?")
+                "server rendering (stats: render_failures, last_error)?"
+                f"{_session_state(pacer.session)}")
+
+
+def _session_state(session: Session) -> str:
+    """The session's deformation and frames as the server counts them, for an error that
+    says where a step's frame stopped (empty where the server does not answer)."""
+    try:
+        st = session.stats()
+    except Exception:  # the error being raised matters more than this detail
+        return ""
+    parts = []
+    if st.HasField("deform"):
+        d = st.deform
+        parts.append(f"deformation: {d.steps} steps, {getattr(d, 'contacts_current', 0)} contacts already "
+                     f"current, {d.contacts_dropped} dropped, J stands for pose {d.last_contact_seq}"
+                     + (f", last error {d.last_error!r}" if d.last_error else ""))
+    if st.HasField("stream"):
+        parts.append(f"frames: {st.stream.frames_rendered} rendered, {st.stream.frames_published} published")
+    return f" The session now: {'; '.join(parts)}." if parts else ""
 
 
 # ---------------------------------------------------------------------------------------

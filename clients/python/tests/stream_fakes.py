@@ -369,6 +369,19 @@ class FakeServer:
                 self.sessions.remove(sid)
                 self.closed.append(sid)
                 rep.close.session_id, rep.close.poses = sid, len(self.poses.get(sid, []))
+        elif body == "stats" and req.stats.session_id in self.sessions:
+            # a session's counters as far as a fake has them: its poses, the frames it
+            # published, and a deformation that never steps
+            sid = req.stats.session_id
+            poses = self.poses.get(sid, [])
+            ss = rep.stats.session
+            ss.session_id, ss.poses = sid, len(poses)
+            if poses:
+                ss.last_seq = poses[-1][1].seq
+            if "chainmail" in self.stages:
+                ss.deform.steps = 0
+                ss.deform.backend = "fake"
+            ss.stream.frames_rendered = ss.stream.frames_published = self.published
         elif body == "watch":
             self.watch_times.append(time.monotonic())
             self.watches.append(wire.WatchSession())

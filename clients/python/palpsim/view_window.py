@@ -198,7 +198,10 @@ class LiveWindow:
             self.fig.canvas.start_event_loop(seconds)
 
     def close(self) -> None:
-        """Closes the window and frees its toolkit objects in this thread."""
+        """Closes the window and frees its toolkit objects in this thread; again, nothing
+        (plt.close(None) would close whichever figure is current)."""
+        if self.fig is None:
+            return
         fig, self.fig, self.ax, self.image = self.fig, None, None, None
         self.closed = True
         self._plt.close(fig)

@@ -516,7 +516,7 @@ def test_closed_windows_leave_no_toolkit_objects_to_other_threads(tmp_path, xvfb
     code = (
         "import gc, sys, threading, time\n"
         "import numpy as np\n"
-        "from palpsim.view_window import LiveWindow, gui_problem\n"
+        "from palpsim.view_window import LiveWindow, collect_gui_garbage, gui_problem\n"
         "gc.disable()\n"
         "problems = []\n"
         "sys.unraisablehook = lambda u: problems.append(repr(u.exc_value))\n"
@@ -525,7 +525,12 @@ def test_closed_windows_leave_no_toolkit_objects_to_other_threads(tmp_path, xvfb
         "w = LiveWindow('t', lambda key: None)\n"
         "w.show(np.zeros((8, 8, 3), np.uint8), 'x')\n"
         "w.pump()\n"
-        "w.close()\n"
+        "import matplotlib.pyplot as plt\n"
+        "other = plt.figure().number\n"
+        "w.close(); w.close()\n"  # the second closes nothing, not the current figure
+        "assert plt.fignum_exists(other), 'a second close() closed another figure'\n"
+        "plt.close(other)\n"
+        "collect_gui_garbage()\n"
         "t0 = time.monotonic()\n"
         "th = threading.Thread(target=gc.collect)\n"
         "th.start(); th.join()\n"

@@ -311,6 +311,7 @@ bool DeformWorker::serve_deformation(const Parts& p) {
   }
   // the tip as the step presses it (the elastic model's held short of bone), so that a
   // device tip going on into bone asks for no step, and the force model's x0 is it
+  const Vec3 device_tip_mm = c.tip_mm;
   c.tip_mm = deform::capped_press(*patient_, config_, DeformContact{c.skin_point_mm, c.tip_mm}).tip_mm;
   // the same contact as the step in place (a held tip, or one pressing on past where bone
   // holds the press: those tips differ by rounding, hence 1e-9 mm): the same J, nothing to
@@ -320,6 +321,14 @@ bool DeformWorker::serve_deformation(const Parts& p) {
   if (s.report.deformed && s.engine && same(c.tip_mm, s.last_tip_mm) && c.skin_point_mm == s.last_skin_mm) {
     s.report.last_contact_seq = c.seq;
     ++s.report.contacts_current;
+    // J now stands for a pose at another device tip (a press going on past the hold): the
+    // watched hand-overs say so, or a frame drawn at the new tip would name the pose before it
+    if (!(device_tip_mm == s.last_device_tip_mm)) {
+      s.last_device_tip_mm = device_tip_mm;
+      s.last_contact_time_s = c.server_time_s;
+      s.last_proxy_mm = c.proxy_mm;
+      ++s.state_version;
+    }
     publish(p);
     return worked;
   }
@@ -336,6 +345,7 @@ bool DeformWorker::serve_deformation(const Parts& p) {
     }
   }
   s.last_step_begun_s = now_s();
+  s.last_device_tip_mm = device_tip_mm;
   step(p, c);
   return true;
 }

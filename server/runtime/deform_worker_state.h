@@ -24,10 +24,13 @@ struct DeformWorker::Session {
   Vec3 last_tip_mm{0, 0, 0};            // and its tip, skin point and proxy
   Vec3 last_skin_mm{0, 0, 0};
   Vec3 last_proxy_mm{0, 0, 0};
+  Vec3 last_device_tip_mm{0, 0, 0};     // the device tip of the newest pose J stands for (the step's, or a
+                                        // later one pressing on past the elastic hold to the same J)
   double last_prime_s = -1e9;           // server time of the latest prime (pacing) ...
   double last_prime_cost_s = 0;         // ... and the worker's time it took (s)
   // the stream's hand-overs (stream_state.h): the state's version, and what was exported
-  std::uint64_t state_version = 1;      // grows with every step, reset and failure
+  std::uint64_t state_version = 1;      // grows with every step, reset and failure, and when J comes to
+                                        // stand for a pose at another device tip (the snapshot says which)
   std::uint64_t render_exported = 0;    // state_version last handed to the render thread
   std::uint64_t bricks_exported = 0;    // ... and to the publisher
   bool render_watched = false;          // frames were wanted at the last pass

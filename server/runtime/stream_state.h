@@ -29,7 +29,8 @@ using deform::Voi;
 struct JSnapshot {
   std::uint64_t session_id = 0;
   std::uint64_t step = 0;             // the session's deformation steps when taken (0: never deformed)
-  std::uint64_t pose_seq = 0;         // seq of the pose the step ran on
+  std::uint64_t pose_seq = 0;         // seq of the newest pose J stands for (the step's, or a later one served
+                                      // without a step: DeformSessionStats.contacts_current)
   double pose_server_time_s = 0;      // when that pose was answered (server clock)
   Vec3 tip_mm{0, 0, 0};               // that pose's tip x and proxy p (mm)
   Vec3 proxy_mm{0, 0, 0};
@@ -48,7 +49,7 @@ struct EncodedFrame {
   std::uint64_t pose_seq = 0;         // the pose whose tip it shows (0: no pose yet)
   double pose_server_time_s = 0;      // when that pose was answered
   std::uint64_t deform_step = 0;      // J's step (0: undeformed)
-  std::uint64_t deform_pose_seq = 0;  // the pose that step ran on
+  std::uint64_t deform_pose_seq = 0;  // the newest pose J stands for (JSnapshot::pose_seq)
   bool deformed = false;
   render::FrameMarks marks;           // tip, proxy, contact
   render::ViewSettings view;          // what it was rendered with

@@ -403,6 +403,52 @@ TEST_CASE("a press changes the frame near the tip and nowhere else; without defo
   }
 }
 
+TEST_CASE("a frame names the newest pose its J stands for when an elastic press goes on past the hold",
+          "[net][stream]") {
+  // over the slab's bone block (its top 14 mm under the skin) the elastic press stops
+  // where half that tissue is left (deform.elastic.min_tissue_fraction 0.5: 7 mm), so
+  // tips 9 to 12 mm deep are one press, J is not stepped again, and it stands for each of
+  // those poses; a frame drawn at a deeper tip used to name the pose of the step, and a
+  // client waiting for a frame of its newest pose (palpsim-record) waited for ever.
+  // Without friction the skin point is a function of the tip: one contact
+  Scene scene = stream_scene(true);
+  scene.haptics.friction = 0;
+  scene.deform.relax_method = RelaxMethod::kElastic;
+  scene.deform.grab_radius_mm = 5;
+  net::Server server(scene, test::slab_patient(), nullptr, loopback());
+  server.start();
+  Client c(server);
+  v1::WatchSession w;
+  w.set_session_id(c.id);
+  w.set_frames(true);
+  const v1::ControlReply r = c.watch(w);
+  REQUIRE(r.has_watch());
+  test::StreamViewer v(r.watch().stream_endpoint());
+  v.subscribe(r.watch().frame_topic());
+  constexpr double kBoneX = 30, kBoneY = 30;  // above the bone block
+  for (int n = 0; n <= 30; ++n) c.send_pose({kBoneX, kBoneY, test::kSlabSkinZ + 2 - 11.0 * n / 30});  // to 9 mm
+  std::uint64_t steps = 0;
+  for (int depth = 9; depth <= 12; ++depth) {
+    if (depth > 9) c.send_pose({kBoneX, kBoneY, test::kSlabSkinZ - depth});
+    const std::uint64_t last = c.seq;
+    v1::StreamMessage m;
+    INFO("tip " << depth << " mm deep, pose " << last);
+    REQUIRE(v.until(
+        [&](const v1::StreamMessage& x) {
+          return x.has_frame() && x.frame().pose_seq() == last && x.frame().deformed() &&
+                 x.frame().deform_pose_seq() == last;
+        },
+        kWaitS, &m));
+    // the deeper tips are served by the J in place: no step
+    if (depth == 9) steps = m.frame().deform_step();
+    CHECK(m.frame().deform_step() == steps);
+  }
+  const v1::DeformSessionStats d = c.stats().session().deform();
+  CHECK(d.contacts_current() >= 3);
+  CHECK(d.failures() == 0);
+  server.stop();
+}
+
 TEST_CASE("bad viewer input is refused with a clear error; other viewers and the poses go on", "[net][stream]") {
   net::Server server(stream_scene(false), test::slab_patient(), nullptr, loopback());
   server.start();

@@ -342,6 +342,13 @@ def _session_state(session: Session) -> str:
                      + (f", last error {d.last_error!r}" if d.last_error else ""))
     if st.HasField("stream"):
         parts.append(f"frames: {st.stream.frames_rendered} rendered, {st.stream.frames_published} published")
+        if st.stream.frames_watched and st.stream.frames_rendered == 0:
+            # wanted, yet never drawn: the render thread had no CPU time (seen on a 2-core
+            # machine with two busy processes beside the server), or it is stuck
+            parts.append("its frames are wanted but none was drawn: the server's render thread runs "
+                         "at the lowest priority (palpsim-server --background idle, the default), so "
+                         "other busy processes on the server's machine can leave it no time "
+                         "(--background nice gives it a share)")
     return f" The session now: {'; '.join(parts)}." if parts else ""
 
 

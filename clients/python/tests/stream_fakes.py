@@ -382,6 +382,7 @@ class FakeServer:
                 ss.deform.steps = 0
                 ss.deform.backend = "fake"
             ss.stream.frames_rendered = ss.stream.frames_published = self.published
+            ss.stream.frames_watched = bool(self.watches)  # watched since its WatchSession
         elif body == "watch":
             self.watch_times.append(time.monotonic())
             self.watches.append(wire.WatchSession())

@@ -323,6 +323,8 @@ def test_a_step_without_its_frame_fails_with_the_reason():
     assert "step 1 (depth -5 mm" in str(e.value) and "within 0.5 s" in str(e.value)
     # and where the step stopped, as the server counts it (the fake's deformation never steps)
     assert "The session now: deformation: 0 steps" in str(e.value) and "frames: 0 rendered" in str(e.value)
+    # frames wanted and none drawn: the hint at a render thread left no CPU time
+    assert "wanted but none was drawn" in str(e.value) and "--background nice" in str(e.value)
     assert fake.closed == fake.opened                       # the session was still closed
 
 

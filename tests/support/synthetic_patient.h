@@ -10,6 +10,7 @@
 #include <memory>
 
 #include "core/patient.h"
+#include "core/scene.h"
 
 namespace palpsim::test {
 
@@ -92,6 +93,19 @@ inline std::shared_ptr<Patient> slab_patient() {
   return make_patient(
       60, 1.0, [](const Vec3& x) { return x.z - kSlabSkinZ; },
       [](const Vec3& x) { return box_sdf(x, {24.5, 24.5, 14.5}, {35.5, 35.5, 25.5}); });
+}
+
+/// A point of slab_patient's skin over its bone block (x, y in mm): bone lies 14 mm under it.
+constexpr double kSlabBoneX = 30, kSlabBoneY = 30;
+
+/// `scene` deforming by the elastic model under a 5 mm fingertip, without friction: the
+/// skin point is then a function of the tip, so tips pressing on past where bone holds the
+/// press (deform.elastic.min_tissue_fraction) are one contact, which J already stands for.
+inline Scene& elastic_without_friction(Scene& scene) {
+  scene.haptics.friction = 0;
+  scene.deform.relax_method = RelaxMethod::kElastic;
+  scene.deform.grab_radius_mm = 5;
+  return scene;
 }
 
 /// A 64 mm cube at 1 mm: a ball of tissue, radius 28 mm around (32, 32, 32), with a bone

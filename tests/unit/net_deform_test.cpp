@@ -287,16 +287,14 @@ TEST_CASE("an elastic press held short of bone asks for no step while the tip go
   // deep are one and the same press; without friction the skin point is a function of the
   // tip, so they are one contact and J already stands for each
   Scene scene = deform_scene();
-  scene.haptics.friction = 0;
-  scene.deform.relax_method = RelaxMethod::kElastic;
-  scene.deform.grab_radius_mm = 5;
+  test::elastic_without_friction(scene);
   net::Server server(scene, test::slab_patient(), nullptr, loopback());
   server.start();
   Client c(server);
-  c.press(30, 30, 9, 30);
+  c.press(test::kSlabBoneX, test::kSlabBoneY, 9, 30);
   std::uint64_t steps = 0;
   for (int n = 0; n < 5; ++n) {
-    c.send_pose({30, 30, test::kSlabSkinZ - 9 - n});
+    c.send_pose({test::kSlabBoneX, test::kSlabBoneY, test::kSlabSkinZ - 9 - n});
     const std::uint64_t last = c.seq;
     v1::DeformSessionStats d;
     INFO("tip " << 9 + n << " mm deep, seq " << last);
@@ -309,7 +307,7 @@ TEST_CASE("an elastic press held short of bone asks for no step while the tip go
     if (n > 0) CHECK(d.contacts_current() >= std::uint64_t(n));
   }
   // shallower than the stop the press moves again
-  c.send_pose({30, 30, test::kSlabSkinZ - 4});
+  c.send_pose({test::kSlabBoneX, test::kSlabBoneY, test::kSlabSkinZ - 4});
   const std::uint64_t last = c.seq;
   v1::DeformSessionStats d;
   REQUIRE(c.wait_deform([&](const v1::DeformSessionStats& s) { return s.last_contact_seq() == last; }, &d));

@@ -47,6 +47,15 @@ struct Client : test::NetClient {
     *q.mutable_watch() = w;
     return call(q);
   }
+  // watches this session's frames with the scene's view (the reply names the stream)
+  v1::ControlReply watch_frames() {
+    v1::WatchSession w;
+    w.set_session_id(id);
+    w.set_frames(true);
+    const v1::ControlReply r = watch(w);
+    REQUIRE(r.has_watch());
+    return r;
+  }
   v1::PoseReply send_pose(const Vec3& x) {
     ++seq;
     const v1::PoseReply r = NetClient::send_pose(seq, x, 1.0 + seq * 1e-3);
@@ -412,24 +421,18 @@ TEST_CASE("a frame names the newest pose its J stands for when an elastic press 
   // client waiting for a frame of its newest pose (palpsim-record) waited for ever.
   // Without friction the skin point is a function of the tip: one contact
   Scene scene = stream_scene(true);
-  scene.haptics.friction = 0;
-  scene.deform.relax_method = RelaxMethod::kElastic;
-  scene.deform.grab_radius_mm = 5;
+  test::elastic_without_friction(scene);
   net::Server server(scene, test::slab_patient(), nullptr, loopback());
   server.start();
   Client c(server);
-  v1::WatchSession w;
-  w.set_session_id(c.id);
-  w.set_frames(true);
-  const v1::ControlReply r = c.watch(w);
-  REQUIRE(r.has_watch());
+  const v1::ControlReply r = c.watch_frames();
   test::StreamViewer v(r.watch().stream_endpoint());
   v.subscribe(r.watch().frame_topic());
-  constexpr double kBoneX = 30, kBoneY = 30;  // above the bone block
-  for (int n = 0; n <= 30; ++n) c.send_pose({kBoneX, kBoneY, test::kSlabSkinZ + 2 - 11.0 * n / 30});  // to 9 mm
+  const double x = test::kSlabBoneX, y = test::kSlabBoneY;
+  for (int n = 0; n <= 30; ++n) c.send_pose({x, y, test::kSlabSkinZ + 2 - 11.0 * n / 30});  // to 9 mm
   std::uint64_t steps = 0;
   for (int depth = 9; depth <= 12; ++depth) {
-    if (depth > 9) c.send_pose({kBoneX, kBoneY, test::kSlabSkinZ - depth});
+    if (depth > 9) c.send_pose({x, y, test::kSlabSkinZ - depth});
     const std::uint64_t last = c.seq;
     v1::StreamMessage m;
     INFO("tip " << depth << " mm deep, pose " << last);
@@ -454,11 +457,7 @@ TEST_CASE("bad viewer input is refused with a clear error; other viewers and the
   server.start();
   Client c(server);
   // a good viewer first
-  v1::WatchSession w;
-  w.set_session_id(c.id);
-  w.set_frames(true);
-  const v1::ControlReply ok = c.watch(w);
-  REQUIRE(ok.has_watch());
+  const v1::ControlReply ok = c.watch_frames();
   test::StreamViewer good(ok.watch().stream_endpoint());
   good.subscribe(ok.watch().frame_topic());
 

@@ -82,6 +82,18 @@ int elastic_tile_nodes() {
   return n;
 }
 
+// whether a superposable step starts and ends in superpose_start_kernel and
+// superpose_end_kernel at full occupancy (the cooperative kernel solves only where the
+// contact set changed): yes, but with PALPSIM_ELASTIC_SUPERPOSE_KERNELS=0 (a measurement of
+// the step in the cooperative kernel alone)
+bool elastic_superpose_kernels() {
+  static const bool on = [] {
+    const char* s = std::getenv("PALPSIM_ELASTIC_SUPERPOSE_KERNELS");
+    return !(s && s[0] == '0' && s[1] == '\0');
+  }();
+  return on;
+}
+
 // the cooperative launch of the kernel instantiated for elastic_blocks_per_sm()
 template <typename Args>
 void launch_chosen(void (*one)(Args), void (*two)(Args), Args& args, int blocks, long long nodes,
@@ -257,11 +269,14 @@ ElasticSolver::~ElasticSolver() { release(); }
 void ElasticSolver::release() {
   trace_.reset();
   // errors are ignored here: it runs from destructors
-  for (void* q : {(void*)u_, (void*)u_unit_, (void*)react_, (void*)flags_, (void*)cell_e_, (void*)lmax_, (void*)tiles_})
+  for (void* q : {(void*)u_, (void*)u_unit_, (void*)react_, (void*)flags_, (void*)cell_e_, (void*)lmax_, (void*)tiles_,
+                  (void*)start_sums_})
     cudaFree(q);
   u_ = u_unit_ = react_ = cell_e_ = lmax_ = nullptr;
   flags_ = nullptr;
   tiles_ = nullptr;
+  start_sums_ = nullptr;
+  start_parity_ = 0;
   tile_ints_ = 0;
   capacity_ = coarse_capacity_ = 0;
   set_up_ = have_u_ = have_unit_ = false;
@@ -293,6 +308,11 @@ void ElasticSolver::bind(const Patient& p, const deform::ElasticParams& params, 
                             ((most.z + kTileZ - 1) / kTileZ);
     tile_ints_ = std::size_t(1 + 2 * tiles);
     PALPSIM_CUDA_CHECK(cudaMalloc(&tiles_, tile_ints_ * sizeof(int)));
+    // both sets of the start sums clear before any step's kernel runs (the steps' streams do
+    // not wait for the legacy default stream's fill)
+    PALPSIM_CUDA_CHECK(cudaMalloc(&start_sums_, 2 * kSlot * sizeof(double)));
+    PALPSIM_CUDA_CHECK(cudaMemset(start_sums_, 0, 2 * kSlot * sizeof(double)));
+    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(0));
   } catch (...) {
     release();
     throw;
@@ -311,7 +331,7 @@ std::size_t ElasticSolver::bytes() const {
   if (!bound()) return 0;
   const std::size_t n = std::size_t(capacity_), total = std::size_t(capacity_ + coarse_capacity_);
   return (u_unit_ ? 8 : 3) * n * sizeof(float) + total * (1 + sizeof(float)) + kElasticMaxLevels * sizeof(float) +
-         tile_ints_ * sizeof(int);
+         tile_ints_ * sizeof(int) + 2 * kSlot * sizeof(double);
 }
 
 void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, const Voi& voi, const Vec3& skin_vox,
@@ -432,6 +452,21 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.result = result;
   s.trace = trace_ ? trace_->step() : nullptr;
   s.trace_pairs = ElasticTrace::kPairs;
+  // a superposable step (the host's part held; never after a set-up, which forgets the unit
+  // press) starts, and ends where its set stays, a thread a node at full occupancy; the
+  // cooperative kernel then returns at once unless the set changed
+  s.prestarted = s.superpose && elastic_superpose_kernels();
+  s.start_sums = s.start_clear = nullptr;
+  if (s.prestarted) {
+    s.start_sums = start_sums_ + kSlot * start_parity_;
+    s.start_clear = start_sums_ + kSlot * (1 - start_parity_);
+    start_parity_ = 1 - start_parity_;
+    const unsigned grid = unsigned((voi.count() + kStartThreads - 1) / kStartThreads);
+    superpose_start_kernel<<<grid, kStartThreads, 0, stream>>>(s);
+    PALPSIM_CUDA_CHECK(cudaGetLastError());
+    superpose_end_kernel<<<grid, kStartThreads, 0, stream>>>(s);
+    PALPSIM_CUDA_CHECK(cudaGetLastError());
+  }
   launch_chosen(elastic_step_kernel<1>, elastic_step_kernel<2>, s, blocks, voi.count(), stream);
   have_u_ = true;
 }

@@ -329,10 +329,22 @@ TEST_CASE("gpu elastic steps equal the cpu's with the warm start predicted and t
                                                       "0.05 mm deeper, step " + std::to_string(s) + ", " + with);
       superposed += r.superposed;
     }
+    // and back out 0.05 mm a step: the finger pulls the set's outer nodes off as it goes
+    // (elastic_predicted_pull), so steps the host lets superpose find the set changed at
+    // their start and solve (on the GPU: begun by superpose_start_kernel, solved by the
+    // cooperative kernel), the others superpose
+    int superposed_out = 0;
+    for (int s = 11; s >= 0; --s) {
+      const deform::ElasticRun r = check_elastic_step(b, {at, at + in * (6.0 + 0.05 * s)}, tol,
+                                                      "0.05 mm back, step " + std::to_string(s) + ", " + with);
+      superposed_out += r.superposed;
+    }
     if (stiffness) {
       CHECK(superposed >= 6);
+      CHECK(superposed_out >= 1);
     } else {
       CHECK(superposed == 0);
+      CHECK(superposed_out == 0);
     }
   }
 }

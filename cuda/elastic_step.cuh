@@ -68,6 +68,54 @@ struct StepArgs {
 };
 
 
+// what the superposed step's kernels read (superpose_start_kernel, superpose_end_kernel):
+// StepArgs' fields of the same names, a launch's arguments a tenth of StepArgs' size
+struct SuperposeArgs {
+  ElasticPlan plan;
+  View v;
+  double h[3];
+  Vec3f nrm, centre;
+  float radius;
+  int pressing;
+  float depth;
+  int had;
+  int predict;
+  float predict_factor;
+  Vec3f shift_vox;
+  double last_push_n, last_stiffness, last_residual;
+  float* out[3];
+  ElasticCounters* result;
+  double* start_sums;
+  double* start_clear;
+};
+
+// the superposed step's kernels' arguments from the step's
+SuperposeArgs superpose_args(const StepArgs& s) {
+  SuperposeArgs a;
+  a.plan = s.plan;
+  a.v = s.v;
+  for (int c = 0; c < 3; ++c) {
+    a.h[c] = s.h[c];
+    a.out[c] = s.out[c];
+  }
+  a.nrm = s.nrm;
+  a.centre = s.centre;
+  a.radius = s.radius;
+  a.pressing = s.pressing;
+  a.depth = s.depth;
+  a.had = s.had;
+  a.predict = s.predict;
+  a.predict_factor = s.predict_factor;
+  a.shift_vox = s.shift_vox;
+  a.last_push_n = s.last_push_n;
+  a.last_stiffness = s.last_stiffness;
+  a.last_residual = s.last_residual;
+  a.result = s.result;
+  a.start_sums = s.start_sums;
+  a.start_clear = s.start_clear;
+  return a;
+}
+
 // the reductions' ring: each use adds into the next slot and clears the one kRing / 2
 // ahead, which every thread read long ago and which the barrier publishes before its turn
 struct Ring {
@@ -110,14 +158,16 @@ struct NodeRhs {
 
 // the sphere's push (mm along n) of a level-0 node at rest, -1 where it is no free skin
 // node under the sphere (relax_elastic_cpu()'s push)
-__device__ float sphere_push(const StepArgs& a, std::uint8_t fl, int i, int j, int k) {
+template <typename Args>
+__device__ float sphere_push(const Args& a, std::uint8_t fl, int i, int j, int k) {
   if (!a.pressing || !(fl & kElasticSkin) || (fl & kElasticHeld)) return -1.0f;
   const Vec3f rest{float(i * a.h[0]), float(j * a.h[1]), float(k * a.h[2])};
   return deform::elastic_sphere_push(rest, a.centre, a.nrm, a.radius);
 }
 
 // level 0 of the step's plan (level 0's arrays start at 0)
-__device__ Lvl level0_of(const StepArgs& a) {
+template <typename Args>
+__device__ Lvl level0_of(const Args& a) {
   const Vec3i n = a.plan.size[0];
   return Lvl{n, 0, n.x * n.y * n.z, 1.0f, false};
 }
@@ -456,7 +506,8 @@ __device__ void shift_copy(const StepArgs& a, const Step& st) {
 // and contact set zeroed first) the nodes within Hertz's contact area; into `under`,
 // `changed` and `contacts` whether it lies under the sphere, joined or left the set, and is
 // a contact node
-__device__ void start_node(const StepArgs& a, const Lvl& L0, int e, const Field& x0, const Field& x1, bool reactions,
+template <typename Args>
+__device__ void start_node(const Args& a, const Lvl& L0, int e, const Field& x0, const Field& x1, bool reactions,
                            float touch, double& under, double& changed, double& contacts) {
   const View& v = a.v;
   const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
@@ -502,10 +553,12 @@ __device__ void start_node(const StepArgs& a, const Lvl& L0, int e, const Field&
 
 // whether the step's start weighs the last set's reactions, and how near the sphere a node
 // may start and join it (start_node's `reactions` and `touch`)
-__device__ bool start_reactions(const StepArgs& a) {
+template <typename Args>
+__device__ bool start_reactions(const Args& a) {
   return deform::elastic_start_weighs_reactions(ElasticPredict(a.predict), a.shift_vox) && a.v.react != nullptr;
 }
-__device__ float start_touch(const StepArgs& a) {
+template <typename Args>
+__device__ float start_touch(const Args& a) {
   return deform::elastic_start_touch(deform::elastic_shifts(a.shift_vox), ElasticPredict(a.predict), float(a.h[0]));
 }
 
@@ -549,7 +602,8 @@ __device__ void job_start(const StepArgs& a, const Step& st, bool unit_press, co
 }
 
 // node e's field in voxels for the inversion: u / h, as the CPU's u_vox
-__device__ void write_node_field(const StepArgs& a, const Field& u, int e) {
+template <typename Args>
+__device__ void write_node_field(const Args& a, const Field& u, int e) {
   const Vec3f ue = u.at(e);
   a.out[0][e] = float(ue.x / a.h[0]);
   a.out[1][e] = float(ue.y / a.h[1]);
@@ -662,7 +716,8 @@ __device__ void end_step(const StepArgs& a, const Step& st, const Ring& ring, co
 // a superposed step (deform::elastic_superposes) at node e: the last press plus factor unit
 // presses, which start_node() wrote; a contact node's reaction grows by factor times the
 // unit press's; the field in voxels
-__device__ void superpose_node(const StepArgs& a, int e) {
+template <typename Args>
+__device__ void superpose_node(const Args& a, int e) {
   const View& v = a.v;
   write_node_field(a, level0(v.u, v), e);
   if (v.react && (v.flags[e] & kElasticContact)) v.react[e] += a.predict_factor * v.react[v.capacity + e];
@@ -670,7 +725,8 @@ __device__ void superpose_node(const StepArgs& a, int e) {
 
 // a superposed step's counters (`contacts` its contact nodes): the push grows by factor
 // times the last stiffness, the rest is the last solve's
-__device__ ElasticCounters superposed_counters(const StepArgs& a, double contacts) {
+template <typename Args>
+__device__ ElasticCounters superposed_counters(const Args& a, double contacts) {
   ElasticCounters out{};
   out.contact = 1;
   out.settled = 1;
@@ -684,7 +740,8 @@ __device__ ElasticCounters superposed_counters(const StepArgs& a, double contact
 }
 
 // the tissue at rest (nothing under the sphere) at node e: no field
-__device__ void rest_node(const StepArgs& a, int e) {
+template <typename Args>
+__device__ void rest_node(const Args& a, int e) {
   level0(a.v.u, a.v).set(e, Vec3f{0, 0, 0});
   a.out[0][e] = a.out[1][e] = a.out[2][e] = 0.0f;
 }
@@ -701,7 +758,7 @@ __device__ ElasticCounters rest_counters() {
 // step predicted from the unit press along n, no shift, no set-up), a thread a node at full
 // occupancy instead of in the cooperative kernel: start_node() at every node, the sums into
 // a.start_sums; the folds' count cleared for superpose_end_kernel
-__global__ void __launch_bounds__(kStartThreads) superpose_start_kernel(const __grid_constant__ StepArgs a) {
+__global__ void __launch_bounds__(kStartThreads) superpose_start_kernel(const __grid_constant__ SuperposeArgs a) {
   const Lvl L0 = level0_of(a);
   const int e = int(blockIdx.x * blockDim.x + threadIdx.x);
   double sums[3] = {0, 0, 0};  // under the sphere, joined or left, in contact
@@ -717,7 +774,7 @@ __global__ void __launch_bounds__(kStartThreads) superpose_start_kernel(const __
 // nothing lay under the sphere, the superposed step where the set stayed (its field in
 // voxels, reactions, folds and counters), nothing where it changed (the cooperative kernel,
 // launched next with `prestarted`, solves); start_clear cleared
-__global__ void __launch_bounds__(kStartThreads) superpose_end_kernel(const __grid_constant__ StepArgs a) {
+__global__ void __launch_bounds__(kStartThreads) superpose_end_kernel(const __grid_constant__ SuperposeArgs a) {
   const Lvl L0 = level0_of(a);
   const int e = int(blockIdx.x * blockDim.x + threadIdx.x);
   const double under = a.start_sums[0], changed = a.start_sums[1], contacts = a.start_sums[2];

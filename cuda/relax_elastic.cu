@@ -25,6 +25,7 @@
 #include "cuda/relax_elastic.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -120,10 +121,23 @@ const char* pass_name(int pass) {
 class ElasticTrace {
  public:
   static constexpr int kPairs = 8192;  // (pass, ns) pairs a kernel run may note
-  ElasticTrace() { PALPSIM_CUDA_CHECK(cudaMalloc(&dev_, kBytes)); }
+  ElasticTrace() {
+    PALPSIM_CUDA_CHECK(cudaMalloc(&dev_, kBytes));
+    for (cudaEvent_t& e : marks_) PALPSIM_CUDA_CHECK(cudaEventCreate(&e));
+  }
   ~ElasticTrace() {
     print();
+    for (cudaEvent_t e : marks_) cudaEventDestroy(e);
     cudaFree(dev_);
+  }
+  // the step's launches on `stream` (after the set-up's): mark(0) before the first, mark(1)
+  // after superpose_start_kernel, mark(2) after superpose_end_kernel, mark(3) after the
+  // cooperative kernel (a step that is not prestarted marks 0 and 3 alone), and the host's
+  // time from the first launch to the last (us)
+  void mark(int i, cudaStream_t stream) { PALPSIM_CUDA_CHECK(cudaEventRecord(marks_[i], stream)); }
+  void launched(bool prestarted, double host_us) {
+    prestarted_ = prestarted;
+    host_us_ = host_us;
   }
   ElasticTrace(const ElasticTrace&) = delete;
   ElasticTrace& operator=(const ElasticTrace&) = delete;
@@ -144,6 +158,20 @@ class ElasticTrace {
     add(st, step_);
     ++steps_;
     setups_ += setup_ran_;
+    // the launches' event intervals (GPU time, and any wait for the host's next launch)
+    Launches& l = launches_[prestarted_ ? 1 : 0];
+    float ms = 0;
+    if (prestarted_) {
+      for (int i = 0; i < 3; ++i) {
+        PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms, marks_[i], marks_[i + 1]));
+        l.ms[i] += ms;
+      }
+    } else {
+      PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms, marks_[0], marks_[3]));
+      l.ms[2] += ms;
+    }
+    l.host_us += host_us_;
+    ++l.steps;
   }
 
  private:
@@ -183,12 +211,34 @@ class ElasticTrace {
   }
   void print() const {
     if (steps_ == 0) return;
+    for (int p = 0; p < 2; ++p) {
+      const Launches& l = launches_[p];
+      if (l.steps == 0) continue;
+      const double n = double(l.steps);
+      if (p == 1)
+        std::fprintf(stderr,
+                     "elastic launches, %lld steps begun by superpose_start_kernel: events start %.1f us, end %.1f us, "
+                     "cooperative %.1f us; host from the first launch to the last %.1f us\n",
+                     l.steps, 1e3 * l.ms[0] / n, 1e3 * l.ms[1] / n, 1e3 * l.ms[2] / n, l.host_us / n);
+      else
+        std::fprintf(stderr, "elastic launches, %lld steps in the cooperative kernel alone: events %.1f us; host %.1f us\n",
+                     l.steps, 1e3 * l.ms[2] / n, l.host_us / n);
+    }
     std::fprintf(stderr, "elastic trace over %lld steps (%lld set-ups; block 0's clock):\n", steps_, setups_);
     table("setup", setup_, setups_);
     if (setups_) std::fprintf(stderr, "  set-up's end to the step's first barrier %.1f us a step\n", gap_ns_ / 1e3 / double(steps_));
     table("step", step_, steps_);
   }
   unsigned long long* dev_ = nullptr;
+  cudaEvent_t marks_[4] = {};
+  bool prestarted_ = false;
+  double host_us_ = 0;
+  struct Launches {
+    long long steps = 0;
+    double ms[3] = {0, 0, 0};  // start, end, cooperative (summed over steps)
+    double host_us = 0;
+  };
+  Launches launches_[2];  // steps not prestarted, prestarted
   bool setup_ran_ = false;
   std::map<int, Sum> setup_, step_;
   long long steps_ = 0, setups_ = 0;
@@ -457,17 +507,27 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   // cooperative kernel then returns at once unless the set changed
   s.prestarted = s.superpose && elastic_superpose_kernels();
   s.start_sums = s.start_clear = nullptr;
+  const auto t0 = std::chrono::steady_clock::now();
+  if (trace_) trace_->mark(0, stream);
   if (s.prestarted) {
     s.start_sums = start_sums_ + kSlot * start_parity_;
     s.start_clear = start_sums_ + kSlot * (1 - start_parity_);
     start_parity_ = 1 - start_parity_;
     const unsigned grid = unsigned((voi.count() + kStartThreads - 1) / kStartThreads);
-    superpose_start_kernel<<<grid, kStartThreads, 0, stream>>>(s);
+    const SuperposeArgs sa = superpose_args(s);
+    superpose_start_kernel<<<grid, kStartThreads, 0, stream>>>(sa);
     PALPSIM_CUDA_CHECK(cudaGetLastError());
-    superpose_end_kernel<<<grid, kStartThreads, 0, stream>>>(s);
+    if (trace_) trace_->mark(1, stream);
+    superpose_end_kernel<<<grid, kStartThreads, 0, stream>>>(sa);
     PALPSIM_CUDA_CHECK(cudaGetLastError());
+    if (trace_) trace_->mark(2, stream);
   }
   launch_chosen(elastic_step_kernel<1>, elastic_step_kernel<2>, s, blocks, voi.count(), stream);
+  if (trace_) {
+    trace_->mark(3, stream);
+    trace_->launched(s.prestarted != 0,
+                     std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
+  }
   have_u_ = true;
 }
 

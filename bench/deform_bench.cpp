@@ -579,8 +579,7 @@ PALPSIM_BENCH(deform, "ChainMail Table 2, per-stage Table 1 and the elastic step
           << ", \"shared_scratch_mib\": " << bench::json_number(r.shared_mb)
           << ", \"vs_converged\": {\"u_pct\": " << bench::json_number(r.u_err_pct) << ", \"force_pct\": "
           << bench::json_number(r.force_err_pct) << ", \"stiffness_pct\": " << bench::json_number(r.stiffness_err_pct)
-          << ", \"superposed_pct\": " << bench::json_number(r.superposed_pct)
-          << "}}" << (i + 1 < el.size() ? "," : "")
+          << "}, \"superposed_pct\": " << bench::json_number(r.superposed_pct) << "}" << (i + 1 < el.size() ? "," : "")
           << "\n";
       }
       f << "  ]\n}\n";

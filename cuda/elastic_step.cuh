@@ -19,10 +19,6 @@ namespace palpsim::cuda {
 namespace {
 
 namespace cg = cooperative_groups;
-
-// threads a block of the superposed step's kernels (a thread a node)
-constexpr int kStartThreads = 256;
-
 struct StepArgs {
   float k[72];         // the cell matrix, E = 1 kPa, level 0: corner 0's row block (CellMatrix)
   ElasticPlan plan;
@@ -46,13 +42,6 @@ struct StepArgs {
   // the host's part), on the last step's push along n (N), stiffness (N/mm) and residual
   int superpose;
   double last_push_n, last_stiffness, last_residual;
-  // a superposable step's start ran before in superpose_start_kernel (`prestarted`), which
-  // summed under the sphere, joined or left and in contact into start_sums[0 .. 2], and
-  // superpose_end_kernel ended it unless the set changed; that kernel clears start_clear
-  // (the other of the solver's two sets, read by the step before) for the next such step
-  int prestarted;
-  double* start_sums;
-  double* start_clear;
   int max_iterations;
   float tolerance;
   int reciprocal;             // the unit press stops at stiffness_tolerance; force and stiffness by reciprocity
@@ -67,54 +56,6 @@ struct StepArgs {
   int trace_pairs;            // the pairs it holds
 };
 
-
-// what the superposed step's kernels read (superpose_start_kernel, superpose_end_kernel):
-// StepArgs' fields of the same names, a launch's arguments a tenth of StepArgs' size
-struct SuperposeArgs {
-  ElasticPlan plan;
-  View v;
-  double h[3];
-  Vec3f nrm, centre;
-  float radius;
-  int pressing;
-  float depth;
-  int had;
-  int predict;
-  float predict_factor;
-  Vec3f shift_vox;
-  double last_push_n, last_stiffness, last_residual;
-  float* out[3];
-  ElasticCounters* result;
-  double* start_sums;
-  double* start_clear;
-};
-
-// the superposed step's kernels' arguments from the step's
-SuperposeArgs superpose_args(const StepArgs& s) {
-  SuperposeArgs a;
-  a.plan = s.plan;
-  a.v = s.v;
-  for (int c = 0; c < 3; ++c) {
-    a.h[c] = s.h[c];
-    a.out[c] = s.out[c];
-  }
-  a.nrm = s.nrm;
-  a.centre = s.centre;
-  a.radius = s.radius;
-  a.pressing = s.pressing;
-  a.depth = s.depth;
-  a.had = s.had;
-  a.predict = s.predict;
-  a.predict_factor = s.predict_factor;
-  a.shift_vox = s.shift_vox;
-  a.last_push_n = s.last_push_n;
-  a.last_stiffness = s.last_stiffness;
-  a.last_residual = s.last_residual;
-  a.result = s.result;
-  a.start_sums = s.start_sums;
-  a.start_clear = s.start_clear;
-  return a;
-}
 
 // the reductions' ring: each use adds into the next slot and clears the one kRing / 2
 // ahead, which every thread read long ago and which the barrier publishes before its turn
@@ -155,22 +96,6 @@ struct StepShared {
 struct NodeRhs {
   Vec3f f, d;
 };
-
-// the sphere's push (mm along n) of a level-0 node at rest, -1 where it is no free skin
-// node under the sphere (relax_elastic_cpu()'s push)
-template <typename Args>
-__device__ float sphere_push(const Args& a, std::uint8_t fl, int i, int j, int k) {
-  if (!a.pressing || !(fl & kElasticSkin) || (fl & kElasticHeld)) return -1.0f;
-  const Vec3f rest{float(i * a.h[0]), float(j * a.h[1]), float(k * a.h[2])};
-  return deform::elastic_sphere_push(rest, a.centre, a.nrm, a.radius);
-}
-
-// level 0 of the step's plan (level 0's arrays start at 0)
-template <typename Args>
-__device__ Lvl level0_of(const Args& a) {
-  const Vec3i n = a.plan.size[0];
-  return Lvl{n, 0, n.x * n.y * n.z, 1.0f, false};
-}
 
 // the passes of one step (the kernel's arguments, its blocks' shared table, the barrier
 // and the reductions' ring): each is inlined at one call site
@@ -347,8 +272,13 @@ struct Step {
     return part;
   }
 
-  // sphere_push() of a level-0 node
-  __device__ float push(std::uint8_t fl, int i, int j, int k) const { return sphere_push(a, fl, i, j, k); }
+  // the sphere's push (mm along n) of a level-0 node at rest, -1 where it is no free skin
+  // node under the sphere (relax_elastic_cpu()'s push)
+  __device__ float push(std::uint8_t fl, int i, int j, int k) const {
+    if (!a.pressing || !(fl & kElasticSkin) || (fl & kElasticHeld)) return -1.0f;
+    const Vec3f rest{float(i * a.h[0]), float(j * a.h[1]), float(k * a.h[2])};
+    return deform::elastic_sphere_push(rest, a.centre, a.nrm, a.radius);
+  }
 
   struct Solve {
     int iterations;
@@ -500,78 +430,61 @@ __device__ void shift_copy(const StepArgs& a, const Step& st) {
   st.grid_sync(kPassShift);
 }
 
-// the contact set at the step's start at node e (elastic_start_contact): last step's
-// nodes still under the sphere and nodes the last field (as the prediction moves it, from
-// the copies x0 and x1 shift_copy() made) leaves inside it, or on a fresh start (the field
-// and contact set zeroed first) the nodes within Hertz's contact area; into `under`,
-// `changed` and `contacts` whether it lies under the sphere, joined or left the set, and is
-// a contact node
-template <typename Args>
-__device__ void start_node(const Args& a, const Lvl& L0, int e, const Field& x0, const Field& x1, bool reactions,
-                           float touch, double& under, double& changed, double& contacts) {
+// the contact set at the step's start (every thread its nodes, elastic_start_contact): last
+// step's nodes still under the sphere and nodes the last field (as the prediction moves it)
+// leaves inside it, or on a fresh start (the field and contact set zeroed first) the nodes
+// within Hertz's contact area; this thread's count of nodes under the sphere, and into
+// `changed` and `contacts` its nodes that joined or left the set and its contact nodes
+__device__ double start_contact(const StepArgs& a, const Step& st, double& changed, double& contacts) {
   const View& v = a.v;
+  const Lvl& L0 = st.sh.lv[0];
+  const Team all = st.all;
   const Field u = level0(v.u, v), unit = level0(v.u_unit, v);
-  int i, j, k;
-  L0.coords(e, i, j, k);
-  std::uint8_t fl = v.flags[e];
-  Vec3f ue = u.at(e);
-  if (!a.had) {
-    ue = Vec3f{0, 0, 0};
-    u.set(e, ue);
-    fl = std::uint8_t(fl & ~kElasticContact);
-  } else if (a.predict != int(ElasticPredict::kNone)) {
-    const ElasticPredict kind = ElasticPredict(a.predict);
-    Vec3f we = kind == ElasticPredict::kUnit ? unit.at(e) : Vec3f{0, 0, 0};
-    // moved with the tip across n (held nodes keep their 0): the copies shift_copy() made;
-    // the contact set from the moved field's penetration alone (deform::elastic_shifted)
-    if (deform::elastic_shifts(a.shift_vox)) {
+  const bool reactions =
+      deform::elastic_start_weighs_reactions(ElasticPredict(a.predict), a.shift_vox) && v.react != nullptr;
+  const float touch =
+      deform::elastic_start_touch(deform::elastic_shifts(a.shift_vox), ElasticPredict(a.predict), float(a.h[0]));
+  double under = 0;
+  for (int e = all.first; e < L0.count; e += all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    std::uint8_t fl = v.flags[e];
+    Vec3f ue = u.at(e);
+    if (!a.had) {
+      ue = Vec3f{0, 0, 0};
+      u.set(e, ue);
       fl = std::uint8_t(fl & ~kElasticContact);
-      if (!(fl & kElasticHeld)) {
-        ue = deform::elastic_shifted(LoadOrZero{x0, L0}, i, j, k, a.shift_vox);
-        if (kind == ElasticPredict::kUnit) {
-          we = deform::elastic_shifted(LoadOrZero{x1, L0}, i, j, k, a.shift_vox);
-          unit.set(e, we);
+    } else if (a.predict != int(ElasticPredict::kNone)) {
+      const ElasticPredict kind = ElasticPredict(a.predict);
+      Vec3f we = kind == ElasticPredict::kUnit ? unit.at(e) : Vec3f{0, 0, 0};
+      // moved with the tip across n (held nodes keep their 0): the copies shift_copy() made;
+      // the contact set from the moved field's penetration alone (deform::elastic_shifted)
+      if (deform::elastic_shifts(a.shift_vox)) {
+        fl = std::uint8_t(fl & ~kElasticContact);
+        if (!(fl & kElasticHeld)) {
+          ue = deform::elastic_shifted(LoadOrZero{st.x(0), L0}, i, j, k, a.shift_vox);
+          if (kind == ElasticPredict::kUnit) {
+            we = deform::elastic_shifted(LoadOrZero{st.x(1), L0}, i, j, k, a.shift_vox);
+            unit.set(e, we);
+          }
         }
       }
+      ue = deform::elastic_predicted(kind, a.predict_factor, ue, we);
+      u.set(e, ue);
     }
-    ue = deform::elastic_predicted(kind, a.predict_factor, ue, we);
-    u.set(e, ue);
+    const float t = st.push(fl, i, j, k);
+    if (t > 0) under += 1;
+    const bool was = (fl & kElasticContact) != 0;
+    fl = std::uint8_t(fl & ~kElasticContact);
+    const bool pulled = was && reactions &&
+                        deform::elastic_predicted_pull(v.react[e], v.react[v.capacity + e], a.predict_factor);
+    if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth, touch, pulled))
+      fl |= kElasticContact;
+    v.flags[e] = fl;
+    const bool is = (fl & kElasticContact) != 0;
+    changed += double(was != is);
+    contacts += double(is);
   }
-  const float t = sphere_push(a, fl, i, j, k);
-  if (t > 0) under += 1;
-  const bool was = (fl & kElasticContact) != 0;
-  fl = std::uint8_t(fl & ~kElasticContact);
-  const bool pulled =
-      was && reactions && deform::elastic_predicted_pull(v.react[e], v.react[v.capacity + e], a.predict_factor);
-  if (deform::elastic_start_contact(t, dot(ue, a.nrm), was, a.had != 0, a.depth, touch, pulled))
-    fl |= kElasticContact;
-  v.flags[e] = fl;
-  const bool is = (fl & kElasticContact) != 0;
-  changed += double(was != is);
-  contacts += double(is);
-}
-
-// whether the step's start weighs the last set's reactions, and how near the sphere a node
-// may start and join it (start_node's `reactions` and `touch`)
-template <typename Args>
-__device__ bool start_reactions(const Args& a) {
-  return deform::elastic_start_weighs_reactions(ElasticPredict(a.predict), a.shift_vox) && a.v.react != nullptr;
-}
-template <typename Args>
-__device__ float start_touch(const Args& a) {
-  return deform::elastic_start_touch(deform::elastic_shifts(a.shift_vox), ElasticPredict(a.predict), float(a.h[0]));
-}
-
-// the contact set at the step's start (every thread its nodes, start_node()): this thread's
-// count of nodes under the sphere, and into `changed` and `contacts` its nodes that joined
-// or left the set and its contact nodes
-__device__ double start_contact(const StepArgs& a, const Step& st, double& changed, double& contacts) {
-  const Lvl& L0 = st.sh.lv[0];
-  const bool reactions = start_reactions(a);
-  const float touch = start_touch(a);
-  double under = 0;
-  for (int e = st.all.first; e < L0.count; e += st.all.stride)
-    start_node(a, L0, e, st.x(0), st.x(1), reactions, touch, under, changed, contacts);
   return under;
 }
 
@@ -602,8 +515,7 @@ __device__ void job_start(const StepArgs& a, const Step& st, bool unit_press, co
 }
 
 // node e's field in voxels for the inversion: u / h, as the CPU's u_vox
-template <typename Args>
-__device__ void write_node_field(const Args& a, const Field& u, int e) {
+__device__ void write_node_field(const StepArgs& a, const Field& u, int e) {
   const Vec3f ue = u.at(e);
   a.out[0][e] = float(ue.x / a.h[0]);
   a.out[1][e] = float(ue.y / a.h[1]);
@@ -661,16 +573,6 @@ __device__ void contact_sums(const StepArgs& a, const Step& st, bool unit, bool 
   }
 }
 
-// 1 where the cell whose lowest corner is node e is folded by the field in voxels
-// `load_vox(i, j, k)` (deform::cell_folded), else 0
-template <typename LoadVox>
-__device__ double cell_folded_at(const LoadVox& load_vox, const Lvl& L0, int e) {
-  int i, j, k;
-  L0.coords(e, i, j, k);
-  if (i + 1 >= L0.n.x || j + 1 >= L0.n.y || k + 1 >= L0.n.z) return 0;
-  return deform::cell_folded(load_vox, i, j, k) ? 1 : 0;
-}
-
 // after write_field() and a barrier: this thread's count of the cells the field in voxels
 // folds (elastic_inverted_cells() on the CPU)
 __device__ double folded_cells(const StepArgs& a, const Step& st) {
@@ -680,7 +582,12 @@ __device__ double folded_cells(const StepArgs& a, const Step& st) {
     const int e = L0.at(i, j, k);
     return Vec3f{a.out[0][e], a.out[1][e], a.out[2][e]};
   };
-  for (int e = st.all.first; e < L0.count; e += st.all.stride) folded += cell_folded_at(load_vox, L0, e);
+  for (int e = st.all.first; e < L0.count; e += st.all.stride) {
+    int i, j, k;
+    L0.coords(e, i, j, k);
+    if (i + 1 >= L0.n.x || j + 1 >= L0.n.y || k + 1 >= L0.n.z) continue;
+    if (deform::cell_folded(load_vox, i, j, k)) folded += 1;
+  }
   return folded;
 }
 
@@ -713,101 +620,12 @@ __device__ void end_step(const StepArgs& a, const Step& st, const Ring& ring, co
   }
 }
 
-// a superposed step (deform::elastic_superposes) at node e: the last press plus factor unit
-// presses, which start_node() wrote; a contact node's reaction grows by factor times the
-// unit press's; the field in voxels
-template <typename Args>
-__device__ void superpose_node(const Args& a, int e) {
-  const View& v = a.v;
-  write_node_field(a, level0(v.u, v), e);
-  if (v.react && (v.flags[e] & kElasticContact)) v.react[e] += a.predict_factor * v.react[v.capacity + e];
-}
-
-// a superposed step's counters (`contacts` its contact nodes): the push grows by factor
-// times the last stiffness, the rest is the last solve's
-template <typename Args>
-__device__ ElasticCounters superposed_counters(const Args& a, double contacts) {
-  ElasticCounters out{};
-  out.contact = 1;
-  out.settled = 1;
-  out.converged = 1;
-  out.superposed = 1;
-  out.contact_nodes = int(contacts);
-  out.residual = a.last_residual;
-  out.press_n = a.last_push_n + double(a.predict_factor) * a.last_stiffness;
-  out.stiffness_n_per_mm = a.last_stiffness;
-  return out;
-}
-
-// the tissue at rest (nothing under the sphere) at node e: no field
-template <typename Args>
-__device__ void rest_node(const Args& a, int e) {
-  level0(a.v.u, a.v).set(e, Vec3f{0, 0, 0});
-  a.out[0][e] = a.out[1][e] = a.out[2][e] = 0.0f;
-}
-
-// the counters of a step at rest
-__device__ ElasticCounters rest_counters() {
-  ElasticCounters out{};
-  out.settled = 1;
-  out.converged = 1;
-  return out;
-}
-
-// A superposable step's start (the host's part of deform::elastic_superposes held: a warm
-// step predicted from the unit press along n, no shift, no set-up), a thread a node at full
-// occupancy instead of in the cooperative kernel: start_node() at every node, the sums into
-// a.start_sums; the folds' count cleared for superpose_end_kernel
-__global__ void __launch_bounds__(kStartThreads) superpose_start_kernel(const __grid_constant__ SuperposeArgs a) {
-  const Lvl L0 = level0_of(a);
-  const int e = int(blockIdx.x * blockDim.x + threadIdx.x);
-  double sums[3] = {0, 0, 0};  // under the sphere, joined or left, in contact
-  if (e < L0.count) {
-    const Field x0 = every(a.v.x[0], a.v), x1 = every(a.v.x[1], a.v);
-    start_node(a, L0, e, x0, x1, start_reactions(a), start_touch(a), sums[0], sums[1], sums[2]);
-  }
-  block_sum<3>(sums, a.start_sums);
-  if (e == 0) a.result->inverted = 0;
-}
-
-// The end of a step superpose_start_kernel began, a thread a node: the tissue at rest where
-// nothing lay under the sphere, the superposed step where the set stayed (its field in
-// voxels, reactions, folds and counters), nothing where it changed (the cooperative kernel,
-// launched next with `prestarted`, solves); start_clear cleared
-__global__ void __launch_bounds__(kStartThreads) superpose_end_kernel(const __grid_constant__ SuperposeArgs a) {
-  const Lvl L0 = level0_of(a);
-  const int e = int(blockIdx.x * blockDim.x + threadIdx.x);
-  const double under = a.start_sums[0], changed = a.start_sums[1], contacts = a.start_sums[2];
-  if (e == 0)
-    for (int c = 0; c < kSlot; ++c) a.start_clear[c] = 0.0;
-  if (under == 0) {
-    if (e < L0.count) rest_node(a, e);
-    if (e == 0) write_result(a.result, rest_counters());
-    return;
-  }
-  if (changed != 0) return;
-  if (e >= L0.count) return;
-  superpose_node(a, e);
-  // the folds from u, final since the start: the field in voxels as write_node_field() has
-  // it; an atomic a folded cell (a few tens in a deep press)
-  const Field u = level0(a.v.u, a.v);
-  auto load_vox = [&](int i, int j, int k) {
-    const Vec3f ue = u.at(L0.at(i, j, k));
-    return Vec3f{float(ue.x / a.h[0]), float(ue.y / a.h[1]), float(ue.z / a.h[2])};
-  };
-  if (cell_folded_at(load_vox, L0, e) > 0) atomicAdd(&a.result->inverted, 1ULL);
-  if (e == 0) write_result(a.result, superposed_counters(a, contacts));
-}
-
 // what the step solves, in order: contact rounds, a last solve of u when they ran out
 // with the set still changing, the unit press
 enum Job { kRound, kLast, kUnit, kDone };
 
 template <int MinBlocks>
 __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const __grid_constant__ StepArgs a) {
-  // a step superpose_start_kernel began: superpose_end_kernel ended it (at rest, or
-  // superposed) unless the contact set changed (every block reads the same sums)
-  if (a.prestarted && (a.start_sums[0] == 0 || a.start_sums[1] == 0)) return;
   cg::grid_group g = cg::this_grid();
   // the shared table as raw bytes (__shared__ allows no initialisers, which Vec3i has)
   __shared__ alignas(16) unsigned char shared_bytes[sizeof(StepShared)];
@@ -829,21 +647,19 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   out.settled = 1;
   out.converged = 1;
 
-  // the contact set (start_contact), the last field moved with the tip first (shift_copy),
-  // or superpose_start_kernel's
+  // the contact set (start_contact), the last field moved with the tip first (shift_copy)
+  if (a.had && deform::elastic_shifts(a.shift_vox) && a.predict != int(ElasticPredict::kNone)) shift_copy(a, st);
   double started[3] = {0, 0, 0};  // under the sphere, joined or left, in contact
-  if (a.prestarted) {
-    for (int c = 0; c < 3; ++c) started[c] = a.start_sums[c];
-  } else {
-    if (a.had && deform::elastic_shifts(a.shift_vox) && a.predict != int(ElasticPredict::kNone)) shift_copy(a, st);
-    started[0] = start_contact(a, st, started[1], started[2]);
-    reduce(ring, started, g, kPassContact * 16);
-  }
+  started[0] = start_contact(a, st, started[1], started[2]);
+  reduce(ring, started, g, kPassContact * 16);
   if (started[0] == 0) {
     // nothing pressed: the tissue at rest
-    for (int e = all.first; e < L0.count; e += all.stride) rest_node(a, e);
+    for (int e = all.first; e < L0.count; e += all.stride) {
+      u.set(e, Vec3f{0, 0, 0});
+      a.out[0][e] = a.out[1][e] = a.out[2][e] = 0.0f;
+    }
     if (blockIdx.x == 0 && threadIdx.x == 0) {
-      write_result(a.result, rest_counters());
+      write_result(a.result, out);
       v.sums[kRingNext] = ring.slot;
     }
     return;
@@ -851,10 +667,22 @@ __global__ void __launch_bounds__(kThreads, MinBlocks) elastic_step_kernel(const
   out.contact = 1;
 
   if (a.superpose && started[1] == 0) {
-    // superposed (deform::elastic_superposes): the field in voxels, then the folds
-    for (int e = all.first; e < L0.count; e += all.stride) superpose_node(a, e);
+    // superposed (deform::elastic_superposes): the last press plus factor unit presses,
+    // which start_contact() wrote; the contact nodes' reactions and the push grow by factor
+    // times the unit press's, and the field in voxels, then the folds
+    const float factor = a.predict_factor;
+    for (int e = all.first; e < L0.count; e += all.stride) {
+      write_node_field(a, u, e);
+      if (v.react && (v.flags[e] & kElasticContact)) v.react[e] += factor * v.react[v.capacity + e];
+    }
+    out.superposed = 1;
+    out.rounds = 0;
+    out.contact_nodes = int(started[2]);
+    out.residual = a.last_residual;
+    out.press_n = a.last_push_n + double(factor) * a.last_stiffness;
+    out.stiffness_n_per_mm = a.last_stiffness;
     st.grid_sync(kPassField);
-    end_step(a, st, ring, superposed_counters(a, started[2]));
+    end_step(a, st, ring, out);
     return;
   }
 

@@ -25,7 +25,6 @@
 #include "cuda/relax_elastic.h"
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -83,18 +82,6 @@ int elastic_tile_nodes() {
   return n;
 }
 
-// whether a superposable step starts and ends in superpose_start_kernel and
-// superpose_end_kernel at full occupancy (the cooperative kernel solves only where the
-// contact set changed): yes, but with PALPSIM_ELASTIC_SUPERPOSE_KERNELS=0 (a measurement of
-// the step in the cooperative kernel alone)
-bool elastic_superpose_kernels() {
-  static const bool on = [] {
-    const char* s = std::getenv("PALPSIM_ELASTIC_SUPERPOSE_KERNELS");
-    return !(s && s[0] == '0' && s[1] == '\0');
-  }();
-  return on;
-}
-
 // the cooperative launch of the kernel instantiated for elastic_blocks_per_sm()
 template <typename Args>
 void launch_chosen(void (*one)(Args), void (*two)(Args), Args& args, int blocks, long long nodes,
@@ -121,23 +108,10 @@ const char* pass_name(int pass) {
 class ElasticTrace {
  public:
   static constexpr int kPairs = 8192;  // (pass, ns) pairs a kernel run may note
-  ElasticTrace() {
-    PALPSIM_CUDA_CHECK(cudaMalloc(&dev_, kBytes));
-    for (cudaEvent_t& e : marks_) PALPSIM_CUDA_CHECK(cudaEventCreate(&e));
-  }
+  ElasticTrace() { PALPSIM_CUDA_CHECK(cudaMalloc(&dev_, kBytes)); }
   ~ElasticTrace() {
     print();
-    for (cudaEvent_t e : marks_) cudaEventDestroy(e);
     cudaFree(dev_);
-  }
-  // the step's launches on `stream` (after the set-up's): mark(0) before the first, mark(1)
-  // after superpose_start_kernel, mark(2) after superpose_end_kernel, mark(3) after the
-  // cooperative kernel (a step that is not prestarted marks 0 and 3 alone), and the host's
-  // time from the first launch to the last (us)
-  void mark(int i, cudaStream_t stream) { PALPSIM_CUDA_CHECK(cudaEventRecord(marks_[i], stream)); }
-  void launched(bool prestarted, double host_us) {
-    prestarted_ = prestarted;
-    host_us_ = host_us;
   }
   ElasticTrace(const ElasticTrace&) = delete;
   ElasticTrace& operator=(const ElasticTrace&) = delete;
@@ -158,20 +132,6 @@ class ElasticTrace {
     add(st, step_);
     ++steps_;
     setups_ += setup_ran_;
-    // the launches' event intervals (GPU time, and any wait for the host's next launch)
-    Launches& l = launches_[prestarted_ ? 1 : 0];
-    float ms = 0;
-    if (prestarted_) {
-      for (int i = 0; i < 3; ++i) {
-        PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms, marks_[i], marks_[i + 1]));
-        l.ms[i] += ms;
-      }
-    } else {
-      PALPSIM_CUDA_CHECK(cudaEventElapsedTime(&ms, marks_[0], marks_[3]));
-      l.ms[2] += ms;
-    }
-    l.host_us += host_us_;
-    ++l.steps;
   }
 
  private:
@@ -211,34 +171,12 @@ class ElasticTrace {
   }
   void print() const {
     if (steps_ == 0) return;
-    for (int p = 0; p < 2; ++p) {
-      const Launches& l = launches_[p];
-      if (l.steps == 0) continue;
-      const double n = double(l.steps);
-      if (p == 1)
-        std::fprintf(stderr,
-                     "elastic launches, %lld steps begun by superpose_start_kernel: events start %.1f us, end %.1f us, "
-                     "cooperative %.1f us; host from the first launch to the last %.1f us\n",
-                     l.steps, 1e3 * l.ms[0] / n, 1e3 * l.ms[1] / n, 1e3 * l.ms[2] / n, l.host_us / n);
-      else
-        std::fprintf(stderr, "elastic launches, %lld steps in the cooperative kernel alone: events %.1f us; host %.1f us\n",
-                     l.steps, 1e3 * l.ms[2] / n, l.host_us / n);
-    }
     std::fprintf(stderr, "elastic trace over %lld steps (%lld set-ups; block 0's clock):\n", steps_, setups_);
     table("setup", setup_, setups_);
     if (setups_) std::fprintf(stderr, "  set-up's end to the step's first barrier %.1f us a step\n", gap_ns_ / 1e3 / double(steps_));
     table("step", step_, steps_);
   }
   unsigned long long* dev_ = nullptr;
-  cudaEvent_t marks_[4] = {};
-  bool prestarted_ = false;
-  double host_us_ = 0;
-  struct Launches {
-    long long steps = 0;
-    double ms[3] = {0, 0, 0};  // start, end, cooperative (summed over steps)
-    double host_us = 0;
-  };
-  Launches launches_[2];  // steps not prestarted, prestarted
   bool setup_ran_ = false;
   std::map<int, Sum> setup_, step_;
   long long steps_ = 0, setups_ = 0;
@@ -319,14 +257,11 @@ ElasticSolver::~ElasticSolver() { release(); }
 void ElasticSolver::release() {
   trace_.reset();
   // errors are ignored here: it runs from destructors
-  for (void* q : {(void*)u_, (void*)u_unit_, (void*)react_, (void*)flags_, (void*)cell_e_, (void*)lmax_, (void*)tiles_,
-                  (void*)start_sums_})
+  for (void* q : {(void*)u_, (void*)u_unit_, (void*)react_, (void*)flags_, (void*)cell_e_, (void*)lmax_, (void*)tiles_})
     cudaFree(q);
   u_ = u_unit_ = react_ = cell_e_ = lmax_ = nullptr;
   flags_ = nullptr;
   tiles_ = nullptr;
-  start_sums_ = nullptr;
-  start_parity_ = 0;
   tile_ints_ = 0;
   capacity_ = coarse_capacity_ = 0;
   set_up_ = have_u_ = have_unit_ = false;
@@ -358,11 +293,6 @@ void ElasticSolver::bind(const Patient& p, const deform::ElasticParams& params, 
                             ((most.z + kTileZ - 1) / kTileZ);
     tile_ints_ = std::size_t(1 + 2 * tiles);
     PALPSIM_CUDA_CHECK(cudaMalloc(&tiles_, tile_ints_ * sizeof(int)));
-    // both sets of the start sums clear before any step's kernel runs (the steps' streams do
-    // not wait for the legacy default stream's fill)
-    PALPSIM_CUDA_CHECK(cudaMalloc(&start_sums_, 2 * kSlot * sizeof(double)));
-    PALPSIM_CUDA_CHECK(cudaMemset(start_sums_, 0, 2 * kSlot * sizeof(double)));
-    PALPSIM_CUDA_CHECK(cudaStreamSynchronize(0));
   } catch (...) {
     release();
     throw;
@@ -381,7 +311,7 @@ std::size_t ElasticSolver::bytes() const {
   if (!bound()) return 0;
   const std::size_t n = std::size_t(capacity_), total = std::size_t(capacity_ + coarse_capacity_);
   return (u_unit_ ? 8 : 3) * n * sizeof(float) + total * (1 + sizeof(float)) + kElasticMaxLevels * sizeof(float) +
-         tile_ints_ * sizeof(int) + 2 * kSlot * sizeof(double);
+         tile_ints_ * sizeof(int);
 }
 
 void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, const Voi& voi, const Vec3& skin_vox,
@@ -502,32 +432,7 @@ void ElasticSolver::enqueue(const Patient& pat, const ElasticPatient& patient, c
   s.result = result;
   s.trace = trace_ ? trace_->step() : nullptr;
   s.trace_pairs = ElasticTrace::kPairs;
-  // a superposable step (the host's part held; never after a set-up, which forgets the unit
-  // press) starts, and ends where its set stays, a thread a node at full occupancy; the
-  // cooperative kernel then returns at once unless the set changed
-  s.prestarted = s.superpose && elastic_superpose_kernels();
-  s.start_sums = s.start_clear = nullptr;
-  const auto t0 = std::chrono::steady_clock::now();
-  if (trace_) trace_->mark(0, stream);
-  if (s.prestarted) {
-    s.start_sums = start_sums_ + kSlot * start_parity_;
-    s.start_clear = start_sums_ + kSlot * (1 - start_parity_);
-    start_parity_ = 1 - start_parity_;
-    const unsigned grid = unsigned((voi.count() + kStartThreads - 1) / kStartThreads);
-    const SuperposeArgs sa = superpose_args(s);
-    superpose_start_kernel<<<grid, kStartThreads, 0, stream>>>(sa);
-    PALPSIM_CUDA_CHECK(cudaGetLastError());
-    if (trace_) trace_->mark(1, stream);
-    superpose_end_kernel<<<grid, kStartThreads, 0, stream>>>(sa);
-    PALPSIM_CUDA_CHECK(cudaGetLastError());
-    if (trace_) trace_->mark(2, stream);
-  }
   launch_chosen(elastic_step_kernel<1>, elastic_step_kernel<2>, s, blocks, voi.count(), stream);
-  if (trace_) {
-    trace_->mark(3, stream);
-    trace_->launched(s.prestarted != 0,
-                     std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
-  }
   have_u_ = true;
 }
 

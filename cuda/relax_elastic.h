@@ -117,10 +117,6 @@ class ElasticSolver {
   float* cell_e_ = nullptr;
   float* lmax_ = nullptr;
   int* tiles_ = nullptr;      // level 0's tiles with a node that is not held (the set-up's list and marks)
-  // two sets of a superposable step's start sums (StepArgs::start_sums), used in turn: the
-  // one the next such step adds into is start_parity_'s, cleared by the step before
-  double* start_sums_ = nullptr;
-  int start_parity_ = 0;
   std::size_t tile_ints_ = 0;  // the ints tiles_ holds
   // the host's record (ElasticCpu's): the VOI the buffers are set up for, the field's and
   // the unit press's validity, the unit press's normal

@@ -331,8 +331,7 @@ TEST_CASE("gpu elastic steps equal the cpu's with the warm start predicted and t
     }
     // and back out 0.05 mm a step: the finger pulls the set's outer nodes off as it goes
     // (elastic_predicted_pull), so steps the host lets superpose find the set changed at
-    // their start and solve (on the GPU: begun by superpose_start_kernel, solved by the
-    // cooperative kernel), the others superpose
+    // their start and solve, the others superpose
     int superposed_out = 0;
     for (int s = 11; s >= 0; --s) {
       const deform::ElasticRun r = check_elastic_step(b, {at, at + in * (6.0 + 0.05 * s)}, tol,
@@ -402,11 +401,11 @@ TEST_CASE("gpu elastic sessions begun together or batched equal sessions alone; 
   // elastic field, unit press, the last reactions of both at the contact nodes (two floats a
   // node of level 0), flags and moduli of every level (level 0's 32^3 and the
   // coarse levels 17^3, 9^3, 5^3), every level's lmax, level 0's tile list (count,
-  // then list and marks of its 1 x 8 x 8 tiles of 32 x 4 x 4 nodes), the superposed
-  // step's two sets of four start sums; the shared scratch and the body copy counted apart
+  // then list and marks of its 1 x 8 x 8 tiles of 32 x 4 x 4 nodes); the shared scratch
+  // and the body copy counted apart
   const std::size_t n = 32 * 32 * 32, total = n + 17 * 17 * 17 + 9 * 9 * 9 + 5 * 5 * 5;
-  const std::size_t elastic_own = 8 * n * sizeof(float) + total * (1 + sizeof(float)) + 16 * sizeof(float) +
-                                  (1 + 2 * 64) * sizeof(int) + 2 * 4 * sizeof(double);
+  const std::size_t elastic_own =
+      8 * n * sizeof(float) + total * (1 + sizeof(float)) + 16 * sizeof(float) + (1 + 2 * 64) * sizeof(int);
   const DeformMemory m = twins[0]->backend().memory();
   CHECK(m.relax_bytes == elastic_own);
   CHECK(m.shared_scratch_bytes > 0);

@@ -306,7 +306,7 @@ struct ElasticBench {
   }
 
   // how the tip moves in moving(): a voxel along n and back, sliding, pressing 0.05 mm a step
-  enum class Motion { kVoxel, kSlide, kPress };
+  enum class Motion { kVoxel = 0, kSlide = 1, kPress = 2 };
 
   // config c's steps while the tip moves (`motion`; two warm-up steps), their times and how
   // many superposed when asked; the last field
@@ -328,18 +328,30 @@ struct ElasticBench {
     return m->displacement();
   }
 
+  // what a row of `motion` is called
+  static const char* motion_words(Motion motion) {
+    return motion == Motion::kSlide ? "tip sliding half a voxel"
+           : motion == Motion::kPress ? "tip pressing 0.05 mm a step"
+                                      : "tip moving a voxel";
+  }
+
   // while the tip moves a voxel: with the unit press (the elastic force model) and without
   // (eq. 2's force), each from the last field alone and predicted (deform.elastic.predict);
-  // then sliding with the shipped settings; each row's last field, force and stiffness
-  // against the same steps converged (tolerance 1e-6, 12 contact rounds: the history only
-  // picks the VOI)
+  // then sliding and pressing 0.05 mm a step with the shipped settings; each row's last
+  // field, force and stiffness against the same steps converged (tolerance 1e-6, 12 contact
+  // rounds: the history only picks the VOI)
   void moving_rows(std::vector<ElasticRow>& rows) const {
     const DeformConfig conv = converged();
-    DeformStats ref_st, slide_ref_st;
-    const std::vector<Vec3f> u_ref = moving(conv, nullptr, nullptr, ref_st, nullptr);
-    const std::vector<Vec3f> slide_ref = moving(conv, nullptr, nullptr, slide_ref_st, nullptr, Motion::kSlide);
-    DeformStats press_ref_st;
-    const std::vector<Vec3f> press_ref = moving(conv, nullptr, nullptr, press_ref_st, nullptr, Motion::kPress);
+    // each motion's steps converged (indexed by Motion)
+    struct Reference {
+      std::vector<Vec3f> u;
+      DeformStats st;
+    };
+    Reference refs[3];
+    for (const Motion m : {Motion::kVoxel, Motion::kSlide, Motion::kPress}) {
+      Reference& ref = refs[int(m)];
+      ref.u = moving(conv, nullptr, nullptr, ref.st, nullptr, m);
+    }
     struct Moving {
       bool stiffness, predict;
       double stiffness_tolerance;  // 0: the unit press to the round's tolerance
@@ -359,15 +371,12 @@ struct ElasticBench {
       DeformMemory mem;
       int superposed = 0;
       const std::vector<Vec3f> u = moving(c, &relax, &total, st, &mem, mv.motion, &superposed);
-      const bool slide = mv.motion == Motion::kSlide, press = mv.motion == Motion::kPress;
-      const std::vector<Vec3f>& ref = slide ? slide_ref : press ? press_ref : u_ref;
-      const DeformStats& ref_s = slide ? slide_ref_st : press ? press_ref_st : ref_st;
-      ElasticRow r = row(std::string(slide ? "tip sliding half a voxel" : press ? "tip pressing 0.05 mm a step" : "tip moving a voxel") +
-                             (mv.stiffness ? "" : ", no unit press") +
+      const Reference& ref = refs[int(mv.motion)];
+      ElasticRow r = row(std::string(motion_words(mv.motion)) + (mv.stiffness ? "" : ", no unit press") +
                              (mv.predict ? ", predicted" : "") +
                              (mv.stiffness_tolerance > 0 ? reciprocal_words(mv.stiffness_tolerance) : ""),
                          relax, total, st, mem);
-      against(r, u, st, ref, ref_s, mv.stiffness);
+      against(r, u, st, ref.u, ref.st, mv.stiffness);
       r.superposed_pct = relax.empty() ? -1 : 100.0 * superposed / double(relax.size());
       rows.push_back(r);
     }

@@ -208,7 +208,7 @@ struct ElasticBench {
     cfg.settings.elastic = o.elastic;
     cfg.settings.grab_radius_mm = 5;
     cfg.settings.voi_edge = 64;
-    cfg.settings.invert_search = false;  // as the scenes ship
+    cfg.settings.invert_search = true;  // as the scenes ship (deform.invert_search)
     cfg.elastic_stiffness = true;
     // the rows name what they turn on: from the last field alone, the unit press to the
     // round's tolerance unless a row says otherwise

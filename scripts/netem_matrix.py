@@ -299,6 +299,29 @@ def reversals(log_path, swing_n=REVERSAL_SWING_N):
     return count
 
 
+# the client's loop steps every 1 ms; a gap of STALL_MS between two steps in contact is the
+# machine descheduling the client (a link delays replies, never the loop): the force is
+# then held over STALL_MS of motion, which a release turns into energy given back and a
+# dip of the passivity cut, whatever the link did
+STALL_MS = 5.0
+
+
+def longest_stall_ms(log_path):
+    """The longest gap (ms) between two of the client's loop steps in contact (its CSV log)."""
+    worst, prev_t = 0.0, None
+    with open(log_path) as f:
+        next(f)
+        for line in f:
+            c = line.split(",")
+            if len(c) < 11:
+                continue
+            t = float(c[1])
+            if prev_t is not None and c[10] == "1":
+                worst = max(worst, 1000.0 * (t - prev_t))
+            prev_t = t
+    return worst
+
+
 def run_case(build, seconds, case, scene_path, log_path, link, client_args=(), warmup=None, realtime=False):
     """One case: shape the link, the server in one namespace, the client in the other; the
     press starts after the warm-up (None: when the link is up, at most MAX_WARMUP_S; 0: a
@@ -333,6 +356,7 @@ def run_case(build, seconds, case, scene_path, log_path, link, client_args=(), w
                 cli.returncode, name, (cli.stderr or cli.stdout).strip()[-400:]))
         s = summary(cli.stdout)
         s["revs"] = reversals(log_path)
+        s["stall_ms"] = longest_stall_ms(log_path)
         s["name"] = name
         s["rtt"] = rtt
 

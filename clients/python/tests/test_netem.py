@@ -4,7 +4,8 @@ line in a middle namespace). Three of the matrix's cases, one press cycle each (
 plain link (0 ms), 100 ms round trip, and 100 ms with 1 % loss each way. At 100 ms the
 issue's goal holds: the force the client renders is within 5 % (RMS) of the peak of the
 force the server computes for the same poses, the force does not oscillate and the client
-gives back no more energy than it took. Needs root (ip netns, veth); skips with the reason
+gives back no more energy than it took; a case that misses while the machine stalled the
+client's loop runs once more. Needs root (ip netns, veth); skips with the reason
 where it is not root or namespaces cannot be made. The full matrix stays a script."""
 
 from __future__ import annotations
@@ -58,14 +59,22 @@ def test_impaired_links_meet_the_goal_at_100_ms(tmp_path):
     try:
         for case in cases:
             log = tmp_path / ("client-%d.csv" % len(results))
-            results[case[0]] = nm.run_case(str(build), 4.8, case, str(scene), str(log), link, realtime=realtime)
+            s = nm.run_case(str(build), 4.8, case, str(scene), str(log), link, realtime=realtime)
+            # a case that misses a goal while the machine stalled the client's loop in contact
+            # (netem_matrix.STALL_MS says why that is not the link) runs once more; the second
+            # run's figures stand, goals and all
+            if case[1] == nm.GOAL_RTT_MS and nm.misses(s) and s["stall_ms"] > nm.STALL_MS:
+                print("%s: the client's loop stalled %.1f ms in contact and the case missed: %s; once more" % (
+                    case[0], s["stall_ms"], "; ".join(nm.misses(s))))
+                s = nm.run_case(str(build), 4.8, case, str(scene), str(log) + ".again.csv", link, realtime=realtime)
+            results[case[0]] = s
     finally:
         nm.teardown()
     for name, s in results.items():
         print("%-22s %s: mode %s, local %.0f %%, rms %.4f N of peak %.3f N, max %.3f N, missed %d, watchdog %d "
-              "(%d in the warm-up), reversals %d, energy %.3f mJ (server %.3f)" % (
+              "(%d in the warm-up), reversals %d, energy %.3f mJ (server %.3f), longest stall %.1f ms" % (
                   name, link.name, s["mode"], s["local"], s["rms"], s["peak"], s["max"], s["missed"], s["wdog"],
-                  s["warm_trips"], s["revs"], s["e_rend"], s["e_srv"]))
+                  s["warm_trips"], s["revs"], s["e_rend"], s["e_srv"], s["stall_ms"]))
 
     # the plain link: a near client renders the server's force (remote), for most of the run:
     # a stall of over 64 ms on a loaded machine is a slow link for that moment and may take

@@ -429,9 +429,12 @@ void Server::Control::housekeeping() {
                                        sh_.render_seen_generation.load(std::memory_order_acquire),
                                        sh_.publish_seen_generation.load(std::memory_order_acquire),
                                        sh_.patch_seen_generation.load(std::memory_order_acquire)});
+  const std::size_t retired = retired_.size();
   retired_.erase(std::remove_if(retired_.begin(), retired_.end(),
                                 [seen](const std::unique_ptr<World>& w) { return w->generation < seen; }),
                  retired_.end());
+  // an old scene's patient is gone: its memory back to the system at the trimmer's next look
+  if (retired_.size() != retired) sh_.heap_trim_requested.store(true, std::memory_order_release);
   // a summary of new bad pose input (the pose thread does not log)
   if (std::chrono::duration<double>(Clock::now() - last_log_).count() >= opt_.bad_input_log_period_s) {
     last_log_ = Clock::now();

@@ -83,7 +83,7 @@ void Server::start() {
     name_this_thread("palpsim-patch");
     run_patch_worker(*shared_);
   });
-  heap_trimmer_ = std::make_unique<runtime::HeapTrimmer>();
+  heap_trimmer_ = std::make_unique<runtime::HeapTrimmer>(1.0, std::size_t(4) << 20, &shared_->heap_trim_requested);
 }
 
 void Server::stop() {

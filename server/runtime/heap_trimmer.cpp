@@ -59,8 +59,8 @@ bool TrimPolicy::due(std::size_t resident_bytes, std::size_t free_bytes) {
   return free_bytes >= step && (free_bytes - least_free_ >= step || resident_bytes - least_resident_ >= step);
 }
 
-HeapTrimmer::HeapTrimmer(double period_s, std::size_t min_step_bytes)
-    : period_s_(period_s), policy_(min_step_bytes) {
+HeapTrimmer::HeapTrimmer(double period_s, std::size_t min_step_bytes, std::atomic<bool>* requested)
+    : period_s_(period_s), policy_(min_step_bytes), requested_(requested) {
   thread_ = std::thread([this] {
     name_this_thread("palpsim-heap");
     run();
@@ -79,7 +79,10 @@ HeapTrimmer::~HeapTrimmer() {
 void HeapTrimmer::run() {
   std::unique_lock<std::mutex> lock(mu_);
   while (!wake_.wait_for(lock, std::chrono::duration<double>(period_s_), [this] { return stop_; })) {
-    if (!policy_.due(resident_bytes(), heap_figures().free)) continue;
+    // the policy looks every time (its baselines follow memory down); a request trims anyway
+    const bool due = policy_.due(resident_bytes(), heap_figures().free);
+    const bool asked = requested_ && requested_->exchange(false, std::memory_order_acq_rel);
+    if (!due && !asked) continue;
     // the trim itself, without the stop lock (the destructor need not wait for it)
     lock.unlock();
     const auto t0 = std::chrono::steady_clock::now();

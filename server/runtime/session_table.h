@@ -275,6 +275,8 @@ struct ServerShared {
   std::atomic<StreamState*> stream{nullptr};         // (control) frames and bricks, once a scene asked for them
   std::atomic<int> slots_used{0};                    // (control) one past the highest slot index ever opened:
                                                      // the workers' passes over the sessions stop there
+  std::atomic<bool> heap_trim_requested{false};      // (control) an old world was freed: the heap trimmer's
+                                                     // next look trims (runtime/heap_trimmer.h)
 };
 
 }  // namespace palpsim::runtime

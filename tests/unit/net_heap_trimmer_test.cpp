@@ -2,6 +2,7 @@
 // back memory freed in the middle of glibc's heap, which free() alone keeps resident.
 #include <catch2/catch.hpp>
 
+#include <atomic>
 #include <chrono>
 #include <cstdlib>
 #include <cstring>
@@ -101,5 +102,31 @@ TEST_CASE("the trimmer's thread trims by itself once memory is freed", "[net][me
     now = runtime::resident_bytes();
   }
   INFO("resident " << before / kMB << " MB before the free, " << now / kMB << " MB after");
+  CHECK(now + 40 * kMB <= before);
+}
+
+TEST_CASE("a request trims where the policy would not, and is cleared", "[net][memory]") {
+  Fragments f;
+  CHECK(f.sum() > 0);
+  // a step of 1 TB: the policy never trims; only the request can
+  std::atomic<bool> requested{false};
+  runtime::HeapTrimmer trimmer(0.02, std::size_t(1) << 40, &requested);
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  const std::size_t before = runtime::resident_bytes();
+  f.free_half();
+  // unasked, the 48 MB freed stay resident over many looks (40 MB: what other threads
+  // allocate meanwhile leaves room, as above)
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  CHECK(runtime::resident_bytes() + 40 * kMB > before);
+  // asked, the next look trims and clears the request; 10 s covers a loaded machine
+  requested.store(true);
+  std::size_t now = before;
+  const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while ((requested.load() || now + 40 * kMB > before) && std::chrono::steady_clock::now() < end) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    now = runtime::resident_bytes();
+  }
+  INFO("resident " << before / kMB << " MB before the free, " << now / kMB << " MB after the request");
+  CHECK_FALSE(requested.load());
   CHECK(now + 40 * kMB <= before);
 }

@@ -278,24 +278,30 @@ def summary(out):
     }
 
 
-def reversals(log_path, swing_n=REVERSAL_SWING_N):
-    """Turns of the rendered force's magnitude by more than swing_n (a clean press: one)."""
-    count, rising, extreme = 0, True, 0.0
+def log_rows(log_path, columns):
+    """The client's CSV log (palpsim-haptic --log) a step at a time, as its fields, past the
+    header; rows with fewer than `columns` fields (a line cut at exit) are left out."""
     with open(log_path) as f:
         next(f)
         for line in f:
             c = line.split(",")
-            if len(c) < 8:
-                continue
-            m = math.sqrt(sum(float(v) ** 2 for v in c[5:8]))
-            if rising:
-                extreme = max(extreme, m)
-                if m < extreme - swing_n:
-                    count, rising, extreme = count + 1, False, m
-            else:
-                extreme = min(extreme, m)
-                if m > extreme + swing_n:
-                    count, rising, extreme = count + 1, True, m
+            if len(c) >= columns:
+                yield c
+
+
+def reversals(log_path, swing_n=REVERSAL_SWING_N):
+    """Turns of the rendered force's magnitude by more than swing_n (a clean press: one)."""
+    count, rising, extreme = 0, True, 0.0
+    for c in log_rows(log_path, 8):
+        m = math.sqrt(sum(float(v) ** 2 for v in c[5:8]))
+        if rising:
+            extreme = max(extreme, m)
+            if m < extreme - swing_n:
+                count, rising, extreme = count + 1, False, m
+        else:
+            extreme = min(extreme, m)
+            if m > extreme + swing_n:
+                count, rising, extreme = count + 1, True, m
     return count
 
 
@@ -309,16 +315,11 @@ STALL_MS = 5.0
 def longest_stall_ms(log_path):
     """The longest gap (ms) between two of the client's loop steps in contact (its CSV log)."""
     worst, prev_t = 0.0, None
-    with open(log_path) as f:
-        next(f)
-        for line in f:
-            c = line.split(",")
-            if len(c) < 11:
-                continue
-            t = float(c[1])
-            if prev_t is not None and c[10] == "1":
-                worst = max(worst, 1000.0 * (t - prev_t))
-            prev_t = t
+    for c in log_rows(log_path, 11):
+        t = float(c[1])
+        if prev_t is not None and c[10] == "1":
+            worst = max(worst, 1000.0 * (t - prev_t))
+        prev_t = t
     return worst
 
 
